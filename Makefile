@@ -1,0 +1,36 @@
+# make demo / make test create .venv from pyproject.toml on first use (and when it changes).
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed-stamp
+export PREFECT_SERVER_ANALYTICS_ENABLED := false
+export PREFECT_HOME ?= $(CURDIR)/.prefect
+
+.PHONY: demo test test-all bench lint docs clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+demo: $(STAMP)  ## the main job on embedded defaults, outputs under ./data
+	$(VENV)/bin/tcspc demo --out data
+
+test: $(STAMP)  ## the default suite (slow tests excluded)
+	$(PY) -m pytest -q
+
+test-all: $(STAMP)  ## everything, slow tests included
+	$(PY) -m pytest -q -m ''
+
+bench: $(STAMP)  ## benchmarks/datapath.py (add the peer with: pip install -e '.[bench]')
+	$(PY) benchmarks/datapath.py
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+
+docs: $(STAMP)  ## regenerate docs/schemas.md from schemas/
+	$(VENV)/bin/tcspc schema --markdown > docs/schemas.md
+
+clean:
+	rm -rf $(VENV) .prefect data .pytest_cache .hypothesis

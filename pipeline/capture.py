@@ -1,0 +1,262 @@
+"""Raw captures: ``NAME.bin`` (big-endian uint32 words, cycle after cycle) + ``NAME.json``.
+
+Reading streams the file in chunks into one reused buffer, so a capture of any size is
+processed in bounded memory. Every problem with a capture is a :class:`CaptureError` that
+names the file and what is wrong.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from schemas.errors import CaptureError
+from stages.codec import MARKER_MASK, MARKER_VALUE, MAX_TDC
+
+FORMAT = "tcspc-raw"
+VERSION = 1
+#: Words per read: 4 MiB, well inside the bounded-memory budget and large enough to
+#: amortise per-call overhead.
+CHUNK_WORDS = 1 << 20
+
+
+@dataclass(frozen=True)
+class CaptureMeta:
+    """The sidecar of a capture (DESIGN.md "Capture files")."""
+
+    n_tdc: int
+    window_ns: float
+    t_laser_win_ns: float
+    cycles: int
+    kind: str | None = None
+    note: str | None = None
+    truth: dict | None = field(default=None, repr=False)
+    format: str = FORMAT
+    version: int = VERSION
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        return {k: v for k, v in d.items() if v is not None}
+
+    @classmethod
+    def from_dict(cls, d: dict, where: str) -> CaptureMeta:
+        if not isinstance(d, dict):
+            raise CaptureError(f"{where}: sidecar must be a JSON object, found "
+                               f"{type(d).__name__}")
+        if d.get("format") != FORMAT:
+            raise CaptureError(f"{where}: format is {d.get('format')!r}, expected {FORMAT!r}")
+        if d.get("version") != VERSION:
+            raise CaptureError(f"{where}: format version {d.get('version')!r} is not "
+                               f"readable by this software, which knows version {VERSION}")
+        missing = [k for k in ("n_tdc", "window_ns", "t_laser_win_ns", "cycles") if k not in d]
+        if missing:
+            raise CaptureError(f"{where}: missing keys {missing}")
+        n_tdc, cycles = d["n_tdc"], d["cycles"]
+        if not isinstance(n_tdc, int) or not 1 <= n_tdc <= MAX_TDC:
+            raise CaptureError(f"{where}: n_tdc must be an integer in 1..{MAX_TDC}, "
+                               f"found {n_tdc!r}")
+        if not isinstance(cycles, int) or cycles < 0:
+            raise CaptureError(f"{where}: cycles must be a non-negative integer, "
+                               f"found {cycles!r}")
+        for k in ("window_ns", "t_laser_win_ns"):
+            v = d[k]
+            if not isinstance(v, int | float) or not math.isfinite(v) or v <= 0:
+                raise CaptureError(f"{where}: {k} must be a positive number, found {v!r}")
+        known = {f for f in cls.__dataclass_fields__}
+        return cls(**{k: v for k, v in d.items() if k in known})
+
+
+def capture_paths(path: str | os.PathLike) -> tuple[Path, Path]:
+    """``(NAME.bin, NAME.json)`` from any of NAME, NAME.bin or NAME.json."""
+    p = Path(path)
+    if p.suffix in (".bin", ".json"):
+        p = p.with_suffix("")
+    return p.with_name(p.name + ".bin"), p.with_name(p.name + ".json")
+
+
+class Capture:
+    """An open raw capture, validated on open.
+
+    Parameters
+    ----------
+    path : path
+        NAME, NAME.bin or NAME.json.
+    strict : bool
+        When True (the default), a word count that disagrees with ``cycles * n_tdc`` in
+        the sidecar is an error; when False, the file's own length is used.
+    """
+
+    def __init__(self, path: str | os.PathLike, strict: bool = True):
+        self.bin_path, self.json_path = capture_paths(path)
+        if not self.bin_path.is_file():
+            raise CaptureError(f"{self.bin_path}: capture file not found")
+        if not self.json_path.is_file():
+            raise CaptureError(f"{self.json_path}: sidecar not found (every NAME.bin needs "
+                               "a NAME.json beside it)")
+        try:
+            raw = json.loads(self.json_path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise CaptureError(f"{self.json_path}: sidecar is not valid JSON: {exc}") from exc
+        self.meta = CaptureMeta.from_dict(raw, str(self.json_path))
+        size = self.bin_path.stat().st_size
+        if size % 4:
+            raise CaptureError(f"{self.bin_path}: size {size} bytes is not a multiple of 4 "
+                               f"(a truncated word at the end?)")
+        self.n_words = size // 4
+        expected = self.meta.cycles * self.meta.n_tdc
+        if self.n_words != expected and strict:
+            raise CaptureError(
+                f"{self.bin_path}: holds {self.n_words} words, but the sidecar says "
+                f"{self.meta.cycles} cycles x {self.meta.n_tdc} TDCs = {expected}")
+        self._check_addresses()
+
+    @property
+    def name(self) -> str:
+        return self.bin_path.stem
+
+    def _check_addresses(self) -> None:
+        """Refuse a sidecar ``n_tdc`` that the words' address fields contradict."""
+        n_tdc = self.meta.n_tdc
+        head = self.read_words(0, min(self.n_words, 64 * n_tdc))
+        ok = (head & MARKER_MASK) == MARKER_VALUE
+        if ok.sum() < n_tdc:
+            return  # too few well-formed words to judge; they are counted as malformed
+        addr = ((head >> 1) & 0xFF)[ok]
+        pos = (np.arange(head.size) % n_tdc)[ok]
+        if np.mean(addr != pos) > 0.5:
+            guess = int(addr.max()) + 1
+            raise CaptureError(
+                f"{self.bin_path}: n_tdc={n_tdc} in the sidecar does not match the words' "
+                f"addresses ({np.mean(addr != pos):.0%} of the first {head.size} words sit "
+                f"at the wrong position; the addresses run 0..{guess - 1}, suggesting "
+                f"n_tdc={guess})")
+
+    def read_words(self, first: int, count: int) -> np.ndarray:
+        """``count`` native uint32 words starting at word ``first`` (a fresh array)."""
+        count = max(0, min(count, self.n_words - first))
+        out = np.empty(count, np.uint32)
+        with open(self.bin_path, "rb") as fh:
+            fh.seek(4 * first)
+            self._readinto(fh, out)
+        return out
+
+    def _readinto(self, fh, out: np.ndarray) -> None:
+        n = fh.readinto(memoryview(out).cast("B"))
+        if n != out.nbytes:
+            raise CaptureError(f"{self.bin_path}: file shrank while reading "
+                               f"(got {n} of {out.nbytes} bytes)")
+        if sys.byteorder == "little":
+            out.byteswap(inplace=True)
+
+    def iter_chunks(self, chunk_words: int = CHUNK_WORDS) -> Iterator[tuple[int, np.ndarray]]:
+        """Yield ``(first_word, words)`` over the whole capture in arrival order.
+
+        ``words`` is a view of one reused buffer (native uint32): use it before asking
+        for the next chunk, or copy it. Chunks are whole cycles where the file allows.
+        """
+        n_tdc = self.meta.n_tdc
+        chunk_words = max(n_tdc, chunk_words // n_tdc * n_tdc)
+        buf = np.empty(chunk_words, np.uint32)
+        with open(self.bin_path, "rb") as fh:
+            for first in range(0, self.n_words, chunk_words):
+                n = min(chunk_words, self.n_words - first)
+                view = buf[:n]
+                self._readinto(fh, view)
+                yield first, view
+
+
+class CaptureWriter:
+    """Write a capture: words stream into ``NAME.bin``, the sidecar is written on close.
+
+    Both files are written under temporary names and renamed into place on a clean close,
+    so a crash leaves no capture that looks complete.
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np
+    >>> from stages.codec import encode_words
+    >>> d = tempfile.mkdtemp()
+    >>> with CaptureWriter(d + "/x", n_tdc=2, window_ns=80.0, t_laser_win_ns=140.0) as w:
+    ...     w.write(encode_words(0, 0, 0, 0, [0, 1, 0, 1]))
+    >>> Capture(d + "/x.bin").meta.cycles
+    2
+    """
+
+    def __init__(self, path: str | os.PathLike, n_tdc: int, window_ns: float = 80.0,
+                 t_laser_win_ns: float = 140.0, kind: str | None = None,
+                 note: str | None = None, truth: dict | None = None):
+        self.bin_path, self.json_path = capture_paths(path)
+        self.bin_path.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp_bin = self.bin_path.with_name(f".{self.bin_path.name}.tmp-{os.getpid()}")
+        self._meta = dict(n_tdc=n_tdc, window_ns=float(window_ns),
+                          t_laser_win_ns=float(t_laser_win_ns), kind=kind, note=note,
+                          truth=truth)
+        CaptureMeta.from_dict({**self._meta, "cycles": 0, "format": FORMAT,
+                               "version": VERSION}, str(self.json_path))
+        self._fh = open(self._tmp_bin, "wb")
+        self.n_words = 0
+
+    def write(self, words: np.ndarray) -> None:
+        """Append native uint32 words (written big-endian)."""
+        words = np.asarray(words)
+        if words.dtype != np.uint32:
+            raise TypeError(f"{self.bin_path}: words must be uint32, found {words.dtype}")
+        self._fh.write(words.astype(">u4", copy=False).tobytes())
+        self.n_words += words.size
+
+    def set_truth(self, truth: dict) -> None:
+        self._meta["truth"] = truth
+
+    def close(self) -> CaptureMeta:
+        n_tdc = self._meta["n_tdc"]
+        if self.n_words % n_tdc:
+            self.abort()
+            raise CaptureError(f"{self.bin_path}: {self.n_words} words is not a whole "
+                               f"number of cycles of {n_tdc} TDCs")
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+        self._fh.close()
+        meta = CaptureMeta.from_dict({**self._meta, "cycles": self.n_words // n_tdc,
+                                      "format": FORMAT, "version": VERSION},
+                                     str(self.json_path))
+        tmp_json = self.json_path.with_name(f".{self.json_path.name}.tmp-{os.getpid()}")
+        tmp_json.write_text(json.dumps(meta.to_dict(), indent=1, default=_jsonable))
+        os.replace(self._tmp_bin, self.bin_path)
+        os.replace(tmp_json, self.json_path)
+        return meta
+
+    def abort(self) -> None:
+        self._fh.close()
+        self._tmp_bin.unlink(missing_ok=True)
+
+    def __enter__(self) -> CaptureWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def _jsonable(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def write_capture(path: str | os.PathLike, words: np.ndarray, n_tdc: int,
+                  **meta) -> CaptureMeta:
+    """Write a whole capture at once (see :class:`CaptureWriter`)."""
+    with CaptureWriter(path, n_tdc, **meta) as w:
+        w.write(np.asarray(words, np.uint32))
+    return Capture(path).meta

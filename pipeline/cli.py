@@ -1,0 +1,193 @@
+"""The ``tcspc`` command line (DESIGN.md "Command line")."""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import click
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeRemainingColumn,
+    TransferSpeedColumn,
+)
+from rich.table import Table
+
+from schemas import ALL_SPECS, TcspcError, WORD_CLASSES
+from pipeline.capture import Capture, CaptureWriter
+from pipeline.caldir import read_bounds
+from pipeline.offline import decode_capture, histogram_capture, write_histograms
+
+err = Console(stderr=True)
+out = Console()
+
+
+@contextmanager
+def _progress(total_words: int, passes: int, quiet: bool, label: str):
+    """A progress bar over the words of a capture (all passes), on stderr."""
+    if quiet:
+        yield lambda n: None
+        return
+    cols = [TextColumn(f"[bold]{label}"), BarColumn(), MofNCompleteColumn(),
+            TextColumn("words"), TransferSpeedColumn(), TimeRemainingColumn()]
+    with Progress(*cols, console=err, transient=False) as bar:
+        task = bar.add_task(label, total=total_words * passes)
+        # TransferSpeedColumn shows "bytes"/s of the completed count: 1 word = 4 bytes.
+        yield lambda n: bar.advance(task, n)
+
+
+def _summary(counts, n_words: int, seconds: float, bounds_source: str) -> None:
+    total = int(sum(counts))
+    table = Table(title="word classes", show_footer=True)
+    table.add_column("class", footer="total")
+    table.add_column("words", justify="right", footer=f"{total:,}")
+    table.add_column("share", justify="right", footer="100%" if total else "-")
+    for name, c in zip(WORD_CLASSES, counts, strict=True):
+        table.add_row(name, f"{int(c):,}", f"{100 * int(c) / total:.4g}%" if total else "-")
+    err.print(table)
+    err.print(f"{n_words:,} words read in {seconds:.2f} s "
+              f"({n_words / max(seconds, 1e-9) / 1e6:.1f} M words/s); "
+              f"artifact bounds: {bounds_source}")
+    if total != n_words:  # every word is accounted for, or this is a bug worth stopping on
+        raise click.ClickException(f"accounting error: classes add up to {total}, "
+                                   f"{n_words} words were read")
+
+
+def _open(path: str, calibration: str | None):
+    cap = Capture(path)
+    bounds = read_bounds(calibration, cap.meta.n_tdc) if calibration else None
+    return cap, bounds
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="tcspc-lidar")
+def cli() -> None:
+    """tcspc-lidar: raw SPAD/TDC words to calibrated distances."""
+
+
+_calibration = click.option("--calibration", "calibration", type=click.Path(exists=True),
+                            help="Calibration directory (Nmin/Nmax per TDC). Without it the "
+                                 "artifact bounds are estimated from the capture (2 passes).")
+_engine = click.option("--engine", type=click.Choice(["numba", "numpy"]), default=None,
+                       help="Hot-path engine (default: numba where installed).")
+_quiet = click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
+
+
+@cli.command()
+@click.argument("capture", type=click.Path())
+@click.option("--out", required=True, type=click.Path(), help="events.parquet to write")
+@click.option("--include-no-hit", is_flag=True,
+              help="Also write no_hit words as rows (they are always counted).")
+@_calibration
+@_engine
+@_quiet
+def decode(capture, out, include_no_hit, calibration, engine, quiet) -> None:
+    """Decode CAPTURE (NAME.bin) into a decoded_events parquet file."""
+    cap, bounds = _open(capture, calibration)
+    t0 = time.perf_counter()
+    with _progress(cap.n_words, 1 + (bounds is None), quiet, "decode") as step:
+        counts, bounds = decode_capture(cap, out, bounds, include_no_hit, engine, step)
+    if not quiet:
+        _summary(counts, cap.n_words, time.perf_counter() - t0, bounds.source)
+        err.print(f"wrote {out}")
+
+
+@cli.command()
+@click.argument("capture", type=click.Path())
+@click.option("--out", required=True, type=click.Path(), help="hist.parquet to write")
+@click.option("--measurement", default=None, help="Measurement name (default: capture name)")
+@_calibration
+@_engine
+@_quiet
+def histogram(capture, out, measurement, calibration, engine, quiet) -> None:
+    """Per-TDC histograms of first-stage codes of CAPTURE's hit words."""
+    cap, bounds = _open(capture, calibration)
+    t0 = time.perf_counter()
+    with _progress(cap.n_words, 1 + (bounds is None), quiet, "histogram") as step:
+        state, bounds = histogram_capture(cap, bounds, engine, step)
+    write_histograms(state, measurement or cap.name, out,
+                     {"capture": cap.bin_path, "bounds": bounds.source})
+    if not quiet:
+        _summary(state.class_counts.sum(axis=1), cap.n_words, time.perf_counter() - t0,
+                 bounds.source)
+        err.print(f"wrote {out}")
+
+
+@cli.command()
+@click.argument("out", type=click.Path())
+@click.option("--cycles", default=40_000, show_default=True, type=click.IntRange(1))
+@click.option("--n-tdc", default=128, show_default=True, type=click.IntRange(1, 256))
+@click.option("--hit-prob", default=0.05, show_default=True, type=click.FloatRange(0, 1))
+@click.option("--peak-code", default=300.0, show_default=True)
+@click.option("--seed", default=0, show_default=True)
+def pattern(out, cycles, n_tdc, hit_prob, peak_code, seed) -> None:
+    """Write a synthetic capture OUT(.bin) with a known class mix (not the simulator).
+
+    Its sidecar's truth holds the intended class counts, so decode and histogram can be
+    checked against it.
+    """
+    from stages.testpattern import pattern_words
+
+    words, truth = pattern_words(cycles, n_tdc, hit_prob=hit_prob, peak_code=peak_code,
+                                 rng=seed)
+    with CaptureWriter(out, n_tdc, kind="pattern", note=f"pattern_words seed={seed}") as w:
+        w.write(words)
+        w.set_truth({"generator": "stages.testpattern.pattern_words",
+                     "class_counts": dict(zip(WORD_CLASSES,
+                                              truth.class_counts.sum(axis=1).tolist(),
+                                              strict=True)),
+                     "n_min": truth.n_min.tolist(), "n_max": truth.n_max.tolist()})
+    err.print(f"wrote {w.bin_path} ({words.size:,} words, {cycles:,} cycles)")
+
+
+@cli.command()
+@click.option("--markdown", is_flag=True, help="Markdown tables (as in docs/schemas.md).")
+def schema(markdown) -> None:
+    """Print every Arrow schema of the project with its version and units."""
+    for spec in ALL_SPECS:
+        if markdown:
+            out.print(spec.doc_table() + "\n", markup=False, highlight=False)
+        else:
+            out.print(f"[bold]{spec.name}[/bold] {spec.version}")
+            out.print(str(spec.schema), markup=False, highlight=False)
+
+
+@cli.command()
+@click.option("--out", default="data", show_default=True, type=click.Path())
+@click.option("--cycles", default=100_000, show_default=True, type=click.IntRange(1))
+def demo(out, cycles) -> None:
+    """The main job on embedded defaults (what `make demo` runs)."""
+    from pipeline.demo import run_demo
+
+    result = run_demo(out, cycles)
+    if not result["exact"]:
+        raise click.ClickException("demo: histograms differ from the intended ones")
+
+
+def main() -> None:
+    """Entry point: project errors become one clear line and exit status 2."""
+    try:
+        cli.main(standalone_mode=False)
+    except click.exceptions.Abort:
+        err.print("aborted")
+        sys.exit(130)
+    except click.ClickException as exc:
+        exc.show()
+        sys.exit(exc.exit_code)
+    except TcspcError as exc:
+        err.print(f"[red]error:[/red] {exc}", highlight=False)
+        sys.exit(2)
+    except OSError as exc:
+        err.print(f"[red]error:[/red] {exc}", highlight=False)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

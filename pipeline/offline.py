@@ -1,0 +1,84 @@
+"""Offline drivers: run the data-path stages over a whole capture file in bounded memory."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+
+from schemas.outputs import HISTOGRAMS
+from schemas.words import DECODED_EVENTS, N_CLASSES, WORD_CLASSES
+from pipeline.atomic import atomic_path
+from pipeline.capture import Capture
+from stages.artifact import ArtifactBounds, estimate_bounds
+from stages.decode import decode_batch
+from stages.histogram import HistogramAccumulator, HistogramState
+
+Progress = Callable[[int], None]  #: called with the number of words just processed
+
+
+def _noop(_: int) -> None:
+    pass
+
+
+def estimate_capture_bounds(cap: Capture, engine: str | None = None,
+                            progress: Progress = _noop) -> ArtifactBounds:
+    """Pass 1 without a calibration: histogram D2nd per TDC and find the valid block."""
+    acc = HistogramAccumulator(cap.meta.n_tdc, engine=engine, step_id="bounds", mode="d2nd")
+    for first, words in cap.iter_chunks():
+        acc.update(words, first)
+        progress(words.size)
+    return estimate_bounds(acc.snapshot().hits)
+
+
+def histogram_capture(cap: Capture, bounds: ArtifactBounds | None = None,
+                      engine: str | None = None,
+                      progress: Progress = _noop) -> tuple[HistogramState, ArtifactBounds]:
+    """Histogram a whole capture; without ``bounds`` they are estimated first (two passes)."""
+    if bounds is None:
+        bounds = estimate_capture_bounds(cap, engine, progress)
+    acc = HistogramAccumulator(cap.meta.n_tdc, bounds, engine=engine)
+    for first, words in cap.iter_chunks():
+        acc.update(words, first)
+        progress(words.size)
+    return acc.snapshot(), bounds
+
+
+def write_histograms(state: HistogramState, measurement: str, out: str | Path,
+                     provenance: dict[str, str] | None = None) -> None:
+    """Write a ``histograms`` parquet file atomically, with provenance in its metadata."""
+    table = state.to_table(measurement)
+    meta = dict(table.schema.metadata or {})
+    meta.update({f"tcspc.{k}".encode(): str(v).encode() for k, v in (provenance or {}).items()})
+    table = table.replace_schema_metadata(meta)
+    with atomic_path(out) as tmp:
+        pq.write_table(table, tmp)
+
+
+def decode_capture(cap: Capture, out: str | Path, bounds: ArtifactBounds | None = None,
+                   include_no_hit: bool = False, engine: str | None = None,
+                   progress: Progress = _noop) -> tuple[np.ndarray, ArtifactBounds]:
+    """Decode a capture into a ``decoded_events`` parquet file; returns the class counts."""
+    if bounds is None:
+        bounds = estimate_capture_bounds(cap, engine, progress)
+    counts = np.zeros(N_CLASSES, np.int64)
+    schema = DECODED_EVENTS.schema.with_metadata({
+        **DECODED_EVENTS.schema.metadata, b"tcspc.capture": str(cap.bin_path).encode(),
+        b"tcspc.bounds": bounds.source.encode()})
+    with atomic_path(out) as tmp, pq.ParquetWriter(tmp, schema) as writer:
+        for first, words in cap.iter_chunks():
+            batch, cls = decode_batch(words, cap.meta.n_tdc, first, bounds, include_no_hit)
+            writer.write_batch(batch.replace_schema_metadata(schema.metadata))
+            counts += np.bincount(cls, minlength=N_CLASSES)
+            progress(words.size)
+    return counts, bounds
+
+
+def class_summary(counts) -> dict[str, int]:
+    return {name: int(counts[i]) for i, name in enumerate(WORD_CLASSES)}
+
+
+__all__ = ["HISTOGRAMS", "class_summary", "decode_capture", "estimate_capture_bounds",
+           "histogram_capture", "write_histograms"]

@@ -1,0 +1,36 @@
+"""Arrow schemas and file-format contracts. Imports pyarrow only.
+
+Every dataset is defined once here, with a name, a version and units in field metadata.
+"""
+
+from schemas.core import SchemaSpec, field, validate
+from schemas.errors import (
+    CalibrationError,
+    CaptureError,
+    SchemaMismatch,
+    SchemaVersionError,
+    TcspcError,
+)
+from schemas.outputs import CALIBRATION_INL, CALIBRATION_TDC, HISTOGRAMS, RANGES
+from schemas.words import (
+    ARTIFACT,
+    DECODED_EVENTS,
+    HIT,
+    INVALID_PHASE,
+    MALFORMED,
+    N_CLASSES,
+    N_CODES,
+    N_CODES_2ND,
+    NO_HIT,
+    RAW_WORDS,
+    WORD_CLASSES,
+)
+
+ALL_SPECS = (RAW_WORDS, DECODED_EVENTS, HISTOGRAMS, CALIBRATION_TDC, CALIBRATION_INL, RANGES)
+
+__all__ = [
+    "ALL_SPECS", "ARTIFACT", "CALIBRATION_INL", "CALIBRATION_TDC", "CalibrationError",
+    "CaptureError", "DECODED_EVENTS", "HISTOGRAMS", "HIT", "INVALID_PHASE", "MALFORMED",
+    "N_CLASSES", "N_CODES", "N_CODES_2ND", "NO_HIT", "RANGES", "RAW_WORDS", "SchemaMismatch",
+    "SchemaSpec", "SchemaVersionError", "TcspcError", "WORD_CLASSES", "field", "validate",
+]

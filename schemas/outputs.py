@@ -1,0 +1,56 @@
+"""Contracts of the products: histograms, calibration tables and ranges (DESIGN.md "Outputs")."""
+
+from __future__ import annotations
+
+import pyarrow as pa
+
+from schemas.core import SchemaSpec, field
+from schemas.words import N_CODES
+
+HISTOGRAMS = SchemaSpec("histograms", "1.0", (
+    field("measurement", pa.string(), "", "name of the measurement (capture or run)"),
+    field("tdc", pa.uint16(), "", "TDC address (0-based)"),
+    field("cycles", pa.uint64(), "cycle", "DAQ cycles this TDC was read in (every word at "
+          "its position counts, whatever its class)"),
+    field("counts", pa.list_(pa.uint64(), N_CODES), "count",
+          "hits per first-stage code D1st = 0..511"),
+    # Added fields (minor growth of the contract): the word-class accounting per TDC.
+    field("n_hit", pa.uint64(), "word", "hit words (sum of counts)"),
+    field("n_no_hit", pa.uint64(), "word", "no_hit words (no START in the cycle)"),
+    field("n_artifact", pa.uint64(), "word", "artifact words (D2nd outside [Nmin, Nmax])"),
+    field("n_invalid_phase", pa.uint64(), "word", "words with a bubble in a phase code"),
+    field("n_malformed", pa.uint64(), "word", "words with bad markers or address"),
+))
+
+CALIBRATION_TDC = SchemaSpec("calibration_tdc", "1.0", (
+    field("tdc", pa.uint16(), "", "TDC address (0-based)"),
+    field("lsb_ps", pa.float64(), "ps", "LSB at the density test's intensity"),
+    field("lsb_poly", pa.list_(pa.float64(), 4), "ps",
+          "LSB as a cubic in detections per pixel per cycle (eq. 5.1), c0..c3, on the "
+          "scaled x recorded in meta.json"),
+    field("n_min", pa.uint16(), "LSB2", "minimum valid second-stage code Nmin (sec. 3.2)"),
+    field("n_max", pa.uint16(), "LSB2", "maximum valid second-stage code Nmax"),
+    field("n_th", pa.uint16(), "LSB2", "minimum D2nd when P1st = 0 (Nth, eq. 3.4)"),
+    field("pdm", pa.uint16(), "LSB2", "minimum D2nd when P1st = 4 (PDM, eq. 3.4)"),
+    field("delay_ps", pa.float64(), "ps", "system delay T_delay (eq. 5.3)", nullable=True),
+))
+
+CALIBRATION_INL = SchemaSpec("calibration_inl", "1.0", (
+    field("tdc", pa.uint16(), "", "TDC address (0-based)"),
+    field("code", pa.uint16(), "LSB", "first-stage code D1st"),
+    field("width_lsb", pa.float64(), "LSB", "code bin width from the density test"),
+    field("dnl_lsb", pa.float64(), "LSB", "differential non-linearity"),
+    field("inl_lsb", pa.float64(), "LSB", "integral non-linearity"),
+))
+
+RANGES = SchemaSpec("ranges", "1.0", (
+    field("measurement", pa.string(), "", "name of the measurement"),
+    field("tdc", pa.uint16(), "", "TDC address (0-based)"),
+    field("distance_m", pa.float64(), "m", "estimated distance (eq. 5.4)"),
+    field("sigma_m", pa.float64(), "m", "one-sigma uncertainty of distance_m"),
+    field("fwhm_m", pa.float64(), "m", "FWHM of the return"),
+    field("signal_counts", pa.float64(), "count", "estimated signal detections"),
+    field("background_per_bin", pa.float64(), "count", "estimated background per code"),
+    field("detected", pa.bool_(), "", "detection decision at the stated false-alarm rate"),
+    field("estimator", pa.string(), "", "name of the estimator"),
+))

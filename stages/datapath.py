@@ -1,0 +1,267 @@
+"""The fused hot path: decode + classify + histogram of raw words in one pass.
+
+Two engines compute the same thing and are tested to agree with each other and with the
+reference :func:`stages.codec.classify_words`:
+
+``numpy``
+    Table-driven. Each native uint32 word is viewed as two uint16 halves. The low half,
+    XORed with the expected marker/address pattern of its position, indexes a 64 Ki table
+    ``lut_lo``; ``high_half * n_tdc + position`` indexes a per-TDC table ``lut_hi`` (the
+    artifact bounds are folded into it). Their sum holds ``D1st * n_tdc + position`` in its
+    low part and, above it, ``(lo_state + 4 * hi_state) * n_tdc * 512``: each half's
+    table adds its own state (ok, zero, invalid, malformed; the high half also artifact),
+    so the sum is the final key, one ``bincount`` per block counts every word, and the 24
+    state pairs are folded into the five classes once per block. No boolean-mask copies. Sub-chunks are sized to stay in L2 and every temporary is
+    preallocated. Keys and tables are code-major (``code * n_tdc + position``): position-
+    major strides of 4 KiB put the no-hit words of a cycle into one cache set and ran
+    five times slower.
+``numba``
+    One compiled loop over the words with the same semantics.
+
+State is two arrays: ``hits`` (n_tdc, n_bins) of uint64 and ``class_counts``
+(N_CLASSES, n_tdc) of uint64. The per-TDC cycle count is the column sum of
+``class_counts``: every word at a TDC's position is one cycle of that TDC.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from schemas.words import (
+    ARTIFACT,
+    HIT,
+    INVALID_PHASE,
+    MALFORMED,
+    N_CLASSES,
+    N_CODES,
+    N_CODES_2ND,
+    NO_HIT,
+)
+from stages.artifact import ArtifactBounds
+from stages.codec import MARKER_MASK, MARKER_VALUE, MAX_TDC, PHASE_DECODE
+
+try:  # numba is a dependency, but the numpy path must work (and is tested) without it
+    import numba
+except ImportError:  # pragma: no cover - exercised only where numba is missing
+    numba = None
+
+ENGINES = ("numba", "numpy")
+#: Words per numpy sub-chunk: ~6 int32 temporaries of this length stay within L2.
+CHUNK_WORDS = 1 << 15
+#: Words per bincount: large enough that the (N_CLASSES * n_tdc * 512) output is cheap.
+BLOCK_WORDS = 1 << 22
+
+# States of each half; a word's key is low + (lo_state + N_LO * hi_state) * n_low, so the
+# two table lookups add up to the final bincount key with no third lookup.
+_LO_OK, _LO_ZERO, _LO_INV, _LO_MAL = range(4)
+_HI_OK, _HI_ART, _HI_ZERO, _HI_ZERO_ART, _HI_INV, _HI_MAL = range(6)
+_N_LO, _N_HI = 4, 6
+
+
+def default_engine() -> str:
+    """numba where it is installed, else numpy."""
+    return "numba" if numba is not None else "numpy"
+
+
+def _state_classes() -> np.ndarray:
+    """Class code of each (hi_state, lo_state) pair, with DESIGN.md's precedence."""
+    cls = np.full((_N_HI, _N_LO), HIT, np.int64)
+    for hs in range(_N_HI):
+        for ls in range(_N_LO):
+            if hs == _HI_MAL or ls == _LO_MAL:
+                cls[hs, ls] = MALFORMED
+            elif hs == _HI_INV or ls == _LO_INV:
+                cls[hs, ls] = INVALID_PHASE
+            elif hs in (_HI_ZERO, _HI_ZERO_ART) and ls == _LO_ZERO:
+                cls[hs, ls] = NO_HIT
+            elif hs in (_HI_ART, _HI_ZERO_ART):
+                cls[hs, ls] = ARTIFACT
+    return cls
+
+
+STATE_CLASSES = _state_classes()
+
+
+@dataclass(frozen=True)
+class WordTables:
+    """Lookup tables of the numpy engine for one TDC count, bounds and histogram mode.
+
+    ``mode="d1st"`` histograms D1st over hits (512 bins per TDC); ``mode="d2nd"``
+    histograms D2nd over hit candidates (256 bins per TDC), which is what
+    :func:`stages.artifact.estimate_bounds` needs.
+    """
+
+    n_tdc: int
+    bounds: ArtifactBounds
+    mode: str = "d1st"
+    def __post_init__(self):
+        if not 1 <= self.n_tdc <= MAX_TDC:
+            raise ValueError(f"n_tdc must be in 1..{MAX_TDC}, found {self.n_tdc}")
+        if self.bounds.n_tdc != self.n_tdc:
+            raise ValueError(f"bounds are for {self.bounds.n_tdc} TDCs, data has {self.n_tdc}")
+        if self.mode not in ("d1st", "d2nd"):
+            raise ValueError(f"mode must be 'd1st' or 'd2nd', found {self.mode!r}")
+
+    @cached_property
+    def in_block(self) -> np.ndarray:
+        return self.bounds.in_block()
+
+    @cached_property
+    def _numpy_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(lut_lo, lut_hi, pattern_lo, pattern_pos), built on first use by the numpy engine."""
+        n_bins = self.n_bins
+        n_low = self.n_tdc * n_bins
+        x = np.arange(1 << 16, dtype=np.int64)
+        # Low half after XOR with the expected pattern: bits 0..11 must be zero.
+        p1_raw = x >> 12
+        p1 = PHASE_DECODE[p1_raw].astype(np.int64)
+        lo_state = np.where(p1_raw == 0, _LO_ZERO, _LO_OK)
+        lo_state = np.where(p1 < 0, _LO_INV, lo_state)
+        lo_state = np.where((x & 0xFFF) != 0, _LO_MAL, lo_state)
+        lo_low = np.where((lo_state == _LO_OK) & (self.mode == "d1st"), p1 * self.n_tdc, 0)
+        lo = lo_low + lo_state * n_low
+        # High half: bit 15 is word bit 31; C2nd 14..10, P2nd 9..6, C1st 5..0.
+        c1 = x & 0x3F
+        p2 = PHASE_DECODE[(x >> 6) & 0xF].astype(np.int64)
+        d2 = np.clip(((x >> 10) & 0x1F) * 8 + p2, 0, N_CODES_2ND - 1)
+        low = c1 * 8 if self.mode == "d1st" else d2
+        art = ~self.in_block[:, d2].T  # (65536, n_tdc)
+        zero = ((x & 0x7FFF) == 0)[:, None]
+        hi_state = np.where(zero, np.where(art, _HI_ZERO_ART, _HI_ZERO),
+                            np.where(art, _HI_ART, _HI_OK))
+        hi_state = np.where((p2 < 0)[:, None], _HI_INV, hi_state)
+        hi_state = np.where(((x & 0x8000) != 0)[:, None], _HI_MAL, hi_state)
+        # Row-major over (high half, position): entry hi * n_tdc + pos.
+        hi = (np.arange(self.n_tdc)[None, :] + low[:, None] * self.n_tdc
+              + hi_state * (_N_LO * n_low))
+        # Position patterns, long enough for any chunk start: expected low half per position
+        # (marker bit 9 and the address), and the position itself.
+        pos = np.arange(CHUNK_WORDS + self.n_tdc) % self.n_tdc
+        return (lo.astype(np.intp), hi.astype(np.intp).ravel(),
+                ((1 << 9) | (pos << 1)).astype(np.uint16), pos.astype(np.int32))
+
+    @property
+    def n_bins(self) -> int:
+        return N_CODES if self.mode == "d1st" else N_CODES_2ND
+
+
+_LO, _HI = (0, 1) if sys.byteorder == "little" else (1, 0)
+
+
+class _NumpyBuffers:
+    """Preallocated temporaries of the numpy engine (fresh allocations page-fault)."""
+
+    def __init__(self):
+        self.x = np.empty(CHUNK_WORDS, np.intp)
+        self.a = np.empty(CHUNK_WORDS, np.intp)
+        self.b = np.empty(CHUNK_WORDS, np.intp)
+        self.keys = np.empty(BLOCK_WORDS, np.intp)
+
+
+_BUFFERS: dict[int, _NumpyBuffers] = {}
+
+
+def _accumulate_numpy(words: np.ndarray, first_word: int, tables: WordTables,
+                      hits: np.ndarray, class_counts: np.ndarray) -> None:
+    n_tdc, n_bins = tables.n_tdc, tables.n_bins
+    halves = words.view(np.uint16).reshape(-1, 2)
+    n_keys = _N_HI * _N_LO * n_tdc * n_bins
+    lut_lo, lut_hi, pattern_lo, pattern_pos = tables._numpy_tables
+    # Temporaries are per thread: stages may run in threads of one process.
+    buf = _BUFFERS.setdefault(threading.get_ident(), _NumpyBuffers())
+    total = np.zeros(n_keys, np.int64)
+    for block in range(0, words.size, BLOCK_WORDS):
+        block_end = min(block + BLOCK_WORDS, words.size)
+        for start in range(block, block_end, CHUNK_WORDS):
+            n = min(start + CHUNK_WORDS, block_end) - start
+            p0 = (first_word + start) % n_tdc
+            x, a, b = buf.x[:n], buf.a[:n], buf.b[:n]
+            key = buf.keys[start - block:start - block + n]
+            np.bitwise_xor(halves[start:start + n, _LO], pattern_lo[p0:p0 + n], out=x,
+                           dtype=np.intp)
+            # mode='clip' skips the bounds-error path (indices are in range by construction)
+            np.take(lut_lo, x, out=key, mode="clip")
+            np.multiply(halves[start:start + n, _HI], n_tdc, out=a, dtype=np.intp)
+            a += pattern_pos[p0:p0 + n]
+            np.take(lut_hi, a, out=b, mode="clip")
+            key += b
+        total += np.bincount(buf.keys[:block_end - block], minlength=n_keys)
+    per = total.reshape(_N_HI * _N_LO, n_bins, n_tdc)
+    states = STATE_CLASSES.ravel()
+    hits += per[states == HIT].sum(axis=0).T.astype(np.uint64)
+    per_tdc = per.sum(axis=1)  # (states, n_tdc)
+    for cls in range(N_CLASSES):
+        class_counts[cls] += per_tdc[states == cls].sum(axis=0).astype(np.uint64)
+
+
+if numba is not None:
+    @numba.njit(cache=True, nogil=True)
+    def _kernel(words, pos0, n_tdc, phase, inblock, hits, class_counts, d2mode):  # pragma: no cover - compiled
+        pos = pos0
+        mask = np.uint32(MARKER_MASK)
+        marker = np.uint32(MARKER_VALUE)
+        for i in range(words.size):
+            w = words[i]
+            addr = (w >> 1) & 0xFF
+            if (w & mask) != marker or addr != pos:
+                cls = MALFORMED
+            else:
+                p1 = phase[(w >> 12) & 0xF]
+                p2 = phase[(w >> 22) & 0xF]
+                if p1 < 0 or p2 < 0:
+                    cls = INVALID_PHASE
+                elif (w & 0x7FFFF000) == 0:
+                    cls = NO_HIT
+                else:
+                    d2 = ((w >> 26) & 0x1F) * 8 + p2
+                    if not inblock[pos, d2]:
+                        cls = ARTIFACT
+                    else:
+                        cls = HIT
+                        if d2mode:
+                            hits[pos, d2] += 1
+                        else:
+                            hits[pos, ((w >> 16) & 0x3F) * 8 + p1] += 1
+            class_counts[cls, pos] += 1
+            pos += 1
+            if pos == n_tdc:
+                pos = 0
+
+
+def _accumulate_numba(words, first_word, tables, hits, class_counts):
+    _kernel(words, first_word % tables.n_tdc, tables.n_tdc, PHASE_DECODE,
+            tables.in_block, hits, class_counts, tables.mode == "d2nd")
+
+
+def accumulate(words: np.ndarray, first_word: int, tables: WordTables, hits: np.ndarray,
+               class_counts: np.ndarray, engine: str | None = None) -> None:
+    """Fold native uint32 ``words`` into ``hits`` and ``class_counts`` in place.
+
+    Parameters
+    ----------
+    words : ndarray of uint32
+        Contiguous native-order words; word ``i`` is at stream position
+        ``first_word + i`` and belongs to TDC ``(first_word + i) % n_tdc``.
+    first_word : int
+        Stream index of ``words[0]``.
+    tables : WordTables
+    hits : ndarray of uint64, shape (n_tdc, tables.n_bins)
+    class_counts : ndarray of uint64, shape (N_CLASSES, n_tdc)
+    engine : {"numba", "numpy"}, optional
+        Defaults to numba where it is installed.
+    """
+    words = np.ascontiguousarray(words, dtype=np.uint32)
+    engine = engine or default_engine()
+    if engine == "numba":
+        if numba is None:
+            raise RuntimeError("engine='numba' requested but numba is not installed")
+        _accumulate_numba(words, first_word, tables, hits, class_counts)
+    elif engine == "numpy":
+        _accumulate_numpy(words, first_word, tables, hits, class_counts)
+    else:
+        raise ValueError(f"engine must be one of {ENGINES}, found {engine!r}")

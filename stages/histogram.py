@@ -1,0 +1,160 @@
+"""Per-TDC histograms of first-stage codes over hit words, with per-TDC cycle counts.
+
+:class:`HistogramAccumulator` is the stateful core of the histogram stage: feed it word
+batches in any split, read the totals, ``snapshot()`` / ``restore()`` for checkpoints.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pyarrow as pa
+
+from schemas.outputs import HISTOGRAMS
+from schemas.words import HIT, N_CLASSES, N_CODES, WORD_CLASSES
+from stages.artifact import ArtifactBounds
+from stages.datapath import WordTables, accumulate
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, copy=True)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True)
+class HistogramState:
+    """An immutable snapshot of a :class:`HistogramAccumulator`.
+
+    ``hits`` is (n_tdc, 512) uint64, ``class_counts`` is (N_CLASSES, n_tdc) uint64,
+    ``words`` the number of words folded in, ``last_seq`` the sequence number of the last
+    batch (-1 before any), for checkpoint/resume.
+    """
+
+    hits: np.ndarray
+    class_counts: np.ndarray
+    words: int
+    last_seq: int = -1
+
+    @property
+    def n_tdc(self) -> int:
+        return int(self.hits.shape[0])
+
+    @property
+    def cycles(self) -> np.ndarray:
+        """Cycles per TDC: every word at a TDC's position is one cycle of that TDC."""
+        return self.class_counts.sum(axis=0)
+
+    def totals(self) -> dict[str, int]:
+        """Words per class over all TDCs (they add up to ``words``)."""
+        return {name: int(self.class_counts[i].sum()) for i, name in enumerate(WORD_CLASSES)}
+
+    def __add__(self, other: HistogramState) -> HistogramState:
+        """Merge two states (the histogram of a split stream is the sum of its parts)."""
+        if self.hits.shape != other.hits.shape:
+            raise ValueError(f"cannot merge histograms of {self.n_tdc} and {other.n_tdc} TDCs")
+        return HistogramState(_frozen(self.hits + other.hits),
+                              _frozen(self.class_counts + other.class_counts),
+                              self.words + other.words, max(self.last_seq, other.last_seq))
+
+    def to_table(self, measurement: str) -> pa.Table:
+        """The ``histograms`` dataset of this state, one row per TDC."""
+        n = self.n_tdc
+        cc = self.class_counts
+        counts = pa.FixedSizeListArray.from_arrays(pa.array(self.hits.ravel(), pa.uint64()),
+                                                   N_CODES)
+        cols = {
+            "measurement": pa.array([measurement] * n, pa.string()),
+            "tdc": pa.array(np.arange(n, dtype=np.uint16)),
+            "cycles": pa.array(self.cycles.astype(np.uint64)),
+            "counts": counts,
+        }
+        for i, name in enumerate(WORD_CLASSES):
+            cols[f"n_{name}"] = pa.array(cc[i].astype(np.uint64))
+        return pa.Table.from_pydict(cols, schema=HISTOGRAMS.schema)
+
+    @classmethod
+    def from_table(cls, table: pa.Table) -> HistogramState:
+        """Rebuild a state from a ``histograms`` table (one measurement, rows by TDC)."""
+        order = np.argsort(table.column("tdc").to_numpy())
+        hits = np.stack(table.column("counts").to_numpy(zero_copy_only=False))[order]
+        cc = np.stack([table.column(f"n_{name}").to_numpy()[order] for name in WORD_CLASSES])
+        return cls(_frozen(hits.astype(np.uint64)), _frozen(cc.astype(np.uint64)),
+                   int(cc.sum()))
+
+
+class HistogramAccumulator:
+    """Accumulate D1st histograms of hit words per TDC, and word-class counts per TDC.
+
+    Parameters
+    ----------
+    n_tdc : int
+        TDCs per cycle.
+    bounds : ArtifactBounds, optional
+        Valid D2nd range per TDC; None accepts every D2nd (no artifact class).
+    engine : {"numba", "numpy"}, optional
+    step_id : str
+        Name of this stage instance, used in errors.
+    mode : {"d1st", "d2nd"}
+        Histogram the first-stage code (the product) or the second-stage code of hit
+        candidates (what artifact-bound estimation needs).
+
+    Examples
+    --------
+    >>> from stages.codec import encode_words
+    >>> acc = HistogramAccumulator(n_tdc=2)
+    >>> acc.update(encode_words([1, 0], [2, 0], [3, 0], [0, 0], [0, 1]))  # a hit, a no_hit
+    >>> s = acc.snapshot(); int(s.hits[0, 10]), s.cycles.tolist(), s.totals()["no_hit"]
+    (1, [1, 1], 1)
+    """
+
+    def __init__(self, n_tdc: int, bounds: ArtifactBounds | None = None,
+                 engine: str | None = None, step_id: str = "histogram",
+                 mode: str = "d1st"):
+        self.step_id = step_id
+        self.bounds = bounds if bounds is not None else ArtifactBounds.unbounded(n_tdc)
+        self._tables = WordTables(n_tdc, self.bounds, mode)
+        self.engine = engine
+        self.n_tdc = n_tdc
+        self._hits = np.zeros((n_tdc, self._tables.n_bins), np.uint64)
+        self._class_counts = np.zeros((N_CLASSES, n_tdc), np.uint64)
+        self._words = 0
+        self._last_seq = -1
+
+    def update(self, words: np.ndarray, first_word: int | None = None,
+               seq: int | None = None) -> None:
+        """Fold a batch of native uint32 words in.
+
+        ``first_word`` is the stream index of ``words[0]`` (it fixes the TDC of each word);
+        by default the batch continues the words already folded in. ``seq`` is the batch's
+        sequence number, kept for checkpoints.
+        """
+        words = np.asarray(words)
+        if words.dtype != np.uint32:
+            raise TypeError(f"{self.step_id}: words must be uint32, found {words.dtype}")
+        start = self._words if first_word is None else int(first_word)
+        accumulate(words.ravel(), start, self._tables, self._hits, self._class_counts,
+                   self.engine)
+        self._words += words.size
+        if seq is not None:
+            self._last_seq = int(seq)
+
+    def snapshot(self) -> HistogramState:
+        """An immutable copy of the state."""
+        return HistogramState(_frozen(self._hits), _frozen(self._class_counts), self._words,
+                              self._last_seq)
+
+    def restore(self, state: HistogramState) -> None:
+        """Resume exactly from ``state``."""
+        if state.n_tdc != self.n_tdc:
+            raise ValueError(f"{self.step_id}: snapshot has {state.n_tdc} TDCs, this "
+                             f"accumulator {self.n_tdc}")
+        self._hits = np.array(state.hits, np.uint64)
+        self._class_counts = np.array(state.class_counts, np.uint64)
+        self._words = state.words
+        self._last_seq = state.last_seq
+
+    @property
+    def hit_total(self) -> int:
+        return int(self._class_counts[HIT].sum())
