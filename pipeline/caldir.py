@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 
+from schemas.core import validate
 from schemas.errors import CalibrationError, SchemaMismatch, SchemaVersionError
 from schemas.outputs import CALIBRATION_TDC
-from schemas.core import validate
 from stages.artifact import ArtifactBounds
 
 

@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from contextlib import contextmanager
-from pathlib import Path
 
 import click
 from rich.console import Console
@@ -20,10 +18,10 @@ from rich.progress import (
 )
 from rich.table import Table
 
-from schemas import ALL_SPECS, TcspcError, WORD_CLASSES
-from pipeline.capture import Capture, CaptureWriter
 from pipeline.caldir import read_bounds
+from pipeline.capture import Capture, CaptureWriter
 from pipeline.offline import decode_capture, histogram_capture, write_histograms
+from schemas import ALL_SPECS, WORD_CLASSES, TcspcError, docs_markdown
 
 err = Console(stderr=True)
 out = Console()
@@ -151,12 +149,12 @@ def pattern(out, cycles, n_tdc, hit_prob, peak_code, seed) -> None:
 @click.option("--markdown", is_flag=True, help="Markdown tables (as in docs/schemas.md).")
 def schema(markdown) -> None:
     """Print every Arrow schema of the project with its version and units."""
+    if markdown:
+        click.echo(docs_markdown(), nl=False)
+        return
     for spec in ALL_SPECS:
-        if markdown:
-            out.print(spec.doc_table() + "\n", markup=False, highlight=False)
-        else:
-            out.print(f"[bold]{spec.name}[/bold] {spec.version}")
-            out.print(str(spec.schema), markup=False, highlight=False)
+        out.print(f"[bold]{spec.name}[/bold] {spec.version}")
+        out.print(str(spec.schema), markup=False, highlight=False)
 
 
 @cli.command()

@@ -13,9 +13,9 @@ import numpy as np
 import polars as pl
 from rich.console import Console
 
-from schemas.words import WORD_CLASSES
 from pipeline.capture import Capture, CaptureWriter
 from pipeline.offline import decode_capture, histogram_capture, write_histograms
+from schemas.words import WORD_CLASSES
 from stages.testpattern import pattern_words
 
 

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 
-from schemas.outputs import HISTOGRAMS
-from schemas.words import DECODED_EVENTS, N_CLASSES, WORD_CLASSES
 from pipeline.atomic import atomic_path
 from pipeline.capture import Capture
+from schemas.outputs import HISTOGRAMS
+from schemas.words import DECODED_EVENTS, N_CLASSES, WORD_CLASSES
 from stages.artifact import ArtifactBounds, estimate_bounds
 from stages.decode import decode_batch
 from stages.histogram import HistogramAccumulator, HistogramState

@@ -28,9 +28,16 @@ from schemas.words import (
 
 ALL_SPECS = (RAW_WORDS, DECODED_EVENTS, HISTOGRAMS, CALIBRATION_TDC, CALIBRATION_INL, RANGES)
 
+
+def docs_markdown() -> str:
+    """docs/schemas.md, generated from the specs (``make docs``; a test checks for drift)."""
+    return "\n\n".join(spec.doc_table() for spec in ALL_SPECS) + "\n"
+
+
 __all__ = [
     "ALL_SPECS", "ARTIFACT", "CALIBRATION_INL", "CALIBRATION_TDC", "CalibrationError",
-    "CaptureError", "DECODED_EVENTS", "HISTOGRAMS", "HIT", "INVALID_PHASE", "MALFORMED",
+    "CaptureError", "DECODED_EVENTS", "docs_markdown", "HISTOGRAMS", "HIT", "INVALID_PHASE",
+    "MALFORMED",
     "N_CLASSES", "N_CODES", "N_CODES_2ND", "NO_HIT", "RANGES", "RAW_WORDS", "SchemaMismatch",
     "SchemaSpec", "SchemaVersionError", "TcspcError", "WORD_CLASSES", "field", "validate",
 ]

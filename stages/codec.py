@@ -147,7 +147,7 @@ def classify_words(words, n_tdc: int, first_word: int = 0, n_min=None, n_max=Non
     >>> classify_words(w, 4, n_min=[0] * 4, n_max=[200] * 4).tolist()  # no_hit, hit, artifact
     [1, 0, 2]
     """
-    w = np.asarray(words, dtype=np.uint32)
+    w = np.atleast_1d(np.asarray(words, dtype=np.uint32))
     f = fields if fields is not None else decode_fields(w)
     pos = positions(w.size, n_tdc, first_word)
     cls = np.full(w.shape, HIT, np.uint8)

@@ -11,10 +11,10 @@ reference :func:`stages.codec.classify_words`:
     low part and, above it, ``(lo_state + 4 * hi_state) * n_tdc * 512``: each half's
     table adds its own state (ok, zero, invalid, malformed; the high half also artifact),
     so the sum is the final key, one ``bincount`` per block counts every word, and the 24
-    state pairs are folded into the five classes once per block. No boolean-mask copies. Sub-chunks are sized to stay in L2 and every temporary is
-    preallocated. Keys and tables are code-major (``code * n_tdc + position``): position-
-    major strides of 4 KiB put the no-hit words of a cycle into one cache set and ran
-    five times slower.
+    state pairs are folded into the five classes once per block. No boolean-mask
+    copies. Sub-chunks are sized to stay in L2 and every temporary is preallocated.
+    Keys and tables are code-major (``code * n_tdc + position``): position-major strides
+    of 4 KiB put the no-hit words of a cycle into one cache set and ran five times slower.
 ``numba``
     One compiled loop over the words with the same semantics.
 
@@ -201,7 +201,7 @@ def _accumulate_numpy(words: np.ndarray, first_word: int, tables: WordTables,
 
 if numba is not None:
     @numba.njit(cache=True, nogil=True)
-    def _kernel(words, pos0, n_tdc, phase, inblock, hits, class_counts, d2mode):  # pragma: no cover - compiled
+    def _kernel(words, pos0, n_tdc, phase, inblock, hits, class_counts, d2mode):
         pos = pos0
         mask = np.uint32(MARKER_MASK)
         marker = np.uint32(MARKER_VALUE)

@@ -1,0 +1,106 @@
+"""The fused engines against the reference classifier, on clean and corrupted streams."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from schemas import HIT, N_CLASSES
+from stages.artifact import ArtifactBounds
+from stages.codec import classify_words, decode_fields, positions
+from stages.datapath import CHUNK_WORDS, STATE_CLASSES, WordTables, accumulate
+from stages.testpattern import pattern_words
+
+
+def reference(words, n_tdc, first_word, bounds, mode="d1st"):
+    cls = classify_words(words, n_tdc, first_word, bounds.n_min, bounds.n_max)
+    pos = positions(words.size, n_tdc, first_word).astype(np.int64)
+    f = decode_fields(words)
+    code = f.d1st if mode == "d1st" else f.d2nd
+    n_bins = 512 if mode == "d1st" else 256
+    hit = cls == HIT
+    hits = np.bincount(pos[hit] * n_bins + code[hit], minlength=n_tdc * n_bins)
+    cc = np.bincount(cls.astype(np.int64) * n_tdc + pos, minlength=N_CLASSES * n_tdc)
+    return hits.reshape(n_tdc, n_bins), cc.reshape(N_CLASSES, n_tdc)
+
+
+def run(words, n_tdc, first_word, bounds, engine, mode="d1st"):
+    t = WordTables(n_tdc, bounds, mode)
+    hits = np.zeros((n_tdc, t.n_bins), np.uint64)
+    cc = np.zeros((N_CLASSES, n_tdc), np.uint64)
+    accumulate(words, first_word, t, hits, cc, engine)
+    return hits, cc
+
+
+def corrupt(words, rng, frac):
+    """Flip random bits in a fraction of the words: every kind of bad input appears."""
+    words = words.copy()
+    idx = np.flatnonzero(rng.random(words.size) < frac)
+    words[idx] ^= (np.uint32(1) << rng.integers(0, 32, idx.size).astype(np.uint32))
+    return words
+
+
+@pytest.mark.parametrize("n_tdc", [1, 7, 128, 256])
+@pytest.mark.parametrize("mode", ["d1st", "d2nd"])
+def test_engines_equal_reference_on_corrupted_streams(engine, n_tdc, mode, rng):
+    words, truth = pattern_words(600, n_tdc, hit_prob=0.3, artifact_prob=0.05,
+                                 invalid_prob=0.02, malformed_prob=0.02, rng=rng)
+    words = corrupt(words, rng, 0.05)
+    bounds = ArtifactBounds(truth.n_min, truth.n_max)
+    first = int(rng.integers(0, 10_000))
+    hits, cc = run(words, n_tdc, first, bounds, engine, mode)
+    ref_hits, ref_cc = reference(words, n_tdc, first, bounds, mode)
+    assert np.array_equal(hits, ref_hits)
+    assert np.array_equal(cc, ref_cc)
+    assert cc.sum() == words.size  # every word accounted for
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.integers(0, 2**32 - 1), min_size=0, max_size=400),
+       st.integers(1, 256), st.integers(0, 1000), st.integers(0, 255), st.integers(0, 255))
+def test_engines_agree_on_arbitrary_words(raw, n_tdc, first, lo, hi):
+    words = np.array(raw, np.uint32)
+    lo, hi = min(lo, hi), max(lo, hi)
+    bounds = ArtifactBounds(np.full(n_tdc, lo), np.full(n_tdc, hi))
+    ref = reference(words, n_tdc, first, bounds)
+    for engine in ("numpy", "numba"):
+        hits, cc = run(words, n_tdc, first, bounds, engine)
+        assert np.array_equal(hits, ref[0]) and np.array_equal(cc, ref[1]), engine
+
+
+def test_numpy_chunk_boundaries(rng):
+    n_tdc = 128
+    words, truth = pattern_words(3 * CHUNK_WORDS // n_tdc + 3, n_tdc, hit_prob=0.2, rng=rng)
+    words = words[5:]  # not a whole number of cycles, starting mid-cycle
+    bounds = ArtifactBounds(truth.n_min, truth.n_max)
+    got = run(words, n_tdc, 5, bounds, "numpy")
+    ref = reference(words, n_tdc, 5, bounds)
+    assert np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])
+
+
+def test_state_table_precedence():
+    # (hi_state, lo_state) -> class, spelled out: malformed > invalid > no_hit > artifact.
+    assert STATE_CLASSES.tolist() == [
+        [0, 0, 3, 4],   # hi ok
+        [2, 2, 3, 4],   # hi artifact
+        [0, 1, 3, 4],   # hi all zero, D2nd = 0 inside the block
+        [2, 1, 3, 4],   # hi all zero, D2nd = 0 outside the block
+        [3, 3, 3, 4],   # hi invalid phase
+        [4, 4, 4, 4],   # hi malformed (bit 31)
+    ]
+
+
+def test_empty_input(engine):
+    hits, cc = run(np.zeros(0, np.uint32), 128, 0, ArtifactBounds.unbounded(128), engine)
+    assert hits.sum() == 0 and cc.sum() == 0
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="n_tdc must be in 1..256"):
+        WordTables(0, ArtifactBounds.unbounded(1))
+    with pytest.raises(ValueError, match="bounds are for 4 TDCs, data has 8"):
+        WordTables(8, ArtifactBounds.unbounded(4))
+    t = WordTables(4, ArtifactBounds.unbounded(4))
+    with pytest.raises(ValueError, match="engine must be one of"):
+        accumulate(np.zeros(4, np.uint32), 0, t, np.zeros((4, 512), np.uint64),
+                   np.zeros((5, 4), np.uint64), "cuda")
