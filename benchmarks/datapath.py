@@ -24,8 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.capture import Capture, CaptureWriter  # noqa: E402
-from pipeline.offline import histogram_capture  # noqa: E402
+from pipeline.capture import CaptureWriter  # noqa: E402
 from schemas.words import N_CLASSES  # noqa: E402
 from stages.artifact import ArtifactBounds  # noqa: E402
 from stages.codec import classify_words, decode_fields  # noqa: E402
@@ -102,7 +101,7 @@ def run_stages(words, truth, n_tdc=128, repeat=2):
         cc = np.zeros((N_CLASSES, n_tdc), np.uint64)
         accumulate(words[:n_tdc * 8], 0, tables, hits, cc, engine)  # compile / build tables
 
-        def fused(engine=engine):
+        def fused(engine=engine, hits=hits, cc=cc):
             hits[:] = 0
             cc[:] = 0
             accumulate(words, 0, tables, hits, cc, engine)
