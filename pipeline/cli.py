@@ -169,6 +169,15 @@ def demo(out, cycles) -> None:
         raise click.ClickException("demo: histograms differ from the intended ones")
 
 
+def _register() -> None:
+    from pipeline.cli_model import model
+
+    cli.add_command(model)
+
+
+_register()
+
+
 def main() -> None:
     """Entry point: project errors become one clear line and exit status 2."""
     try:

@@ -26,7 +26,11 @@ from stages.models.signal import (
     PIXEL_PITCH_M,
     photons,
 )
-from stages.models.tcspc import _intensities, first_photon_histogram
+from stages.models.tcspc import (
+    _intensities,
+    first_photon_histogram,
+    histogram_from_intensities,
+)
 
 #: Section 2.2.2: 100 klx of sunlight is ~1.0 W/m^2/nm at 405 nm; per lux, photons/s on a
 #: 24 um pixel through a 10 nm filter.
@@ -116,10 +120,10 @@ def _expected_counts(spec: SystemSpec, tof_in_window, window_s):
     sigma = spec.jitter_s
     m = spec.signal_per_cycle(tof_in_window[1])
     bg = spec.background_hz
-    _, log_dl, _ = _intensities(m, tof_in_window[0], sigma, bg, window_s,
-                                          spec.tdc_resolution_s, 0.0)
-    h = first_photon_histogram(m, tof_in_window[0], sigma, bg, window_s,
-                               spec.tdc_resolution_s)
+    intens = _intensities(m, tof_in_window[0], sigma, bg, window_s, spec.tdc_resolution_s,
+                          0.0)
+    log_dl = intens[1]
+    h = histogram_from_intensities(*intens)
     counts = spec.samples * h.p
     # the background's share of each bin's first detections: bg dt / dL of the bin
     dl = np.exp(log_dl)
@@ -128,16 +132,11 @@ def _expected_counts(spec: SystemSpec, tof_in_window, window_s):
     return counts, counts * share
 
 
-def predict(spec: SystemSpec, distance_m, gated: bool = False) -> dict[str, np.ndarray]:
-    """P of detecting the peak against distance, with the count figures behind it.
-
-    Without gating the window opens at the laser pulse (TOF = 2 x / c inside a window of
-    ``spec.window_s``); with gating a window of ``spec.gate_s`` is centred on the TOF.
-    """
-    x = np.atleast_1d(np.asarray(distance_m, np.float64))
+def _predict_once(spec: SystemSpec, x: np.ndarray, gated: bool,
+                  offset_bins: float) -> dict[str, np.ndarray]:
     tof = 2 * x / C_LIGHT
     window = spec.gate_s if gated else spec.window_s
-    t_in = np.full_like(tof, window / 2) if gated else tof
+    t_in = (np.full_like(tof, window / 2) if gated else tof) + offset_bins * spec.tdc_resolution_s
     counts, noise = _expected_counts(spec, (t_in, x), window)
     n_bins = counts.shape[-1]
     peak = np.argmax(counts, axis=-1)
@@ -147,8 +146,26 @@ def predict(spec: SystemSpec, distance_m, gated: bool = False) -> dict[str, np.n
     on_signal = np.abs(centre - t_in) <= 3 * spec.jitter_s + spec.tdc_resolution_s
     inside = t_in < window
     p = np.where(on_signal & inside, detection_probability(h, b, n_bins), 0.0)
-    return {"distance_m": x, "p_detect": p, "peak_count": h, "noise_count": b,
-            "m_signal": spec.signal_per_cycle(x), "on_signal": on_signal}
+    return {"p_detect": p, "peak_count": h, "noise_count": b,
+            "on_signal": on_signal.astype(np.float64)}
+
+
+def predict(spec: SystemSpec, distance_m, gated: bool = False,
+            phases: int = 8) -> dict[str, np.ndarray]:
+    """P of detecting the peak against distance, with the count figures behind it.
+
+    Without gating the window opens at the laser pulse (TOF = 2 x / c inside a window of
+    ``spec.window_s``); with gating a window of ``spec.gate_s`` is centred on the TOF.
+    Where the pulse falls on the TDC's bin grid is unknown, so every figure is averaged
+    over ``phases`` evenly spaced sub-bin offsets (``phases=1`` shows the raw ripple).
+    """
+    x = np.atleast_1d(np.asarray(distance_m, np.float64))
+    runs = [_predict_once(spec, x, gated, k / phases) for k in range(phases)]
+    out = {k: np.mean([r[k] for r in runs], axis=0) for k in runs[0]}
+    out["on_signal"] = out["on_signal"] > 0.5
+    out["distance_m"] = x
+    out["m_signal"] = spec.signal_per_cycle(x)
+    return out
 
 
 def table_2_2_rows(distance_m) -> list[dict]:

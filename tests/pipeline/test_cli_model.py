@@ -1,0 +1,48 @@
+import json
+from pathlib import Path
+
+import polars as pl
+from click.testing import CliRunner
+
+from pipeline.cli import cli
+
+SCENES = Path(__file__).parents[2] / "scenes"
+
+
+def run(*args):
+    res = CliRunner().invoke(cli, ["model", *args])
+    assert res.exit_code == 0, res.output
+    return res.stdout
+
+
+def test_link_budget_json_has_eq_2_23():
+    rows = json.loads(run("link-budget", "-d", "100", "--json"))
+    assert abs(rows[0]["collimated_at_d"] - 9.4) < 0.05
+
+
+def test_ambient_transmission_and_table_2_2():
+    assert "sea level" in run("ambient")
+    rows = json.loads(run("transmission", "-d", "200", "--temperature", "273", "--json"))
+    assert abs(rows[0]["transmission"] - 0.9914) < 1e-4
+    assert len(json.loads(run("table", "--json"))) == 8
+
+
+def test_predict_writes_parquet_and_plot(tmp_path):
+    out, png = tmp_path / "p.parquet", tmp_path / "p.png"
+    rows = json.loads(run("predict", "-c", "1", "-d", "5", "--json", "--out", str(out),
+                          "--plot", str(png)))
+    assert rows[0]["config"] == 1 and 0 <= rows[0]["5 m"] <= 1
+    df = pl.read_parquet(out)
+    assert set(df["config"].unique()) == set(range(1, 9))
+    assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_histogram_of_a_scene(tmp_path):
+    rows = json.loads(run("histogram", str(SCENES / "street.toml"), "--json", "--plot",
+                          str(tmp_path / "h.png")))
+    assert rows[0]["crlb_mm"] > 0 and rows[0]["peak_count"] > 0
+
+
+def test_figures(tmp_path):
+    listed = run("figures", "--out", str(tmp_path)).split()
+    assert len(listed) == 4 and all(Path(p).read_bytes()[:4] == b"\x89PNG" for p in listed)
