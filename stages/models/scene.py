@@ -64,7 +64,7 @@ class Sensor:
 @dataclass(frozen=True)
 class Gate:
     t_laser_win_ns: float = 140.0
-    delay_ns: float = 100.0           # system delay; eq. 5.3 measures it, the thesis does not print it
+    delay_ns: float = 100.0  # system delay: eq. 5.3 measures it; the thesis prints no value
 
 
 @dataclass(frozen=True)
