@@ -12,9 +12,9 @@ from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
     Progress,
+    ProgressColumn,
     TextColumn,
     TimeRemainingColumn,
-    TransferSpeedColumn,
 )
 from rich.table import Table
 
@@ -27,21 +27,29 @@ err = Console(stderr=True)
 out = Console()
 
 
+class _RateColumn(ProgressColumn):
+    """Items per second, in millions."""
+
+    def render(self, task):
+        speed = task.finished_speed or task.speed
+        return TextColumn("").render(task) if speed is None else f"{speed / 1e6:.1f} M/s"
+
+
 @contextmanager
-def _progress(total_words: int, passes: int, quiet: bool, label: str):
-    """A progress bar over the words of a capture (all passes), on stderr."""
+def _progress(total: int, passes: int, quiet: bool, label: str, unit: str = "words"):
+    """A progress bar over ``total`` items (words or cycles), all passes, on stderr."""
     if quiet:
         yield lambda n: None
         return
     cols = [TextColumn(f"[bold]{label}"), BarColumn(), MofNCompleteColumn(),
-            TextColumn("words"), TransferSpeedColumn(), TimeRemainingColumn()]
+            TextColumn(unit), _RateColumn(), TimeRemainingColumn()]
     with Progress(*cols, console=err, transient=False) as bar:
-        task = bar.add_task(label, total=total_words * passes)
-        # TransferSpeedColumn shows "bytes"/s of the completed count: 1 word = 4 bytes.
+        task = bar.add_task(label, total=total * passes)
         yield lambda n: bar.advance(task, n)
 
 
-def _summary(counts, n_words: int, seconds: float, bounds_source: str) -> None:
+def _summary(counts, n_words: int, seconds: float, bounds_source: str,
+             verb: str = "read") -> None:
     total = int(sum(counts))
     table = Table(title="word classes", show_footer=True)
     table.add_column("class", footer="total")
@@ -50,7 +58,7 @@ def _summary(counts, n_words: int, seconds: float, bounds_source: str) -> None:
     for name, c in zip(WORD_CLASSES, counts, strict=True):
         table.add_row(name, f"{int(c):,}", f"{100 * int(c) / total:.4g}%" if total else "-")
     err.print(table)
-    err.print(f"{n_words:,} words read in {seconds:.2f} s "
+    err.print(f"{n_words:,} words {verb} in {seconds:.2f} s "
               f"({n_words / max(seconds, 1e-9) / 1e6:.1f} M words/s); "
               f"artifact bounds: {bounds_source}")
     if total != n_words:  # every word is accounted for, or this is a bug worth stopping on
@@ -167,6 +175,42 @@ def demo(out, cycles) -> None:
     result = run_demo(out, cycles)
     if not result["exact"]:
         raise click.ClickException("demo: histograms differ from the intended ones")
+
+
+@cli.command()
+@click.argument("scene_path", type=click.Path(exists=True, dir_okay=False))
+@click.option("--cycles", default=40_000, show_default=True, type=click.IntRange(1))
+@click.option("--out", required=True, type=click.Path(), help="NAME.bin to write")
+@click.option("--seed", default=0, show_default=True, help="Seed of the photons.")
+@click.option("--chip-seed", default=1, show_default=True, help="Seed of the chip's "
+              "LSB, INL and second-stage parameters (the same chip across captures).")
+@click.option("--engine", type=click.Choice(["fast", "reference"]), default=None,
+              help="Default: fast, or reference when a target moves.")
+@click.option("--malformed-rate", default=0.0, show_default=True,
+              type=click.FloatRange(0, 1), help="Fraction of words to corrupt (markers).")
+@click.option("--invalid-rate", default=0.0, show_default=True,
+              type=click.FloatRange(0, 1), help="Fraction of words given a bubble code.")
+@click.option("--ideal-tdc", is_flag=True, help="No INL/DNL and no artifact.")
+@_quiet
+def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, invalid_rate,
+             ideal_tdc, quiet) -> None:
+    """Simulate SCENE_PATH: a raw capture whose sidecar holds the truth."""
+    from pipeline.simulate import simulate_capture
+
+    t0 = time.perf_counter()
+    with _progress(cycles, 1, quiet, "simulate", "cycles") as step:
+        meta, sim = simulate_capture(scene_path, cycles, out, seed=seed, chip_seed=chip_seed,
+                                     engine=engine, malformed_rate=malformed_rate,
+                                     invalid_rate=invalid_rate, ideal_tdc=ideal_tdc,
+                                     progress=step)
+    if not quiet:
+        dt = time.perf_counter() - t0
+        err.print(f"wrote {out}: {cycles:,} cycles x {meta.n_tdc} TDCs, {sim.engine_name} "
+                  f"engine, {dt:.2f} s ({cycles * meta.n_tdc / dt / 1e6:.1f} M TDC-cycles/s)")
+        _summary(sim.result.class_counts.sum(axis=1), cycles * meta.n_tdc, dt,
+                 "(the simulator's truth)", verb="written")
+        for e in sim.sm.report:
+            err.print(f"  {e.name}: {e.status} ({e.detail}: {e.size:.3g})", highlight=False)
 
 
 def _register() -> None:

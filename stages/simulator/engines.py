@@ -1,0 +1,402 @@
+"""Two engines that draw the first START of every TDC in every cycle, and the digitiser
+that turns STARTs into first-stage codes.
+
+Both engines return, for a chunk of ``n_cycles`` cycles (row-major cycle x TDC, the words'
+order), the flat indices of TDC-cycles that saw a START, their kind (photon or artifact)
+and, for photons, the arrival time ``t`` after the window opened (``t < 0``: during the
+reset period, so the TDC starts at the window's beginning).
+
+``fast``
+    Exact inversion of the cumulative intensity: one uniform per TDC-cycle decides whether
+    anything starts the TDC (``u > exp(-L(T))``); for those that start, ``E = -log u`` is
+    the cumulative intensity at the first START. The artifact is a point mass of the
+    intensity at its code's time, so the same E decides between photon and artifact. The
+    continuous part is inverted on a per-TDC table and refined by bracketed Newton steps on
+    the analytic L (exact to rounding). Static scenes only.
+``reference``
+    Photon by photon, following the thesis's random simulation (section 2.2.1, steps 1-3):
+    every detected signal photon (laser pulse width and jitter, then SPAD jitter), every
+    detected background and dark-count photon of the sensitive period, every artifact
+    event; the earliest START wins. Slow, and supports motion (a TOF that drifts from
+    cycle to cycle).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import ndtr
+
+from stages.simulator.chip import Chip
+
+SQRT2PI = np.sqrt(2 * np.pi)
+KIND_PHOTON, KIND_ARTIFACT = 0, 1
+ENGINES = ("fast", "reference")
+
+
+@dataclass(frozen=True)
+class Optics:
+    """What reaches each TDC, per cycle (arrays of length n_tdc)."""
+
+    m_signal: np.ndarray        #: detected signal photons per cycle
+    tof_s: np.ndarray           #: pulse centre after the window opened (0 where no signal)
+    sigma_s: float              #: laser pulse + laser jitter + SPAD jitter (no TDC jitter)
+    bg_hz: np.ndarray           #: detected background rate (ambient + dark counts)
+    window_s: float
+    reset_s: float
+    tof_drift_s_per_cycle: np.ndarray | None = None  #: motion (reference engine only)
+
+    @property
+    def n_tdc(self) -> int:
+        return int(self.m_signal.size)
+
+    @property
+    def moving(self) -> bool:
+        return self.tof_drift_s_per_cycle is not None and bool(
+            np.any(self.tof_drift_s_per_cycle != 0))
+
+
+@dataclass(frozen=True)
+class Events:
+    """The random numbers of a chunk: the TDC-cycles that saw a START (flat indices), the
+    cumulative intensity at each START (-log of its uniform), a standard normal (TDC
+    jitter) and a uniform (an artifact's D2nd) each."""
+
+    index: np.ndarray
+    e: np.ndarray  #: -log(u): the cumulative intensity at the START
+    z: np.ndarray
+    r: np.ndarray
+    tdc: np.ndarray | None = None  #: index % n_tdc, when known
+    flat: np.ndarray | None = None  #: TDC-major place (tdc * n_cycles + cycle), when known
+
+
+@dataclass(frozen=True)
+class Starts:
+    """The TDC-cycles of a chunk that saw a START."""
+
+    index: np.ndarray   #: flat index cycle * n_tdc + tdc
+    kind: np.ndarray    #: KIND_PHOTON or KIND_ARTIFACT
+    t_s: np.ndarray     #: photon arrival after the window opened (NaN for artifacts)
+    code: np.ndarray    #: artifact code (-1 for photons)
+
+
+def _artifact_times(chip: Chip, optics: Optics, boundaries: np.ndarray):
+    """Artifact START times (n_tdc, n_art), ascending, and their probabilities."""
+    c = chip.artifact_codes
+    tau = 0.5 * (boundaries[:, c] + boundaries[:, c + 1])
+    t = optics.window_s - tau
+    order = np.argsort(t, axis=1)
+    p = np.broadcast_to(chip.artifact_prob[:, None] / max(c.size, 1), t.shape)
+    return np.take_along_axis(t, order, 1), np.take_along_axis(p, order, 1), c[order]
+
+
+class FastEngine:
+    """Exact inversion of the cumulative intensity (see module docstring)."""
+
+    name = "fast"
+
+    def __init__(self, chip: Chip, optics: Optics, boundaries: np.ndarray,
+                 grid_points: int = 4097, inverse_points: int = 2049):
+        if optics.moving:
+            raise ValueError("the fast engine draws static scenes only; a moving target "
+                             "needs engine='reference'")
+        self.o = optics
+        s, T = -optics.reset_s, optics.window_s
+        self.start, self.end = s, T
+        grid = np.linspace(s, T, grid_points)
+        m, tof, sg, bg = (optics.m_signal[:, None], optics.tof_s[:, None], optics.sigma_s,
+                          optics.bg_hz[:, None])
+        # the continuous cumulative intensity L_c(t) from the start of sensitivity
+        table = m * (ndtr((grid[None, :] - tof) / sg) - ndtr((s - tof) / sg)) + bg * (
+            grid[None, :] - s)                                          # (n_tdc, G)
+        self.l_end = table[:, -1]
+        # its inverse on a uniform grid of E per TDC: t(E_j), E_j = j * l_end / (P - 1)
+        n_tdc = optics.n_tdc
+        self.de = np.where(self.l_end > 0, self.l_end / (inverse_points - 1), 1.0)
+        self.inv = np.empty((n_tdc, inverse_points))
+        for i in range(n_tdc):  # once per simulation
+            e = np.arange(inverse_points) * self.de[i]
+            if self.l_end[i] == 0:
+                self.inv[i] = np.linspace(s, T, inverse_points)
+                continue
+            k = np.clip(np.searchsorted(table[i], e, side="right") - 1, 0, grid.size - 2)
+            self.inv[i] = self._newton(i, e, grid[k], grid[k + 1], table[i][k],
+                                       table[i][k + 1], iterations=30)
+        self.inv[:, 0], self.inv[:, -1] = s, T
+        # artifacts: point masses of the intensity at fixed times
+        t_a, p_a, c_a = _artifact_times(chip, optics, boundaries)
+        inside = (t_a >= s) & (t_a < T)
+        self.c_a = c_a
+        self.m_a = np.where(inside, -np.log1p(-p_a), 0.0)
+        lc_at = np.array([np.interp(t_a[i], grid, table[i]) for i in range(n_tdc)])
+        lc_at = lc_at.reshape(t_a.shape)
+        below = np.concatenate([np.zeros_like(self.m_a[:, :1]),
+                                np.cumsum(self.m_a, 1)[:, :-1]], 1)
+        self.j_lo = lc_at + below                  # L just before artifact j
+        self.j_hi = self.j_lo + self.m_a           # ... and just after
+        self.p_none = np.exp(-(self.l_end + self.m_a.sum(1)))
+
+    def _newton(self, tdc, e, lo, hi, l_lo, l_hi, iterations=1):
+        """Solve L_c(t) = e inside [lo, hi], vectorised (tdc: int or array).
+
+        From the inverse table's linear interpolation one Newton step is exact to < 10 fs
+        (measured on the shipped scenes; tests/stages/simulator checks it), 1e-4 of the
+        TDC's jitter; the table itself is built with 30 steps.
+        """
+        o = self.o
+        m, tof, bg, sg = o.m_signal[tdc], o.tof_s[tdc], o.bg_hz[tdc], o.sigma_s
+        t = lo + (e - l_lo) / np.maximum(l_hi - l_lo, 1e-300) * (hi - lo)
+        phi0 = ndtr((self.start - o.tof_s) / sg)[tdc]
+        for _ in range(iterations):
+            z = (t - tof) / sg
+            f = m * (ndtr(z) - phi0) + bg * (t - self.start) - e
+            rate = m * np.exp(-0.5 * z * z) / (SQRT2PI * sg) + bg
+            t = np.clip(t - f / np.maximum(rate, 1e-300), lo, hi)
+        return t
+
+    def events(self, rng: np.random.Generator, n_cycles: int) -> Events:
+        """Every random number a chunk needs, drawn in one fixed order.
+
+        The uniforms are drawn TDC-major, so the STARTs come out grouped by TDC: the
+        per-TDC tables stay in cache while they are used.
+        """
+        n_tdc = self.o.n_tdc
+        u = rng.random((n_tdc, n_cycles))
+        flat = np.flatnonzero(u > self.p_none[:, None])  # something starts the TDC
+        tdc = flat // n_cycles
+        index = (flat - tdc * n_cycles) * n_tdc + tdc     # the word's place: cycle-major
+        e = -np.log(u.ravel()[flat])                      # cumulative intensity at START
+        return Events(index, e, rng.standard_normal(flat.size), rng.random(flat.size), tdc,
+                      flat)
+
+    def draw(self, rng: np.random.Generator, n_cycles: int) -> Starts:
+        return self.starts(self.events(rng, n_cycles))
+
+    def starts(self, ev: Events) -> Starts:
+        """The numpy inversion: where each START of ``ev`` happened."""
+        n_tdc = self.o.n_tdc
+        index = ev.index
+        tdc = ev.tdc if ev.tdc is not None else index % n_tdc
+        e = ev.e
+        code = np.full(index.size, -1, np.int64)
+        below = np.zeros(index.size)
+        n_art = self.m_a.shape[1]
+        j_lo, j_hi = self.j_lo.ravel(), self.j_hi.ravel()
+        for j in range(n_art):                     # the few artifact codes
+            flat = tdc * n_art + j
+            lo, hi = j_lo[flat], j_hi[flat]
+            hit = (e >= lo) & (e < hi)
+            if hit.any():
+                code[hit] = self.c_a.ravel()[flat[hit]]
+            above = e >= hi
+            below[above] += self.m_a.ravel()[flat[above]]
+        art = code >= 0
+        kind = art.astype(np.int8)                 # KIND_ARTIFACT == 1
+        t = np.full(index.size, np.nan)
+        ph = ~art
+        tp, ec = tdc[ph], np.minimum(e[ph] - below[ph], self.l_end[tdc[ph]])
+        x = ec / self.de[tp]
+        n_inv = self.inv.shape[1]
+        j = np.minimum(x.astype(np.int64), n_inv - 2)
+        flat = tp * n_inv + j
+        inv = self.inv.ravel()
+        lo, hi = inv[flat], inv[flat + 1]
+        t[ph] = self._newton(tp, ec, lo, hi, j * self.de[tp], (j + 1) * self.de[tp])
+        return Starts(index, kind, t, code)
+
+
+class ReferenceEngine:
+    """Photon by photon (see module docstring)."""
+
+    name = "reference"
+
+    def __init__(self, chip: Chip, optics: Optics, boundaries: np.ndarray,
+                 spad_sigma_s: float | None = None):
+        self.o = optics
+        self.start, self.end = -optics.reset_s, optics.window_s
+        t_a, p_a, c_a = _artifact_times(chip, optics, boundaries)
+        self.t_a, self.p_a, self.c_a = t_a, p_a, c_a
+        # the optical sigma splits into the pulse (+ laser jitter) and the SPAD's jitter
+        self.spad_sigma = optics.sigma_s if spad_sigma_s is None else spad_sigma_s
+        self.pulse_sigma = np.sqrt(max(optics.sigma_s ** 2 - self.spad_sigma ** 2, 0.0))
+        self.cycle0 = 0
+
+    def draw(self, rng: np.random.Generator, n_cycles: int, first_cycle: int = 0) -> Starts:
+        o = self.o
+        n_tdc = o.n_tdc
+        span = self.end - self.start
+        cells = n_cycles * n_tdc
+        first = np.full(cells, np.inf)
+        # signal photons: Poisson(M) detections per TDC-cycle, pulse time + SPAD jitter
+        k = rng.poisson(np.tile(o.m_signal, n_cycles))
+        cell = np.repeat(np.arange(cells), k)
+        tof = o.tof_s[cell % n_tdc]
+        if o.moving:
+            cyc = first_cycle + cell // n_tdc
+            tof = tof + o.tof_drift_s_per_cycle[cell % n_tdc] * cyc
+        ts = rng.normal(tof, self.pulse_sigma if self.pulse_sigma > 0 else 1e-300)
+        ts = ts + rng.normal(0.0, self.spad_sigma, ts.size)
+        keep = ts >= self.start
+        np.minimum.at(first, cell[keep], ts[keep])
+        # background and dark-count detections over the sensitive period
+        kb = rng.poisson(np.tile(o.bg_hz * span, n_cycles))
+        cell_b = np.repeat(np.arange(cells), kb)
+        tb = self.start + rng.random(cell_b.size) * span
+        np.minimum.at(first, cell_b, tb)
+        # artifact events at their fixed times
+        art_t = np.full(cells, np.inf)
+        art_c = np.full(cells, -1, np.int64)
+        for j in range(self.t_a.shape[1]):
+            ev = rng.random(cells) < np.tile(self.p_a[:, j], n_cycles)
+            tj = np.tile(self.t_a[:, j], n_cycles)
+            take = ev & (tj < art_t) & (tj >= self.start)
+            art_t = np.where(take, tj, art_t)
+            art_c = np.where(take, np.tile(self.c_a[:, j], n_cycles), art_c)
+        photon = (first < self.end) & (first <= art_t)
+        artifact = (art_t < self.end) & (art_t < first)
+        index = np.flatnonzero(photon | artifact)
+        kind = np.where(artifact[index], KIND_ARTIFACT, KIND_PHOTON).astype(np.int8)
+        t = np.where(kind == KIND_PHOTON, first[index], np.nan)
+        code = np.where(kind == KIND_ARTIFACT, art_c[index], -1)
+        return Starts(index, kind, t, code)
+
+
+class CodeTable:
+    """Code lookup of every TDC: a uniform grid of tau (1/4 LSB) gives the code at each
+    cell's left edge; a cell is narrower than any code (DNL > -0.55 LSB, so codes are wider
+    than 0.45 LSB), so it holds at most one boundary and one comparison settles the code.
+    int16 at 4 points per LSB keeps the table at 512 KiB for 128 TDCs (cache-resident)."""
+
+    def __init__(self, boundaries: np.ndarray, per_lsb: int = 4):
+        self.b = boundaries
+        n_tdc, n = boundaries.shape
+        self.period = boundaries[:, -1]
+        self.step = self.period / ((n - 1) * per_lsb)
+        grid = np.arange((n - 1) * per_lsb) * self.step[:, None]
+        self.code = np.empty(grid.shape, np.int16)
+        for i in range(n_tdc):  # once per simulation
+            self.code[i] = np.searchsorted(boundaries[i], grid[i], side="right") - 1
+        if np.any(np.diff(boundaries, axis=1) <= self.step[:, None]):
+            raise ValueError("a code is narrower than the lookup grid: raise per_lsb")
+
+    def lookup(self, tdc: np.ndarray, tau: np.ndarray):
+        x = np.mod(tau, self.period[tdc])          # the 9-bit counter wraps
+        n_g, n_b = self.code.shape[1], self.b.shape[1]
+        g = np.minimum((x / self.step[tdc]).astype(np.int64), n_g - 1)
+        k = self.code.ravel()[tdc * n_g + g].astype(np.int64)
+        b = self.b.ravel()
+        k = np.minimum(k + (x >= b[tdc * n_b + np.minimum(k + 1, n_b - 1)]), n_b - 2)
+        lo, hi = b[tdc * n_b + k], b[tdc * n_b + k + 1]
+        return k, np.clip((x - lo) / (hi - lo), 0.0, np.nextafter(1.0, 0.0))
+
+
+def digitize(codes: CodeTable, jitter_s: np.ndarray, window_s: float, starts: Starts,
+             n_tdc: int, z: np.ndarray):
+    """Codes (D1st) and fractional positions of photon STARTs; artifact codes pass through.
+
+    ``tau = window - t`` (reversed timing; a START in the reset period is the window's
+    beginning, tau = window), plus the TDC's Gaussian jitter, then the code whose
+    boundaries hold it; codes wrap at 512 (9 bits).
+    """
+    tdc = starts.index % n_tdc
+    photon = starts.kind == KIND_PHOTON
+    t = np.nan_to_num(starts.t_s, nan=0.0)
+    tau = window_s - np.clip(t, 0.0, window_s)     # t < 0: the reset period, tau = window
+    tau = np.maximum(tau + z * jitter_s[tdc], 0.0)
+    code, frac = codes.lookup(tdc, tau)
+    return tdc, np.where(photon, code, starts.code), frac
+
+
+try:  # the fast engine's per-START work compiles where numba is installed
+    import numba
+except ImportError:  # pragma: no cover
+    numba = None
+
+if numba is not None:
+    import math
+
+    @numba.njit(cache=True, nogil=True)
+    def _fast_kernel(index, tdc_ev, e_ev, z, r, n_tdc, j_lo, j_hi, m_a, c_a, l_end, de, inv, m_sig,
+                     tof, bg, sigma, start, phi0, window, jitter, period, step, code_tab,
+                     bnd, n_th, n_min, n_max, johnson, words, is_artifact):
+        n_art = j_lo.shape[1]
+        n_inv = inv.shape[1]
+        n_g = code_tab.shape[1]
+        n_b = bnd.shape[1]
+        for q in range(index.size):  # STARTs come grouped by TDC (Events)
+            i = index[q]  # TDC-major place in words (see fast_chunk_numba)
+            t = tdc_ev[q]
+            e = e_ev[q]
+            below = 0.0
+            acode = -1
+            for j in range(n_art):
+                if e >= j_lo[t, j] and e < j_hi[t, j]:
+                    acode = c_a[t, j]
+                if e >= j_hi[t, j]:
+                    below += m_a[t, j]
+            if acode >= 0:
+                k = acode
+                lo2 = n_max[t] + 1
+                d2 = lo2 + int(math.floor(r[q] * (256 - lo2)))
+                is_artifact[q] = True
+            else:
+                ec = min(e - below, l_end[t])
+                jj = min(int(ec / de[t]), n_inv - 2)
+                lo_t = inv[t, jj]
+                hi_t = inv[t, jj + 1]
+                l_lo = jj * de[t]
+                l_hi = (jj + 1) * de[t]
+                tt = lo_t + (ec - l_lo) / max(l_hi - l_lo, 1e-300) * (hi_t - lo_t)
+                zz = (tt - tof[t]) / sigma
+                # beyond 12 sigma Phi is 0 or 1 and phi 0 to < 1e-32: skip the libm calls
+                if zz > 12.0:
+                    cdf, pdf = 1.0, 0.0
+                elif zz < -12.0:
+                    cdf, pdf = 0.0, 0.0
+                else:
+                    cdf = 0.5 * math.erfc(-zz / math.sqrt(2.0))
+                    pdf = math.exp(-0.5 * zz * zz) / (SQRT2PI * sigma)
+                f = m_sig[t] * (cdf - phi0[t]) + bg[t] * (tt - start) - ec
+                rate = m_sig[t] * pdf + bg[t]
+                tt = min(max(tt - f / max(rate, 1e-300), lo_t), hi_t)
+                tau = window - min(max(tt, 0.0), window)
+                tau = max(tau + z[q] * jitter[t], 0.0)
+                x = tau
+                while x >= period[t]:  # the 9-bit counter wraps
+                    x -= period[t]
+                g = min(int(x / step[t]), n_g - 1)
+                k = np.int64(code_tab[t, g])
+                if x >= bnd[t, min(k + 1, n_b - 1)]:
+                    k += 1
+                k = min(k, n_b - 2)
+                frac = (x - bnd[t, k]) / (bnd[t, k + 1] - bnd[t, k])
+                frac = min(max(frac, 0.0), 1.0 - 1e-16)
+                w = n_max[t] - n_min[t] + 1
+                mod = min(int(math.floor(((k % 8) + frac) / 8.0 * w)), w - 1)
+                d2 = n_th[t] + mod
+                if d2 > n_max[t]:
+                    d2 -= w
+                is_artifact[q] = False
+            words[i] = ((d2 // 8) << 26) | (johnson[d2 % 8] << 22) | ((k // 8) << 16) | (
+                johnson[k % 8] << 12) | (1 << 9) | (t << 1)
+
+
+def fast_chunk_numba(engine: FastEngine, chip: Chip, codes: CodeTable, jitter_s: np.ndarray,
+                     ev: Events, words_t: np.ndarray) -> np.ndarray:
+    """Fill the TDC-major words ``words_t`` (n_tdc, n_cycles) at the STARTs of ``ev``;
+    returns which STARTs are artifacts. TDC-major writes are sequential per TDC; the caller
+    transposes once (cycle-major scattered writes missed the cache at almost every START).
+    """
+    from stages.codec import PHASE_ENCODE
+
+    o = engine.o
+    art = np.empty(ev.index.size, np.bool_)
+    phi0 = ndtr((engine.start - o.tof_s) / o.sigma_s)
+    words = words_t.reshape(-1)
+    _fast_kernel(ev.flat, ev.tdc, ev.e, ev.z, ev.r, o.n_tdc, engine.j_lo, engine.j_hi, engine.m_a,
+                 engine.c_a, engine.l_end, engine.de, engine.inv, o.m_signal, o.tof_s, o.bg_hz,
+                 o.sigma_s, engine.start, phi0, o.window_s, jitter_s, codes.period, codes.step,
+                 codes.code, codes.b, chip.n_th, chip.n_min, chip.n_max,
+                 PHASE_ENCODE.astype(np.int64), words, art)
+    return art
