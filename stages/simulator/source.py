@@ -84,7 +84,8 @@ class Simulator:
                  engine: str = "fast", malformed_rate: float = 0.0, invalid_rate: float = 0.0,
                  compiled: bool | None = None):
         if chip.n_tdc != scene_model.scene.sensor.n_pixels:
-            raise ValueError(f"chip has {chip.n_tdc} TDCs, scene {scene_model.scene.sensor.n_pixels}")
+            raise ValueError(f"chip has {chip.n_tdc} TDCs, the scene's sensor "
+                             f"{scene_model.scene.sensor.n_pixels}")
         if engine not in _ENGINE_IDS:
             raise ValueError(f"engine must be one of {sorted(_ENGINE_IDS)}, found {engine!r}")
         self.sm, self.chip, self.seed, self.engine_name = scene_model, chip, int(seed), engine
