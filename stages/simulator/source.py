@@ -83,13 +83,16 @@ class Simulator:
     def __init__(self, scene_model: SceneModel, chip: Chip, seed: int = 0,
                  engine: str = "fast", malformed_rate: float = 0.0, invalid_rate: float = 0.0,
                  compiled: bool | None = None):
-        if chip.n_tdc != scene_model.scene.sensor.n_pixels:
+        if scene_model is not None and chip.n_tdc != scene_model.scene.sensor.n_pixels:
             raise ValueError(f"chip has {chip.n_tdc} TDCs, the scene's sensor "
                              f"{scene_model.scene.sensor.n_pixels}")
         if engine not in _ENGINE_IDS:
             raise ValueError(f"engine must be one of {sorted(_ENGINE_IDS)}, found {engine!r}")
         self.sm, self.chip, self.seed, self.engine_name = scene_model, chip, int(seed), engine
-        self.optics, spad = optics_from_scene(scene_model)
+        if scene_model is not None:
+            self.optics, spad = optics_from_scene(scene_model)
+        else:
+            self.optics, spad = self._optics, self._spad
         self.light = detections_per_pixel_per_cycle(self.optics)
         self.boundaries = chip.boundaries_s(self.light)
         self.codes = CodeTable(self.boundaries)
@@ -105,6 +108,16 @@ class Simulator:
         n = chip.n_tdc
         self._template = encode_words(0, 0, 0, 0, np.arange(n))
         self.result = SimulationResult(np.zeros((N_CLASSES, n), np.int64))
+
+    @classmethod
+    def from_optics(cls, optics: Optics, chip: Chip, seed: int = 0, engine: str = "fast",
+                    spad_sigma_s: float | None = None, **kw) -> Simulator:
+        """A simulator of given optics (no scene): for benchmarks and tests of regimes."""
+        self = cls.__new__(cls)
+        self._optics = optics
+        self._spad = optics.sigma_s if spad_sigma_s is None else spad_sigma_s
+        cls.__init__(self, None, chip, seed, engine, **kw)
+        return self
 
     @property
     def n_tdc(self) -> int:
