@@ -90,9 +90,28 @@ class Chip:
         return sigma_from_fwhm(self.jitter_fwhm_lsb
                                * self.lsb_ps(detections_per_pixel_per_cycle) * 1e-12)
 
-    def truth(self, detections_per_pixel_per_cycle: float) -> dict:
+    def window_truth(self, detections_per_pixel_per_cycle: float, window_s: float):
+        """The LSB as the window over the code span, and the INL against it.
+
+        ``x_T`` is where tau = T falls on the code axis; ``lsb = T / x_T``;
+        ``inl[k] = B[k] / lsb - k``. This is what a density test measures (the INL bow
+        beyond the window is invisible to it).
+        """
+        b = self.boundaries_s(detections_per_pixel_per_cycle)
+        k = np.array([np.searchsorted(row, window_s, side="right") - 1 for row in b])
+        rows = np.arange(self.n_tdc)
+        x_t = k + (window_s - b[rows, k]) / (b[rows, k + 1] - b[rows, k])
+        lsb = window_s / x_t
+        inl = b[:, :N_CODES] / lsb[:, None] - np.arange(N_CODES)[None, :]
+        return lsb, x_t, inl
+
+    def truth(self, detections_per_pixel_per_cycle: float, window_s: float = 80e-9) -> dict:
         """What a calibration should find, for the capture's sidecar."""
+        lsb_w, x_t, inl_w = self.window_truth(detections_per_pixel_per_cycle, window_s)
         return {
+            "lsb_window_ps": np.round(lsb_w * 1e12, 6).tolist(),
+            "x_t": np.round(x_t, 6).tolist(),
+            "inl_window_lsb": np.round(inl_w, 5).tolist(),
             "lsb_ps": np.round(self.lsb_ps(detections_per_pixel_per_cycle), 6).tolist(),
             "lsb0_ps": np.round(self.lsb0_ps, 6).tolist(),
             "lsb_light_ps": self.lsb_light_ps, "n_sat": self.n_sat,

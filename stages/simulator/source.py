@@ -206,7 +206,7 @@ class Simulator:
             "class_counts": {name: self.result.class_counts[i].tolist()
                              for i, name in enumerate(WORD_CLASSES)},
             "cycles": self.result.cycles,
-            "chip": self.chip.truth(self.light),
+            "chip": self.chip.truth(self.light, self.optics.window_s),
             "report": [e.__dict__ for e in sm.report],
         }
 

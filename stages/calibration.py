@@ -1,0 +1,284 @@
+"""Calibration: density test (DNL, INL, LSB, Nmin/Nmax/Nth/PDM), LSB against light, delay.
+
+Density test (sections 3.2, 5.1). Uniform light makes every code's share of hits
+proportional to its width, once pile-up is undone: the first photon is likelier early in
+the window, which is at high codes (reversed timing). Going through the codes in arrival
+order (high to low), a code's hits over the cycles still "at risk" (no START at a higher
+code) is ``1 - exp(-r w)``: so ``r w = -log(1 - h / R)`` exactly, at any light level
+(Coates' correction). The top codes hold the reset peak (a START at the window's beginning,
+tau = T); their widths come from the measured codes of the same VCO phase (the DNL pattern
+repeats every 8 codes).
+
+The LSB is the window over the code span (the issue's definition, and the one the
+simulator's truth uses): ``LSB = T / x_T`` where ``x_T`` is where tau = T falls on the code
+axis, the centroid of the reset peak (a delta at T blurred symmetrically by jitter) placed
+with the measured widths. INL_k = B_k / LSB - k at each code boundary B_k.
+
+Statistics: with H hits over K codes, the INL has an RMS statistical error of about
+``K sqrt(1/6) / sqrt(H)`` LSB (the cumulative count is binomial): ~0.32 LSB for 250 000 hits
+(1e6 cycles at 25 % STARTs) over 395 codes, 0.1 LSB at ~1e7 cycles. :func:`cycles_needed`
+turns a requested INL precision into cycles.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from schemas.errors import CalibrationError
+from schemas.words import N_CODES, N_CODES_2ND
+from stages.artifact import ArtifactBounds, estimate_bounds
+
+#: Codes excluded next to the reset peak and at the window's end (jitter is ~0.5 LSB rms).
+EDGE_MARGIN = 4
+
+
+# ---------------------------------------------------------------- second stage (eq. 3.4)
+
+class SecondStageAccumulator:
+    """Joint counts of (TDC, P1st, D2nd) over hit candidates, for Nmin/Nmax/Nth/PDM."""
+
+    def __init__(self, n_tdc: int):
+        self.n_tdc = n_tdc
+        self.counts = np.zeros((n_tdc, 8, N_CODES_2ND), np.int64)
+
+    def update(self, words: np.ndarray, first_word: int = 0) -> None:
+        from stages.codec import classify_words, decode_fields
+
+        f = decode_fields(words)
+        cls = classify_words(words, self.n_tdc, first_word, fields=f)
+        ok = cls == 0  # hit candidates: no artifact test yet (bounds unknown)
+        pos = (np.arange(words.size) + first_word) % self.n_tdc
+        key = (pos[ok] * 8 + f.p1st[ok]) * N_CODES_2ND + f.d2nd[ok]
+        self.counts += np.bincount(key, minlength=self.counts.size).reshape(self.counts.shape)
+
+
+@dataclass(frozen=True)
+class SecondStage:
+    n_min: np.ndarray
+    n_max: np.ndarray
+    n_th: np.ndarray
+    pdm: np.ndarray
+
+    @property
+    def bounds(self) -> ArtifactBounds:
+        return ArtifactBounds(self.n_min, self.n_max, source="density test")
+
+
+def second_stage_params(joint: np.ndarray) -> SecondStage:
+    """Nmin, Nmax (the valid block, artifact excluded), Nth (min D2nd with P1st = 0) and
+    PDM (min D2nd with P1st = 4), per TDC (section 3.2). -1 where a TDC saw nothing."""
+    b = estimate_bounds(joint.sum(axis=1))
+    d2 = np.arange(N_CODES_2ND)
+    inside = (d2 >= b.n_min[:, None]) & (d2 <= b.n_max[:, None])
+
+    def first(p1):
+        seen = (joint[:, p1, :] > 0) & inside
+        return np.where(seen.any(axis=1), np.argmax(seen, axis=1), -1)
+
+    empty = joint.sum(axis=(1, 2)) == 0
+    n_min = np.where(empty, -1, b.n_min)
+    n_max = np.where(empty, -1, b.n_max)
+    return SecondStage(n_min, n_max, first(0), first(4))
+
+
+# ------------------------------------------------------------------------- density test
+
+@dataclass(frozen=True)
+class DensityResult:
+    """Per-TDC results of a density test. Widths, DNL and INL are (n_tdc, 512)."""
+
+    lsb_s: np.ndarray        #: window over code span
+    x_t: np.ndarray          #: where tau = T falls on the code axis
+    width_lsb: np.ndarray    #: code widths (NaN above the window)
+    dnl_lsb: np.ndarray
+    inl_lsb: np.ndarray      #: at each code's lower boundary
+    hits: np.ndarray         #: hits per TDC used
+    detections_per_cycle: np.ndarray  #: STARTs per cycle, the light level of eq. 5.1
+    ok: np.ndarray           #: False for a dead or dark TDC (flagged, excluded)
+    inl_error_lsb: np.ndarray  #: expected statistical error of the mid-range INL
+
+    @property
+    def n_tdc(self) -> int:
+        return int(self.lsb_s.size)
+
+
+#: RMS over the codes of sqrt(F (1 - F)) for F uniform on [0, 1]: sqrt(1/6).
+INL_RMS_FACTOR = float(np.sqrt(1 / 6))
+
+
+def cycles_needed(inl_rms_lsb: float, n_codes: float = 395.0,
+                  starts_per_cycle: float = 0.25) -> int:
+    """Cycles a density test needs for an INL with ``inl_rms_lsb`` statistical RMS error.
+
+    The cumulative count below code k is binomial, so the INL's error there is
+    ``K sqrt(F (1 - F) / H)``; its RMS over the codes is ``K sqrt(1/6) / sqrt(H)``.
+
+    >>> cycles_needed(0.1)  # ~1e7 cycles at 25 % STARTs per cycle
+    10400834
+    """
+    hits = (n_codes * INL_RMS_FACTOR / inl_rms_lsb) ** 2
+    return int(np.ceil(hits / starts_per_cycle))
+
+
+def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
+                 min_hits: int = 1000) -> DensityResult:
+    """DNL, INL and LSB of every TDC from the D1st histograms of a uniform-light capture.
+
+    Parameters
+    ----------
+    hits : (n_tdc, 512) counts of hit words (artifact removed).
+    cycles : (n_tdc,) cycles per TDC.
+    window_s : the window length T.
+    min_hits : below this a TDC is flagged as dead or dark (``ok = False``), and its
+        results are NaN; other TDCs are unaffected.
+    """
+    hits = np.asarray(hits, np.float64)
+    cycles = np.asarray(cycles, np.float64)
+    n_tdc = hits.shape[0]
+    out = {k: np.full(n_tdc, np.nan) for k in ("lsb", "x_t", "err")}
+    widths = np.full((n_tdc, N_CODES), np.nan)
+    inl = np.full((n_tdc, N_CODES), np.nan)
+    total = hits.sum(axis=1)
+    ok = total >= min_hits
+    for t in np.flatnonzero(ok):  # a loop over TDCs, once per calibration
+        res = _one_tdc(hits[t], cycles[t], window_s)
+        if res is None:
+            ok[t] = False
+            continue
+        out["lsb"][t], out["x_t"][t], widths[t], inl[t], out["err"][t] = res
+    dnl = widths - 1.0
+    return DensityResult(out["lsb"], out["x_t"], widths, dnl, inl, total, total / cycles, ok,
+                         out["err"])
+
+
+def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float):
+    # the reset peak: the largest count in the upper part of the code range
+    top = int(np.argmax(np.where(np.arange(N_CODES) > 16, h, -1)))
+    # The low edge is usable: for uniform light, code 0 (which also collects every START the
+    # jitter pushes below tau = 0) holds density * B_1 * (1 + ~0.004) at sigma = 0.5 LSB
+    # (integral of Phi), and code 1 loses ~1 %: measured directly they beat any fill.
+    lo, hi = 0, top - EDGE_MARGIN           # the reset peak's codes are excluded
+    if hi - lo < 32:
+        return None
+    # at risk before each code, in arrival order (high codes first)
+    before = np.concatenate([np.cumsum(h[::-1])[::-1][1:], [0.0]])  # hits at higher codes
+    at_risk = n_cycles - before
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rw = -np.log1p(-h / at_risk)        # r * width, Coates
+    interior = np.arange(lo, hi + 1)
+    if np.any(~np.isfinite(rw[interior])) or np.any(h[interior] == 0):
+        # missing codes: a zero-count code has an unknown (tiny) width; keep it at 0
+        rw = np.where(np.isfinite(rw), rw, 0.0)
+    # per-phase mean widths fill the edge codes (the DNL pattern repeats every 8 codes)
+    phase_mean = np.array([rw[interior[interior % 8 == p]].mean() for p in range(8)])
+    scale = rw[interior].mean()             # r * LSB_interior
+    w = rw / scale
+    edge = np.ones(N_CODES, bool)
+    edge[interior] = False
+    w[edge] = phase_mean[np.arange(N_CODES)[edge] % 8] / scale
+    bound = np.concatenate([[0.0], np.cumsum(w)])   # B_k in interior-LSB units
+    # x_T: the reset peak's centroid in these units, after removing the uniform part the
+    # top codes hold (their expected share at the interior's density, at risk there)
+    region = np.arange(max(hi + 1, top - 6), min(top + 7, N_CODES))
+    uniform = at_risk[region] * (-np.expm1(-scale * w[region]))
+    uniform *= np.clip((top - region) / 3.0 + 0.5, 0, 1)  # the uniform part ends at T
+    excess = np.clip(h[region] - uniform, 0, None)
+    centre = bound[region] + 0.5 * w[region]
+    tau_t = float(np.sum(excess * centre) / np.sum(excess))  # in interior-LSB units
+    k = int(np.searchsorted(bound, tau_t, side="right") - 1)
+    x_t = k + (tau_t - bound[k]) / w[k]
+    lsb = window_s / x_t
+    # rescale to the window's LSB: B_k (s) = bound * T / tau_t
+    b_lsb = bound * x_t / tau_t
+    inl = b_lsb[:N_CODES] - np.arange(N_CODES)
+    width = np.diff(b_lsb)
+    beyond = np.arange(N_CODES) > x_t
+    width[beyond] = np.nan
+    inl[beyond] = np.nan
+    err = x_t * INL_RMS_FACTOR / np.sqrt(max(h[interior].sum(), 1.0))
+    return lsb, x_t, width, inl, err
+
+
+# ------------------------------------------------------------------- LSB against light
+
+@dataclass(frozen=True)
+class LsbFit:
+    """LSB(n) per TDC as a cubic in scaled x = (n - x_mean) / x_scale (eq. 5.1's n)."""
+
+    coef: np.ndarray      #: (n_tdc, 4), c0 + c1 x + c2 x^2 + c3 x^3, in ps
+    x_mean: float
+    x_scale: float
+    n_range: tuple[float, float]
+    residual_ps: np.ndarray  #: (n_tdc, n_points)
+
+    def lsb_ps(self, n) -> np.ndarray:
+        x = (np.asarray(n, np.float64) - self.x_mean) / self.x_scale
+        return self.coef @ np.array([np.ones_like(x), x, x * x, x * x * x])
+
+    def in_range(self, n) -> bool:
+        lo, hi = self.n_range
+        return bool(lo - 1e-12 <= n <= hi + 1e-12)
+
+
+def fit_lsb(n: np.ndarray, lsb_ps: np.ndarray) -> LsbFit:
+    """Per-TDC cubic fit of LSB against light, on scaled x (well conditioned).
+
+    ``n`` (n_points,) light levels, ``lsb_ps`` (n_tdc, n_points). Needs 4 levels or more;
+    with exactly 4 the cubic interpolates (residuals are zero and say nothing).
+    """
+    n = np.asarray(n, np.float64)
+    y = np.asarray(lsb_ps, np.float64)
+    if n.size < 4:
+        raise CalibrationError(f"an LSB-against-light fit needs density tests at >= 4 light "
+                               f"levels (a cubic, eq. 5.1); found {n.size}")
+    x_mean = float(n.mean())
+    x_scale = float(n.std()) or 1.0
+    x = (n - x_mean) / x_scale
+    v = np.vander(x, 4, increasing=True)              # (n_points, 4), scaled: well posed
+    good = np.all(np.isfinite(y), axis=1)
+    coef = np.full((y.shape[0], 4), np.nan)
+    coef[good] = np.linalg.lstsq(v, y[good].T, rcond=None)[0].T
+    resid = y - coef @ v.T
+    return LsbFit(coef, x_mean, x_scale, (float(n.min()), float(n.max())), resid)
+
+
+# ----------------------------------------------------------------- code -> time, delay
+
+def code_centres_s(density: DensityResult, codes=None) -> np.ndarray:
+    """tau (seconds before the window's end) at the centre of each code, per TDC.
+
+    ``(n_tdc, 512)`` or, with ``codes`` (n_tdc, ...), at those codes.
+    """
+    centres = (np.arange(N_CODES)[None, :] + density.inl_lsb
+               + 0.5 * (1 + density.dnl_lsb)) * density.lsb_s[:, None]
+    if codes is None:
+        return centres
+    return np.take_along_axis(centres, np.asarray(codes, np.int64), axis=1)
+
+
+def histogram_tau_s(hits: np.ndarray, density: DensityResult, lsb_s=None):
+    """Centroid tau of each TDC's histogram peak region: (peak tau in s, counts used)."""
+    lsb = density.lsb_s if lsb_s is None else np.asarray(lsb_s)
+    centres = (np.arange(N_CODES)[None, :] + np.nan_to_num(density.inl_lsb)
+               + 0.5 * (1 + np.nan_to_num(density.dnl_lsb))) * lsb[:, None]
+    h = np.asarray(hits, np.float64)
+    peak = np.argmax(h[:, 2:-8], axis=1) + 2
+    k = np.arange(N_CODES)[None, :]
+    win = np.abs(k - peak[:, None]) <= 6
+    bg = np.median(h, axis=1, keepdims=True)
+    w = np.where(win, np.clip(h - bg, 0, None), 0.0)
+    return (w * centres).sum(1) / np.maximum(w.sum(1), 1e-300), w.sum(1)
+
+
+def delay_s(t_laser_win_s: float, tau_peak_s) -> np.ndarray:
+    """eq. 5.3: T_delay = T_Laser-Win - TDC_out * LSB (the zero-distance peak's tau)."""
+    return t_laser_win_s - np.asarray(tau_peak_s, np.float64)
+
+
+def distance_m(t_laser_win_s: float, delay, tau_s) -> np.ndarray:
+    """eq. 5.4: distance = c/2 (T_Laser-Win - T_delay - TDC_out * LSB)."""
+    from scipy.constants import c
+
+    return c / 2 * (t_laser_win_s - np.asarray(delay) - np.asarray(tau_s))
