@@ -49,6 +49,15 @@ def machine() -> str:
             f" numpy {np.__version__}, numba {numba.__version__}")
 
 
+def emit(lines: list[str], out: Path | None) -> None:
+    """Print a benchmark's table, and keep it in ``out`` when asked."""
+    text = "\n".join(lines)
+    print(text)
+    if out:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text + "\n")
+
+
 def best_of(fn, repeat: int) -> float:
     times = []
     for _ in range(repeat):
@@ -200,11 +209,7 @@ def main() -> None:
                   f"{r['passes'] * r['words'] / r['seconds'] / 1e6:,.0f} M words/s per pass; "
                   f"peak RSS {r['maxrss_kib'] / 1024:,.0f} MiB; every word classed: "
                   f"{r['total'] == r['words']}", ""]
-    text = "\n".join(lines)
-    print(text)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    emit(lines, args.out)
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ from scipy import stats
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.datapath import machine  # noqa: E402
+from benchmarks.datapath import emit, machine  # noqa: E402
 from stages.models.scene import evaluate, load_scene  # noqa: E402
 from stages.models.tcspc import first_photon_histogram  # noqa: E402
 from stages.simulator.chip import make_chip  # noqa: E402
@@ -118,11 +118,7 @@ def main() -> None:
             rates.append(speed(sim, 40_000) / 1e6)
         lines.append(f"| {name} | {sim.light:.3f} | {rates[0]:.1f} | {rates[1]:.1f} | "
                      f"{rates[2]:.1f} |")
-    text = "\n".join(lines)
-    print(text)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    emit(lines, args.out)
 
 
 if __name__ == "__main__":

@@ -214,9 +214,11 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
 
 
 def _register() -> None:
+    from pipeline.cli_calibrate import calibrate
     from pipeline.cli_model import model
 
     cli.add_command(model)
+    cli.add_command(calibrate)
 
 
 _register()

@@ -99,3 +99,40 @@ def all_figures(out_dir) -> list[Path]:
     out = Path(out_dir)
     return [figure_2_2(out / "figure_2_2.png"), figure_2_13(out / "figure_2_13.png"),
             figure_2_16(out / "figure_2_16.png"), figure_2_18(out / "figure_2_18.png")]
+
+
+def density_figure(res, path) -> Path:
+    """DNL and INL of every TDC (like Figures H.3-H.5): all curves, worst case highlighted."""
+    fig, (a, b) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    k = np.arange(res.dnl_lsb.shape[1])
+    for t in np.flatnonzero(res.ok):
+        a.plot(k, res.dnl_lsb[t], lw=0.3, alpha=0.3, color="C0")
+        b.plot(k, res.inl_lsb[t], lw=0.3, alpha=0.3, color="C1")
+    worst = int(np.nanargmax(np.nanmax(np.abs(res.inl_lsb), axis=1)))
+    b.plot(k, res.inl_lsb[worst], lw=1.2, color="k", label=f"worst INL: TDC {worst}")
+    a.set_ylabel("DNL (LSB)")
+    b.set_ylabel("INL (LSB)")
+    b.set_xlabel("code (D1st)")
+    b.legend()
+    a.set_title(f"density test: {res.ok.sum()} TDCs, LSB "
+                f"{np.nanmean(res.lsb_s) * 1e12:.2f} ps mean")
+    return _save(fig, path)
+
+
+def lsb_figure(n, lsbs_ps, fit, path) -> Path:
+    """LSB against light for every TDC with its cubic (like Figures 5.1-5.2)."""
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    x = np.linspace(min(n), max(n), 100)
+    curves = fit.lsb_ps(x)
+    for t in range(lsbs_ps.shape[0]):
+        a.plot(n, lsbs_ps[t], "o", ms=2, alpha=0.3, color="C0")
+        a.plot(x, curves[t], lw=0.4, alpha=0.3, color="C1")
+    a.set_xlabel("detections per pixel per cycle (eq. 5.1)")
+    a.set_ylabel("LSB (ps)")
+    a.set_title("Figure 5.1: LSB against light, all TDCs")
+    b.plot(n, lsbs_ps[0], "o", label="density tests")
+    b.plot(x, curves[0], label="cubic fit")
+    b.set_xlabel("detections per pixel per cycle")
+    b.set_title("Figure 5.2: the first TDC")
+    b.legend()
+    return _save(fig, path)

@@ -22,7 +22,7 @@ HISTOGRAMS = SchemaSpec("histograms", "1.0", (
     field("n_malformed", pa.uint64(), "word", "words with bad markers or address"),
 ))
 
-CALIBRATION_TDC = SchemaSpec("calibration_tdc", "1.0", (
+CALIBRATION_TDC = SchemaSpec("calibration_tdc", "1.1", (
     field("tdc", pa.uint16(), "", "TDC address (0-based)"),
     field("lsb_ps", pa.float64(), "ps", "LSB at the density test's intensity"),
     field("lsb_poly", pa.list_(pa.float64(), 4), "ps",
@@ -33,6 +33,8 @@ CALIBRATION_TDC = SchemaSpec("calibration_tdc", "1.0", (
     field("n_th", pa.uint16(), "LSB2", "minimum D2nd when P1st = 0 (Nth, eq. 3.4)"),
     field("pdm", pa.uint16(), "LSB2", "minimum D2nd when P1st = 4 (PDM, eq. 3.4)"),
     field("delay_ps", pa.float64(), "ps", "system delay T_delay (eq. 5.3)", nullable=True),
+    # 1.1: the density test's verdict per TDC
+    field("ok", pa.bool_(), "", "false for a dead or dark TDC (flagged, excluded)"),
 ))
 
 CALIBRATION_INL = SchemaSpec("calibration_inl", "1.0", (

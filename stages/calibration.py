@@ -116,7 +116,7 @@ def cycles_needed(inl_rms_lsb: float, n_codes: float = 395.0,
     ``K sqrt(F (1 - F) / H)``; its RMS over the codes is ``K sqrt(1/6) / sqrt(H)``.
 
     >>> cycles_needed(0.1)  # ~1e7 cycles at 25 % STARTs per cycle
-    10400834
+    10401667
     """
     hits = (n_codes * INL_RMS_FACTOR / inl_rms_lsb) ** 2
     return int(np.ceil(hits / starts_per_cycle))

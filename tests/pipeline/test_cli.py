@@ -77,6 +77,7 @@ def write_bounds_calibration(caldir, n_tdc):
         "n_th": pa.array(np.full(n_tdc, N_MIN), pa.uint16()),
         "pdm": pa.array(np.full(n_tdc, N_MIN), pa.uint16()),
         "delay_ps": pa.array([None] * n_tdc, pa.float64()),
+        "ok": pa.array(np.ones(n_tdc, bool)),
     }, schema=CALIBRATION_TDC.schema)
     pq.write_table(t, caldir / "tdc.parquet")
     return caldir

@@ -1,0 +1,125 @@
+"""``tcspc calibrate density|lsb|delay`` (DESIGN.md "Command line")."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+import numpy as np
+from rich.console import Console
+
+from pipeline.calibrate import density_from_capture, lsb_at, read_density, write_caldir
+from pipeline.capture import Capture
+from stages import calibration as cal
+from stages.histogram import HistogramAccumulator
+
+err = Console(stderr=True)
+
+
+@click.group()
+def calibrate() -> None:
+    """Density test, LSB against light, and zero-distance delay."""
+
+
+_inl = click.option("--inl-rms", default=0.5, show_default=True, type=float,
+                    help="Refuse a capture whose INL would be worse than this (LSB RMS).")
+
+
+def _report(res: cal.DensityResult, second: cal.SecondStage) -> None:
+    ok = res.ok
+    err.print(f"TDCs calibrated: {ok.sum()} of {ok.size}"
+              + (f"; flagged (dead or dark): {np.flatnonzero(~ok).tolist()}" if (~ok).any()
+                 else ""))
+    if ok.any():
+        err.print(f"LSB {np.nanmin(res.lsb_s) * 1e12:.2f}..{np.nanmax(res.lsb_s) * 1e12:.2f} ps;"
+                  f" worst |DNL| {np.nanmax(np.abs(res.dnl_lsb)):.2f} LSB, worst |INL| "
+                  f"{np.nanmax(np.abs(res.inl_lsb)):.2f} LSB; INL statistical error "
+                  f"~{np.nanmax(res.inl_error_lsb):.2f} LSB RMS; light "
+                  f"{np.nanmean(res.detections_per_cycle):.3f} STARTs/pixel/cycle")
+        err.print(f"Nmin {second.n_min.min()}..{second.n_min.max()}, Nmax "
+                  f"{second.n_max.min()}..{second.n_max.max()}")
+
+
+@calibrate.command()
+@click.argument("capture", type=click.Path())
+@click.option("--out", required=True, type=click.Path(), help="calibration directory")
+@click.option("--plot", type=click.Path(), help="DNL/INL of all TDCs as a PNG.")
+@_inl
+def density(capture, out, plot, inl_rms) -> None:
+    """Density test of a uniform-light CAPTURE: DNL, INL, LSB, Nmin/Nmax/Nth/PDM."""
+    cap = Capture(capture)
+    res, second = density_from_capture(cap, inl_rms)
+    write_caldir(out, res, second, [cap.bin_path])
+    _report(res, second)
+    if plot:
+        from pipeline.figures import density_figure
+
+        density_figure(res, plot)
+    err.print(f"wrote {out}")
+
+
+@calibrate.command()
+@click.argument("captures", nargs=-1, required=True, type=click.Path())
+@click.option("--out", required=True, type=click.Path(), help="calibration directory")
+@click.option("--plot", type=click.Path(), help="LSB against light as a PNG.")
+@_inl
+def lsb(captures, out, plot, inl_rms) -> None:
+    """Density tests at several light levels: LSB per TDC as a cubic in eq. 5.1's n."""
+    results = []
+    for path in captures:
+        cap = Capture(path)
+        res, second = density_from_capture(cap, None)  # dim tests give an LSB, not an INL
+        results.append((cap, res, second))
+        err.print(f"{cap.bin_path.name}: {np.nanmean(res.detections_per_cycle):.3f} STARTs per "
+                  f"pixel per cycle, LSB {np.nanmean(res.lsb_s) * 1e12:.2f} ps (mean)")
+    n = np.array([np.nanmean(r.detections_per_cycle) for _, r, _ in results])
+    lsbs = np.column_stack([r.lsb_s * 1e12 for _, r, _ in results])
+    fit = cal.fit_lsb(n, lsbs)
+    best = min(results, key=lambda x: np.nanmax(x[1].inl_error_lsb))
+    worst = float(np.nanmax(best[1].inl_error_lsb))
+    if worst > inl_rms:
+        raise click.ClickException(f"the best density test ({best[0].bin_path.name}) gives an "
+                                   f"INL error of {worst:.2f} LSB RMS > --inl-rms {inl_rms}")
+    write_caldir(out, best[1], best[2], [c.bin_path for c, _, _ in results], lsb_fit=fit)
+    err.print(f"cubic fit over n = {n.min():.3f}..{n.max():.3f}; residuals up to "
+              f"{np.nanmax(np.abs(fit.residual_ps)):.3f} ps")
+    if plot:
+        from pipeline.figures import lsb_figure
+
+        lsb_figure(n, lsbs, fit, plot)
+    err.print(f"wrote {out}")
+
+
+@calibrate.command()
+@click.argument("capture", type=click.Path())
+@click.option("--out", required=True, type=click.Path(exists=True, file_okay=False),
+              help="calibration directory with a density test; the delay is added to it")
+def delay(capture, out) -> None:
+    """System delay per TDC from a zero-distance CAPTURE (eq. 5.3), into CALDIR."""
+    from pipeline.caldir import read_bounds, read_tdc_table
+
+    cap = Capture(capture)
+    res, meta = read_density(out)
+    acc = HistogramAccumulator(cap.meta.n_tdc, read_bounds(out, cap.meta.n_tdc))
+    for first, words in cap.iter_chunks():
+        acc.update(words, first)
+    state = acc.snapshot()
+    light = float(state.hits.sum() / (state.n_tdc * max(state.cycles.max(), 1)))  # eq. 5.1
+    lsb_s = lsb_at(out, light)
+    tau, used = cal.histogram_tau_s(state.hits, res, lsb_s)
+    d = cal.delay_s(cap.meta.t_laser_win_ns * 1e-9, tau)
+    tdc = read_tdc_table(out)
+    second = cal.SecondStage(*(tdc.column(c).to_numpy().astype(np.int64)
+                               for c in ("n_min", "n_max", "n_th", "pdm")))
+    sources = [Path(s["path"]) for s in meta["sources"] if Path(s["path"]).exists()]
+    extra = {k: v for k, v in meta.items() if k.startswith("lsb_")}
+    fit = None
+    if "lsb_poly_x" in meta:
+        px = meta["lsb_poly_x"]
+        poly = np.stack(tdc.column("lsb_poly").to_numpy(zero_copy_only=False))
+        fit = cal.LsbFit(poly, px["mean"], px["scale"], tuple(px["n_range"]),
+                         np.asarray(meta["lsb_residual_ps"]))
+    write_caldir(out, res, second, sources + [cap.bin_path], lsb_fit=fit, delay_s=d,
+                 extra={**extra, "delay": {"capture": str(cap.bin_path), "light": light,
+                                           "counts_used": used.tolist()}})
+    err.print(f"delay {np.nanmin(d) * 1e9:.4f}..{np.nanmax(d) * 1e9:.4f} ns; wrote {out}")

@@ -1,0 +1,139 @@
+"""Calibration against the simulator's truth (an 8-TDC chip, in memory)."""
+
+
+import numpy as np
+import pytest
+
+from schemas import CalibrationError
+from stages import calibration as cal
+from stages.histogram import HistogramAccumulator
+from stages.models.scene import evaluate, scene_from_dict
+from stages.simulator.chip import make_chip
+from stages.simulator.source import Simulator
+
+N = 8
+
+
+def density_run(lux, cycles, chip_seed=4, seed=1, dark=()):
+    raw = {"sensor": {"n_pixels": N, "hot_pixels": []}, "dark_counts": True,
+           "ambient": [{"kind": "lux", "lux": float(lux)}]}
+    sm = evaluate(scene_from_dict(raw))
+    if dark:  # a dead TDC: no light and no dark counts
+        sm = type(sm)(sm.scene, sm.m_signal, sm.tof_in_window_s, sm.distance_m, sm.sigma_s,
+                      np.where(np.isin(np.arange(N), dark), 0.0, sm.bg_rate_hz), sm.report)
+    chip = make_chip(N, chip_seed)
+    sim = Simulator(sm, chip, seed)
+    ss = cal.SecondStageAccumulator(N)
+    words = [w for _, w in sim.batches(cycles)]
+    for w in words[:40]:  # the second stage needs far fewer cycles than the INL
+        ss.update(w, 0)
+    second = cal.second_stage_params(ss.counts)
+    acc = HistogramAccumulator(N, second.bounds)
+    for w in words:
+        acc.update(w)
+    st = acc.snapshot()
+    return sim, chip, second, cal.density_test(st.hits, st.cycles, sm.window_s)
+
+
+@pytest.fixture(scope="module")
+def run_1e7():
+    return density_run(1500, 10_000_000)
+
+
+def inl_rms_error(res, chip, light, window_s=80e-9):
+    lsb_t, x_t, inl_t = chip.window_truth(light, window_s)
+    k = np.arange(512)
+    return np.array([np.sqrt(np.mean((res.inl_lsb[t] - inl_t[t])[k < x_t[t] - 1] ** 2))
+                     for t in range(N)]), lsb_t
+
+
+def test_second_stage_parameters_are_exact(run_1e7):
+    _, chip, second, _ = run_1e7
+    for name in ("n_min", "n_max", "n_th", "pdm"):
+        np.testing.assert_array_equal(getattr(second, name), getattr(chip, name), name)
+
+
+def test_lsb_within_0_1_ps_and_inl_at_its_statistical_floor(run_1e7):
+    sim, chip, _, res = run_1e7
+    rms, lsb_t = inl_rms_error(res, chip, sim.light)
+    assert np.abs(res.lsb_s - lsb_t).max() < 0.1e-12
+    # ~0.1 LSB RMS is the binomial floor at 1e7 cycles (cycles_needed); allow its spread
+    assert np.median(rms) < 1.5 * np.median(res.inl_error_lsb)
+    assert rms.max() < 3 * res.inl_error_lsb.max()
+    assert np.all(res.ok)
+
+
+def test_pile_up_corrected_inl_does_not_depend_on_light():
+    """A density test at ~55 % STARTs per cycle gives the same INL as one at ~7 %."""
+    low = density_run(400, 4_000_000)
+    high = density_run(4000, 1_000_000)
+    for sim, chip, _, res in (low, high):
+        rms, lsb_t = inl_rms_error(res, chip, sim.light)
+        assert np.median(rms) < 2 * np.median(res.inl_error_lsb)
+    # without the Coates correction the high-light INL would bow by several LSB
+    sim, chip, _, res = high
+    assert np.nanmax(np.abs(res.inl_lsb)) < 3
+
+
+def test_dead_tdc_is_flagged_and_others_unaffected():
+    sim, chip, _, res = density_run(1500, 300_000, dark=(3,))
+    assert not res.ok[3] and res.ok[[0, 1, 2, 4, 5, 6, 7]].all()
+    assert np.isnan(res.lsb_s[3]) and np.all(np.isfinite(res.lsb_s[res.ok]))
+
+
+def test_missing_codes_do_not_break_the_test():
+    sim, chip, second, res = density_run(1500, 300_000)
+    acc_hits = np.zeros((N, 512))
+    acc_hits[:] = 1000.0
+    acc_hits[:, 100] = 0.0   # a missing code
+    acc_hits[:, 380] = 60000.0  # the reset peak
+    r = cal.density_test(acc_hits, np.full(N, 400_000.0), 80e-9)
+    assert np.all(r.ok) and np.all(np.isfinite(r.inl_lsb[:, :370]))
+    assert np.allclose(r.width_lsb[:, 100], 0.0, atol=1e-9)
+
+
+def test_cycles_needed_and_too_small_capture_message():
+    assert cal.cycles_needed(0.1, 395, 0.25) == pytest.approx(1.04e7, rel=0.01)
+    assert cal.cycles_needed(0.2) < cal.cycles_needed(0.1)
+
+
+def test_lsb_fit_is_scaled_stores_residuals_and_warns_out_of_range():
+    n = np.array([0.05, 0.2, 0.4, 0.6, 0.8])
+    true = 205 + 40 * (1 - np.exp(-n / 0.25))
+    fit = cal.fit_lsb(n, np.vstack([true, true + 1]))
+    assert np.abs(fit.residual_ps).max() < 0.5 and fit.residual_ps.shape == (2, 5)
+    assert fit.in_range(0.3) and not fit.in_range(0.9)
+    assert abs(fit.lsb_ps(0.3)[0] - (205 + 40 * (1 - np.exp(-0.3 / 0.25)))) < 0.5
+    with pytest.raises(CalibrationError, match="needs density tests at >= 4 light levels"):
+        cal.fit_lsb(n[:3], np.vstack([true[:3]]))
+
+
+def test_delay_and_distance_eq_5_3_5_4():
+    t_lw = 140e-9
+    d = cal.delay_s(t_lw, np.array([40e-9]))
+    assert d[0] == pytest.approx(100e-9)
+    # a target 3 m away returns 20 ns later: tau is 20 ns smaller
+    assert cal.distance_m(t_lw, d, np.array([40e-9 - 2 * 3 / 299_792_458]))[0] == \
+        pytest.approx(3.0, abs=1e-9)
+
+
+def test_delay_estimator_within_5_ps_with_an_exact_calibration():
+    """Given the chip's true INL/LSB, the zero-distance peak gives the delay to < 5 ps."""
+    raw = {"sensor": {"n_pixels": N, "hot_pixels": []},
+           "gate": {"t_laser_win_ns": 140.0, "delay_ns": 100.0},
+           "targets": [{"pixels": [0, N - 1], "distance_m": 0.001, "reflectivity": 0.0005,
+                        "surface": "mirror"}]}
+    sm = evaluate(scene_from_dict(raw))
+    chip = make_chip(N, 4)
+    sim = Simulator(sm, chip, 2)
+    acc = HistogramAccumulator(N)
+    for _, w in sim.batches(2_000_000):  # ~48 000 counts per TDC: ~0.9 ps statistical
+        acc.update(w)
+    lsb_t, x_t, inl_t = chip.window_truth(sim.light, sm.window_s)
+    dnl_t = np.diff(np.concatenate([inl_t, inl_t[:, -1:]], axis=1), axis=1)
+    truth = cal.DensityResult(lsb_t, x_t, 1 + dnl_t, dnl_t, inl_t, np.zeros(N), np.zeros(N),
+                              np.ones(N, bool), np.zeros(N))
+    tau, _ = cal.histogram_tau_s(acc.snapshot().hits, truth)
+    got = cal.delay_s(140e-9, tau)
+    want = 100e-9 + 2 * 0.001 / 299_792_458
+    assert np.abs(got - want).max() < 5e-12
