@@ -175,6 +175,9 @@ def demo(out, cycles) -> None:
     result = run_demo(out, cycles)
     if not result["exact"]:
         raise click.ClickException("demo: histograms differ from the intended ones")
+    if not result["street_ok"]:
+        raise click.ClickException("demo: a street target's peak is not where its distance "
+                                   "puts it")
 
 
 @cli.command()
