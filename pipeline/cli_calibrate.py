@@ -123,3 +123,62 @@ def delay(capture, out) -> None:
                  extra={**extra, "delay": {"capture": str(cap.bin_path), "light": light,
                                            "counts_used": used.tolist()}})
     err.print(f"delay {np.nanmin(d) * 1e9:.4f}..{np.nanmax(d) * 1e9:.4f} ns; wrote {out}")
+
+
+@calibrate.command()
+@click.argument("capture", type=click.Path())
+@click.option("--calibration", required=True, type=click.Path(exists=True, file_okay=False))
+@click.option("--out", type=click.Path(), help="Per-TDC drift as parquet.")
+@click.option("--tolerance-ps", default=1.0, show_default=True,
+              help="Report TDCs whose LSB drifted more than this.")
+def track(capture, calibration, out, tolerance_ps) -> None:
+    """Online tracking: the LSB from CAPTURE's background photons against CALIBRATION.
+
+    Background in an ordinary range capture is a density test too; its signal peaks are
+    masked. Reports each TDC's drift from the calibration's LSB at the capture's light.
+    """
+    from pipeline.caldir import read_bounds
+
+    cap = Capture(capture)
+    acc = HistogramAccumulator(cap.meta.n_tdc, read_bounds(calibration, cap.meta.n_tdc))
+    for first, words in cap.iter_chunks():
+        acc.update(words, first)
+    st = acc.snapshot()
+    light = float(st.hits.sum() / (st.n_tdc * max(st.cycles.max(), 1)))
+    with warnings_as_notes():
+        expected = lsb_at(calibration, light)
+    tr = cal.track_lsb(st.hits, st.cycles, cap.meta.window_ns * 1e-9, expected)
+    d = tr.drift_ps
+    ok = np.isfinite(d)
+    err.print(f"light {tr.light:.3f} STARTs/pixel/cycle; LSB measured on {ok.sum()} of "
+              f"{ok.size} TDCs; drift mean {np.nanmean(d):+.3f} ps, max |drift| "
+              f"{np.nanmax(np.abs(d)):.3f} ps")
+    moved = np.flatnonzero(ok & (np.abs(d) > tolerance_ps))
+    if moved.size:
+        err.print(f"TDCs beyond {tolerance_ps} ps: {moved.tolist()} (recalibrate)")
+    if out:
+        import polars as pl
+
+        from pipeline.atomic import atomic_path
+
+        with atomic_path(out) as tmp:
+            pl.DataFrame({"tdc": np.arange(d.size, dtype=np.uint16),
+                          "lsb_ps": tr.lsb_s * 1e12, "expected_ps": tr.expected_s * 1e12,
+                          "drift_ps": d, "hits": tr.hits}).write_parquet(tmp)
+        err.print(f"wrote {out}")
+
+
+class warnings_as_notes:
+    """Show a calibration's out-of-range warning as a line on stderr, not a traceback."""
+
+    def __enter__(self):
+        import warnings
+
+        self._ctx = warnings.catch_warnings(record=True)
+        self._caught = self._ctx.__enter__()
+        warnings.simplefilter("always")
+
+    def __exit__(self, *exc):
+        self._ctx.__exit__(*exc)
+        for w in self._caught:
+            err.print(f"note: {w.message}")

@@ -123,7 +123,7 @@ def cycles_needed(inl_rms_lsb: float, n_codes: float = 395.0,
 
 
 def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
-                 min_hits: int = 1000) -> DensityResult:
+                 min_hits: int = 1000, exclude: np.ndarray | None = None) -> DensityResult:
     """DNL, INL and LSB of every TDC from the D1st histograms of a uniform-light capture.
 
     Parameters
@@ -133,6 +133,9 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
     window_s : the window length T.
     min_hits : below this a TDC is flagged as dead or dark (``ok = False``), and its
         results are NaN; other TDCs are unaffected.
+    exclude : (n_tdc, 512) bool, optional
+        Codes whose counts are not uniform light (a range capture's signal peaks): their
+        hits still leave the at-risk count, their widths come from the phase means.
     """
     hits = np.asarray(hits, np.float64)
     cycles = np.asarray(cycles, np.float64)
@@ -143,7 +146,8 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
     total = hits.sum(axis=1)
     ok = total >= min_hits
     for t in np.flatnonzero(ok):  # a loop over TDCs, once per calibration
-        res = _one_tdc(hits[t], cycles[t], window_s)
+        res = _one_tdc(hits[t], cycles[t], window_s,
+                       None if exclude is None else exclude[t])
         if res is None:
             ok[t] = False
             continue
@@ -153,7 +157,7 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
                          out["err"])
 
 
-def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float):
+def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None):
     # the reset peak: the largest count in the upper part of the code range
     top = int(np.argmax(np.where(np.arange(N_CODES) > 16, h, -1)))
     # The low edge is usable: for uniform light, code 0 (which also collects every START the
@@ -168,6 +172,10 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float):
     with np.errstate(divide="ignore", invalid="ignore"):
         rw = -np.log1p(-h / at_risk)        # r * width, Coates
     interior = np.arange(lo, hi + 1)
+    if exclude is not None:
+        interior = interior[~exclude[interior]]
+        if interior.size < 32 or any(np.sum(interior % 8 == p) == 0 for p in range(8)):
+            return None
     if np.any(~np.isfinite(rw[interior])) or np.any(h[interior] == 0):
         # missing codes: a zero-count code has an unknown (tiny) width; keep it at 0
         rw = np.where(np.isfinite(rw), rw, 0.0)
@@ -199,6 +207,45 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float):
     inl[beyond] = np.nan
     err = x_t * INL_RMS_FACTOR / np.sqrt(max(h[interior].sum(), 1.0))
     return lsb, x_t, width, inl, err
+
+
+# ---------------------------------------------------------------- online LSB tracking
+
+def signal_codes(hits: np.ndarray, dilate: int = 8, z: float = 6.0) -> np.ndarray:
+    """(n_tdc, 512) mask of codes that hold more than uniform background: a range
+    capture's returns (counts above a running median by ``z`` Poisson sigmas), widened by
+    ``dilate`` codes on each side."""
+    from scipy.ndimage import maximum_filter1d, median_filter
+
+    h = np.asarray(hits, np.float64)
+    base = median_filter(h, size=(1, 41), mode="nearest")
+    peak = h > base + z * np.sqrt(np.maximum(base, 1.0))
+    return maximum_filter1d(peak, size=2 * dilate + 1, axis=1)
+
+
+@dataclass(frozen=True)
+class Tracking:
+    """The LSB measured from a range capture's background, against a calibration."""
+
+    lsb_s: np.ndarray          #: measured now (NaN where the background is too thin)
+    expected_s: np.ndarray     #: the calibration's LSB at this capture's light (eq. 5.1)
+    light: float               #: detections per pixel per cycle of this capture
+    hits: np.ndarray
+
+    @property
+    def drift_ps(self) -> np.ndarray:
+        return (self.lsb_s - self.expected_s) * 1e12
+
+
+def track_lsb(hits: np.ndarray, cycles: np.ndarray, window_s: float,
+              expected_lsb_s: np.ndarray, min_hits: int = 1000) -> Tracking:
+    """Measure each TDC's LSB from the uniform background of an ordinary range capture
+    (its signal peaks masked) and compare it with what the calibration expects."""
+    h = np.asarray(hits, np.float64)
+    res = density_test(h, cycles, window_s, min_hits, exclude=signal_codes(h))
+    light = float(h.sum() / (h.shape[0] * max(float(np.max(cycles)), 1.0)))
+    return Tracking(np.where(res.ok, res.lsb_s, np.nan), np.asarray(expected_lsb_s), light,
+                    res.hits)
 
 
 # ------------------------------------------------------------------- LSB against light

@@ -137,3 +137,25 @@ def test_delay_estimator_within_5_ps_with_an_exact_calibration():
     got = cal.delay_s(140e-9, tau)
     want = 100e-9 + 2 * 0.001 / 299_792_458
     assert np.abs(got - want).max() < 5e-12
+
+
+def test_online_tracking_measures_lsb_from_a_range_capture_and_reports_drift():
+    raw = {"sensor": {"n_pixels": N, "hot_pixels": []},
+           "gate": {"t_laser_win_ns": 200.0, "delay_ns": 100.0},
+           "laser": {"energy_pj": 500000.0},
+           "targets": [{"pixels": [0, N - 1], "distance_m": 9.0, "reflectivity": 0.4}],
+           "ambient": [{"kind": "lux", "lux": 10000.0, "filter_nm": 1.0}]}
+    sm = evaluate(scene_from_dict(raw))
+    chip = make_chip(N, 4)
+    sim = Simulator(sm, chip, 6)
+    acc = HistogramAccumulator(N, cal.SecondStage(chip.n_min, chip.n_max, chip.n_th,
+                                                  chip.pdm).bounds)
+    for _, w in sim.batches(300_000):
+        acc.update(w)
+    st = acc.snapshot()
+    lsb_t, _, _ = chip.window_truth(sim.light, sm.window_s)
+    assert cal.signal_codes(st.hits).any(axis=1).all()  # the return is masked everywhere
+    tr = cal.track_lsb(st.hits, st.cycles, sm.window_s, lsb_t + 2e-12)
+    assert np.abs(tr.lsb_s - lsb_t).max() < 0.2e-12
+    np.testing.assert_allclose(tr.drift_ps, -2.0, atol=0.2)
+    assert tr.light == pytest.approx(sim.light, rel=0.02)
