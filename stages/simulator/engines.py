@@ -116,9 +116,13 @@ class FastEngine:
         table = m * (ndtr((grid[None, :] - tof) / sg) - ndtr((s - tof) / sg)) + bg * (
             grid[None, :] - s)                                          # (n_tdc, G)
         self.l_end = table[:, -1]
+        self.phi0 = ndtr((s - optics.tof_s) / sg)
+        self.inv_sigma = 1.0 / sg
+        self.k_pdf = 1.0 / (SQRT2PI * sg)
         # its inverse on a uniform grid of E per TDC: t(E_j), E_j = j * l_end / (P - 1)
         n_tdc = optics.n_tdc
         self.de = np.where(self.l_end > 0, self.l_end / (inverse_points - 1), 1.0)
+        self.inv_de = 1.0 / self.de
         self.inv = np.empty((n_tdc, inverse_points))
         for i in range(n_tdc):  # once per simulation
             e = np.arange(inverse_points) * self.de[i]
@@ -126,8 +130,8 @@ class FastEngine:
                 self.inv[i] = np.linspace(s, T, inverse_points)
                 continue
             k = np.clip(np.searchsorted(table[i], e, side="right") - 1, 0, grid.size - 2)
-            self.inv[i] = self._newton(i, e, grid[k], grid[k + 1], table[i][k],
-                                       table[i][k + 1])
+            dl = np.maximum(table[i][k + 1] - table[i][k], 1e-300)
+            self.inv[i] = self._newton(i, e, grid[k], grid[k + 1], table[i][k], 1.0 / dl)
         self.inv[:, 0], self.inv[:, -1] = s, T
         # artifacts: point masses of the intensity at fixed times
         t_a, p_a, c_a = _artifact_times(chip, optics, boundaries)
@@ -142,46 +146,50 @@ class FastEngine:
         self.j_hi = self.j_lo + self.m_a           # ... and just after
         self.p_none = np.exp(-(self.l_end + self.m_a.sum(1)))
 
-    def _newton(self, tdc, e, lo, hi, l_lo, l_hi, iterations=MAX_ITER):
+    def _newton(self, tdc, e, lo, hi, l_lo, inv_dl, iterations=MAX_ITER):
         """Solve L_c(t) = e inside [lo, hi] (f(lo) <= 0 <= f(hi)), vectorised.
 
         Safeguarded Newton: the bracket shrinks with every step, a step that would leave it
         bisects instead, and each element stops when its step is below ``T_TOL`` (0.1 fs).
         One plain Newton step is not enough where L turns from flat (background only) to
-        steep (the pulse's onset): it overshoots to the cell's edge.
+        steep (the pulse's onset): it overshoots to the cell's edge. Divisions are
+        multiplications by reciprocals (the compiled kernel does the same arithmetic, so
+        both write the same bytes).
         """
         o = self.o
         tdc = np.broadcast_to(tdc, np.shape(e))
-        t = lo + (e - l_lo) / np.maximum(l_hi - l_lo, 1e-300) * (hi - lo)
+        t = lo + (e - l_lo) * inv_dl * (hi - lo)
         t, lo, hi, e = (np.array(x, np.float64) for x in (t, lo, hi, e))
-        phi0 = ndtr((self.start - o.tof_s) / o.sigma_s)
-        active = np.arange(t.size)
-        sg = o.sigma_s
+        phi0 = self.phi0
+        inv_sg, k_pdf = self.inv_sigma, self.k_pdf
+        # a cell wholly beyond Z_FAR on one side (or with no signal) is linear: one step
+        # lands on the root
+        zl, zh = (lo - o.tof_s[tdc]) * inv_sg, (hi - o.tof_s[tdc]) * inv_sg
+        linear = (((zl > Z_FAR) & (zh > Z_FAR)) | ((zl < -Z_FAR) & (zh < -Z_FAR))
+                  | (o.m_signal[tdc] == 0))
+        # in a linear cell the interpolation between the exact table points is the root
+        active = np.flatnonzero(~linear)
         for _ in range(iterations):
             if active.size == 0:
                 break
             ta, ti = t[active], tdc[active]
-            tof = o.tof_s[ti]
-            z = (ta - tof) / sg
+            z = (ta - o.tof_s[ti]) * inv_sg
             # beyond Z_FAR sigma Phi is 0 or 1 and phi is 0 to < 1e-32: no special functions
             near = np.abs(z) <= Z_FAR
             cdf = (z > 0).astype(np.float64)
             pdf = np.zeros_like(z)
             cdf[near] = ndtr(z[near])
-            pdf[near] = np.exp(-0.5 * z[near] ** 2) / (SQRT2PI * sg)
+            pdf[near] = np.exp(-0.5 * (z[near] * z[near])) * k_pdf
             m = o.m_signal[ti]
             f = m * (cdf - phi0[ti]) + o.bg_hz[ti] * (ta - self.start) - e[active]
             rate = m * pdf + o.bg_hz[ti]
-            # a cell wholly beyond Z_FAR on one side is linear: one step lands on the root
-            zl, zh = (lo[active] - tof) / sg, (hi[active] - tof) / sg
-            linear = ((zl > Z_FAR) & (zh > Z_FAR)) | ((zl < -Z_FAR) & (zh < -Z_FAR)) | (m == 0)
             lo[active] = np.where(f <= 0, ta, lo[active])
             hi[active] = np.where(f >= 0, ta, hi[active])
             with np.errstate(divide="ignore", invalid="ignore"):
                 step = ta - f / rate
             la, ha = lo[active], hi[active]
             new = np.where((step > la) & (step < ha), step, 0.5 * (la + ha))
-            done = (np.abs(new - ta) < T_TOL) | (f == 0) | (ha - la < T_TOL) | linear
+            done = (np.abs(new - ta) < T_TOL) | (f == 0) | (ha - la < T_TOL)
             t[active] = np.where(f == 0, ta, new)
             active = active[~done]
         return t
@@ -227,13 +235,13 @@ class FastEngine:
         t = np.full(index.size, np.nan)
         ph = ~art
         tp, ec = tdc[ph], np.minimum(e[ph] - below[ph], self.l_end[tdc[ph]])
-        x = ec / self.de[tp]
+        x = ec * self.inv_de[tp]
         n_inv = self.inv.shape[1]
         j = np.minimum(x.astype(np.int64), n_inv - 2)
         flat = tp * n_inv + j
         inv = self.inv.ravel()
         lo, hi = inv[flat], inv[flat + 1]
-        t[ph] = self._newton(tp, ec, lo, hi, j * self.de[tp], (j + 1) * self.de[tp])
+        t[ph] = self._newton(tp, ec, lo, hi, j * self.de[tp], self.inv_de[tp])
         return Starts(index, kind, t, code)
 
 
@@ -310,16 +318,18 @@ class CodeTable:
             self.code[i] = np.searchsorted(boundaries[i], grid[i], side="right") - 1
         if np.any(np.diff(boundaries, axis=1) <= self.step[:, None]):
             raise ValueError("a code is narrower than the lookup grid: raise per_lsb")
+        self.inv_step = 1.0 / self.step
+        self.inv_width = 1.0 / np.diff(boundaries, axis=1)
 
     def lookup(self, tdc: np.ndarray, tau: np.ndarray):
         x = np.mod(tau, self.period[tdc])          # the 9-bit counter wraps
         n_g, n_b = self.code.shape[1], self.b.shape[1]
-        g = np.minimum((x / self.step[tdc]).astype(np.int64), n_g - 1)
+        g = np.minimum((x * self.inv_step[tdc]).astype(np.int64), n_g - 1)
         k = self.code.ravel()[tdc * n_g + g].astype(np.int64)
         b = self.b.ravel()
         k = np.minimum(k + (x >= b[tdc * n_b + np.minimum(k + 1, n_b - 1)]), n_b - 2)
-        lo, hi = b[tdc * n_b + k], b[tdc * n_b + k + 1]
-        return k, np.clip((x - lo) / (hi - lo), 0.0, np.nextafter(1.0, 0.0))
+        frac = (x - b[tdc * n_b + k]) * self.inv_width.ravel()[tdc * (n_b - 1) + k]
+        return k, np.clip(frac, 0.0, np.nextafter(1.0, 0.0))
 
 
 def digitize(codes: CodeTable, jitter_s: np.ndarray, window_s: float, starts: Starts,
@@ -348,9 +358,10 @@ if numba is not None:
     import math
 
     @numba.njit(cache=True, nogil=True)
-    def _fast_kernel(index, tdc_ev, e_ev, z, r, n_tdc, j_lo, j_hi, m_a, c_a, l_end, de, inv, m_sig,
-                     tof, bg, sigma, start, phi0, window, jitter, period, step, code_tab,
-                     bnd, n_th, n_min, n_max, johnson, words, is_artifact):
+    def _fast_kernel(index, tdc_ev, e_ev, z, r, n_tdc, j_lo, j_hi, m_a, c_a, l_end, de,
+                     inv_de, inv, m_sig, tof, bg, inv_sg, k_pdf, start, phi0, window, jitter,
+                     period, inv_step, code_tab, bnd, inv_w, n_th, n_min, n_max, johnson,
+                     words, is_artifact):
         n_art = j_lo.shape[1]
         n_inv = inv.shape[1]
         n_g = code_tab.shape[1]
@@ -373,36 +384,35 @@ if numba is not None:
                 is_artifact[q] = True
             else:
                 ec = min(e - below, l_end[t])
-                jj = min(int(ec / de[t]), n_inv - 2)
+                jj = min(int(ec * inv_de[t]), n_inv - 2)
                 lo_t = inv[t, jj]
                 hi_t = inv[t, jj + 1]
                 l_lo = jj * de[t]
-                l_hi = (jj + 1) * de[t]
-                tt = lo_t + (ec - l_lo) / max(l_hi - l_lo, 1e-300) * (hi_t - lo_t)
-                for _ in range(MAX_ITER):  # safeguarded Newton, as FastEngine._newton
-                    zz = (tt - tof[t]) / sigma
+                tt = lo_t + (ec - l_lo) * inv_de[t] * (hi_t - lo_t)
+                zl = (lo_t - tof[t]) * inv_sg
+                zh = (hi_t - tof[t]) * inv_sg
+                linear = ((zl > Z_FAR and zh > Z_FAR) or (zl < -Z_FAR and zh < -Z_FAR)
+                          or m_sig[t] == 0)
+                for _ in range(0 if linear else MAX_ITER):  # as FastEngine._newton
+                    zz = (tt - tof[t]) * inv_sg
                     if zz > Z_FAR:
                         cdf, pdf = 1.0, 0.0
                     elif zz < -Z_FAR:
                         cdf, pdf = 0.0, 0.0
                     else:
                         cdf = 0.5 * math.erfc(-zz / math.sqrt(2.0))
-                        pdf = math.exp(-0.5 * zz * zz) / (SQRT2PI * sigma)
+                        pdf = math.exp(-0.5 * (zz * zz)) * k_pdf
                     f = m_sig[t] * (cdf - phi0[t]) + bg[t] * (tt - start) - ec
                     if f == 0:
                         break
                     rate = m_sig[t] * pdf + bg[t]
-                    zl = (lo_t - tof[t]) / sigma
-                    zh = (hi_t - tof[t]) / sigma
-                    linear = ((zl > Z_FAR and zh > Z_FAR) or (zl < -Z_FAR and zh < -Z_FAR)
-                              or m_sig[t] == 0)
                     if f < 0:
                         lo_t = tt
                     else:
                         hi_t = tt
                     nt = tt - f / rate if rate > 0 else lo_t
                     new = nt if lo_t < nt < hi_t else 0.5 * (lo_t + hi_t)
-                    done = abs(new - tt) < T_TOL or hi_t - lo_t < T_TOL or linear
+                    done = abs(new - tt) < T_TOL or hi_t - lo_t < T_TOL
                     tt = new
                     if done:
                         break
@@ -411,12 +421,12 @@ if numba is not None:
                 x = tau
                 while x >= period[t]:  # the 9-bit counter wraps
                     x -= period[t]
-                g = min(int(x / step[t]), n_g - 1)
+                g = min(int(x * inv_step[t]), n_g - 1)
                 k = np.int64(code_tab[t, g])
                 if x >= bnd[t, min(k + 1, n_b - 1)]:
                     k += 1
                 k = min(k, n_b - 2)
-                frac = (x - bnd[t, k]) / (bnd[t, k + 1] - bnd[t, k])
+                frac = (x - bnd[t, k]) * inv_w[t, k]
                 frac = min(max(frac, 0.0), 1.0 - 1e-16)
                 w = n_max[t] - n_min[t] + 1
                 mod = min(int(math.floor(((k % 8) + frac) / 8.0 * w)), w - 1)
@@ -438,11 +448,11 @@ def fast_chunk_numba(engine: FastEngine, chip: Chip, codes: CodeTable, jitter_s:
 
     o = engine.o
     art = np.empty(ev.index.size, np.bool_)
-    phi0 = ndtr((engine.start - o.tof_s) / o.sigma_s)
     words = words_t.reshape(-1)
-    _fast_kernel(ev.flat, ev.tdc, ev.e, ev.z, ev.r, o.n_tdc, engine.j_lo, engine.j_hi, engine.m_a,
-                 engine.c_a, engine.l_end, engine.de, engine.inv, o.m_signal, o.tof_s, o.bg_hz,
-                 o.sigma_s, engine.start, phi0, o.window_s, jitter_s, codes.period, codes.step,
-                 codes.code, codes.b, chip.n_th, chip.n_min, chip.n_max,
+    _fast_kernel(ev.flat, ev.tdc, ev.e, ev.z, ev.r, o.n_tdc, engine.j_lo, engine.j_hi,
+                 engine.m_a, engine.c_a, engine.l_end, engine.de, engine.inv_de, engine.inv,
+                 o.m_signal, o.tof_s, o.bg_hz, engine.inv_sigma, engine.k_pdf, engine.start,
+                 engine.phi0, o.window_s, jitter_s, codes.period, codes.inv_step, codes.code,
+                 codes.b, codes.inv_width, chip.n_th, chip.n_min, chip.n_max,
                  PHASE_ENCODE.astype(np.int64), words, art)
     return art
