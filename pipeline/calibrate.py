@@ -159,6 +159,12 @@ def lsb_at(caldir: str | Path, n_light: float) -> np.ndarray:
     poly = np.stack(tdc.column("lsb_poly").to_numpy(zero_copy_only=False))
     px = meta.get("lsb_poly_x")
     if px is None:
+        n_cal = meta.get("density", {}).get("detections_per_pixel_per_cycle")
+        if n_cal is not None and abs(n_light - n_cal) > 0.02:
+            warnings.warn(f"{caldir}: one density test at {n_cal:.3g} detections per pixel per "
+                          f"cycle, used at {n_light:.3g}: the LSB changes with light (up to "
+                          "40 ps, section 5.1); run `tcspc calibrate lsb` over this range",
+                          stacklevel=2)
         return poly[:, 0] * 1e-12
     lo, hi = px["n_range"]
     if not lo - 1e-12 <= n_light <= hi + 1e-12:

@@ -108,6 +108,7 @@ def delay(capture, out) -> None:
     lsb_s = lsb_at(out, light)
     tau, used = cal.histogram_tau_s(state.hits, res, lsb_s)
     d = cal.delay_s(cap.meta.t_laser_win_ns * 1e-9, tau)
+    irf = cal.histogram_sigma_s(state.hits, res, lsb_s)
     tdc = read_tdc_table(out)
     second = cal.SecondStage(*(tdc.column(c).to_numpy().astype(np.int64)
                                for c in ("n_min", "n_max", "n_th", "pdm")))
@@ -121,7 +122,8 @@ def delay(capture, out) -> None:
                          np.asarray(meta["lsb_residual_ps"]))
     write_caldir(out, res, second, sources + [cap.bin_path], lsb_fit=fit, delay_s=d,
                  extra={**extra, "delay": {"capture": str(cap.bin_path), "light": light,
-                                           "counts_used": used.tolist()}})
+                                           "counts_used": used.tolist(),
+                                           "irf_sigma_s": float(np.nanmedian(irf))}})
     err.print(f"delay {np.nanmin(d) * 1e9:.4f}..{np.nanmax(d) * 1e9:.4f} ns; wrote {out}")
 
 

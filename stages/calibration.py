@@ -319,6 +319,23 @@ def histogram_tau_s(hits: np.ndarray, density: DensityResult, lsb_s=None):
     return (w * centres).sum(1) / np.maximum(w.sum(1), 1e-300), w.sum(1)
 
 
+def histogram_sigma_s(hits: np.ndarray, density: DensityResult, lsb_s=None) -> np.ndarray:
+    """Width (sigma) of each TDC's peak: the instrument response at zero distance."""
+    lsb = density.lsb_s if lsb_s is None else np.asarray(lsb_s)
+    centres = (np.arange(N_CODES)[None, :] + np.nan_to_num(density.inl_lsb)
+               + 0.5 * (1 + np.nan_to_num(density.dnl_lsb))) * lsb[:, None]
+    tau, _ = histogram_tau_s(hits, density, lsb)
+    h = np.asarray(hits, np.float64)
+    peak = np.argmax(h[:, 2:-8], axis=1) + 2
+    k = np.arange(N_CODES)[None, :]
+    win = np.abs(k - peak[:, None]) <= 6
+    bg = np.median(h, axis=1, keepdims=True)
+    w = np.where(win, np.clip(h - bg, 0, None), 0.0)
+    var = (w * (centres - tau[:, None]) ** 2).sum(1) / np.maximum(w.sum(1), 1e-300)
+    # the centres quantise: remove a bin's uniform variance (LSB^2 / 12)
+    return np.sqrt(np.maximum(var - lsb ** 2 / 12, 0.0))
+
+
 def delay_s(t_laser_win_s: float, tau_peak_s) -> np.ndarray:
     """eq. 5.3: T_delay = T_Laser-Win - TDC_out * LSB (the zero-distance peak's tau)."""
     return t_laser_win_s - np.asarray(tau_peak_s, np.float64)

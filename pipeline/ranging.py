@@ -1,0 +1,88 @@
+"""``tcspc range``: a capture and a calibration in, the ranges dataset out (eq. 5.4)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+from scipy.constants import c as C_LIGHT
+
+from pipeline.atomic import atomic_path
+from pipeline.caldir import read_bounds, read_tdc_table
+from pipeline.calibrate import lsb_at, read_density
+from pipeline.capture import Capture
+from schemas.errors import CalibrationError
+from schemas.outputs import RANGES
+from schemas.words import N_CODES
+from stages import calibration as cal
+from stages.histogram import HistogramAccumulator, HistogramState
+from stages.ranging import Estimate, Histograms, estimate
+
+
+def range_state(state: HistogramState, caldir: str | Path, window_s: float,
+                t_laser_win_s: float, estimator: str = "ml", sigma_s: float | None = None,
+                p_fa: float = 1e-3) -> tuple[Estimate, np.ndarray, np.ndarray]:
+    """Ranges of every pixel of a histogram state with a calibration.
+
+    The LSB comes from the calibration's polynomial at this measurement's light (eq. 5.1),
+    the code edges from its INL, the delay from its eq. 5.3 measurement. ``sigma_s``, the
+    instrument response, defaults to the one measured at zero distance (stored with the
+    delay), else 1 LSB. Returns the estimate, distances and sigmas in metres.
+    """
+    density, meta = read_density(caldir)
+    tdc = read_tdc_table(caldir)
+    delay = tdc.column("delay_ps").to_numpy(zero_copy_only=False)
+    if delay is None or np.all(np.isnan(np.asarray(delay, np.float64))):
+        raise CalibrationError(f"{caldir}: no delay (run `tcspc calibrate delay` on a "
+                               "zero-distance capture first)")
+    delay_s = np.asarray(delay, np.float64) * 1e-12
+    light = float(state.hits.sum() / (state.n_tdc * max(state.cycles.max(), 1)))
+    lsb_s = lsb_at(caldir, light)
+    inl = np.nan_to_num(density.inl_lsb)
+    k = np.arange(N_CODES + 1)
+    inl_edges = np.concatenate([inl, inl[:, -1:]], axis=1)
+    tau_edges = (k[None, :] + inl_edges) * lsb_s[:, None]
+    x_t = window_s / lsb_s  # where tau = T falls, at this light
+    if sigma_s is None:
+        sigma_s = float(meta.get("delay", {}).get("irf_sigma_s", np.median(lsb_s)))
+    h = Histograms.from_codes(state.hits, tau_edges, state.cycles, window_s, x_t=x_t)
+    est = estimate(h, sigma_s, estimator, p_fa)
+    tau = window_s - est.t_s
+    distance = cal.distance_m(t_laser_win_s, delay_s, tau)
+    return est, distance, est.sigma_s * C_LIGHT / 2
+
+
+def ranges_table(measurement: str, est: Estimate, distance_m: np.ndarray,
+                 sigma_m: np.ndarray) -> pa.Table:
+    n = distance_m.size
+    return pa.table({
+        "measurement": pa.array([measurement] * n, pa.string()),
+        "tdc": pa.array(np.arange(n), pa.uint16()),
+        "distance_m": pa.array(distance_m),
+        "sigma_m": pa.array(sigma_m),
+        "fwhm_m": pa.array(est.fwhm_s * C_LIGHT / 2),
+        "signal_counts": pa.array(np.asarray(est.signal_counts, np.float64)),
+        "background_per_bin": pa.array(np.asarray(est.background_per_bin, np.float64)),
+        "detected": pa.array(np.asarray(est.detected, bool)),
+        "estimator": pa.array([est.estimator] * n, pa.string()),
+    }, schema=RANGES.schema)
+
+
+def range_capture(capture: str | Path, caldir: str | Path, out: str | Path,
+                  estimator: str = "ml", sigma_s: float | None = None,
+                  p_fa: float = 1e-3) -> pa.Table:
+    cap = Capture(capture)
+    acc = HistogramAccumulator(cap.meta.n_tdc, read_bounds(caldir, cap.meta.n_tdc))
+    for first, words in cap.iter_chunks():
+        acc.update(words, first)
+    est, d, s = range_state(acc.snapshot(), caldir, cap.meta.window_ns * 1e-9,
+                            cap.meta.t_laser_win_ns * 1e-9, estimator, sigma_s, p_fa)
+    table = ranges_table(cap.name, est, d, s)
+    table = table.replace_schema_metadata({**table.schema.metadata,
+                                           b"tcspc.calibration": str(Path(caldir)).encode(),
+                                           b"tcspc.capture": str(cap.bin_path).encode()})
+    with atomic_path(out) as tmp:
+        pq.write_table(table, tmp)
+    return table

@@ -1,0 +1,102 @@
+"""Range estimators on model histograms: accuracy against the CRLB, honesty of sigma, and
+the hard cases."""
+
+import numpy as np
+import pytest
+
+from stages.models.tcspc import crlb_tof, first_photon_histogram
+from stages.ranging import ESTIMATORS, Histograms, estimate
+
+W, B, SG, RESET = 80e-9, 0.2e-9, 0.2e-9, 20e-9
+
+
+def draw(rng, m, tof, bg, n_cycles=10_000, extra=None):
+    """Multinomial first-photon histograms from the exact model (reset peak removed)."""
+    tof = np.atleast_1d(tof)
+    h = first_photon_histogram(m, tof, SG, bg, W, B, RESET)
+    p = np.concatenate([h.p_reset[:, None], h.p, h.p_none[:, None]], 1)
+    if extra is not None:  # a second target: mix its histogram in (two returns)
+        p = 0.5 * (p + extra)
+    d = np.array([rng.multinomial(n_cycles, pi / pi.sum()) for pi in p])
+    counts = d[:, 1:-1].astype(float)
+    valid = np.ones_like(counts, bool)
+    valid[:, :1] = valid[:, -1:] = False
+    edges = np.tile(np.arange(counts.shape[1] + 1) * B, (counts.shape[0], 1))
+    return Histograms(counts, edges, np.full(len(tof), n_cycles - d[:, 0], float), valid)
+
+
+@pytest.mark.parametrize("m, sbr, limit", [(0.01, 1.0, 1.2), (0.1, 10.0, 1.2), (1.0, 1.0, 1.2),
+                                           (0.05, 0.1, 1.2)])
+def test_ml_is_within_1_2_crlb_and_sigma_is_honest(m, sbr, limit):
+    rng = np.random.default_rng(int(m * 1e3 + sbr))
+    tof = rng.uniform(10e-9, 70e-9, 300)
+    bg = m / (sbr * W)
+    h = draw(rng, m, tof, bg)
+    r = estimate(h, SG, "ml")
+    err = r.t_s - tof
+    crlb = np.median(crlb_tof(10_000, m, tof, SG, bg, W, B, RESET))
+    assert np.sqrt(np.mean(err ** 2)) < limit * crlb
+    cover = np.mean(np.abs(err) < 2 * r.sigma_s)
+    assert 0.90 <= cover <= 0.99  # about 95 %
+    assert np.all(r.detected)
+
+
+def test_pile_up_biases_the_thesis_baseline_but_not_ml():
+    rng = np.random.default_rng(5)
+    tof = rng.uniform(10e-9, 70e-9, 100)
+    h = draw(rng, 5.0, tof, 5.0 / (10 * W))
+    assert np.mean(estimate(h, SG, "gaussfit").t_s - tof) < -100e-12  # pulled early
+    assert abs(np.mean(estimate(h, SG, "ml").t_s - tof)) < 2e-12
+
+
+@pytest.mark.parametrize("estimator", ESTIMATORS)
+def test_no_signal_is_not_detected_and_raises_nothing(estimator):
+    rng = np.random.default_rng(1)
+    h = draw(rng, 0.0, np.full(50, 40e-9), 1e6)
+    r = estimate(h, SG, estimator)
+    assert np.mean(r.detected) <= 0.06 and np.all(np.isfinite(r.t_s))
+
+
+@pytest.mark.parametrize("estimator", ESTIMATORS)
+def test_one_count_and_an_empty_histogram(estimator):
+    counts = np.zeros((2, 400))
+    counts[0, 200] = 1.0
+    edges = np.tile(np.arange(401) * B, (2, 1))
+    h = Histograms(counts, edges, np.array([100.0, 100.0]), np.ones((2, 400), bool))
+    r = estimate(h, SG, estimator)
+    assert r.t_s.shape == (2,) and not r.detected[1]
+
+
+@pytest.mark.parametrize("where", [1.5e-9, 78.5e-9])
+def test_peak_at_either_window_edge(where):
+    rng = np.random.default_rng(3)
+    h = draw(rng, 0.3, np.full(40, where), 1e6)
+    r = estimate(h, SG, "ml")
+    assert np.median(np.abs(r.t_s - where)) < 50e-12 and r.detected.mean() > 0.9
+
+
+def test_peak_on_the_reset_peak_is_masked_not_reported():
+    """A return inside the masked reset-peak codes cannot be seen: no false distance."""
+    rng = np.random.default_rng(4)
+    h = draw(rng, 0.3, np.full(40, 0.5e-9), 1e6)  # arrival right at the window's start
+    v = h.valid.copy()
+    v[:, :8] = False  # the reset peak's codes (arrival order: first bins)
+    h = Histograms(h.counts, h.edges_s, h.cycles, v)
+    r = estimate(h, SG, "ml")
+    assert not np.any(np.abs(r.t_s - 0.5e-9) < 0.3e-9)
+
+
+def test_two_targets_report_the_stronger():
+    rng = np.random.default_rng(6)
+    near = first_photon_histogram(0.05, 50e-9, SG, 1e6, W, B, RESET)
+    far = first_photon_histogram(0.3, 20e-9, SG, 1e6, W, B, RESET)
+    p_far = np.concatenate([[far.p_reset], far.p, [far.p_none]])
+    h = draw(rng, 0.05, np.full(30, 50e-9), 1e6, extra=p_far[None, :])
+    r = estimate(h, SG, "ml")
+    assert np.median(np.abs(r.t_s - 20e-9)) < 50e-12
+
+
+def test_unknown_estimator():
+    h = draw(np.random.default_rng(0), 0.1, np.array([40e-9]), 1e6)
+    with pytest.raises(ValueError, match="estimator must be one of"):
+        estimate(h, SG, "fft")
