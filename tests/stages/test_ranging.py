@@ -88,10 +88,9 @@ def test_peak_on_the_reset_peak_is_masked_not_reported():
 
 def test_two_targets_report_the_stronger():
     rng = np.random.default_rng(6)
-    near = first_photon_histogram(0.05, 50e-9, SG, 1e6, W, B, RESET)
     far = first_photon_histogram(0.3, 20e-9, SG, 1e6, W, B, RESET)
     p_far = np.concatenate([[far.p_reset], far.p, [far.p_none]])
-    h = draw(rng, 0.05, np.full(30, 50e-9), 1e6, extra=p_far[None, :])
+    h = draw(rng, 0.05, np.full(30, 50e-9), 1e6, extra=p_far[None, :])  # weak near + strong far
     r = estimate(h, SG, "ml")
     assert np.median(np.abs(r.t_s - 20e-9)) < 50e-12
 
