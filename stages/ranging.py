@@ -17,6 +17,7 @@ estimators.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.special import ndtr
@@ -63,16 +64,21 @@ class Histograms:
         edges = window_s - np.asarray(tau_edges_s)[:, ::-1]
         return cls(hits[:, ::-1], edges, np.asarray(cycles, np.float64), valid[:, ::-1])
 
-    @property
+    @cached_property
     def at_risk(self) -> np.ndarray:
         before = np.cumsum(self.counts, axis=1) - self.counts
         return self.cycles[:, None] - before
 
-    @property
+    @cached_property
     def widths(self) -> np.ndarray:
         return np.diff(self.edges_s, axis=1)
 
-    @property
+    @cached_property
+    def bin_s(self) -> float:
+        """A typical bin width (the median over a sample of bins: the LSB)."""
+        return float(np.median(self.widths[:, :: max(1, self.widths.shape[1] // 16)]))
+
+    @cached_property
     def centres(self) -> np.ndarray:
         return 0.5 * (self.edges_s[:, 1:] + self.edges_s[:, :-1])
 
@@ -95,23 +101,39 @@ class Estimate:
     estimator: str
 
 
-def _background(lam, w, valid):
-    """Background intensity per second: median over valid bins of lambda / width."""
-    d = np.where(valid, lam / w, np.nan)
-    return np.nanmedian(d, axis=1)
+def _background(lam, w, valid, at_risk):
+    """Background intensity per second over the valid bins: a mean, then the mean again
+    without the bins above it by 5 Poisson sigmas (the returns). A median is biased on
+    small counts and needs a sort per histogram."""
+    vw = np.where(valid, w, 0.0)
+    rate = np.where(valid, lam, 0.0).sum(1) / np.maximum(vw.sum(1), 1e-300)
+    expect = rate[:, None] * w
+    noise = np.sqrt(expect / np.maximum(at_risk, 1.0))  # lambda ~ counts / at-risk
+    keep = valid & (lam <= expect + 5 * noise)
+    return np.where(keep, lam, 0).sum(1) / np.maximum(np.where(keep, w, 0).sum(1), 1e-300)
 
 
-def _peak_index(lam, w, valid, sigma_s):
-    """Index of the strongest return: the matched-filter maximum of the corrected density."""
-    bg = _background(lam, w, valid)
-    d = np.where(valid, lam / w - bg[:, None], 0.0)
-    width = max(1, int(round(3 * sigma_s / np.median(w))))
+def _peak_index(h: Histograms, lam, sigma_s):
+    """The strongest return, and the matched-filter correlation of the corrected density.
+
+    The peak is found on the excess counts over what background alone would put in each
+    bin given the cycles still at risk: bins late in a heavily piled-up window (few cycles
+    at risk) have a noisy corrected density but few counts, and must not win. Returns
+    (peak index, density correlation, background rate).
+    """
+    from scipy.ndimage import correlate1d
+
+    w, valid = h.widths, h.valid
+    bg = _background(lam, w, valid, h.at_risk)
+    width = max(1, int(round(3 * sigma_s / h.bin_s)))
     taps = np.arange(-width, width + 1)
-    kern = np.exp(-0.5 * (taps * np.median(w) / sigma_s) ** 2)
-    pad = np.pad(d, ((0, 0), (width, width)))
-    corr = sum(kern[i] * pad[:, i:i + d.shape[1]] for i in range(taps.size))
-    corr = np.where(valid, corr, -np.inf)
-    return np.argmax(corr, axis=1), corr, bg
+    kern = np.exp(-0.5 * (taps * h.bin_s / sigma_s) ** 2)
+    excess = np.where(valid, h.counts - h.at_risk * -np.expm1(-bg[:, None] * w), 0.0)
+    score = np.where(valid, correlate1d(excess, kern, axis=1, mode="constant"), -np.inf)
+    peak = np.argmax(score, axis=1)
+    d = np.where(valid, lam / w - bg[:, None], 0.0)
+    corr = np.where(valid, correlate1d(d, kern, axis=1, mode="constant"), -np.inf)
+    return peak, corr, bg
 
 
 def _detect(h: Histograms, peak, bg_rate, p_fa):
@@ -128,8 +150,8 @@ def _detect(h: Histograms, peak, bg_rate, p_fa):
 def centroid(h: Histograms, sigma_s: float, p_fa: float = 1e-3, n_hw: int | None = None):
     """eq. 2.10 on the raw histogram: the background-subtracted centroid around the peak."""
     lam, w = h.intensity(), h.widths
-    peak, _, bg = _peak_index(lam, w, h.valid, sigma_s)
-    n_hw = n_hw or max(1, int(round(1.5 * sigma_s / np.median(w))))
+    peak, _, bg = _peak_index(h, lam, sigma_s)
+    n_hw = n_hw or max(1, int(round(1.5 * sigma_s / h.bin_s)))
     idx = np.clip(peak[:, None] + np.arange(-n_hw, n_hw + 1)[None, :], 0, w.shape[1] - 1)
     rows = np.arange(peak.size)[:, None]
     r = h.at_risk[rows, idx]
@@ -140,15 +162,17 @@ def centroid(h: Histograms, sigma_s: float, p_fa: float = 1e-3, n_hw: int | None
     var = (s * (h.centres[rows, idx] - t[:, None]) ** 2).sum(1) / np.maximum(tot, 1e-300)
     sig = np.sqrt(np.maximum(var, sigma_s ** 2 / 4) / np.maximum(tot, 1.0))
     return Estimate(t, sig, np.full(t.size, FWHM_PER_SIGMA * sigma_s), tot,
-                    bg * np.median(w) * h.cycles, _detect(h, peak, bg, p_fa), "centroid")
+                    bg * h.bin_s * h.cycles, _detect(h, peak, bg, p_fa), "centroid")
 
 
 def matched(h: Histograms, sigma_s: float, p_fa: float = 1e-3):
     """Matched filter on the pile-up-corrected density, parabolic sub-bin interpolation."""
     lam, w = h.intensity(), h.widths
-    peak, corr, bg = _peak_index(lam, w, h.valid, sigma_s)
+    peak, corr, bg = _peak_index(h, lam, sigma_s)
     rows = np.arange(peak.size)
     n = corr.shape[1]
+    near = np.clip(peak[:, None] + np.arange(-2, 3)[None, :], 0, n - 1)
+    peak = near[rows, np.argmax(corr[rows[:, None], near], axis=1)]
     c0 = corr[rows, peak]
     cm = np.where(peak > 0, corr[rows, np.maximum(peak - 1, 0)], c0)
     cp = np.where(peak < n - 1, corr[rows, np.minimum(peak + 1, n - 1)], c0)
@@ -158,11 +182,11 @@ def matched(h: Histograms, sigma_s: float, p_fa: float = 1e-3):
     frac = np.clip(frac, -0.5, 0.5)
     cen = h.centres
     t = np.interp(frac, [-1, 0, 1], [0, 0, 0]) + cen[rows, peak] + frac * w[rows, peak]
-    win = np.abs(np.arange(n)[None, :] - peak[:, None]) <= max(1, int(3 * sigma_s / np.median(w)))
+    win = np.abs(np.arange(n)[None, :] - peak[:, None]) <= max(1, int(3 * sigma_s / h.bin_s))
     sig_counts = np.where(win & h.valid, lam - bg[:, None] * w, 0).sum(1) * h.cycles
     sig = sigma_s / np.sqrt(np.maximum(sig_counts, 1.0))
     return Estimate(t, sig, np.full(t.size, FWHM_PER_SIGMA * sigma_s), sig_counts,
-                    bg * np.median(w) * h.cycles, _detect(h, peak, bg, p_fa), "matched")
+                    bg * h.bin_s * h.cycles, _detect(h, peak, bg, p_fa), "matched")
 
 
 def gaussfit(h: Histograms, sigma_s: float, p_fa: float = 1e-3):
@@ -173,8 +197,8 @@ def gaussfit(h: Histograms, sigma_s: float, p_fa: float = 1e-3):
     from scipy.optimize import OptimizeWarning, curve_fit
 
     lam, w = h.intensity(), h.widths
-    peak, _, bg = _peak_index(lam, w, h.valid, sigma_s)
-    n_hw = max(4, int(round(4 * sigma_s / np.median(w))))
+    peak, _, bg = _peak_index(h, lam, sigma_s)
+    n_hw = max(4, int(round(4 * sigma_s / h.bin_s)))
     out = np.full((peak.size, 3), np.nan)
     for i, p in enumerate(peak):  # the baseline loops per pixel, as the thesis's MATLAB did
         lo, hi = max(p - n_hw, 0), min(p + n_hw + 1, w.shape[1])
@@ -192,7 +216,7 @@ def gaussfit(h: Histograms, sigma_s: float, p_fa: float = 1e-3):
             out[i] = h.centres[i, p], sigma_s, sigma_s
     sig_counts = np.full(peak.size, np.nan)
     return Estimate(out[:, 0], out[:, 1], FWHM_PER_SIGMA * out[:, 2], sig_counts,
-                    bg * np.median(w) * h.cycles, _detect(h, peak, bg, p_fa), "gaussfit")
+                    bg * h.bin_s * h.cycles, _detect(h, peak, bg, p_fa), "gaussfit")
 
 
 def ml(h: Histograms, sigma_s: float, p_fa: float = 1e-3, iterations: int = 30,
@@ -208,7 +232,7 @@ def ml(h: Histograms, sigma_s: float, p_fa: float = 1e-3, iterations: int = 30,
     start = matched(h, sigma_s, p_fa)
     w_all = h.widths
     n = w_all.shape[1]
-    width = max(3, int(np.ceil(half_width_sigma * sigma_s / np.median(w_all))))
+    width = max(3, int(np.ceil(half_width_sigma * sigma_s / h.bin_s)))
     peak = np.argmin(np.abs(h.centres - start.t_s[:, None]), axis=1)
     idx = np.clip(peak[:, None] + np.arange(-width, width + 1)[None, :], 0, n - 1)
     rows = np.arange(peak.size)[:, None]
@@ -279,7 +303,7 @@ def ml(h: Histograms, sigma_s: float, p_fa: float = 1e-3, iterations: int = 30,
     with np.errstate(invalid="ignore"):
         sig = np.sqrt(np.maximum(np.linalg.pinv(info)[:, 0, 0], 0.0))
     return Estimate(t0, sig, np.full(t0.size, FWHM_PER_SIGMA * sigma_s), m * h.cycles,
-                    bg * np.median(w_all) * h.cycles, start.detected, "ml")
+                    bg * h.bin_s * h.cycles, start.detected, "ml")
 
 
 ESTIMATOR_FUNCS = {"centroid": centroid, "matched": matched, "gaussfit": gaussfit, "ml": ml}
