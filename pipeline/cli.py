@@ -220,7 +220,7 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
 @click.argument("capture", type=click.Path())
 @click.option("--calibration", required=True, type=click.Path(exists=True, file_okay=False))
 @click.option("--out", required=True, type=click.Path(), help="ranges.parquet to write")
-@click.option("--estimator", type=click.Choice(["ml", "matched", "centroid", "gaussfit"]),
+@click.option("--estimator", type=click.Choice(["ml", "fast", "matched", "centroid", "gaussfit"]),
               default="ml", show_default=True)
 @click.option("--irf-ps", type=float, default=None,
               help="Instrument response sigma (default: measured with the delay, else 1 LSB).")

@@ -26,7 +26,7 @@ from stages.models.performance import alpha_b
 
 SQRT2PI = np.sqrt(2 * np.pi)
 FWHM_PER_SIGMA = 2 * np.sqrt(2 * np.log(2))
-ESTIMATORS = ("centroid", "matched", "gaussfit", "ml")
+ESTIMATORS = ("fast", "centroid", "matched", "gaussfit", "ml")
 
 
 @dataclass(frozen=True)
@@ -219,46 +219,59 @@ def gaussfit(h: Histograms, sigma_s: float, p_fa: float = 1e-3):
                     bg * h.bin_s * h.cycles, _detect(h, peak, bg, p_fa), "gaussfit")
 
 
+def _ml_setup(h: Histograms, sigma_s: float, half_width_sigma: float):
+    """What both ML paths start from: the fast estimator's peak, background and time."""
+    kb, kc = _fast_params(h, sigma_s)
+    args = (np.ascontiguousarray(h.counts, np.float64), np.ascontiguousarray(h.widths),
+            np.ascontiguousarray(h.centres), np.ascontiguousarray(h.valid),
+            np.ascontiguousarray(h.cycles, np.float64), kb, kc)
+    k = max(3, int(np.ceil(half_width_sigma * sigma_s / h.bin_s)))
+    return args, k
+
+
 def ml(h: Histograms, sigma_s: float, p_fa: float = 1e-3, iterations: int = 30,
-       half_width_sigma: float = 8.0):
+       half_width_sigma: float = 8.0, compiled: bool | None = None):
     """Poisson maximum likelihood of signal + background with pile-up (the exact binomial
     factorisation, see the module docstring), by Fisher scoring with step halving.
 
     The signal (arrival time, detections per cycle) is fitted in a window of
-    ``half_width_sigma`` around the matched filter's peak; the flat background comes from
-    the whole histogram (the robust median of the Coates-corrected density), which is where
-    its information is. sigma from the expected information.
+    ``half_width_sigma`` around the fast estimator's peak, starting from its time; the
+    flat background is its constant-hazard estimate away from the peak. sigma from the
+    expected information. Compiled where numba is installed; the numpy path runs the same
+    iterations (tested to agree).
     """
-    start = matched(h, sigma_s, p_fa)
-    w_all = h.widths
-    n = w_all.shape[1]
-    width = max(3, int(np.ceil(half_width_sigma * sigma_s / h.bin_s)))
-    peak = np.argmin(np.abs(h.centres - start.t_s[:, None]), axis=1)
-    idx = np.clip(peak[:, None] + np.arange(-width, width + 1)[None, :], 0, n - 1)
-    rows = np.arange(peak.size)[:, None]
-    # the background: the mean corrected density outside the window (a median of small
-    # Poisson counts is biased), over bins with enough cycles at risk to be measured
-    outside = h.valid & (np.abs(np.arange(n)[None, :] - peak[:, None]) > width) & (
-        h.at_risk > 20)
-    lam0 = h.intensity()
-    bg = np.where(outside, lam0, 0).sum(1) / np.maximum(np.where(outside, w_all, 0).sum(1),
-                                                         1e-300)
-    lo_e, hi_e = h.edges_s[rows, idx], h.edges_s[rows, idx + 1]
-    w = hi_e - lo_e
-    counts, r = h.counts[rows, idx], np.maximum(h.at_risk[rows, idx], 0.0)
-    # the window's bins, each once: clipped indices at the histogram's ends repeat a bin
-    first = np.concatenate([np.ones((idx.shape[0], 1), bool), np.diff(idx, axis=1) > 0], 1)
-    valid = h.valid[rows, idx] & first
-    t0 = start.t_s.copy()
-    # start from the window's detection probability: robust at any pile-up
+    compiled = (numba is not None) if compiled is None else compiled
+    args, k = _ml_setup(h, sigma_s, half_width_sigma)
+    if compiled:
+        t0, sig, m, bg, peak = _ml_numba(*args, k, sigma_s, iterations)
+    else:
+        t0, sig, m, bg, peak = _ml_numpy(*args, k, sigma_s, iterations)
+    return Estimate(t0, sig, np.full(t0.size, FWHM_PER_SIGMA * sigma_s), m * h.cycles,
+                    bg * h.bin_s * h.cycles, _detect(h, peak, bg, p_fa), "ml")
+
+
+def _ml_numpy(counts_all, widths, centres, valid_all, cycles, kb, kc, k, sigma_s,
+              iterations):
+    t_start, peak, _, bg = _fast_numpy(counts_all, widths, centres, valid_all, cycles, kb, kc)
+    n_pix, n = counts_all.shape
+    idx = np.clip(peak[:, None] + np.arange(-k, k + 1)[None, :], 0, n - 1)
+    rows = np.arange(n_pix)[:, None]
+    edges_lo = centres[rows, idx] - 0.5 * widths[rows, idx]
+    edges_hi = centres[rows, idx] + 0.5 * widths[rows, idx]
+    at_risk = cycles[:, None] - (np.cumsum(counts_all, axis=1) - counts_all)
+    counts, r = counts_all[rows, idx], np.maximum(at_risk[rows, idx], 0.0)
+    first = np.concatenate([np.ones((n_pix, 1), bool), np.diff(idx, axis=1) > 0], 1)
+    valid = valid_all[rows, idx] & first
+    w = edges_hi - edges_lo
+    bgw = bg[:, None] * w
     hw = np.where(valid, counts, 0).sum(1)
     r0 = np.maximum(r[:, 0], hw + 1)
-    m = np.maximum(-np.log1p(-hw / r0) - bg * w.sum(1), 1e-9)
-    bgw = bg[:, None] * w
+    m = np.maximum(-np.log1p(-hw / r0) - bg * np.where(valid, w, 0).sum(1), 1e-9)
+    t0 = t_start.copy()
 
     def model(t0, m):
-        za = (lo_e - t0[:, None]) / sigma_s
-        zb = (hi_e - t0[:, None]) / sigma_s
+        za = (edges_lo - t0[:, None]) / sigma_s
+        zb = (edges_hi - t0[:, None]) / sigma_s
         dphi = ndtr(zb) - ndtr(za)
         return m[:, None] * dphi + bgw, za, zb, dphi
 
@@ -267,46 +280,286 @@ def ml(h: Histograms, sigma_s: float, p_fa: float = 1e-3, iterations: int = 30,
         return np.where(valid, counts * np.log(-np.expm1(-lam)) - (r - counts) * lam,
                         0.0).sum(1)
 
-    def jacobian(m, za, zb, dphi):
+    def info_score(m, lam, za, zb, dphi):
+        lam_c = np.maximum(lam, 1e-300)
+        em1 = np.expm1(lam_c)
+        sl = np.where(valid, counts / em1 - (r - counts), 0.0)
+        il = np.where(valid, r / em1, 0.0)
         pdf = (np.exp(-0.5 * zb * zb) - np.exp(-0.5 * za * za)) / (SQRT2PI * sigma_s)
-        return np.stack([-m[:, None] * pdf, dphi], axis=-1)        # (n, bins, 2)
+        jt, jm = -m[:, None] * pdf, dphi
+        i00, i01, i11 = (il * jt * jt).sum(1), (il * jt * jm).sum(1), (il * jm * jm).sum(1)
+        return i00, i01, i11, (sl * jt).sum(1), (sl * jm).sum(1)
 
     lam, za, zb, dphi = model(t0, m)
     ll = loglik(lam)
-    active = np.ones(t0.size, bool)
+    active = np.ones(n_pix, bool)
     for _ in range(iterations):
-        lam_c = np.maximum(lam, 1e-300)
-        score_l = counts / np.expm1(lam_c) - (r - counts)
-        info_l = np.where(valid, r / np.expm1(lam_c), 0.0)
-        jac = jacobian(m, za, zb, dphi)
-        score = np.where(valid[..., None], score_l[..., None] * jac, 0).sum(1)
-        info = np.einsum("nb,nbi,nbj->nij", info_l, jac, jac) + np.eye(2)[None] * 1e-30
-        step = np.linalg.solve(info, score[..., None])[..., 0]
-        step[~active] = 0.0
-        scale = np.ones(t0.size)
+        i00, i01, i11, s0, s1 = info_score(m, lam, za, zb, dphi)
+        det = i00 * i11 - i01 * i01
+        ok = active & (det > 0)
+        st = np.where(ok, (i11 * s0 - i01 * s1) / np.where(det > 0, det, 1), 0.0)
+        sm = np.where(ok, (i00 * s1 - i01 * s0) / np.where(det > 0, det, 1), 0.0)
+        scale = np.ones(n_pix)
         for _ in range(8):  # halve the step where the likelihood does not improve
-            nt, nm = t0 + scale * step[:, 0], np.maximum(m + scale * step[:, 1], 1e-12)
+            nt, nm = t0 + scale * st, np.maximum(m + scale * sm, 1e-12)
             nlam, nza, nzb, ndp = model(nt, nm)
             nll = loglik(nlam)
             better = nll >= ll - 1e-12
             if better.all():
                 break
-            scale = np.where(better, scale, scale / 2)
+            scale = np.where(better, scale, 0.5 * scale)
         t0, m = np.where(better, nt, t0), np.where(better, nm, m)
         lam, za, zb, dphi = model(t0, m)
         ll = loglik(lam)
-        active &= np.abs(scale * step[:, 0]) > 1e-16
+        active &= np.abs(scale * st) > 1e-16
         if not active.any():
             break
-    info_l = np.where(valid, r / np.expm1(np.maximum(lam, 1e-300)), 0.0)
-    info = np.einsum("nb,nbi,nbj->nij", info_l, *(2 * [jacobian(m, za, zb, dphi)]))
-    with np.errstate(invalid="ignore"):
-        sig = np.sqrt(np.maximum(np.linalg.pinv(info)[:, 0, 0], 0.0))
-    return Estimate(t0, sig, np.full(t0.size, FWHM_PER_SIGMA * sigma_s), m * h.cycles,
-                    bg * h.bin_s * h.cycles, start.detected, "ml")
+    i00, i01, i11, _, _ = info_score(m, lam, za, zb, dphi)
+    det = i00 * i11 - i01 * i01
+    sig = np.sqrt(np.where(det > 0, i11 / np.where(det > 0, det, 1), np.inf))
+    return t0, sig, m, bg, peak
 
 
-ESTIMATOR_FUNCS = {"centroid": centroid, "matched": matched, "gaussfit": gaussfit, "ml": ml}
+# ----------------------------------------------------------------------- the fast one
+
+def _fast_params(h: Histograms, sigma_s: float) -> tuple[int, int]:
+    """Half-widths in bins: the peak search's box (1.5 sigma) and the centroid's (2 sigma)."""
+    return (max(1, int(round(1.5 * sigma_s / h.bin_s))),
+            max(1, int(round(2.0 * sigma_s / h.bin_s))))
+
+
+def _fast_numpy(counts, widths, centres, valid, cycles, kb, kc):
+    n_pix, n = counts.shape
+    v = valid.astype(np.float64)
+    r = cycles[:, None] - (np.cumsum(counts, axis=1) - counts)
+    rw = np.maximum(r, 0.0) * widths * v
+    bg0 = (counts * v).sum(1) / np.maximum(rw.sum(1), 1e-300)
+    excess = (counts - rw * bg0[:, None]) * v
+    cs = np.concatenate([np.zeros((n_pix, 1)), np.cumsum(excess, axis=1)], axis=1)
+    j = np.arange(n)
+    lo, hi = np.clip(j - kb, 0, n), np.clip(j + kb + 1, 0, n)
+    box = np.where(valid, cs[:, hi] - cs[:, lo], -np.inf)
+    peak = np.argmax(box, axis=1)
+    far = valid & (np.abs(j[None, :] - peak[:, None]) > 4 * kc)
+    bg = (counts * far).sum(1) / np.maximum((rw * far).sum(1), 1e-300)
+    win = np.clip(peak[:, None] + np.arange(-kc, kc + 1)[None, :], 0, n - 1)
+    rows = np.arange(n_pix)[:, None]
+    first = np.concatenate([np.ones((n_pix, 1), bool), np.diff(win, axis=1) > 0], axis=1)
+    ok = valid[rows, win] & first
+    rr = np.maximum(r[rows, win], 1.0)
+    lam = -np.log1p(-np.minimum(counts[rows, win] / rr, 1 - 1e-12))
+    e = np.where(ok, np.maximum(lam - bg[:, None] * widths[rows, win], 0.0), 0.0)
+    tot = e.sum(1)
+    t = (e * centres[rows, win]).sum(1) / np.maximum(tot, 1e-300)
+    t = np.where(tot > 0, t, centres[np.arange(n_pix), peak])
+    return t, peak, tot, bg
+
+
+try:
+    import numba
+except ImportError:  # pragma: no cover
+    numba = None
+
+if numba is not None:
+    @numba.njit(cache=True, nogil=True)
+    def _fast_numba(counts, widths, centres, valid, cycles, kb, kc):
+        n_pix, n = counts.shape
+        t_out = np.empty(n_pix)
+        peak_out = np.empty(n_pix, np.int64)
+        tot_out = np.empty(n_pix)
+        bg_out = np.empty(n_pix)
+        r = np.empty(n)
+        ex = np.empty(n + 1)
+        for p in range(n_pix):
+            acc = 0.0
+            num = 0.0
+            den = 0.0
+            for j in range(n):
+                r[j] = cycles[p] - acc
+                acc += counts[p, j]
+                if valid[p, j]:
+                    num += counts[p, j]
+                    den += max(r[j], 0.0) * widths[p, j]
+            bg0 = num / max(den, 1e-300)
+            ex[0] = 0.0
+            for j in range(n):
+                e = 0.0
+                if valid[p, j]:
+                    e = counts[p, j] - max(r[j], 0.0) * widths[p, j] * bg0
+                ex[j + 1] = ex[j] + e
+            best = -np.inf
+            peak = 0
+            for j in range(n):
+                if valid[p, j]:
+                    v = ex[min(j + kb + 1, n)] - ex[max(j - kb, 0)]
+                    if v > best:
+                        best = v
+                        peak = j
+            num = 0.0
+            den = 0.0
+            for j in range(n):
+                if valid[p, j] and abs(j - peak) > 4 * kc:
+                    num += counts[p, j]
+                    den += max(r[j], 0.0) * widths[p, j]
+            bg = num / max(den, 1e-300)
+            tot = 0.0
+            mom = 0.0
+            last = -1
+            for i in range(-kc, kc + 1):
+                j = min(max(peak + i, 0), n - 1)
+                if j == last or not valid[p, j]:
+                    last = j
+                    continue
+                last = j
+                rr = max(r[j], 1.0)
+                lam = -np.log1p(-min(counts[p, j] / rr, 1 - 1e-12))
+                e = max(lam - bg * widths[p, j], 0.0)
+                tot += e
+                mom += e * centres[p, j]
+            t_out[p] = mom / max(tot, 1e-300) if tot > 0 else centres[p, peak]
+            peak_out[p] = peak
+            tot_out[p] = tot
+            bg_out[p] = bg
+        return t_out, peak_out, tot_out, bg_out
+
+
+if numba is not None:
+    import math
+
+    @numba.njit(cache=True, nogil=True)
+    def _ml_numba(counts_all, widths, centres, valid_all, cycles, kb, kc, k, sigma_s,
+                  iterations):
+        t_start, peak, _, bg = _fast_numba(counts_all, widths, centres, valid_all, cycles,
+                                           kb, kc)
+        n_pix, n = counts_all.shape
+        nw = 2 * k + 1
+        out_t = np.empty(n_pix)
+        out_s = np.empty(n_pix)
+        out_m = np.empty(n_pix)
+        lo_e = np.empty(nw)
+        hi_e = np.empty(nw)
+        cnt = np.empty(nw)
+        rr = np.empty(nw)
+        ok = np.empty(nw, np.bool_)
+        for p in range(n_pix):
+            acc = 0.0
+            # at-risk of the window's bins
+            cum = np.empty(n)
+            for j in range(n):
+                cum[j] = cycles[p] - acc
+                acc += counts_all[p, j]
+            last = -1
+            hw = 0.0
+            wsum = 0.0
+            for i in range(nw):
+                j = min(max(peak[p] - k + i, 0), n - 1)
+                lo_e[i] = centres[p, j] - 0.5 * widths[p, j]
+                hi_e[i] = centres[p, j] + 0.5 * widths[p, j]
+                cnt[i] = counts_all[p, j]
+                rr[i] = max(cum[j], 0.0)
+                ok[i] = valid_all[p, j] and j != last
+                last = j
+                if ok[i]:
+                    hw += cnt[i]
+                    wsum += hi_e[i] - lo_e[i]
+            r0 = max(rr[0], hw + 1)
+            m = max(-math.log1p(-hw / r0) - bg[p] * wsum, 1e-9)
+            t0 = t_start[p]
+            ll = _ml_ll(t0, m, bg[p], lo_e, hi_e, cnt, rr, ok, sigma_s)
+            active = True
+            for _ in range(iterations):
+                if not active:
+                    break
+                i00, i01, i11, s0, s1 = _ml_info(t0, m, bg[p], lo_e, hi_e, cnt, rr, ok,
+                                                 sigma_s)
+                det = i00 * i11 - i01 * i01
+                if det <= 0:
+                    break
+                st = (i11 * s0 - i01 * s1) / det
+                sm = (i00 * s1 - i01 * s0) / det
+                scale = 1.0
+                better = False
+                nt, nm, nll = t0, m, ll
+                for _h in range(8):
+                    nt = t0 + scale * st
+                    nm = max(m + scale * sm, 1e-12)
+                    nll = _ml_ll(nt, nm, bg[p], lo_e, hi_e, cnt, rr, ok, sigma_s)
+                    if nll >= ll - 1e-12:
+                        better = True
+                        break
+                    scale *= 0.5
+                if better:
+                    t0, m, ll = nt, nm, nll
+                if abs(scale * st) <= 1e-16:
+                    active = False
+            i00, i01, i11, _, _ = _ml_info(t0, m, bg[p], lo_e, hi_e, cnt, rr, ok, sigma_s)
+            det = i00 * i11 - i01 * i01
+            out_t[p] = t0
+            out_m[p] = m
+            out_s[p] = math.sqrt(i11 / det) if det > 0 else np.inf
+        return out_t, out_s, out_m, bg, peak
+
+    @numba.njit(cache=True, nogil=True)
+    def _ndtr(z):
+        return 0.5 * math.erfc(-z / math.sqrt(2.0))
+
+    @numba.njit(cache=True, nogil=True)
+    def _ml_ll(t0, m, bg, lo_e, hi_e, cnt, rr, ok, sigma_s):
+        ll = 0.0
+        for i in range(lo_e.size):
+            if not ok[i]:
+                continue
+            dphi = _ndtr((hi_e[i] - t0) / sigma_s) - _ndtr((lo_e[i] - t0) / sigma_s)
+            lam = max(m * dphi + bg * (hi_e[i] - lo_e[i]), 1e-300)
+            ll += cnt[i] * math.log(-math.expm1(-lam)) - (rr[i] - cnt[i]) * lam
+        return ll
+
+    @numba.njit(cache=True, nogil=True)
+    def _ml_info(t0, m, bg, lo_e, hi_e, cnt, rr, ok, sigma_s):
+        i00 = i01 = i11 = s0 = s1 = 0.0
+        for i in range(lo_e.size):
+            if not ok[i]:
+                continue
+            za = (lo_e[i] - t0) / sigma_s
+            zb = (hi_e[i] - t0) / sigma_s
+            dphi = _ndtr(zb) - _ndtr(za)
+            lam = max(m * dphi + bg * (hi_e[i] - lo_e[i]), 1e-300)
+            em1 = math.expm1(lam)
+            sl = cnt[i] / em1 - (rr[i] - cnt[i])
+            il = rr[i] / em1
+            pdf = (math.exp(-0.5 * zb * zb) - math.exp(-0.5 * za * za)) / (SQRT2PI * sigma_s)
+            jt = -m * pdf
+            jm = dphi
+            i00 += il * jt * jt
+            i01 += il * jt * jm
+            i11 += il * jm * jm
+            s0 += sl * jt
+            s1 += sl * jm
+        return i00, i01, i11, s0, s1
+
+
+def fast(h: Histograms, sigma_s: float, p_fa: float = 1e-3, compiled: bool | None = None):
+    """The fastest estimator: one pass per histogram, logarithms only in the peak window.
+
+    Background as a constant hazard (hits over cycle-seconds at risk, re-estimated away
+    from the peak); the peak where the excess counts over it, boxed over +-1.5 sigma, are
+    largest; the time as the centroid of the pile-up-corrected excess within +-2 sigma.
+    Compiled where numba is installed; the numpy path computes the same thing (tested).
+    """
+    compiled = (numba is not None) if compiled is None else compiled
+    kb, kc = _fast_params(h, sigma_s)
+    args = (np.ascontiguousarray(h.counts, np.float64), np.ascontiguousarray(h.widths),
+            np.ascontiguousarray(h.centres), np.ascontiguousarray(h.valid),
+            np.ascontiguousarray(h.cycles, np.float64), kb, kc)
+    t, peak, tot, bg = (_fast_numba if compiled else _fast_numpy)(*args)
+    signal = tot * h.cycles
+    sig = sigma_s / np.sqrt(np.maximum(signal, 1.0))
+    return Estimate(t, sig, np.full(t.size, FWHM_PER_SIGMA * sigma_s), signal,
+                    bg * h.bin_s * h.cycles, _detect(h, peak, bg, p_fa), "fast")
+
+
+ESTIMATOR_FUNCS = {"centroid": centroid, "matched": matched, "gaussfit": gaussfit, "ml": ml,
+                   "fast": fast}
 
 
 def estimate(h: Histograms, sigma_s: float, estimator: str = "ml", p_fa: float = 1e-3):

@@ -99,3 +99,24 @@ def test_unknown_estimator():
     h = draw(np.random.default_rng(0), 0.1, np.array([40e-9]), 1e6)
     with pytest.raises(ValueError, match="estimator must be one of"):
         estimate(h, SG, "fft")
+
+
+@pytest.mark.parametrize("name", ["fast", "ml"])
+def test_compiled_and_numpy_paths_agree(name):
+    from stages import ranging
+
+    rng = np.random.default_rng(8)
+    h = draw(rng, 1.0, rng.uniform(10e-9, 70e-9, 60), 1.0 / W)
+    fn = getattr(ranging, name)
+    a, b = fn(h, SG, compiled=True), fn(h, SG, compiled=False)
+    np.testing.assert_allclose(a.t_s, b.t_s, rtol=0, atol=1e-15)  # 1 fs
+    np.testing.assert_array_equal(a.detected, b.detected)
+
+
+def test_fast_estimator_is_good_in_photon_starving_light():
+    rng = np.random.default_rng(9)
+    tof = rng.uniform(10e-9, 70e-9, 300)
+    h = draw(rng, 0.01, tof, 0.01 / W)
+    err = estimate(h, SG, "fast").t_s - tof
+    crlb = np.median(crlb_tof(10_000, 0.01, tof, SG, 0.01 / W, W, B, RESET))
+    assert np.sqrt(np.mean(err ** 2)) < 2 * crlb
