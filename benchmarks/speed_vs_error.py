@@ -125,9 +125,9 @@ def _pareto(df, path: Path) -> None:
     good = df.filter((pl.col("detected") > 0.9) & (pl.col("sbr") >= 1))
     for est in ESTIMATORS:
         d = good.filter(pl.col("estimator") == est)
-        ax.scatter(d["hist_per_s"], d["rmse_over_crlb"], s=8, alpha=0.4, label=est)
-        ax.scatter([d["hist_per_s"].median()], [d["rmse_over_crlb"].median()], s=120,
-                   marker="*", edgecolor="k")
+        pts = ax.scatter(d["hist_per_s"], d["rmse_over_crlb"], s=8, alpha=0.4, label=est)
+        ax.scatter([d["hist_per_s"].median()], [d["rmse_over_crlb"].median()], s=160,
+                   marker="*", edgecolor="k", color=pts.get_facecolor()[0][:3])
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.axhline(1.2, ls="--", c="grey", lw=0.8)
