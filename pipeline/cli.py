@@ -246,6 +246,61 @@ def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, quiet) -> None
         err.print(f"wrote {out}")
 
 
+@cli.group()
+def stage() -> None:
+    """Run one stage of the stream alone (the graph can span processes and hosts)."""
+
+
+@stage.command("source-sim")
+@click.argument("scene_path", type=click.Path(exists=True, dir_okay=False))
+@click.option("--cycles", default=40_000, show_default=True, type=click.IntRange(1))
+@click.option("--push", required=True, help="Endpoint to send to, e.g. ipc:///tmp/h")
+@click.option("--seed", default=0, show_default=True)
+@click.option("--run", "run_id", default="sim", show_default=True)
+@click.option("--rate", type=float, default=None, help="Words per second (default: max).")
+def stage_source_sim(scene_path, cycles, push, seed, run_id, rate) -> None:
+    """The simulator as a source: raw-word batches of SCENE_PATH."""
+    from pipeline.simulate import make_simulator
+    from pipeline.stage import run_source
+
+    sim = make_simulator(scene_path, cycles, seed=seed)
+    n = sim.n_tdc
+    batches = ((first * n, w) for first, w in sim.batches(cycles))
+    sent = run_source(batches, push, step_id="source-sim", run=run_id, n_tdc=n,
+                      t_laser_win_ns=sim.sm.scene.gate.t_laser_win_ns, rate_words_s=rate)
+    err.print(f"source-sim: sent {sent:,} words")
+
+
+@stage.command("histogram")
+@click.option("--pull", required=True, help="Endpoint to bind for input")
+@click.option("--push", required=True, help="Endpoint to send to")
+@click.option("--n-tdc", default=128, show_default=True)
+@_calibration
+@click.option("--quarantine", type=click.Path(), default=None)
+def stage_histogram(pull, push, n_tdc, calibration, quarantine) -> None:
+    """Per-TDC histograms of the word stream, emitted at the end of the run."""
+    from pipeline.stage import run_stage
+    from stages.stream import HistogramCore
+
+    bounds = read_bounds(calibration, n_tdc) if calibration else None
+    stats = run_stage(HistogramCore(n_tdc, bounds), pull, push, quarantine=quarantine)
+    err.print(f"histogram: received {stats.received}, sent {stats.sent}, rejected "
+              f"{dict(stats.rejected)}")
+
+
+@stage.command("sink")
+@click.option("--pull", required=True, help="Endpoint to bind for input")
+@click.option("--out", required=True, type=click.Path(), help="dataset root")
+@click.option("--quarantine", type=click.Path(), default=None)
+def stage_sink(pull, out, quarantine) -> None:
+    """Parquet datasets of the histograms, Hive-partitioned by date and run."""
+    from pipeline.stage import ParquetSink, run_stage
+
+    sink = ParquetSink(out)
+    stats = run_stage(sink, pull, None, quarantine=quarantine)
+    err.print(f"sink: wrote {len(sink.written)} files; rejected {dict(stats.rejected)}")
+
+
 def _register() -> None:
     from pipeline.cli_calibrate import calibrate
     from pipeline.cli_model import model

@@ -1,0 +1,174 @@
+"""The one ZeroMQ runner every stage uses, and the stream's sources and sinks.
+
+A stage binds its PULL input and connects its PUSH output (so stages can start in any
+order), with high-water marks so a slow stage pushes back. Bad messages are counted by
+reason and written to a quarantine directory, never raised. SIGTERM/SIGINT finish the
+message in hand, flush the core and pass a stop on.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zmq
+
+from pipeline import wire
+from pipeline.atomic import atomic_path
+
+DEFAULT_HWM = 4
+
+
+@dataclass
+class StageStats:
+    received: int = 0
+    sent: int = 0
+    rejected: Counter = field(default_factory=Counter)
+
+
+def _socket(ctx: zmq.Context, kind: int, hwm: int) -> zmq.Socket:
+    s = ctx.socket(kind)
+    s.setsockopt(zmq.LINGER, 2000)
+    s.setsockopt(zmq.SNDHWM, hwm)
+    s.setsockopt(zmq.RCVHWM, hwm)
+    return s
+
+
+def _quarantine(qdir: Path | None, n: int, reason: str, frames) -> None:
+    if qdir is None:
+        return
+    qdir.mkdir(parents=True, exist_ok=True)
+    raw = b"".join(bytes(f.buffer if hasattr(f, "buffer") else f) for f in frames)
+    (qdir / f"{n:06d}.bin").write_bytes(raw[:1 << 20])
+    (qdir / f"{n:06d}.json").write_text(json.dumps({"reason": reason, "frames": len(frames),
+                                                    "bytes": len(raw)}))
+
+
+def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HWM,
+              quarantine: str | Path | None = None, stop: threading.Event | None = None,
+              poll_ms: int = 200, context: zmq.Context | None = None) -> StageStats:
+    """Run ``core`` between ``pull`` (bound) and ``push`` (connected) until a stop message,
+    a signal or ``stop`` is set. Returns the counts."""
+    ctx = context or zmq.Context.instance()
+    stats = StageStats()
+    qdir = Path(quarantine) if quarantine else None
+    stop = stop or threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: stop.set())
+    rx = _socket(ctx, zmq.PULL, hwm)
+    rx.bind(pull)
+    tx = None
+    if push:
+        tx = _socket(ctx, zmq.PUSH, hwm)
+        tx.connect(push)
+    last = {"run": "run", "seq": 0}
+
+    def send(messages):
+        for head, batch in messages:
+            if tx is not None:
+                tx.send_multipart(wire.encode(head, batch), copy=False)
+                stats.sent += 1
+
+    try:
+        while True:
+            if stop.is_set():
+                break
+            if not rx.poll(poll_ms):
+                continue
+            frames = rx.recv_multipart(copy=False)
+            stats.received += 1
+            try:
+                head, batch = wire.decode(frames, core.in_spec)
+            except wire.WireError as exc:
+                stats.rejected[exc.reason] += 1
+                _quarantine(qdir, sum(stats.rejected.values()), str(exc), frames)
+                continue
+            last = head
+            if head["kind"] == "stop":
+                break
+            send(core.process(head, batch))
+        send(core.finish(last))
+        if tx is not None:
+            stop_head = {"kind": "stop", "schema": core.out_spec.name,
+                         "version": core.out_spec.version, "run": last.get("run", "run"),
+                         "seq": stats.sent, "step": core.step_id,
+                         "rejected": dict(stats.rejected)}
+            tx.send_multipart(wire.encode(stop_head, None))
+    finally:
+        rx.close(linger=0)
+        if tx is not None:
+            tx.close()
+    return stats
+
+
+def run_source(batches, push: str, *, step_id: str, run: str, n_tdc: int,
+               t_laser_win_ns: float, hwm: int = DEFAULT_HWM, rate_words_s: float | None = None,
+               context: zmq.Context | None = None) -> int:
+    """Send ``(first_word, words)`` batches as raw_words messages, then a stop. Returns the
+    words sent. ``rate_words_s`` limits the rate (None: as fast as the consumer takes)."""
+    import numpy as np
+    import pyarrow as pa
+
+    from schemas.words import RAW_WORDS
+
+    ctx = context or zmq.Context.instance()
+    tx = _socket(ctx, zmq.PUSH, hwm)
+    tx.connect(push)
+    sent, seq, t0 = 0, 0, time.perf_counter()
+    try:
+        for first, words in batches:
+            batch = pa.record_batch([pa.array(np.asarray(words, np.uint32))],
+                                    schema=RAW_WORDS.schema)
+            head = {"kind": "data", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
+                    "run": run, "seq": seq, "step": step_id, "first_word": int(first),
+                    "n_tdc": n_tdc, "t_laser_win_ns": t_laser_win_ns}
+            tx.send_multipart(wire.encode(head, batch), copy=False)
+            sent += words.size
+            seq += 1
+            if rate_words_s:
+                ahead = sent / rate_words_s - (time.perf_counter() - t0)
+                if ahead > 0:
+                    time.sleep(ahead)
+        tx.send_multipart(wire.encode({"kind": "stop", "schema": RAW_WORDS.name,
+                                       "version": RAW_WORDS.version, "run": run, "seq": seq,
+                                       "step": step_id, "words": sent}, None))
+    finally:
+        tx.close()
+    return sent
+
+
+class ParquetSink:
+    """Writes each histograms batch as a Hive-partitioned parquet file, atomically:
+    ``OUT/histograms/date=YYYY-MM-DD/run=RUN/part-SEQ.parquet``."""
+
+    from schemas.outputs import HISTOGRAMS as in_spec  # noqa: N811
+    out_spec = in_spec
+
+    def __init__(self, out: str | Path, step_id: str = "sink"):
+        self.out = Path(out)
+        self.step_id = step_id
+        self.written: list[Path] = []
+
+    def process(self, header: dict, batch) -> list:
+        import datetime as dt
+
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        day = dt.date.today().isoformat()
+        path = (self.out / "histograms" / f"date={day}" / f"run={header['run']}"
+                / f"part-{int(header['seq']):06d}.parquet")
+        table = pa.Table.from_batches([batch])
+        with atomic_path(path) as tmp:
+            pq.write_table(table, tmp)
+        self.written.append(path)
+        return []
+
+    def finish(self, header: dict) -> list:
+        return []
