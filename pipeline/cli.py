@@ -271,6 +271,43 @@ def stage_source_sim(scene_path, cycles, push, seed, run_id, rate) -> None:
     err.print(f"source-sim: sent {sent:,} words")
 
 
+@stage.command("source-capture")
+@click.argument("capture", type=click.Path())
+@click.option("--push", required=True, help="Endpoint to send to")
+@click.option("--run", "run_id", default=None, help="Run id (default: the capture's name)")
+@click.option("--rate", type=float, default=None, help="Words per second (default: max).")
+def stage_source_capture(capture, push, run_id, rate) -> None:
+    """Replay a capture into the stream, at a chosen rate or as fast as it is taken."""
+    from pipeline.stage import run_source
+
+    cap = Capture(capture)
+    batches = ((first, w.copy()) for first, w in cap.iter_chunks(1 << 18))
+    sent = run_source(batches, push, step_id="source-capture", run=run_id or cap.name,
+                      n_tdc=cap.meta.n_tdc, t_laser_win_ns=cap.meta.t_laser_win_ns,
+                      rate_words_s=rate)
+    err.print(f"source-capture: sent {sent:,} words")
+
+
+@stage.command("ingest-udp")
+@click.option("--bind", "bind_addr", default="127.0.0.1:9000", show_default=True,
+              help="host:port to listen on (127.0.0.1 unless you choose otherwise)")
+@click.option("--push", required=True, help="Endpoint to send to")
+@click.option("--run", "run_id", default="udp", show_default=True)
+@click.option("--journal", type=click.Path(), default=None,
+              help="Directory for the raw words as capture segments (written before "
+                   "they are passed on).")
+@click.option("--quarantine", type=click.Path(), default=None)
+@click.option("--idle", type=float, default=None, help="Stop after this many idle seconds.")
+def stage_ingest_udp(bind_addr, push, run_id, journal, quarantine, idle) -> None:
+    """The FPGA's UDP datagrams (docs/streaming.md) in, journaled raw-word batches out."""
+    from pipeline.udp import run_udp_ingest, udp_socket
+
+    stats = run_udp_ingest(udp_socket(bind_addr), push, run=run_id, journal=journal,
+                           quarantine=quarantine, idle_s=idle)
+    err.print(f"ingest: {stats.datagrams} datagrams, {stats.words:,} words, "
+              f"{stats.lost_datagrams} lost, rejected {dict(stats.rejected)}")
+
+
 @stage.command("histogram")
 @click.option("--pull", required=True, help="Endpoint to bind for input")
 @click.option("--push", required=True, help="Endpoint to send to")

@@ -1,0 +1,146 @@
+"""The ingest: the FPGA's UDP datagrams in, journaled raw-word batches out.
+
+Binds 127.0.0.1 unless told otherwise. Every datagram is accounted for: taken (its words
+journaled to capture segments before they are passed on), or rejected by reason and
+quarantined; gaps in the sequence numbers are counted as lost datagrams.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import zmq
+
+from pipeline import datagram, wire
+from pipeline.capture import CaptureWriter
+from pipeline.stage import _socket
+from schemas.words import RAW_WORDS
+
+BATCH_WORDS = 1 << 18  # 1 MiB messages
+
+
+@dataclass
+class IngestStats:
+    datagrams: int = 0
+    words: int = 0
+    lost_datagrams: int = 0
+    rejected: Counter = field(default_factory=Counter)
+    messages: int = 0
+    journal: list[str] = field(default_factory=list)
+
+
+def udp_socket(address: str = "127.0.0.1:0") -> socket.socket:
+    """A bound UDP socket; ``host:port`` (port 0 picks a free one)."""
+    host, port = address.rsplit(":", 1)
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
+    s.bind((host, int(port)))
+    return s
+
+
+def run_udp_ingest(sock: socket.socket, push: str, *, run: str = "udp",
+                   journal: str | Path | None = None, segment_words: int = 1 << 24,
+                   quarantine: str | Path | None = None, stop: threading.Event | None = None,
+                   idle_s: float | None = None, context: zmq.Context | None = None) -> IngestStats:
+    """Receive until a datagram flagged last, ``stop``, or ``idle_s`` without data."""
+    ctx = context or zmq.Context.instance()
+    tx = _socket(ctx, zmq.PUSH, 4)
+    tx.connect(push)
+    stop = stop or threading.Event()
+    stats = IngestStats()
+    seqs = datagram.SequenceTracker()
+    qdir = Path(quarantine) if quarantine else None
+    sock.settimeout(0.2)
+    pending: list[np.ndarray] = []
+    pending_first = None
+    next_word = None
+    n_tdc = gate_ns = None
+    writer = None
+    idle = 0.0
+
+    def flush():
+        nonlocal pending, pending_first
+        if not pending:
+            return
+        import pyarrow as pa
+
+        words = np.concatenate(pending)
+        batch = pa.record_batch([pa.array(words)], schema=RAW_WORDS.schema)
+        head = {"kind": "data", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
+                "run": run, "seq": stats.messages, "step": "ingest",
+                "first_word": int(pending_first), "n_tdc": n_tdc, "t_laser_win_ns": gate_ns}
+        tx.send_multipart(wire.encode(head, batch), copy=False)
+        stats.messages += 1
+        pending, pending_first = [], None
+
+    def journal_words(words):
+        nonlocal writer
+        if journal is None:
+            return
+        if writer is not None and writer.n_words + words.size > segment_words:
+            writer.close()
+            writer = None
+        if writer is None:
+            name = Path(journal) / f"{run}-{len(stats.journal):06d}"
+            writer = CaptureWriter(name, n_tdc, t_laser_win_ns=gate_ns, kind="journal",
+                                   note=f"first word {next_word - words.size}")
+            stats.journal.append(str(name) + ".bin")
+        writer.write(words)
+
+    try:
+        while not stop.is_set():
+            try:
+                data = sock.recv(datagram.MAX_PAYLOAD + 1)
+            except TimeoutError:
+                idle += 0.2
+                if idle_s is not None and idle >= idle_s:
+                    break
+                continue
+            idle = 0.0
+            stats.datagrams += 1
+            try:
+                d = datagram.decode(data)
+                if n_tdc is not None and d.n_tdc != n_tdc:
+                    raise datagram.DatagramError("n_tdc_mismatch",
+                                                 f"{d.n_tdc} TDCs after {n_tdc}")
+            except datagram.DatagramError as exc:
+                stats.rejected[exc.reason] += 1
+                if qdir is not None:
+                    qdir.mkdir(parents=True, exist_ok=True)
+                    k = sum(stats.rejected.values())
+                    (qdir / f"{k:06d}.bin").write_bytes(data)
+                    (qdir / f"{k:06d}.json").write_text(json.dumps({"reason": str(exc)}))
+                continue
+            stats.lost_datagrams += seqs.see(d.seq)
+            n_tdc = d.n_tdc
+            gate_ns = d.t_laser_win_ps / 1000
+            first = d.first_cycle * n_tdc
+            if next_word is not None and first != next_word:
+                flush()  # a gap: the next batch starts where the words do
+            if pending_first is None:
+                pending_first = first
+            pending.append(d.words)
+            next_word = first + d.words.size
+            journal_words(d.words)
+            stats.words += d.words.size
+            if sum(p.size for p in pending) >= BATCH_WORDS:
+                flush()
+            if d.last:
+                break
+        flush()
+        tx.send_multipart(wire.encode({
+            "kind": "stop", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
+            "run": run, "seq": stats.messages, "step": "ingest", "words": stats.words,
+            "datagrams": stats.datagrams, "lost_datagrams": stats.lost_datagrams,
+            "rejected": dict(stats.rejected)}, None))
+    finally:
+        if writer is not None:
+            writer.close()
+        tx.close()
+    return stats
