@@ -258,16 +258,21 @@ def stage() -> None:
 @click.option("--seed", default=0, show_default=True)
 @click.option("--run", "run_id", default="sim", show_default=True)
 @click.option("--rate", type=float, default=None, help="Words per second (default: max).")
-def stage_source_sim(scene_path, cycles, push, seed, run_id, rate) -> None:
+@click.option("--journal", type=click.Path(), default=None,
+              help="Journal the words here before sending them.")
+def stage_source_sim(scene_path, cycles, push, seed, run_id, rate, journal) -> None:
     """The simulator as a source: raw-word batches of SCENE_PATH."""
+    from pipeline.journal import JournalWriter
     from pipeline.simulate import make_simulator
     from pipeline.stage import run_source
 
     sim = make_simulator(scene_path, cycles, seed=seed)
     n = sim.n_tdc
+    gate = sim.sm.scene.gate.t_laser_win_ns
+    jw = JournalWriter(journal, run_id, n, gate) if journal else None
     batches = ((first * n, w) for first, w in sim.batches(cycles))
     sent = run_source(batches, push, step_id="source-sim", run=run_id, n_tdc=n,
-                      t_laser_win_ns=sim.sm.scene.gate.t_laser_win_ns, rate_words_s=rate)
+                      t_laser_win_ns=gate, rate_words_s=rate, journal=jw)
     err.print(f"source-sim: sent {sent:,} words")
 
 
@@ -314,15 +319,28 @@ def stage_ingest_udp(bind_addr, push, run_id, journal, quarantine, idle) -> None
 @click.option("--n-tdc", default=128, show_default=True)
 @_calibration
 @click.option("--quarantine", type=click.Path(), default=None)
-def stage_histogram(pull, push, n_tdc, calibration, quarantine) -> None:
+@click.option("--checkpoint", type=click.Path(), default=None,
+              help="Checkpoint file: restored at start, saved after every batch.")
+@click.option("--journal", type=click.Path(), default=None,
+              help="The source's journal directory, to fill gaps after a restart.")
+@click.option("--run", "run_id", default=None, help="Run id of the journal to read.")
+def stage_histogram(pull, push, n_tdc, calibration, quarantine, checkpoint, journal,
+                    run_id) -> None:
     """Per-TDC histograms of the word stream, emitted at the end of the run."""
+    from pipeline.journal import read_range, run_end
     from pipeline.stage import run_stage
     from stages.stream import HistogramCore
 
     bounds = read_bounds(calibration, n_tdc) if calibration else None
-    stats = run_stage(HistogramCore(n_tdc, bounds), pull, push, quarantine=quarantine)
+    backfill = ((lambda a, b: read_range(journal, run_id, a, b)) if journal and run_id
+                else None)
+    core = HistogramCore(n_tdc, bounds, backfill=backfill)
+    ended = (lambda: run_end(journal, run_id)) if journal and run_id else None
+    stats = run_stage(core, pull, push, quarantine=quarantine, checkpoint=checkpoint,
+                      run_ended=ended)
     err.print(f"histogram: received {stats.received}, sent {stats.sent}, rejected "
-              f"{dict(stats.rejected)}")
+              f"{dict(stats.rejected)}; backfilled {core.backfilled:,} words, skipped "
+              f"{core.duplicates:,} already counted, unfilled gaps {core.gap_words:,}")
 
 
 @stage.command("sink")

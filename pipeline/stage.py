@@ -49,11 +49,39 @@ def _quarantine(qdir: Path | None, n: int, reason: str, frames) -> None:
                                                     "bytes": len(raw)}))
 
 
+def save_checkpoint(path: Path, state: dict) -> None:
+    """A core's snapshot as .npz (arrays only, written atomically; never pickled)."""
+    import numpy as np
+
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **state)
+
+
+def load_checkpoint(path: Path) -> dict | None:
+    import numpy as np
+
+    if not path.exists():
+        return None
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
 def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HWM,
               quarantine: str | Path | None = None, stop: threading.Event | None = None,
-              poll_ms: int = 200, context: zmq.Context | None = None) -> StageStats:
+              poll_ms: int = 200, context: zmq.Context | None = None,
+              checkpoint: str | Path | None = None, checkpoint_every: int = 1,
+              run_ended=None, idle_after_s: float = 2.0) -> StageStats:
     """Run ``core`` between ``pull`` (bound) and ``push`` (connected) until a stop message,
-    a signal or ``stop`` is set. Returns the counts."""
+    a signal or ``stop`` is set. Returns the counts.
+
+    With ``checkpoint``, a stateful core (``snapshot``/``restore``) is restored from that
+    file at start and saved every ``checkpoint_every`` data messages, so a restarted stage
+    resumes where its checkpoint left it (the core skips what it already folded in and
+    fills gaps from the journal). ``run_ended()`` returns the run's total words once its
+    source has finished (from the journal), else None: after ``idle_after_s`` without a
+    message it lets a restarted stage finish even if the source's stop was lost with the
+    process that was killed."""
     ctx = context or zmq.Context.instance()
     stats = StageStats()
     qdir = Path(quarantine) if quarantine else None
@@ -61,6 +89,13 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: stop.set())
+    ckpt = Path(checkpoint) if checkpoint else None
+    if ckpt is not None:
+        state = load_checkpoint(ckpt)
+        if state is not None:
+            core.restore(state)
+    since = 0
+    idle = 0.0
     rx = _socket(ctx, zmq.PULL, hwm)
     rx.bind(pull)
     tx = None
@@ -72,7 +107,7 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
     def send(messages):
         for head, batch in messages:
             if tx is not None:
-                tx.send_multipart(wire.encode(head, batch), copy=False)
+                tx.send_multipart(wire.encode(head, batch))
                 stats.sent += 1
 
     try:
@@ -80,7 +115,15 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
             if stop.is_set():
                 break
             if not rx.poll(poll_ms):
+                idle += poll_ms / 1000
+                if run_ended is not None and idle >= idle_after_s:
+                    total = run_ended()
+                    if total is not None:
+                        if hasattr(core, "catch_up"):
+                            core.catch_up(total)
+                        break
                 continue
+            idle = 0.0
             frames = rx.recv_multipart(copy=False)
             stats.received += 1
             try:
@@ -93,6 +136,10 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
             if head["kind"] == "stop":
                 break
             send(core.process(head, batch))
+            since += 1
+            if ckpt is not None and since >= checkpoint_every:
+                save_checkpoint(ckpt, core.snapshot())
+                since = 0
         send(core.finish(last))
         if tx is not None:
             stop_head = {"kind": "stop", "schema": core.out_spec.name,
@@ -109,9 +156,10 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
 
 def run_source(batches, push: str, *, step_id: str, run: str, n_tdc: int,
                t_laser_win_ns: float, hwm: int = DEFAULT_HWM, rate_words_s: float | None = None,
-               context: zmq.Context | None = None) -> int:
+               context: zmq.Context | None = None, journal=None) -> int:
     """Send ``(first_word, words)`` batches as raw_words messages, then a stop. Returns the
-    words sent. ``rate_words_s`` limits the rate (None: as fast as the consumer takes)."""
+    words sent. ``rate_words_s`` limits the rate (None: as fast as the consumer takes).
+    With a ``journal`` (JournalWriter) every batch is journaled before it is sent."""
     import numpy as np
     import pyarrow as pa
 
@@ -128,7 +176,9 @@ def run_source(batches, push: str, *, step_id: str, run: str, n_tdc: int,
             head = {"kind": "data", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
                     "run": run, "seq": seq, "step": step_id, "first_word": int(first),
                     "n_tdc": n_tdc, "t_laser_win_ns": t_laser_win_ns}
-            tx.send_multipart(wire.encode(head, batch), copy=False)
+            if journal is not None:
+                journal.append(first, np.asarray(words, np.uint32))
+            tx.send_multipart(wire.encode(head, batch))
             sent += words.size
             seq += 1
             if rate_words_s:
@@ -139,7 +189,10 @@ def run_source(batches, push: str, *, step_id: str, run: str, n_tdc: int,
                                        "version": RAW_WORDS.version, "run": run, "seq": seq,
                                        "step": step_id, "words": sent}, None))
     finally:
-        tx.close()
+        if journal is not None:
+            journal.close()
+        # wait (bounded) for a restarted consumer to take what is queued, the stop included
+        tx.close(linger=60_000)
     return sent
 
 

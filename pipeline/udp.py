@@ -75,7 +75,7 @@ def run_udp_ingest(sock: socket.socket, push: str, *, run: str = "udp",
         head = {"kind": "data", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
                 "run": run, "seq": stats.messages, "step": "ingest",
                 "first_word": int(pending_first), "n_tdc": n_tdc, "t_laser_win_ns": gate_ns}
-        tx.send_multipart(wire.encode(head, batch), copy=False)
+        tx.send_multipart(wire.encode(head, batch))
         stats.messages += 1
         pending, pending_first = [], None
 
