@@ -305,32 +305,29 @@ def code_centres_s(density: DensityResult, codes=None) -> np.ndarray:
     return np.take_along_axis(centres, np.asarray(codes, np.int64), axis=1)
 
 
-def histogram_tau_s(hits: np.ndarray, density: DensityResult, lsb_s=None):
-    """Centroid tau of each TDC's histogram peak region: (peak tau in s, counts used)."""
+def _peak_weights(hits: np.ndarray, density: DensityResult, lsb_s=None):
+    """Code centres (tau, s) and the background-subtracted counts of each TDC's peak
+    window (+-6 codes around the highest count, away from both window edges)."""
     lsb = density.lsb_s if lsb_s is None else np.asarray(lsb_s)
     centres = (np.arange(N_CODES)[None, :] + np.nan_to_num(density.inl_lsb)
                + 0.5 * (1 + np.nan_to_num(density.dnl_lsb))) * lsb[:, None]
     h = np.asarray(hits, np.float64)
     peak = np.argmax(h[:, 2:-8], axis=1) + 2
-    k = np.arange(N_CODES)[None, :]
-    win = np.abs(k - peak[:, None]) <= 6
+    win = np.abs(np.arange(N_CODES)[None, :] - peak[:, None]) <= 6
     bg = np.median(h, axis=1, keepdims=True)
-    w = np.where(win, np.clip(h - bg, 0, None), 0.0)
+    return centres, np.where(win, np.clip(h - bg, 0, None), 0.0), lsb
+
+
+def histogram_tau_s(hits: np.ndarray, density: DensityResult, lsb_s=None):
+    """Centroid tau of each TDC's histogram peak region: (peak tau in s, counts used)."""
+    centres, w, _ = _peak_weights(hits, density, lsb_s)
     return (w * centres).sum(1) / np.maximum(w.sum(1), 1e-300), w.sum(1)
 
 
 def histogram_sigma_s(hits: np.ndarray, density: DensityResult, lsb_s=None) -> np.ndarray:
     """Width (sigma) of each TDC's peak: the instrument response at zero distance."""
-    lsb = density.lsb_s if lsb_s is None else np.asarray(lsb_s)
-    centres = (np.arange(N_CODES)[None, :] + np.nan_to_num(density.inl_lsb)
-               + 0.5 * (1 + np.nan_to_num(density.dnl_lsb))) * lsb[:, None]
-    tau, _ = histogram_tau_s(hits, density, lsb)
-    h = np.asarray(hits, np.float64)
-    peak = np.argmax(h[:, 2:-8], axis=1) + 2
-    k = np.arange(N_CODES)[None, :]
-    win = np.abs(k - peak[:, None]) <= 6
-    bg = np.median(h, axis=1, keepdims=True)
-    w = np.where(win, np.clip(h - bg, 0, None), 0.0)
+    centres, w, lsb = _peak_weights(hits, density, lsb_s)
+    tau = (w * centres).sum(1) / np.maximum(w.sum(1), 1e-300)
     var = (w * (centres - tau[:, None]) ** 2).sum(1) / np.maximum(w.sum(1), 1e-300)
     # the centres quantise: remove a bin's uniform variance (LSB^2 / 12)
     return np.sqrt(np.maximum(var - lsb ** 2 / 12, 0.0))

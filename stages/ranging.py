@@ -181,7 +181,7 @@ def matched(h: Histograms, sigma_s: float, p_fa: float = 1e-3):
     frac = np.where(den < 0, 0.5 * (cm - cp) / np.where(den < 0, den, -1), 0.0)
     frac = np.clip(frac, -0.5, 0.5)
     cen = h.centres
-    t = np.interp(frac, [-1, 0, 1], [0, 0, 0]) + cen[rows, peak] + frac * w[rows, peak]
+    t = cen[rows, peak] + frac * w[rows, peak]
     win = np.abs(np.arange(n)[None, :] - peak[:, None]) <= max(1, int(3 * sigma_s / h.bin_s))
     sig_counts = np.where(win & h.valid, lam - bg[:, None] * w, 0).sum(1) * h.cycles
     sig = sigma_s / np.sqrt(np.maximum(sig_counts, 1.0))
