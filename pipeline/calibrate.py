@@ -150,25 +150,35 @@ def read_density(caldir: str | Path) -> tuple[cal.DensityResult, dict]:
     return res, meta
 
 
+def read_lsb_fit(caldir: str | Path) -> cal.LsbFit | None:
+    """The directory's LSB-against-light fit, or None when it holds one density test."""
+    caldir = Path(caldir)
+    meta = json.loads((caldir / "meta.json").read_text())
+    px = meta.get("lsb_poly_x")
+    if px is None:
+        return None
+    poly = np.stack(read_tdc_table(caldir).column("lsb_poly").to_numpy(zero_copy_only=False))
+    return cal.LsbFit(poly, px["mean"], px["scale"], tuple(px["n_range"]),
+                      np.asarray(meta.get("lsb_residual_ps", np.empty((poly.shape[0], 0)))))
+
+
 def lsb_at(caldir: str | Path, n_light: float) -> np.ndarray:
     """Per-TDC LSB (s) at a light level from the directory's polynomial (eq. 5.1); warns
     when the level lies outside the fitted range."""
     caldir = Path(caldir)
     tdc = read_tdc_table(caldir)
     meta = json.loads((caldir / "meta.json").read_text())
-    poly = np.stack(tdc.column("lsb_poly").to_numpy(zero_copy_only=False))
-    px = meta.get("lsb_poly_x")
-    if px is None:
+    fit = read_lsb_fit(caldir)
+    if fit is None:
         n_cal = meta.get("density", {}).get("detections_per_pixel_per_cycle")
         if n_cal is not None and abs(n_light - n_cal) > 0.02:
             warnings.warn(f"{caldir}: one density test at {n_cal:.3g} detections per pixel per "
                           f"cycle, used at {n_light:.3g}: the LSB changes with light (up to "
                           "40 ps, section 5.1); run `tcspc calibrate lsb` over this range",
                           stacklevel=2)
-        return poly[:, 0] * 1e-12
-    lo, hi = px["n_range"]
-    if not lo - 1e-12 <= n_light <= hi + 1e-12:
+        return tdc.column("lsb_ps").to_numpy() * 1e-12
+    lo, hi = fit.n_range
+    if not fit.in_range(n_light):
         warnings.warn(f"{caldir}: light level {n_light:.3g} detections per pixel per cycle "
                       f"is outside the LSB fit's range [{lo:.3g}, {hi:.3g}]", stacklevel=2)
-    fit = cal.LsbFit(poly, px["mean"], px["scale"], (lo, hi), np.empty((poly.shape[0], 0)))
     return fit.lsb_ps(n_light) * 1e-12

@@ -8,7 +8,13 @@ import click
 import numpy as np
 from rich.console import Console
 
-from pipeline.calibrate import density_from_capture, lsb_at, read_density, write_caldir
+from pipeline.calibrate import (
+    density_from_capture,
+    lsb_at,
+    read_density,
+    read_lsb_fit,
+    write_caldir,
+)
 from pipeline.capture import Capture
 from stages import calibration as cal
 from stages.histogram import HistogramAccumulator
@@ -114,12 +120,7 @@ def delay(capture, out) -> None:
                                for c in ("n_min", "n_max", "n_th", "pdm")))
     sources = [Path(s["path"]) for s in meta["sources"] if Path(s["path"]).exists()]
     extra = {k: v for k, v in meta.items() if k.startswith("lsb_")}
-    fit = None
-    if "lsb_poly_x" in meta:
-        px = meta["lsb_poly_x"]
-        poly = np.stack(tdc.column("lsb_poly").to_numpy(zero_copy_only=False))
-        fit = cal.LsbFit(poly, px["mean"], px["scale"], tuple(px["n_range"]),
-                         np.asarray(meta["lsb_residual_ps"]))
+    fit = read_lsb_fit(out)
     write_caldir(out, res, second, sources + [cap.bin_path], lsb_fit=fit, delay_s=d,
                  extra={**extra, "delay": {"capture": str(cap.bin_path), "light": light,
                                            "counts_used": used.tolist(),

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas.errors import TcspcError
+from schemas.errors import Rejected
 
 MAGIC = b"TCSP"
 VERSION = 1
@@ -16,12 +16,8 @@ FLAG_LAST = 1
 MAX_PAYLOAD = 65_507
 
 
-class DatagramError(TcspcError, ValueError):
-    """A datagram that cannot be taken: ``reason`` is its class for the accounting."""
-
-    def __init__(self, reason: str, detail: str):
-        super().__init__(f"{reason}: {detail}")
-        self.reason = reason
+class DatagramError(Rejected):
+    """A datagram that cannot be taken."""
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from pipeline.capture import CaptureMeta, CaptureWriter
+from pipeline.capture import Capture, CaptureMeta, CaptureWriter
 from stages.models.scene import evaluate, load_scene
 from stages.simulator.chip import make_chip
 from stages.simulator.source import Simulator
@@ -24,13 +24,23 @@ def make_simulator(scene_path, cycles: int, seed: int = 0, chip_seed: int = 1,
     return Simulator(sm, chip, seed, engine, malformed_rate, invalid_rate)
 
 
+def capture_kind(scene) -> str:
+    """The sidecar's ``kind`` (DESIGN.md): density without a target, delay when every target
+    sits at zero distance (under 5 cm), else range."""
+    if not scene.targets:
+        return "density"
+    if all(t.distance_m < 0.05 for t in scene.targets):
+        return "delay"
+    return "range"
+
+
 def simulate_capture(scene_path, cycles: int, out, progress: Callable[[int], None] = None,
                      **kw) -> tuple[CaptureMeta, Simulator]:
     """Write a capture of ``cycles`` cycles of the scene; returns its sidecar and the
     simulator (whose ``result`` holds the class counts it emitted)."""
     sim = make_simulator(scene_path, cycles, **kw)
     s = sim.sm.scene
-    kind = {"density": "density", "delay": "delay"}.get(s.name, "range")
+    kind = capture_kind(s)
     with CaptureWriter(out, sim.n_tdc, window_ns=s.sensor.window_ns,
                        t_laser_win_ns=s.gate.t_laser_win_ns, kind=kind,
                        note=f"simulated from {Path(scene_path).name}") as w:
@@ -39,5 +49,4 @@ def simulate_capture(scene_path, cycles: int, out, progress: Callable[[int], Non
             if progress:
                 progress(words.size // sim.n_tdc)
         w.set_truth(sim.truth())
-    return CaptureMeta.from_dict({**w._meta, "cycles": cycles, "format": "tcspc-raw",
-                                  "version": 1}, str(w.json_path)), sim
+    return Capture(out, strict=True).meta, sim

@@ -18,7 +18,7 @@ import numpy as np
 import zmq
 
 from pipeline import datagram, wire
-from pipeline.capture import CaptureWriter
+from pipeline.journal import JournalWriter
 from pipeline.stage import _socket
 from schemas.words import RAW_WORDS
 
@@ -32,7 +32,7 @@ class IngestStats:
     lost_datagrams: int = 0
     rejected: Counter = field(default_factory=Counter)
     messages: int = 0
-    journal: list[str] = field(default_factory=list)
+    journal: list[str] = field(default_factory=list)  #: segment files written
 
 
 def udp_socket(address: str = "127.0.0.1:0") -> socket.socket:
@@ -61,7 +61,7 @@ def run_udp_ingest(sock: socket.socket, push: str, *, run: str = "udp",
     pending_first = None
     next_word = None
     n_tdc = gate_ns = None
-    writer = None
+    writer: JournalWriter | None = None
     idle = 0.0
 
     def flush():
@@ -79,19 +79,15 @@ def run_udp_ingest(sock: socket.socket, push: str, *, run: str = "udp",
         stats.messages += 1
         pending, pending_first = [], None
 
-    def journal_words(words):
+    def journal_words(first, words):
+        # the same journal the sources write: readable while written, closed with the
+        # run's end, so a restarted stage downstream can fill its gaps from it
         nonlocal writer
         if journal is None:
             return
-        if writer is not None and writer.n_words + words.size > segment_words:
-            writer.close()
-            writer = None
         if writer is None:
-            name = Path(journal) / f"{run}-{len(stats.journal):06d}"
-            writer = CaptureWriter(name, n_tdc, t_laser_win_ns=gate_ns, kind="journal",
-                                   note=f"first word {next_word - words.size}")
-            stats.journal.append(str(name) + ".bin")
-        writer.write(words)
+            writer = JournalWriter(journal, run, n_tdc, gate_ns, segment_words=segment_words)
+        writer.append(first, words)
 
     try:
         while not stop.is_set():
@@ -127,7 +123,7 @@ def run_udp_ingest(sock: socket.socket, push: str, *, run: str = "udp",
                 pending_first = first
             pending.append(d.words)
             next_word = first + d.words.size
-            journal_words(d.words)
+            journal_words(first, d.words)
             stats.words += d.words.size
             if sum(p.size for p in pending) >= BATCH_WORDS:
                 flush()
@@ -142,5 +138,6 @@ def run_udp_ingest(sock: socket.socket, push: str, *, run: str = "udp",
     finally:
         if writer is not None:
             writer.close()
+            stats.journal = [str(p) for p in writer.segments]
         tx.close()
     return stats

@@ -7,18 +7,14 @@ import json
 import pyarrow as pa
 
 from schemas.core import SchemaSpec, validate
-from schemas.errors import SchemaMismatch, SchemaVersionError, TcspcError
+from schemas.errors import Rejected, SchemaMismatch, SchemaVersionError
 
 MAX_MESSAGE_BYTES = 64 << 20
 REQUIRED = ("kind", "schema", "version", "run", "seq", "step")
 
 
-class WireError(TcspcError, ValueError):
-    """A message that cannot be taken: ``reason`` is its class for the accounting."""
-
-    def __init__(self, reason: str, detail: str):
-        super().__init__(f"{reason}: {detail}")
-        self.reason = reason
+class WireError(Rejected):
+    """A message that cannot be taken."""
 
 
 def encode(header: dict, batch: pa.RecordBatch | None) -> list[bytes | pa.Buffer]:

@@ -23,5 +23,14 @@ class CaptureError(TcspcError, ValueError):
     """A raw capture (``.bin`` + ``.json``) is unreadable or inconsistent (names the file)."""
 
 
+class Rejected(TcspcError, ValueError):
+    """Input refused at an edge (a message, a datagram): ``reason`` is its class in the
+    accounting (the rejection counters and the quarantine use it)."""
+
+    def __init__(self, reason: str, detail: str):
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+
+
 class CalibrationError(TcspcError, ValueError):
     """A calibration directory is missing, unreadable or inconsistent with the data."""

@@ -34,6 +34,10 @@ SHIFT_ADDR = 1
 #: Bits that must hold fixed values: 31, 11, 10 (zero), 9 (one), 0 (zero).
 MARKER_MASK = np.uint32((1 << 31) | (1 << 11) | (1 << 10) | (1 << 9) | 1)
 MARKER_VALUE = np.uint32(1 << 9)
+#: The eight 4-bit codes that are no Johnson code (bubbles): an invalid phase.
+BUBBLE_CODES = np.array(sorted(set(range(16)) - set(JOHNSON)), np.uint32)
+#: Bits whose values are fixed (31, 11, 10, 9, 0): flipping one makes a word malformed.
+MARKER_BITS = np.array([0, 9, 10, 11, 31], np.uint32)
 #: Largest TDC count the 8-bit address field can express.
 MAX_TDC = 256
 

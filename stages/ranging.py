@@ -23,9 +23,8 @@ import numpy as np
 from scipy.special import ndtr
 
 from stages.models.performance import alpha_b
+from stages.models.tcspc import FWHM_PER_SIGMA, SQRT2PI
 
-SQRT2PI = np.sqrt(2 * np.pi)
-FWHM_PER_SIGMA = 2 * np.sqrt(2 * np.log(2))
 ESTIMATORS = ("fast", "centroid", "matched", "gaussfit", "ml")
 
 

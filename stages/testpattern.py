@@ -21,9 +21,7 @@ from schemas.words import (
     N_CODES_2ND,
     NO_HIT,
 )
-from stages.codec import JOHNSON, encode_words
-
-_BUBBLES = np.array(sorted(set(range(16)) - set(JOHNSON)), np.int64)
+from stages.codec import BUBBLE_CODES, MARKER_BITS, encode_words
 
 
 @dataclass(frozen=True)
@@ -81,14 +79,14 @@ def pattern_words(n_cycles: int, n_tdc: int = 128, *, hit_prob: float = 0.05,
     words = encode_words(d1 // 8, d1 % 8, d2 // 8, d2 % 8, pos)
     # An invalid phase: a bubble code in P1st (or P2nd, half of the time).
     bad_phase = cls == INVALID_PHASE
-    bubble = _BUBBLES[rng.integers(0, _BUBBLES.size, n)].astype(np.uint32)
+    bubble = BUBBLE_CODES[rng.integers(0, BUBBLE_CODES.size, n)]
     which = rng.random(n) < 0.5
     w_p1 = (words & ~np.uint32(0xF << 12)) | (bubble << 12)
     w_p2 = (words & ~np.uint32(0xF << 22)) | (bubble << 22)
     words = np.where(bad_phase, np.where(which, w_p1, w_p2), words)
     # Malformed: a broken marker bit (bit 0, 9, 10, 11 or 31) or a wrong address.
     mal = cls == MALFORMED
-    bit = np.array([0, 9, 10, 11, 31], np.uint32)[rng.integers(0, 5, n)]
+    bit = MARKER_BITS[rng.integers(0, MARKER_BITS.size, n)]
     wrong_addr = (words & ~np.uint32(0xFF << 1)) | (((pos + 1) % 256).astype(np.uint32) << 1)
     broken = words ^ (np.uint32(1) << bit)
     if n_tdc == 256:

@@ -28,9 +28,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr
 
+from stages.models.tcspc import SQRT2PI
 from stages.simulator.chip import Chip
 
-SQRT2PI = np.sqrt(2 * np.pi)
 KIND_PHOTON, KIND_ARTIFACT = 0, 1
 #: Time tolerance of the inversion (0.1 fs) and its iteration cap.
 T_TOL = 1e-16

@@ -14,7 +14,7 @@ import numpy as np
 from scipy.constants import c as C_LIGHT
 
 from schemas.words import ARTIFACT, HIT, INVALID_PHASE, MALFORMED, N_CLASSES, NO_HIT
-from stages.codec import JOHNSON, encode_words
+from stages.codec import BUBBLE_CODES, MARKER_BITS, encode_words
 from stages.models.scene import SceneModel
 from stages.models.tcspc import combined_sigma, first_photon_histogram, sigma_from_fwhm
 from stages.simulator.chip import Chip, second_stage
@@ -32,7 +32,6 @@ from stages.simulator.engines import (
 )
 
 CHUNK_CYCLES = 2048
-_BUBBLES = np.array(sorted(set(range(16)) - set(JOHNSON)), np.uint32)
 _ENGINE_IDS = {"fast": 0, "reference": 1}
 
 
@@ -82,7 +81,8 @@ class Simulator:
 
     def __init__(self, scene_model: SceneModel, chip: Chip, seed: int = 0,
                  engine: str = "fast", malformed_rate: float = 0.0, invalid_rate: float = 0.0,
-                 compiled: bool | None = None):
+                 compiled: bool | None = None, optics: Optics | None = None,
+                 spad_sigma_s: float | None = None):
         if scene_model is not None and chip.n_tdc != scene_model.scene.sensor.n_pixels:
             raise ValueError(f"chip has {chip.n_tdc} TDCs, the scene's sensor "
                              f"{scene_model.scene.sensor.n_pixels}")
@@ -91,8 +91,11 @@ class Simulator:
         self.sm, self.chip, self.seed, self.engine_name = scene_model, chip, int(seed), engine
         if scene_model is not None:
             self.optics, spad = optics_from_scene(scene_model)
+        elif optics is not None:
+            self.optics = optics
+            spad = optics.sigma_s if spad_sigma_s is None else spad_sigma_s
         else:
-            self.optics, spad = self._optics, self._spad
+            raise ValueError("Simulator needs a scene model or optics")
         self.light = detections_per_pixel_per_cycle(self.optics)
         self.boundaries = chip.boundaries_s(self.light)
         self.codes = CodeTable(self.boundaries)
@@ -113,11 +116,7 @@ class Simulator:
     def from_optics(cls, optics: Optics, chip: Chip, seed: int = 0, engine: str = "fast",
                     spad_sigma_s: float | None = None, **kw) -> Simulator:
         """A simulator of given optics (no scene): for benchmarks and tests of regimes."""
-        self = cls.__new__(cls)
-        self._optics = optics
-        self._spad = optics.sigma_s if spad_sigma_s is None else spad_sigma_s
-        cls.__init__(self, None, chip, seed, engine, **kw)
-        return self
+        return cls(None, chip, seed, engine, optics=optics, spad_sigma_s=spad_sigma_s, **kw)
 
     @property
     def n_tdc(self) -> int:
@@ -170,10 +169,10 @@ class Simulator:
                 continue
             bad = np.flatnonzero(rng.random(words.size) < rate)
             if new == INVALID_PHASE:
-                bubble = _BUBBLES[rng.integers(0, _BUBBLES.size, bad.size)]
+                bubble = BUBBLE_CODES[rng.integers(0, BUBBLE_CODES.size, bad.size)]
                 words[bad] = (words[bad] & ~np.uint32(0xF << 12)) | (bubble << 12)
             else:
-                bit = np.array([0, 9, 10, 11, 31], np.uint32)[rng.integers(0, 5, bad.size)]
+                bit = MARKER_BITS[rng.integers(0, MARKER_BITS.size, bad.size)]
                 words[bad] ^= np.uint32(1) << bit
             np.subtract.at(counts, (cls[bad].astype(np.int64), bad % n), 1)
             np.add.at(counts, (np.full(bad.size, new), bad % n), 1)

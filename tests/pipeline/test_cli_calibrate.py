@@ -69,28 +69,23 @@ def test_too_small_capture_is_refused_and_the_old_calibration_stays(capture):
 def test_range_end_to_end_against_the_truth(capture):
     """simulate -> calibrate density -> calibrate delay -> range, on an 8-TDC chip."""
     d = capture
-    (d / "delay8.toml").write_text(SCENE.replace('name = "density8"', 'name = "delay"')
-                                   .split("[[ambient]]")[0] + """
+    def mirror_scene(name, pixels, distance_m, reflectivity, ambient):
+        base = SCENE.replace('name = "density8"', f'name = "{name}"')
+        base = base.replace("lux = 1500.0", f"lux = {ambient}") if ambient else \
+            base.split("[[ambient]]")[0]
+        (d / f"{name}.toml").write_text(base + f"""
 [gate]
 t_laser_win_ns = 140.0
 delay_ns = 100.0
 [[targets]]
-pixels = [0, 7]
-distance_m = 0.001
-reflectivity = 0.0005
+pixels = {pixels}
+distance_m = {distance_m}
+reflectivity = {reflectivity}
 surface = "mirror"
 """)
-    (d / "range8.toml").write_text(SCENE.replace('name = "density8"', 'name = "range8"')
-                                   .replace("lux = 1500.0", "lux = 300.0") + """
-[gate]
-t_laser_win_ns = 140.0
-delay_ns = 100.0
-[[targets]]
-pixels = [0, 3]
-distance_m = 2.0
-reflectivity = 0.002
-surface = "mirror"
-""")
+
+    mirror_scene("delay8", [0, 7], 0.001, 0.0005, None)
+    mirror_scene("range8", [0, 3], 2.0, 0.002, 300.0)
     run("simulate", str(d / "delay8.toml"), "--cycles", "200000", "--out", str(d / "z.bin"),
         "-q")
     run("simulate", str(d / "range8.toml"), "--cycles", "100000", "--out", str(d / "r.bin"),

@@ -131,8 +131,13 @@ def test_udp_ingest_accounts_for_every_datagram(tmp_path):
     assert np.array_equal(forwarded, np.concatenate(sent_words))
     assert got[1][0] == 8 * 32 * 128  # the batch after the gap starts at its first word
     assert stopped["words"] == forwarded.size and stopped["lost_datagrams"] == 1
-    journaled = np.concatenate([Capture(p).read_words(0, 10**9) for p in s.journal])
+    from pipeline.journal import read_range, run_end
+
+    journaled = np.concatenate([w for _, w in read_range(tmp_path / "journal", "u1", 0,
+                                                         10**12)])
     assert np.array_equal(journaled, forwarded)
+    assert run_end(tmp_path / "journal", "u1") == 40 * 32 * 128  # the gap is inside the run
+    assert all(Capture(p).n_words > 0 for p in s.journal)  # closed segments are captures
     assert len(list((tmp_path / "q").glob("*.bin"))) == 2
 
 
