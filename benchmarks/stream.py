@@ -53,7 +53,7 @@ def zmq_baseline(tmp: Path, mib: int = 2048) -> float:
     return out
 
 
-def run_graph(tmp: Path, capture: Path, journal: bool) -> tuple[float, int]:
+def run_graph(tmp: Path, capture: Path, journal: bool) -> float:
     tag = "j" if journal else "n"
     ep_h, ep_s = f"ipc://{tmp}/h{tag}", f"ipc://{tmp}/s{tag}"
     sink = subprocess.Popen(CLI + ["sink", "--pull", ep_s, "--out", str(tmp / f"data{tag}")],
@@ -62,19 +62,13 @@ def run_graph(tmp: Path, capture: Path, journal: bool) -> tuple[float, int]:
                             stderr=subprocess.DEVNULL)
     time.sleep(2.0)  # both stages up before the clock starts
     src = CLI + ["source-capture", str(capture), "--push", ep_h]
+    if journal:
+        src += ["--journal", str(tmp / "journal")]
     t0 = time.perf_counter()
-    if journal:  # replay through the simulator-source path's journal writer
-        code = ("import sys;from pipeline.capture import Capture;"
-                "from pipeline.journal import JournalWriter;from pipeline.stage import run_source;"
-                "c=Capture(sys.argv[1]);j=JournalWriter(sys.argv[3],'bench',c.meta.n_tdc,140.0);"
-                "run_source(((f,w.copy()) for f,w in c.iter_chunks(1<<18)),sys.argv[2],"
-                "step_id='src',run='bench',n_tdc=c.meta.n_tdc,t_laser_win_ns=140.0,journal=j)")
-        src = [sys.executable, "-c", code, str(capture), ep_h, str(tmp / "journal")]
     subprocess.run(src, check=True, stderr=subprocess.DEVNULL)
     for p in (hist, sink):
         p.wait(timeout=600)
-    dt = time.perf_counter() - t0
-    return dt, 0
+    return time.perf_counter() - t0
 
 
 def main() -> None:
@@ -96,7 +90,7 @@ def main() -> None:
                  f"| raw ZeroMQ, 1 MiB messages, ipc:// | | | {base / 4e6:,.0f} | "
                  f"{base / 1e6:,.0f} |"]
         for journal in (False, True):
-            dt, _ = run_graph(tmp, tmp / "cap.bin", journal)
+            dt = run_graph(tmp, tmp / "cap.bin", journal)
             lines.append(f"| replay -> histogram -> sink{' (journal on)' if journal else ''}"
                          f" | {n:,} | {dt:.2f} | {n / dt / 1e6:,.1f} | {4 * n / dt / 1e6:,.0f} |")
         lines.append("\nwall time includes each source process's start-up (~0.7 s).")

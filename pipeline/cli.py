@@ -281,15 +281,21 @@ def stage_source_sim(scene_path, cycles, push, seed, run_id, rate, journal) -> N
 @click.option("--push", required=True, help="Endpoint to send to")
 @click.option("--run", "run_id", default=None, help="Run id (default: the capture's name)")
 @click.option("--rate", type=float, default=None, help="Words per second (default: max).")
-def stage_source_capture(capture, push, run_id, rate) -> None:
+@click.option("--journal", type=click.Path(), default=None,
+              help="Journal the words here before sending them.")
+def stage_source_capture(capture, push, run_id, rate, journal) -> None:
     """Replay a capture into the stream, at a chosen rate or as fast as it is taken."""
+    from pipeline.journal import JournalWriter
     from pipeline.stage import run_source
 
     cap = Capture(capture)
+    run_id = run_id or cap.name
+    jw = (JournalWriter(journal, run_id, cap.meta.n_tdc, cap.meta.t_laser_win_ns,
+                        cap.meta.window_ns) if journal else None)
     batches = ((first, w.copy()) for first, w in cap.iter_chunks(1 << 18))
-    sent = run_source(batches, push, step_id="source-capture", run=run_id or cap.name,
+    sent = run_source(batches, push, step_id="source-capture", run=run_id,
                       n_tdc=cap.meta.n_tdc, t_laser_win_ns=cap.meta.t_laser_win_ns,
-                      rate_words_s=rate)
+                      rate_words_s=rate, journal=jw)
     err.print(f"source-capture: sent {sent:,} words")
 
 

@@ -20,6 +20,7 @@ import zmq
 
 from pipeline import wire
 from pipeline.atomic import atomic_path
+from schemas.outputs import HISTOGRAMS
 
 DEFAULT_HWM = 4
 
@@ -200,8 +201,7 @@ class ParquetSink:
     """Writes each histograms batch as a Hive-partitioned parquet file, atomically:
     ``OUT/histograms/date=YYYY-MM-DD/run=RUN/part-SEQ.parquet``."""
 
-    from schemas.outputs import HISTOGRAMS as in_spec  # noqa: N811
-    out_spec = in_spec
+    in_spec = out_spec = HISTOGRAMS
 
     def __init__(self, out: str | Path, step_id: str = "sink"):
         self.out = Path(out)
