@@ -13,6 +13,7 @@ import datetime as dt
 import hashlib
 import json
 import warnings
+from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
@@ -182,3 +183,103 @@ def lsb_at(caldir: str | Path, n_light: float) -> np.ndarray:
         warnings.warn(f"{caldir}: light level {n_light:.3g} detections per pixel per cycle "
                       f"is outside the LSB fit's range [{lo:.3g}, {hi:.3g}]", stacklevel=2)
     return fit.lsb_ps(n_light) * 1e-12
+
+
+def lsb_campaign(captures: list[str | Path], out: str | Path, inl_rms_lsb: float = 0.5,
+                 log=None) -> tuple[cal.DensityResult, cal.LsbFit, np.ndarray, np.ndarray]:
+    """Density tests at several light levels -> LSB per TDC as a cubic in eq. 5.1's n, INL
+    from the test with the smallest statistical error; written to ``out`` atomically.
+
+    Returns the density test kept for the INL, the fit, the light levels and the per-test
+    LSBs (ps, TDC x test). Raises CalibrationError when no test reaches ``inl_rms_lsb``.
+    """
+    results = []
+    for path in captures:
+        cap = Capture(path)
+        res, second = density_from_capture(cap, None)  # dim tests give an LSB, not an INL
+        results.append((cap, res, second))
+        if log:
+            log(f"{cap.bin_path.name}: {np.nanmean(res.detections_per_cycle):.3f} STARTs per "
+                f"pixel per cycle, LSB {np.nanmean(res.lsb_s) * 1e12:.2f} ps (mean)")
+    n = np.array([np.nanmean(r.detections_per_cycle) for _, r, _ in results])
+    lsbs = np.column_stack([r.lsb_s * 1e12 for _, r, _ in results])
+    fit = cal.fit_lsb(n, lsbs)
+    def worst_inl(r: cal.DensityResult) -> float:  # inf when no TDC was calibrated
+        e = r.inl_error_lsb[r.ok]
+        return float(np.nanmax(e)) if np.isfinite(e).any() else float("inf")
+
+    best = min(results, key=lambda x: worst_inl(x[1]))
+    worst = worst_inl(best[1])
+    if not worst <= inl_rms_lsb:
+        raise CalibrationError(f"the best density test ({best[0].bin_path.name}) gives an "
+                               f"INL error of {worst:.2f} LSB RMS > {inl_rms_lsb}")
+    write_caldir(out, best[1], best[2], [c.bin_path for c, _, _ in results], lsb_fit=fit)
+    return best[1], fit, n, lsbs
+
+
+def add_delay(capture: str | Path, caldir: str | Path) -> np.ndarray:
+    """Measure the system delay per TDC on a zero-distance capture (eq. 5.3) and rewrite
+    ``caldir`` with it (atomically). Returns the delay in seconds."""
+    from pipeline.caldir import read_bounds
+
+    cap = Capture(capture)
+    res, meta = read_density(caldir)
+    acc = HistogramAccumulator(cap.meta.n_tdc, read_bounds(caldir, cap.meta.n_tdc))
+    for first, words in cap.iter_chunks():
+        acc.update(words, first)
+    state = acc.snapshot()
+    light = float(state.hits.sum() / (state.n_tdc * max(state.cycles.max(), 1)))  # eq. 5.1
+    lsb_s = lsb_at(caldir, light)
+    tau, used = cal.histogram_tau_s(state.hits, res, lsb_s)
+    d = cal.delay_s(cap.meta.t_laser_win_ns * 1e-9, tau)
+    irf = cal.histogram_sigma_s(state.hits, res, lsb_s)
+    tdc = read_tdc_table(caldir)
+    second = cal.SecondStage(*(tdc.column(c).to_numpy().astype(np.int64)
+                               for c in ("n_min", "n_max", "n_th", "pdm")))
+    sources = [Path(s["path"]) for s in meta["sources"] if Path(s["path"]).exists()]
+    extra = {k: v for k, v in meta.items() if k.startswith("lsb_")}
+    write_caldir(caldir, res, second, sources + [cap.bin_path], lsb_fit=read_lsb_fit(caldir),
+                 delay_s=d, extra={**extra, "delay": {
+                     "capture": str(cap.bin_path), "light": light,
+                     "counts_used": used.tolist(), "irf_sigma_s": float(np.nanmedian(irf))}})
+    return d
+
+
+@dataclass(frozen=True)
+class Quality:
+    """What makes one calibration better than another: more TDCs calibrated, a smaller
+    statistical INL error, a smaller LSB-fit residual, a measured delay."""
+
+    tdcs_ok: int
+    inl_error_lsb: float      #: median over calibrated TDCs
+    lsb_residual_ps: float    #: RMS of the LSB fit's residuals (NaN with <= 4 levels: a
+    #: cubic through 4 points has none, so there is nothing to compare)
+    has_delay: bool
+
+    def worse_than(self, other: Quality, slack: float = 0.1) -> list[str]:
+        """Reasons this calibration is worse than ``other`` (empty: not worse). ``slack``
+        is the relative margin a statistical figure may grow before it counts as worse."""
+        why = []
+        if self.tdcs_ok < other.tdcs_ok:
+            why.append(f"calibrates {self.tdcs_ok} TDCs, the current one {other.tdcs_ok}")
+        if self.inl_error_lsb > other.inl_error_lsb * (1 + slack):
+            why.append(f"INL error {self.inl_error_lsb:.3f} LSB RMS against "
+                       f"{other.inl_error_lsb:.3f}")
+        if self.lsb_residual_ps > other.lsb_residual_ps * (1 + slack) + 0.05:  # NaN: False
+            why.append(f"LSB fit residual {self.lsb_residual_ps:.3f} ps RMS against "
+                       f"{other.lsb_residual_ps:.3f}")
+        if other.has_delay and not self.has_delay:
+            why.append("has no delay measurement, the current one has")
+        return why
+
+
+def quality(caldir: str | Path) -> Quality:
+    res, meta = read_density(caldir)
+    ok = res.ok
+    delay = read_tdc_table(caldir).column("delay_ps").to_numpy(zero_copy_only=False)
+    resid = np.asarray(meta.get("lsb_residual_ps", []), np.float64)
+    return Quality(int(ok.sum()),
+                   float(np.nanmedian(res.inl_error_lsb[ok])) if ok.any() else float("inf"),
+                   float(np.sqrt(np.nanmean(resid ** 2))) if resid.ndim == 2
+                   and resid.shape[1] > 4 else float("nan"),
+                   bool(np.isfinite(np.asarray(delay, np.float64)).any()))

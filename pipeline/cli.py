@@ -368,6 +368,43 @@ def _register() -> None:
 
     cli.add_command(model)
     cli.add_command(calibrate)
+    # Layers above the pipeline (the flows) add their commands through an entry point, so
+    # nothing here imports them (DESIGN.md: nothing imports ``flows``).
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group="tcspc.commands"):
+        if ep.name not in cli.commands:
+            cli.add_command(_Lazy(ep), ep.name)
+
+
+class _Lazy(click.Group):
+    """A command group loaded from its entry point only when it is used (keeps ``tcspc``
+    from importing Prefect for every command)."""
+
+    def __init__(self, ep) -> None:
+        super().__init__(ep.name)
+        self._ep, self._real = ep, None
+
+    def _load(self) -> click.Group:
+        if self._real is None:
+            self._real = self._ep.load()
+        return self._real
+
+    def make_context(self, info_name, args, parent=None, **extra):
+        return self._load().make_context(info_name, args, parent, **extra)
+
+    def invoke(self, ctx):
+        return self._load().invoke(ctx)
+
+    def list_commands(self, ctx):
+        return self._load().list_commands(ctx)
+
+    def get_command(self, ctx, name):
+        return self._load().get_command(ctx, name)
+
+    def get_short_help_str(self, limit: int = 45) -> str:
+        return {"flow": "Run or serve the Prefect flows (calibration, sweeps, reports)."}.get(
+            self.name, self.name)
 
 
 _register()

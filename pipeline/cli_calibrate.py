@@ -2,20 +2,19 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 import numpy as np
 from rich.console import Console
 
 from pipeline.calibrate import (
+    add_delay,
     density_from_capture,
     lsb_at,
-    read_density,
-    read_lsb_fit,
+    lsb_campaign,
     write_caldir,
 )
 from pipeline.capture import Capture
+from schemas.errors import CalibrationError
 from stages import calibration as cal
 from stages.histogram import HistogramAccumulator
 
@@ -71,22 +70,10 @@ def density(capture, out, plot, inl_rms) -> None:
 @_inl
 def lsb(captures, out, plot, inl_rms) -> None:
     """Density tests at several light levels: LSB per TDC as a cubic in eq. 5.1's n."""
-    results = []
-    for path in captures:
-        cap = Capture(path)
-        res, second = density_from_capture(cap, None)  # dim tests give an LSB, not an INL
-        results.append((cap, res, second))
-        err.print(f"{cap.bin_path.name}: {np.nanmean(res.detections_per_cycle):.3f} STARTs per "
-                  f"pixel per cycle, LSB {np.nanmean(res.lsb_s) * 1e12:.2f} ps (mean)")
-    n = np.array([np.nanmean(r.detections_per_cycle) for _, r, _ in results])
-    lsbs = np.column_stack([r.lsb_s * 1e12 for _, r, _ in results])
-    fit = cal.fit_lsb(n, lsbs)
-    best = min(results, key=lambda x: np.nanmax(x[1].inl_error_lsb))
-    worst = float(np.nanmax(best[1].inl_error_lsb))
-    if worst > inl_rms:
-        raise click.ClickException(f"the best density test ({best[0].bin_path.name}) gives an "
-                                   f"INL error of {worst:.2f} LSB RMS > --inl-rms {inl_rms}")
-    write_caldir(out, best[1], best[2], [c.bin_path for c, _, _ in results], lsb_fit=fit)
+    try:
+        _, fit, n, lsbs = lsb_campaign(captures, out, inl_rms, log=err.print)
+    except CalibrationError as exc:
+        raise click.ClickException(str(exc)) from None
     err.print(f"cubic fit over n = {n.min():.3f}..{n.max():.3f}; residuals up to "
               f"{np.nanmax(np.abs(fit.residual_ps)):.3f} ps")
     if plot:
@@ -102,29 +89,7 @@ def lsb(captures, out, plot, inl_rms) -> None:
               help="calibration directory with a density test; the delay is added to it")
 def delay(capture, out) -> None:
     """System delay per TDC from a zero-distance CAPTURE (eq. 5.3), into CALDIR."""
-    from pipeline.caldir import read_bounds, read_tdc_table
-
-    cap = Capture(capture)
-    res, meta = read_density(out)
-    acc = HistogramAccumulator(cap.meta.n_tdc, read_bounds(out, cap.meta.n_tdc))
-    for first, words in cap.iter_chunks():
-        acc.update(words, first)
-    state = acc.snapshot()
-    light = float(state.hits.sum() / (state.n_tdc * max(state.cycles.max(), 1)))  # eq. 5.1
-    lsb_s = lsb_at(out, light)
-    tau, used = cal.histogram_tau_s(state.hits, res, lsb_s)
-    d = cal.delay_s(cap.meta.t_laser_win_ns * 1e-9, tau)
-    irf = cal.histogram_sigma_s(state.hits, res, lsb_s)
-    tdc = read_tdc_table(out)
-    second = cal.SecondStage(*(tdc.column(c).to_numpy().astype(np.int64)
-                               for c in ("n_min", "n_max", "n_th", "pdm")))
-    sources = [Path(s["path"]) for s in meta["sources"] if Path(s["path"]).exists()]
-    extra = {k: v for k, v in meta.items() if k.startswith("lsb_")}
-    fit = read_lsb_fit(out)
-    write_caldir(out, res, second, sources + [cap.bin_path], lsb_fit=fit, delay_s=d,
-                 extra={**extra, "delay": {"capture": str(cap.bin_path), "light": light,
-                                           "counts_used": used.tolist(),
-                                           "irf_sigma_s": float(np.nanmedian(irf))}})
+    d = add_delay(capture, out)
     err.print(f"delay {np.nanmin(d) * 1e9:.4f}..{np.nanmax(d) * 1e9:.4f} ns; wrote {out}")
 
 

@@ -136,3 +136,25 @@ def lsb_figure(n, lsbs_ps, fit, path) -> Path:
     b.set_title("Figure 5.2: the first TDC")
     b.legend()
     return _save(fig, path)
+
+
+def speed_error_figure(df, path) -> Path:
+    """Range estimators' speed against error (RMSE over the CRLB), one point per cell of
+    the grid that counts (detection > 90 %, SBR >= 1), stars at the medians."""
+    import polars as pl
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    good = df.filter((pl.col("detected") > 0.9) & (pl.col("sbr") >= 1))
+    for est in good["estimator"].unique().sort():
+        d = good.filter(pl.col("estimator") == est)
+        pts = ax.scatter(d["hist_per_s"], d["rmse_over_crlb"], s=8, alpha=0.4, label=est)
+        ax.scatter([d["hist_per_s"].median()], [d["rmse_over_crlb"].median()], s=160,
+                   marker="*", edgecolor="k", color=pts.get_facecolor()[0][:3])
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.axhline(1.2, ls="--", c="grey", lw=0.8)
+    ax.set_xlabel("histograms per second (one core)")
+    ax.set_ylabel("RMSE / CRLB")
+    ax.set_title("range estimators: speed against error (stars: medians)")
+    ax.legend()
+    return _save(fig, path)

@@ -6,7 +6,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from pipeline.capture import Capture, CaptureMeta, CaptureWriter
-from stages.models.scene import evaluate, load_scene
+from stages.models.scene import Scene, evaluate, load_scene
 from stages.simulator.chip import make_chip
 from stages.simulator.source import Simulator
 
@@ -16,7 +16,8 @@ def make_simulator(scene_path, cycles: int, seed: int = 0, chip_seed: int = 1,
                    invalid_rate: float = 0.0, ideal_tdc: bool = False) -> Simulator:
     """A simulator for a scene file; the engine defaults to the reference one only for
     scenes that need it (a moving target)."""
-    sm = evaluate(load_scene(scene_path), cycles)
+    scene = scene_path if isinstance(scene_path, Scene) else load_scene(scene_path)
+    sm = evaluate(scene, cycles)
     moving = any(t.velocity_m_s for t in sm.scene.targets)
     engine = engine or ("reference" if moving else "fast")
     chip = make_chip(sm.scene.sensor.n_pixels, chip_seed,
@@ -34,6 +35,10 @@ def capture_kind(scene) -> str:
     return "range"
 
 
+def _scene_name(scene) -> str:
+    return f"scene {scene.name!r}" if isinstance(scene, Scene) else Path(scene).name
+
+
 def simulate_capture(scene_path, cycles: int, out, progress: Callable[[int], None] = None,
                      **kw) -> tuple[CaptureMeta, Simulator]:
     """Write a capture of ``cycles`` cycles of the scene; returns its sidecar and the
@@ -43,7 +48,7 @@ def simulate_capture(scene_path, cycles: int, out, progress: Callable[[int], Non
     kind = capture_kind(s)
     with CaptureWriter(out, sim.n_tdc, window_ns=s.sensor.window_ns,
                        t_laser_win_ns=s.gate.t_laser_win_ns, kind=kind,
-                       note=f"simulated from {Path(scene_path).name}") as w:
+                       note=f"simulated from {_scene_name(scene_path)}") as w:
         for _, words in sim.batches(cycles):
             w.write(words)
             if progress:

@@ -1,17 +1,5 @@
 """Prefect's embedded API works in this environment (offline, no server to start)."""
 
-import pytest
-
-
-@pytest.fixture(scope="module")
-def harness():
-    # prefect_test_harness points Prefect at a temporary database and server of its own.
-    from prefect.testing.utilities import prefect_test_harness
-
-    with prefect_test_harness(server_startup_timeout=120):
-        yield
-
-
 def test_trivial_flow_runs_on_the_embedded_api(harness):
     from flows.smoke import smoke
 
