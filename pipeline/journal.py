@@ -26,10 +26,16 @@ class JournalWriter:
         self.run, self.n_tdc = run, n_tdc
         self.meta = dict(n_tdc=n_tdc, window_ns=window_ns, t_laser_win_ns=t_laser_win_ns)
         self.segment_words = segment_words
-        self.segment = -1
+        # a restarted source appends: its words go to a new segment after the last one
+        self.segment = max((e["segment"] for e in _entries(self.dir / f"{run}.index.jsonl")
+                            if "segment" in e), default=-1)
         self.fh = None
         self.offset = 0
-        self.index = open(self.dir / f"{run}.index.jsonl", "a")
+        index = self.dir / f"{run}.index.jsonl"
+        if index.exists() and index.read_bytes()[-1:] not in (b"", b"\n"):
+            with open(index, "a") as fh:  # end a line a crash cut short
+                fh.write("\n")
+        self.index = open(index, "a")
         self.segments: list[Path] = []
 
     def _rotate(self) -> None:
@@ -67,8 +73,7 @@ class JournalWriter:
         """Close the last segment and record the run's end (its total words)."""
         self._close_segment()
         total = 0
-        for line in (self.dir / f"{self.run}.index.jsonl").read_text().splitlines():
-            e = json.loads(line)
+        for e in _entries(self.dir / f"{self.run}.index.jsonl"):
             total = max(total, e.get("first_word", 0) + e.get("words", 0))
         self.index.write(json.dumps({"end": True, "words": total}) + "\n")
         self.index.flush()
@@ -82,8 +87,7 @@ def read_range(directory: str | Path, run: str, start: int, stop: int
     index = d / f"{run}.index.jsonl"
     if not index.exists():
         return
-    for line in index.read_text().splitlines():
-        e = json.loads(line)
+    for e in _entries(index):
         if e.get("end"):
             continue
         lo, hi = e["first_word"], e["first_word"] + e["words"]
@@ -101,8 +105,42 @@ def run_end(directory: str | Path, run: str) -> int | None:
     index = Path(directory) / f"{run}.index.jsonl"
     if not index.exists():
         return None
-    for line in reversed(index.read_text().splitlines()):
-        e = json.loads(line)
+    for e in reversed(_entries(index)):
         if e.get("end"):
             return int(e["words"])
     return None
+
+
+def journaled_words(directory: str | Path, run: str) -> int:
+    """Words of ``run`` already in the journal from its start without a hole (where a
+    restarted deterministic source resumes)."""
+    index = Path(directory) / f"{run}.index.jsonl"
+    if not index.exists():
+        return 0
+    done = 0
+    for e in _entries(index):
+        if e.get("end"):
+            continue
+        if e["first_word"] <= done:
+            done = max(done, e["first_word"] + e["words"])
+    return done
+
+
+def _entries(index: Path) -> list[dict]:
+    """The index's records; a line a crash cut short is skipped (its chunk is not in the
+    journal: the words were written, their record was not, so they were never passed on)."""
+    if not index.exists():
+        return []
+    out = []
+    for line in index.read_text().splitlines():
+        try:
+            out.append(json.loads(line))
+        except ValueError:
+            continue
+    return out
+
+
+def journaled_total(directory: str | Path, run: str) -> int:
+    """Words of ``run`` in the journal (a gap, such as a lost datagram, is not counted)."""
+    return sum(e["words"] for e in _entries(Path(directory) / f"{run}.index.jsonl")
+               if not e.get("end"))

@@ -14,7 +14,7 @@ from pipeline.caldir import read_bounds, read_tdc_table
 from pipeline.calibrate import lsb_at, read_density
 from pipeline.capture import Capture
 from schemas.errors import CalibrationError
-from schemas.outputs import RANGES
+from schemas.outputs import HISTOGRAMS, RANGES
 from schemas.words import N_CODES
 from stages import calibration as cal
 from stages.histogram import HistogramAccumulator, HistogramState
@@ -33,14 +33,18 @@ def range_state(state: HistogramState, caldir: str | Path, window_s: float,
     """
     density, meta = read_density(caldir)
     tdc = read_tdc_table(caldir)
-    delay = tdc.column("delay_ps").to_numpy(zero_copy_only=False)
+    rows = slice(state.tdc_offset, state.tdc_offset + state.n_tdc)  # a worker's TDC range
+    if rows.stop > tdc.num_rows:
+        raise CalibrationError(f"{caldir}: calibrates {tdc.num_rows} TDCs, the histograms "
+                               f"reach TDC {rows.stop - 1}")
+    delay = tdc.column("delay_ps").to_numpy(zero_copy_only=False)[rows]
     if delay is None or np.all(np.isnan(np.asarray(delay, np.float64))):
         raise CalibrationError(f"{caldir}: no delay (run `tcspc calibrate delay` on a "
                                "zero-distance capture first)")
     delay_s = np.asarray(delay, np.float64) * 1e-12
     light = float(state.hits.sum() / (state.n_tdc * max(state.cycles.max(), 1)))
-    lsb_s = lsb_at(caldir, light)
-    inl = np.nan_to_num(density.inl_lsb)
+    lsb_s = lsb_at(caldir, light)[rows]
+    inl = np.nan_to_num(density.inl_lsb[rows])
     k = np.arange(N_CODES + 1)
     inl_edges = np.concatenate([inl, inl[:, -1:]], axis=1)
     tau_edges = (k[None, :] + inl_edges) * lsb_s[:, None]
@@ -55,11 +59,11 @@ def range_state(state: HistogramState, caldir: str | Path, window_s: float,
 
 
 def ranges_table(measurement: str, est: Estimate, distance_m: np.ndarray,
-                 sigma_m: np.ndarray) -> pa.Table:
+                 sigma_m: np.ndarray, tdc_offset: int = 0) -> pa.Table:
     n = distance_m.size
     return pa.table({
         "measurement": pa.array([measurement] * n, pa.string()),
-        "tdc": pa.array(np.arange(n), pa.uint16()),
+        "tdc": pa.array(np.arange(n) + tdc_offset, pa.uint16()),
         "distance_m": pa.array(distance_m),
         "sigma_m": pa.array(sigma_m),
         "fwhm_m": pa.array(est.fwhm_s * C_LIGHT / 2),
@@ -86,3 +90,39 @@ def range_capture(capture: str | Path, caldir: str | Path, out: str | Path,
     with atomic_path(out) as tmp:
         pq.write_table(table, tmp)
     return table
+
+
+class RangeCore:
+    """The range stage: each histograms message (a measurement, or a worker's TDC range of
+    one) in, its ranges out, the histograms passed on beside them for the sink. Stateless:
+    a measurement is ranged on its own, so a fan-out needs no join."""
+
+    in_spec = HISTOGRAMS
+    out_spec = RANGES
+
+    def __init__(self, caldir: str | Path, estimator: str = "ml", window_ns: float = 80.0,
+                 step_id: str = "range", forward_histograms: bool = True):
+        read_density(caldir)  # fail at start, not on the first message
+        self.caldir, self.estimator, self.window_ns = Path(caldir), estimator, window_ns
+        self.step_id, self.forward = step_id, forward_histograms
+        self.ranged = 0
+
+    def process(self, header: dict, batch: pa.RecordBatch) -> list:
+        import warnings
+
+        state = HistogramState.from_table(pa.Table.from_batches([batch]))
+        window_s = float(header.get("window_ns", self.window_ns)) * 1e-9
+        gate_s = float(header["t_laser_win_ns"]) * 1e-9
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # light outside the LSB fit: noted in the header
+            est, d, s = range_state(state, self.caldir, window_s, gate_s, self.estimator)
+        name = str(header.get("measurement", header["run"]))
+        table = ranges_table(name, est, d, s, state.tdc_offset)
+        head = {**header, "schema": RANGES.name, "version": RANGES.version,
+                "step": self.step_id, "detected": int(np.sum(est.detected))}
+        self.ranged += 1
+        out = [(head, b) for b in table.to_batches()]
+        return ([(header, batch)] if self.forward else []) + out
+
+    def finish(self, header: dict) -> list:
+        return []

@@ -20,7 +20,8 @@ import zmq
 
 from pipeline import wire
 from pipeline.atomic import atomic_path
-from schemas.outputs import HISTOGRAMS
+from pipeline.metrics import Metrics
+from schemas.outputs import HISTOGRAMS, RANGES
 
 DEFAULT_HWM = 4
 
@@ -30,6 +31,15 @@ class StageStats:
     received: int = 0
     sent: int = 0
     rejected: Counter = field(default_factory=Counter)
+    blocked_s: float = 0.0   #: time spent waiting to send (back-pressure from downstream)
+
+    def fields(self, core=None) -> dict:
+        out = {"received": self.received, "sent": self.sent,
+               "rejected": dict(self.rejected), "blocked_s": round(self.blocked_s, 3)}
+        for name in ("words_total", "measurement", "gap_words", "backfilled", "duplicates"):
+            if hasattr(core, name):
+                out[name] = int(getattr(core, name))
+        return out
 
 
 def _socket(ctx: zmq.Context, kind: int, hwm: int) -> zmq.Socket:
@@ -72,7 +82,9 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
               quarantine: str | Path | None = None, stop: threading.Event | None = None,
               poll_ms: int = 200, context: zmq.Context | None = None,
               checkpoint: str | Path | None = None, checkpoint_every: int = 1,
-              run_ended=None, idle_after_s: float = 2.0) -> StageStats:
+              run_ended=None, idle_after_s: float = 2.0, expect_stops: int = 1,
+              metrics: str | None = None, name: str | None = None,
+              drain_ms: int = 1000) -> StageStats:
     """Run ``core`` between ``pull`` (bound) and ``push`` (connected) until a stop message,
     a signal or ``stop`` is set. Returns the counts.
 
@@ -82,7 +94,10 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
     fills gaps from the journal). ``run_ended()`` returns the run's total words once its
     source has finished (from the journal), else None: after ``idle_after_s`` without a
     message it lets a restarted stage finish even if the source's stop was lost with the
-    process that was killed."""
+    process that was killed. On SIGTERM/SIGINT (or ``stop``) the stage drains: it takes
+    messages until none has come for ``drain_ms``, then finishes. ``expect_stops``: upstream
+    workers feeding this stage (a fan-out joins here), each ending with a stop.
+    ``metrics``: endpoint for heartbeats."""
     ctx = context or zmq.Context.instance()
     stats = StageStats()
     qdir = Path(quarantine) if quarantine else None
@@ -104,17 +119,22 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
         tx = _socket(ctx, zmq.PUSH, hwm)
         tx.connect(push)
     last = {"run": "run", "seq": 0}
+    beat = Metrics(metrics, name or core.step_id, ctx)
+    stops = 0
 
     def send(messages):
         for head, batch in messages:
             if tx is not None:
+                t0 = time.perf_counter()
                 tx.send_multipart(wire.encode(head, batch))
+                stats.blocked_s += time.perf_counter() - t0
                 stats.sent += 1
 
     try:
         while True:
-            if stop.is_set():
-                break
+            beat.beat(state="running", **stats.fields(core))
+            if stop.is_set() and not rx.poll(drain_ms):
+                break  # a signal: take what is in flight, then finish
             if not rx.poll(poll_ms):
                 idle += poll_ms / 1000
                 if run_ended is not None and idle >= idle_after_s:
@@ -135,7 +155,14 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
                 continue
             last = head
             if head["kind"] == "stop":
-                break
+                stops += 1
+                if stops >= expect_stops:
+                    # the stream's end: fold in whatever was lost in flight (journal)
+                    total = run_ended() if run_ended is not None else None
+                    if total is not None and hasattr(core, "catch_up"):
+                        core.catch_up(total)
+                    break
+                continue
             send(core.process(head, batch))
             since += 1
             if ckpt is not None and since >= checkpoint_every:
@@ -148,78 +175,130 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
                          "seq": stats.sent, "step": core.step_id,
                          "rejected": dict(stats.rejected)}
             tx.send_multipart(wire.encode(stop_head, None))
+        beat.beat(force=True, state="finished", **stats.fields(core))
     finally:
+        beat.close()
         rx.close(linger=0)
         if tx is not None:
             tx.close()
     return stats
 
 
-def run_source(batches, push: str, *, step_id: str, run: str, n_tdc: int,
+def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc: int,
                t_laser_win_ns: float, hwm: int = DEFAULT_HWM, rate_words_s: float | None = None,
-               context: zmq.Context | None = None, journal=None) -> int:
+               context: zmq.Context | None = None, journal=None,
+               split: list[tuple[int, int]] | None = None, metrics: str | None = None,
+               window_ns: float | None = None, date: str | None = None) -> int:
     """Send ``(first_word, words)`` batches as raw_words messages, then a stop. Returns the
     words sent. ``rate_words_s`` limits the rate (None: as fast as the consumer takes).
-    With a ``journal`` (JournalWriter) every batch is journaled before it is sent."""
+    With a ``journal`` (JournalWriter) every batch is journaled before it is sent. With
+    ``split`` (TDC ranges, one per endpoint in ``push``) each batch of whole cycles is cut
+    into one sub-batch per range (a fan-out by TDC range)."""
     import numpy as np
     import pyarrow as pa
 
+    from pipeline.fanout import TdcSplitter
     from schemas.words import RAW_WORDS
 
+    pushes = [push] if isinstance(push, str) else list(push)
+    splitter = None
+    if split is not None:
+        if len(split) != len(pushes):
+            raise ValueError(f"{len(split)} TDC ranges for {len(pushes)} endpoints")
+        splitter = TdcSplitter(n_tdc, split)
+    elif len(pushes) != 1:
+        raise ValueError("several endpoints need TDC ranges to split by")
     ctx = context or zmq.Context.instance()
-    tx = _socket(ctx, zmq.PUSH, hwm)
-    tx.connect(push)
-    sent, seq, t0 = 0, 0, time.perf_counter()
+    txs = []
+    for ep in pushes:
+        tx = _socket(ctx, zmq.PUSH, hwm)
+        tx.connect(ep)
+        txs.append(tx)
+    beat = Metrics(metrics, step_id, ctx)
+    halt = threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: halt.set())
+    sent, seq, t0, blocked = 0, 0, time.perf_counter(), 0.0
+    import datetime as dt
+
+    # the run's date partitions the datasets: fixed at the run's start (the daemon passes
+    # it to a restarted source, so a run never straddles two partitions)
+    extra = {"date": date or dt.date.today().isoformat(),
+             **({"window_ns": window_ns} if window_ns is not None else {})}
     try:
         for first, words in batches:
-            batch = pa.record_batch([pa.array(np.asarray(words, np.uint32))],
-                                    schema=RAW_WORDS.schema)
-            head = {"kind": "data", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
-                    "run": run, "seq": seq, "step": step_id, "first_word": int(first),
-                    "n_tdc": n_tdc, "t_laser_win_ns": t_laser_win_ns}
+            if halt.is_set():  # a signal: end the run cleanly after the last whole batch
+                break
+            words = np.asarray(words, np.uint32)
             if journal is not None:
-                journal.append(first, np.asarray(words, np.uint32))
-            tx.send_multipart(wire.encode(head, batch))
+                journal.append(first, words)
+            parts = splitter.split(first, words) if splitter else [(first, words)]
+            for tx, (f, w), rng in zip(txs, parts, split or [(0, n_tdc)], strict=True):
+                batch = pa.record_batch([pa.array(w)], schema=RAW_WORDS.schema)
+                head = {"kind": "data", "schema": RAW_WORDS.name,
+                        "version": RAW_WORDS.version, "run": run, "seq": seq, "step": step_id,
+                        "first_word": int(f), "n_tdc": rng[1] - rng[0],
+                        "n_tdc_total": n_tdc, "tdc_range": list(rng),
+                        "t_laser_win_ns": t_laser_win_ns, **extra}
+                tb = time.perf_counter()
+                tx.send_multipart(wire.encode(head, batch))
+                blocked += time.perf_counter() - tb
             sent += words.size
             seq += 1
+            beat.beat(state="running", sent=seq, words=sent, blocked_s=round(blocked, 3))
             if rate_words_s:
                 ahead = sent / rate_words_s - (time.perf_counter() - t0)
                 if ahead > 0:
                     time.sleep(ahead)
-        tx.send_multipart(wire.encode({"kind": "stop", "schema": RAW_WORDS.name,
-                                       "version": RAW_WORDS.version, "run": run, "seq": seq,
-                                       "step": step_id, "words": sent}, None))
+        if journal is not None:  # the run's end is on disk before anyone hears of it
+            journal.close()
+            journal = None
+        for tx in txs:
+            tx.send_multipart(wire.encode({"kind": "stop", "schema": RAW_WORDS.name,
+                                           "version": RAW_WORDS.version, "run": run,
+                                           "seq": seq, "step": step_id, "words": sent}, None))
+        beat.beat(force=True, state="finished", sent=seq, words=sent,
+                  blocked_s=round(blocked, 3))
     finally:
         if journal is not None:
             journal.close()
+        beat.close()
         # wait (bounded) for a restarted consumer to take what is queued, the stop included
-        tx.close(linger=60_000)
+        for tx in txs:
+            tx.close(linger=60_000)
     return sent
 
 
 class ParquetSink:
-    """Writes each histograms batch as a Hive-partitioned parquet file, atomically:
-    ``OUT/histograms/date=YYYY-MM-DD/run=RUN/part-SEQ.parquet``."""
+    """Writes each histograms or ranges message as a file of a Hive-partitioned dataset,
+    atomically: ``OUT/<schema>/date=YYYY-MM-DD/run=RUN/part-<measurement>-t<first TDC>``.
+    The name depends only on the message, so a measurement sent twice (a stage restarted
+    between sending and checkpointing) lands on the same file: no double count."""
 
-    in_spec = out_spec = HISTOGRAMS
+    in_spec = {HISTOGRAMS.name: HISTOGRAMS, RANGES.name: RANGES}
+    out_spec = HISTOGRAMS
 
     def __init__(self, out: str | Path, step_id: str = "sink"):
         self.out = Path(out)
         self.step_id = step_id
         self.written: list[Path] = []
 
-    def process(self, header: dict, batch) -> list:
+    def path(self, header: dict) -> Path:
         import datetime as dt
 
+        day = header.get("date") or dt.date.today().isoformat()
+        first = (header.get("tdc_range") or [0])[0]
+        return (self.out / header["schema"] / f"date={day}" / f"run={header['run']}"
+                / f"part-{int(header['seq']):06d}-t{int(first):03d}.parquet")
+
+    def process(self, header: dict, batch) -> list:
         import pyarrow as pa
         import pyarrow.parquet as pq
 
-        day = dt.date.today().isoformat()
-        path = (self.out / "histograms" / f"date={day}" / f"run={header['run']}"
-                / f"part-{int(header['seq']):06d}.parquet")
-        table = pa.Table.from_batches([batch])
+        path = self.path(header)
         with atomic_path(path) as tmp:
-            pq.write_table(table, tmp)
+            pq.write_table(pa.Table.from_batches([batch]), tmp)
         self.written.append(path)
         return []
 

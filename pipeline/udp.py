@@ -44,14 +44,32 @@ def udp_socket(address: str = "127.0.0.1:0") -> socket.socket:
     return s
 
 
-def run_udp_ingest(sock: socket.socket, push: str, *, run: str = "udp",
+def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "udp",
                    journal: str | Path | None = None, segment_words: int = 1 << 24,
                    quarantine: str | Path | None = None, stop: threading.Event | None = None,
-                   idle_s: float | None = None, context: zmq.Context | None = None) -> IngestStats:
-    """Receive until a datagram flagged last, ``stop``, or ``idle_s`` without data."""
+                   idle_s: float | None = None, context: zmq.Context | None = None,
+                   split: list[tuple[int, int]] | None = None, metrics: str | None = None,
+                   date: str | None = None) -> IngestStats:
+    """Receive until a datagram flagged last, ``stop``, or ``idle_s`` without data.
+
+    ``split``: TDC ranges, one per endpoint of ``push`` (a fan-out by TDC range; datagrams
+    hold whole cycles, so every batch splits cleanly)."""
+    import datetime as dt
+
+    from pipeline.fanout import TdcSplitter
+    from pipeline.metrics import Metrics
+
     ctx = context or zmq.Context.instance()
-    tx = _socket(ctx, zmq.PUSH, 4)
-    tx.connect(push)
+    pushes = [push] if isinstance(push, str) else list(push)
+    txs = []
+    for ep in pushes:
+        tx = _socket(ctx, zmq.PUSH, 4)
+        tx.connect(ep)
+        txs.append(tx)
+    if (split is not None and len(split) != len(txs)) or (split is None and len(txs) != 1):
+        raise ValueError("one TDC range per endpoint")
+    beat = Metrics(metrics, "source", ctx)
+    date = date or dt.date.today().isoformat()
     stop = stop or threading.Event()
     stats = IngestStats()
     seqs = datagram.SequenceTracker()
@@ -71,11 +89,16 @@ def run_udp_ingest(sock: socket.socket, push: str, *, run: str = "udp",
         import pyarrow as pa
 
         words = np.concatenate(pending)
-        batch = pa.record_batch([pa.array(words)], schema=RAW_WORDS.schema)
-        head = {"kind": "data", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
-                "run": run, "seq": stats.messages, "step": "ingest",
-                "first_word": int(pending_first), "n_tdc": n_tdc, "t_laser_win_ns": gate_ns}
-        tx.send_multipart(wire.encode(head, batch))
+        ranges = split or [(0, n_tdc)]
+        parts = (TdcSplitter(n_tdc, split).split(pending_first, words) if split
+                 else [(pending_first, words)])
+        for tx, (f, w), rng in zip(txs, parts, ranges, strict=True):
+            batch = pa.record_batch([pa.array(w)], schema=RAW_WORDS.schema)
+            head = {"kind": "data", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
+                    "run": run, "seq": stats.messages, "step": "ingest",
+                    "first_word": int(f), "n_tdc": rng[1] - rng[0], "n_tdc_total": n_tdc,
+                    "tdc_range": list(rng), "t_laser_win_ns": gate_ns, "date": date}
+            tx.send_multipart(wire.encode(head, batch))
         stats.messages += 1
         pending, pending_first = [], None
 
@@ -91,6 +114,9 @@ def run_udp_ingest(sock: socket.socket, push: str, *, run: str = "udp",
 
     try:
         while not stop.is_set():
+            beat.beat(state="running", received=stats.datagrams, sent=stats.messages,
+                      words=stats.words, rejected=dict(stats.rejected),
+                      lost_datagrams=stats.lost_datagrams)
             try:
                 data = sock.recv(datagram.MAX_PAYLOAD + 1)
             except TimeoutError:
@@ -130,14 +156,24 @@ def run_udp_ingest(sock: socket.socket, push: str, *, run: str = "udp",
             if d.last:
                 break
         flush()
-        tx.send_multipart(wire.encode({
-            "kind": "stop", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
-            "run": run, "seq": stats.messages, "step": "ingest", "words": stats.words,
-            "datagrams": stats.datagrams, "lost_datagrams": stats.lost_datagrams,
-            "rejected": dict(stats.rejected)}, None))
+        if writer is not None:  # the run's end is on disk before anyone hears of it
+            writer.close()
+            stats.journal = [str(p) for p in writer.segments]
+            writer = None
+        for tx in txs:
+            tx.send_multipart(wire.encode({
+                "kind": "stop", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
+                "run": run, "seq": stats.messages, "step": "ingest", "words": stats.words,
+                "datagrams": stats.datagrams, "lost_datagrams": stats.lost_datagrams,
+                "rejected": dict(stats.rejected)}, None))
+        beat.beat(force=True, state="finished", received=stats.datagrams,
+                  sent=stats.messages, words=stats.words, rejected=dict(stats.rejected),
+                  lost_datagrams=stats.lost_datagrams)
     finally:
         if writer is not None:
             writer.close()
             stats.journal = [str(p) for p in writer.segments]
-        tx.close()
+        beat.close()
+        for tx in txs:
+            tx.close()
     return stats

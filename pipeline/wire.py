@@ -28,9 +28,12 @@ def encode(header: dict, batch: pa.RecordBatch | None) -> list[bytes | pa.Buffer
     return [head, sink.getvalue()]
 
 
-def decode(frames, spec: SchemaSpec | None = None,
+def decode(frames, spec: SchemaSpec | dict[str, SchemaSpec] | None = None,
            max_bytes: int = MAX_MESSAGE_BYTES) -> tuple[dict, pa.RecordBatch | None]:
-    """Header and batch of a message, checked; a bad message raises WireError."""
+    """Header and batch of a message, checked; a bad message raises WireError.
+
+    ``spec``: the schema expected, or a mapping of the schemas a stage takes by name (a
+    sink), the header naming which."""
     if len(frames) != 2:
         raise WireError("bad_frames", f"{len(frames)} frames, expected 2")
     raw_head, payload = (memoryview(f.buffer if hasattr(f, "buffer") else f)
@@ -46,6 +49,11 @@ def decode(frames, spec: SchemaSpec | None = None,
         raise WireError("bad_header", f"header lacks one of {REQUIRED}")
     if header["kind"] == "stop" and payload.nbytes == 0:
         return header, None
+    if isinstance(spec, dict):
+        if header["schema"] not in spec:
+            raise WireError("schema_mismatch", f"{header['schema']!r}, expected one of "
+                                               f"{sorted(spec)}")
+        spec = spec[header["schema"]]
     if spec is not None:
         if header["schema"] != spec.name:
             raise WireError("schema_mismatch", f"{header['schema']!r}, expected {spec.name!r}")

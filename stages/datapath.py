@@ -99,9 +99,16 @@ class WordTables:
     n_tdc: int
     bounds: ArtifactBounds
     mode: str = "d1st"
+    #: address of the first TDC of the stream: a worker of a fan-out by TDC range sees the
+    #: words of TDCs ``tdc_offset .. tdc_offset + n_tdc - 1`` (address = offset + position)
+    tdc_offset: int = 0
+
     def __post_init__(self):
         if not 1 <= self.n_tdc <= MAX_TDC:
             raise ValueError(f"n_tdc must be in 1..{MAX_TDC}, found {self.n_tdc}")
+        if not 0 <= self.tdc_offset <= MAX_TDC - self.n_tdc:
+            raise ValueError(f"TDCs {self.tdc_offset}..{self.tdc_offset + self.n_tdc - 1} "
+                             f"exceed the address range 0..{MAX_TDC - 1}")
         if self.bounds.n_tdc != self.n_tdc:
             raise ValueError(f"bounds are for {self.bounds.n_tdc} TDCs, data has {self.n_tdc}")
         if self.mode not in ("d1st", "d2nd"):
@@ -143,7 +150,8 @@ class WordTables:
         # (marker bit 9 and the address), and the position itself.
         pos = np.arange(CHUNK_WORDS + self.n_tdc) % self.n_tdc
         return (lo.astype(np.intp), hi.astype(np.intp).ravel(),
-                ((1 << 9) | (pos << 1)).astype(np.uint16), pos.astype(np.int32))
+                ((1 << 9) | ((pos + self.tdc_offset) << 1)).astype(np.uint16),
+                pos.astype(np.int32))
 
     @property
     def n_bins(self) -> int:
@@ -201,14 +209,14 @@ def _accumulate_numpy(words: np.ndarray, first_word: int, tables: WordTables,
 
 if numba is not None:
     @numba.njit(cache=True, nogil=True)
-    def _kernel(words, pos0, n_tdc, phase, inblock, hits, class_counts, d2mode):
+    def _kernel(words, pos0, n_tdc, phase, inblock, hits, class_counts, d2mode, offset):
         pos = pos0
         mask = np.uint32(MARKER_MASK)
         marker = np.uint32(MARKER_VALUE)
         for i in range(words.size):
             w = words[i]
             addr = (w >> 1) & 0xFF
-            if (w & mask) != marker or addr != pos:
+            if (w & mask) != marker or addr != pos + offset:
                 cls = MALFORMED
             else:
                 p1 = phase[(w >> 12) & 0xF]
@@ -235,7 +243,7 @@ if numba is not None:
 
 def _accumulate_numba(words, first_word, tables, hits, class_counts):
     _kernel(words, first_word % tables.n_tdc, tables.n_tdc, PHASE_DECODE,
-            tables.in_block, hits, class_counts, tables.mode == "d2nd")
+            tables.in_block, hits, class_counts, tables.mode == "d2nd", tables.tdc_offset)
 
 
 def accumulate(words: np.ndarray, first_word: int, tables: WordTables, hits: np.ndarray,

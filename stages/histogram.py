@@ -36,6 +36,7 @@ class HistogramState:
     class_counts: np.ndarray
     words: int
     last_seq: int = -1
+    tdc_offset: int = 0  #: address of row 0 (a worker of a fan-out by TDC range)
 
     @property
     def n_tdc(self) -> int:
@@ -54,9 +55,12 @@ class HistogramState:
         """Merge two states (the histogram of a split stream is the sum of its parts)."""
         if self.hits.shape != other.hits.shape:
             raise ValueError(f"cannot merge histograms of {self.n_tdc} and {other.n_tdc} TDCs")
+        if self.tdc_offset != other.tdc_offset:
+            raise ValueError("cannot merge histograms of different TDC ranges")
         return HistogramState(_frozen(self.hits + other.hits),
                               _frozen(self.class_counts + other.class_counts),
-                              self.words + other.words, max(self.last_seq, other.last_seq))
+                              self.words + other.words, max(self.last_seq, other.last_seq),
+                              self.tdc_offset)
 
     def to_table(self, measurement: str) -> pa.Table:
         """The ``histograms`` dataset of this state, one row per TDC."""
@@ -66,7 +70,7 @@ class HistogramState:
                                                    N_CODES)
         cols = {
             "measurement": pa.array([measurement] * n, pa.string()),
-            "tdc": pa.array(np.arange(n, dtype=np.uint16)),
+            "tdc": pa.array(np.arange(n, dtype=np.uint16) + np.uint16(self.tdc_offset)),
             "cycles": pa.array(self.cycles.astype(np.uint64)),
             "counts": counts,
         }
@@ -80,8 +84,9 @@ class HistogramState:
         order = np.argsort(table.column("tdc").to_numpy())
         hits = np.stack(table.column("counts").to_numpy(zero_copy_only=False))[order]
         cc = np.stack([table.column(f"n_{name}").to_numpy()[order] for name in WORD_CLASSES])
+        tdc = table.column("tdc").to_numpy()
         return cls(_frozen(hits.astype(np.uint64)), _frozen(cc.astype(np.uint64)),
-                   int(cc.sum()))
+                   int(cc.sum()), tdc_offset=int(tdc.min()) if tdc.size else 0)
 
 
 class HistogramAccumulator:
@@ -99,6 +104,9 @@ class HistogramAccumulator:
     mode : {"d1st", "d2nd"}
         Histogram the first-stage code (the product) or the second-stage code of hit
         candidates (what artifact-bound estimation needs).
+    tdc_offset : int
+        Address of the first TDC: a worker of a fan-out by TDC range takes the words of
+        TDCs ``tdc_offset .. tdc_offset + n_tdc - 1`` of each cycle (``bounds`` for those).
 
     Examples
     --------
@@ -111,10 +119,11 @@ class HistogramAccumulator:
 
     def __init__(self, n_tdc: int, bounds: ArtifactBounds | None = None,
                  engine: str | None = None, step_id: str = "histogram",
-                 mode: str = "d1st"):
+                 mode: str = "d1st", tdc_offset: int = 0):
         self.step_id = step_id
         self.bounds = bounds if bounds is not None else ArtifactBounds.unbounded(n_tdc)
-        self._tables = WordTables(n_tdc, self.bounds, mode)
+        self._tables = WordTables(n_tdc, self.bounds, mode, tdc_offset)
+        self.tdc_offset = tdc_offset
         self.engine = engine
         self.n_tdc = n_tdc
         self._hits = np.zeros((n_tdc, self._tables.n_bins), np.uint64)
@@ -140,10 +149,17 @@ class HistogramAccumulator:
         if seq is not None:
             self._last_seq = int(seq)
 
+    def reset(self) -> None:
+        """Start a new measurement: zero the histograms and counts in place (the tables,
+        costly to build, are kept)."""
+        self._hits.fill(0)
+        self._class_counts.fill(0)
+        self._words = 0
+
     def snapshot(self) -> HistogramState:
         """An immutable copy of the state."""
         return HistogramState(_frozen(self._hits), _frozen(self._class_counts), self._words,
-                              self._last_seq)
+                              self._last_seq, self.tdc_offset)
 
     def restore(self, state: HistogramState) -> None:
         """Resume exactly from ``state``."""

@@ -74,7 +74,7 @@ def test_bad_messages_are_counted_and_quarantined(tmp_path):
     assert dict(s.rejected) == {"bad_frames": 1, "bad_header": 1, "bad_payload": 1,
                                 "schema_version": 1}
     assert s.received == 6
-    assert core.acc.snapshot().words == 8
+    assert core.words_total == 8
     assert len(list((tmp_path / "q").glob("*.json"))) == 4
 
 

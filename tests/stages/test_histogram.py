@@ -90,3 +90,33 @@ def test_zero_counts_and_merge_mismatch():
     assert empty.hits.sum() == 0 and empty.cycles.tolist() == [0] * 4
     with pytest.raises(ValueError, match="cannot merge histograms of 4 and 16 TDCs"):
         empty + whole()
+
+
+@settings(max_examples=15, deadline=None)
+@given(lo=st.integers(0, 15), width=st.integers(1, 16), corrupt=st.floats(0, 0.2))
+def test_a_worker_of_a_tdc_range_equals_those_rows_of_the_whole(lo, width, corrupt):
+    """Fan-out by TDC range: a worker takes each cycle's words of TDCs lo..hi-1 (their
+    addresses are lo..hi-1, not 0..) and must find exactly those rows of the whole."""
+    n = 16
+    hi = min(lo + width, n)
+    words, _ = pattern_words(300, n, hit_prob=0.4, peak_code=200.0, rng=lo * 31 + width)
+    rng = np.random.default_rng(width)
+    bad = rng.random(words.size) < corrupt
+    words = np.where(bad, words ^ np.uint32(1 << 3), words).astype(np.uint32)  # address bit
+    bounds = ArtifactBounds(np.full(n, 3), np.full(n, 200))
+    sub = np.ascontiguousarray(words.reshape(-1, n)[:, lo:hi]).ravel()
+    for engine in ("numpy", "numba"):
+        whole = HistogramAccumulator(n, bounds, engine=engine)
+        whole.update(words)
+        part = HistogramAccumulator(hi - lo, ArtifactBounds(bounds.n_min[lo:hi],
+                                                            bounds.n_max[lo:hi]),
+                                    engine=engine, tdc_offset=lo)
+        half = sub.size // 2
+        part.update(sub[:half], 0)
+        part.update(sub[half:], half)
+        w, p = whole.snapshot(), part.snapshot()
+        np.testing.assert_array_equal(p.hits, w.hits[lo:hi])
+        np.testing.assert_array_equal(p.class_counts, w.class_counts[:, lo:hi])
+        t = p.to_table("m")
+        assert t.column("tdc").to_pylist() == list(range(lo, hi))
+        assert HistogramState.from_table(t).tdc_offset == lo

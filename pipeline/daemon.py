@@ -1,0 +1,561 @@
+"""``tcspc daemon``: the whole stream graph from a TOML topology, under a supervisor.
+
+    source (sim | capture | udp) --TDC ranges--> histogram x workers --> range --> sink
+
+Every stage is its own process (``tcspc stage ...``), so the graph can also be started by
+hand across hosts. The supervisor
+
+- starts the stages (sink first, source last), logs each to ``STATE/logs/NAME.log``;
+- restarts a stage that dies (up to ``restarts`` times each): the source resumes after what
+  its journal holds, a histogram worker from its checkpoint and the journal;
+- ends a stage whose upstream has finished but whose stop message was lost with a killed
+  process (SIGTERM: it drains what is in flight, then finishes);
+- collects the stages' heartbeats (PUB/SUB) into ``STATE/status.json`` once a second, for
+  ``tcspc status``;
+- at the end reconciles the datasets with the journal: a measurement lost in flight with a
+  killed range or sink stage is recomputed from the journaled words (the same code, the
+  same numbers), then writes the run's accounting beside the datasets.
+
+The topology file (all keys but ``[source]`` optional)::
+
+    [daemon]
+    state = "data/daemon"        # journal/, checkpoints/, quarantine/, logs/, status.json
+    run = "street"               # run id (default: the source's name and the UTC time)
+    restarts = 5                 # per stage, then the daemon stops the graph and fails
+    metrics = "ipc://..."        # default ipc://STATE/sock/metrics
+    hwm = 4                      # ZeroMQ high-water mark, messages per socket
+
+    [source]
+    kind = "sim"                 # sim | capture | udp
+    scene = "scenes/street.toml" # sim: scene, cycles, seed, chip_seed, rate (words/s)
+    capture = "data/raw/street"  # capture: the capture to replay, rate
+    bind = "127.0.0.1:9000"      # udp: where to listen, idle (s) to end the run
+
+    [histogram]
+    workers = 2                  # fan-out by TDC range
+    measurement_cycles = 20000   # one histogram (and range) per this many cycles
+    calibration = "data/calibration/current"   # artifact bounds (else none are applied)
+    n_tdc = 128                  # udp only (sim and capture know theirs)
+
+    [range]                      # leave out: histograms only
+    calibration = "data/calibration/current"
+    estimator = "ml"
+
+    [sink]
+    out = "data/stream"
+
+Endpoints default to ``ipc://STATE/sock/NAME``; give ``endpoint`` (or ``endpoints``, one
+per worker) in a section to use ``tcp://`` instead.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zmq
+
+from pipeline.atomic import atomic_path
+from schemas.errors import TcspcError
+
+SOURCE_KINDS = ("sim", "capture", "udp")
+GRACE_S = 3.0  # after its upstream finished, a stage gets this long to stop by itself
+
+
+class TopologyError(TcspcError, ValueError):
+    """A topology file that cannot run (names the file, the key and the problem)."""
+
+
+@dataclass
+class Topology:
+    path: str
+    state: Path
+    run: str
+    restarts: int
+    metrics: str
+    hwm: int
+    source: dict
+    histogram: dict
+    range: dict | None
+    sink: dict
+    n_tdc: int
+    date: str = field(default_factory=lambda: dt.date.today().isoformat())
+
+    @property
+    def workers(self) -> int:
+        return int(self.histogram.get("workers", 1))
+
+    def endpoint(self, section: dict, name: str, i: int | None = None) -> str:
+        if i is not None and "endpoints" in section:
+            return section["endpoints"][i]
+        if "endpoint" in section and i is None:
+            return section["endpoint"]
+        return f"ipc://{self.state.resolve()}/sock/{name}"
+
+
+_KNOWN = {
+    "daemon": {"state", "run", "restarts", "metrics", "hwm"},
+    "source": {"kind", "scene", "cycles", "seed", "chip_seed", "rate", "capture", "bind",
+               "idle", "n_tdc"},
+    "histogram": {"workers", "measurement_cycles", "calibration", "n_tdc", "endpoints"},
+    "range": {"calibration", "estimator", "endpoint"},
+    "sink": {"out", "endpoint"},
+}
+
+
+def load_topology(path: str | Path | None, run: str | None = None,
+                  overrides: dict | None = None) -> Topology:
+    """Read and check a topology file (None: the embedded default, the street scene)."""
+    where = str(path) if path else "<default topology>"
+    if path:
+        try:
+            raw = tomllib.loads(Path(path).read_text())
+        except FileNotFoundError:
+            raise TopologyError(f"{path}: topology file not found") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise TopologyError(f"{path}: not valid TOML: {exc}") from None
+    else:
+        raw = default_topology()
+    for key, sub in (overrides or {}).items():
+        raw.setdefault(key, {}).update(sub)
+    unknown = sorted(set(raw) - set(_KNOWN))
+    if unknown:
+        raise TopologyError(f"{where}: unknown sections {unknown}; known: {sorted(_KNOWN)}")
+    for sec, keys in _KNOWN.items():
+        extra = sorted(set(raw.get(sec, {})) - keys)
+        if extra:
+            raise TopologyError(f"{where} [{sec}]: unknown keys {extra}; known: {sorted(keys)}")
+    d, src = raw.get("daemon", {}), raw.get("source")
+    if not src:
+        raise TopologyError(f"{where}: a [source] section is needed")
+    kind = src.get("kind")
+    if kind not in SOURCE_KINDS:
+        raise TopologyError(f"{where} [source] kind {kind!r}: use one of {SOURCE_KINDS}")
+    need = {"sim": "scene", "capture": "capture", "udp": "bind"}[kind]
+    if need not in src:
+        raise TopologyError(f"{where} [source]: kind {kind!r} needs {need!r}")
+    hist = dict(raw.get("histogram", {}))
+    n_tdc = _source_n_tdc(src, hist, where)
+    workers = int(hist.get("workers", 1))
+    if not 1 <= workers <= n_tdc:
+        raise TopologyError(f"{where} [histogram] workers = {workers}: use 1..{n_tdc}")
+    if "endpoints" in hist and len(hist["endpoints"]) != workers:
+        raise TopologyError(f"{where} [histogram]: {len(hist['endpoints'])} endpoints for "
+                            f"{workers} workers")
+    rng = raw.get("range")
+    if rng is not None and "calibration" not in rng:
+        raise TopologyError(f"{where} [range]: needs a calibration directory")
+    for sec in (hist, rng or {}):
+        cal = sec.get("calibration")
+        if cal and not (Path(cal) / "tdc.parquet").exists():
+            raise TopologyError(f"{where}: calibration {cal!r} is not a calibration directory "
+                                "(run `tcspc flow run calibration_campaign` first)")
+    state = Path(d.get("state", "data/daemon"))
+    run = run or d.get("run") or (
+        f"{Path(src.get('scene') or src.get('capture') or 'udp').stem}-"
+        f"{dt.datetime.now(dt.UTC).strftime('%Y%m%dT%H%M%SZ')}")
+    metrics = d.get("metrics") or f"ipc://{state.resolve()}/sock/metrics"
+    for ep in [metrics, *(hist.get("endpoints") or [])]:
+        _check_endpoint(ep, where)
+    return Topology(where, state, run, int(d.get("restarts", 5)), metrics,
+                    int(d.get("hwm", 4)), src, hist, rng,
+                    raw.get("sink", {"out": "data/stream"}), n_tdc)
+
+
+def _check_endpoint(ep: str, where: str) -> None:
+    if not ep.startswith(("ipc://", "tcp://", "inproc://")):
+        raise TopologyError(f"{where}: endpoint {ep!r}: use ipc://PATH or tcp://HOST:PORT")
+
+
+def _source_n_tdc(src: dict, hist: dict, where: str) -> int:
+    if src["kind"] == "sim":
+        from stages.models.scene import load_scene
+
+        return load_scene(src["scene"]).sensor.n_pixels
+    if src["kind"] == "capture":
+        from pipeline.capture import Capture
+
+        return Capture(src["capture"]).meta.n_tdc
+    n = src.get("n_tdc") or hist.get("n_tdc")
+    if not n:
+        raise TopologyError(f"{where}: a udp source needs n_tdc (in [source] or [histogram])")
+    return int(n)
+
+
+def default_topology() -> dict:
+    root = Path(__file__).resolve().parents[1]
+    return {"daemon": {"state": "data/daemon"},
+            "source": {"kind": "sim", "scene": str(root / "scenes" / "street.toml"),
+                       "cycles": 100_000, "seed": 1},
+            "histogram": {"workers": 2, "measurement_cycles": 20_000},
+            "sink": {"out": "data/stream"}}
+
+
+# ------------------------------------------------------------------------- the graph
+
+@dataclass
+class Proc:
+    name: str
+    argv: list[str]
+    upstream: list[str]
+    popen: subprocess.Popen | None = None
+    restarts: int = 0
+    finished: bool = False
+    exit_codes: list[int] = field(default_factory=list)
+    upstream_done_at: float | None = None
+    terminated: bool = False
+
+
+def _tcspc(*args) -> list[str]:
+    return [sys.executable, "-m", "pipeline.cli", *map(str, args)]
+
+
+def tdc_ranges(topo: Topology) -> list[tuple[int, int]]:
+    from pipeline.fanout import equal_ranges
+
+    return equal_ranges(topo.n_tdc, topo.workers)
+
+
+def build(topo: Topology) -> list[Proc]:
+    """The stage processes of the topology, sink first."""
+    st, run = topo.state, topo.run
+    journal, ckpt, quar = st / "journal", st / "checkpoints" / run, st / "quarantine" / run
+    m = ("--metrics", topo.metrics)
+    ranges = tdc_ranges(topo)
+    hist_eps = [topo.endpoint(topo.histogram, f"histogram-{i}", i) for i in range(len(ranges))]
+    sink_ep = topo.endpoint(topo.sink, "sink")
+    after_hist = sink_ep
+    procs = [Proc("sink", _tcspc("stage", "sink", "--pull", sink_ep, "--out", topo.sink["out"],
+                                 "--quarantine", quar / "sink", "--workers",
+                                 1 if topo.range else len(ranges), *m),
+                  ["range"] if topo.range else [f"histogram-{i}" for i in range(len(ranges))])]
+    if topo.range:
+        after_hist = topo.endpoint(topo.range, "range")
+        procs.append(Proc("range", _tcspc(
+            "stage", "range", "--pull", after_hist, "--push", sink_ep, "--calibration",
+            topo.range["calibration"], "--estimator", topo.range.get("estimator", "ml"),
+            "--workers", len(ranges), "--quarantine", quar / "range", *m),
+            [f"histogram-{i}" for i in range(len(ranges))]))
+    mc = topo.histogram.get("measurement_cycles")
+    cal = topo.histogram.get("calibration")
+    for i, (a, b) in enumerate(ranges):
+        procs.append(Proc(f"histogram-{i}", _tcspc(
+            "stage", "histogram", "--pull", hist_eps[i], "--push", after_hist,
+            "--n-tdc", topo.n_tdc, "--tdc-range", f"{a}:{b}",
+            *(("--measurement-cycles", mc) if mc else ()),
+            *(("--calibration", cal) if cal else ()),
+            "--quarantine", quar / f"histogram-{i}", "--checkpoint", ckpt / f"histogram-{i}.npz",
+            "--journal", journal, "--run", run, "--name", f"histogram-{i}", *m), ["source"]))
+    src = topo.source
+    common = [*(x for ep in hist_eps for x in ("--push", ep)), "--run", run,
+              "--journal", journal, "--split", ",".join(f"{a}:{b}" for a, b in ranges),
+              "--date", topo.date, *m]
+    if src["kind"] == "sim":
+        argv = _tcspc("stage", "source-sim", src["scene"], "--cycles",
+                      src.get("cycles", 40_000), "--seed", src.get("seed", 0), "--chip-seed",
+                      src.get("chip_seed", 1), *common,
+                      *(("--rate", src["rate"]) if src.get("rate") else ()))
+    elif src["kind"] == "capture":
+        argv = _tcspc("stage", "source-capture", src["capture"], *common,
+                      *(("--rate", src["rate"]) if src.get("rate") else ()))
+    else:
+        argv = _tcspc("stage", "ingest-udp", "--bind", src["bind"], *common, "--quarantine",
+                      quar / "ingest", *(("--idle", src["idle"]) if src.get("idle") else ()))
+    procs.append(Proc("source", argv, []))
+    return procs
+
+
+class Supervisor:
+    def __init__(self, topo: Topology, log=print, poll_s: float = 0.2):
+        self.topo, self.log, self.poll_s = topo, log, poll_s
+        self.procs = build(topo)
+        self.by_name = {p.name: p for p in self.procs}
+        self.stop = threading.Event()
+        self.metrics: dict[str, dict] = {}
+        self.started = time.time()
+        self.failed: str | None = None
+        for d in ("logs", "sock", "journal", f"checkpoints/{topo.run}"):
+            (topo.state / d).mkdir(parents=True, exist_ok=True)
+
+    # -------------------------------------------------------------- processes
+    def _start(self, p: Proc) -> None:
+        log = open(self.topo.state / "logs" / f"{p.name}.log", "ab")
+        log.write(f"--- {dt.datetime.now(dt.UTC).isoformat()} start "
+                  f"(restart {p.restarts}): {' '.join(p.argv)}\n".encode())
+        log.flush()
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        p.popen = subprocess.Popen(p.argv, stdout=log, stderr=subprocess.STDOUT, env=env)
+        log.close()
+
+    def _check(self) -> bool:
+        """One supervision step; True when the graph has finished."""
+        now = time.time()
+        for p in self.procs:
+            if p.finished or p.popen is None:
+                continue
+            code = p.popen.poll()
+            if code is None:
+                if p.upstream and all(self.by_name[u].finished for u in p.upstream):
+                    p.upstream_done_at = p.upstream_done_at or now
+                    if now - p.upstream_done_at > GRACE_S and not p.terminated:
+                        # its stop was lost with a killed process: let it drain and finish
+                        self.log(f"{p.name}: upstream finished {GRACE_S:.0f} s ago; SIGTERM")
+                        p.popen.send_signal(signal.SIGTERM)
+                        p.terminated = True
+                continue
+            p.exit_codes.append(code)
+            if code == 0:
+                p.finished = True
+                self.log(f"{p.name}: finished")
+                continue
+            if p.restarts >= self.topo.restarts:
+                self.failed = (f"{p.name} died (exit {code}) {p.restarts + 1} times; giving up "
+                               f"(see {self.topo.state / 'logs' / (p.name + '.log')})")
+                self.log(self.failed)
+                return True
+            p.restarts += 1
+            p.terminated, p.upstream_done_at = False, None
+            self.log(f"{p.name}: died (exit {code}); restart {p.restarts} of "
+                     f"{self.topo.restarts}")
+            self._start(p)
+        return all(p.finished for p in self.procs)
+
+    def shutdown(self) -> None:
+        """Graceful stop: the source first (it ends the run cleanly), the rest drain."""
+        src = self.by_name["source"]
+        if src.popen and src.popen.poll() is None:
+            src.popen.send_signal(signal.SIGTERM)
+
+    def kill_all(self) -> None:
+        for p in self.procs:
+            if p.popen and p.popen.poll() is None:
+                p.popen.kill()
+                p.popen.wait()
+
+    # -------------------------------------------------------------- metrics
+    def _collect(self) -> None:
+        ctx = zmq.Context.instance()
+        sub = ctx.socket(zmq.SUB)
+        sub.setsockopt(zmq.SUBSCRIBE, b"")
+        sub.setsockopt(zmq.LINGER, 0)
+        sub.bind(self.topo.metrics)
+        try:
+            while not self.stop.is_set():
+                if sub.poll(200):
+                    try:
+                        rec = json.loads(sub.recv())
+                        prev = self.metrics.get(rec["stage"])
+                        if prev and prev.get("pid") == rec.get("pid"):
+                            dt_s = max(rec["t"] - prev["t"], 1e-6)
+                            for k in ("words", "words_total"):
+                                if k in rec and k in prev:
+                                    rec["rate_words_s"] = (rec[k] - prev[k]) / dt_s
+                        self.metrics[rec["stage"]] = rec
+                    except (ValueError, KeyError, TypeError):
+                        continue  # a malformed record is not worth a crash
+        finally:
+            sub.close()
+
+    def status(self) -> dict:
+        now = time.time()
+        stages = {}
+        for p in self.procs:
+            m = dict(self.metrics.get(p.name, {}))
+            alive = p.popen is not None and p.popen.poll() is None
+            stages[p.name] = {
+                "pid": p.popen.pid if p.popen else None, "alive": alive,
+                "finished": p.finished, "restarts": p.restarts,
+                "heartbeat_age_s": round(now - m["t"], 2) if "t" in m else None,
+                "health": ("finished" if p.finished else "down" if not alive else
+                           "ok" if "t" in m and now - m["t"] < 5 else "silent"),
+                **{k: v for k, v in m.items() if k not in ("stage", "pid", "t")}}
+        depth = {}
+        for p in self.procs:  # messages sent upstream and not yet taken (approximate)
+            got = stages[p.name].get("received")
+            sent = sum(stages[u].get("sent", 0) for u in p.upstream)
+            if p.upstream and got is not None:
+                depth[p.name] = max(0, sent - got)
+        return {"run": self.topo.run, "topology": self.topo.path, "updated": now,
+                "started": self.started, "state": "failed" if self.failed else "running",
+                "stages": stages, "queue_depth": depth}
+
+    def _write_status(self, extra: dict | None = None) -> None:
+        with atomic_path(self.topo.state / "status.json") as tmp:
+            tmp.write_text(json.dumps({**self.status(), **(extra or {})}, indent=1,
+                                      default=str))
+
+    # -------------------------------------------------------------- run
+    def run(self) -> dict:
+        collector = threading.Thread(target=self._collect, daemon=True)
+        collector.start()
+        time.sleep(0.2)
+        for p in self.procs:
+            self._start(p)
+        self.log(f"run {self.topo.run}: {len(self.procs)} stages started "
+                 f"({self.topo.workers} histogram workers); state in {self.topo.state}")
+        last = 0.0
+        try:
+            while not self._check():
+                if self.stop.is_set():
+                    self.shutdown()
+                if time.time() - last > 1.0:
+                    self._write_status()
+                    last = time.time()
+                time.sleep(self.poll_s)
+        finally:
+            if self.failed:
+                self.kill_all()
+            self.stop.set()
+            collector.join(timeout=2)
+        result = {"run": self.topo.run, "failed": self.failed,
+                  "restarts": {p.name: p.restarts for p in self.procs if p.restarts}}
+        if not self.failed:
+            result["reconciled"] = reconcile(self.topo)
+            result["accounting"] = accounting(self.topo, self.metrics)
+        self._write_status({"state": "failed" if self.failed else "finished",
+                            "result": result})
+        return result
+
+
+# ------------------------------------------------------------------ reconcile, accounting
+
+def _dataset_parts(out: Path, schema: str, run: str) -> dict[tuple[int, int], Path]:
+    parts = {}
+    for p in out.glob(f"{schema}/date=*/run={run}/part-*.parquet"):
+        _, k, t = p.stem.split("-")
+        parts[(int(k), int(t[1:]))] = p
+    return parts
+
+
+def reconcile(topo: Topology) -> dict:
+    """Recompute from the journal every (measurement, TDC range) the datasets lack; a
+    measurement is words [k M N, (k + 1) M N) of the run whatever happened to the stream,
+    so the recomputed one is the one an uninterrupted run would have written."""
+    from pipeline.fanout import worker_reader
+    from pipeline.journal import read_range, run_end
+    from pipeline.stage import ParquetSink
+    from stages.stream import HistogramCore
+
+    journal = topo.state / "journal"
+    total = run_end(journal, topo.run)
+    if total is None:
+        return {"checked": False, "why": "the journal has no end (the source did not finish)"}
+    n = topo.n_tdc
+    cycles = total // n
+    mc = topo.histogram.get("measurement_cycles") or max(cycles, 1)
+    n_meas = max(1, -(-cycles // mc))
+    out = Path(topo.sink["out"])
+    have_h = _dataset_parts(out, "histograms", topo.run)
+    have_r = _dataset_parts(out, "ranges", topo.run) if topo.range else None
+    bounds_all = None
+    if topo.histogram.get("calibration"):
+        from pipeline.caldir import read_bounds
+
+        bounds_all = read_bounds(topo.histogram["calibration"], n)
+    ranger = None
+    if topo.range:
+        from pipeline.ranging import RangeCore
+
+        ranger = RangeCore(topo.range["calibration"], topo.range.get("estimator", "ml"))
+    sink = ParquetSink(out)
+    redone = []
+    window_ns = None
+    for (a, b) in tdc_ranges(topo):
+        for k in range(n_meas):
+            if (k, a) in have_h and (have_r is None or (k, a) in have_r):
+                continue
+            from stages.artifact import ArtifactBounds
+
+            bounds = (ArtifactBounds(bounds_all.n_min[a:b], bounds_all.n_max[a:b],
+                                     bounds_all.source) if bounds_all else None)
+            core = HistogramCore(b - a, bounds, tdc_offset=a,
+                                 measurement_cycles=topo.histogram.get("measurement_cycles"))
+            core.measurement = k
+            w = b - a
+            lo = k * mc * w
+            hi = min((k + 1) * mc, cycles) * w
+            core.next_word = lo
+            if window_ns is None:
+                window_ns = _journal_window_ns(journal, topo.run)
+            gate = _journal_gate_ns(journal, topo.run)
+            msgs = []
+            for f, words in worker_reader(lambda s, e: read_range(journal, topo.run, s, e),
+                                          n, (a, b))(lo, hi):
+                msgs += core.process({"run": topo.run, "first_word": f, "seq": k,
+                                      "t_laser_win_ns": gate, "window_ns": window_ns,
+                                      "date": topo.date}, _words_batch(words))
+            if hi < (k + 1) * mc * w:
+                msgs += core.finish({"run": topo.run})
+            for head, batch in msgs:
+                sink.process(head, batch)
+                if ranger is not None:
+                    for h2, b2 in ranger.process(head, batch)[1:]:
+                        sink.process(h2, b2)
+            redone.append([k, a])
+    return {"checked": True, "measurements": n_meas, "tdc_ranges": len(tdc_ranges(topo)),
+            "recomputed": redone}
+
+
+def _words_batch(words):
+    import pyarrow as pa
+
+    from schemas.words import RAW_WORDS
+
+    return pa.record_batch([pa.array(words)], schema=RAW_WORDS.schema)
+
+
+def _journal_meta(journal: Path, run: str) -> dict:
+    for side in sorted(journal.glob(f"{run}-*.json")):
+        return json.loads(side.read_text())
+    return {}
+
+
+def _journal_window_ns(journal: Path, run: str) -> float:
+    return float(_journal_meta(journal, run).get("window_ns", 80.0))
+
+
+def _journal_gate_ns(journal: Path, run: str) -> float:
+    return float(_journal_meta(journal, run).get("t_laser_win_ns", 140.0))
+
+
+def accounting(topo: Topology, metrics: dict[str, dict]) -> dict:
+    """Words in (journaled) = hit + no_hit + artifact + invalid_phase + malformed (from the
+    histograms dataset, each measurement once); messages and datagrams
+    rejected by reason (quarantined) per stage; datagrams lost (sequence gaps). Written to
+    ``OUT/accounting/run=RUN.json``."""
+    import polars as pl
+
+    from pipeline.journal import journaled_total, run_end
+    from schemas.words import WORD_CLASSES
+
+    out = Path(topo.sink["out"])
+    parts = sorted(_dataset_parts(out, "histograms", topo.run).values())
+    cols = [f"n_{c}" for c in WORD_CLASSES]
+    classes = dict.fromkeys(WORD_CLASSES, 0)
+    if parts:
+        sums = pl.scan_parquet(parts).select([pl.col(c).sum() for c in cols]).collect()
+        classes = {c: int(sums[f"n_{c}"][0]) for c in WORD_CLASSES}
+    journaled = journaled_total(topo.state / "journal", topo.run)
+    span = run_end(topo.state / "journal", topo.run) or 0
+    rejected = {name: m.get("rejected", {}) for name, m in metrics.items() if m.get("rejected")}
+    result = {"run": topo.run, "words_in": journaled, "classes": classes,
+              "classified": sum(classes.values()),
+              "balanced": sum(classes.values()) == journaled,
+              "rejected_messages": rejected,
+              "lost_datagrams": metrics.get("source", {}).get("lost_datagrams", 0),
+              "words_in_gaps": span - journaled,
+              "measurements_files": len(parts)}
+    path = out / "accounting" / f"run={topo.run}.json"
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(result, indent=1))
+    result["path"] = str(path)
+    return result

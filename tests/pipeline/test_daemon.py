@@ -1,0 +1,248 @@
+"""The daemon: real stage processes under the supervisor, killed and restarted."""
+
+import json
+import os
+import signal
+import socket
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+
+from pipeline.daemon import Supervisor, TopologyError, load_topology
+from pipeline.journal import read_range
+from stages.histogram import HistogramAccumulator
+
+N = 16
+SCENE = """
+name = "small"
+[sensor]
+n_pixels = 16
+[gate]
+t_laser_win_ns = 140.0
+delay_ns = 100.0
+[[targets]]
+pixels = [0, 15]
+distance_m = 1.5
+reflectivity = 0.002
+surface = "mirror"
+[[ambient]]
+kind = "lux"
+lux = 800.0
+"""
+
+
+@pytest.fixture(scope="module")
+def caldir(tmp_path_factory):
+    """A calibration of the 16-pixel chip: LSB against light from four density tests (the
+    range's light differs from any one test's), and a delay."""
+    from pipeline.calibrate import add_delay, lsb_campaign
+    from pipeline.simulate import simulate_capture
+    from stages.models.scene import scene_from_dict
+
+    d = tmp_path_factory.mktemp("cal")
+    caps = []
+    for i, lux in enumerate((100.0, 400.0, 1200.0, 3000.0)):
+        dens = scene_from_dict({"name": f"d{i}", "sensor": {"n_pixels": N},
+                                "ambient": [{"kind": "lux", "lux": lux}]})
+        simulate_capture(dens, 300_000, d / f"d{i}", seed=3 + i)
+        caps.append(d / f"d{i}")
+    delay = scene_from_dict({"name": "z", "sensor": {"n_pixels": N},
+                             "targets": [{"pixels": [0, N - 1], "distance_m": 0.001,
+                                          "reflectivity": 0.0005, "surface": "mirror"}]})
+    simulate_capture(delay, 150_000, d / "delay", seed=9)
+    lsb_campaign(caps, d / "cal", inl_rms_lsb=1.0)
+    add_delay(d / "delay", d / "cal")
+    return d / "cal"
+
+
+def topology(tmp_path, caldir=None, cycles=60_000, rate=None, workers=2, **source):
+    (tmp_path / "small.toml").write_text(SCENE)
+    text = f"""
+[daemon]
+state = "{tmp_path / 'state'}"
+restarts = 3
+[source]
+kind = "sim"
+scene = "{tmp_path / 'small.toml'}"
+cycles = {cycles}
+seed = 5
+{f'rate = {rate}' if rate else ''}
+[histogram]
+workers = {workers}
+measurement_cycles = 10000
+[sink]
+out = "{tmp_path / 'out'}"
+"""
+    if caldir:
+        text += f'[range]\ncalibration = "{caldir}"\n'
+    (tmp_path / "topo.toml").write_text(text)
+    return tmp_path / "topo.toml"
+
+
+def offline(state: Path, run: str, cycles: int, mc: int = 10_000) -> list[np.ndarray]:
+    """Each measurement's histograms computed straight from the journal."""
+    words = np.concatenate([w for _, w in read_range(state / "journal", run, 0, 10**12)])
+    out = []
+    for k in range(-(-cycles // mc)):
+        acc = HistogramAccumulator(N)
+        acc.update(words[k * mc * N:(k + 1) * mc * N], 0)
+        out.append(acc.snapshot().hits)
+    return out
+
+
+def dataset(out: Path, schema: str, run: str) -> pl.DataFrame:
+    return pl.read_parquet(out / schema / "date=*" / f"run={run}" / "*.parquet",
+                           hive_partitioning=True)
+
+
+def check_histograms(tmp_path, run, cycles):
+    ref = offline(tmp_path / "state", run, cycles)
+    h = dataset(tmp_path / "out", "histograms", run)
+    assert h.height == len(ref) * N  # each measurement and TDC once
+    for k, hits in enumerate(ref):
+        m = h.filter(pl.col("measurement") == f"{run}-m{k:06d}").sort("tdc")
+        assert m["tdc"].to_list() == list(range(N))
+        assert np.array_equal(np.stack(m["counts"].to_numpy()), hits), f"measurement {k}"
+    return h
+
+
+def run_daemon(topo_path, run, during=None):
+    topo = load_topology(topo_path, run)
+    sup = Supervisor(topo, log=lambda m: None)
+    result = {}
+    t = threading.Thread(target=lambda: result.update(sup.run()))
+    t.start()
+    if during:
+        during(sup)
+    t.join(timeout=240)
+    assert not t.is_alive(), "daemon did not finish"
+    return result, sup
+
+
+def _kill_when_running(sup, name, after_words):
+    """SIGKILL stage ``name`` once the source has sent ``after_words``."""
+    deadline = time.time() + 60
+    while time.time() < deadline:
+        src = sup.metrics.get("source", {})
+        p = sup.by_name[name].popen
+        if p is not None and src.get("words", 0) >= after_words and p.poll() is None:
+            os.kill(p.pid, signal.SIGKILL)
+            return
+        time.sleep(0.05)
+    raise AssertionError("the source never got going")
+
+
+def test_daemon_end_to_end_with_ranges(tmp_path, caldir):
+    res, sup = run_daemon(topology(tmp_path, caldir, cycles=45_000), "e2e")
+    assert res["failed"] is None and res["restarts"] == {}
+    check_histograms(tmp_path, "e2e", 45_000)
+    r = dataset(tmp_path / "out", "ranges", "e2e")
+    assert r.height == 5 * N and r["detected"].all()
+    assert (r["distance_m"] - 1.5).abs().median() < 0.05
+    acc = res["accounting"]
+    assert acc["balanced"] and acc["words_in"] == 45_000 * N
+    assert acc["measurements_files"] == 5 * 2  # 4 whole + 1 partial, 2 TDC ranges
+    st = json.loads((tmp_path / "state" / "status.json").read_text())
+    assert st["state"] == "finished"
+    assert set(st["stages"]) == {"source", "histogram-0", "histogram-1", "range", "sink"}
+    assert st["stages"]["histogram-0"]["words_total"] == 45_000 * N // 2  # heartbeats
+
+
+def test_sigkill_of_a_histogram_worker_changes_nothing(tmp_path):
+    cycles = 200_000
+    res, sup = run_daemon(topology(tmp_path, cycles=cycles, rate=1.5e6), "k1",
+                          lambda s: _kill_when_running(s, "histogram-1", 600_000))
+    assert res["restarts"] == {"histogram-1": 1}
+    assert sup.by_name["histogram-1"].exit_codes[0] == -signal.SIGKILL
+    check_histograms(tmp_path, "k1", cycles)
+    assert res["accounting"]["balanced"]
+
+
+def test_sigkill_of_the_sink_and_the_source_is_reconciled(tmp_path, caldir):
+    cycles = 120_000
+
+    def chaos(sup):
+        _kill_when_running(sup, "sink", 400_000)
+        _kill_when_running(sup, "source", 900_000)
+
+    res, sup = run_daemon(topology(tmp_path, caldir, cycles=cycles, rate=1.5e6), "k2", chaos)
+    assert res["restarts"] == {"sink": 1, "source": 1}
+    check_histograms(tmp_path, "k2", cycles)
+    r = dataset(tmp_path / "out", "ranges", "k2")
+    assert r.height == 12 * N  # every measurement ranged once, some recomputed
+    assert res["accounting"]["balanced"]
+
+
+def test_udp_daemon_accounts_for_corrupted_datagrams(tmp_path):
+    from pipeline import datagram
+    from stages.testpattern import pattern_words
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    (tmp_path / "udp.toml").write_text(f"""
+[daemon]
+state = "{tmp_path / 'state'}"
+[source]
+kind = "udp"
+bind = "127.0.0.1:{port}"
+n_tdc = 128
+idle = 20
+[histogram]
+workers = 2
+measurement_cycles = 256
+[sink]
+out = "{tmp_path / 'out'}"
+""")
+
+    def feed(sup):
+        deadline = time.time() + 60
+        while "source" not in sup.metrics and time.time() < deadline:
+            time.sleep(0.1)  # the ingest is listening once it beats
+        words, _ = pattern_words(40 * 32, 128, hit_prob=0.1, malformed_prob=0.01, rng=2)
+        out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        rng = np.random.default_rng(0)
+        for i in range(40):
+            if i == 7:
+                continue  # lost on the way
+            chunk = words[i * 32 * 128:(i + 1) * 32 * 128]
+            out.sendto(datagram.encode(chunk, i, i * 32, 128, 140_000, last=(i == 39)),
+                       ("127.0.0.1", port))
+            if i % 5 == 0:
+                junk = datagram.encode(chunk, 99, 0, 128, 140_000)
+                out.sendto(b"NOPE" + junk[4:], ("127.0.0.1", port))           # bad magic
+                out.sendto(junk[:100], ("127.0.0.1", port))                   # truncated
+                out.sendto(rng.bytes(64), ("127.0.0.1", port))                # garbage
+            time.sleep(0.003)
+        out.close()
+
+    res, sup = run_daemon(tmp_path / "udp.toml", "u", feed)
+    acc = res["accounting"]
+    assert acc["words_in"] == 39 * 32 * 128 and acc["balanced"]
+    assert acc["lost_datagrams"] == 1 and acc["words_in_gaps"] == 32 * 128
+    assert acc["classes"]["malformed"] > 0
+    rejected = acc["rejected_messages"]["source"]
+    assert sum(rejected.values()) == 8 * 3 and rejected["bad_magic"] >= 8
+    assert len(list((tmp_path / "state" / "quarantine" / "u" / "ingest").glob("*.bin"))) == 24
+
+
+def test_topology_errors_name_the_problem(tmp_path):
+    bad = tmp_path / "t.toml"
+    bad.write_text("[source]\nkind = 'sim'\n")
+    with pytest.raises(TopologyError, match="needs 'scene'"):
+        load_topology(bad)
+    bad.write_text("[source]\nkind = 'tape'\n")
+    with pytest.raises(TopologyError, match="use one of"):
+        load_topology(bad)
+    bad.write_text(f"[source]\nkind='sim'\nscene='{topology(tmp_path).parent / 'small.toml'}'"
+                   "\n[histogram]\nworkerz = 2\n")
+    with pytest.raises(TopologyError, match="unknown keys"):
+        load_topology(bad)
+    bad.write_text(f"[source]\nkind='sim'\nscene='{tmp_path / 'small.toml'}'\n"
+                   "[range]\ncalibration = '/nope'\n")
+    with pytest.raises(TopologyError, match="not a calibration directory"):
+        load_topology(bad)
