@@ -168,21 +168,6 @@ def schema(markdown) -> None:
 
 
 @cli.command()
-@click.option("--out", default="data", show_default=True, type=click.Path())
-@click.option("--cycles", default=100_000, show_default=True, type=click.IntRange(1))
-def demo(out, cycles) -> None:
-    """The main job on embedded defaults (what `make demo` runs)."""
-    from pipeline.demo import run_demo
-
-    result = run_demo(out, cycles)
-    if not result["exact"]:
-        raise click.ClickException("demo: histograms differ from the intended ones")
-    if not result["street_ok"]:
-        raise click.ClickException("demo: a street target's peak is not where its distance "
-                                   "puts it")
-
-
-@cli.command()
 @click.argument("scene_path", type=click.Path(exists=True, dir_okay=False))
 @click.option("--cycles", default=40_000, show_default=True, type=click.IntRange(1))
 @click.option("--out", required=True, type=click.Path(), help="NAME.bin to write")
@@ -323,7 +308,10 @@ def stage_source_sim(scene_path, cycles, pushes, seed, chip_seed, run_id, rate, 
 @_split
 @_metrics
 @_date
-def stage_source_capture(capture, pushes, run_id, rate, journal, split, metrics, date) -> None:
+@click.option("--repeat", default=1, show_default=True, type=click.IntRange(1),
+              help="Replay the capture this many times as one run (soak tests).")
+def stage_source_capture(capture, pushes, run_id, rate, journal, split, metrics, date,
+                         repeat) -> None:
     """Replay a capture into the stream, at a chosen rate or as fast as it is taken."""
     from pipeline.journal import JournalWriter
     from pipeline.stage import run_source
@@ -331,8 +319,13 @@ def stage_source_capture(capture, pushes, run_id, rate, journal, split, metrics,
     cap = Capture(capture)
     run_id = run_id or cap.name
     n = cap.meta.n_tdc
-    batches = _skip_journaled(((first, w.copy()) for first, w in
-                               cap.iter_chunks(max(1, (1 << 18) // n) * n)), journal, run_id)
+
+    def replay():
+        for k in range(repeat):
+            for first, w in cap.iter_chunks(max(1, (1 << 18) // n) * n):
+                yield k * cap.n_words + first, w.copy()
+
+    batches = _skip_journaled(replay(), journal, run_id)
     jw = (JournalWriter(journal, run_id, n, cap.meta.t_laser_win_ns,
                         cap.meta.window_ns) if journal else None)
     sent = run_source(batches, list(pushes), step_id="source", run=run_id,
@@ -451,7 +444,7 @@ def stage_sink(pull, out, quarantine, workers, metrics) -> None:
     sink = ParquetSink(out)
     stats = run_stage(sink, pull, None, quarantine=quarantine, expect_stops=workers,
                       metrics=metrics, name="sink")
-    err.print(f"sink: wrote {len(sink.written)} files; rejected {dict(stats.rejected)}")
+    err.print(f"sink: wrote {sink.files} files; rejected {dict(stats.rejected)}")
 
 
 @cli.command()

@@ -22,13 +22,15 @@ The topology file (all keys but ``[source]`` optional)::
     state = "data/daemon"        # journal/, checkpoints/, quarantine/, logs/, status.json
     run = "street"               # run id (default: the source's name and the UTC time)
     restarts = 5                 # per stage, then the daemon stops the graph and fails
+    journal_keep_gb = 50         # prune the oldest consumed segments beyond this (default:
+                                 # keep all; a week-long run needs a bound)
     metrics = "ipc://..."        # default ipc://STATE/sock/metrics
     hwm = 4                      # ZeroMQ high-water mark, messages per socket
 
     [source]
     kind = "sim"                 # sim | capture | udp
     scene = "scenes/street.toml" # sim: scene, cycles, seed, chip_seed, rate (words/s)
-    capture = "data/raw/street"  # capture: the capture to replay, rate
+    capture = "data/raw/street"  # capture: the capture to replay, rate, repeat (times)
     bind = "127.0.0.1:9000"      # udp: where to listen, idle (s) to end the run
 
     [histogram]
@@ -88,6 +90,7 @@ class Topology:
     range: dict | None
     sink: dict
     n_tdc: int
+    journal_keep_gb: float | None = None
     date: str = field(default_factory=lambda: dt.date.today().isoformat())
 
     @property
@@ -103,9 +106,9 @@ class Topology:
 
 
 _KNOWN = {
-    "daemon": {"state", "run", "restarts", "metrics", "hwm"},
+    "daemon": {"state", "run", "restarts", "metrics", "hwm", "journal_keep_gb"},
     "source": {"kind", "scene", "cycles", "seed", "chip_seed", "rate", "capture", "bind",
-               "idle", "n_tdc"},
+               "idle", "n_tdc", "repeat"},
     "histogram": {"workers", "measurement_cycles", "calibration", "n_tdc", "endpoints"},
     "range": {"calibration", "estimator", "endpoint"},
     "sink": {"out", "endpoint"},
@@ -168,7 +171,8 @@ def load_topology(path: str | Path | None, run: str | None = None,
         _check_endpoint(ep, where)
     return Topology(where, state, run, int(d.get("restarts", 5)), metrics,
                     int(d.get("hwm", 4)), src, hist, rng,
-                    raw.get("sink", {"out": "data/stream"}), n_tdc)
+                    raw.get("sink", {"out": "data/stream"}), n_tdc,
+                    float(d["journal_keep_gb"]) if "journal_keep_gb" in d else None)
 
 
 def _check_endpoint(ep: str, where: str) -> None:
@@ -266,6 +270,7 @@ def build(topo: Topology) -> list[Proc]:
                       *(("--rate", src["rate"]) if src.get("rate") else ()))
     elif src["kind"] == "capture":
         argv = _tcspc("stage", "source-capture", src["capture"], *common,
+                      "--repeat", src.get("repeat", 1),
                       *(("--rate", src["rate"]) if src.get("rate") else ()))
     else:
         argv = _tcspc("stage", "ingest-udp", "--bind", src["bind"], *common, "--quarantine",
@@ -283,6 +288,7 @@ class Supervisor:
         self.metrics: dict[str, dict] = {}
         self.started = time.time()
         self.failed: str | None = None
+        self.pruned = 0
         for d in ("logs", "sock", "journal", f"checkpoints/{topo.run}"):
             (topo.state / d).mkdir(parents=True, exist_ok=True)
 
@@ -393,6 +399,32 @@ class Supervisor:
             tmp.write_text(json.dumps({**self.status(), **(extra or {})}, indent=1,
                                       default=str))
 
+    def _consumed_word(self) -> int:
+        """The run's word index every histogram worker has checkpointed past."""
+        from pipeline.stage import load_checkpoint
+
+        least = None
+        for i, (a, b) in enumerate(tdc_ranges(self.topo)):
+            path = self.topo.state / "checkpoints" / self.topo.run / f"histogram-{i}.npz"
+            try:
+                st = load_checkpoint(path)
+            except (OSError, ValueError):  # being replaced right now: try next time
+                return 0
+            if st is None:
+                return 0
+            cycles = int(st["counters"][2]) // (b - a)
+            least = cycles if least is None else min(least, cycles)
+        return (least or 0) * self.topo.n_tdc
+
+    def _prune(self) -> None:
+        if self.topo.journal_keep_gb is None:
+            return
+        from pipeline.journal import prune
+
+        gone = prune(self.topo.state / "journal", self.topo.run,
+                     int(self.topo.journal_keep_gb * 1e9), self._consumed_word())
+        self.pruned += len(gone)
+
     # -------------------------------------------------------------- run
     def run(self) -> dict:
         collector = threading.Thread(target=self._collect, daemon=True)
@@ -409,6 +441,7 @@ class Supervisor:
                     self.shutdown()
                 if time.time() - last > 1.0:
                     self._write_status()
+                    self._prune()
                     last = time.time()
                 time.sleep(self.poll_s)
         finally:
@@ -417,7 +450,8 @@ class Supervisor:
             self.stop.set()
             collector.join(timeout=2)
         result = {"run": self.topo.run, "failed": self.failed,
-                  "restarts": {p.name: p.restarts for p in self.procs if p.restarts}}
+                  "restarts": {p.name: p.restarts for p in self.procs if p.restarts},
+                  "journal_segments_pruned": self.pruned}
         if not self.failed:
             result["reconciled"] = reconcile(self.topo)
             result["accounting"] = accounting(self.topo, self.metrics)
@@ -441,7 +475,7 @@ def reconcile(topo: Topology) -> dict:
     measurement is words [k M N, (k + 1) M N) of the run whatever happened to the stream,
     so the recomputed one is the one an uninterrupted run would have written."""
     from pipeline.fanout import worker_reader
-    from pipeline.journal import read_range, run_end
+    from pipeline.journal import pruned_words, read_range, run_end
     from pipeline.stage import ParquetSink
     from stages.stream import HistogramCore
 
@@ -467,11 +501,14 @@ def reconcile(topo: Topology) -> dict:
 
         ranger = RangeCore(topo.range["calibration"], topo.range.get("estimator", "ml"))
     sink = ParquetSink(out)
-    redone = []
+    redone, unrecoverable = [], []
     window_ns = None
     for (a, b) in tdc_ranges(topo):
         for k in range(n_meas):
             if (k, a) in have_h and (have_r is None or (k, a) in have_r):
+                continue
+            if pruned_words(journal, topo.run, k * mc * n, min((k + 1) * mc, cycles) * n):
+                unrecoverable.append([k, a])  # its words were pruned (journal_keep_gb)
                 continue
             from stages.artifact import ArtifactBounds
 
@@ -502,7 +539,7 @@ def reconcile(topo: Topology) -> dict:
                         sink.process(h2, b2)
             redone.append([k, a])
     return {"checked": True, "measurements": n_meas, "tdc_ranges": len(tdc_ranges(topo)),
-            "recomputed": redone}
+            "recomputed": redone, "unrecoverable": unrecoverable}
 
 
 def _words_batch(words):

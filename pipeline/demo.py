@@ -1,10 +1,10 @@
-"""``tcspc demo``: the main job on embedded defaults, outputs under ./data.
+"""The data-path part of ``tcspc demo`` (flows/demo.py runs it first), outputs under ./data.
 
 1. a synthetic capture with a known class mix -> histogram and decode, checked exactly;
 2. the street scene through the simulator (the chip's words, truth in the sidecar) ->
    histogram -> each target's peak code against the code its distance predicts (eq. 5.4);
 3. Polars queries of the outputs.
-Calibration campaigns, ranging and the streaming daemon join this story as they land.
+The calibration campaign, the streaming daemon and the ranges follow in flows/demo.py.
 """
 
 from __future__ import annotations

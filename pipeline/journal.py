@@ -94,7 +94,10 @@ def read_range(directory: str | Path, run: str, start: int, stop: int
         a, b = max(lo, start), min(hi, stop)
         if a >= b:
             continue
-        with open(d / f"{run}-{e['segment']:06d}.bin", "rb") as fh:
+        seg = d / f"{run}-{e['segment']:06d}.bin"
+        if not seg.exists():  # pruned (retention): those words are gone
+            continue
+        with open(seg, "rb") as fh:
             fh.seek(4 * (e["offset"] + a - lo))
             raw = fh.read(4 * (b - a))
         yield a, np.frombuffer(raw, ">u4").astype(np.uint32)
@@ -144,3 +147,53 @@ def journaled_total(directory: str | Path, run: str) -> int:
     """Words of ``run`` in the journal (a gap, such as a lost datagram, is not counted)."""
     return sum(e["words"] for e in _entries(Path(directory) / f"{run}.index.jsonl")
                if not e.get("end"))
+
+
+def segment_spans(directory: str | Path, run: str) -> dict[int, tuple[int, int]]:
+    """Per segment number, the stream span [first, end) of the words it holds."""
+    spans: dict[int, tuple[int, int]] = {}
+    for e in _entries(Path(directory) / f"{run}.index.jsonl"):
+        if e.get("end"):
+            continue
+        lo, hi = e["first_word"], e["first_word"] + e["words"]
+        a, b = spans.get(e["segment"], (lo, hi))
+        spans[e["segment"]] = (min(a, lo), max(b, hi))
+    return spans
+
+
+def prune(directory: str | Path, run: str, keep_bytes: int, consumed_word: int) -> list[Path]:
+    """Delete the oldest closed segments of ``run`` while the journal holds more than
+    ``keep_bytes``, but only segments every consumer is past (their words all below
+    ``consumed_word``). Returns the files deleted. The index stays: it still says which
+    words existed, so a later reader knows what was pruned rather than lost."""
+    d = Path(directory)
+    segs = sorted(d.glob(f"{run}-*.bin"))
+    total = sum(p.stat().st_size for p in segs)
+    spans = segment_spans(d, run)
+    gone = []
+    for p in segs[:-1]:  # never the segment being written
+        if total <= keep_bytes:
+            break
+        n = int(p.stem.rsplit("-", 1)[1])
+        if n not in spans or spans[n][1] > consumed_word:
+            break
+        size = p.stat().st_size
+        p.unlink()
+        p.with_suffix(".json").unlink(missing_ok=True)
+        total -= size
+        gone.append(p)
+    return gone
+
+
+def pruned_words(directory: str | Path, run: str, start: int, stop: int) -> int:
+    """Words of [start, stop) the index records but retention has deleted."""
+    d = Path(directory)
+    n = 0
+    for e in _entries(d / f"{run}.index.jsonl"):
+        if e.get("end"):
+            continue
+        a = max(e["first_word"], start)
+        b = min(e["first_word"] + e["words"], stop)
+        if a < b and not (d / f"{run}-{e['segment']:06d}.bin").exists():
+            n += b - a
+    return n

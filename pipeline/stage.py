@@ -282,7 +282,8 @@ class ParquetSink:
     def __init__(self, out: str | Path, step_id: str = "sink"):
         self.out = Path(out)
         self.step_id = step_id
-        self.written: list[Path] = []
+        self.files = 0                 #: files written (a count: the daemon runs for weeks)
+        self.last: Path | None = None
 
     def path(self, header: dict) -> Path:
         import datetime as dt
@@ -299,7 +300,8 @@ class ParquetSink:
         path = self.path(header)
         with atomic_path(path) as tmp:
             pq.write_table(pa.Table.from_batches([batch]), tmp)
-        self.written.append(path)
+        self.files += 1
+        self.last = path
         return []
 
     def finish(self, header: dict) -> list:

@@ -162,3 +162,14 @@ def test_serve_publishes_scheduled_deployments():
     nightly = next(d for d in deps if d.name == "nightly")
     assert nightly.schedules and nightly.schedules[0].schedule.cron == "0 2 * * *"
     assert nightly.parameters["out"] == "data/calibration"
+
+
+def test_the_demo_story_runs_and_checks_itself(harness, tmp_path):
+    """What `make demo` runs, smaller: calibration flow, the daemon, ranges against truth."""
+    from flows.demo import run_story
+
+    r = run_story(tmp_path / "data", cycles=40_000, calibration_cycles=100_000, inl_rms=1.5)
+    assert r["ok"], r
+    assert {x["target"] for x in r["ranges"]} == {"car", "pedestrian", "wall"}
+    assert all(abs(x["error_cm"]) < 5 for x in r["ranges"])
+    assert Path(r["calibration report"]).exists()
