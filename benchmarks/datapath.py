@@ -45,7 +45,9 @@ def machine() -> str:
         pass
     import numba
 
-    return (f"{cpu}, {os.cpu_count()} cores (pinned to 1), Python {platform.python_version()},"
+    pinned = len(os.sched_getaffinity(0))
+    return (f"{cpu}, {os.cpu_count()} cores (this process may use {pinned}), "
+            f"Python {platform.python_version()},"
             f" numpy {np.__version__}, numba {numba.__version__}")
 
 

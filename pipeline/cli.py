@@ -323,7 +323,9 @@ def stage_source_capture(capture, pushes, run_id, rate, journal, split, metrics,
     def replay():
         for k in range(repeat):
             for first, w in cap.iter_chunks(max(1, (1 << 18) // n) * n):
-                yield k * cap.n_words + first, w.copy()
+                # the chunk's buffer is reused: run_source journals and sends (copying)
+                # each batch before it asks for the next
+                yield k * cap.n_words + first, w
 
     batches = _skip_journaled(replay(), journal, run_id)
     jw = (JournalWriter(journal, run_id, n, cap.meta.t_laser_win_ns,

@@ -37,6 +37,7 @@ class JournalWriter:
                 fh.write("\n")
         self.index = open(index, "a")
         self.segments: list[Path] = []
+        self._be = np.empty(0, ">u4")
 
     def _rotate(self) -> None:
         self._close_segment()
@@ -49,7 +50,11 @@ class JournalWriter:
     def append(self, first_word: int, words: np.ndarray) -> None:
         if self.fh is None or self.offset + words.size > self.segment_words:
             self._rotate()
-        self.fh.write(np.asarray(words, np.uint32).astype(">u4").tobytes())
+        n = words.size
+        if self._be.size < n:
+            self._be = np.empty(max(n, 1 << 20), ">u4")
+        np.copyto(self._be[:n], words, casting="unsafe")  # one byte-swapping copy, reused
+        self.fh.write(memoryview(self._be[:n]).cast("B"))
         self.fh.flush()
         self.index.write(json.dumps({"first_word": int(first_word), "segment": self.segment,
                                      "offset": self.offset, "words": int(words.size)}) + "\n")

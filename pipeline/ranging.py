@@ -49,6 +49,13 @@ def range_state(state: HistogramState, caldir: str | Path, window_s: float,
     inl_edges = np.concatenate([inl, inl[:, -1:]], axis=1)
     tau_edges = (k[None, :] + inl_edges) * lsb_s[:, None]
     x_t = window_s / lsb_s  # where tau = T falls, at this light
+    # ... unless the data say otherwise: nothing lies beyond the reset peak, so the last
+    # populated code bounds it. A calibration whose LSB is off for this light (a single
+    # density test used at another light) would otherwise leave the reset peak inside the
+    # searched codes, where it wins as a false target.
+    populated = state.hits.any(axis=1)
+    top = state.hits.shape[1] - np.argmax(state.hits[:, ::-1] > 0, axis=1)
+    x_t = np.where(populated, np.minimum(x_t, top), x_t)
     if sigma_s is None:
         sigma_s = float(meta.get("delay", {}).get("irf_sigma_s", np.median(lsb_s)))
     h = Histograms.from_codes(state.hits, tau_edges, state.cycles, window_s, x_t=x_t)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import signal
+import sys
 import threading
 import time
 from collections import Counter
@@ -81,7 +82,7 @@ def load_checkpoint(path: Path) -> dict | None:
 def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HWM,
               quarantine: str | Path | None = None, stop: threading.Event | None = None,
               poll_ms: int = 200, context: zmq.Context | None = None,
-              checkpoint: str | Path | None = None, checkpoint_every: int = 1,
+              checkpoint: str | Path | None = None, checkpoint_every_s: float = 1.0,
               run_ended=None, idle_after_s: float = 2.0, expect_stops: int = 1,
               metrics: str | None = None, name: str | None = None,
               drain_ms: int = 1000) -> StageStats:
@@ -89,7 +90,9 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
     a signal or ``stop`` is set. Returns the counts.
 
     With ``checkpoint``, a stateful core (``snapshot``/``restore``) is restored from that
-    file at start and saved every ``checkpoint_every`` data messages, so a restarted stage
+    file at start, saved at most every ``checkpoint_every_s`` seconds (a checkpoint is an
+    fsync; an older one only means more words refolded from the journal after a restart)
+    and at the end, so a restarted stage
     resumes where its checkpoint left it (the core skips what it already folded in and
     fills gaps from the journal). ``run_ended()`` returns the run's total words once its
     source has finished (from the journal), else None: after ``idle_after_s`` without a
@@ -110,7 +113,7 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
         state = load_checkpoint(ckpt)
         if state is not None:
             core.restore(state)
-    since = 0
+    saved_at = time.monotonic()
     idle = 0.0
     rx = _socket(ctx, zmq.PULL, hwm)
     rx.bind(pull)
@@ -164,11 +167,12 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
                     break
                 continue
             send(core.process(head, batch))
-            since += 1
-            if ckpt is not None and since >= checkpoint_every:
+            if ckpt is not None and time.monotonic() - saved_at >= checkpoint_every_s:
                 save_checkpoint(ckpt, core.snapshot())
-                since = 0
+                saved_at = time.monotonic()
         send(core.finish(last))
+        if ckpt is not None:
+            save_checkpoint(ckpt, core.snapshot())
         if tx is not None:
             stop_head = {"kind": "stop", "schema": core.out_spec.name,
                          "version": core.out_spec.version, "run": last.get("run", "run"),
@@ -244,6 +248,8 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
                 tb = time.perf_counter()
                 tx.send_multipart(wire.encode(head, batch))
                 blocked += time.perf_counter() - tb
+            if seq == 0:  # in the stage's log: when the run's words began to flow
+                print(f"first batch sent at {time.time():.6f}", file=sys.stderr, flush=True)
             sent += words.size
             seq += 1
             beat.beat(state="running", sent=seq, words=sent, blocked_s=round(blocked, 3))
