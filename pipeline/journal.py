@@ -51,10 +51,14 @@ class JournalWriter:
         if self.fh is None or self.offset + words.size > self.segment_words:
             self._rotate()
         n = words.size
-        if self._be.size < n:
-            self._be = np.empty(max(n, 1 << 20), ">u4")
-        np.copyto(self._be[:n], words, casting="unsafe")  # one byte-swapping copy, reused
-        self.fh.write(memoryview(self._be[:n]).cast("B"))
+        if words.dtype == np.dtype(">u4") and words.flags.c_contiguous:
+            data = words  # already as the file holds them
+        else:
+            if self._be.size < n:
+                self._be = np.empty(max(n, 1 << 20), ">u4")
+            np.copyto(self._be[:n], words, casting="unsafe")  # one byte-swap, reused buffer
+            data = self._be[:n]
+        self.fh.write(memoryview(data).cast("B"))
         self.fh.flush()
         self.index.write(json.dumps({"first_word": int(first_word), "segment": self.segment,
                                      "offset": self.offset, "words": int(words.size)}) + "\n")

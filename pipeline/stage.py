@@ -14,6 +14,7 @@ import sys
 import threading
 import time
 from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -230,24 +231,42 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
     # it to a restarted source, so a run never straddles two partitions)
     extra = {"date": date or dt.date.today().isoformat(),
              **({"window_ns": window_ns} if window_ns is not None else {})}
+    # The journal is written by a thread of its own, one batch ahead: batch i is sent only
+    # once its write has returned, but while it is being sent batch i + 1 is written.
+    writer = ThreadPoolExecutor(1, "journal") if journal is not None else None
+    pending = None  # (messages, journal write) of the batch before
+
+    def send_pending():
+        nonlocal blocked, pending
+        msgs, wrote = pending
+        if wrote is not None:
+            wrote.result()
+        for tx, frames in zip(txs, msgs, strict=True):
+            tb = time.perf_counter()
+            tx.send_multipart(frames)
+            blocked += time.perf_counter() - tb
+        pending = None
+
     try:
         for first, words in batches:
             if halt.is_set():  # a signal: end the run cleanly after the last whole batch
                 break
             words = np.asarray(words, np.uint32)
-            if journal is not None:
-                journal.append(first, words)
+            wrote = (writer.submit(journal.append, first, words.astype(">u4"))
+                     if writer is not None else None)  # (a copy: the words may be reused)
             parts = splitter.split(first, words) if splitter else [(first, words)]
-            for tx, (f, w), rng in zip(txs, parts, split or [(0, n_tdc)], strict=True):
+            msgs = []
+            for (f, w), rng in zip(parts, split or [(0, n_tdc)], strict=True):
                 batch = pa.record_batch([pa.array(w)], schema=RAW_WORDS.schema)
                 head = {"kind": "data", "schema": RAW_WORDS.name,
                         "version": RAW_WORDS.version, "run": run, "seq": seq, "step": step_id,
                         "first_word": int(f), "n_tdc": rng[1] - rng[0],
                         "n_tdc_total": n_tdc, "tdc_range": list(rng),
                         "t_laser_win_ns": t_laser_win_ns, **extra}
-                tb = time.perf_counter()
-                tx.send_multipart(wire.encode(head, batch))
-                blocked += time.perf_counter() - tb
+                msgs.append(wire.encode(head, batch))  # a copy: the words may be reused
+            if pending is not None:
+                send_pending()
+            pending = (msgs, wrote)
             if seq == 0:  # in the stage's log: when the run's words began to flow
                 print(f"first batch sent at {time.time():.6f}", file=sys.stderr, flush=True)
             sent += words.size
@@ -257,6 +276,11 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
                 ahead = sent / rate_words_s - (time.perf_counter() - t0)
                 if ahead > 0:
                     time.sleep(ahead)
+        if pending is not None:
+            send_pending()
+        if writer is not None:
+            writer.shutdown(wait=True)
+            writer = None
         if journal is not None:  # the run's end is on disk before anyone hears of it
             journal.close()
             journal = None
@@ -267,6 +291,8 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
         beat.beat(force=True, state="finished", sent=seq, words=sent,
                   blocked_s=round(blocked, 3))
     finally:
+        if writer is not None:
+            writer.shutdown(wait=True)
         if journal is not None:
             journal.close()
         beat.close()
