@@ -37,7 +37,9 @@ def density_run(lux, cycles, chip_seed=4, seed=1, dark=()):
 
 @pytest.fixture(scope="module")
 def run_1e7():
-    return density_run(1500, 10_000_000)
+    """1e7 cycles at ~55 % STARTs per cycle (4000 lux): ~5.5e6 hits per TDC, an INL
+    statistical floor of ~0.07 LSB RMS (cycles_needed), pile-up corrected."""
+    return density_run(4000, 10_000_000)
 
 
 def inl_rms_error(res, chip, light, window_s=80e-9):
@@ -53,11 +55,13 @@ def test_second_stage_parameters_are_exact(run_1e7):
         np.testing.assert_array_equal(getattr(second, name), getattr(chip, name), name)
 
 
-def test_lsb_within_0_1_ps_and_inl_at_its_statistical_floor(run_1e7):
+def test_lsb_within_0_1_ps_and_inl_below_0_1_lsb_rms(run_1e7):
     sim, chip, _, res = run_1e7
     rms, lsb_t = inl_rms_error(res, chip, sim.light)
     assert np.abs(res.lsb_s - lsb_t).max() < 0.1e-12
-    # ~0.1 LSB RMS is the binomial floor at 1e7 cycles (cycles_needed); allow its spread
+    assert rms.max() < 0.1, rms  # the issue's target, on every TDC, against the truth
+    assert np.all(res.inl_error_lsb < 0.1)  # and the test's own estimate says so too
+    # at the binomial floor (cycles_needed), not above it
     assert np.median(rms) < 1.5 * np.median(res.inl_error_lsb)
     assert rms.max() < 3 * res.inl_error_lsb.max()
     assert np.all(res.ok)
