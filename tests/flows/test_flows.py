@@ -173,3 +173,22 @@ def test_the_demo_story_runs_and_checks_itself(harness, tmp_path):
     assert {x["target"] for x in r["ranges"]} == {"car", "pedestrian", "wall"}
     assert all(abs(x["error_cm"]) < 5 for x in r["ranges"])
     assert Path(r["calibration report"]).exists()
+
+
+def test_a_sweep_fans_out_over_a_dask_cluster(harness, tmp_path):
+    """`tcspc flow run --dask ADDRESS`: tasks on a Dask cluster (needs the [dask] extra)."""
+    pytest.importorskip("prefect_dask")
+    from click.testing import CliRunner
+    from distributed import LocalCluster
+
+    from pipeline.cli import cli
+
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False,
+                      dashboard_address=None) as cluster:
+        res = CliRunner().invoke(cli, ["flow", "run", "speed_vs_error", "--dask",
+                                       cluster.scheduler_address, "-p", f"out={tmp_path}",
+                                       "-p", "pixels=10", "-p", "m=[1.0]", "-p",
+                                       "cycles=[1000]", "-p", "sbr=[100.0]"])
+    assert res.exit_code == 0, res.output
+    cells = pl.read_parquet(next(tmp_path.glob("runs/*/cells.parquet")))
+    assert cells.height == 3 * 5
