@@ -2,11 +2,12 @@
 
 Grid: M (signal detections per cycle) 0.01, 0.1, 1, 5 x cycles 1e3, 1e4, 1e5 (signal
 counts 10 .. 5e5) x SBR 0.01, 1, 100 x the return's place in the window (near its end, the
-middle, next to the reset peak). Each cell draws 200 first-photon histograms from the exact
-model (0.2 ns bins, 0.2 ns jitter, 80 ns window, 20 ns reset period) and runs every
-estimator: throughput (histograms/s, one core), bias, RMSE, RMSE over the CRLB, outliers
-(|error| > 5 CRLB) and detection rate. Writes the cells as parquet, a Pareto plot of speed
-against error, and prints a Markdown summary.
+middle, next to the reset peak). The CRLB is that of time and M both unknown (what every
+estimator faces: no one knows the return's strength beforehand). Each cell draws 200
+first-photon histograms from the exact model (0.2 ns bins, 0.2 ns jitter, 80 ns window,
+20 ns reset period) and runs every estimator: throughput (histograms/s, one core), bias,
+RMSE, RMSE over the CRLB, outliers (|error| > 5 CRLB) and detection rate. Writes the cells
+as parquet, a Pareto plot of speed against error, and prints a Markdown summary.
 
     python benchmarks/speed_vs_error.py [--out benchmarks/results] [--pixels 200]
 """

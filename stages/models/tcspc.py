@@ -273,7 +273,7 @@ def centroid_sigma(n_cycles, signal_rate_hz, sbr, t0_s, bin_s, sigma_s, n_hw):
 
 
 def crlb_tof(n_cycles, m_signal, tof_s, sigma_s, bg_rate_hz, window_s, bin_s,
-             reset_s=0.0):
+             reset_s=0.0, amplitude_known: bool = True):
     """Cramer-Rao lower bound on the standard deviation of the arrival time (seconds).
 
     The Fisher information of the multinomial first-detection outcome of one cycle (every
@@ -281,6 +281,11 @@ def crlb_tof(n_cycles, m_signal, tof_s, sigma_s, bg_rate_hz, window_s, bin_s,
     ``I = sum_k (dp_k/dTOF)^2 / p_k``. The background carries no information about the
     arrival time but takes first detections away from the signal. Bins whose probability
     underflows carry no information and are skipped.
+
+    ``amplitude_known=False``: the bound when M is estimated alongside the time (as every
+    practical estimator must): the (t, t) element of the inverse of the 2 x 2 Fisher
+    information of (TOF, M). Under pile-up the leading edge's shape depends on M, so the
+    two are correlated and this bound is the larger; at small M they agree.
 
     >>> s = crlb_tof(10_000, 0.01, 40e-9, 0.2e-9, 0.0, 80e-9, 1e-12)
     >>> round(float(s / (0.2e-9 / np.sqrt(100))), 2)  # ~ sigma / sqrt(signal counts)
@@ -296,18 +301,39 @@ def crlb_tof(n_cycles, m_signal, tof_s, sigma_s, bg_rate_hz, window_s, bin_s,
         zt = (t - tof) / sigma
         return -(m / sigma) * (np.exp(-0.5 * zt * zt) - np.exp(-0.5 * zs * zs)) / SQRT2PI
 
-    d = dldt(edges)                      # (..., n_bins + 1)
+    def dldm(t):  # dL(t)/dM = Phi(z_t) - Phi(z_start)
+        return ndtr((t - tof) / sigma) - ndtr(zs)
+
     l_a = _before(dl, l_reset)           # (..., n_bins)
+    p_r = -np.expm1(-l_reset)
+    l_t = l_reset + dl.sum(-1)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
-        # bin [a, b): p = e^{-L_a}(1 - e^{-dL}),  dp = e^{-L_a}(D_b e^{-dL} - D_a)
         log_p = -l_a + _log1mexp_of_log(log_dl)
-        g = d[..., 1:] * np.exp(-dl) - d[..., :-1]
-        info = np.where(np.isfinite(log_p) & (g != 0),
-                        np.exp(-2 * l_a + 2 * np.log(np.abs(g)) - log_p), 0.0).sum(-1)
-        # reset peak: p = 1 - e^{-L(0)}, dp = e^{-L(0)} D(0)
-        p_r = -np.expm1(-l_reset)
-        info += np.where(p_r > 0, (np.exp(-l_reset) * d[..., 0]) ** 2 / p_r, 0.0)
-        # no detection: p = e^{-L(T)}, dp = -e^{-L(T)} D(T)
-        l_t = l_reset + dl.sum(-1)
-        info += np.exp(-l_t) * d[..., -1] ** 2
+        ok = np.isfinite(log_p)
+
+        def grads(dfun):
+            d = dfun(edges)                  # (..., n_bins + 1)
+            # bin [a, b): p = e^{-L_a}(1 - e^{-dL}),  dp = e^{-L_a}(D_b e^{-dL} - D_a);
+            # the e^{-L_a} is kept apart so that products are taken in log space
+            g = d[..., 1:] * np.exp(-dl) - d[..., :-1]
+            # reset peak: dp = e^{-L(0)} D(0); no detection: dp = -e^{-L(T)} D(T)
+            return g, np.exp(-l_reset) * d[..., 0], -np.exp(-l_t) * d[..., -1]
+
+        def fisher(a, b):
+            (ga, ra, na), (gb, rb, nb) = a, b
+            prod = ga * gb
+            info = np.where(ok & (prod != 0), np.sign(prod) * np.exp(
+                -2 * l_a + np.log(np.abs(ga)) + np.log(np.abs(gb)) - log_p), 0.0).sum(-1)
+            info += np.where(p_r > 0, ra * rb / p_r, 0.0)
+            info += na * nb * np.exp(l_t)
+            return info
+
+        gt = grads(dldt)
+        i_tt = fisher(gt, gt)
+        if amplitude_known:
+            info = i_tt
+        else:
+            gm = grads(dldm)
+            i_tm, i_mm = fisher(gt, gm), fisher(gm, gm)
+            info = (i_tt * i_mm - i_tm * i_tm) / i_mm
         return 1.0 / np.sqrt(np.asarray(n_cycles, np.float64) * info)
