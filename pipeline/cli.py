@@ -489,10 +489,11 @@ def status(state, watch, as_json) -> None:
     if as_json:
         click.echo(path.read_text())
         return
+    con = Console(width=None if sys.stdout.isatty() else 160)  # piped: no wrapped columns
     if watch is None:
-        Console().print(_status_table(json.loads(path.read_text())))
+        con.print(_status_table(json.loads(path.read_text())))
         return
-    with Live(_status_table(json.loads(path.read_text())), console=Console()) as live:
+    with Live(_status_table(json.loads(path.read_text())), console=con) as live:
         while True:
             _time.sleep(watch)
             live.update(_status_table(json.loads(path.read_text())))

@@ -477,6 +477,7 @@ def reconcile(topo: Topology) -> dict:
     from pipeline.fanout import worker_reader
     from pipeline.journal import pruned_words, read_range, run_end
     from pipeline.stage import ParquetSink
+    from stages.artifact import ArtifactBounds
     from stages.stream import HistogramCore
 
     journal = topo.state / "journal"
@@ -510,8 +511,6 @@ def reconcile(topo: Topology) -> dict:
             if pruned_words(journal, topo.run, k * mc * n, min((k + 1) * mc, cycles) * n):
                 unrecoverable.append([k, a])  # its words were pruned (journal_keep_gb)
                 continue
-            from stages.artifact import ArtifactBounds
-
             bounds = (ArtifactBounds(bounds_all.n_min[a:b], bounds_all.n_max[a:b],
                                      bounds_all.source) if bounds_all else None)
             core = HistogramCore(b - a, bounds, tdc_offset=a,

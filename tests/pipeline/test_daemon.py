@@ -150,6 +150,14 @@ def test_daemon_end_to_end_with_ranges(tmp_path, caldir):
     assert st["state"] == "finished"
     assert set(st["stages"]) == {"source", "histogram-0", "histogram-1", "range", "sink"}
     assert st["stages"]["histogram-0"]["words_total"] == 45_000 * N // 2  # heartbeats
+    from click.testing import CliRunner
+
+    from pipeline.cli import cli
+
+    out = CliRunner().invoke(cli, ["status", "--state", str(tmp_path / "state")])
+    assert out.exit_code == 0, out.output
+    for name in ("source", "histogram-1", "range", "sink", "finished"):
+        assert name in out.output
 
 
 def test_sigkill_of_a_histogram_worker_changes_nothing(tmp_path):
