@@ -51,8 +51,17 @@ def captures_in(directory: str | Path) -> tuple[list[Path], Path]:
     return density, delay[0]
 
 
+def _open(c):
+    """A capture path, or a daemon's journal run already opened as one."""
+    return c if hasattr(c, "iter_chunks") else Capture(c)
+
+
+def _label(c) -> str:
+    return f"journal run {c.name}" if hasattr(c, "paths") else str(c)
+
+
 @task(cache_policy=NO_CACHE)
-def fit_lsb(captures: list[str], candidate: str, inl_rms: float) -> dict:
+def fit_lsb(captures: list, candidate: str, inl_rms: float) -> dict:
     """Density tests -> INL and LSB polynomial, into the candidate directory."""
     log = get_run_logger()
     best, fit, n, lsbs = lsb_campaign(captures, candidate, inl_rms, log=log.info)
@@ -62,7 +71,7 @@ def fit_lsb(captures: list[str], candidate: str, inl_rms: float) -> dict:
 
 
 @task(cache_policy=NO_CACHE)
-def measure_delay(capture: str, candidate: str) -> list[float]:
+def measure_delay(capture, candidate: str) -> list[float]:
     """Zero-distance capture -> delay per TDC (eq. 5.3), added to the candidate."""
     return (add_delay(capture, candidate) * 1e9).tolist()
 
@@ -95,17 +104,17 @@ def plots(candidate: str, fit: dict, run: str) -> list[str]:
     return [str(a), str(b)]
 
 
-def _truth_check(captures: list[Path], delay_capture: Path, fit: dict,
+def _truth_check(captures: list, delay_capture, fit: dict,
                  delay_ns: list[float]) -> tuple[str, dict]:
     """Against the simulator's truth (when the captures carry it): LSB error per density
     test, INL error of the published table, delay error."""
-    truths = [Capture(c).meta.truth for c in captures]
+    truths = [_open(c).meta.truth for c in captures]
     if not all(truths):
         return "The captures carry no truth (a real sensor): nothing to check against.", {}
     lsb_meas = np.asarray(fit["lsb_ps"])
     lsb_true = np.column_stack([t["chip"]["lsb_window_ps"] for t in truths])
     err = lsb_meas - lsb_true
-    dt = Capture(delay_capture).meta.truth
+    dt = _open(delay_capture).meta.truth
     d_true = dt["delay_ns"] + 2 * np.nan_to_num(np.array(dt["distance_m"], float)) / 0.299792458
     d_err_ps = (np.asarray(delay_ns) - d_true) * 1e3
     figures = {"lsb_error_rms_ps": float(np.sqrt(np.nanmean(err ** 2))),
@@ -125,15 +134,27 @@ def calibration_campaign(out: str = "data/calibration", lux: list[float] | None 
                          cycles: int = 400_000, delay_cycles: int = 200_000,
                          n_pixels: int = 128, chip_seed: int = 1, seed: int = 0,
                          inl_rms: float = 0.5, captures: str | None = None,
-                         force: bool = False) -> dict:
+                         journal: str | None = None, density_runs: list[str] | None = None,
+                         delay_run: str | None = None, force: bool = False) -> dict:
     """Calibrate the chip: density tests at ``lux`` levels, the zero-distance delay, then
     publish to ``out/current`` unless the candidate is worse than what is there (``force``
     publishes anyway). Runs on the simulator unless ``captures`` names a directory of
-    density captures and one delay capture."""
+    density captures and one delay capture, or ``journal`` a running daemon's journal
+    (``STATE/journal``) with the runs it recorded under uniform light (``density_runs``)
+    and at zero distance (``delay_run``)."""
     log = get_run_logger()
     run = new_run_dir(out, "calibration_campaign")
     cache = str(Path(out) / "cache")
-    if captures:
+    if journal:
+        from pipeline.journal import JournalCapture
+
+        if not density_runs or not delay_run:
+            raise CalibrationError("a campaign on a daemon's journal needs density_runs and "
+                                   "delay_run")
+        density_caps = [JournalCapture(journal, r) for r in density_runs]
+        delay_cap = JournalCapture(journal, delay_run)
+        source = f"daemon journal {journal}: runs {density_runs}, delay run {delay_run}"
+    elif captures:
         density_caps, delay_cap = captures_in(captures)
         source = f"captures in {captures}"
     else:
@@ -147,8 +168,10 @@ def calibration_campaign(out: str = "data/calibration", lux: list[float] | None 
         source = (f"simulator: chip seed {chip_seed}, {n_pixels} pixels, {cycles:,} cycles at "
                   f"{lux} lux, delay {delay_cycles:,} cycles")
     candidate = str(run / "calibration")
-    fit = fit_lsb([str(c) for c in density_caps], candidate, inl_rms)
-    delay_ns = measure_delay(str(delay_cap), candidate)
+    fit = fit_lsb([c if hasattr(c, "paths") else str(c) for c in density_caps], candidate,
+                  inl_rms)
+    delay_ns = measure_delay(delay_cap if hasattr(delay_cap, "paths") else str(delay_cap),
+                             candidate)
     pngs = plots(candidate, fit, str(run))
     current = str(Path(out) / "current")
     worse = verdict(candidate, current)
@@ -159,7 +182,7 @@ def calibration_campaign(out: str = "data/calibration", lux: list[float] | None 
     else:
         log.warning("candidate NOT published (worse than %s): %s", current, "; ".join(worse))
     truth_text, truth = _truth_check(density_caps, delay_cap, fit, delay_ns)
-    tests = pl.DataFrame({"capture": [str(c) for c in density_caps],
+    tests = pl.DataFrame({"capture": [_label(c) for c in density_caps],
                           "detections_per_pixel_per_cycle": fit["n"],
                           "lsb_mean_ps": np.nanmean(np.asarray(fit["lsb_ps"]), axis=0),
                           "lsb_min_ps": np.nanmin(np.asarray(fit["lsb_ps"]), axis=0),
@@ -170,7 +193,8 @@ def calibration_campaign(out: str = "data/calibration", lux: list[float] | None 
                "published": published, "refused_because": worse, "quality": q.__dict__,
                "delay_ns": [float(np.nanmin(delay_ns)), float(np.nanmax(delay_ns))],
                "plots": pngs, "truth": truth,
-               "captures": {"density": [str(c) for c in density_caps], "delay": str(delay_cap)}}
+               "captures": {"density": [_label(c) for c in density_caps],
+                            "delay": _label(delay_cap)}}
     verdict_text = ("Published to `current`." if published and not worse else
                     "Published to `current` (forced) although: " + "; ".join(worse)
                     if published else "**Not published**: " + "; ".join(worse)

@@ -106,7 +106,8 @@ def figures(points: pl.DataFrame, summary: pl.DataFrame, run: str) -> list[str]:
         ax[1].set_title("error and FWHM (Fig. 5.5)")
         ax[1].legend(fontsize=8)
         ax[1].grid(alpha=0.3)
-        piv = (p.pivot(on="tdc", index="true_m", values="error_m").sort("true_m"))
+        piv = (p.pivot(on="tdc", index="true_m", values="error_m",
+                       aggregate_function="median").sort("true_m"))
         img = piv.drop("true_m").to_numpy().T * 100
         im = ax[2].imshow(img, aspect="auto", cmap="coolwarm", origin="lower",
                           extent=[0, piv.height, -0.5, img.shape[0] - 0.5],
@@ -123,12 +124,16 @@ def figures(points: pl.DataFrame, summary: pl.DataFrame, run: str) -> list[str]:
 def distance_sweep(out: str = "data/sweeps", calibration: str | None = None,
                    distances: list[float] | None = None, cycles: int = 20_000,
                    estimator: str = "ml", n_pixels: int = 128, chip_seed: int = 1,
-                   seed: int = 100, captures: str | None = None) -> dict:
+                   seed: int = 100, captures: str | None = None, stream: str | None = None,
+                   runs: dict[str, float] | None = None) -> dict:
     """Range against truth over distance, on the simulator (a calibration campaign first
-    when no ``calibration`` is given) or on ``captures`` (a directory of range captures
-    whose sidecar truth holds the distance)."""
+    when no ``calibration`` is given), on ``captures`` (a directory of range captures
+    whose sidecar truth holds the distance), or on a running daemon's datasets: ``stream``
+    (its sink's ``out``) with ``runs`` mapping each run id to the distance it measured."""
     log = get_run_logger()
     run = new_run_dir(out, "distance_sweep")
+    if stream is not None:
+        return _from_stream(run, stream, runs or {}, log)
     if calibration is None:
         from flows.calibration import calibration_campaign
 
@@ -161,11 +166,47 @@ def distance_sweep(out: str = "data/sweeps", calibration: str | None = None,
     summary = summarise(points)
     summary.write_parquet(run / "summary.parquet")
     pngs = figures(points, summary, str(run))
+    return _report(run, points, summary, pngs, log, len(jobs), setup=(
+        f"calibration `{calibration}`; estimator {estimator}; " + (
+            f"captures in {captures}" if captures else
+            f"simulator, {cycles:,} cycles per point, chip seed {chip_seed}")))
+
+
+@task(cache_policy=NO_CACHE)
+def read_stream(stream: str, runs: dict[str, float]) -> pl.DataFrame:
+    """The ranges a daemon wrote for ``runs`` (every measurement), with the truth."""
+    frames = []
+    for name, d in runs.items():
+        files = sorted(Path(stream).glob(f"ranges/date=*/run={name}/*.parquet"))
+        if not files:
+            raise ValueError(f"{stream}: no ranges of run {name!r} (is it a daemon's sink "
+                             "directory, and did the run have a [range] stage?)")
+        r = pl.read_parquet(files)
+        frames.append(r.with_columns(true_m=pl.lit(float(d)),
+                                     error_m=pl.col("distance_m") - float(d),
+                                     gate_ns=pl.lit(None, pl.Float64)).drop("measurement"))
+    return pl.concat(frames)
+
+
+def _from_stream(run: Path, stream: str, runs: dict[str, float], log) -> dict:
+    if not runs:
+        raise ValueError("a sweep on a daemon's datasets needs runs: {run id: distance}")
+    points = read_stream(stream, runs)
+    points.write_parquet(run / "points.parquet")
+    summary = summarise(points)
+    summary.write_parquet(run / "summary.parquet")
+    pngs = figures(points, summary, str(run))
+    return _report(run, points, summary, pngs, log, len(runs),
+                   setup=f"the daemon's datasets in {stream}, runs {runs}")
+
+
+def _report(run: Path, points: pl.DataFrame, summary: pl.DataFrame, pngs: list[str], log,
+            n_points: int, setup: str) -> dict:
     det = points.filter(pl.col("detected"))
     short = summary.filter(pl.col("true_m") <= 3.0)
     long = summary.filter(pl.col("true_m") > 3.0)
     facts = {
-        "points": len(jobs), "tdcs": int(points["tdc"].n_unique()),
+        "points": n_points, "tdcs": int(points["tdc"].n_unique()),
         "detected": float(points["detected"].mean()),
         "median_abs_error_cm": float(det["error_m"].abs().median() * 100),
         "short_fwhm_cm": [float(short["fwhm_mean_m"].min() * 100),
@@ -183,9 +224,7 @@ def distance_sweep(out: str = "data/sweeps", calibration: str | None = None,
         (pl.col("mismatch_m") * 100).alias("TDC mismatch cm"),
         (pl.col("fwhm_mean_m") * 100).alias("FWHM cm"))
     rep = report(str(run / "report.md"), "Distance sweep", [
-        ("Setup", f"calibration `{calibration}`; estimator {estimator}; "
-                  f"{'captures in ' + captures if captures else f'simulator, {cycles:,} cycles per point, chip seed {chip_seed}'}; "  # noqa: E501
-                  f"{len(jobs)} distances x {facts['tdcs']} TDCs."),
+        ("Setup", f"{setup}; {n_points} distances x {facts['tdcs']} TDCs."),
         ("Summary", "\n".join(f"- {k}: {v}" for k, v in facts.items())),
         ("Per distance", markdown_table(table)),
         ("Plots", "\n".join(f"![{Path(p).stem}]({Path(p).name})" for p in pngs)),

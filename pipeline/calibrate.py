@@ -185,17 +185,18 @@ def lsb_at(caldir: str | Path, n_light: float) -> np.ndarray:
     return fit.lsb_ps(n_light) * 1e-12
 
 
-def lsb_campaign(captures: list[str | Path], out: str | Path, inl_rms_lsb: float = 0.5,
+def lsb_campaign(captures: list, out: str | Path, inl_rms_lsb: float = 0.5,
                  log=None) -> tuple[cal.DensityResult, cal.LsbFit, np.ndarray, np.ndarray]:
     """Density tests at several light levels -> LSB per TDC as a cubic in eq. 5.1's n, INL
     from the test with the smallest statistical error; written to ``out`` atomically.
+    ``captures``: capture paths, or objects read like one (a daemon's journal run).
 
     Returns the density test kept for the INL, the fit, the light levels and the per-test
     LSBs (ps, TDC x test). Raises CalibrationError when no test reaches ``inl_rms_lsb``.
     """
     results = []
     for path in captures:
-        cap = Capture(path)
+        cap = path if hasattr(path, "iter_chunks") else Capture(path)
         res, second = density_from_capture(cap, None)  # dim tests give an LSB, not an INL
         results.append((cap, res, second))
         if log:
@@ -213,16 +214,17 @@ def lsb_campaign(captures: list[str | Path], out: str | Path, inl_rms_lsb: float
     if not worst <= inl_rms_lsb:
         raise CalibrationError(f"the best density test ({best[0].bin_path.name}) gives an "
                                f"INL error of {worst:.2f} LSB RMS > {inl_rms_lsb}")
-    write_caldir(out, best[1], best[2], [c.bin_path for c, _, _ in results], lsb_fit=fit)
+    sources = [p for c, _, _ in results for p in getattr(c, "paths", [c.bin_path])]
+    write_caldir(out, best[1], best[2], sources, lsb_fit=fit)
     return best[1], fit, n, lsbs
 
 
-def add_delay(capture: str | Path, caldir: str | Path) -> np.ndarray:
+def add_delay(capture, caldir: str | Path) -> np.ndarray:
     """Measure the system delay per TDC on a zero-distance capture (eq. 5.3) and rewrite
     ``caldir`` with it (atomically). Returns the delay in seconds."""
     from pipeline.caldir import read_bounds
 
-    cap = Capture(capture)
+    cap = capture if hasattr(capture, "iter_chunks") else Capture(capture)
     res, meta = read_density(caldir)
     acc = HistogramAccumulator(cap.meta.n_tdc, read_bounds(caldir, cap.meta.n_tdc))
     for first, words in cap.iter_chunks():
@@ -238,7 +240,8 @@ def add_delay(capture: str | Path, caldir: str | Path) -> np.ndarray:
                                for c in ("n_min", "n_max", "n_th", "pdm")))
     sources = [Path(s["path"]) for s in meta["sources"] if Path(s["path"]).exists()]
     extra = {k: v for k, v in meta.items() if k.startswith("lsb_")}
-    write_caldir(caldir, res, second, sources + [cap.bin_path], lsb_fit=read_lsb_fit(caldir),
+    write_caldir(caldir, res, second, sources + getattr(cap, "paths", [cap.bin_path]),
+                 lsb_fit=read_lsb_fit(caldir),
                  delay_s=d, extra={**extra, "delay": {
                      "capture": str(cap.bin_path), "light": light,
                      "counts_used": used.tolist(), "irf_sigma_s": float(np.nanmedian(irf))}})

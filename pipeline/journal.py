@@ -206,3 +206,33 @@ def pruned_words(directory: str | Path, run: str, start: int, stop: int) -> int:
         if a < b and not (d / f"{run}-{e['segment']:06d}.bin").exists():
             n += b - a
     return n
+
+
+class JournalCapture:
+    """A run of a daemon's journal read as a capture (what the calibration code takes):
+    ``meta``, ``name``, ``bin_path`` (the run's index), ``paths`` (its segments) and
+    ``iter_chunks()``. The journal is readable while it is written; a run still being
+    written is read up to where it stands."""
+
+    def __init__(self, directory: str | Path, run: str):
+        self.dir, self.name = Path(directory), run
+        self.bin_path = self.dir / f"{run}.index.jsonl"
+        if not self.bin_path.exists():
+            from schemas.errors import CaptureError
+
+            raise CaptureError(f"{self.bin_path}: no run {run!r} in the journal {self.dir}")
+        sides = sorted(self.dir.glob(f"{run}-*.json"))
+        self.paths = sorted(self.dir.glob(f"{run}-*.bin"))
+        first = json.loads(sides[0].read_text()) if sides else {}
+        n_tdc = int(first.get("n_tdc", 128))
+        self.n_words = journaled_total(self.dir, run)
+        self.meta = CaptureMeta.from_dict(
+            {"format": "tcspc-raw", "version": 1, "kind": "journal", "n_tdc": n_tdc,
+             "window_ns": first.get("window_ns", 80.0),
+             "t_laser_win_ns": first.get("t_laser_win_ns", 140.0),
+             "cycles": self.n_words // n_tdc}, str(self.bin_path))
+
+    def iter_chunks(self, chunk_words: int = 1 << 20) -> Iterator[tuple[int, np.ndarray]]:
+        end = run_end(self.dir, self.name) or self.n_words
+        for start in range(0, end, chunk_words):
+            yield from read_range(self.dir, self.name, start, min(start + chunk_words, end))

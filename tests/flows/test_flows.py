@@ -192,3 +192,67 @@ def test_a_sweep_fans_out_over_a_dask_cluster(harness, tmp_path):
     assert res.exit_code == 0, res.output
     cells = pl.read_parquet(next(tmp_path.glob("runs/*/cells.parquet")))
     assert cells.height == 3 * 5
+
+
+def test_campaign_and_sweep_against_a_daemon(campaign, tmp_path, harness):
+    """The same flows on a daemon's data: the calibration campaign on runs of its journal,
+    the distance sweep on its ranges dataset."""
+    from flows.calibration import calibration_campaign
+    from flows.common import scene_dict
+    from flows.distance_sweep import distance_sweep
+    from pipeline.capture import Capture
+    from pipeline.daemon import Supervisor, load_topology
+    from pipeline.journal import JournalWriter
+
+    out, r = campaign
+    journal = tmp_path / "state" / "journal"
+    names = [f"dens{i}" for i in range(len(r["captures"]["density"]))]
+    for name, path in zip(names + ["zero"], r["captures"]["density"] + [r["captures"]["delay"]],
+                          strict=True):
+        cap = Capture(path)  # as the daemon would have journaled it, run by run
+        w = JournalWriter(journal, name, cap.meta.n_tdc, cap.meta.t_laser_win_ns)
+        for first, words in cap.iter_chunks(1 << 16):
+            w.append(first, words.copy())
+        w.close()
+    res = calibration_campaign(out=str(tmp_path / "cal"), journal=str(journal),
+                               density_runs=names, delay_run="zero", inl_rms=1.0)
+    assert res["published"] and res["quality"]["tdcs_ok"] == N_PIX
+    same = quality(tmp_path / "cal" / "current")
+    assert same.inl_error_lsb == pytest.approx(quality(out / "current").inl_error_lsb)
+
+    import tomllib
+
+    scene = tmp_path / "r.toml"
+    raw = scene_dict("short_range", n_pixels=N_PIX, distance_m=1.25)
+    scene.write_text(_toml(raw))
+    assert tomllib.loads(scene.read_text())["targets"][0]["distance_m"] == 1.25
+    topo = load_topology(None, "r1", overrides={
+        "daemon": {"state": str(tmp_path / "state")},
+        "source": {"scene": str(scene), "cycles": 40_000},
+        "histogram": {"workers": 1, "measurement_cycles": 20_000},
+        "range": {"calibration": str(out / "current")},
+        "sink": {"out": str(tmp_path / "stream")}})
+    assert Supervisor(topo, log=lambda m: None).run()["failed"] is None
+    sweep = distance_sweep(out=str(tmp_path / "sweep"), stream=str(tmp_path / "stream"),
+                           runs={"r1": 1.25})
+    pts = pl.read_parquet(Path(sweep["run"]) / "points.parquet")
+    assert pts.height == 2 * N_PIX and pts["detected"].all()
+    assert sweep["median_abs_error_cm"] < 3.0
+
+
+def _toml(d: dict, prefix: str = "") -> str:
+    """A scene dict back to TOML (tables and arrays of tables, one level deep)."""
+    lines, tables = [], []
+    for k, v in d.items():
+        if isinstance(v, dict):
+            tables.append(f"[{k}]\n" + "".join(f"{a} = {_val(b)}\n" for a, b in v.items()))
+        elif isinstance(v, list) and v and isinstance(v[0], dict):
+            tables += [f"[[{k}]]\n" + "".join(f"{a} = {_val(b)}\n" for a, b in t.items())
+                       for t in v]
+        else:
+            lines.append(f"{k} = {_val(v)}\n")
+    return "".join(lines) + "".join(tables)
+
+
+def _val(v) -> str:
+    return json.dumps(v) if not isinstance(v, bool) else str(v).lower()
