@@ -289,6 +289,7 @@ class Supervisor:
         self.started = time.time()
         self.failed: str | None = None
         self.pruned = 0
+        self._spans = None
         for d in ("logs", "sock", "journal", f"checkpoints/{topo.run}"):
             (topo.state / d).mkdir(parents=True, exist_ok=True)
 
@@ -419,10 +420,13 @@ class Supervisor:
     def _prune(self) -> None:
         if self.topo.journal_keep_gb is None:
             return
-        from pipeline.journal import prune
+        from pipeline.journal import IndexSpans, prune
 
+        if self._spans is None:
+            self._spans = IndexSpans(self.topo.state / "journal", self.topo.run)
         gone = prune(self.topo.state / "journal", self.topo.run,
-                     int(self.topo.journal_keep_gb * 1e9), self._consumed_word())
+                     int(self.topo.journal_keep_gb * 1e9), self._consumed_word(),
+                     self._spans.update())
         self.pruned += len(gone)
 
     # -------------------------------------------------------------- run

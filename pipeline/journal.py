@@ -170,7 +170,8 @@ def segment_spans(directory: str | Path, run: str) -> dict[int, tuple[int, int]]
     return spans
 
 
-def prune(directory: str | Path, run: str, keep_bytes: int, consumed_word: int) -> list[Path]:
+def prune(directory: str | Path, run: str, keep_bytes: int, consumed_word: int,
+          spans: dict[int, tuple[int, int]] | None = None) -> list[Path]:
     """Delete the oldest closed segments of ``run`` while the journal holds more than
     ``keep_bytes``, but only segments every consumer is past (their words all below
     ``consumed_word``). Returns the files deleted. The index stays: it still says which
@@ -178,7 +179,7 @@ def prune(directory: str | Path, run: str, keep_bytes: int, consumed_word: int) 
     d = Path(directory)
     segs = sorted(d.glob(f"{run}-*.bin"))
     total = sum(p.stat().st_size for p in segs)
-    spans = segment_spans(d, run)
+    spans = segment_spans(d, run) if spans is None else spans
     gone = []
     for p in segs[:-1]:  # never the segment being written
         if total <= keep_bytes:
@@ -236,3 +237,36 @@ class JournalCapture:
         end = run_end(self.dir, self.name) or self.n_words
         for start in range(0, end, chunk_words):
             yield from read_range(self.dir, self.name, start, min(start + chunk_words, end))
+
+
+class IndexSpans:
+    """The per-segment spans of a run's index (as :func:`segment_spans`), read
+    incrementally: a daemon that runs for weeks must not re-read a growing index every
+    second (the soak showed the supervisor's memory climbing with it)."""
+
+    def __init__(self, directory: str | Path, run: str):
+        self.path = Path(directory) / f"{run}.index.jsonl"
+        self.offset = 0
+        self.partial = b""
+        self.spans: dict[int, tuple[int, int]] = {}
+
+    def update(self) -> dict[int, tuple[int, int]]:
+        if not self.path.exists():
+            return self.spans
+        with open(self.path, "rb") as fh:
+            fh.seek(self.offset)
+            data = fh.read()
+        self.offset += len(data)
+        lines = (self.partial + data).split(b"\n")
+        self.partial = lines.pop()  # a line still being written
+        for line in lines:
+            try:
+                e = json.loads(line)
+            except ValueError:
+                continue
+            if e.get("end") or "segment" not in e:
+                continue
+            lo, hi = e["first_word"], e["first_word"] + e["words"]
+            a, b = self.spans.get(e["segment"], (lo, hi))
+            self.spans[e["segment"]] = (min(a, lo), max(b, hi))
+        return self.spans
