@@ -389,12 +389,14 @@ if numba is not None:
         r = np.empty(n)
         for p in range(n_pix):
             acc = 0.0
+            cs = 0.0
+            rws = 0.0
             C[0] = 0.0
             RW[0] = 0.0
             nv = 0
             cyc = cycles[p]
             e0 = edges[p, 0]
-            for j in range(n):  # branch-free: the mask multiplies
+            for j in range(n):  # running sums in registers (not re-read from the arrays)
                 c = counts[p, j]
                 e1 = edges[p, j + 1]
                 rj = cyc - acc
@@ -402,17 +404,19 @@ if numba is not None:
                 acc += c
                 vj = 1.0 if valid[p, j] else 0.0
                 nv += valid[p, j]
-                C[j + 1] = C[j] + c * vj
-                RW[j + 1] = RW[j] + max(rj, 0.0) * (e1 - e0) * vj
+                cs += c * vj
+                rws += max(rj, 0.0) * (e1 - e0) * vj
+                C[j + 1] = cs
+                RW[j + 1] = rws
                 e0 = e1
-            bg0 = C[n] / max(RW[n], 1e-300)
+            bg0 = cs / max(rws, 1e-300)
             best = -np.inf
             peak = 0
-            for j in range(n):
-                lo = max(j - kb, 0)
-                hi = min(j + kb + 1, n)
+            for j in range(n):  # the box's ends clamp only near the histogram's ends
+                lo = j - kb if j >= kb else 0
+                hi = j + kb + 1 if j + kb + 1 <= n else n
                 v = (C[hi] - C[lo]) - bg0 * (RW[hi] - RW[lo])
-                if valid[p, j] and v > best:
+                if v > best and valid[p, j]:
                     best = v
                     peak = j
             flo = max(peak - 4 * kc, 0)
