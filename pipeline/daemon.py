@@ -216,6 +216,7 @@ class Proc:
     finished: bool = False
     exit_codes: list[int] = field(default_factory=list)
     upstream_done_at: float | None = None
+    last_received: int | None = None
     terminated: bool = False
 
 
@@ -312,10 +313,14 @@ class Supervisor:
             code = p.popen.poll()
             if code is None:
                 if p.upstream and all(self.by_name[u].finished for u in p.upstream):
-                    p.upstream_done_at = p.upstream_done_at or now
+                    got = self.metrics.get(p.name, {}).get("received")
+                    if p.upstream_done_at is None or got != p.last_received:
+                        p.upstream_done_at = now  # still taking messages: not stuck
+                        p.last_received = got
                     if now - p.upstream_done_at > GRACE_S and not p.terminated:
                         # its stop was lost with a killed process: let it drain and finish
-                        self.log(f"{p.name}: upstream finished {GRACE_S:.0f} s ago; SIGTERM")
+                        self.log(f"{p.name}: upstream finished and nothing taken for "
+                                 f"{GRACE_S:.0f} s; SIGTERM (it drains, then finishes)")
                         p.popen.send_signal(signal.SIGTERM)
                         p.terminated = True
                 continue
