@@ -325,9 +325,15 @@ class Supervisor:
                         p.terminated = True
                 continue
             p.exit_codes.append(code)
-            if code == 0:
+            if code == 0 or (p.terminated and code == -signal.SIGTERM):
+                # (a SIGTERM we sent that landed as the process was already exiting, past
+                # its handler, still means "finished as asked")
                 p.finished = True
                 self.log(f"{p.name}: finished")
+                continue
+            if self.stop.is_set() and p.name == "source":
+                p.finished = True  # shutting down: the run ends here, no new source
+                self.log(f"{p.name}: ended (exit {code}) during shutdown")
                 continue
             if p.restarts >= self.topo.restarts:
                 self.failed = (f"{p.name} died (exit {code}) {p.restarts + 1} times; giving up "
@@ -344,8 +350,9 @@ class Supervisor:
     def shutdown(self) -> None:
         """Graceful stop: the source first (it ends the run cleanly), the rest drain."""
         src = self.by_name["source"]
-        if src.popen and src.popen.poll() is None:
-            src.popen.send_signal(signal.SIGTERM)
+        if src.popen and src.popen.poll() is None and not src.terminated:
+            src.popen.send_signal(signal.SIGTERM)  # once: it ends the run after its batch
+            src.terminated = True
 
     def kill_all(self) -> None:
         for p in self.procs:
