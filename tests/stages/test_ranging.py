@@ -104,21 +104,45 @@ def test_unknown_estimator():
 
 
 @pytest.mark.parametrize("name", ["fast", "ml"])
-def test_compiled_and_numpy_paths_agree(name):
+@pytest.mark.parametrize("m", [1.0, 5.0])
+def test_compiled_and_numpy_paths_agree(name, m):
     from stages import ranging
 
     rng = np.random.default_rng(8)
-    h = draw(rng, 1.0, rng.uniform(10e-9, 70e-9, 60), 1.0 / W)
+    h = draw(rng, m, rng.uniform(10e-9, 70e-9, 60), m / W)
     fn = getattr(ranging, name)
     a, b = fn(h, SG, compiled=True), fn(h, SG, compiled=False)
     np.testing.assert_allclose(a.t_s, b.t_s, rtol=0, atol=1e-15)  # 1 fs
     np.testing.assert_array_equal(a.detected, b.detected)
 
 
-def test_fast_estimator_is_good_in_photon_starving_light():
-    rng = np.random.default_rng(9)
+@pytest.mark.parametrize("m, sbr, limit", [(0.01, 1.0, 1.3), (0.1, 10.0, 1.3), (1.0, 1.0, 1.3),
+                                            (5.0, 10.0, 1.3), (5.0, 100.0, 1.3),
+                                            (5.0, 1.0, 2.0)])
+def test_fast_estimator_reaches_the_bound_at_any_pile_up(m, sbr, limit):
+    """The issue asks 2x the CRLB at SBR >= 1; the scoring steps after the centroid bring
+    it to the ML's 1.0-1.1x, M = 5 included (the centroid alone: 2-6x), with honest sigma.
+    At M = 5 and SBR = 1 (five background detections a window) the ML itself is 1.4-1.8x."""
+    rng = np.random.default_rng(int(9 + m * 10 + sbr))
     tof = rng.uniform(10e-9, 70e-9, 300)
-    h = draw(rng, 0.01, tof, 0.01 / W)
-    err = estimate(h, SG, "fast").t_s - tof
-    crlb = np.median(crlb_tof(10_000, 0.01, tof, SG, 0.01 / W, W, B, RESET))
-    assert np.sqrt(np.mean(err ** 2)) < 2 * crlb
+    bg = m / (sbr * W)
+    h = draw(rng, m, tof, bg)
+    r = estimate(h, SG, "fast")
+    err = r.t_s - tof
+    crlb = np.median(crlb_tof(10_000, m, tof, SG, bg, W, B, RESET, amplitude_known=False))
+    assert np.sqrt(np.mean(err ** 2)) < limit * crlb
+    assert 0.90 <= np.mean(np.abs(err) < 2 * r.sigma_s) <= 0.99
+    assert np.all(r.detected)
+    np.testing.assert_allclose(np.median(r.signal_counts / h.cycles), m, rtol=0.05)
+
+
+def test_gaussian_table_matches_ndtr():
+    """The scoring steps' CDF/density table against scipy over +-9.5 sigma."""
+    from scipy.special import ndtr
+
+    from stages.ranging import _cdf_pdf_numpy
+
+    z = np.linspace(-9.5, 9.5, 400_001)
+    cdf, pdf = _cdf_pdf_numpy(z)
+    assert np.max(np.abs(cdf - ndtr(z))) < 3e-9
+    assert np.max(np.abs(pdf - np.exp(-0.5 * z * z) / np.sqrt(2 * np.pi))) < 5e-9
