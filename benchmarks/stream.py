@@ -1,9 +1,10 @@
 """Stream throughput: capture replay -> histogram stage(s) -> [range] -> parquet sink.
 
 Writes a capture of synthetic words (5 % hits), then measures words/s (a) of the bare
-three-process graph started by hand, with and without the journal, and (b) of the daemon
-(`tcspc daemon`: journal on, histograms per measurement, 1 or 2 histogram workers by TDC
-range, the range stage when --calibration is given), beside the raw ZeroMQ throughput of
+three-process graph started by hand, without the journal and with it (raw segments, and
+zstd frames: the default), and (b) of the daemon (`tcspc daemon`: journal on, histograms
+per measurement, 1 or 2 histogram workers by TDC range, the range stage when
+--calibration is given), beside the raw ZeroMQ throughput of
 1 MiB messages between two processes, and the disk's sequential write rate with fdatasync.
 
     python benchmarks/stream.py [--words 128e6] [--calibration data/calibration/current]
@@ -54,8 +55,9 @@ def zmq_baseline(tmp: Path, mib: int = 2048) -> float:
     return out
 
 
-def run_graph(tmp: Path, capture: Path, journal: bool) -> float:
-    tag = "j" if journal else "n"
+def run_graph(tmp: Path, capture: Path, journal: str | None) -> float:
+    """``journal``: None (off), "zstd" or "none" (raw segments)."""
+    tag = f"j{journal}" if journal else "n"
     ep_h, ep_s = f"ipc://{tmp}/h{tag}", f"ipc://{tmp}/s{tag}"
     sink = subprocess.Popen(CLI + ["sink", "--pull", ep_s, "--out", str(tmp / f"data{tag}")],
                             stderr=subprocess.DEVNULL)
@@ -64,7 +66,7 @@ def run_graph(tmp: Path, capture: Path, journal: bool) -> float:
     time.sleep(2.0)  # both stages up before the clock starts
     src = CLI + ["source-capture", str(capture), "--push", ep_h]
     if journal:
-        src += ["--journal", str(tmp / "journal")]
+        src += ["--journal", str(tmp / f"journal-{journal}"), "--journal-compression", journal]
     t0 = time.perf_counter()
     subprocess.run(src, check=True, stderr=subprocess.DEVNULL)
     for p in (hist, sink):
@@ -89,7 +91,7 @@ def disk_rate(tmp: Path, mib: int = 1024) -> float:
 
 
 def run_daemon(tmp: Path, capture: Path, workers: int, calibration: str | None,
-               tag: str) -> tuple[float, dict]:
+               tag: str, compression: str = "zstd") -> tuple[float, dict]:
     """Seconds from the source's start to the last dataset file, and the daemon's result."""
     import datetime as dt
     import json
@@ -99,6 +101,7 @@ def run_daemon(tmp: Path, capture: Path, workers: int, calibration: str | None,
     topo.write_text(f"""
 [daemon]
 state = "{state}"
+journal_compression = "{compression}"
 [source]
 kind = "capture"
 capture = "{capture}"
@@ -133,31 +136,40 @@ def main() -> None:
         n = reps * block.size
         base = zmq_baseline(tmp)
         disk = disk_rate(tmp)
+        journal_bytes: dict[str, int] = {}
         lines = [f"command: `python {' '.join(sys.argv)}`", f"machine: {machine()}", "",
                  "| path | words | s | M words/s | MB/s |", "|---|---:|---:|---:|---:|",
                  f"| raw ZeroMQ, 1 MiB messages, ipc:// | | | {base / 4e6:,.0f} | "
                  f"{base / 1e6:,.0f} |",
                  f"| disk, 4 MiB writes + fdatasync | | | {disk / 4e6:,.0f} | "
                  f"{disk / 1e6:,.0f} |"]
-        for journal in (False, True):
+        label = {None: "", "none": " (journal on, raw segments)",
+                 "zstd": " (journal on, zstd segments)"}
+        for journal in (None, "none", "zstd"):
             dt = run_graph(tmp, tmp / "cap.bin", journal)
-            lines.append(f"| replay -> histogram -> sink{' (journal on)' if journal else ''}"
+            lines.append(f"| replay -> histogram -> sink{label[journal]}"
                          f" | {n:,} | {dt:.2f} | {n / dt / 1e6:,.1f} | {4 * n / dt / 1e6:,.0f} |")
+            if journal:
+                size = sum(p.stat().st_size for p in (tmp / f"journal-{journal}").glob("*.bin*"))
+                journal_bytes[journal] = size
         starts = []
-        for workers in (1, 2):
+        for workers, comp in ((1, "none"), (1, "zstd"), (2, "zstd")):
             dt, startup, res = run_daemon(tmp, tmp / "cap", workers, args.calibration,
-                                          f"d{workers}")
+                                          f"d{workers}{comp}", comp)
             acc = res["accounting"]
             assert acc["balanced"] and acc["words_in"] == n, acc
             lines.append(f"| daemon: replay -> {workers} histogram worker(s) -> "
-                         f"{'range -> ' if args.calibration else ''}sink (journal on) | "
+                         f"{'range -> ' if args.calibration else ''}sink{label[comp]} | "
                          f"{n:,} | {dt:.2f} | {n / dt / 1e6:,.1f} | {4 * n / dt / 1e6:,.0f} |")
             starts.append(startup)
         lines.append("\nThe hand-started rows' wall time includes the source process's "
                      "start-up (~0.7 s). The daemon rows run from the source's first batch "
                      "to the last dataset file, every word accounted for (accounting "
                      "balanced); the graph's start-up before the first batch took "
-                     + ", ".join(f"{x:.1f}" for x in starts) + " s.")
+                     + ", ".join(f"{x:.1f}" for x in starts) + " s. Journal on disk: "
+                     + f"raw {journal_bytes['none'] / 1e6:,.0f} MB, zstd "
+                     + f"{journal_bytes['zstd'] / 1e6:,.0f} MB "
+                     + f"({journal_bytes['zstd'] / journal_bytes['none']:.1%}).")
     emit(lines, args.out)
 
 

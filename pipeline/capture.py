@@ -74,8 +74,10 @@ class CaptureMeta:
 
 
 def capture_paths(path: str | os.PathLike) -> tuple[Path, Path]:
-    """``(NAME.bin, NAME.json)`` from any of NAME, NAME.bin or NAME.json."""
+    """``(NAME.bin, NAME.json)`` from any of NAME, NAME.bin, NAME.bin.zst or NAME.json."""
     p = Path(path)
+    if p.name.endswith(".bin.zst"):
+        p = p.with_suffix("")
     if p.suffix in (".bin", ".json"):
         p = p.with_suffix("")
     return p.with_name(p.name + ".bin"), p.with_name(p.name + ".json")
@@ -95,6 +97,12 @@ class Capture:
 
     def __init__(self, path: str | os.PathLike, strict: bool = True):
         self.bin_path, self.json_path = capture_paths(path)
+        zst = self.bin_path.with_name(self.bin_path.name + ".zst")
+        # a zstd-compressed capture (a journal segment, see pipeline.journal): the same
+        # words, read through a streaming decompressor
+        self.compressed = not self.bin_path.is_file() and zst.is_file()
+        if self.compressed:
+            self.bin_path = zst
         if not self.bin_path.is_file():
             raise CaptureError(f"{self.bin_path}: capture file not found")
         if not self.json_path.is_file():
@@ -105,6 +113,10 @@ class Capture:
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise CaptureError(f"{self.json_path}: sidecar is not valid JSON: {exc}") from exc
         self.meta = CaptureMeta.from_dict(raw, str(self.json_path))
+        if self.compressed:  # the sidecar's count; a short file fails while read
+            self.n_words = self.meta.cycles * self.meta.n_tdc
+            self._check_addresses()
+            return
         size = self.bin_path.stat().st_size
         if size % 4:
             raise CaptureError(f"{self.bin_path}: size {size} bytes is not a multiple of 4 "
@@ -119,7 +131,14 @@ class Capture:
 
     @property
     def name(self) -> str:
-        return self.bin_path.stem
+        return self.bin_path.name.split(".", 1)[0]
+
+    def _open(self):
+        if self.compressed:
+            import pyarrow as pa
+
+            return pa.input_stream(str(self.bin_path), compression="zstd")
+        return open(self.bin_path, "rb")
 
     def _check_addresses(self) -> None:
         """Refuse a sidecar ``n_tdc`` that the words' address fields contradict."""
@@ -142,16 +161,25 @@ class Capture:
         """``count`` native uint32 words starting at word ``first`` (a fresh array)."""
         count = max(0, min(count, self.n_words - first))
         out = np.empty(count, np.uint32)
-        with open(self.bin_path, "rb") as fh:
-            fh.seek(4 * first)
+        with self._open() as fh:
+            if self.compressed:  # a stream: read up to ``first``
+                for _ in range(0, 4 * first, 1 << 24):
+                    fh.read(min(1 << 24, 4 * first - _))
+            else:
+                fh.seek(4 * first)
             self._readinto(fh, out)
         return out
 
     def _readinto(self, fh, out: np.ndarray) -> None:
-        n = fh.readinto(memoryview(out).cast("B"))
+        try:
+            n = fh.readinto(memoryview(out).cast("B"))
+        except Exception as exc:  # a corrupt zstd frame (pyarrow's error types)
+            if not self.compressed:
+                raise
+            raise CaptureError(f"{self.bin_path}: corrupt compressed capture: {exc}") from exc
         if n != out.nbytes:
-            raise CaptureError(f"{self.bin_path}: file shrank while reading "
-                               f"(got {n} of {out.nbytes} bytes)")
+            raise CaptureError(f"{self.bin_path}: file shrank while reading, or holds fewer "
+                               f"words than its sidecar says (got {n} of {out.nbytes} bytes)")
         if sys.byteorder == "little":
             out.byteswap(inplace=True)
 
@@ -164,7 +192,7 @@ class Capture:
         n_tdc = self.meta.n_tdc
         chunk_words = max(n_tdc, chunk_words // n_tdc * n_tdc)
         buf = np.empty(chunk_words, np.uint32)
-        with open(self.bin_path, "rb") as fh:
+        with self._open() as fh:
             for first in range(0, self.n_words, chunk_words):
                 n = min(chunk_words, self.n_words - first)
                 view = buf[:n]

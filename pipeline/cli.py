@@ -245,6 +245,14 @@ _split = click.option("--split", default=None,
 _metrics = click.option("--metrics", default=None,
                         help="Endpoint to publish heartbeats and counters on (PUB).")
 _date = click.option("--date", default=None, help="The run's date partition (default: today).")
+_journal_compression = click.option(
+    "--journal-compression", type=click.Choice(["zstd", "none"]), default="zstd",
+    show_default=True, help="Journal segments as zstd frames (RUN-N.bin.zst; `zstd -d` gives "
+                            "the raw capture) or raw (RUN-N.bin).")
+
+
+def _compression(name: str) -> str | None:
+    return None if name == "none" else name
 
 
 def _ranges(split: str | None):
@@ -275,11 +283,12 @@ def _skip_journaled(batches, journal, run_id):
 @click.option("--rate", type=float, default=None, help="Words per second (default: max).")
 @click.option("--journal", type=click.Path(), default=None,
               help="Journal the words here before sending them.")
+@_journal_compression
 @_split
 @_metrics
 @_date
 def stage_source_sim(scene_path, cycles, pushes, seed, chip_seed, run_id, rate, journal,
-                     split, metrics, date) -> None:
+                     journal_compression, split, metrics, date) -> None:
     """The simulator as a source: raw-word batches of SCENE_PATH."""
     from pipeline.journal import JournalWriter
     from pipeline.simulate import make_simulator
@@ -290,8 +299,8 @@ def stage_source_sim(scene_path, cycles, pushes, seed, chip_seed, run_id, rate, 
     gate = sim.sm.scene.gate.t_laser_win_ns
     batches = _skip_journaled(((first * n, w) for first, w in sim.batches(cycles)), journal,
                               run_id)
-    jw = JournalWriter(journal, run_id, n, gate, sim.sm.scene.sensor.window_ns) \
-        if journal else None
+    jw = JournalWriter(journal, run_id, n, gate, sim.sm.scene.sensor.window_ns,
+                       compression=_compression(journal_compression)) if journal else None
     sent = run_source(batches, list(pushes), step_id="source", run=run_id, n_tdc=n,
                       t_laser_win_ns=gate, rate_words_s=rate, journal=jw, split=_ranges(split),
                       metrics=metrics, window_ns=sim.sm.scene.sensor.window_ns, date=date)
@@ -305,13 +314,14 @@ def stage_source_sim(scene_path, cycles, pushes, seed, chip_seed, run_id, rate, 
 @click.option("--rate", type=float, default=None, help="Words per second (default: max).")
 @click.option("--journal", type=click.Path(), default=None,
               help="Journal the words here before sending them.")
+@_journal_compression
 @_split
 @_metrics
 @_date
 @click.option("--repeat", default=1, show_default=True, type=click.IntRange(1),
               help="Replay the capture this many times as one run (soak tests).")
-def stage_source_capture(capture, pushes, run_id, rate, journal, split, metrics, date,
-                         repeat) -> None:
+def stage_source_capture(capture, pushes, run_id, rate, journal, journal_compression, split,
+                         metrics, date, repeat) -> None:
     """Replay a capture into the stream, at a chosen rate or as fast as it is taken."""
     from pipeline.journal import JournalWriter
     from pipeline.stage import run_source
@@ -328,8 +338,8 @@ def stage_source_capture(capture, pushes, run_id, rate, journal, split, metrics,
                 yield k * cap.n_words + first, w
 
     batches = _skip_journaled(replay(), journal, run_id)
-    jw = (JournalWriter(journal, run_id, n, cap.meta.t_laser_win_ns,
-                        cap.meta.window_ns) if journal else None)
+    jw = (JournalWriter(journal, run_id, n, cap.meta.t_laser_win_ns, cap.meta.window_ns,
+                        compression=_compression(journal_compression)) if journal else None)
     sent = run_source(batches, list(pushes), step_id="source", run=run_id,
                       n_tdc=n, t_laser_win_ns=cap.meta.t_laser_win_ns,
                       rate_words_s=rate, journal=jw, split=_ranges(split), metrics=metrics,
@@ -347,11 +357,12 @@ def stage_source_capture(capture, pushes, run_id, rate, journal, split, metrics,
                    "they are passed on).")
 @click.option("--quarantine", type=click.Path(), default=None)
 @click.option("--idle", type=float, default=None, help="Stop after this many idle seconds.")
+@_journal_compression
 @_split
 @_metrics
 @_date
-def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, split, metrics,
-                     date) -> None:
+def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, journal_compression,
+                     split, metrics, date) -> None:
     """The FPGA's UDP datagrams (docs/streaming.md) in, journaled raw-word batches out."""
     import signal
     import threading
@@ -363,7 +374,8 @@ def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, split
         signal.signal(sig, lambda *_: halt.set())
     stats = run_udp_ingest(udp_socket(bind_addr), list(pushes), run=run_id, journal=journal,
                            quarantine=quarantine, idle_s=idle, split=_ranges(split),
-                           metrics=metrics, date=date, stop=halt)
+                           metrics=metrics, date=date, stop=halt,
+                           compression=_compression(journal_compression))
     err.print(f"ingest: {stats.datagrams} datagrams, {stats.words:,} words, "
               f"{stats.lost_datagrams} lost, rejected {dict(stats.rejected)}")
 

@@ -49,7 +49,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                    quarantine: str | Path | None = None, stop: threading.Event | None = None,
                    idle_s: float | None = None, context: zmq.Context | None = None,
                    split: list[tuple[int, int]] | None = None, metrics: str | None = None,
-                   date: str | None = None) -> IngestStats:
+                   date: str | None = None, compression: str | None = "zstd") -> IngestStats:
     """Receive until a datagram flagged last, ``stop``, or ``idle_s`` without data.
 
     ``split``: TDC ranges, one per endpoint of ``push`` (a fan-out by TDC range; datagrams
@@ -109,7 +109,8 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         if journal is None:
             return
         if writer is None:
-            writer = JournalWriter(journal, run, n_tdc, gate_ns, segment_words=segment_words)
+            writer = JournalWriter(journal, run, n_tdc, gate_ns, segment_words=segment_words,
+                                   compression=compression)
         writer.append(first, words)
 
     try:

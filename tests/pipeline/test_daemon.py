@@ -280,10 +280,11 @@ def test_a_reset_peak_below_the_calibrated_window_is_not_a_target(caldir):
     assert not est.detected.any(), d[est.detected]
 
 
-def test_journal_retention_prunes_only_what_every_worker_is_past(tmp_path):
+@pytest.mark.parametrize("enc, ext", [("zstd", ".bin.zst"), (None, ".bin")])
+def test_journal_retention_prunes_only_what_every_worker_is_past(tmp_path, enc, ext):
     from pipeline.journal import IndexSpans, JournalWriter, prune, pruned_words, segment_spans
 
-    w = JournalWriter(tmp_path, "r", 4, 140.0, segment_words=1000)
+    w = JournalWriter(tmp_path, "r", 4, 140.0, segment_words=1000, compression=enc)
     for i in range(10):
         w.append(i * 400, np.arange(400, dtype=np.uint32))
     spans = IndexSpans(tmp_path, "r")
@@ -291,7 +292,7 @@ def test_journal_retention_prunes_only_what_every_worker_is_past(tmp_path):
     seg = 4 * 1000  # bytes per full segment
     # consumers are past word 1600: segments ending there or before may go, and no more
     gone = prune(tmp_path, "r", keep_bytes=0, consumed_word=1600, spans=spans.update())
-    assert [p.name for p in gone] == ["r-000000.bin", "r-000001.bin"]
+    assert [p.name for p in gone] == ["r-000000" + ext, "r-000001" + ext]
     assert pruned_words(tmp_path, "r", 0, 4000) == 1600
     assert list(read_range(tmp_path, "r", 1600, 2000))[0][0] == 1600  # the rest is there
     w.close()
