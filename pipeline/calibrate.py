@@ -221,8 +221,17 @@ def lsb_campaign(captures: list, out: str | Path, inl_rms_lsb: float = 0.5,
 
 def add_delay(capture, caldir: str | Path) -> np.ndarray:
     """Measure the system delay per TDC on a zero-distance capture (eq. 5.3) and rewrite
-    ``caldir`` with it (atomically). Returns the delay in seconds."""
+    ``caldir`` with it (atomically). Returns the delay in seconds.
+
+    The peak's tau is the range stage's: the pile-up-exact ML on the calibrated time axis
+    (so a target at zero distance ranges to zero). The axis's scale at the capture's light
+    comes from its own reset peak where the density test measured those codes (ambient
+    light that makes the capture ~15 codes of x_T brighter than the density test), else
+    from the LSB polynomial; the source of each TDC's scale is recorded.
+    """
     from pipeline.caldir import read_bounds
+    from pipeline.ranging import time_axis
+    from stages.ranging import Histograms, ml
 
     cap = capture if hasattr(capture, "iter_chunks") else Capture(capture)
     res, meta = read_density(caldir)
@@ -231,10 +240,18 @@ def add_delay(capture, caldir: str | Path) -> np.ndarray:
         acc.update(words, first)
     state = acc.snapshot()
     light = float(state.hits.sum() / (state.n_tdc * max(state.cycles.max(), 1)))  # eq. 5.1
-    lsb_s = lsb_at(caldir, light)
-    tau, used = cal.histogram_tau_s(state.hits, res, lsb_s)
-    d = cal.delay_s(cap.meta.t_laser_win_ns * 1e-9, tau)
-    irf = cal.histogram_sigma_s(state.hits, res, lsb_s)
+    window_s = cap.meta.window_ns * 1e-9
+    tau_edges, x_t, source = time_axis(state, caldir, window_s, in_situ=True)
+    scale = tau_edges[:, 1:].mean(axis=1) / cal.code_bounds(res)[:, 1:].mean(axis=1)
+    irf = cal.histogram_sigma_s(state.hits, res, scale)
+    widths = np.diff(tau_edges, axis=1)
+    # the instrument response; 1 LSB where no TDC's peak says (as the range stage)
+    sigma = float(np.nanmedian(irf)) if np.isfinite(irf).any() else \
+        float(np.nanmedian(widths)) if np.isfinite(widths).any() else 200e-12
+    h = Histograms.from_codes(state.hits, tau_edges, state.cycles, window_s, x_t=x_t)
+    est = ml(h, sigma)
+    d = cal.delay_s(cap.meta.t_laser_win_ns * 1e-9, window_s - est.t_s)
+    d = np.where(est.detected & res.ok, d, np.nan)
     tdc = read_tdc_table(caldir)
     second = cal.SecondStage(*(tdc.column(c).to_numpy().astype(np.int64)
                                for c in ("n_min", "n_max", "n_th", "pdm")))
@@ -244,7 +261,11 @@ def add_delay(capture, caldir: str | Path) -> np.ndarray:
                  lsb_fit=read_lsb_fit(caldir),
                  delay_s=d, extra={**extra, "delay": {
                      "capture": str(cap.bin_path), "light": light,
-                     "counts_used": used.tolist(), "irf_sigma_s": float(np.nanmedian(irf))}})
+                     "counts_used": np.round(est.signal_counts).tolist(),
+                     "sigma_ps": np.round(est.sigma_s * 1e12, 3).tolist(),
+                     "scale_from": sorted(set(source.tolist())),
+                     "scale_from_reset_peak": int(np.sum(source == "reset peak")),
+                     "irf_sigma_s": sigma}})
     return d
 
 

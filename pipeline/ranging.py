@@ -21,19 +21,59 @@ from stages.histogram import HistogramAccumulator, HistogramState
 from stages.ranging import Estimate, Histograms, estimate
 
 
+def time_axis(state: HistogramState, caldir: str | Path, window_s: float,
+              in_situ: bool = False):
+    """The calibrated time axis of a histogram state: per-code tau edges (n_tdc, 513), the
+    code where tau = T falls (x_T), and where each TDC's scale came from.
+
+    The code boundaries are the density test's (INL); their scale at this measurement's
+    light comes from the LSB polynomial (eq. 5.1) read where the window's end falls
+    (:func:`stages.calibration.scale_at_light`), or, with ``in_situ``, from the capture's
+    own reset peak where the density test measured those codes
+    (:func:`stages.calibration.scale_in_situ`).
+    """
+    density, _ = read_density(caldir)
+    rows = slice(state.tdc_offset, state.tdc_offset + state.n_tdc)  # a worker's TDC range
+    if rows.stop > density.n_tdc:
+        raise CalibrationError(f"{caldir}: calibrates {density.n_tdc} TDCs, the histograms "
+                               f"reach TDC {rows.stop - 1}")
+    density = cal.density_rows(density, rows)
+    light = float(state.hits.sum() / (state.n_tdc * max(state.cycles.max(), 1)))
+    scale = cal.scale_at_light(density, lsb_at(caldir, light)[rows], window_s)
+    source = np.full(state.n_tdc, "lsb polynomial", object)
+    if in_situ:
+        s2, ok = cal.scale_in_situ(state.hits, state.cycles, density, window_s)
+        scale = np.where(ok, s2, scale)
+        source[ok] = "reset peak"
+    tau_edges = cal.code_bounds(density) * scale[:, None]
+    # where tau = T falls on the code axis, at this light
+    k = np.clip((tau_edges <= window_s).sum(axis=1) - 1, 0, N_CODES - 1)
+    r = np.arange(state.n_tdc)
+    x_t = k + (window_s - tau_edges[r, k]) / (tau_edges[r, k + 1] - tau_edges[r, k])
+    # ... unless the data say otherwise: nothing lies beyond the reset peak, so the last
+    # populated code bounds it. A calibration whose LSB is off for this light (a single
+    # density test used at another light) would otherwise leave the reset peak inside the
+    # searched codes, where it wins as a false target.
+    populated = state.hits.any(axis=1)
+    top = state.hits.shape[1] - np.argmax(state.hits[:, ::-1] > 0, axis=1)
+    x_t = np.where(populated, np.minimum(x_t, top), x_t)
+    return tau_edges, x_t, source
+
+
 def range_state(state: HistogramState, caldir: str | Path, window_s: float,
                 t_laser_win_s: float, estimator: str = "ml", sigma_s: float | None = None,
                 p_fa: float = 1e-3) -> tuple[Estimate, np.ndarray, np.ndarray]:
     """Ranges of every pixel of a histogram state with a calibration.
 
-    The LSB comes from the calibration's polynomial at this measurement's light (eq. 5.1),
-    the code edges from its INL, the delay from its eq. 5.3 measurement. ``sigma_s``, the
-    instrument response, defaults to the one measured at zero distance (stored with the
-    delay), else 1 LSB. Returns the estimate, distances and sigmas in metres.
+    The time axis from :func:`time_axis` (INL, and the LSB polynomial at this
+    measurement's light, eq. 5.1), the delay from the calibration's eq. 5.3 measurement.
+    ``sigma_s``, the instrument response, defaults to the one measured at zero distance
+    (stored with the delay), else 1 LSB. Returns the estimate, distances and sigmas in
+    metres.
     """
-    density, meta = read_density(caldir)
+    _, meta = read_density(caldir)
     tdc = read_tdc_table(caldir)
-    rows = slice(state.tdc_offset, state.tdc_offset + state.n_tdc)  # a worker's TDC range
+    rows = slice(state.tdc_offset, state.tdc_offset + state.n_tdc)
     if rows.stop > tdc.num_rows:
         raise CalibrationError(f"{caldir}: calibrates {tdc.num_rows} TDCs, the histograms "
                                f"reach TDC {rows.stop - 1}")
@@ -42,22 +82,10 @@ def range_state(state: HistogramState, caldir: str | Path, window_s: float,
         raise CalibrationError(f"{caldir}: no delay (run `tcspc calibrate delay` on a "
                                "zero-distance capture first)")
     delay_s = np.asarray(delay, np.float64) * 1e-12
-    light = float(state.hits.sum() / (state.n_tdc * max(state.cycles.max(), 1)))
-    lsb_s = lsb_at(caldir, light)[rows]
-    inl = np.nan_to_num(density.inl_lsb[rows])
-    k = np.arange(N_CODES + 1)
-    inl_edges = np.concatenate([inl, inl[:, -1:]], axis=1)
-    tau_edges = (k[None, :] + inl_edges) * lsb_s[:, None]
-    x_t = window_s / lsb_s  # where tau = T falls, at this light
-    # ... unless the data say otherwise: nothing lies beyond the reset peak, so the last
-    # populated code bounds it. A calibration whose LSB is off for this light (a single
-    # density test used at another light) would otherwise leave the reset peak inside the
-    # searched codes, where it wins as a false target.
-    populated = state.hits.any(axis=1)
-    top = state.hits.shape[1] - np.argmax(state.hits[:, ::-1] > 0, axis=1)
-    x_t = np.where(populated, np.minimum(x_t, top), x_t)
+    tau_edges, x_t, _ = time_axis(state, caldir, window_s)
     if sigma_s is None:
-        sigma_s = float(meta.get("delay", {}).get("irf_sigma_s", np.median(lsb_s)))
+        sigma_s = float(meta.get("delay", {}).get(
+            "irf_sigma_s", np.median(np.diff(tau_edges, axis=1))))
     h = Histograms.from_codes(state.hits, tau_edges, state.cycles, window_s, x_t=x_t)
     est = estimate(h, sigma_s, estimator, p_fa)
     tau = window_s - est.t_s

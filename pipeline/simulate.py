@@ -55,3 +55,33 @@ def simulate_capture(scene_path, cycles: int, out, progress: Callable[[int], Non
                 progress(words.size // sim.n_tdc)
         w.set_truth(sim.truth())
     return Capture(out, strict=True).meta, sim
+
+
+class SimulatedCapture:
+    """A simulated capture read like one, without writing it: ``meta``, ``name``,
+    ``bin_path`` (a label), ``paths`` (none: nothing to hash), ``truth`` and
+    ``iter_chunks()`` over exactly the words ``simulate_capture`` would write. Each pass
+    regenerates them (the simulator is deterministic per chunk), so a calibration that
+    needs 1e8 cycles of a density test costs time, not 3 GB of disk per 8 TDCs."""
+
+    def __init__(self, scene_path, cycles: int, name: str | None = None, **kw):
+        self.sim = make_simulator(scene_path, cycles, **kw)
+        s = self.sim.sm.scene
+        self.name = name or s.name
+        self.cycles = cycles
+        self.n_words = cycles * self.sim.n_tdc
+        self.bin_path = Path(f"<simulated {self.name}>")
+        self.paths: list[Path] = []
+        self.meta = CaptureMeta.from_dict(
+            {"format": "tcspc-raw", "version": 1, "n_tdc": self.sim.n_tdc,
+             "window_ns": s.sensor.window_ns, "t_laser_win_ns": s.gate.t_laser_win_ns,
+             "cycles": cycles, "kind": capture_kind(s)}, self.name)
+
+    @property
+    def truth(self) -> dict:
+        return self.sim.truth()
+
+    def iter_chunks(self, chunk_words: int | None = None):
+        n = self.sim.n_tdc
+        for first_cycle, words in self.sim.batches(self.cycles):
+            yield first_cycle * n, words

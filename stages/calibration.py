@@ -11,8 +11,8 @@ repeats every 8 codes).
 
 The LSB is the window over the code span (the issue's definition, and the one the
 simulator's truth uses): ``LSB = T / x_T`` where ``x_T`` is where tau = T falls on the code
-axis, the centroid of the reset peak (a delta at T blurred symmetrically by jitter) placed
-with the measured widths. INL_k = B_k / LSB - k at each code boundary B_k.
+axis: the reset peak (a delta at T blurred by the TDC's jitter) fitted over the measured
+code boundaries (:func:`fit_reset_peak`). INL_k = B_k / LSB - k at each code boundary B_k.
 
 Statistics: with H hits over K codes, the INL has an RMS statistical error of about
 ``K sqrt(1/6) / sqrt(H)`` LSB (the cumulative count is binomial): ~0.32 LSB for 250 000 hits
@@ -25,6 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import ndtr
 
 from schemas.errors import CalibrationError
 from schemas.words import N_CODES, N_CODES_2ND
@@ -32,6 +33,77 @@ from stages.artifact import ArtifactBounds, estimate_bounds
 
 #: Codes excluded next to the reset peak and at the window's end (jitter is ~0.5 LSB rms).
 EDGE_MARGIN = 4
+#: Half-width (codes) of the region the reset peak is fitted in (+-8 jitter sigmas).
+RESET_HALF = 4
+
+
+# ----------------------------------------------------------------- the reset peak (tau = T)
+
+def fit_reset_peak(h, at_risk, bounds, top, u, sigma0: float = 0.5, iterations: int = 15):
+    """Where tau = T falls, in the units of ``bounds``: a binned Poisson fit of the reset
+    peak over the codes' actual boundaries, for every row at once.
+
+    The reset peak is a START at tau = T blurred by the TDC's jitter: code k holds
+    ``A (Phi(z_k+1) - Phi(z_k))`` of it, with ``z = (b - P) / s``; below it the uniform
+    light, which ends at T (blurred the same way): ``r_k (1 - exp(-u share_k))``, where
+    ``share_k`` is the part of the code before T. A centroid of code centres is biased by
+    the DNL where T happens to fall (up to +-0.1 code, tested): 14 ps of delay at
+    mid-window. Fisher scoring on (P, s, A), steps limited to half a code.
+
+    Parameters
+    ----------
+    h, at_risk : (n, 512) hits and cycles still at risk per code.
+    bounds : (n, 513) code boundaries (any unit, increasing).
+    top : (n,) int, the code of the reset peak's highest count.
+    u : (n,) the uniform light in detections per unit of ``bounds`` per cycle at risk.
+
+    Returns ``(P, s, A)``, each (n,); P is NaN where the peak holds no excess.
+    """
+    h = np.asarray(h, np.float64)
+    n = h.shape[0]
+    rows = np.arange(n)[:, None]
+    idx = np.clip(np.asarray(top)[:, None] + np.arange(-RESET_HALF, RESET_HALF + 1), 0,
+                  h.shape[1] - 1)
+    hk, rk = h[rows, idx], np.maximum(np.asarray(at_risk, np.float64)[rows, idx], 0.0)
+    lo, hi = bounds[rows, idx], bounds[rows, idx + 1]
+    u = np.asarray(u, np.float64)[:, None]
+    width = np.nanmedian(hi - lo, axis=1)
+    # start: the centroid of the counts above the uniform level
+    ex = np.clip(hk - rk * -np.expm1(-u * (hi - lo)), 0, None)
+    tot = ex.sum(1)
+    P = np.where(tot > 0, (ex * 0.5 * (lo + hi)).sum(1) / np.maximum(tot, 1e-300),
+                 0.5 * (lo[:, RESET_HALF] + hi[:, RESET_HALF]))
+    s = sigma0 * width
+    A = np.maximum(tot, 1.0)
+
+    def phi(z):
+        return np.exp(-0.5 * z * z) / np.sqrt(2 * np.pi)
+
+    for _ in range(iterations):
+        sc = s[:, None]
+        za, zb = (lo - P[:, None]) / sc, (hi - P[:, None]) / sc
+        g = ndtr(zb) - ndtr(za)
+        pa, pb = phi(za), phi(zb)
+        ya, yb = -za, -zb  # (P - b) / s
+        share = sc * ((ya * ndtr(ya) + pa) - (yb * ndtr(yb) + pb))
+        e = np.exp(-u * share)
+        un = rk * (1 - e)
+        mu = np.maximum(A[:, None] * g + un, 1e-12)
+        jac = np.stack([A[:, None] * -(pb - pa) / sc + rk * e * u * (ndtr(ya) - ndtr(yb)),
+                        A[:, None] * -(zb * pb - za * pa) / sc + rk * e * u * (pa - pb),
+                        g], axis=-1)
+        score = np.einsum("nk,nki->ni", hk / mu - 1, jac)
+        info = np.einsum("nk,nki,nkj->nij", 1 / mu, jac, jac)
+        info += np.eye(3)[None] * 1e-12 * np.trace(info, axis1=1, axis2=2)[:, None, None]
+        try:
+            step = np.linalg.solve(info, score[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            break
+        step = np.where(np.isfinite(step), step, 0.0)
+        P = P + np.clip(step[:, 0], -0.5 * width, 0.5 * width)
+        s = np.clip(s + np.clip(step[:, 1], -0.5 * s, 0.5 * s), 0.05 * width, 3 * width)
+        A = np.maximum(A + step[:, 2], 1.0)
+    return np.where(tot > 0, P, np.nan), s, A
 
 
 # ---------------------------------------------------------------- second stage (eq. 3.4)
@@ -189,12 +261,10 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None):
     bound = np.concatenate([[0.0], np.cumsum(w)])   # B_k in interior-LSB units
     # x_T: the reset peak's centroid in these units, after removing the uniform part the
     # top codes hold (their expected share at the interior's density, at risk there)
-    region = np.arange(max(hi + 1, top - 6), min(top + 7, N_CODES))
-    uniform = at_risk[region] * (-np.expm1(-scale * w[region]))
-    uniform *= np.clip((top - region) / 3.0 + 0.5, 0, 1)  # the uniform part ends at T
-    excess = np.clip(h[region] - uniform, 0, None)
-    centre = bound[region] + 0.5 * w[region]
-    tau_t = float(np.sum(excess * centre) / np.sum(excess))  # in interior-LSB units
+    tau_t = float(fit_reset_peak(h[None], at_risk[None], bound[None], np.array([top]),
+                                 np.array([scale]))[0][0])  # in interior-LSB units
+    if not np.isfinite(tau_t):
+        return None
     k = int(np.searchsorted(bound, tau_t, side="right") - 1)
     x_t = k + (tau_t - bound[k]) / w[k]
     lsb = window_s / x_t
@@ -331,6 +401,84 @@ def histogram_sigma_s(hits: np.ndarray, density: DensityResult, lsb_s=None) -> n
     var = (w * (centres - tau[:, None]) ** 2).sum(1) / np.maximum(w.sum(1), 1e-300)
     # the centres quantise: remove a bin's uniform variance (LSB^2 / 12)
     return np.sqrt(np.maximum(var - lsb ** 2 / 12, 0.0))
+
+
+def density_rows(density: DensityResult, rows) -> DensityResult:
+    """The results of some TDCs (a worker's range)."""
+    import dataclasses
+
+    return DensityResult(**{f.name: getattr(density, f.name)[rows]
+                            for f in dataclasses.fields(DensityResult)})
+
+
+def code_bounds(density: DensityResult) -> np.ndarray:
+    """(n_tdc, 513) code boundaries in units of the density test's LSB (``k + INL_k``).
+    Beyond the test's window (where it measured nothing) they continue one unit a code."""
+    k = np.arange(N_CODES + 1, dtype=np.float64)
+    inl = np.asarray(density.inl_lsb, np.float64)
+    inl = np.concatenate([inl, inl[:, -1:]], axis=1)
+    last = np.where(np.isfinite(inl), k[None, :], -1).max(axis=1)
+    fill = np.take_along_axis(inl, np.maximum(last, 0)[:, None].astype(np.int64), axis=1)
+    inl = np.where(np.isfinite(inl), inl, np.where(np.isfinite(fill), fill, 0.0))
+    return k[None, :] + inl
+
+
+def _bound_at(bounds: np.ndarray, x) -> np.ndarray:
+    """Boundaries read at fractional codes ``x`` (n_tdc,), linearly within a code."""
+    x = np.asarray(x, np.float64)
+    good = np.isfinite(x)  # a dead or dark TDC has no LSB: NaN stays NaN
+    x = np.clip(np.where(good, x, 0.0), 0, N_CODES - 1e-9)
+    k = np.floor(x).astype(np.int64)[:, None]
+    b0 = np.take_along_axis(bounds, k, axis=1)[:, 0]
+    b1 = np.take_along_axis(bounds, k + 1, axis=1)[:, 0]
+    return np.where(good, b0 + (x - k[:, 0]) * (b1 - b0), np.nan)
+
+
+def scale_at_light(density: DensityResult, lsb_s, window_s: float) -> np.ndarray:
+    """Seconds per unit of :func:`code_bounds` at a light whose LSB (the window over the
+    code span, eq. 5.1's polynomial) is ``lsb_s``: tau = T falls at code ``x_T = T / lsb``,
+    which is ``B(x_T)`` units of the density test's boundaries, so the scale is
+    ``T / B(x_T)``. (``B(k) * lsb`` instead is off by ``tau INL(x_T) / x_T``: the density
+    test's INL is zero at its own x_T only; ~60 ps at mid-window for 0.5 LSB.)"""
+    x_t = window_s / np.asarray(lsb_s, np.float64)
+    return window_s / _bound_at(code_bounds(density), x_t)
+
+
+def scale_in_situ(hits: np.ndarray, cycles: np.ndarray, density: DensityResult,
+                  window_s: float, min_counts: float = 100.0):
+    """Seconds per unit of :func:`code_bounds` measured on a capture itself: its reset
+    peak (tau = T) fitted over the density test's boundaries (:func:`fit_reset_peak`).
+
+    Exact at the capture's own light, without the LSB polynomial; valid where the fitted
+    codes are ones the density test measured (its own reset peak's codes are filled from
+    the phase means): the capture brighter than the density test by ~15 codes of x_T.
+    Returns ``(scale, ok)``; ``ok`` is False where that fails or the peak has fewer than
+    ``min_counts`` counts (use :func:`scale_at_light` there).
+    """
+    h = np.asarray(hits, np.float64)
+    cyc = np.asarray(cycles, np.float64)
+    bounds = code_bounds(density)
+    before = np.concatenate([np.cumsum(h[:, ::-1], axis=1)[:, ::-1][:, 1:],
+                             np.zeros((h.shape[0], 1))], axis=1)
+    at_risk = cyc[:, None] - before
+    x_den = np.nan_to_num(density.x_t, nan=0.0)
+    measured_to = np.floor(x_den) - EDGE_MARGIN - 1  # the density test's last measured code
+    # the reset peak: the highest count in the codes up to the density test's x_T
+    k = np.arange(N_CODES)[None, :]
+    zone = (k > x_den[:, None] - 80) & (k <= x_den[:, None] + 2)
+    top = np.argmax(np.where(zone, h, -1), axis=1)
+    # the uniform light per unit just below it (median of Coates' density: a target there
+    # does not move it)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = -np.log1p(-np.clip(h / np.maximum(at_risk, 1.0), 0, 1 - 1e-12))
+        per_unit = lam / np.diff(bounds, axis=1)
+    band = (k >= top[:, None] - 60) & (k <= top[:, None] - 12)
+    u = np.nanmedian(np.where(band, per_unit, np.nan), axis=1)
+    u = np.where(np.isfinite(u), u, 0.0)
+    P, _, A = fit_reset_peak(h, at_risk, bounds, top, u)
+    ok = (np.isfinite(P) & (A >= min_counts) & (top + RESET_HALF < measured_to)
+          & np.asarray(density.ok, bool))
+    return np.where(ok, window_s / np.where(ok, P, 1.0), np.nan), ok
 
 
 def delay_s(t_laser_win_s: float, tau_peak_s) -> np.ndarray:

@@ -76,7 +76,8 @@ class Histograms:
     @cached_property
     def bin_s(self) -> float:
         """A typical bin width (the median over a sample of bins: the LSB)."""
-        return float(np.median(self.widths[:, :: max(1, self.widths.shape[1] // 16)]))
+        w = self.widths[:, :: max(1, self.widths.shape[1] // 16)]
+        return float(np.nanmedian(w)) if np.isfinite(w).any() else 1.0
 
     @cached_property
     def centres(self) -> np.ndarray:
@@ -365,7 +366,8 @@ def _fast_args(h: Histograms, sigma_s: float, p_fa: float, steps: int = SCORING_
     edges = np.ascontiguousarray(h.edges_s, np.float64)
     n = counts.shape[1]
     spans = edges[:: max(1, edges.shape[0] // 15), -1] - edges[:: max(1, edges.shape[0] // 15), 0]
-    bin_s = float(np.median(spans)) / n  # a typical bin (the LSB), from a sample of rows
+    # a typical bin (the LSB), from a sample of rows; a dead TDC's NaN axis is not one
+    bin_s = float(np.nanmedian(spans)) / n if np.isfinite(spans).any() else 1.0
     kb, kc, kw = _fast_params(bin_s, sigma_s)
     return (counts, edges, np.ascontiguousarray(h.valid),
             np.ascontiguousarray(h.cycles, np.float64), kb, kc, _alpha_b_table(p_fa, n), kw,
