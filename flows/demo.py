@@ -14,6 +14,7 @@ under ``./data``.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import click
@@ -50,6 +51,10 @@ def run_story(out: str | Path = "data", cycles: int = 100_000,
     current = out / "calibration" / "current"
 
     con.rule("7. the street scene through the streaming daemon")
+    # a fresh run: the daemon resumes a run id it has journaled (what a daemon should do),
+    # which would replay a previous demo's datasets against this calibration
+    for d in (out / "daemon", out / "stream"):
+        shutil.rmtree(d, ignore_errors=True)
     topo = load_topology(None, "street", overrides={
         "daemon": {"state": str(out / "daemon")},
         "source": {"cycles": cycles},

@@ -29,7 +29,6 @@ import numpy as np
 
 from pipeline.capture import CaptureMeta
 
-
 COMPRESSIONS = ("zstd", None)
 ZSTD_LEVEL = 1  # ~1 GB/s on photon-starving words; higher levels gain little on them
 
