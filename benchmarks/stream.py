@@ -1,13 +1,14 @@
 """Stream throughput: capture replay -> histogram stage(s) -> [range] -> parquet sink.
 
-Writes a capture of synthetic words (5 % hits), then measures words/s (a) of the bare
-three-process graph started by hand, without the journal and with it (raw segments, and
-zstd frames: the default), and (b) of the daemon (`tcspc daemon`: journal on, histograms
-per measurement, 1 or 2 histogram workers by TDC range, the range stage when
---calibration is given), beside the raw ZeroMQ throughput of
-1 MiB messages between two processes, and the disk's sequential write rate with fdatasync.
+Writes a capture of synthetic words (5 % hits unless --hit-prob), then measures words/s
+(a) of the bare three-process graph started by hand, without the journal and with it (raw
+segments, and zstd frames: the default), and (b) of the daemon (`tcspc daemon`: journal
+on, histograms per measurement, 1 or 2 histogram workers by TDC range, the range stage
+when --calibration is given), beside the raw ZeroMQ throughput of 1 MiB messages between
+two processes, and the disk's sequential write rate with fdatasync.
 
     python benchmarks/stream.py [--words 128e6] [--calibration data/calibration/current]
+        [--hit-prob 0.05]
 """
 
 from __future__ import annotations
@@ -125,10 +126,12 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/stream.md"))
     ap.add_argument("--calibration", default=None,
                     help="A 128-TDC calibration directory: adds the range stage.")
+    ap.add_argument("--hit-prob", type=float, default=0.05,
+                    help="Share of hit words (5 %%: photon-starving; the street scene ~18 %%).")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(dir=Path.cwd()) as d:
         tmp = Path(d)
-        block, _ = pattern_words((1 << 22) // 128, 128, hit_prob=0.05, rng=1)
+        block, _ = pattern_words((1 << 22) // 128, 128, hit_prob=args.hit_prob, rng=1)
         reps = max(1, int(args.words) // block.size)
         with CaptureWriter(tmp / "cap", 128) as w:
             for _ in range(reps):
@@ -138,6 +141,7 @@ def main() -> None:
         disk = disk_rate(tmp)
         journal_bytes: dict[str, int] = {}
         lines = [f"command: `python {' '.join(sys.argv)}`", f"machine: {machine()}", "",
+                 f"synthetic words, {args.hit_prob:.0%} hits", "",
                  "| path | words | s | M words/s | MB/s |", "|---|---:|---:|---:|---:|",
                  f"| raw ZeroMQ, 1 MiB messages, ipc:// | | | {base / 4e6:,.0f} | "
                  f"{base / 1e6:,.0f} |",

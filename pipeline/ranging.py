@@ -39,12 +39,14 @@ def time_axis(state: HistogramState, caldir: str | Path, window_s: float,
                                f"reach TDC {rows.stop - 1}")
     density = cal.density_rows(density, rows)
     light = float(state.hits.sum() / (state.n_tdc * max(state.cycles.max(), 1)))
-    scale = cal.scale_at_light(density, lsb_at(caldir, light)[rows], window_s)
-    source = np.full(state.n_tdc, "lsb polynomial", object)
+    ok = np.zeros(state.n_tdc, bool)
+    scale = np.full(state.n_tdc, np.nan)
     if in_situ:
-        s2, ok = cal.scale_in_situ(state.hits, state.cycles, density, window_s)
-        scale = np.where(ok, s2, scale)
-        source[ok] = "reset peak"
+        scale, ok = cal.scale_in_situ(state.hits, state.cycles, density, window_s)
+    if not ok.all():  # the polynomial (it warns when this light lies outside its range)
+        poly = cal.scale_at_light(density, lsb_at(caldir, light)[rows], window_s)
+        scale = np.where(ok, scale, poly)
+    source = np.where(ok, "reset peak", "lsb polynomial").astype(object)
     tau_edges = cal.code_bounds(density) * scale[:, None]
     # where tau = T falls on the code axis, at this light
     k = np.clip((tau_edges <= window_s).sum(axis=1) - 1, 0, N_CODES - 1)

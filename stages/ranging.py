@@ -333,17 +333,20 @@ _PDF_TAB = np.exp(-0.5 * (np.arange(-_Z_MAX * _Z_PER, _Z_MAX * _Z_PER + 1) / _Z_
                   ) / SQRT2PI
 
 
+def _taylor(cdf0, f, z0, d):
+    """Phi and phi at z0 + d from their values at the table's z0 (third order; plain
+    arithmetic, so the same function serves arrays and, compiled, scalars)."""
+    q = z0 * z0 - 1.0
+    return (cdf0 + f * d * (1.0 - 0.5 * z0 * d + q * d * d / 6.0),
+            f * (1.0 - z0 * d + 0.5 * q * d * d - (z0 * q - 2.0 * z0) * d * d * d / 6.0))
+
+
 def _cdf_pdf_numpy(z):
     """Phi(z) and phi(z) from the table (the compiled ``_cdf_pdf``'s twin)."""
     zc = np.minimum(np.maximum(z, -_Z_MAX), _Z_MAX)
     i = np.floor((zc + _Z_MAX) * _Z_PER + 0.5).astype(np.int64)
     z0 = i / _Z_PER - _Z_MAX
-    d = zc - z0
-    f = _PDF_TAB[i]
-    q = z0 * z0 - 1.0
-    cdf = _PHI_TAB[i] + f * d * (1.0 - 0.5 * z0 * d + q * d * d / 6.0)
-    pdf = f * (1.0 - z0 * d + 0.5 * q * d * d - (z0 * q - 2.0 * z0) * d * d * d / 6.0)
-    return cdf, pdf
+    return _taylor(_PHI_TAB[i], _PDF_TAB[i], z0, zc - z0)
 #: Fisher-scoring steps after the centroid, at most; a pixel stops once a step moves its
 #: time by less than _CONVERGED of its sigma and its strength by less than _CONVERGED of
 #: itself. In photon-starving light one step does; at
@@ -485,17 +488,14 @@ except ImportError:  # pragma: no cover
     numba = None
 
 if numba is not None:
+    _taylor_c = numba.njit(cache=True, nogil=True, inline="always")(_taylor)
+
     @numba.njit(cache=True, nogil=True, inline="always")
     def _cdf_pdf(z):
         zc = min(max(z, -_Z_MAX), _Z_MAX)
         i = int(math.floor((zc + _Z_MAX) * _Z_PER + 0.5))
         z0 = i / _Z_PER - _Z_MAX
-        d = zc - z0
-        f = _PDF_TAB[i]
-        q = z0 * z0 - 1.0
-        cdf = _PHI_TAB[i] + f * d * (1.0 - 0.5 * z0 * d + q * d * d / 6.0)
-        pdf = f * (1.0 - z0 * d + 0.5 * q * d * d - (z0 * q - 2.0 * z0) * d * d * d / 6.0)
-        return cdf, pdf
+        return _taylor_c(_PHI_TAB[i], _PDF_TAB[i], z0, zc - z0)
 
     @numba.njit(cache=True, nogil=True, inline="always")
     def _argmax_valid(S, valid):
