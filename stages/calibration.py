@@ -441,7 +441,8 @@ def scale_at_light(density: DensityResult, lsb_s, window_s: float) -> np.ndarray
     ``T / B(x_T)``. (``B(k) * lsb`` instead is off by ``tau INL(x_T) / x_T``: the density
     test's INL is zero at its own x_T only; ~60 ps at mid-window for 0.5 LSB.)"""
     x_t = window_s / np.asarray(lsb_s, np.float64)
-    return window_s / _bound_at(code_bounds(density), x_t)
+    scale = window_s / _bound_at(code_bounds(density), x_t)
+    return np.where(np.asarray(density.ok, bool), scale, np.nan)  # a dead TDC has no axis
 
 
 def scale_in_situ(hits: np.ndarray, cycles: np.ndarray, density: DensityResult,

@@ -224,3 +224,45 @@ def test_delay_within_5_ps_through_the_pipeline_given_a_perfect_density_test(tmp
 
     meta = json.loads((caldir / "meta.json").read_text())
     assert meta["delay"]["scale_from"] == ["reset peak"]
+
+
+def _perfect_density(chip, n_light):
+    """What a perfect density test at ``n_light`` would store (the chip's truth)."""
+    lsb_t, x_t, inl_t = chip.window_truth(n_light, 80e-9)
+    dnl_t = np.diff(np.concatenate([inl_t, inl_t[:, -1:]], axis=1), axis=1)
+    beyond = np.arange(512)[None, :] > x_t[:, None]
+    return cal.DensityResult(lsb_t, x_t, np.where(beyond, np.nan, 1 + dnl_t),
+                             np.where(beyond, np.nan, dnl_t), np.where(beyond, np.nan, inl_t),
+                             np.full(N, 1e7), np.full(N, n_light), np.ones(N, bool),
+                             np.zeros(N))
+
+
+def test_time_axis_at_another_light_is_the_true_one():
+    """The density test's boundaries scaled by T / B(x_T(n)) are the chip's boundaries at
+    light n; B(k) * LSB(n) is not (the INL at x_T(n) is not zero)."""
+    chip = make_chip(N, 4)
+    dens = _perfect_density(chip, 0.05)
+    lsb_n, x_n, _ = chip.window_truth(0.6, 80e-9)
+    b = cal.code_bounds(dens)
+    tau = b * cal.scale_at_light(dens, lsb_n, 80e-9)[:, None]
+    true = chip.boundaries_s(0.6)
+    mid = slice(150, 250)  # around the zero-distance peak at the thesis's gate
+    assert np.abs(tau[:, mid] - true[:, mid]).max() < 1e-15
+    naive = b * lsb_n[:, None]
+    assert np.abs(naive[:, mid] - true[:, mid]).max() > 5e-12
+
+
+def test_in_situ_scale_declines_without_a_reset_peak():
+    chip = make_chip(N, 4)
+    dens = _perfect_density(chip, 0.3)
+    hits = np.zeros((N, 512))
+    hits[:, 150:160] = 50.0  # a target, no reset peak, no ambient light
+    scale, ok = cal.scale_in_situ(hits, np.full(N, 1e5), dens, 80e-9)
+    assert not ok.any() and np.isnan(scale).all()
+    gone = np.arange(N) == 2  # flagged dead: NaN results, ok = False
+    dead = cal.DensityResult(np.where(gone, np.nan, dens.lsb_s), np.where(gone, np.nan, dens.x_t),
+                             dens.width_lsb, dens.dnl_lsb,
+                             np.where(gone[:, None], np.nan, dens.inl_lsb), dens.hits,
+                             dens.detections_per_cycle, ~gone, dens.inl_error_lsb)
+    s2 = cal.scale_at_light(dead, np.full(N, 220e-12), 80e-9)
+    assert np.isnan(s2[2]) and np.isfinite(np.delete(s2, 2)).all()  # a dead TDC stays its own
