@@ -67,7 +67,10 @@ def fit_reset_peak(h, at_risk, bounds, top, u, sigma0: float = 0.5, iterations: 
     hk, rk = h[rows, idx], np.maximum(np.asarray(at_risk, np.float64)[rows, idx], 0.0)
     lo, hi = bounds[rows, idx], bounds[rows, idx + 1]
     u = np.asarray(u, np.float64)[:, None]
-    width = np.nanmedian(hi - lo, axis=1)
+    with np.errstate(all="ignore"):  # missing codes (zero width) around the peak
+        w = np.where(hi - lo > 0, hi - lo, np.nan)
+        width = np.nanmedian(np.where(np.isfinite(w).any(axis=1, keepdims=True), w, 1.0),
+                             axis=1)
     # start: the centroid of the counts above the uniform level
     ex = np.clip(hk - rk * -np.expm1(-u * (hi - lo)), 0, None)
     tot = ex.sum(1)

@@ -266,3 +266,22 @@ def test_in_situ_scale_declines_without_a_reset_peak():
                              dens.detections_per_cycle, ~gone, dens.inl_error_lsb)
     s2 = cal.scale_at_light(dead, np.full(N, 220e-12), 80e-9)
     assert np.isnan(s2[2]) and np.isfinite(np.delete(s2, 2)).all()  # a dead TDC stays its own
+
+
+def test_reset_peak_fit_survives_missing_codes():
+    """Zero-width (missing) codes around the reset peak: a position, no division by zero."""
+    import warnings
+
+    rng = np.random.default_rng(5)
+    bounds = np.arange(513, dtype=float)[None, :].repeat(2, 0)
+    bounds[1, 340:346] = bounds[1, 340]  # five missing codes in the fitted region
+    bounds[1, 346:] -= 5
+    h = np.zeros((2, 512))
+    h[0, 348:352] = rng.poisson([100, 4000, 4000, 100])
+    h[1, 343:347] = rng.poisson([100, 4000, 4000, 100])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        p, s, a = cal.fit_reset_peak(h, np.full_like(h, 1e6), bounds, np.array([349, 345]),
+                                     np.zeros(2))
+    assert np.isfinite(p).all() and np.all(s > 0)
+    assert abs(p[0] - 350.0) < 0.05
