@@ -24,7 +24,8 @@ from stages.ranging import Estimate, Histograms, estimate
 def time_axis(state: HistogramState, caldir: str | Path, window_s: float,
               in_situ: bool = False):
     """The calibrated time axis of a histogram state: per-code tau edges (n_tdc, 513), the
-    code where tau = T falls (x_T), and where each TDC's scale came from.
+    code where tau = T falls (x_T), the scale (seconds per unit of the density test's code
+    boundaries) and where each TDC's scale came from.
 
     The code boundaries are the density test's (INL); their scale at this measurement's
     light comes from the LSB polynomial (eq. 5.1) read where the window's end falls
@@ -59,7 +60,7 @@ def time_axis(state: HistogramState, caldir: str | Path, window_s: float,
     populated = state.hits.any(axis=1)
     top = state.hits.shape[1] - np.argmax(state.hits[:, ::-1] > 0, axis=1)
     x_t = np.where(populated, np.minimum(x_t, top), x_t)
-    return tau_edges, x_t, source
+    return tau_edges, x_t, scale, source
 
 
 def range_state(state: HistogramState, caldir: str | Path, window_s: float,
@@ -84,7 +85,7 @@ def range_state(state: HistogramState, caldir: str | Path, window_s: float,
         raise CalibrationError(f"{caldir}: no delay (run `tcspc calibrate delay` on a "
                                "zero-distance capture first)")
     delay_s = np.asarray(delay, np.float64) * 1e-12
-    tau_edges, x_t, _ = time_axis(state, caldir, window_s)
+    tau_edges, x_t, _, _ = time_axis(state, caldir, window_s)
     if sigma_s is None:
         sigma_s = float(meta.get("delay", {}).get(
             "irf_sigma_s", np.median(np.diff(tau_edges, axis=1))))
