@@ -88,9 +88,20 @@ def lsb(captures, out, plot, inl_rms) -> None:
 @click.option("--out", required=True, type=click.Path(exists=True, file_okay=False),
               help="calibration directory with a density test; the delay is added to it")
 def delay(capture, out) -> None:
-    """System delay per TDC from a zero-distance CAPTURE (eq. 5.3), into CALDIR."""
+    """System delay per TDC from a zero-distance CAPTURE (eq. 5.3), into CALDIR.
+
+    The peak is found as the range stage finds it (ML, pile-up exact). Give the capture
+    ambient light brighter than the density test's (its reset peak ~10 codes lower): its
+    own reset peak then scales the time axis at its exact light; otherwise the LSB
+    polynomial does (within the statistics of the density tests' INL either way)."""
+    import json
+    from pathlib import Path
+
     d = add_delay(capture, out)
-    err.print(f"delay {np.nanmin(d) * 1e9:.4f}..{np.nanmax(d) * 1e9:.4f} ns; wrote {out}")
+    used = json.loads((Path(out) / "meta.json").read_text())["delay"]
+    err.print(f"delay {np.nanmin(d) * 1e9:.4f}..{np.nanmax(d) * 1e9:.4f} ns; time axis "
+              f"from the capture's reset peak on {used['scale_from_reset_peak']} of "
+              f"{d.size} TDCs; wrote {out}")
 
 
 @calibrate.command()
