@@ -498,6 +498,16 @@ if numba is not None:
         return _taylor_c(_PHI_TAB[i], _PDF_TAB[i], z0, zc - z0)
 
     @numba.njit(cache=True, nogil=True, inline="always")
+    def _window_at(edges_row, cb, t, kw):
+        """The bin holding ``t`` (walking from ``cb``) and the +-kw window around it."""
+        n = edges_row.size - 1
+        while cb > 0 and edges_row[cb] > t:
+            cb -= 1
+        while cb < n - 1 and edges_row[cb + 1] <= t:
+            cb += 1
+        return cb, max(cb - kw, 0), min(cb + kw + 1, n)
+
+    @numba.njit(cache=True, nogil=True, inline="always")
     def _argmax_valid(S, valid):
         """The first index of the largest S among the valid (0 when none is): four
         independent lanes, merged so that the lowest index wins a tie (np.argmax's rule);
@@ -612,13 +622,7 @@ if numba is not None:
                 t = 0.5 * (edges[p, peak] + edges[p, peak + 1])
             sig = np.inf
             # the window follows the estimate (under pile-up the counts peak early)
-            cb = peak
-            while cb > 0 and edges[p, cb] > t:
-                cb -= 1
-            while cb < n - 1 and edges[p, cb + 1] <= t:
-                cb += 1
-            lo = max(cb - kw, 0)
-            hi = min(cb + kw + 1, n)
+            cb, lo, hi = _window_at(edges[p], peak, t, kw)
             # strength: the share of the cycles at risk at the window's start that fire
             # in it, less the background's, over the window's share of the pulse (robust
             # under pile-up, unlike the Coates sum)
@@ -633,12 +637,7 @@ if numba is not None:
             m = max((-math.log1p(-hits / r0) - bg * w_in) / max(share, 0.5), 1e-9)
             for _s in range(steps):
                 if _s > 0:  # re-centre on the new estimate
-                    while cb > 0 and edges[p, cb] > t:
-                        cb -= 1
-                    while cb < n - 1 and edges[p, cb + 1] <= t:
-                        cb += 1
-                    lo = max(cb - kw, 0)
-                    hi = min(cb + kw + 1, n)
+                    cb, lo, hi = _window_at(edges[p], cb, t, kw)
                 i00 = i01 = i11 = s0 = s1 = 0.0
                 cp, gp = _cdf_pdf((edges[p, lo] - t) * inv_s)
                 for j in range(lo, hi):
