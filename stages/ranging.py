@@ -373,7 +373,8 @@ def _fast_args(h: Histograms, sigma_s: float, p_fa: float, steps: int = SCORING_
     # a typical bin (the LSB): the middle of <= 16 rows' spans; a dead TDC's NaN axis is
     # not one (np.nanmedian costs as much as the kernel's work on 10 histograms)
     spans = np.sort(spans[np.isfinite(spans)])
-    bin_s = float(spans[spans.size // 2]) / n if spans.size else 1.0
+    k = spans.size
+    bin_s = 0.5 * float(spans[(k - 1) // 2] + spans[k // 2]) / n if k else 1.0  # the median
     kb, kc, kw = _fast_params(bin_s, sigma_s)
     return (counts, edges, np.ascontiguousarray(h.valid),
             np.ascontiguousarray(h.cycles, np.float64), kb, kc, _alpha_b_table(p_fa, n), kw,
@@ -478,7 +479,8 @@ def _score_steps_numpy(counts, edges, valid, r, C, peak, bg, t, kw, inv_s, steps
         st = np.clip((i11 * s0 - i01 * s1) / d, -step_cap, step_cap)
         sm = (i00 * s1 - i01 * s0) / d
         t = np.where(active, t + st, t)
-        m = np.where(active, np.maximum(m + sm, 1e-9), m)
+        m = np.where(active, np.minimum(np.maximum(np.maximum(m + sm, 0.5 * m), 1e-9), 2.0 * m),
+                     m)
         active &= ~((np.abs(st) < _CONVERGED * sig) & (np.abs(sm) < _CONVERGED * m))
         if not active.any():
             break
@@ -667,7 +669,7 @@ if numba is not None:
                 st = min(max((i11 * s0 - i01 * s1) / det, -step_cap), step_cap)
                 sm = (i00 * s1 - i01 * s0) / det
                 t += st
-                m = max(m + sm, 1e-9)
+                m = min(max(m + sm, 0.5 * m, 1e-9), 2.0 * m)  # at most a factor 2 a step
                 if abs(st) < _CONVERGED * sig and abs(sm) < _CONVERGED * m:
                     break
             t_out[p] = t
