@@ -241,7 +241,8 @@ def add_delay(capture, caldir: str | Path) -> np.ndarray:
     state = acc.snapshot()
     light = float(state.hits.sum() / (state.n_tdc * max(state.cycles.max(), 1)))  # eq. 5.1
     window_s = cap.meta.window_ns * 1e-9
-    tau_edges, x_t, scale, source = time_axis(state, caldir, window_s, in_situ=True)
+    tau_edges, x_t, scale, source = time_axis(state, caldir, window_s, in_situ=True,
+                                              density=res)
     irf = cal.histogram_sigma_s(state.hits, res, scale)
     widths = np.diff(tau_edges, axis=1)
     # the instrument response; 1 LSB where no TDC's peak says (as the range stage)

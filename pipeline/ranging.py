@@ -22,7 +22,7 @@ from stages.ranging import Estimate, Histograms, estimate
 
 
 def time_axis(state: HistogramState, caldir: str | Path, window_s: float,
-              in_situ: bool = False):
+              in_situ: bool = False, density: cal.DensityResult | None = None):
     """The calibrated time axis of a histogram state: per-code tau edges (n_tdc, 513), the
     code where tau = T falls (x_T), the scale (seconds per unit of the density test's code
     boundaries) and where each TDC's scale came from.
@@ -31,9 +31,11 @@ def time_axis(state: HistogramState, caldir: str | Path, window_s: float,
     light comes from the LSB polynomial (eq. 5.1) read where the window's end falls
     (:func:`stages.calibration.scale_at_light`), or, with ``in_situ``, from the capture's
     own reset peak where the density test measured those codes
-    (:func:`stages.calibration.scale_in_situ`).
+    (:func:`stages.calibration.scale_in_situ`). ``density``: the directory's density
+    test when the caller has read it already (the range stage does, per measurement).
     """
-    density, _ = read_density(caldir)
+    if density is None:
+        density, _ = read_density(caldir)
     rows = slice(state.tdc_offset, state.tdc_offset + state.n_tdc)  # a worker's TDC range
     if rows.stop > density.n_tdc:
         raise CalibrationError(f"{caldir}: calibrates {density.n_tdc} TDCs, the histograms "
@@ -74,7 +76,7 @@ def range_state(state: HistogramState, caldir: str | Path, window_s: float,
     (stored with the delay), else 1 LSB. Returns the estimate, distances and sigmas in
     metres.
     """
-    _, meta = read_density(caldir)
+    density, meta = read_density(caldir)
     tdc = read_tdc_table(caldir)
     rows = slice(state.tdc_offset, state.tdc_offset + state.n_tdc)
     if rows.stop > tdc.num_rows:
@@ -85,7 +87,7 @@ def range_state(state: HistogramState, caldir: str | Path, window_s: float,
         raise CalibrationError(f"{caldir}: no delay (run `tcspc calibrate delay` on a "
                                "zero-distance capture first)")
     delay_s = np.asarray(delay, np.float64) * 1e-12
-    tau_edges, x_t, _, _ = time_axis(state, caldir, window_s)
+    tau_edges, x_t, _, _ = time_axis(state, caldir, window_s, density=density)
     if sigma_s is None:
         sigma_s = float(meta.get("delay", {}).get(
             "irf_sigma_s", np.median(np.diff(tau_edges, axis=1))))

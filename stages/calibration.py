@@ -37,6 +37,15 @@ EDGE_MARGIN = 4
 RESET_HALF = 4
 
 
+def at_risk_by_code(hits, cycles) -> np.ndarray:
+    """(n, 512) cycles still at risk before each code, in arrival order (high codes first,
+    reversed timing): the cycles less the hits at higher codes."""
+    h = np.asarray(hits, np.float64)
+    before = np.concatenate([np.cumsum(h[:, ::-1], axis=1)[:, ::-1][:, 1:],
+                             np.zeros((h.shape[0], 1))], axis=1)
+    return np.asarray(cycles, np.float64).reshape(-1, 1) - before
+
+
 # ----------------------------------------------------------------- the reset peak (tau = T)
 
 def fit_reset_peak(h, at_risk, bounds, top, u, sigma0: float = 0.5, iterations: int = 15):
@@ -242,8 +251,7 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None):
     if hi - lo < 32:
         return None
     # at risk before each code, in arrival order (high codes first)
-    before = np.concatenate([np.cumsum(h[::-1])[::-1][1:], [0.0]])  # hits at higher codes
-    at_risk = n_cycles - before
+    at_risk = at_risk_by_code(h[None], [n_cycles])[0]
     with np.errstate(divide="ignore", invalid="ignore"):
         rw = -np.log1p(-h / at_risk)        # r * width, Coates
     interior = np.arange(lo, hi + 1)
@@ -262,8 +270,8 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None):
     edge[interior] = False
     w[edge] = phase_mean[np.arange(N_CODES)[edge] % 8] / scale
     bound = np.concatenate([[0.0], np.cumsum(w)])   # B_k in interior-LSB units
-    # x_T: the reset peak's centroid in these units, after removing the uniform part the
-    # top codes hold (their expected share at the interior's density, at risk there)
+    # x_T: the reset peak fitted over these boundaries, above the uniform part (the
+    # interior's density, at risk there) that ends at T
     tau_t = float(fit_reset_peak(h[None], at_risk[None], bound[None], np.array([top]),
                                  np.array([scale]))[0][0])  # in interior-LSB units
     if not np.isfinite(tau_t):
@@ -460,11 +468,8 @@ def scale_in_situ(hits: np.ndarray, cycles: np.ndarray, density: DensityResult,
     ``min_counts`` counts (use :func:`scale_at_light` there).
     """
     h = np.asarray(hits, np.float64)
-    cyc = np.asarray(cycles, np.float64)
     bounds = code_bounds(density)
-    before = np.concatenate([np.cumsum(h[:, ::-1], axis=1)[:, ::-1][:, 1:],
-                             np.zeros((h.shape[0], 1))], axis=1)
-    at_risk = cyc[:, None] - before
+    at_risk = at_risk_by_code(h, cycles)
     x_den = np.nan_to_num(density.x_t, nan=0.0)
     measured_to = np.floor(x_den) - EDGE_MARGIN - 1  # the density test's last measured code
     # the reset peak: the highest count in the codes up to the density test's x_T
