@@ -35,6 +35,11 @@ KIND_PHOTON, KIND_ARTIFACT = 0, 1
 #: Time tolerance of the inversion (0.1 fs) and its iteration cap.
 T_TOL = 1e-16
 MAX_ITER = 60
+#: A Newton step shorter than this (10 fs) ends the inversion after it is taken: Newton
+#: converges quadratically, so the root lies within ~step^2 * |L''| / (2 L') < 1e-18 s of
+#: the new point (the pulse's curvature scale is sigma > 10 ps); a further step only to
+#: confirm it would cost one more erfc and exp. Bisection steps do not count.
+NEWTON_DONE = 1e-14
 #: Beyond this many sigma the pulse's CDF is 0 or 1 and its density 0 (to < 1e-32).
 Z_FAR = 12.0
 ENGINES = ("fast", "reference")
@@ -64,16 +69,27 @@ class Optics:
 
 @dataclass(frozen=True)
 class Events:
-    """The random numbers of a chunk: the TDC-cycles that saw a START (flat indices), the
-    cumulative intensity at each START (-log of its uniform), a standard normal (TDC
-    jitter) and a uniform (an artifact's D2nd) each."""
+    """Where a chunk's STARTs are: the TDC-cycles that saw one (flat indices) and the
+    cumulative intensity at each (-log of its uniform). The rest of the chunk's random
+    numbers follow in the generator's stream, in this order: a standard normal (the TDC's
+    jitter) for each photon START, then a uniform (the D2nd) for each artifact START, both
+    in the order of the STARTs here (``draw_tails``)."""
 
     index: np.ndarray
     e: np.ndarray  #: -log(u): the cumulative intensity at the START
-    z: np.ndarray
-    r: np.ndarray
     tdc: np.ndarray | None = None  #: index % n_tdc, when known
     flat: np.ndarray | None = None  #: TDC-major place (tdc * n_cycles + cycle), when known
+
+
+def draw_tails(rng: np.random.Generator, artifact: np.ndarray):
+    """The TDC jitter's standard normal of each photon START (0 for artifacts) and the
+    uniform of each artifact START (0 for photons), drawn in the order of :class:`Events`
+    (the compiled kernel draws the same numbers one at a time)."""
+    z = np.zeros(artifact.size)
+    r = np.zeros(artifact.size)
+    z[~artifact] = rng.standard_normal(artifact.size - int(artifact.sum()))
+    r[artifact] = rng.random(int(artifact.sum()))
+    return z, r
 
 
 @dataclass(frozen=True)
@@ -188,8 +204,11 @@ class FastEngine:
             with np.errstate(divide="ignore", invalid="ignore"):
                 step = ta - f / rate
             la, ha = lo[active], hi[active]
-            new = np.where((step > la) & (step < ha), step, 0.5 * (la + ha))
-            done = (np.abs(new - ta) < T_TOL) | (f == 0) | (ha - la < T_TOL)
+            newton = (step > la) & (step < ha)
+            new = np.where(newton, step, 0.5 * (la + ha))
+            moved = np.abs(new - ta)
+            done = ((moved < T_TOL) | (newton & (moved < NEWTON_DONE)) | (f == 0)
+                    | (ha - la < T_TOL))
             t[active] = np.where(f == 0, ta, new)
             active = active[~done]
         return t
@@ -206,8 +225,7 @@ class FastEngine:
         tdc = flat // n_cycles
         index = (flat - tdc * n_cycles) * n_tdc + tdc     # the word's place: cycle-major
         e = -np.log(u.ravel()[flat])                      # cumulative intensity at START
-        return Events(index, e, rng.standard_normal(flat.size), rng.random(flat.size), tdc,
-                      flat)
+        return Events(index, e, tdc, flat)
 
     def draw(self, rng: np.random.Generator, n_cycles: int) -> Starts:
         return self.starts(self.events(rng, n_cycles))
@@ -358,7 +376,7 @@ if numba is not None:
     import math
 
     @numba.njit(cache=True, nogil=True)
-    def _fast_kernel(index, tdc_ev, e_ev, z, r, n_tdc, j_lo, j_hi, m_a, c_a, l_end, de,
+    def _fast_kernel(index, tdc_ev, e_ev, rng, n_tdc, j_lo, j_hi, m_a, c_a, l_end, de,
                      inv_de, inv, m_sig, tof, bg, inv_sg, k_pdf, start, phi0, window, jitter,
                      period, inv_step, code_tab, bnd, inv_w, n_th, n_min, n_max, johnson,
                      words, is_artifact):
@@ -372,16 +390,16 @@ if numba is not None:
             e = e_ev[q]
             below = 0.0
             acode = -1
-            for j in range(n_art):
-                if e >= j_lo[t, j] and e < j_hi[t, j]:
-                    acode = c_a[t, j]
-                if e >= j_hi[t, j]:
-                    below += m_a[t, j]
-            if acode >= 0:
-                k = acode
-                lo2 = n_max[t] + 1
-                d2 = lo2 + int(math.floor(r[q] * (256 - lo2)))
+            for j in range(n_art):  # without branches: e falls anywhere among them
+                lo_j = j_lo[t, j]
+                hi_j = j_hi[t, j]
+                below += m_a[t, j] * (e >= hi_j)
+                acode += (c_a[t, j] + 1) * ((e >= lo_j) & (e < hi_j))  # disjoint: one at most
+            if acode >= 0:  # its D2nd after the loop (draw_tails' order)
                 is_artifact[q] = True
+                words[i] = ((acode >> 3) << 16) | (johnson[acode & 7] << 12) | (1 << 9) | (
+                    t << 1)
+                continue
             else:
                 ec = min(e - below, l_end[t])
                 jj = min(int(ec * inv_de[t]), n_inv - 2)
@@ -411,13 +429,16 @@ if numba is not None:
                     else:
                         hi_t = tt
                     nt = tt - f / rate if rate > 0 else lo_t
-                    new = nt if lo_t < nt < hi_t else 0.5 * (lo_t + hi_t)
-                    done = abs(new - tt) < T_TOL or hi_t - lo_t < T_TOL
+                    newton = lo_t < nt < hi_t
+                    new = nt if newton else 0.5 * (lo_t + hi_t)
+                    moved = abs(new - tt)
+                    done = (moved < T_TOL or (newton and moved < NEWTON_DONE)
+                            or hi_t - lo_t < T_TOL)
                     tt = new
                     if done:
                         break
                 tau = window - min(max(tt, 0.0), window)
-                tau = max(tau + z[q] * jitter[t], 0.0)
+                tau = max(tau + rng.standard_normal() * jitter[t], 0.0)
                 x = tau
                 while x >= period[t]:  # the 9-bit counter wraps
                     x -= period[t]
@@ -429,17 +450,23 @@ if numba is not None:
                 frac = (x - bnd[t, k]) * inv_w[t, k]
                 frac = min(max(frac, 0.0), 1.0 - 1e-16)
                 w = n_max[t] - n_min[t] + 1
-                mod = min(int(math.floor(((k % 8) + frac) / 8.0 * w)), w - 1)
+                # codes are >= 0: & 7 and >> 3 are % 8 and // 8 without Python's sign rules
+                mod = min(int(((k & 7) + frac) / 8.0 * w), w - 1)
                 d2 = n_th[t] + mod
-                if d2 > n_max[t]:
-                    d2 -= w
+                d2 -= w * (d2 > n_max[t])
                 is_artifact[q] = False
-            words[i] = ((d2 // 8) << 26) | (johnson[d2 % 8] << 22) | ((k // 8) << 16) | (
-                johnson[k % 8] << 12) | (1 << 9) | (t << 1)
+            words[i] = ((d2 >> 3) << 26) | (johnson[d2 & 7] << 22) | ((k >> 3) << 16) | (
+                johnson[k & 7] << 12) | (1 << 9) | (t << 1)
+        for q in range(index.size):  # the artifacts' D2nd, above Nmax
+            if is_artifact[q]:
+                t = tdc_ev[q]
+                lo2 = n_max[t] + 1
+                d2 = lo2 + int(rng.random() * (256 - lo2))
+                words[index[q]] |= ((d2 >> 3) << 26) | (johnson[d2 & 7] << 22)
 
 
 def fast_chunk_numba(engine: FastEngine, chip: Chip, codes: CodeTable, jitter_s: np.ndarray,
-                     ev: Events, words_t: np.ndarray) -> np.ndarray:
+                     ev: Events, rng: np.random.Generator, words_t: np.ndarray) -> np.ndarray:
     """Fill the TDC-major words ``words_t`` (n_tdc, n_cycles) at the STARTs of ``ev``;
     returns which STARTs are artifacts. TDC-major writes are sequential per TDC; the caller
     transposes once (cycle-major scattered writes missed the cache at almost every START).
@@ -449,7 +476,7 @@ def fast_chunk_numba(engine: FastEngine, chip: Chip, codes: CodeTable, jitter_s:
     o = engine.o
     art = np.empty(ev.index.size, np.bool_)
     words = words_t.reshape(-1)
-    _fast_kernel(ev.flat, ev.tdc, ev.e, ev.z, ev.r, o.n_tdc, engine.j_lo, engine.j_hi,
+    _fast_kernel(ev.flat, ev.tdc, ev.e, rng, o.n_tdc, engine.j_lo, engine.j_hi,
                  engine.m_a, engine.c_a, engine.l_end, engine.de, engine.inv_de, engine.inv,
                  o.m_signal, o.tof_s, o.bg_hz, engine.inv_sigma, engine.k_pdf, engine.start,
                  engine.phi0, o.window_s, jitter_s, codes.period, codes.inv_step, codes.code,

@@ -27,6 +27,7 @@ from stages.simulator.engines import (
     ReferenceEngine,
     Starts,
     digitize,
+    draw_tails,
     fast_chunk_numba,
     numba,
 )
@@ -127,27 +128,27 @@ class Simulator:
         per-TDC class counts. Deterministic in (seed, index)."""
         rng = np.random.default_rng([self.seed, index, _ENGINE_IDS[self.engine_name]])
         n = self.n_tdc
-        words = np.tile(self._template, n_cycles)
         if isinstance(self.engine, ReferenceEngine):
             starts = self.engine.draw(rng, n_cycles, index * CHUNK_CYCLES)
-            ev = Events(starts.index, np.empty(0), rng.standard_normal(starts.index.size),
-                        rng.random(starts.index.size))
+            ev = Events(starts.index, np.empty(0))
         else:
             ev = self.engine.events(rng, n_cycles)
             starts = None if self.compiled else self.engine.starts(ev)
         tdc = ev.tdc if ev.tdc is not None else ev.index % n
         if starts is None:
             words_t = np.repeat(self._template, n_cycles).reshape(n, n_cycles)
-            art = fast_chunk_numba(self.engine, self.chip, self.codes, self.jitter, ev,
+            art = fast_chunk_numba(self.engine, self.chip, self.codes, self.jitter, ev, rng,
                                    words_t)
             words = np.ascontiguousarray(words_t.T).reshape(-1)
         else:
-            tdc, code, frac = digitize(self.codes, self.jitter, self.optics.window_s, starts,
-                                       n, ev.z)
+            words = np.tile(self._template, n_cycles)
             art = starts.kind == KIND_ARTIFACT
+            z, r = draw_tails(rng, art)
+            tdc, code, frac = digitize(self.codes, self.jitter, self.optics.window_s, starts,
+                                       n, z)
             d2 = second_stage(self.chip, tdc, code, frac)
             lo = self.chip.n_max[tdc] + 1
-            d2 = np.where(art, lo + np.floor(ev.r * (256 - lo)).astype(np.int64), d2)
+            d2 = np.where(art, lo + np.floor(r * (256 - lo)).astype(np.int64), d2)
             words[ev.index] = encode_words(code // 8, code % 8, d2 // 8, d2 % 8, tdc)
             starts = Starts(ev.index, starts.kind, starts.t_s, starts.code)
         # class counts from the STARTs alone: every other word is a no_hit
