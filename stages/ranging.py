@@ -513,38 +513,38 @@ if numba is not None:
         return cb, max(cb - kw, 0), min(cb + kw + 1, n)
 
     @numba.njit(cache=True, nogil=True, inline="always")
-    def _argmax_valid(S, valid):
-        """The first index of the largest S among the valid (0 when none is): four
-        independent lanes, merged so that the lowest index wins a tie (np.argmax's rule);
-        one running maximum would wait on each compare."""
+    def _first_max(S):
+        """The first index of the largest S (0 when all are -inf or NaN): the maximum over
+        eight independent lanes (one running maximum waits on each compare; numba does not
+        vectorise it), then the first block of eight that holds it, then its place there
+        (np.argmax's rule on ties)."""
         n = S.size
-        b0 = b1 = b2 = b3 = -np.inf
-        i0, i1, i2, i3 = 0, 1, 2, 3
-        n4 = n - n % 4
-        for j in range(0, n4, 4):
-            x0 = S[j] if valid[j] else -np.inf
-            x1 = S[j + 1] if valid[j + 1] else -np.inf
-            x2 = S[j + 2] if valid[j + 2] else -np.inf
-            x3 = S[j + 3] if valid[j + 3] else -np.inf
-            if x0 > b0:
-                b0, i0 = x0, j
-            if x1 > b1:
-                b1, i1 = x1, j + 1
-            if x2 > b2:
-                b2, i2 = x2, j + 2
-            if x3 > b3:
-                b3, i3 = x3, j + 3
-        for j in range(n4, n):
-            x0 = S[j] if valid[j] else -np.inf
-            if x0 > b0:
-                b0, i0 = x0, j
-        if b1 > b0 or (b1 == b0 and i1 < i0):
-            b0, i0 = b1, i1
-        if b2 > b0 or (b2 == b0 and i2 < i0):
-            b0, i0 = b2, i2
-        if b3 > b0 or (b3 == b0 and i3 < i0):
-            b0, i0 = b3, i3
-        return i0 if b0 > -np.inf else 0
+        b0 = b1 = b2 = b3 = b4 = b5 = b6 = b7 = -np.inf
+        n8 = n - n % 8
+        for j in range(0, n8, 8):
+            b0 = max(b0, S[j])
+            b1 = max(b1, S[j + 1])
+            b2 = max(b2, S[j + 2])
+            b3 = max(b3, S[j + 3])
+            b4 = max(b4, S[j + 4])
+            b5 = max(b5, S[j + 5])
+            b6 = max(b6, S[j + 6])
+            b7 = max(b7, S[j + 7])
+        for j in range(n8, n):
+            b0 = max(b0, S[j])
+        b = max(max(max(b0, b1), max(b2, b3)), max(max(b4, b5), max(b6, b7)))
+        if not b > -np.inf:
+            return 0
+        j0 = n8
+        for j in range(0, n8, 8):
+            if ((S[j] == b) | (S[j + 1] == b) | (S[j + 2] == b) | (S[j + 3] == b)
+                    | (S[j + 4] == b) | (S[j + 5] == b) | (S[j + 6] == b) | (S[j + 7] == b)):
+                j0 = j
+                break
+        for j in range(j0, n):
+            if S[j] == b:
+                return j
+        return 0
 
     @numba.njit(cache=True, nogil=True)
     def _fast_numba(counts, edges, valid, cycles, kb, kc, a_b, kw, inv_s, steps, step_cap):
@@ -574,9 +574,8 @@ if numba is not None:
         for p in range(n_pix):
             crow, erow, vrow = counts[p], edges[p], valid[p]
             erow1 = erow[1:]
+            v_in = vrow[kb:kb + nb]
             nv = 0
-            for j in range(n):
-                nv += vrow[j]
             acc = 0.0
             cs = 0.0
             rws = 0.0
@@ -588,6 +587,7 @@ if numba is not None:
                 rj = cyc - acc
                 r[j] = rj
                 acc += c
+                nv += vrow[j]
                 if vrow[j]:  # masks change in a few places: a predicted branch
                     cs += c
                     rws += max(rj, 0.0) * (erow1[j] - erow[j])
@@ -595,15 +595,16 @@ if numba is not None:
                 RW1[j] = rws
             bg0 = cs / max(rws, 1e-300)
             # the boxed excess over the constant-hazard background, vectorised
-            for j in range(nb):
-                S_in[j] = (C_hi[j] - C_lo[j]) - bg0 * (RW_hi[j] - RW_lo[j])
+            for j in range(nb):  # an invalid centre is no candidate
+                S_in[j] = ((C_hi[j] - C_lo[j]) - bg0 * (RW_hi[j] - RW_lo[j])
+                           if v_in[j] else -np.inf)
             for j in range(min(kb, n)):  # the box clamped at either end
                 hi = min(j + kb + 1, n)
-                S[j] = C[hi] - bg0 * RW[hi]
+                S[j] = C[hi] - bg0 * RW[hi] if vrow[j] else -np.inf
                 jj = n - 1 - j
                 lo = max(jj - kb, 0)
-                S[jj] = (C[n] - C[lo]) - bg0 * (RW[n] - RW[lo])
-            peak = _argmax_valid(S, vrow)
+                S[jj] = (C[n] - C[lo]) - bg0 * (RW[n] - RW[lo]) if vrow[jj] else -np.inf
+            peak = _first_max(S)
             flo = max(peak - 4 * kc, 0)
             fhi = min(peak + 4 * kc + 1, n)
             bg = (C[n] - (C[fhi] - C[flo])) / max(RW[n] - (RW[fhi] - RW[flo]), 1e-300)

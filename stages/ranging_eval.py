@@ -52,19 +52,26 @@ def draw(rng: np.random.Generator, m: float, cycles: int, sbr: float, tof_s: flo
     return hist, t, crlb
 
 
+#: Each estimator runs this many times on a cell's histograms; throughput is the best run.
+TIMING_RUNS = 3
+
+
 def score(hist: Histograms, truth_s: np.ndarray, crlb_s: float, sigma_s: float,
           estimators=ESTIMATORS) -> list[dict]:
-    """Run each estimator on ``hist``: throughput (histograms/s), detection rate, bias,
-    RMSE, RMSE over the CRLB, outliers beyond 5 CRLB and 2-sigma coverage, one dict each.
+    """Run each estimator on ``hist``: throughput (histograms/s, the best of
+    :data:`TIMING_RUNS` runs), detection rate, bias, RMSE, RMSE over the CRLB, outliers
+    beyond 5 CRLB and 2-sigma coverage, one dict each.
     Errors are taken over detected pixels (all pixels when none is detected)."""
     rows = []
     n = truth_s.size
     for est in estimators:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            t0 = time.perf_counter()
-            r = estimate(hist, sigma_s, est)
-            dt = time.perf_counter() - t0
+            dt = np.inf
+            for _ in range(TIMING_RUNS):  # the best run, as timeit does: the first one
+                t0 = time.perf_counter()  # also pays for cold caches and fresh pages
+                r = estimate(hist, sigma_s, est)
+                dt = min(dt, time.perf_counter() - t0)
         err = r.t_s - truth_s
         det = np.asarray(r.detected, bool)
         e = err[det] if det.any() else err
