@@ -9,7 +9,12 @@ in memory (``SimulatedCapture``: the words a capture would hold, not written). T
 error is the density test's INL statistics at the peak's code: it falls as 1/sqrt(cycles),
 and the table extrapolates the cycles that 5 ps needs.
 
+With ``--fill-lux``, a second density test of the same length at that (dimmer) light
+measures the codes under the first one's reset peak, and the INL takes their widths from
+it (as ``lsb_campaign`` does with its tests; the INL columns are then the filled table's).
+
     python benchmarks/calibration.py [--cycles 1e6 4e6 1.6e7 6.4e7] [--tdcs 8]
+        [--density-lux 1800] [--fill-lux 900]
 """
 
 from __future__ import annotations
@@ -25,8 +30,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.datapath import emit, machine  # noqa: E402
-from pipeline.calibrate import add_delay, density_from_capture, write_caldir  # noqa: E402
+from pipeline.calibrate import add_delay, density_histograms, write_caldir  # noqa: E402
 from pipeline.simulate import SimulatedCapture  # noqa: E402
+from stages import calibration as cal  # noqa: E402
 from stages.models.scene import scene_from_dict  # noqa: E402
 
 C_LIGHT = 299_792_458.0
@@ -49,7 +55,15 @@ def one(cycles: int, args, tmp: Path) -> dict:
     dens, delay = scenes(args.tdcs, args.density_lux, args.delay_lux)
     t0 = time.perf_counter()
     cap = SimulatedCapture(dens, cycles, chip_seed=args.chip_seed, seed=1)
-    res, second = density_from_capture(cap, None)
+    state, second = density_histograms(cap)
+    res = cal.density_test(state.hits, state.cycles, cap.meta.window_ns * 1e-9)
+    if args.fill_lux:
+        dim, _ = scenes(args.tdcs, args.fill_lux, args.delay_lux)
+        st2, _ = density_histograms(SimulatedCapture(dim, cycles, chip_seed=args.chip_seed,
+                                                     seed=3))
+        r2 = cal.density_test(st2.hits, st2.cycles, cap.meta.window_ns * 1e-9)
+        fill = cal.fill_from([(r2, cal.width_variance(st2.hits, st2.cycles, r2))], res)
+        res = cal.density_test(state.hits, state.cycles, cap.meta.window_ns * 1e-9, fill=fill)
     t_density = time.perf_counter() - t0
     truth = cap.truth["chip"]
     lsb_err = res.lsb_s * 1e12 - np.array(truth["lsb_window_ps"])
@@ -88,6 +102,9 @@ def main() -> None:
     ap.add_argument("--tdcs", type=int, default=8)
     ap.add_argument("--density-lux", type=float, default=1800.0)
     ap.add_argument("--delay-lux", type=float, default=10_000.0)
+    ap.add_argument("--fill-lux", type=float, default=None,
+                    help="a second density test at this light fills the first one's codes "
+                         "under its reset peak")
     ap.add_argument("--delay-cycles", type=int, default=4_000_000)
     ap.add_argument("--chip-seed", type=int, default=4)
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/calibration.md"))
@@ -103,7 +120,9 @@ def main() -> None:
              f"{args.tdcs} TDCs; density test at {args.density_lux:g} lux "
              f"({rows[0]['light']:.3f} STARTs per pixel per cycle); delay capture "
              f"{args.delay_cycles:,} cycles at {args.delay_lux:g} lux "
-             f"({rows[0]['delay_light']:.3f}), scaled by its own reset peak.", "",
+             f"({rows[0]['delay_light']:.3f}), scaled by its own reset peak."
+             + (f" Codes under the density test's reset peak filled from a second test of "
+                f"the same length at {args.fill_lux:g} lux." if args.fill_lux else ""), "",
              "| density cycles | density test s | delay s | LSB error max ps | "
              "INL RMS vs truth median / max LSB | the same less a tilt | INL predicted LSB | "
              "delay RMS ps | delay max ps |", "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]

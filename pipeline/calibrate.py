@@ -46,13 +46,9 @@ def sha256(path: Path, chunk: int = 1 << 22) -> str:
     return h.hexdigest()
 
 
-def density_from_capture(capture: Capture, inl_rms_lsb: float | None = 0.3,
-                         progress=None) -> tuple[cal.DensityResult, cal.SecondStage]:
-    """Run a density test on a uniform-light capture (two passes: second stage, then D1st).
-
-    Raises CalibrationError when the capture is too small for ``inl_rms_lsb`` (None: no
-    check), saying how many cycles are needed.
-    """
+def density_histograms(capture: Capture, progress=None):
+    """A uniform-light capture's D1st histograms (artifact removed) and second-stage
+    parameters: two passes, the second stage's bounds first."""
     n_tdc = capture.meta.n_tdc
     ss = cal.SecondStageAccumulator(n_tdc)
     for first, words in capture.iter_chunks():
@@ -65,7 +61,17 @@ def density_from_capture(capture: Capture, inl_rms_lsb: float | None = 0.3,
         acc.update(words, first)
         if progress:
             progress(words.size)
-    state = acc.snapshot()
+    return acc.snapshot(), second
+
+
+def density_from_capture(capture: Capture, inl_rms_lsb: float | None = 0.3,
+                         progress=None) -> tuple[cal.DensityResult, cal.SecondStage]:
+    """Run a density test on a uniform-light capture (two passes: second stage, then D1st).
+
+    Raises CalibrationError when the capture is too small for ``inl_rms_lsb`` (None: no
+    check), saying how many cycles are needed.
+    """
+    state, second = density_histograms(capture, progress)
     res = cal.density_test(state.hits, state.cycles, capture.meta.window_ns * 1e-9)
     if inl_rms_lsb is not None:
         worst = np.nanmax(np.where(res.ok, res.inl_error_lsb, np.nan)) if res.ok.any() else np.inf
@@ -191,14 +197,20 @@ def lsb_campaign(captures: list, out: str | Path, inl_rms_lsb: float = 0.5,
     from the test with the smallest statistical error; written to ``out`` atomically.
     ``captures``: capture paths, or objects read like one (a daemon's journal run).
 
+    The codes under that test's own reset peak, which it cannot measure, take the widths
+    the other tests measured there (each at another light, so with its reset peak
+    elsewhere), weighted against the phase mean by their errors (``density_test(fill=)``).
+
     Returns the density test kept for the INL, the fit, the light levels and the per-test
     LSBs (ps, TDC x test). Raises CalibrationError when no test reaches ``inl_rms_lsb``.
     """
-    results = []
+    results, states = [], []
     for path in captures:
         cap = path if hasattr(path, "iter_chunks") else Capture(path)
-        res, second = density_from_capture(cap, None)  # dim tests give an LSB, not an INL
+        state, second = density_histograms(cap)  # dim tests give an LSB, not an INL
+        res = cal.density_test(state.hits, state.cycles, cap.meta.window_ns * 1e-9)
         results.append((cap, res, second))
+        states.append(state)
         if log:
             log(f"{cap.bin_path.name}: {np.nanmean(res.detections_per_cycle):.3f} STARTs per "
                 f"pixel per cycle, LSB {np.nanmean(res.lsb_s) * 1e12:.2f} ps (mean)")
@@ -209,7 +221,18 @@ def lsb_campaign(captures: list, out: str | Path, inl_rms_lsb: float = 0.5,
         e = r.inl_error_lsb[r.ok]
         return float(np.nanmax(e)) if np.isfinite(e).any() else float("inf")
 
-    best = min(results, key=lambda x: worst_inl(x[1]))
+    i_best = min(range(len(results)), key=lambda i: worst_inl(results[i][1]))
+    best = results[i_best]
+    others = [(r, cal.width_variance(st.hits, st.cycles, r))
+              for i, ((_, r, _), st) in enumerate(zip(results, states)) if i != i_best]
+    if others:
+        st = states[i_best]
+        refilled = cal.density_test(st.hits, st.cycles, best[0].meta.window_ns * 1e-9,
+                                    fill=cal.fill_from(others, best[1]))
+        best = (best[0], refilled, best[2])
+        if log:
+            log(f"INL from {best[0].bin_path.name}; the codes under its reset peak also "
+                f"from the {len(others)} other test(s)")
     worst = worst_inl(best[1])
     if not worst <= inl_rms_lsb:
         raise CalibrationError(f"the best density test ({best[0].bin_path.name}) gives an "

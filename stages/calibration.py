@@ -207,7 +207,8 @@ def cycles_needed(inl_rms_lsb: float, n_codes: float = 395.0,
 
 
 def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
-                 min_hits: int = 1000, exclude: np.ndarray | None = None) -> DensityResult:
+                 min_hits: int = 1000, exclude: np.ndarray | None = None,
+                 fill: tuple[np.ndarray, np.ndarray] | None = None) -> DensityResult:
     """DNL, INL and LSB of every TDC from the D1st histograms of a uniform-light capture.
 
     Parameters
@@ -220,6 +221,13 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
     exclude : (n_tdc, 512) bool, optional
         Codes whose counts are not uniform light (a range capture's signal peaks): their
         hits still leave the at-risk count, their widths come from the phase means.
+    fill : ((n_tdc, 512), (n_tdc, 512)), optional
+        Widths of the codes this test cannot measure (under its reset peak) as other tests
+        measured them, and their variances (any unit common to a row; NaN where unknown),
+        from :func:`fill_from`. Each such code takes the inverse-variance mean of that and
+        the phase mean (whose error is the scatter of this test's own widths about it): the
+        random DNL of those 3-5 codes otherwise tilts the whole table (their summed width
+        sets where T falls).
     """
     hits = np.asarray(hits, np.float64)
     cycles = np.asarray(cycles, np.float64)
@@ -231,7 +239,8 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
     ok = total >= min_hits
     for t in np.flatnonzero(ok):  # a loop over TDCs, once per calibration
         res = _one_tdc(hits[t], cycles[t], window_s,
-                       None if exclude is None else exclude[t])
+                       None if exclude is None else exclude[t],
+                       None if fill is None else (fill[0][t], fill[1][t]))
         if res is None:
             ok[t] = False
             continue
@@ -241,7 +250,7 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
                          out["err"])
 
 
-def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None):
+def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill=None):
     # the reset peak: the largest count in the upper part of the code range
     top = int(np.argmax(np.where(np.arange(N_CODES) > 16, h, -1)))
     # The low edge is usable: for uniform light, code 0 (which also collects every START the
@@ -269,6 +278,8 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None):
     edge = np.ones(N_CODES, bool)
     edge[interior] = False
     w[edge] = phase_mean[np.arange(N_CODES)[edge] % 8] / scale
+    if fill is not None:
+        w = _refill(w, edge, interior, h, at_risk, scale, *fill)
     bound = np.concatenate([[0.0], np.cumsum(w)])   # B_k in interior-LSB units
     # x_T: the reset peak fitted over these boundaries, above the uniform part (the
     # interior's density, at risk there) that ends at T
@@ -288,6 +299,68 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None):
     inl[beyond] = np.nan
     err = x_t * INL_RMS_FACTOR / np.sqrt(max(h[interior].sum(), 1.0))
     return lsb, x_t, width, inl, err
+
+
+def width_variance(hits: np.ndarray, cycles: np.ndarray, density: DensityResult) -> np.ndarray:
+    """(n_tdc, 512) variance of each measured code width (LSB^2), NaN for the codes the
+    test did not measure (under its reset peak, beyond the window, empty, dead TDCs).
+
+    Coates' ``r w = -log(1 - h / R)`` with h binomial given R: var(r w) = h / (R (R - h)).
+    """
+    h = np.asarray(hits, np.float64)
+    r = at_risk_by_code(h, cycles)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rw = -np.log1p(-h / r)
+        var = h / (r * (r - h)) * (density.width_lsb / rw) ** 2
+    k = np.arange(N_CODES)[None, :]
+    measured = ((k < np.floor(density.x_t)[:, None] - EDGE_MARGIN - 1) & (h > 0)
+                & density.ok[:, None])
+    return np.where(measured & np.isfinite(var) & (var > 0), var, np.nan)
+
+
+def fill_from(tests: list[tuple[DensityResult, np.ndarray]], target: DensityResult):
+    """Code widths for ``density_test(fill=...)``: the inverse-variance mean over ``tests``
+    (each a result and its :func:`width_variance`), every test first brought to
+    ``target``'s units by the ratio of their mean widths over the codes both measured
+    (the LSB changes with light; the DNL does not)."""
+    num = np.zeros_like(target.width_lsb)
+    den = np.zeros_like(target.width_lsb)
+    k = np.arange(N_CODES)[None, :]
+    inside = k < np.floor(target.x_t)[:, None] - EDGE_MARGIN - 1
+    for res, var in tests:
+        both = inside & np.isfinite(var) & np.isfinite(target.width_lsb)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = (np.where(both, target.width_lsb, 0).sum(1)
+                     / np.where(both, res.width_lsb, 0).sum(1))
+        good = np.isfinite(var) & (both.sum(1) >= 32)[:, None] & np.isfinite(ratio)[:, None]
+        v = np.where(good, var * ratio[:, None] ** 2, np.inf)
+        num += np.where(good, res.width_lsb * ratio[:, None] / v, 0.0)
+        den += np.where(good, 1 / v, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 0, num / den, np.nan), np.where(den > 0, 1 / den, np.nan)
+
+
+def _refill(w, edge, interior, h, at_risk, scale, f_w, f_var):
+    """The edge codes' widths (``w``, interior-LSB units) as the inverse-variance mean of
+    the phase mean already there and ``f_w`` (another test's, any unit: brought to this
+    one's by the codes both measured)."""
+    common = interior[np.isfinite(f_w[interior])]
+    if common.size < 32:
+        return w
+    ratio = w[common].mean() / f_w[common].mean()
+    f, fv = f_w * ratio, f_var * ratio ** 2
+    phase = np.arange(N_CODES) % 8
+    pm = np.array([w[interior[phase[interior] == p]].mean() for p in range(8)])[phase]
+    # the phase mean's error as a fill: the scatter of the measured widths about it, less
+    # what their own statistics explain
+    with np.errstate(divide="ignore", invalid="ignore"):
+        stat = h / (at_risk * (at_risk - h)) / scale ** 2
+    spread = np.mean((w[interior] - pm[interior]) ** 2) - np.nanmean(stat[interior])
+    v_pm = max(spread, 1e-8)
+    use = edge & np.isfinite(f) & np.isfinite(fv) & (fv > 0)
+    out = w.copy()
+    out[use] = (w[use] / v_pm + f[use] / fv[use]) / (1 / v_pm + 1 / fv[use])
+    return out
 
 
 # ---------------------------------------------------------------- online LSB tracking
