@@ -56,14 +56,17 @@ def one(cycles: int, args, tmp: Path) -> dict:
     t0 = time.perf_counter()
     cap = SimulatedCapture(dens, cycles, chip_seed=args.chip_seed, seed=1)
     state, second = density_histograms(cap)
-    res = cal.density_test(state.hits, state.cycles, cap.meta.window_ns * 1e-9)
+    arts = None if args.no_artifacts else state.artifacts
+    res = cal.density_test(state.hits, state.cycles, cap.meta.window_ns * 1e-9, artifacts=arts)
     if args.fill_lux:
         dim, _ = scenes(args.tdcs, args.fill_lux, args.delay_lux)
         st2, _ = density_histograms(SimulatedCapture(dim, cycles, chip_seed=args.chip_seed,
                                                      seed=3))
-        r2 = cal.density_test(st2.hits, st2.cycles, cap.meta.window_ns * 1e-9)
-        fill = cal.fill_from([(r2, cal.width_variance(st2.hits, st2.cycles, r2))], res)
-        res = cal.density_test(state.hits, state.cycles, cap.meta.window_ns * 1e-9, fill=fill)
+        a2 = None if args.no_artifacts else st2.artifacts
+        r2 = cal.density_test(st2.hits, st2.cycles, cap.meta.window_ns * 1e-9, artifacts=a2)
+        fill = cal.fill_from([(r2, cal.width_variance(st2.hits, st2.cycles, r2, a2))], res)
+        res = cal.density_test(state.hits, state.cycles, cap.meta.window_ns * 1e-9, fill=fill,
+                               artifacts=arts)
     t_density = time.perf_counter() - t0
     truth = cap.truth["chip"]
     lsb_err = res.lsb_s * 1e12 - np.array(truth["lsb_window_ps"])
@@ -102,6 +105,8 @@ def main() -> None:
     ap.add_argument("--tdcs", type=int, default=8)
     ap.add_argument("--density-lux", type=float, default=1800.0)
     ap.add_argument("--delay-lux", type=float, default=10_000.0)
+    ap.add_argument("--no-artifacts", action="store_true",
+                    help="leave the artifact STARTs out of the at-risk counts (as before)")
     ap.add_argument("--fill-lux", type=float, default=None,
                     help="a second density test at this light fills the first one's codes "
                          "under its reset peak")

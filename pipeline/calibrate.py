@@ -47,8 +47,8 @@ def sha256(path: Path, chunk: int = 1 << 22) -> str:
 
 
 def density_histograms(capture: Capture, progress=None):
-    """A uniform-light capture's D1st histograms (artifact removed) and second-stage
-    parameters: two passes, the second stage's bounds first."""
+    """A uniform-light capture's D1st histograms (artifact words apart, by code) and
+    second-stage parameters: two passes, the second stage's bounds first."""
     n_tdc = capture.meta.n_tdc
     ss = cal.SecondStageAccumulator(n_tdc)
     for first, words in capture.iter_chunks():
@@ -56,7 +56,7 @@ def density_histograms(capture: Capture, progress=None):
         if progress:
             progress(words.size)
     second = cal.second_stage_params(ss.counts)
-    acc = HistogramAccumulator(n_tdc, second.bounds)
+    acc = HistogramAccumulator(n_tdc, second.bounds, count_artifacts=True)
     for first, words in capture.iter_chunks():
         acc.update(words, first)
         if progress:
@@ -72,7 +72,8 @@ def density_from_capture(capture: Capture, inl_rms_lsb: float | None = 0.3,
     check), saying how many cycles are needed.
     """
     state, second = density_histograms(capture, progress)
-    res = cal.density_test(state.hits, state.cycles, capture.meta.window_ns * 1e-9)
+    res = cal.density_test(state.hits, state.cycles, capture.meta.window_ns * 1e-9,
+                           artifacts=state.artifacts)
     if inl_rms_lsb is not None:
         worst = np.nanmax(np.where(res.ok, res.inl_error_lsb, np.nan)) if res.ok.any() else np.inf
         if not np.isfinite(worst) or worst > inl_rms_lsb:
@@ -208,7 +209,8 @@ def lsb_campaign(captures: list, out: str | Path, inl_rms_lsb: float = 0.5,
     for path in captures:
         cap = path if hasattr(path, "iter_chunks") else Capture(path)
         state, second = density_histograms(cap)  # dim tests give an LSB, not an INL
-        res = cal.density_test(state.hits, state.cycles, cap.meta.window_ns * 1e-9)
+        res = cal.density_test(state.hits, state.cycles, cap.meta.window_ns * 1e-9,
+                               artifacts=state.artifacts)
         results.append((cap, res, second))
         states.append(state)
         if log:
@@ -223,12 +225,13 @@ def lsb_campaign(captures: list, out: str | Path, inl_rms_lsb: float = 0.5,
 
     i_best = min(range(len(results)), key=lambda i: worst_inl(results[i][1]))
     best = results[i_best]
-    others = [(r, cal.width_variance(st.hits, st.cycles, r))
+    others = [(r, cal.width_variance(st.hits, st.cycles, r, st.artifacts))
               for i, ((_, r, _), st) in enumerate(zip(results, states)) if i != i_best]
     if others:
         st = states[i_best]
         refilled = cal.density_test(st.hits, st.cycles, best[0].meta.window_ns * 1e-9,
-                                    fill=cal.fill_from(others, best[1]))
+                                    fill=cal.fill_from(others, best[1]),
+                                    artifacts=st.artifacts)
         best = (best[0], refilled, best[2])
         if log:
             log(f"INL from {best[0].bin_path.name}; the codes under its reset peak also "

@@ -37,10 +37,13 @@ EDGE_MARGIN = 4
 RESET_HALF = 4
 
 
-def at_risk_by_code(hits, cycles) -> np.ndarray:
+def at_risk_by_code(hits, cycles, artifacts=None) -> np.ndarray:
     """(n, 512) cycles still at risk before each code, in arrival order (high codes first,
-    reversed timing): the cycles less the hits at higher codes."""
+    reversed timing): the cycles less the STARTs at higher codes (hits, and artifacts
+    where counted)."""
     h = np.asarray(hits, np.float64)
+    if artifacts is not None:
+        h = h + np.asarray(artifacts, np.float64).reshape(h.shape)
     before = np.concatenate([np.cumsum(h[:, ::-1], axis=1)[:, ::-1][:, 1:],
                              np.zeros((h.shape[0], 1))], axis=1)
     return np.asarray(cycles, np.float64).reshape(-1, 1) - before
@@ -208,7 +211,8 @@ def cycles_needed(inl_rms_lsb: float, n_codes: float = 395.0,
 
 def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
                  min_hits: int = 1000, exclude: np.ndarray | None = None,
-                 fill: tuple[np.ndarray, np.ndarray] | None = None) -> DensityResult:
+                 fill: tuple[np.ndarray, np.ndarray] | None = None,
+                 artifacts: np.ndarray | None = None) -> DensityResult:
     """DNL, INL and LSB of every TDC from the D1st histograms of a uniform-light capture.
 
     Parameters
@@ -228,6 +232,12 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
         the phase mean (whose error is the scatter of this test's own widths about it): the
         random DNL of those 3-5 codes otherwise tilts the whole table (their summed width
         sets where T falls).
+    artifacts : (n_tdc, 512), optional
+        Artifact words by code (``HistogramAccumulator(count_artifacts=True)``). An artifact
+        is a START: its cycle is not at risk at later codes. Without them the at-risk
+        counts after each artifact code are too high by its rate (the simulated chip's
+        ~1e-4 a cycle at three codes), every width there too small by as much, and the
+        INL bows by ~0.02 LSB (~4 ps) mid-window.
     """
     hits = np.asarray(hits, np.float64)
     cycles = np.asarray(cycles, np.float64)
@@ -240,7 +250,8 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
     for t in np.flatnonzero(ok):  # a loop over TDCs, once per calibration
         res = _one_tdc(hits[t], cycles[t], window_s,
                        None if exclude is None else exclude[t],
-                       None if fill is None else (fill[0][t], fill[1][t]))
+                       None if fill is None else (fill[0][t], fill[1][t]),
+                       None if artifacts is None else np.asarray(artifacts[t], np.float64))
         if res is None:
             ok[t] = False
             continue
@@ -250,7 +261,8 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
                          out["err"])
 
 
-def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill=None):
+def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill=None,
+             artifacts=None):
     # the reset peak: the largest count in the upper part of the code range
     top = int(np.argmax(np.where(np.arange(N_CODES) > 16, h, -1)))
     # The low edge is usable: for uniform light, code 0 (which also collects every START the
@@ -260,7 +272,7 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill
     if hi - lo < 32:
         return None
     # at risk before each code, in arrival order (high codes first)
-    at_risk = at_risk_by_code(h[None], [n_cycles])[0]
+    at_risk = at_risk_by_code(h[None], [n_cycles], artifacts)[0]
     with np.errstate(divide="ignore", invalid="ignore"):
         rw = -np.log1p(-h / at_risk)        # r * width, Coates
     interior = np.arange(lo, hi + 1)
@@ -301,14 +313,15 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill
     return lsb, x_t, width, inl, err
 
 
-def width_variance(hits: np.ndarray, cycles: np.ndarray, density: DensityResult) -> np.ndarray:
+def width_variance(hits: np.ndarray, cycles: np.ndarray, density: DensityResult,
+                   artifacts: np.ndarray | None = None) -> np.ndarray:
     """(n_tdc, 512) variance of each measured code width (LSB^2), NaN for the codes the
     test did not measure (under its reset peak, beyond the window, empty, dead TDCs).
 
     Coates' ``r w = -log(1 - h / R)`` with h binomial given R: var(r w) = h / (R (R - h)).
     """
     h = np.asarray(hits, np.float64)
-    r = at_risk_by_code(h, cycles)
+    r = at_risk_by_code(h, cycles, artifacts)
     with np.errstate(divide="ignore", invalid="ignore"):
         rw = -np.log1p(-h / r)
         var = h / (r * (r - h)) * (density.width_lsb / rw) ** 2

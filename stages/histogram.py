@@ -37,6 +37,8 @@ class HistogramState:
     words: int
     last_seq: int = -1
     tdc_offset: int = 0  #: address of row 0 (a worker of a fan-out by TDC range)
+    #: artifact words by code (n_tdc, 512), where counted (``count_artifacts``)
+    artifacts: np.ndarray | None = None
 
     @property
     def n_tdc(self) -> int:
@@ -57,10 +59,12 @@ class HistogramState:
             raise ValueError(f"cannot merge histograms of {self.n_tdc} and {other.n_tdc} TDCs")
         if self.tdc_offset != other.tdc_offset:
             raise ValueError("cannot merge histograms of different TDC ranges")
+        arts = (None if self.artifacts is None or other.artifacts is None
+                else _frozen(self.artifacts + other.artifacts))
         return HistogramState(_frozen(self.hits + other.hits),
                               _frozen(self.class_counts + other.class_counts),
                               self.words + other.words, max(self.last_seq, other.last_seq),
-                              self.tdc_offset)
+                              self.tdc_offset, arts)
 
     def to_table(self, measurement: str) -> pa.Table:
         """The ``histograms`` dataset of this state, one row per TDC."""
@@ -107,6 +111,9 @@ class HistogramAccumulator:
     tdc_offset : int
         Address of the first TDC: a worker of a fan-out by TDC range takes the words of
         TDCs ``tdc_offset .. tdc_offset + n_tdc - 1`` of each cycle (``bounds`` for those).
+    count_artifacts : bool
+        Also histogram the artifact words by code (``HistogramState.artifacts``): a
+        density test needs them (an artifact ends the cycle's risk like a hit).
 
     Examples
     --------
@@ -119,7 +126,7 @@ class HistogramAccumulator:
 
     def __init__(self, n_tdc: int, bounds: ArtifactBounds | None = None,
                  engine: str | None = None, step_id: str = "histogram",
-                 mode: str = "d1st", tdc_offset: int = 0):
+                 mode: str = "d1st", tdc_offset: int = 0, count_artifacts: bool = False):
         self.step_id = step_id
         self.bounds = bounds if bounds is not None else ArtifactBounds.unbounded(n_tdc)
         self._tables = WordTables(n_tdc, self.bounds, mode, tdc_offset)
@@ -127,6 +134,7 @@ class HistogramAccumulator:
         self.engine = engine
         self.n_tdc = n_tdc
         self._hits = np.zeros((n_tdc, self._tables.n_bins), np.uint64)
+        self._artifacts = (np.zeros_like(self._hits) if count_artifacts else None)
         self._class_counts = np.zeros((N_CLASSES, n_tdc), np.uint64)
         self._words = 0
         self._last_seq = -1
@@ -144,7 +152,7 @@ class HistogramAccumulator:
             raise TypeError(f"{self.step_id}: words must be uint32, found {words.dtype}")
         start = self._words if first_word is None else int(first_word)
         accumulate(words.ravel(), start, self._tables, self._hits, self._class_counts,
-                   self.engine)
+                   self.engine, self._artifacts)
         self._words += words.size
         if seq is not None:
             self._last_seq = int(seq)
@@ -154,12 +162,15 @@ class HistogramAccumulator:
         costly to build, are kept)."""
         self._hits.fill(0)
         self._class_counts.fill(0)
+        if self._artifacts is not None:
+            self._artifacts.fill(0)
         self._words = 0
 
     def snapshot(self) -> HistogramState:
         """An immutable copy of the state."""
         return HistogramState(_frozen(self._hits), _frozen(self._class_counts), self._words,
-                              self._last_seq, self.tdc_offset)
+                              self._last_seq, self.tdc_offset,
+                              None if self._artifacts is None else _frozen(self._artifacts))
 
     def restore(self, state: HistogramState) -> None:
         """Resume exactly from ``state``."""
@@ -168,6 +179,10 @@ class HistogramAccumulator:
                              f"accumulator {self.n_tdc}")
         self._hits = np.array(state.hits, np.uint64)
         self._class_counts = np.array(state.class_counts, np.uint64)
+        if self._artifacts is not None:
+            if state.artifacts is None:
+                raise ValueError(f"{self.step_id}: the snapshot holds no artifact counts")
+            self._artifacts = np.array(state.artifacts, np.uint64)
         self._words = state.words
         self._last_seq = state.last_seq
 

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from schemas import HIT, N_CLASSES
+from schemas import ARTIFACT, HIT, N_CLASSES
 from stages.artifact import ArtifactBounds
 from stages.codec import classify_words, decode_fields, positions
 from stages.datapath import CHUNK_WORDS, STATE_CLASSES, WordTables, accumulate
@@ -53,6 +53,30 @@ def test_engines_equal_reference_on_corrupted_streams(engine, n_tdc, mode, rng):
     assert np.array_equal(hits, ref_hits)
     assert np.array_equal(cc, ref_cc)
     assert cc.sum() == words.size  # every word accounted for
+
+
+@pytest.mark.parametrize("n_tdc", [1, 7, 128])
+def test_artifact_words_counted_by_code_on_both_engines(engine, n_tdc, rng):
+    """Optional third array: the artifact words' D1st histogram (a density test needs
+    them: an artifact ends the cycle's risk like a hit)."""
+    words, truth = pattern_words(600, n_tdc, hit_prob=0.3, artifact_prob=0.1,
+                                 invalid_prob=0.02, malformed_prob=0.02, rng=rng)
+    words = corrupt(words, rng, 0.02)
+    bounds = ArtifactBounds(truth.n_min, truth.n_max)
+    first = n_tdc * int(rng.integers(0, 1000))  # aligned: the words' addresses hold
+    t = WordTables(n_tdc, bounds)
+    hits = np.zeros((n_tdc, 512), np.uint64)
+    cc = np.zeros((N_CLASSES, n_tdc), np.uint64)
+    arts = np.zeros((n_tdc, 512), np.uint64)
+    accumulate(words, first, t, hits, cc, engine, artifacts=arts)
+    cls = classify_words(words, n_tdc, first, bounds.n_min, bounds.n_max)
+    pos = positions(words.size, n_tdc, first).astype(np.int64)
+    art = cls == ARTIFACT
+    ref = np.bincount(pos[art] * 512 + decode_fields(words).d1st[art], minlength=n_tdc * 512)
+    assert np.array_equal(arts, ref.reshape(n_tdc, 512))
+    assert np.array_equal(arts.sum(1), cc[ARTIFACT]) and arts.sum() > 0
+    ref_hits, ref_cc = reference(words, n_tdc, first, bounds)
+    assert np.array_equal(hits, ref_hits) and np.array_equal(cc, ref_cc)
 
 
 @settings(max_examples=60, deadline=None)
