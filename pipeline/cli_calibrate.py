@@ -119,14 +119,16 @@ def track(capture, calibration, out, tolerance_ps) -> None:
     from pipeline.caldir import read_bounds
 
     cap = Capture(capture)
-    acc = HistogramAccumulator(cap.meta.n_tdc, read_bounds(calibration, cap.meta.n_tdc))
+    acc = HistogramAccumulator(cap.meta.n_tdc, read_bounds(calibration, cap.meta.n_tdc),
+                               count_artifacts=True)
     for first, words in cap.iter_chunks():
         acc.update(words, first)
     st = acc.snapshot()
     light = float(st.hits.sum() / (st.n_tdc * max(st.cycles.max(), 1)))
     with warnings_as_notes():
         expected = lsb_at(calibration, light)
-    tr = cal.track_lsb(st.hits, st.cycles, cap.meta.window_ns * 1e-9, expected)
+    tr = cal.track_lsb(st.hits, st.cycles, cap.meta.window_ns * 1e-9, expected,
+                       artifacts=st.artifacts)
     d = tr.drift_ps
     ok = np.isfinite(d)
     err.print(f"light {tr.light:.3f} STARTs/pixel/cycle; LSB measured on {ok.sum()} of "

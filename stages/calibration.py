@@ -405,11 +405,14 @@ class Tracking:
 
 
 def track_lsb(hits: np.ndarray, cycles: np.ndarray, window_s: float,
-              expected_lsb_s: np.ndarray, min_hits: int = 1000) -> Tracking:
+              expected_lsb_s: np.ndarray, min_hits: int = 1000,
+              artifacts: np.ndarray | None = None) -> Tracking:
     """Measure each TDC's LSB from the uniform background of an ordinary range capture
-    (its signal peaks masked) and compare it with what the calibration expects."""
+    (its signal peaks masked) and compare it with what the calibration expects.
+    ``artifacts``: the artifact words by code, where counted (see :func:`density_test`)."""
     h = np.asarray(hits, np.float64)
-    res = density_test(h, cycles, window_s, min_hits, exclude=signal_codes(h))
+    res = density_test(h, cycles, window_s, min_hits, exclude=signal_codes(h),
+                       artifacts=artifacts)
     light = float(h.sum() / (h.shape[0] * max(float(np.max(cycles)), 1.0)))
     return Tracking(np.where(res.ok, res.lsb_s, np.nan), np.asarray(expected_lsb_s), light,
                     res.hits)
