@@ -368,7 +368,9 @@ def _refill(w, edge, interior, h, at_risk, scale, f_w, f_var):
     # what their own statistics explain
     with np.errstate(divide="ignore", invalid="ignore"):
         stat = h / (at_risk * (at_risk - h)) / scale ** 2
-    spread = np.mean((w[interior] - pm[interior]) ** 2) - np.nanmean(stat[interior])
+    stat = stat[interior]
+    spread = (np.mean((w[interior] - pm[interior]) ** 2)
+              - (np.mean(stat[np.isfinite(stat)]) if np.isfinite(stat).any() else 0.0))
     v_pm = max(spread, 1e-8)
     use = edge & np.isfinite(f) & np.isfinite(fv) & (fv > 0)
     out = w.copy()
