@@ -23,6 +23,7 @@ import argparse
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +31,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.datapath import emit, machine  # noqa: E402
-from pipeline.calibrate import add_delay, density_histograms, write_caldir  # noqa: E402
+from pipeline.calibrate import (  # noqa: E402
+    add_delay,
+    density_histograms,
+    refilled,
+    write_caldir,
+)
 from pipeline.simulate import SimulatedCapture  # noqa: E402
 from stages import calibration as cal  # noqa: E402
 from stages.models.scene import scene_from_dict  # noqa: E402
@@ -62,11 +68,11 @@ def one(cycles: int, args, tmp: Path) -> dict:
         dim, _ = scenes(args.tdcs, args.fill_lux, args.delay_lux)
         st2, _ = density_histograms(SimulatedCapture(dim, cycles, chip_seed=args.chip_seed,
                                                      seed=3))
-        a2 = None if args.no_artifacts else st2.artifacts
-        r2 = cal.density_test(st2.hits, st2.cycles, cap.meta.window_ns * 1e-9, artifacts=a2)
-        fill = cal.fill_from([(r2, cal.width_variance(st2.hits, st2.cycles, r2, a2))], res)
-        res = cal.density_test(state.hits, state.cycles, cap.meta.window_ns * 1e-9, fill=fill,
-                               artifacts=arts)
+        if args.no_artifacts:
+            state, st2 = (replace(s, artifacts=None) for s in (state, st2))
+        r2 = cal.density_test(st2.hits, st2.cycles, cap.meta.window_ns * 1e-9,
+                              artifacts=st2.artifacts)
+        res = refilled(state, res, [(st2, r2)], cap.meta.window_ns * 1e-9)
     t_density = time.perf_counter() - t0
     truth = cap.truth["chip"]
     lsb_err = res.lsb_s * 1e12 - np.array(truth["lsb_window_ps"])

@@ -64,16 +64,35 @@ def density_histograms(capture: Capture, progress=None):
     return acc.snapshot(), second
 
 
+def refilled(state, res: cal.DensityResult, others: list, window_s: float):
+    """``res`` (of histograms ``state``) again, with the codes under its reset peak taking
+    the widths that ``others`` (``(state, result)`` pairs of density tests at other light)
+    measured there, each weighted against the phase mean by its error."""
+    tests = [(r, cal.width_variance(st.hits, st.cycles, r, st.artifacts)) for st, r in others]
+    return cal.density_test(state.hits, state.cycles, window_s,
+                            fill=cal.fill_from(tests, res), artifacts=state.artifacts)
+
+
 def density_from_capture(capture: Capture, inl_rms_lsb: float | None = 0.3,
-                         progress=None) -> tuple[cal.DensityResult, cal.SecondStage]:
+                         progress=None, fill: list | tuple = ()
+                         ) -> tuple[cal.DensityResult, cal.SecondStage]:
     """Run a density test on a uniform-light capture (two passes: second stage, then D1st).
 
-    Raises CalibrationError when the capture is too small for ``inl_rms_lsb`` (None: no
-    check), saying how many cycles are needed.
+    ``fill``: captures of density tests at other light (dimmer: their reset peaks ~10
+    codes higher at half the light) that measure the codes under this one's reset peak
+    (see :func:`refilled`). Raises CalibrationError when the capture is too small for
+    ``inl_rms_lsb`` (None: no check), saying how many cycles are needed.
     """
     state, second = density_histograms(capture, progress)
-    res = cal.density_test(state.hits, state.cycles, capture.meta.window_ns * 1e-9,
-                           artifacts=state.artifacts)
+    window_s = capture.meta.window_ns * 1e-9
+    res = cal.density_test(state.hits, state.cycles, window_s, artifacts=state.artifacts)
+    if fill:
+        others = []
+        for c in fill:
+            st, _ = density_histograms(c, progress)
+            others.append((st, cal.density_test(st.hits, st.cycles, window_s,
+                                                artifacts=st.artifacts)))
+        res = refilled(state, res, others, window_s)
     if inl_rms_lsb is not None:
         worst = np.nanmax(np.where(res.ok, res.inl_error_lsb, np.nan)) if res.ok.any() else np.inf
         if not np.isfinite(worst) or worst > inl_rms_lsb:
@@ -225,14 +244,11 @@ def lsb_campaign(captures: list, out: str | Path, inl_rms_lsb: float = 0.5,
 
     i_best = min(range(len(results)), key=lambda i: worst_inl(results[i][1]))
     best = results[i_best]
-    others = [(r, cal.width_variance(st.hits, st.cycles, r, st.artifacts))
-              for i, ((_, r, _), st) in enumerate(zip(results, states)) if i != i_best]
+    others = [(st, r) for i, ((_, r, _), st) in enumerate(zip(results, states))
+              if i != i_best]
     if others:
-        st = states[i_best]
-        refilled = cal.density_test(st.hits, st.cycles, best[0].meta.window_ns * 1e-9,
-                                    fill=cal.fill_from(others, best[1]),
-                                    artifacts=st.artifacts)
-        best = (best[0], refilled, best[2])
+        best = (best[0], refilled(states[i_best], best[1], others,
+                                  best[0].meta.window_ns * 1e-9), best[2])
         if log:
             log(f"INL from {best[0].bin_path.name}; the codes under its reset peak also "
                 f"from the {len(others)} other test(s)")

@@ -55,6 +55,28 @@ def test_density_calibration_directory(capture):
         "--calibration", str(out), "-q")
 
 
+def test_density_filled_from_a_dimmer_test(capture):
+    """``--fill``: a density test at half the light measures the codes under the first
+    one's reset peak (accuracy: tests/stages/test_calibration.py); both are sources."""
+    (capture / "dim8.toml").write_text(SCENE.replace("lux = 1500.0", "lux = 750.0"))
+    run("simulate", str(capture / "dim8.toml"), "--cycles", "600000", "--out",
+        str(capture / "dim.bin"), "-q", "--seed", "3")
+    out, plain = capture / "caldir_fill", capture / "caldir_plain"
+    run("calibrate", "density", str(capture / "dens.bin"), "--fill", str(capture / "dim.bin"),
+        "--out", str(out))
+    run("calibrate", "density", str(capture / "dens.bin"), "--out", str(plain))
+    meta = json.loads((out / "meta.json").read_text())
+    assert [p["path"].rsplit("/", 1)[-1] for p in meta["sources"]] == ["dens.bin", "dim.bin"]
+    filled, before = (pq.read_table(d / "inl.parquet") for d in (out, plain))
+    validate(filled, CALIBRATION_INL)
+    a, b = (t.column("inl_lsb").to_numpy(zero_copy_only=False) for t in (filled, before))
+    assert not np.allclose(a, b, equal_nan=True)
+    truth = json.loads((capture / "dens.json").read_text())["truth"]["chip"]
+    tdc = pq.read_table(out / "tdc.parquet")
+    np.testing.assert_allclose(tdc.column("lsb_ps").to_numpy(), truth["lsb_window_ps"],
+                               atol=0.15)
+
+
 def test_too_small_capture_is_refused_and_the_old_calibration_stays(capture):
     out = capture / "caldir2"
     run("calibrate", "density", str(capture / "dens.bin"), "--out", str(out))
