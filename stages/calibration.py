@@ -237,7 +237,7 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
         is a START: its cycle is not at risk at later codes. Without them the at-risk
         counts after each artifact code are too high by its rate (the simulated chip's
         ~1e-4 a cycle at three codes), every width there too small by as much, and the
-        INL bows by ~0.02 LSB (~4 ps) mid-window.
+        INL bows by ~0.015 LSB (~3 ps) mid-window.
     """
     hits = np.asarray(hits, np.float64)
     cycles = np.asarray(cycles, np.float64)
@@ -291,7 +291,8 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill
     edge[interior] = False
     w[edge] = phase_mean[np.arange(N_CODES)[edge] % 8] / scale
     if fill is not None:
-        w = _refill(w, edge, interior, h, at_risk, scale, *fill)
+        w = _refill(w, edge, interior, phase_mean / scale,
+                    _coates_var(h, at_risk) / scale ** 2, *fill)
     bound = np.concatenate([[0.0], np.cumsum(w)])   # B_k in interior-LSB units
     # x_T: the reset peak fitted over these boundaries, above the uniform part (the
     # interior's density, at risk there) that ends at T
@@ -318,13 +319,12 @@ def width_variance(hits: np.ndarray, cycles: np.ndarray, density: DensityResult,
     """(n_tdc, 512) variance of each measured code width (LSB^2), NaN for the codes the
     test did not measure (under its reset peak, beyond the window, empty, dead TDCs).
 
-    Coates' ``r w = -log(1 - h / R)`` with h binomial given R: var(r w) = h / (R (R - h)).
+    The variance of Coates' ``r w`` (:func:`_coates_var`) scaled to the width.
     """
     h = np.asarray(hits, np.float64)
     r = at_risk_by_code(h, cycles, artifacts)
     with np.errstate(divide="ignore", invalid="ignore"):
-        rw = -np.log1p(-h / r)
-        var = h / (r * (r - h)) * (density.width_lsb / rw) ** 2
+        var = _coates_var(h, r) * (density.width_lsb / -np.log1p(-h / r)) ** 2
     k = np.arange(N_CODES)[None, :]
     measured = ((k < np.floor(density.x_t)[:, None] - EDGE_MARGIN - 1) & (h > 0)
                 & density.ok[:, None])
@@ -353,22 +353,27 @@ def fill_from(tests: list[tuple[DensityResult, np.ndarray]], target: DensityResu
         return np.where(den > 0, num / den, np.nan), np.where(den > 0, 1 / den, np.nan)
 
 
-def _refill(w, edge, interior, h, at_risk, scale, f_w, f_var):
-    """The edge codes' widths (``w``, interior-LSB units) as the inverse-variance mean of
-    the phase mean already there and ``f_w`` (another test's, any unit: brought to this
-    one's by the codes both measured)."""
+def _coates_var(h, r):
+    """The variance of Coates' ``r w = -log(1 - h / R)`` with h binomial given R (delta
+    method): h / (R (R - h)); inf where every cycle at risk fired."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return h / (r * (r - h))
+
+
+def _refill(w, edge, interior, phase_mean, stat_var, f_w, f_var):
+    """The edge codes' widths (``w``, interior-LSB units, where ``phase_mean`` (8,) already
+    stands) as the inverse-variance mean of that and ``f_w`` (another test's, any unit:
+    brought to this one's by the codes both measured); ``stat_var``: the variance of each
+    measured width of ``w``."""
     common = interior[np.isfinite(f_w[interior])]
     if common.size < 32:
         return w
     ratio = w[common].mean() / f_w[common].mean()
     f, fv = f_w * ratio, f_var * ratio ** 2
-    phase = np.arange(N_CODES) % 8
-    pm = np.array([w[interior[phase[interior] == p]].mean() for p in range(8)])[phase]
+    pm = phase_mean[np.arange(N_CODES) % 8]
     # the phase mean's error as a fill: the scatter of the measured widths about it, less
     # what their own statistics explain
-    with np.errstate(divide="ignore", invalid="ignore"):
-        stat = h / (at_risk * (at_risk - h)) / scale ** 2
-    stat = stat[interior]
+    stat = stat_var[interior]
     spread = (np.mean((w[interior] - pm[interior]) ** 2)
               - (np.mean(stat[np.isfinite(stat)]) if np.isfinite(stat).any() else 0.0))
     v_pm = max(spread, 1e-8)

@@ -23,7 +23,7 @@ State is two arrays: ``hits`` (n_tdc, n_bins) of uint64 and ``class_counts``
 ``class_counts``: every word at a TDC's position is one cycle of that TDC. Optionally a
 third, ``artifacts`` (n_tdc, n_bins): the artifact words by their code. An artifact is a
 START too: the cycle is not at risk after it, which a density test's pile-up correction
-must know (at 1e-4 artifacts a cycle, ~0.02 LSB of INL).
+must know (at 1e-4 artifacts a cycle, ~0.015 LSB of INL).
 """
 
 from __future__ import annotations
