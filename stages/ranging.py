@@ -394,6 +394,20 @@ def _alpha_b_table(p_fa: float, n: int) -> np.ndarray:
     return a
 
 
+def _coarse_to_fine_numpy(S):
+    """The compiled ``_coarse_to_fine``'s twin, on rows: the first largest of every second
+    box, then the better of its two neighbours if one beats it (the lower on a tie)."""
+    rows = np.arange(S.shape[0])
+    n = S.shape[1]
+    m = 2 * np.argmax(S[:, ::2], axis=1)
+    best, bv = m.copy(), S[rows, m]
+    left = np.where(m > 0, S[rows, np.maximum(m - 1, 0)], -np.inf)
+    take = (m > 0) & (left >= bv)
+    best, bv = np.where(take, m - 1, best), np.where(take, left, bv)
+    right = np.where(m + 1 < n, S[rows, np.minimum(m + 1, n - 1)], -np.inf)
+    return np.where((m + 1 < n) & (right > bv), m + 1, best)
+
+
 def _fast_numpy(counts, edges, valid, cycles, kb, kc, a_b, kw, inv_s, steps, step_cap):
     """The fast estimator on whole arrays (the compiled kernel's twin, tested equal)."""
     n_pix, n = counts.shape
@@ -410,7 +424,7 @@ def _fast_numpy(counts, edges, valid, cycles, kb, kc, a_b, kw, inv_s, steps, ste
     lo, hi = np.clip(j - kb, 0, n), np.clip(j + kb + 1, 0, n)
     box = np.where(valid, (C[:, hi] - C[:, lo]) - bg0[:, None] * (RW[:, hi] - RW[:, lo]),
                    -np.inf)
-    peak = np.argmax(box, axis=1)
+    peak = _coarse_to_fine_numpy(box)
     flo, fhi = np.clip(peak - 4 * kc, 0, n), np.clip(peak + 4 * kc + 1, 0, n)
     num = C[:, -1] - (C[rows, fhi] - C[rows, flo])
     den = RW[:, -1] - (RW[rows, fhi] - RW[rows, flo])
@@ -551,6 +565,21 @@ if numba is not None:
                 return j
         return 0
 
+    @numba.njit(cache=True, nogil=True, inline="always")
+    def _coarse_to_fine(S):
+        """Coarse to fine: the first largest of every second box (a box is 3 sigma wide:
+        neighbours share 4 of its 5 bins and differ little), then the better of its two
+        neighbours if one beats it (the lower on a tie). Half the maximum's work; the
+        peak only seeds the centroid and the window, which then follow the estimate."""
+        n = S.size
+        m = 2 * _first_max(S[::2])
+        best, bv = m, S[m]
+        if m > 0 and S[m - 1] >= bv:
+            best, bv = m - 1, S[m - 1]
+        if m + 1 < n and S[m + 1] > bv:
+            best = m + 1
+        return best
+
     @numba.njit(cache=True, nogil=True)
     def _fast_numba(counts, edges, valid, cycles, kb, kc, a_b, kw, inv_s, steps, step_cap):
         """Two passes per histogram: prefix sums (at-risk cycles, valid counts and
@@ -609,7 +638,7 @@ if numba is not None:
                 jj = n - 1 - j
                 lo = max(jj - kb, 0)
                 S[jj] = (C[n] - C[lo]) - bg0 * (RW[n] - RW[lo]) if vrow[jj] else -np.inf
-            peak = _first_max(S)
+            peak = _coarse_to_fine(S)
             flo = max(peak - 4 * kc, 0)
             fhi = min(peak + 4 * kc + 1, n)
             bg = (C[n] - (C[fhi] - C[flo])) / max(RW[n] - (RW[fhi] - RW[flo]), 1e-300)
