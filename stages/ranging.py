@@ -459,8 +459,8 @@ def _fast_numpy(counts, edges, valid, cycles, kb, kc, a_b, kw, inv_s, steps, ste
 def _score_steps_numpy(counts, edges, valid, r, C, peak, bg, t, kw, inv_s, steps, step_cap):
     """The compiled kernel's Fisher-scoring steps on whole arrays (its twin, tested equal):
     (t, m) of the exact likelihood in +-kw bins around the bin holding t, a pixel stopping
-    once its step is below _CONVERGED sigma or its information is singular; sigma from the
-    information at the last step's start."""
+    once its step has settled (:data:`SCORING_STEPS`) or its information is singular; sigma
+    from the information at the last step's start."""
     n_pix, n = counts.shape
     R = np.arange(n_pix)[:, None]
     rows = R[:, 0]
