@@ -244,7 +244,7 @@ def lsb_campaign(captures: list, out: str | Path, inl_rms_lsb: float = 0.5,
 
     i_best = min(range(len(results)), key=lambda i: worst_inl(results[i][1]))
     best = results[i_best]
-    others = [(st, r) for i, ((_, r, _), st) in enumerate(zip(results, states))
+    others = [(st, r) for i, ((_, r, _), st) in enumerate(zip(results, states, strict=True))
               if i != i_best]
     if others:
         best = (best[0], refilled(states[i_best], best[1], others,
