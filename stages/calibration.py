@@ -470,40 +470,17 @@ def fit_lsb(n: np.ndarray, lsb_ps: np.ndarray) -> LsbFit:
 
 # ----------------------------------------------------------------- code -> time, delay
 
-def code_centres_s(density: DensityResult, codes=None) -> np.ndarray:
-    """tau (seconds before the window's end) at the centre of each code, per TDC.
-
-    ``(n_tdc, 512)`` or, with ``codes`` (n_tdc, ...), at those codes.
-    """
-    centres = (np.arange(N_CODES)[None, :] + density.inl_lsb
-               + 0.5 * (1 + density.dnl_lsb)) * density.lsb_s[:, None]
-    if codes is None:
-        return centres
-    return np.take_along_axis(centres, np.asarray(codes, np.int64), axis=1)
-
-
-def _peak_weights(hits: np.ndarray, density: DensityResult, lsb_s=None):
-    """Code centres (tau, s) and the background-subtracted counts of each TDC's peak
-    window (+-6 codes around the highest count, away from both window edges)."""
+def histogram_sigma_s(hits: np.ndarray, density: DensityResult, lsb_s=None) -> np.ndarray:
+    """Width (sigma) of each TDC's peak: the instrument response at zero distance. The
+    background-subtracted counts of +-6 codes around the highest count (away from both
+    window edges), at the code centres the density test gives."""
     lsb = density.lsb_s if lsb_s is None else np.asarray(lsb_s)
     centres = (np.arange(N_CODES)[None, :] + np.nan_to_num(density.inl_lsb)
                + 0.5 * (1 + np.nan_to_num(density.dnl_lsb))) * lsb[:, None]
     h = np.asarray(hits, np.float64)
     peak = np.argmax(h[:, 2:-8], axis=1) + 2
     win = np.abs(np.arange(N_CODES)[None, :] - peak[:, None]) <= 6
-    bg = np.median(h, axis=1, keepdims=True)
-    return centres, np.where(win, np.clip(h - bg, 0, None), 0.0), lsb
-
-
-def histogram_tau_s(hits: np.ndarray, density: DensityResult, lsb_s=None):
-    """Centroid tau of each TDC's histogram peak region: (peak tau in s, counts used)."""
-    centres, w, _ = _peak_weights(hits, density, lsb_s)
-    return (w * centres).sum(1) / np.maximum(w.sum(1), 1e-300), w.sum(1)
-
-
-def histogram_sigma_s(hits: np.ndarray, density: DensityResult, lsb_s=None) -> np.ndarray:
-    """Width (sigma) of each TDC's peak: the instrument response at zero distance."""
-    centres, w, lsb = _peak_weights(hits, density, lsb_s)
+    w = np.where(win, np.clip(h - np.median(h, axis=1, keepdims=True), 0, None), 0.0)
     tau = (w * centres).sum(1) / np.maximum(w.sum(1), 1e-300)
     var = (w * (centres - tau[:, None]) ** 2).sum(1) / np.maximum(w.sum(1), 1e-300)
     # the centres quantise: remove a bin's uniform variance (LSB^2 / 12)

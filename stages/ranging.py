@@ -323,7 +323,6 @@ def _ml_numpy(counts_all, widths, centres, valid_all, cycles, t_start, peak, bg,
 
 # ----------------------------------------------------------------------- the fast one
 
-_INV_SQRT2 = 1 / math.sqrt(2.0)
 # The Gaussian's CDF and density for the scoring steps: a table every 1/32 sigma over
 # +-9 sigma of the third-order Taylor polynomials in d = z - z0 about each entry z0
 # (|d| <= 1/64: error ~2e-9), eight coefficients to an entry (one cache line): two

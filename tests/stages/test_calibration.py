@@ -121,28 +121,6 @@ def test_delay_and_distance_eq_5_3_5_4():
         pytest.approx(3.0, abs=1e-9)
 
 
-def test_delay_estimator_within_5_ps_with_an_exact_calibration():
-    """Given the chip's true INL/LSB, the zero-distance peak gives the delay to < 5 ps."""
-    raw = {"sensor": {"n_pixels": N, "hot_pixels": []},
-           "gate": {"t_laser_win_ns": 140.0, "delay_ns": 100.0},
-           "targets": [{"pixels": [0, N - 1], "distance_m": 0.001, "reflectivity": 0.0005,
-                        "surface": "mirror"}]}
-    sm = evaluate(scene_from_dict(raw))
-    chip = make_chip(N, 4)
-    sim = Simulator(sm, chip, 2)
-    acc = HistogramAccumulator(N)
-    for _, w in sim.batches(2_000_000):  # ~48 000 counts per TDC: ~0.9 ps statistical
-        acc.update(w)
-    lsb_t, x_t, inl_t = chip.window_truth(sim.light, sm.window_s)
-    dnl_t = np.diff(np.concatenate([inl_t, inl_t[:, -1:]], axis=1), axis=1)
-    truth = cal.DensityResult(lsb_t, x_t, 1 + dnl_t, dnl_t, inl_t, np.zeros(N), np.zeros(N),
-                              np.ones(N, bool), np.zeros(N))
-    tau, _ = cal.histogram_tau_s(acc.snapshot().hits, truth)
-    got = cal.delay_s(140e-9, tau)
-    want = 100e-9 + 2 * 0.001 / 299_792_458
-    assert np.abs(got - want).max() < 5e-12
-
-
 def test_online_tracking_measures_lsb_from_a_range_capture_and_reports_drift():
     raw = {"sensor": {"n_pixels": N, "hot_pixels": []},
            "gate": {"t_laser_win_ns": 200.0, "delay_ns": 100.0},
