@@ -30,8 +30,9 @@ bench: $(STAMP)  ## benchmarks/datapath.py (add the peer with: pip install -e '.
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 
-docs: $(STAMP)  ## regenerate docs/schemas.md from schemas/
+docs: $(STAMP)  ## regenerate docs/schemas.md from schemas/ and docs/cli.md from the commands
 	$(VENV)/bin/tcspc schema --markdown > docs/schemas.md
+	$(PY) -m pipeline.cli_docs > docs/cli.md
 
 clean:
 	rm -rf $(VENV) .prefect data .pytest_cache .hypothesis

@@ -87,9 +87,11 @@ def run_story(out: str | Path = "data", cycles: int = 100_000,
                       f"{float(det['sigma_m'].median()) * 100:.2f}" if det.height else "-",
                       f"{r['detected'].mean():.0%}")
     Console().print(table)
+    figure = _street_figure(out, ranges)
     ok = checks["exact"] and checks["street_ok"] and acc["balanced"] and all(
         abs(r["error_cm"]) < 5 and r["detected"] > 0.5 for r in rows)
     paths = {"calibration report": cal["report"], "calibration plots": cal["plots"],
+             "street figure": str(figure),
              "ranges dataset": str(out / "stream" / "ranges"),
              "histograms dataset": str(out / "stream" / "histograms"),
              "accounting": acc["path"], "daemon status": str(out / "daemon" / "status.json")}
@@ -99,6 +101,21 @@ def run_story(out: str | Path = "data", cycles: int = 100_000,
     summary = {**checks, "calibration": cal["current"], "ranges": rows, "ok": ok, **paths}
     (out / "demo.json").write_text(json.dumps(summary, indent=1, default=str))
     return summary
+
+
+def _street_figure(out: Path, ranges: pl.DataFrame) -> Path:
+    """The picture of what the daemon found: ranges per pixel, one car pixel's histogram."""
+    from pipeline.figures import street_figure
+
+    per_pixel = (ranges.filter(pl.col("detected")).group_by("tdc")
+                 .agg(pl.col("distance_m").median()).sort("tdc"))
+    truth = street_truth()
+    car = next((lo for name, lo, _, _ in truth if name == "car"), truth[0][1])
+    hist = pl.read_parquet(out / "stream" / "histograms" / "date=*" / "run=street" / "*.parquet",
+                           hive_partitioning=True).filter(pl.col("tdc") == car).sort("measurement")
+    counts = hist["counts"].to_list()[0] if hist.height else [0] * 512
+    return street_figure(per_pixel["tdc"].to_numpy(), per_pixel["distance_m"].to_numpy(),
+                         [True] * per_pixel.height, truth, car, counts, out / "street.png")
 
 
 @click.command()

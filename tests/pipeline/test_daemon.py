@@ -327,17 +327,29 @@ def test_sigterm_to_the_daemon_ends_the_run_cleanly(tmp_path):
     assert res["restarts"] == {}
 
 
-def test_the_readme_queries_run_on_a_daemon_dataset(tmp_path, caldir):
-    """The README's Polars queries of the daemon's datasets, run on a real one."""
+def test_the_documented_queries_run_on_a_daemon_dataset(tmp_path, caldir):
+    """docs/outputs.md's Polars queries of the daemon's datasets, and README's, run on a
+    real one."""
     import re
 
     run_daemon(topology(tmp_path, caldir, cycles=30_000), "q")
-    readme = (Path(__file__).parents[2] / "README.md").read_text()
-    blocks = re.findall(r"```python\n(.*?)```", readme, re.S)
-    first = next(i for i, b in enumerate(blocks) if "data/stream" in b)
-    ns: dict = {}
-    for block in blocks[first:first + 2]:  # the queries, then the per-hour one using h
+    root = Path(__file__).parents[2]
+
+    def blocks(name):
+        return re.findall(r"```python\n(.*?)```", (root / name).read_text(), re.S)
+
+    def run(block, ns):
         code = block.replace("data/stream", str(tmp_path / "out"))
         code = code.replace("pl.date(2026, 11, 21)", "pl.col('date').max()")
-        exec(compile(code, "README.md", "exec"), ns)
+        exec(compile(code, "docs", "exec"), ns)
+
+    docs = blocks("docs/outputs.md")
+    first = next(i for i, b in enumerate(docs) if "data/stream" in b)
+    ns: dict = {}
+    for block in docs[first:first + 2]:  # the queries, then the per-hour one using h
+        run(block, ns)
+    readme = [b for b in blocks("README.md") if "data/stream" in b]
+    assert readme, "README shows no query of the daemon's datasets"
+    for block in readme:
+        run(block, {})
     assert "h" in ns and "r" in ns

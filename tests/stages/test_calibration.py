@@ -269,7 +269,7 @@ def test_reset_peak_fit_survives_missing_codes():
 def test_delay_end_to_end_is_the_density_tests_statistics(tmp_path):
     """density test (6.4e7 cycles at 29 % STARTs) -> calibrate delay (in situ) against the
     truth: 16.4 ps RMS, 29 ps worst in benchmarks/calibration.py (falling as 1/sqrt(cycles);
-    5 ps needs ~5e8-1.6e9 cycles, see the README)."""
+    5 ps needs ~5e8-1.6e9 cycles, see docs/calibration.md)."""
     from pipeline.calibrate import add_delay, density_from_capture, write_caldir
     from pipeline.simulate import SimulatedCapture
 
