@@ -68,6 +68,14 @@ def _summary(counts, n_words: int, seconds: float, bounds_source: str,
                                    f"{n_words} words were read")
 
 
+def _warn_uncertain(bounds) -> None:
+    """Estimated bounds the data cannot vouch for are said, even with --quiet."""
+    if bounds.uncertain.any():
+        err.print(f"[yellow]warning:[/yellow] artifact bounds uncertain on "
+                  f"{int(bounds.uncertain.sum())} TDC(s): {bounds.describe()}; give "
+                  "--calibration for exact bounds", highlight=False)
+
+
 def _open(path: str, calibration: str | None):
     cap = Capture(path)
     bounds = read_bounds(calibration, cap.meta.n_tdc) if calibration else None
@@ -82,7 +90,7 @@ def cli() -> None:
 
 _calibration = click.option("--calibration", "calibration", type=click.Path(exists=True),
                             help="Calibration directory (Nmin/Nmax per TDC). Without it the "
-                                 "artifact bounds are estimated from the capture (2 passes).")
+                                 "artifact bounds are estimated from the capture itself.")
 _engine = click.option("--engine", type=click.Choice(["numba", "numpy"]), default=None,
                        help="Hot-path engine (default: numba where installed).")
 _quiet = click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
@@ -103,8 +111,9 @@ def decode(capture, out, include_no_hit, calibration, engine, quiet) -> None:
     with _progress(cap.n_words, 1 + (bounds is None), quiet, "decode") as step:
         counts, bounds = decode_capture(cap, out, bounds, include_no_hit, engine, step)
     if not quiet:
-        _summary(counts, cap.n_words, time.perf_counter() - t0, bounds.source)
+        _summary(counts, cap.n_words, time.perf_counter() - t0, bounds.describe())
         err.print(f"wrote {out}")
+    _warn_uncertain(bounds)
 
 
 @cli.command()
@@ -118,14 +127,16 @@ def histogram(capture, out, measurement, calibration, engine, quiet) -> None:
     """Per-TDC histograms of first-stage codes of CAPTURE's hit words."""
     cap, bounds = _open(capture, calibration)
     t0 = time.perf_counter()
-    with _progress(cap.n_words, 1 + (bounds is None), quiet, "histogram") as step:
-        state, bounds = histogram_capture(cap, bounds, engine, step)
+    with _progress(cap.n_words, 1, quiet, "histogram") as step:
+        state, bounds = histogram_capture(cap, bounds, engine, step,
+                                          log=lambda m: err.print(f"histogram: {m}"))
     write_histograms(state, measurement or cap.name, out,
-                     {"capture": cap.bin_path, "bounds": bounds.source})
+                     {"capture": cap.bin_path, "bounds": bounds.describe()})
     if not quiet:
         _summary(state.class_counts.sum(axis=1), cap.n_words, time.perf_counter() - t0,
-                 bounds.source)
+                 bounds.describe())
         err.print(f"wrote {out}")
+    _warn_uncertain(bounds)
 
 
 @cli.command()
@@ -407,9 +418,7 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
     a, b = parse_range(tdc_range) if tdc_range else (0, n_tdc)
     bounds = read_bounds(calibration, n_tdc) if calibration else None
     if bounds is not None:
-        from stages.artifact import ArtifactBounds
-
-        bounds = ArtifactBounds(bounds.n_min[a:b], bounds.n_max[a:b], bounds.source)
+        bounds = bounds.rows(a, b)
     backfill = ended = None
     if journal and run_id:
         backfill = worker_reader(lambda s, e: read_range(journal, run_id, s, e), n_tdc, (a, b))

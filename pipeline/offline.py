@@ -14,7 +14,7 @@ from schemas.outputs import HISTOGRAMS
 from schemas.words import DECODED_EVENTS, N_CLASSES, WORD_CLASSES
 from stages.artifact import ArtifactBounds, estimate_bounds
 from stages.decode import decode_batch
-from stages.histogram import HistogramAccumulator, HistogramState
+from stages.histogram import HistogramAccumulator, HistogramState, SelfBoundingHistogram
 
 Progress = Callable[[int], None]  #: called with the number of words just processed
 
@@ -34,11 +34,23 @@ def estimate_capture_bounds(cap: Capture, engine: str | None = None,
 
 
 def histogram_capture(cap: Capture, bounds: ArtifactBounds | None = None,
-                      engine: str | None = None,
-                      progress: Progress = _noop) -> tuple[HistogramState, ArtifactBounds]:
-    """Histogram a whole capture; without ``bounds`` they are estimated first (two passes)."""
+                      engine: str | None = None, progress: Progress = _noop,
+                      log: Callable[[str], None] | None = None
+                      ) -> tuple[HistogramState, ArtifactBounds]:
+    """Histogram a whole capture. Without ``bounds`` they are estimated from the capture in
+    the same pass (:class:`stages.histogram.SelfBoundingHistogram`); only when the
+    capture's first chunk misled the provisional bounds is a second pass made (``log``
+    says so)."""
     if bounds is None:
-        bounds = estimate_capture_bounds(cap, engine, progress)
+        one = SelfBoundingHistogram(cap.meta.n_tdc, engine=engine)
+        for first, words in cap.iter_chunks():
+            one.update(words, first)
+            progress(words.size)
+        state, bounds = one.finish()
+        if state is not None:
+            return state, bounds
+        if log:
+            log("the first chunk's provisional artifact bounds did not hold: a second pass")
     acc = HistogramAccumulator(cap.meta.n_tdc, bounds, engine=engine)
     for first, words in cap.iter_chunks():
         acc.update(words, first)

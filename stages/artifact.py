@@ -5,9 +5,11 @@ calibration when one is given; otherwise :func:`estimate_bounds` finds them in t
 itself: valid second-stage codes fill one contiguous block of D2nd values, and the sparse
 codes outside the block that holds nearly all of the mass are the artifact.
 
-That estimate assumes the valid block does hold most of a TDC's non-empty words. In a
-dark capture (DCR measurement) the artifact can outnumber real detections (298 artifact
-words against 6 real ones in the thesis's Figure 3.5): use a calibration there.
+That estimate needs the valid block to hold most of a TDC's non-empty words at a density
+well above the artifact's. In a dark capture (DCR measurement) the artifact can outnumber
+real detections (298 artifact words against 6 real ones in the thesis's Figure 3.5): such
+a TDC is flagged ``uncertain`` with the reason, and the commands say so; use a calibration
+there.
 """
 
 from __future__ import annotations
@@ -27,6 +29,9 @@ class ArtifactBounds:
     n_min: np.ndarray  #: int16 per TDC
     n_max: np.ndarray  #: int16 per TDC
     source: str = "estimated"  #: "calibration:<path>", "estimated" or "none"
+    #: per TDC, True where an estimate cannot be vouched for by the data (None: none is)
+    uncertain: np.ndarray | None = None
+    reasons: tuple = ()  #: per TDC, why it is uncertain ("" where it is not)
 
     def __post_init__(self):
         n_min = np.asarray(self.n_min, np.int16)
@@ -38,10 +43,19 @@ class ArtifactBounds:
             bad = np.flatnonzero((n_min > n_max) | (n_min < 0) | (n_max >= N_CODES_2ND))
             raise CalibrationError(f"invalid [n_min, n_max] for TDCs {bad[:8].tolist()}: "
                                    f"need 0 <= n_min <= n_max <= {N_CODES_2ND - 1}")
-        n_min.setflags(write=False)
-        n_max.setflags(write=False)
+        unc = np.zeros(n_min.size, bool) if self.uncertain is None else \
+            np.asarray(self.uncertain, bool)
+        if unc.shape != n_min.shape:
+            raise CalibrationError(f"uncertain {unc.shape} must match n_min {n_min.shape}")
+        reasons = tuple(self.reasons) or ("",) * n_min.size
+        if len(reasons) != n_min.size:
+            raise CalibrationError(f"{len(reasons)} reasons for {n_min.size} TDCs")
+        for a in (n_min, n_max, unc):
+            a.setflags(write=False)
         object.__setattr__(self, "n_min", n_min)
         object.__setattr__(self, "n_max", n_max)
+        object.__setattr__(self, "uncertain", unc)
+        object.__setattr__(self, "reasons", reasons)
 
     @property
     def n_tdc(self) -> int:
@@ -53,46 +67,79 @@ class ArtifactBounds:
         return cls(np.zeros(n_tdc, np.int16), np.full(n_tdc, N_CODES_2ND - 1, np.int16),
                    source="none")
 
+    def rows(self, start: int, stop: int) -> ArtifactBounds:
+        """The bounds of TDCs ``start..stop-1`` (a worker's TDC range)."""
+        return ArtifactBounds(self.n_min[start:stop], self.n_max[start:stop], self.source,
+                              self.uncertain[start:stop], self.reasons[start:stop])
+
+    def describe(self) -> str:
+        """The source, and how many TDCs are uncertain and why (for a command's summary)."""
+        if not self.uncertain.any():
+            return self.source
+        why: dict[str, list[int]] = {}
+        for t in np.flatnonzero(self.uncertain):
+            why.setdefault(self.reasons[t], []).append(int(t))
+        parts = [f"{len(v)} TDC(s) {v[:6]}{'...' if len(v) > 6 else ''}: {r}"
+                 for r, v in why.items()]
+        return f"{self.source}; UNCERTAIN on " + "; ".join(parts)
+
     def in_block(self) -> np.ndarray:
         """Boolean table (n_tdc, 256): True where D2nd is inside the TDC's block."""
         d2 = np.arange(N_CODES_2ND)
         return (d2 >= self.n_min[:, None]) & (d2 <= self.n_max[:, None])
 
 
-def estimate_bounds(d2nd_hist: np.ndarray, min_gain: float = 12.0) -> ArtifactBounds:
+BLOCK_FLOOR = 0.5       #: lowest density a valid code is expected at, x the block's level
+MIN_CONTRAST = 8.0      #: block level over artifact density below which a TDC is ambiguous
+MAX_OUTSIDE = 0.1       #: share of the counts outside the block above which a TDC is ambiguous
+OUTSIDE_CAP = 16.0      #: the fitted artifact density is at most the block's level over this
+MIN_BLOCK_DENSITY = 2.0  #: counts per block code below which the edges are uncertain
+
+
+def estimate_bounds(d2nd_hist: np.ndarray) -> ArtifactBounds:
     """Estimate [Nmin, Nmax] per TDC from histograms of D2nd over candidate words.
 
-    The artifact lies above Nmax only (thesis section 3.4), so the model is one-sided:
-    no valid or artifact code below Nmin (Nmin is the lowest populated code), Poisson
-    counts of one density in ``[Nmin, b]`` and of another above ``b``; the ``b`` of
-    highest likelihood wins. It is kept only when it beats the one-density model over
-    the populated span by ``min_gain`` in log-likelihood (12 is p ~ 1e-5), so a clean TDC
-    keeps its whole span and a fluctuation at the edge is not cut away.
-
-    Exactness needs statistics: a code at Nmax with k counts, block density L and
-    artifact density l, is kept when k*log(L/l) > L - l. With L = 10 counts per code and
-    l = 0.2, a code is misplaced with probability ~0.3 %. A calibration (``--calibration``)
-    gives exact bounds; a dark capture, where the artifact outnumbers real counts, needs one.
+    The physics (thesis sections 3.2 and 3.4): valid D2nd fill [Nmin, Nmax] contiguously;
+    the block's codes differ in density by the second stage's own DNL (tens of percent, so
+    no single density describes them); the artifact sits outside the block at a density
+    far below the block's. The model follows it: each code inside the block has its own
+    Poisson rate, anything from ``BLOCK_FLOOR`` times the block's level up (the level: the
+    median count of the codes that hold the top half of the mass, block codes whatever the
+    DNL); each side outside has one rate of its own, fitted, at most the level over
+    ``OUTSIDE_CAP``. The block is the [a, b] of
+    highest profile likelihood, found exactly for all TDCs at once (the likelihood
+    separates into a term of a and a term of b, so a running maximum finds the best pair).
+    A code rich enough for the block gains ~ its count x log(contrast) inside, an artifact
+    code loses ~ the floor's rate there: both grow with the statistics, so more data makes
+    the estimate more right, never less (a likelihood-ratio cut between two flat densities
+    found a "boundary" inside a DNL-shaped block once the statistics were large). An empty
+    code inside the block at low statistics costs only the floor's rate, and is spanned.
 
     Parameters
     ----------
     d2nd_hist : ndarray, shape (n_tdc, 256)
         Counts of D2nd per TDC over words that are neither malformed, invalid nor no_hit.
-    min_gain : float
-        Log-likelihood margin the two-density model needs.
 
     Returns
     -------
     ArtifactBounds
         A TDC with no counts gets the full range 0..255: with no data there is nothing to
-        filter, and nothing is invented.
+        filter, and nothing is invented. ``uncertain`` flags TDCs whose estimate the data
+        cannot vouch for, with the reason in ``reasons``: the artifact within
+        ``MIN_CONTRAST`` of the block's level or over ``MAX_OUTSIDE`` of the counts (a
+        dark capture, where the artifact may even look like the block: use a
+        calibration), or fewer than ``MIN_BLOCK_DENSITY`` counts per block code (the
+        edges may be off by a code).
 
     Examples
     --------
     >>> rng = np.random.default_rng(0)
-    >>> h = np.zeros((1, 256), int); h[0, 20:150] = rng.poisson(20, 130)
+    >>> h = np.zeros((1, 256), int)
+    >>> h[0, 20:150] = rng.poisson(20 * rng.uniform(0.5, 1.5, 130))  # a DNL-shaped block
     >>> h[0, 150:256] = rng.poisson(0.5, 106)           # sparse artifact codes above Nmax
     >>> b = estimate_bounds(h); int(b.n_min[0]), int(b.n_max[0])
+    (20, 149)
+    >>> b = estimate_bounds(h * 1000); int(b.n_min[0]), int(b.n_max[0])  # more data
     (20, 149)
     """
     from scipy.special import xlogy
@@ -101,26 +148,64 @@ def estimate_bounds(d2nd_hist: np.ndarray, min_gain: float = 12.0) -> ArtifactBo
     if h.ndim != 2 or h.shape[1] != N_CODES_2ND:
         raise ValueError(f"estimate_bounds: d2nd_hist must be (n_tdc, {N_CODES_2ND}), "
                          f"found {h.shape}")
-    n_tdc, n = h.shape
-    counts = h.astype(np.float64)
-    total = counts.sum(axis=1)
-    populated = counts > 0
-    lo = np.where(total > 0, np.argmax(populated, axis=1), 0)
-    hi = np.where(total > 0, n - 1 - np.argmax(populated[:, ::-1], axis=1), n - 1)
-    # Every candidate upper edge b of every TDC at once: block [lo, b], artifact (b, hi].
-    csum = np.cumsum(counts, axis=1)
-    below = np.take_along_axis(csum, lo[:, None], axis=1) - counts[np.arange(n_tdc), lo][:, None]
-    b = np.arange(n)[None, :]
-    s_in = csum - below
-    w_in = (b - lo[:, None] + 1).astype(np.float64)
-    s_out = total[:, None] - csum
-    w_out = (hi[:, None] - b).astype(np.float64)
-    valid = (b >= lo[:, None]) & (b <= hi[:, None])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ll = xlogy(s_in, s_in / w_in) + xlogy(s_out, np.where(w_out > 0, s_out / w_out, 0))
-    ll = np.where(valid, ll, -np.inf)
-    ll_span = xlogy(total, total / (hi - lo + 1))
-    best = np.argmax(ll, axis=1)
-    gain = ll[np.arange(n_tdc), best] - ll_span
-    n_max = np.where((total > 0) & (gain > min_gain), best, hi)
-    return ArtifactBounds(lo.astype(np.int16), n_max.astype(np.int16), source="estimated")
+    k = h.astype(np.float64)
+    if k.size and (not np.all(np.isfinite(k)) or k.min() < 0):
+        raise ValueError("estimate_bounds: counts must be finite and >= 0")
+    n_tdc, n = k.shape
+    total = k.sum(axis=1)
+    codes = np.arange(n)
+
+    # the block's level: the median count of the codes holding the top half of the mass
+    order = np.argsort(-k, axis=1, kind="stable")
+    ranked = np.take_along_axis(k, order, axis=1)
+    top = np.cumsum(ranked, axis=1) - ranked < 0.5 * total[:, None]
+    in_top = np.zeros_like(top)
+    np.put_along_axis(in_top, order, top, axis=1)
+    level = _masked_median(k, in_top)
+    floor = (BLOCK_FLOOR * level)[:, None]
+
+    # a side of m codes holding s counts, at its fitted rate, which the physics caps far
+    # below the block's (else one edge code left outside would fit as well as inside)
+    cap = (level / OUTSIDE_CAP)[:, None]
+
+    def outside(s, m):
+        rate = np.minimum(s / np.maximum(m, 1), cap)
+        return xlogy(s, rate) - m * rate
+
+    # profile log-likelihood of [a, b] = inside(a..b) + below(a) + above(b)
+    rate_in = np.maximum(k, floor)
+    p_in = np.concatenate([np.zeros((n_tdc, 1)), np.cumsum(xlogy(k, rate_in) - rate_in,
+                                                         axis=1)], axis=1)
+    p_k = np.concatenate([np.zeros((n_tdc, 1)), np.cumsum(k, axis=1)], axis=1)
+    term_a = outside(p_k[:, :-1], codes[None, :]) - p_in[:, :-1]            # a = 0..n-1
+    term_b = p_in[:, 1:] + outside(total[:, None] - p_k[:, 1:], n - 1 - codes[None, :])
+    best_a = np.maximum.accumulate(term_a, axis=1)
+    hi = np.argmax(term_b + best_a, axis=1)
+    lo = np.argmax(np.where(codes[None, :] <= hi[:, None], term_a, -np.inf), axis=1)
+    empty = total == 0
+    lo = np.where(empty, 0, lo)
+    hi = np.where(empty, n - 1, hi)
+
+    block = (codes >= lo[:, None]) & (codes <= hi[:, None])
+    mass_in = (k * block).sum(axis=1)
+    below, above = codes < lo[:, None], codes > hi[:, None]
+    l_out = np.maximum((k * below).sum(axis=1) / np.maximum(below.sum(axis=1), 1),
+                       (k * above).sum(axis=1) / np.maximum(above.sum(axis=1), 1))
+    reasons = np.full(n_tdc, "", dtype=object)
+    sparse = ~empty & (mass_in / (hi - lo + 1) < MIN_BLOCK_DENSITY)
+    reasons[sparse] = f"under {MIN_BLOCK_DENSITY:g} counts per block code: edges may be off"
+    low_contrast = ~empty & (l_out * MIN_CONTRAST > level)
+    reasons[low_contrast] = (f"artifact density within {MIN_CONTRAST:g}x of the block's "
+                             "(use a calibration)")
+    dark = ~empty & (mass_in < (1 - MAX_OUTSIDE) * total)
+    reasons[dark] = (f"over {MAX_OUTSIDE:.0%} of the counts outside the block (a dark "
+                     "capture? use a calibration)")
+    return ArtifactBounds(lo.astype(np.int16), hi.astype(np.int16), source="estimated",
+                          uncertain=reasons != "", reasons=tuple(reasons.tolist()))
+
+
+def _masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Row-wise median of ``values`` where ``mask``; 0 for a row with no such value."""
+    has = mask.any(axis=1)
+    med = np.nanmedian(np.where(mask | ~has[:, None], values, np.nan), axis=1)
+    return np.where(has, med, 0.0)

@@ -12,9 +12,9 @@ import numpy as np
 import pyarrow as pa
 
 from schemas.outputs import HISTOGRAMS
-from schemas.words import HIT, N_CLASSES, N_CODES, WORD_CLASSES
-from stages.artifact import ArtifactBounds
-from stages.datapath import WordTables, accumulate
+from schemas.words import ARTIFACT, HIT, N_CLASSES, N_CODES, N_CODES_2ND, WORD_CLASSES
+from stages.artifact import ArtifactBounds, estimate_bounds
+from stages.datapath import WordTables, accumulate, accumulate_self_bounded
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
@@ -189,3 +189,85 @@ class HistogramAccumulator:
     @property
     def hit_total(self) -> int:
         return int(self._class_counts[HIT].sum())
+
+
+class SelfBoundingHistogram:
+    """The histograms of a capture with no calibration, in one pass: the artifact bounds
+    come from the capture's own D2nd histogram at the end (:func:`estimate_bounds`).
+
+    The first batch gives provisional bounds; each TDC's core, those bounds shrunk by
+    ``margin`` codes, is surely inside the final block, so only the candidates outside
+    it are kept by (D2nd, D1st) (:func:`stages.datapath.accumulate_self_bounded`). At
+    :meth:`finish` the final bounds are estimated from all the data and the hits are the
+    candidates less those outside the bounds: the same histograms, class counts and
+    bounds as two passes (bounds first, then histograms), tested. When a final block does
+    not contain its core (the first batch misled), :meth:`finish` says so and the caller
+    makes the second pass.
+
+    Examples
+    --------
+    >>> from stages.testpattern import pattern_words
+    >>> w, _ = pattern_words(2000, 4, hit_prob=0.5, rng=1)
+    >>> acc = SelfBoundingHistogram(4); acc.update(w)
+    >>> state, bounds = acc.finish()
+    >>> ref = HistogramAccumulator(4, bounds); ref.update(w)
+    >>> bool(np.array_equal(state.hits, ref.snapshot().hits))
+    True
+    """
+
+    def __init__(self, n_tdc: int, engine: str | None = None, margin: int = 4,
+                 count_artifacts: bool = False):
+        self.n_tdc, self.engine, self.margin = n_tdc, engine, margin
+        self.count_artifacts = count_artifacts
+        self._cand = np.zeros((n_tdc, N_CODES), np.uint64)
+        self._d2nd = np.zeros((n_tdc, N_CODES_2ND), np.uint64)
+        # (n_tdc, 256, 512) uint64: 134 MB of address space for 128 TDCs, pages touched only
+        # where edge words land
+        self._edge = np.zeros((n_tdc, N_CODES_2ND, N_CODES), np.uint64)
+        self._class_counts = np.zeros((N_CLASSES, n_tdc), np.uint64)
+        self._words = 0
+        self._core: tuple[np.ndarray, np.ndarray] | None = None
+
+    def update(self, words: np.ndarray, first_word: int | None = None) -> None:
+        """Fold a batch of native uint32 words in (the first one also sets the cores)."""
+        words = np.asarray(words)
+        if words.dtype != np.uint32:
+            raise TypeError(f"words must be uint32, found {words.dtype}")
+        start = self._words if first_word is None else int(first_word)
+        if self._core is None:
+            self._core = self._provisional_core(words, start)
+        accumulate_self_bounded(words.ravel(), start, self.n_tdc, *self._core, self._cand,
+                                self._d2nd, self._edge, self._class_counts, self.engine)
+        self._words += words.size
+
+    def _provisional_core(self, words, start):
+        probe = HistogramAccumulator(self.n_tdc, engine=self.engine, mode="d2nd")
+        probe.update(words, start)
+        b = estimate_bounds(probe.snapshot().hits)
+        lo = b.n_min.astype(np.int64) + self.margin
+        hi = b.n_max.astype(np.int64) - self.margin
+        empty = b.uncertain | (lo > hi)
+        return np.where(empty, 1, lo), np.where(empty, 0, hi)  # empty core: all edge words
+
+    def finish(self) -> tuple[HistogramState | None, ArtifactBounds]:
+        """The state and the bounds estimated from all the data; the state is None when a
+        TDC's final block does not contain its core (then histogram again with the
+        bounds: a second pass)."""
+        bounds = estimate_bounds(self._d2nd)
+        lo, hi = self._core if self._core is not None else (np.ones(self.n_tdc, np.int64),
+                                                          np.zeros(self.n_tdc, np.int64))
+        core_empty = lo > hi
+        inside = core_empty | ((bounds.n_min <= lo) & (hi <= bounds.n_max))
+        if not inside.all():
+            return None, bounds
+        outside = ~bounds.in_block()
+        arts = np.stack([self._edge[t][outside[t]].sum(axis=0) for t in range(self.n_tdc)]) \
+            if self.n_tdc else np.zeros((0, N_CODES), np.uint64)
+        arts = arts.astype(np.uint64)
+        cc = self._class_counts.copy()
+        per_tdc = arts.sum(axis=1)
+        cc[HIT] -= per_tdc
+        cc[ARTIFACT] += per_tdc
+        state = HistogramState(_frozen(self._cand - arts), _frozen(cc), self._words,
+                               artifacts=_frozen(arts) if self.count_artifacts else None)
+        return state, bounds

@@ -178,3 +178,39 @@ def test_pattern_and_schema_commands(tmp_path):
     assert sum(meta["truth"]["class_counts"].values()) == 100 * 128
     res = CliRunner().invoke(cli, ["schema", "--markdown"])
     assert "### `histograms` (version 1.0)" in res.output
+
+
+def test_histogram_makes_a_second_pass_when_the_first_chunk_misleads(tmp_path, monkeypatch):
+    """One pass normally; a capture whose first chunk shows another D2nd block than the
+    whole (the light changed) gets a second pass, said on stderr, and exact histograms."""
+    from pipeline.capture import Capture, CaptureWriter
+    from pipeline.offline import histogram_capture
+    from stages.artifact import estimate_bounds
+    from stages.codec import encode_words
+    from stages.histogram import HistogramAccumulator
+
+    rng = np.random.default_rng(0)
+    n = 2
+
+    def hits(cycles, d2_lo, d2_hi):
+        d2 = rng.integers(d2_lo, d2_hi + 1, (cycles, n))
+        d1 = rng.integers(1, 512, (cycles, n))
+        return encode_words(d1 >> 3, d1 & 7, d2 >> 3, d2 & 7, np.tile(np.arange(n), (cycles, 1)))
+
+    with CaptureWriter(tmp_path / "c", n_tdc=n) as w:
+        w.write(hits(1000, 150, 200).ravel())
+        w.write(hits(200_000, 20, 100).ravel())
+    orig = Capture.iter_chunks
+    monkeypatch.setattr(Capture, "iter_chunks", lambda self, chunk_words=2000:
+                        orig(self, chunk_words))
+    said = []
+    state, bounds = histogram_capture(Capture(tmp_path / "c.bin"), log=said.append)
+    assert said and "second pass" in said[0]
+    words = np.concatenate([w.copy() for _, w in orig(Capture(tmp_path / "c.bin"))])
+    probe = HistogramAccumulator(n, mode="d2nd")
+    probe.update(words)
+    ref = HistogramAccumulator(n, estimate_bounds(probe.snapshot().hits))
+    ref.update(words)
+    assert np.array_equal(state.hits, ref.snapshot().hits)
+    assert np.array_equal(state.class_counts, ref.snapshot().class_counts)
+    assert bounds.n_max.tolist() == [100, 100]
