@@ -20,10 +20,8 @@ from rich.progress import (
 )
 from rich.table import Table
 
-from pipeline.caldir import read_bounds
-from pipeline.capture import Capture, CaptureWriter
-from pipeline.offline import decode_capture, histogram_capture, write_histograms
-from schemas import ALL_SPECS, WORD_CLASSES, TcspcError, docs_markdown
+# Heavy modules (numpy, pyarrow, numba, scipy) are imported in the commands that use them:
+# `tcspc --help` and a command's own --help stay fast (tests/pipeline/test_cli.py checks).
 
 err = Console(stderr=True)
 out = Console()
@@ -52,6 +50,8 @@ def _progress(total: int, passes: int, quiet: bool, label: str, unit: str = "wor
 
 def _summary(counts, n_words: int, seconds: float, bounds_source: str,
              verb: str = "read") -> None:
+    from schemas import WORD_CLASSES
+
     total = int(sum(counts))
     table = Table(title="word classes", show_footer=True)
     table.add_column("class", footer="total")
@@ -77,6 +77,9 @@ def _warn_uncertain(bounds) -> None:
 
 
 def _open(path: str, calibration: str | None):
+    from pipeline.caldir import read_bounds
+    from pipeline.capture import Capture
+
     cap = Capture(path)
     bounds = read_bounds(calibration, cap.meta.n_tdc) if calibration else None
     return cap, bounds
@@ -106,6 +109,8 @@ _quiet = click.option("-q", "--quiet", is_flag=True, help="No progress bar or su
 @_quiet
 def decode(capture, out, include_no_hit, calibration, engine, quiet) -> None:
     """Decode CAPTURE (NAME.bin) into a decoded_events parquet file."""
+    from pipeline.offline import decode_capture
+
     cap, bounds = _open(capture, calibration)
     t0 = time.perf_counter()
     with _progress(cap.n_words, 1 + (bounds is None), quiet, "decode") as step:
@@ -125,6 +130,8 @@ def decode(capture, out, include_no_hit, calibration, engine, quiet) -> None:
 @_quiet
 def histogram(capture, out, measurement, calibration, engine, quiet) -> None:
     """Per-TDC histograms of first-stage codes of CAPTURE's hit words."""
+    from pipeline.offline import histogram_capture, write_histograms
+
     cap, bounds = _open(capture, calibration)
     t0 = time.perf_counter()
     with _progress(cap.n_words, 1, quiet, "histogram") as step:
@@ -152,6 +159,8 @@ def pattern(out, cycles, n_tdc, hit_prob, peak_code, seed) -> None:
     Its sidecar's truth holds the intended class counts, so decode and histogram can be
     checked against it.
     """
+    from pipeline.capture import CaptureWriter
+    from schemas import WORD_CLASSES
     from stages.testpattern import pattern_words
 
     words, truth = pattern_words(cycles, n_tdc, hit_prob=hit_prob, peak_code=peak_code,
@@ -170,6 +179,8 @@ def pattern(out, cycles, n_tdc, hit_prob, peak_code, seed) -> None:
 @click.option("--markdown", is_flag=True, help="Markdown tables (as in docs/schemas.md).")
 def schema(markdown) -> None:
     """Print every Arrow schema of the project with its version and units."""
+    from schemas import ALL_SPECS, docs_markdown
+
     if markdown:
         click.echo(docs_markdown(), nl=False)
         return
@@ -214,7 +225,7 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
             err.print(f"  {e.name}: {e.status} ({e.detail}: {e.size:.3g})", highlight=False)
 
 
-@cli.command("range")
+@cli.command("range", short_help="Distance per pixel (eq. 5.4) from a capture and a calibration.")
 @click.argument("capture", type=click.Path())
 @click.option("--calibration", required=True, type=click.Path(exists=True, file_okay=False))
 @click.option("--out", required=True, type=click.Path(), help="ranges.parquet to write")
@@ -334,6 +345,7 @@ def stage_source_sim(scene_path, cycles, pushes, seed, chip_seed, run_id, rate, 
 def stage_source_capture(capture, pushes, run_id, rate, journal, journal_compression, split,
                          metrics, date, repeat) -> None:
     """Replay a capture into the stream, at a chosen rate or as fast as it is taken."""
+    from pipeline.capture import Capture
     from pipeline.journal import JournalWriter
     from pipeline.stage import run_source
 
@@ -410,6 +422,7 @@ def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, journ
 def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibration, quarantine,
                     checkpoint, journal, run_id, metrics, name) -> None:
     """Per-TDC histograms of the word stream, per measurement or at the end of the run."""
+    from pipeline.caldir import read_bounds
     from pipeline.fanout import parse_range, worker_reader
     from pipeline.journal import read_range, run_end
     from pipeline.stage import run_stage
@@ -542,32 +555,17 @@ def _status_table(st: dict):
     return t
 
 
-def _register() -> None:
-    from pipeline.cli_calibrate import calibrate
-    from pipeline.cli_model import model
-
-    cli.add_command(model)
-    cli.add_command(calibrate)
-    # Layers above the pipeline (the flows) add their commands through an entry point, so
-    # nothing here imports them (DESIGN.md: nothing imports ``flows``).
-    from importlib.metadata import entry_points
-
-    for ep in entry_points(group="tcspc.commands"):
-        if ep.name not in cli.commands:
-            cli.add_command(_Lazy(ep), ep.name)
-
-
 class _Lazy(click.Group):
-    """A command group loaded from its entry point only when it is used (keeps ``tcspc``
-    from importing Prefect for every command)."""
+    """A command (group) imported only when it is used: ``tcspc --help`` lists it from its
+    short help without importing the module (and numba, pyarrow or Prefect with it)."""
 
-    def __init__(self, ep) -> None:
-        super().__init__(ep.name)
-        self._ep, self._real = ep, None
+    def __init__(self, name: str, load, short_help: str) -> None:
+        super().__init__(name)
+        self._loader, self._real, self._short = load, None, short_help
 
-    def _load(self) -> click.Group:
+    def _load(self) -> click.Command:
         if self._real is None:
-            self._real = self._ep.load()
+            self._real = self._loader()
         return self._real
 
     def make_context(self, info_name, args, parent=None, **extra):
@@ -577,14 +575,47 @@ class _Lazy(click.Group):
         return self._load().invoke(ctx)
 
     def list_commands(self, ctx):
-        return self._load().list_commands(ctx)
+        real = self._load()
+        return real.list_commands(ctx) if isinstance(real, click.Group) else []
 
     def get_command(self, ctx, name):
-        return self._load().get_command(ctx, name)
+        real = self._load()
+        return real.get_command(ctx, name) if isinstance(real, click.Group) else None
 
     def get_short_help_str(self, limit: int = 45) -> str:
-        return {"flow": "Run or serve the Prefect flows (calibration, sweeps, reports)."}.get(
-            self.name, self.name)
+        return self._short
+
+
+def _module_command(module: str, attr: str):
+    def load():
+        import importlib
+
+        return getattr(importlib.import_module(module), attr)
+    return load
+
+
+_LAZY = {  # name: (module, attribute, short help)
+    "calibrate": ("pipeline.cli_calibrate", "calibrate",
+                  "Density test, LSB against light, and zero-distance delay."),
+    "model": ("pipeline.cli_model", "model",
+              "Chapter 2: link budget, ambient light, transmission, prediction, histograms."),
+}
+#: Short help of the commands added by the layers above through the entry point.
+_ENTRY_HELP = {"flow": "Run or serve the Prefect flows (calibration, sweeps, reports).",
+               "demo": "The whole story on embedded defaults (what `make demo` runs)."}
+
+
+def _register() -> None:
+    for name, (module, attr, short) in _LAZY.items():
+        cli.add_command(_Lazy(name, _module_command(module, attr), short), name)
+    # Layers above the pipeline (the flows) add their commands through an entry point, so
+    # nothing here imports them (DESIGN.md: nothing imports ``flows``).
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group="tcspc.commands"):
+        if ep.name not in cli.commands:
+            cli.add_command(_Lazy(ep.name, ep.load, _ENTRY_HELP.get(ep.name, ep.name)),
+                            ep.name)
 
 
 _register()
@@ -600,10 +631,11 @@ def main() -> None:
     except click.ClickException as exc:
         exc.show()
         sys.exit(exc.exit_code)
-    except TcspcError as exc:
-        err.print(f"[red]error:[/red] {exc}", highlight=False)
-        sys.exit(2)
-    except OSError as exc:
+    except Exception as exc:
+        from schemas.errors import TcspcError
+
+        if not isinstance(exc, TcspcError | OSError):
+            raise
         err.print(f"[red]error:[/red] {exc}", highlight=False)
         sys.exit(2)
 
