@@ -71,9 +71,15 @@ def fit_lsb(captures: list, candidate: str, inl_rms: float) -> dict:
 
 
 @task(cache_policy=NO_CACHE)
-def measure_delay(capture, candidate: str) -> list[float]:
-    """Zero-distance capture -> delay per TDC (eq. 5.3), added to the candidate."""
-    return (add_delay(capture, candidate) * 1e9).tolist()
+def measure_delay(capture, candidate: str) -> tuple[list[float], str]:
+    """Zero-distance capture -> delay per TDC (eq. 5.3), added to the candidate; and why
+    there is none ("" when some TDC got one). A candidate without a delay is not failed
+    here: the verdict refuses it against a current calibration that has one."""
+    try:
+        return (add_delay(capture, candidate) * 1e9).tolist(), ""
+    except CalibrationError as exc:
+        get_run_logger().warning("no delay: %s", exc)
+        return [float("nan")] * read_density(candidate)[0].n_tdc, str(exc)
 
 
 @task(cache_policy=NO_CACHE)
@@ -170,8 +176,10 @@ def calibration_campaign(out: str = "data/calibration", lux: list[float] | None 
     candidate = str(run / "calibration")
     fit = fit_lsb([c if hasattr(c, "paths") else str(c) for c in density_caps], candidate,
                   inl_rms)
-    delay_ns = measure_delay(delay_cap if hasattr(delay_cap, "paths") else str(delay_cap),
-                             candidate)
+    delay_ns, no_delay = measure_delay(
+        delay_cap if hasattr(delay_cap, "paths") else str(delay_cap), candidate)
+    delay_text = (f"delay {np.nanmin(delay_ns):.4f}..{np.nanmax(delay_ns):.4f} ns"
+                  if not no_delay else f"no delay ({no_delay})")
     pngs = plots(candidate, fit, str(run))
     current = str(Path(out) / "current")
     worse = verdict(candidate, current)
@@ -191,7 +199,8 @@ def calibration_campaign(out: str = "data/calibration", lux: list[float] | None 
     q = quality(candidate)
     summary = {"run": str(run), "candidate": candidate, "current": current,
                "published": published, "refused_because": worse, "quality": q.__dict__,
-               "delay_ns": [float(np.nanmin(delay_ns)), float(np.nanmax(delay_ns))],
+               "delay_ns": [float(np.nanmin(delay_ns)), float(np.nanmax(delay_ns))]
+               if not no_delay else None, "no_delay": no_delay,
                "plots": pngs, "truth": truth,
                "captures": {"density": [_label(c) for c in density_caps],
                             "delay": _label(delay_cap)}}
@@ -205,7 +214,7 @@ def calibration_campaign(out: str = "data/calibration", lux: list[float] | None 
         ("Density tests", markdown_table(tests.drop("capture"))),
         ("Quality", f"TDCs calibrated: {q.tdcs_ok}; median INL statistical error "
                     f"{q.inl_error_lsb:.3f} LSB RMS; LSB fit residual {q.lsb_residual_ps:.3f} "
-                    f"ps RMS; delay {np.nanmin(delay_ns):.4f}..{np.nanmax(delay_ns):.4f} ns."),
+                    f"ps RMS; {delay_text}."),
         ("Against the truth", truth_text),
         ("Plots", "\n".join(f"![{Path(p).stem}]({Path(p).name})" for p in pngs)),
     ])

@@ -261,15 +261,25 @@ def lsb_campaign(captures: list, out: str | Path, inl_rms_lsb: float = 0.5,
     return best[1], fit, n, lsbs
 
 
-def add_delay(capture, caldir: str | Path) -> np.ndarray:
+#: What a delay measurement needs: return counts, and codes between the return and the
+#: masked reset peak or window end, in instrument-response sigmas.
+DELAY_MIN_COUNTS, DELAY_CLEAR_SIGMAS = 20, 3.0
+RESET_MASK = 6  #: codes below x_T masked by the estimators (Histograms.from_codes margin)
+
+
+def add_delay(capture, caldir: str | Path, log=None) -> np.ndarray:
     """Measure the system delay per TDC on a zero-distance capture (eq. 5.3) and rewrite
-    ``caldir`` with it (atomically). Returns the delay in seconds.
+    ``caldir`` with it (atomically). Returns the delay in seconds (NaN where none).
 
     The peak's tau is the range stage's: the pile-up-exact ML on the calibrated time axis
     (so a target at zero distance ranges to zero). The axis's scale at the capture's light
-    comes from its own reset peak where the density test measured those codes (ambient
-    light that makes the capture ~15 codes of x_T brighter than the density test), else
-    from the LSB polynomial; the source of each TDC's scale is recorded.
+    comes from the LSB polynomial, or from the capture's own reset peak where that is
+    trustworthy: found where the polynomial puts it, on codes the density test measured,
+    with the return (located first on the polynomial's axis) well clear of it
+    (:func:`pipeline.ranging.time_axis`); the source of each TDC's scale, and why the
+    reset peak was declined, are recorded. A TDC without a delay gets the reason in
+    ``meta.json`` (``delay.reasons``). Raises CalibrationError, leaving ``caldir`` as it
+    was, when no TDC got a delay.
     """
     from pipeline.caldir import read_bounds
     from pipeline.ranging import time_axis
@@ -283,17 +293,73 @@ def add_delay(capture, caldir: str | Path) -> np.ndarray:
     state = acc.snapshot()
     light = float(state.hits.sum() / (state.n_tdc * max(state.cycles.max(), 1)))  # eq. 5.1
     window_s = cap.meta.window_ns * 1e-9
+
+    def estimate(tau_edges, x_t, scale):
+        irf = cal.histogram_sigma_s(state.hits, res, scale)
+        irf = irf[np.isfinite(irf) & (irf > 0)]  # an empty histogram's width is 0
+        widths = np.diff(tau_edges, axis=1)
+        # the instrument response; 1 LSB where no TDC's peak says (as the range stage)
+        sigma = float(np.median(irf)) if irf.size else \
+            float(np.nanmedian(widths)) if np.isfinite(widths).any() else 200e-12
+        h = Histograms.from_codes(state.hits, tau_edges, state.cycles, window_s, x_t=x_t)
+        return ml(h, sigma), sigma
+
+    # the return first on the polynomial's axis, so the reset peak's fit can keep clear of it
+    tau_edges, x_t, scale, _ = time_axis(state, caldir, window_s, density=res)
+    first, _ = estimate(tau_edges, x_t, scale)
+    returns = np.array([np.interp(window_s - t, e, np.arange(e.size, dtype=np.float64))
+                        if det and np.isfinite(t) and np.all(np.isfinite(e)) else np.nan
+                        for t, e, det in zip(first.t_s, tau_edges, first.detected,
+                                             strict=True)])
     tau_edges, x_t, scale, source = time_axis(state, caldir, window_s, in_situ=True,
-                                              density=res)
-    irf = cal.histogram_sigma_s(state.hits, res, scale)
-    widths = np.diff(tau_edges, axis=1)
-    # the instrument response; 1 LSB where no TDC's peak says (as the range stage)
-    sigma = float(np.nanmedian(irf)) if np.isfinite(irf).any() else \
-        float(np.nanmedian(widths)) if np.isfinite(widths).any() else 200e-12
-    h = Histograms.from_codes(state.hits, tau_edges, state.cycles, window_s, x_t=x_t)
-    est = ml(h, sigma)
+                                              density=res, returns=returns)
+    est, sigma = estimate(tau_edges, x_t, scale)
     d = cal.delay_s(cap.meta.t_laser_win_ns * 1e-9, window_s - est.t_s)
-    d = np.where(est.detected & res.ok, d, np.nan)
+    # where the return sits: a return partly under the reset peak's mask or at the window's
+    # end is biased (fit on one flank), one with a handful of counts is no measurement
+    lsb = np.nanmedian(np.diff(tau_edges, axis=1), axis=1)
+    at = np.array([np.interp(window_s - t, e, np.arange(e.size, dtype=np.float64))
+                   if np.isfinite(t) and np.all(np.isfinite(e)) else np.nan
+                   for t, e in zip(est.t_s, tau_edges, strict=True)])
+    reach = DELAY_CLEAR_SIGMAS * sigma / lsb  # codes the return spreads over, each side
+    reasons = np.full(state.n_tdc, "", dtype=object)
+    reasons[~np.isfinite(d)] = "no peak position (estimator gave none)"
+    reasons[at < 1 + reach] = ("return at the window's end (partly cut off): move the gate "
+                               "(T_laser-win) later")
+    reasons[at > np.floor(x_t) - RESET_MASK - reach] = (
+        "return within reach of the reset peak (partly masked): move the gate "
+        "(T_laser-win) earlier")
+    reasons[np.asarray(est.signal_counts, np.float64) < DELAY_MIN_COUNTS] = (
+        f"under {DELAY_MIN_COUNTS} return counts (a return under the reset peak, or too "
+        "dim)")
+    reasons[~np.asarray(est.detected, bool)] = "no return detected at the false-alarm rate"
+    # the polynomial away from the light it was fitted at is a guess (0.7 ns of delay at
+    # 0.8 detections a cycle on a fit over 0.02-0.69): only the capture's reset peak helps
+    fit = read_lsb_fit(caldir)
+    if fit is not None:
+        lo, hi = fit.n_range
+        off_fit = "" if fit.in_range(light) else \
+            f"light {light:.3g} outside the LSB fit's range [{lo:.3g}, {hi:.3g}]"
+    else:
+        n_cal = meta.get("density", {}).get("detections_per_pixel_per_cycle", light)
+        off_fit = "" if abs(light - n_cal) <= 0.02 else \
+            f"one density test at {n_cal:.3g} detections a cycle, the capture at {light:.3g}"
+    if off_fit:
+        guess = (source != "reset peak") & (reasons == "")
+        reasons[guess] = [f"{off_fit}, and the capture's own reset peak not usable "
+                          f"({str(src).split(': ', 1)[-1]}): run `tcspc calibrate lsb` "
+                          "over this light" for src in source[guess]]
+    reasons[state.hits.sum(axis=1) == 0] = "no hits in the capture"
+    reasons[~np.asarray(res.ok, bool)] = "flagged by the density test"
+    d = np.where(reasons == "", d, np.nan)
+    if not np.isfinite(d).any():
+        counts = {r: int(np.sum(reasons == r)) for r in sorted(set(reasons.tolist()))}
+        raise CalibrationError(f"{cap.bin_path}: no TDC got a delay ({counts}); {caldir} "
+                               "is left as it was")
+    if log:
+        log(f"return found on the polynomial's axis on {int(np.isfinite(returns).sum())} of "
+            f"{state.n_tdc} TDCs; time axis from the capture's reset peak on "
+            f"{int(np.sum(source == 'reset peak'))}")
     tdc = read_tdc_table(caldir)
     second = cal.SecondStage(*(tdc.column(c).to_numpy().astype(np.int64)
                                for c in ("n_min", "n_max", "n_th", "pdm")))
@@ -305,8 +371,10 @@ def add_delay(capture, caldir: str | Path) -> np.ndarray:
                      "capture": str(cap.bin_path), "light": light,
                      "counts_used": np.round(est.signal_counts).tolist(),
                      "sigma_ps": np.round(est.sigma_s * 1e12, 3).tolist(),
-                     "scale_from": sorted(set(source.tolist())),
+                     "scale_from": source.tolist(),
                      "scale_from_reset_peak": int(np.sum(source == "reset peak")),
+                     "tdcs_with_delay": int(np.isfinite(d).sum()),
+                     "reasons": reasons.tolist(),
                      "irf_sigma_s": sigma}})
     return d
 

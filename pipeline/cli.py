@@ -253,6 +253,21 @@ def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, quiet) -> None
                   f"{det['distance_m'].max() if det.height else float('nan'):.3f} m, median "
                   f"sigma {det['sigma_m'].median() if det.height else float('nan'):.4f} m")
         err.print(f"wrote {out}")
+    _warn_no_delay(calibration)
+
+
+def _warn_no_delay(calibration) -> None:
+    """TDCs the calibration has no delay for are not ranged: say how many and why."""
+    import json
+    from collections import Counter
+
+    reasons = json.loads((Path(calibration) / "meta.json").read_text()).get(
+        "delay", {}).get("reasons", [])
+    why = Counter(r for r in reasons if r)
+    if why:
+        err.print(f"[yellow]warning:[/yellow] {sum(why.values())} TDC(s) not ranged, no delay "
+                  "in the calibration: " + "; ".join(f"{n} {r}" for r, n in why.most_common()),
+                  highlight=False)
 
 
 @cli.group()

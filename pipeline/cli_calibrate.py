@@ -95,18 +95,28 @@ def lsb(captures, out, plot, inl_rms) -> None:
 def delay(capture, out) -> None:
     """System delay per TDC from a zero-distance CAPTURE (eq. 5.3), into CALDIR.
 
-    The peak is found as the range stage finds it (ML, pile-up exact). Give the capture
-    ambient light brighter than the density test's (its reset peak ~10 codes lower): its
-    own reset peak then scales the time axis at its exact light; otherwise the LSB
-    polynomial does (within the statistics of the density tests' INL either way)."""
+    The peak is found as the range stage finds it (ML, pile-up exact), anywhere in the
+    window. Give the capture ambient light brighter than the density test's (its reset
+    peak ~10 codes lower): its own reset peak then scales the time axis at its exact light
+    where the return keeps clear of it; otherwise the LSB polynomial does (within the
+    statistics of the density tests' INL either way). Prints how many TDCs got a delay
+    and why the others did not; exits non-zero, leaving CALDIR as it was, when none did."""
     import json
+    from collections import Counter
     from pathlib import Path
 
-    d = add_delay(capture, out)
+    d = add_delay(capture, out, log=lambda m: err.print(f"delay: {m}", highlight=False))
     used = json.loads((Path(out) / "meta.json").read_text())["delay"]
-    err.print(f"delay {np.nanmin(d) * 1e9:.4f}..{np.nanmax(d) * 1e9:.4f} ns; time axis "
-              f"from the capture's reset peak on {used['scale_from_reset_peak']} of "
-              f"{d.size} TDCs; wrote {out}")
+    got = np.isfinite(d)
+    err.print(f"delay on {int(got.sum())} of {d.size} TDCs: "
+              f"{np.nanmin(d) * 1e9:.4f}..{np.nanmax(d) * 1e9:.4f} ns; time axis from the "
+              f"capture's reset peak on {used['scale_from_reset_peak']} of {d.size} TDCs; "
+              f"wrote {out}", highlight=False)
+    if not got.all():
+        why = Counter(r for r in used["reasons"] if r)
+        err.print(f"[yellow]warning:[/yellow] no delay on {int((~got).sum())} TDC(s) "
+                  f"{np.flatnonzero(~got)[:12].tolist()}: "
+                  + "; ".join(f"{n} {r}" for r, n in why.most_common()), highlight=False)
 
 
 @calibrate.command()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -22,17 +23,21 @@ from stages.ranging import Estimate, Histograms, estimate
 
 
 def time_axis(state: HistogramState, caldir: str | Path, window_s: float,
-              in_situ: bool = False, density: cal.DensityResult | None = None):
+              in_situ: bool = False, density: cal.DensityResult | None = None,
+              returns: np.ndarray | None = None):
     """The calibrated time axis of a histogram state: per-code tau edges (n_tdc, 513), the
     code where tau = T falls (x_T), the scale (seconds per unit of the density test's code
-    boundaries) and where each TDC's scale came from.
+    boundaries) and where each TDC's scale came from (with the reason where the capture's
+    own reset peak was declined).
 
     The code boundaries are the density test's (INL); their scale at this measurement's
     light comes from the LSB polynomial (eq. 5.1) read where the window's end falls
     (:func:`stages.calibration.scale_at_light`), or, with ``in_situ``, from the capture's
-    own reset peak where the density test measured those codes
-    (:func:`stages.calibration.scale_in_situ`). ``density``: the directory's density
-    test when the caller has read it already (the range stage does, per measurement).
+    own reset peak, looked for where its uniform light ends and trusted only where the
+    density test measured those codes and no return (``returns``: each TDC's return code,
+    NaN for none) lies close to it (:func:`stages.calibration.scale_in_situ`).
+    ``density``: the directory's density test when the caller has read it already (the
+    range stage does, per measurement).
     """
     if density is None:
         density, _ = read_density(caldir)
@@ -42,27 +47,38 @@ def time_axis(state: HistogramState, caldir: str | Path, window_s: float,
                                f"reach TDC {rows.stop - 1}")
     density = cal.density_rows(density, rows)
     light = float(state.hits.sum() / (state.n_tdc * max(state.cycles.max(), 1)))
-    ok = np.zeros(state.n_tdc, bool)
-    scale = np.full(state.n_tdc, np.nan)
+    bounds = cal.code_bounds(density)
+    scale = cal.scale_at_light(density, lsb_at(caldir, light)[rows], window_s)
+    source = np.full(state.n_tdc, "lsb polynomial", dtype=object)
     if in_situ:
-        scale, ok = cal.scale_in_situ(state.hits, state.cycles, density, window_s)
-    if not ok.all():  # the polynomial (it warns when this light lies outside its range)
-        poly = cal.scale_at_light(density, lsb_at(caldir, light)[rows], window_s)
-        scale = np.where(ok, scale, poly)
-    source = np.where(ok, "reset peak", "lsb polynomial").astype(object)
-    tau_edges = cal.code_bounds(density) * scale[:, None]
-    # where tau = T falls on the code axis, at this light
+        own, ok, why = cal.scale_in_situ(state.hits, state.cycles, density, window_s,
+                                         returns=returns)
+        scale = np.where(ok, own, scale)
+        source = np.where(ok, "reset peak", "lsb polynomial: " + why.astype(str)) \
+            .astype(object)
+    tau_edges = bounds * scale[:, None]
+    x_t = _x_t(tau_edges, window_s)
+    # ... unless the data say otherwise: nothing lies beyond the reset peak, so where the
+    # uniform light ends (the last populated code, with light below it) bounds it. A
+    # calibration whose LSB is off for this light (a single density test used at another
+    # light) would otherwise leave the reset peak inside the searched codes, where it wins
+    # as a false target. Without ambient light there is no such step: the last populated
+    # code is then a return's tail, and bounding x_T there masked the return itself.
+    return tau_edges, _bounded_by_light(state.hits, x_t), scale, source
+
+
+def _bounded_by_light(hits: np.ndarray, x_t: np.ndarray) -> np.ndarray:
+    """x_T bounded by where the uniform light ends, where the light shows a step there
+    (:func:`stages.calibration.light_end`)."""
+    top, step = cal.light_end(hits)
+    return np.where(step, np.minimum(x_t, top), x_t)
+
+
+def _x_t(tau_edges: np.ndarray, window_s: float) -> np.ndarray:
+    """Where tau = T falls on the code axis (fractional code), per TDC."""
     k = np.clip((tau_edges <= window_s).sum(axis=1) - 1, 0, N_CODES - 1)
-    r = np.arange(state.n_tdc)
-    x_t = k + (window_s - tau_edges[r, k]) / (tau_edges[r, k + 1] - tau_edges[r, k])
-    # ... unless the data say otherwise: nothing lies beyond the reset peak, so the last
-    # populated code bounds it. A calibration whose LSB is off for this light (a single
-    # density test used at another light) would otherwise leave the reset peak inside the
-    # searched codes, where it wins as a false target.
-    populated = state.hits.any(axis=1)
-    top = state.hits.shape[1] - np.argmax(state.hits[:, ::-1] > 0, axis=1)
-    x_t = np.where(populated, np.minimum(x_t, top), x_t)
-    return tau_edges, x_t, scale, source
+    r = np.arange(tau_edges.shape[0])
+    return k + (window_s - tau_edges[r, k]) / (tau_edges[r, k + 1] - tau_edges[r, k])
 
 
 def range_state(state: HistogramState, caldir: str | Path, window_s: float,
@@ -95,6 +111,10 @@ def range_state(state: HistogramState, caldir: str | Path, window_s: float,
     est = estimate(h, sigma_s, estimator, p_fa)
     tau = window_s - est.t_s
     distance = cal.distance_m(t_laser_win_s, delay_s, tau)
+    # a pixel without a delay (flagged by `calibrate delay`, reason in meta.json) has no
+    # distance: never a detection with a NaN or a guessed range
+    est = dataclasses.replace(est, detected=np.asarray(est.detected, bool)
+                              & np.isfinite(delay_s))
     return est, distance, est.sigma_s * C_LIGHT / 2
 
 

@@ -529,25 +529,60 @@ def scale_at_light(density: DensityResult, lsb_s, window_s: float) -> np.ndarray
     return np.where(np.asarray(density.ok, bool), scale, np.nan)  # a dead TDC has no axis
 
 
+#: Codes below where the light ends searched for the reset peak.
+RESET_SEARCH = 4
+#: Codes a return must keep from the reset peak for the in-situ fit to be trusted.
+RESET_CLEARANCE = 12
+
+
+def light_end(hits: np.ndarray, min_per_code: float = 1.0):
+    """Where each TDC's uniform light ends: ``(top, step)``, ``top`` one past the last
+    populated code, ``step`` True where light lies below it (a median of ``min_per_code``
+    or more counts over the 30 codes 10-40 below). Nothing is detected at tau > T, so with
+    ambient light the reset peak (tau = T) sits at the top; without it there is no step,
+    and the last populated code is a return's tail."""
+    h = np.asarray(hits)
+    n = h.shape[1]
+    populated = h.any(axis=1)
+    top = np.where(populated, n - np.argmax(h[:, ::-1] > 0, axis=1), 0)
+    k = np.arange(n)[None, :]
+    below = (k >= top[:, None] - 40) & (k < top[:, None] - 10)
+    level = np.array([np.median(row[b]) if b.any() else 0.0
+                      for row, b in zip(h, below, strict=True)])  # once per TDC
+    return top, populated & (level >= min_per_code)
+
+
 def scale_in_situ(hits: np.ndarray, cycles: np.ndarray, density: DensityResult,
-                  window_s: float, min_counts: float = 100.0):
+                  window_s: float, returns: np.ndarray | None = None,
+                  min_counts: float = 100.0):
     """Seconds per unit of :func:`code_bounds` measured on a capture itself: its reset
     peak (tau = T) fitted over the density test's boundaries (:func:`fit_reset_peak`).
 
     Exact at the capture's own light, without the LSB polynomial; valid where the fitted
     codes are ones the density test measured (its own reset peak's codes are filled from
     the phase means): the capture brighter than the density test by ~15 codes of x_T.
-    Returns ``(scale, ok)``; ``ok`` is False where that fails or the peak has fewer than
-    ``min_counts`` counts (use :func:`scale_at_light` there).
+
+    The reset peak is looked for where the capture's uniform light ends
+    (:func:`light_end`: nothing is detected at tau > T), never simply as the highest
+    count: a return near the window's beginning can be higher than the reset peak, and a
+    dim capture's reset peak lies beyond the density test's. A TDC is declined, with the
+    reason, where the capture has no ambient-light step (no reset peak to fit), where a
+    return (``returns``: its code, NaN for none) lies within ``RESET_CLEARANCE`` codes of
+    the reset peak (the fit would take the return for part of it), where the peak has
+    fewer than ``min_counts`` counts, or where the density test did not measure those
+    codes.
+
+    Returns ``(scale, ok, reason)``; ``reason`` is "" where ``ok``.
     """
     h = np.asarray(hits, np.float64)
+    n = h.shape[0]
     bounds = code_bounds(density)
     at_risk = at_risk_by_code(h, cycles)
     x_den = np.nan_to_num(density.x_t, nan=0.0)
     measured_to = np.floor(x_den) - EDGE_MARGIN - 1  # the density test's last measured code
-    # the reset peak: the highest count in the codes up to the density test's x_T
+    end, step = light_end(h)
     k = np.arange(N_CODES)[None, :]
-    zone = (k > x_den[:, None] - 80) & (k <= x_den[:, None] + 2)
+    zone = (k >= end[:, None] - 1 - RESET_SEARCH) & (k < end[:, None])
     top = np.argmax(np.where(zone, h, -1), axis=1)
     # the uniform light per unit just below it (median of Coates' density: a target there
     # does not move it)
@@ -555,12 +590,26 @@ def scale_in_situ(hits: np.ndarray, cycles: np.ndarray, density: DensityResult,
         lam = -np.log1p(-np.clip(h / np.maximum(at_risk, 1.0), 0, 1 - 1e-12))
         per_unit = lam / np.diff(bounds, axis=1)
     band = (k >= top[:, None] - 60) & (k <= top[:, None] - 12)
-    u = np.nanmedian(np.where(band, per_unit, np.nan), axis=1)
-    u = np.where(np.isfinite(u), u, 0.0)
+    has_band = np.isfinite(np.where(band, per_unit, np.nan)).any(axis=1)
+    u = np.nanmedian(np.where(band | ~has_band[:, None], per_unit, np.nan), axis=1)
+    u = np.where(has_band & np.isfinite(u), u, 0.0)
     P, _, A = fit_reset_peak(h, at_risk, bounds, top, u)
-    ok = (np.isfinite(P) & (A >= min_counts) & (top + RESET_HALF < measured_to)
-          & np.asarray(density.ok, bool))
-    return np.where(ok, window_s / np.where(ok, P, 1.0), np.nan), ok
+    ret = np.full(n, np.nan) if returns is None else np.asarray(returns, np.float64)
+    reason = np.full(n, "", dtype=object)
+    checks = [  # the last that applies is the one given
+        (top + RESET_HALF >= measured_to, "reset peak on codes the density test did not "
+                                          "measure (capture not brighter than it)"),
+        (np.abs(ret - top) <= RESET_CLEARANCE,
+         f"a return within {RESET_CLEARANCE} codes of the reset peak"),
+        (~(A >= min_counts), f"reset peak under {min_counts:g} counts"),
+        (~np.isfinite(P), "reset peak fit failed"),
+        (~step, "no ambient-light step (no reset peak to fit)"),
+        (~np.asarray(density.ok, bool), "flagged by the density test"),
+    ]
+    for bad, why in checks:
+        reason[bad] = why
+    ok = reason == ""
+    return np.where(ok, window_s / np.where(ok, P, 1.0), np.nan), ok, reason
 
 
 def delay_s(t_laser_win_s: float, tau_peak_s) -> np.ndarray:

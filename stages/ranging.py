@@ -376,6 +376,9 @@ def _fast_params(bin_s: float, sigma_s: float) -> tuple[int, int, int]:
 
 def _fast_args(h: Histograms, sigma_s: float, p_fa: float, steps: int = SCORING_STEPS):
     """The fast kernel's arguments (shared by ``fast`` and the ML's start)."""
+    if not (np.isfinite(sigma_s) and sigma_s > 0):
+        raise ValueError(f"sigma_s (the instrument response) must be positive and finite, "
+                         f"found {sigma_s}")
     counts = np.ascontiguousarray(h.counts, np.float64)
     edges = np.ascontiguousarray(h.edges_s, np.float64)
     n = counts.shape[1]

@@ -1,4 +1,5 @@
 import json
+import shutil
 
 import numpy as np
 import pyarrow.parquet as pq
@@ -88,7 +89,22 @@ def test_too_small_capture_is_refused_and_the_old_calibration_stays(capture):
     assert (out / "tdc.parquet").read_bytes() == before
 
 
-def test_range_end_to_end_against_the_truth(capture):
+@pytest.fixture(scope="module")
+def lsb_cal(capture):
+    """LSB against light over 0.02-0.69 detections a cycle (covering the delay and range
+    captures), 4 density tests of 6e5 cycles on the 8-TDC chip."""
+    d = capture
+    levels = []
+    for lux in (100, 600, 2000, 6000):
+        (d / f"d{lux}.toml").write_text(SCENE.replace("lux = 1500.0", f"lux = {lux}.0"))
+        run("simulate", str(d / f"d{lux}.toml"), "--cycles", "600000", "--out",
+            str(d / f"d{lux}.bin"), "-q")
+        levels.append(str(d / f"d{lux}.bin"))
+    run("calibrate", "lsb", *levels, "--out", str(d / "lsb_cal"), "--inl-rms", "1.0")
+    return d / "lsb_cal"
+
+
+def test_range_end_to_end_against_the_truth(capture, lsb_cal):
     """simulate -> calibrate density -> calibrate delay -> range, on an 8-TDC chip."""
     d = capture
     def mirror_scene(name, pixels, distance_m, reflectivity, ambient):
@@ -113,14 +129,7 @@ surface = "mirror"
     run("simulate", str(d / "range8.toml"), "--cycles", "100000", "--out", str(d / "r.bin"),
         "-q", "--seed", "7")
     cal = d / "caldir_range"
-    # LSB against light over a range that covers the delay (~0.02) and range captures
-    levels = []
-    for lux in (100, 600, 2000, 6000):
-        (d / f"d{lux}.toml").write_text(SCENE.replace("lux = 1500.0", f"lux = {lux}.0"))
-        run("simulate", str(d / f"d{lux}.toml"), "--cycles", "600000", "--out",
-            str(d / f"d{lux}.bin"), "-q")
-        levels.append(str(d / f"d{lux}.bin"))
-    run("calibrate", "lsb", *levels, "--out", str(cal), "--inl-rms", "1.0")
+    shutil.copytree(lsb_cal, cal)
     run("calibrate", "delay", str(d / "z.bin"), "--out", str(cal))
     run("range", str(d / "r.bin"), "--calibration", str(cal), "--out", str(d / "r.parquet"))
     import polars as pl
@@ -131,3 +140,112 @@ surface = "mirror"
     # limited by the 6e5-cycle density tests (INL ~0.4 LSB ~ 1.3 cm), not by photons
     assert (target["distance_m"] - 2.0).abs().max() < 0.05
     assert df.filter(pl.col("tdc") >= 4)["detected"].sum() <= 1
+
+
+def zero_distance(d, name, delay_ns, reflectivity, lux=None, gate_ns=140.0,
+                  cycles=50_000):
+    """A zero-distance capture of the 8-TDC chip: the return at tau = gate - delay."""
+    scene = SCENE.replace('name = "density8"', f'name = "{name}"')
+    scene = scene.replace("lux = 1500.0", f"lux = {lux}") if lux else \
+        scene.split("[[ambient]]")[0]
+    (d / f"{name}.toml").write_text(scene + f"""
+[gate]
+t_laser_win_ns = {gate_ns}
+delay_ns = {delay_ns}
+[[targets]]
+pixels = [0, 7]
+distance_m = 0.001
+reflectivity = {reflectivity}
+surface = "mirror"
+""")
+    run("simulate", str(d / f"{name}.toml"), "--cycles", str(cycles), "--out",
+        str(d / f"{name}.bin"), "-q")
+    return d / f"{name}.bin", json.loads((d / f"{name}.json").read_text())["truth"]
+
+
+def delay_tolerance_ps(caldir):
+    """What the calibration allows: 4 sigma of the density tests' INL statistics at the
+    peak (the INL error, RMS over codes, x LSB) and of the peak's position (sigma_ps of
+    the fit, from its counts), plus 20 ps for the LSB polynomial's interpolation."""
+    meta = json.loads((caldir / "meta.json").read_text())
+    lsb = pq.read_table(caldir / "tdc.parquet").column("lsb_ps").to_numpy()
+    inl = np.asarray(meta["density"]["inl_error_lsb"]) * lsb
+    peak = np.asarray(meta["delay"]["sigma_ps"], np.float64)
+    return 4 * np.hypot(inl, peak) + 20
+
+
+@pytest.mark.parametrize("delay_ns, lux", [
+    (71.5, None),   # issue 15: the return near the density test's reset-peak codes
+    (63.0, None),   # 12 codes from the capture's own reset peak
+    (100.0, None),  # mid-window
+    (139.0, None),  # 5 codes from the window's end
+    (71.5, 50.0),   # a little ambient light: a reset peak, dimmer than the density tests
+    (135.0, 3000.0),  # brighter, near the window's end
+])
+def test_the_delay_is_found_wherever_the_return_is(capture, lsb_cal, tmp_path, delay_ns,
+                                                    lux):
+    """A dim zero-distance capture (0.07 detections a pixel a cycle, 5e4 cycles, gate 140
+    ns) put the return where the in-situ scale took it for the reset peak: 128 of 128 TDCs
+    "scaled from the reset peak", then delays NaN or tens of ns off, and exit 0. The
+    return anywhere in the window, with or without ambient light: every TDC's delay within
+    what its calibration allows (delay_tolerance_ps)."""
+    zbin, truth = zero_distance(tmp_path, "z", delay_ns, 0.0015, lux)
+    cal = tmp_path / "cal"
+    shutil.copytree(lsb_cal, cal)
+    res = run("calibrate", "delay", str(zbin), "--out", str(cal))
+    assert "delay on 8 of 8 TDCs" in res.output
+    got = pq.read_table(cal / "tdc.parquet").column("delay_ps").to_numpy()
+    err_ps = got - truth["delay_ns"] * 1e3
+    assert np.all(np.abs(err_ps) < delay_tolerance_ps(cal)), err_ps
+    meta = json.loads((cal / "meta.json").read_text())["delay"]
+    assert meta["tdcs_with_delay"] == 8 and meta["reasons"] == [""] * 8
+
+
+@pytest.mark.parametrize("delay_ns, lux, why", [
+    (60.6, None, "reset peak"),       # the return 2-3 codes from the reset peak
+    (139.7, None, "window's end"),    # the return 1.5 codes from the window's end
+    (71.5, 8000.0, "outside the LSB fit's range"),  # 0.8 a cycle, the fit ends at 0.69
+    (100.0, None, "no return detected"),  # gate 300 ns: the return is before the window
+])
+def test_no_delay_anywhere_exits_non_zero_and_keeps_the_calibration(
+        capture, lsb_cal, tmp_path, delay_ns, lux, why):
+    """Where no TDC can be measured, the command says why and exits non-zero, and the
+    calibration directory stays byte for byte as it was."""
+    gate = 300.0 if why == "no return detected" else 140.0
+    zbin, _ = zero_distance(tmp_path, "z", delay_ns, 0.0015, lux, gate_ns=gate)
+    cal = tmp_path / "cal"
+    shutil.copytree(lsb_cal, cal)
+    before = (cal / "tdc.parquet").read_bytes()
+    res = run("calibrate", "delay", str(zbin), "--out", str(cal), ok=False)
+    assert res.exit_code != 0
+    assert "no TDC got a delay" in str(res.exception) and why in str(res.exception)
+    assert (cal / "tdc.parquet").read_bytes() == before
+
+
+def test_a_tdc_without_a_delay_is_flagged_with_its_reason(capture, lsb_cal, tmp_path):
+    """Some TDCs measured, one flagged by the density test: the reason is in meta.json,
+    the count on stderr, and the delay NaN there only."""
+    zbin, truth = zero_distance(tmp_path, "z", 100.0, 0.0015)
+    cal = tmp_path / "cal"
+    shutil.copytree(lsb_cal, cal)
+    import pyarrow as pa
+
+    tdc = pq.read_table(cal / "tdc.parquet")
+    ok = tdc.column("ok").to_numpy(zero_copy_only=False).copy()
+    ok[3] = False  # as a dead TDC would be
+    pq.write_table(tdc.set_column(tdc.schema.get_field_index("ok"), "ok", pa.array(ok)),
+                   cal / "tdc.parquet")
+    res = run("calibrate", "delay", str(zbin), "--out", str(cal))
+    assert "delay on 7 of 8 TDCs" in res.output and "flagged by the density test" in res.output
+    got = pq.read_table(cal / "tdc.parquet").column("delay_ps").to_numpy()
+    assert np.isnan(got[3]) and np.isfinite(np.delete(got, 3)).all()
+    reasons = json.loads((cal / "meta.json").read_text())["delay"]["reasons"]
+    assert reasons[3] == "flagged by the density test" and reasons.count("") == 7
+    # ... and `tcspc range` ranges the others (at zero distance) and not that one, saying so
+    res = run("range", str(zbin), "--calibration", str(cal), "--out", str(tmp_path / "r.pq"))
+    assert "1 TDC(s) not ranged" in res.output
+    import polars as pl
+
+    df = pl.read_parquet(tmp_path / "r.pq").sort("tdc")
+    assert df["detected"].to_list() == [True] * 3 + [False] + [True] * 4
+    assert df.filter(pl.col("detected"))["distance_m"].abs().max() < 0.05
