@@ -396,11 +396,12 @@ def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, journ
 @click.option("--run", "run_id", default=None, help="Run id of the journal to read.")
 @_metrics
 @click.option("--name", default="histogram", show_default=True, help="Name in metrics.")
+@_date
 def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibration, quarantine,
-                    checkpoint, journal, run_id, metrics, name) -> None:
+                    checkpoint, journal, run_id, metrics, name, date) -> None:
     """Per-TDC histograms of the word stream, per measurement or at the end of the run."""
     from pipeline.fanout import parse_range, worker_reader
-    from pipeline.journal import read_range, run_end
+    from pipeline.journal import read_range, run_end, run_meta
     from pipeline.stage import run_stage
     from stages.stream import HistogramCore
 
@@ -411,14 +412,20 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
 
         bounds = ArtifactBounds(bounds.n_min[a:b], bounds.n_max[a:b], bounds.source)
     backfill = ended = None
+    context = {"run": run_id} if run_id else {}
+    if date:
+        context["date"] = date
     if journal and run_id:
+        meta = run_meta(journal, run_id)
+        context.update({k: meta[k] for k in ("t_laser_win_ns", "window_ns") if k in meta})
         backfill = worker_reader(lambda s, e: read_range(journal, run_id, s, e), n_tdc, (a, b))
 
         def ended():
             total = run_end(journal, run_id)
             return None if total is None else total // n_tdc * (b - a)
     core = HistogramCore(b - a, bounds, backfill=backfill, tdc_offset=a,
-                         measurement_cycles=measurement_cycles, step_id=name)
+                         measurement_cycles=measurement_cycles, step_id=name,
+                         context=context)
     stats = run_stage(core, pull, push, quarantine=quarantine, checkpoint=checkpoint,
                       run_ended=ended, metrics=metrics, name=name)
     err.print(f"{name}: received {stats.received}, sent {stats.sent}, rejected "

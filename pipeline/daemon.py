@@ -271,7 +271,8 @@ def build(topo: Topology) -> list[Proc]:
             *(("--measurement-cycles", mc) if mc else ()),
             *(("--calibration", cal) if cal else ()),
             "--quarantine", quar / f"histogram-{i}", "--checkpoint", ckpt / f"histogram-{i}.npz",
-            "--journal", journal, "--run", run, "--name", f"histogram-{i}", *m), ["source"]))
+            "--journal", journal, "--run", run, "--name", f"histogram-{i}",
+            "--date", topo.date, *m), ["source"]))
     src = topo.source
     common = [*(x for ep in hist_eps for x in ("--push", ep)), "--run", run,
               "--journal", journal, "--journal-compression", topo.journal_compression,

@@ -77,6 +77,12 @@ class JournalWriter:
             with open(index, "a") as fh:  # end a line a crash cut short
                 fh.write("\n")
         self.index = open(index, "a")
+        meta = self.dir / f"{run}.meta.json"
+        if not meta.exists():  # the run's constants, for a stage that starts after its end
+            from pipeline.atomic import atomic_path
+
+            with atomic_path(meta) as tmp:
+                tmp.write_text(json.dumps({"run": run, **self.meta}))
         self.segments: list[Path] = []
         self._be = np.empty(0, ">u4")
 
@@ -176,6 +182,16 @@ def _decompress(enc: str, frame: bytes, size: int):
     import pyarrow as pa
 
     return pa.Codec(enc).decompress(frame, decompressed_size=size)
+
+
+def run_meta(directory: str | Path, run: str) -> dict:
+    """The run's constants (``n_tdc``, ``t_laser_win_ns``, ``window_ns``) as its first
+    writer recorded them; {} for a journal written before they were."""
+    path = Path(directory) / f"{run}.meta.json"
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
 
 
 def run_end(directory: str | Path, run: str) -> int | None:
