@@ -357,17 +357,24 @@ def stage_source_capture(capture, pushes, run_id, rate, journal, journal_compres
                    "they are passed on).")
 @click.option("--quarantine", type=click.Path(), default=None)
 @click.option("--idle", type=float, default=None, help="Stop after this many idle seconds.")
+@click.option("--n-tdc", type=click.IntRange(1, 65535), default=None,
+              help="The chip's TDCs per cycle (default: the first datagram's).")
+@click.option("--reorder-window", type=click.IntRange(1), default=None,
+              help="Datagrams held to undo UDP reordering (default 64).")
+@click.option("--max-jump-cycles", type=click.IntRange(1), default=None,
+              help="A datagram further past the newest cycle is refused (default 2^20).")
 @_journal_compression
 @_split
 @_metrics
 @_date
-def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, journal_compression,
-                     split, metrics, date) -> None:
+def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, n_tdc,
+                     reorder_window, max_jump_cycles, journal_compression, split, metrics,
+                     date) -> None:
     """The FPGA's UDP datagrams (docs/streaming.md) in, journaled raw-word batches out."""
     import signal
     import threading
 
-    from pipeline.udp import run_udp_ingest, udp_socket
+    from pipeline.udp import MAX_JUMP_CYCLES, REORDER_WINDOW, run_udp_ingest, udp_socket
 
     halt = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -375,9 +382,12 @@ def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, journ
     stats = run_udp_ingest(udp_socket(bind_addr), list(pushes), run=run_id, journal=journal,
                            quarantine=quarantine, idle_s=idle, split=_ranges(split),
                            metrics=metrics, date=date, stop=halt,
-                           compression=_compression(journal_compression))
+                           compression=_compression(journal_compression), n_tdc=n_tdc,
+                           reorder_window=reorder_window or REORDER_WINDOW,
+                           max_jump_cycles=max_jump_cycles or MAX_JUMP_CYCLES)
     err.print(f"ingest: {stats.datagrams} datagrams, {stats.words:,} words, "
-              f"{stats.lost_datagrams} lost, rejected {dict(stats.rejected)}")
+              f"{stats.lost_datagrams} lost, {stats.duplicates} duplicates, {stats.late} "
+              f"late, {stats.gap_cycles} cycles in gaps, rejected {dict(stats.rejected)}")
 
 
 @stage.command("histogram")

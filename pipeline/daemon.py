@@ -112,7 +112,7 @@ _KNOWN = {
     "daemon": {"state", "run", "restarts", "metrics", "hwm", "journal_keep_gb",
                "journal_compression"},
     "source": {"kind", "scene", "cycles", "seed", "chip_seed", "rate", "capture", "bind",
-               "idle", "n_tdc", "repeat"},
+               "idle", "n_tdc", "repeat", "reorder_window", "max_jump_cycles"},
     "histogram": {"workers", "measurement_cycles", "calibration", "n_tdc", "endpoints"},
     "range": {"calibration", "estimator", "endpoint"},
     "sink": {"out", "endpoint"},
@@ -289,7 +289,10 @@ def build(topo: Topology) -> list[Proc]:
                       *(("--rate", src["rate"]) if src.get("rate") else ()))
     else:
         argv = _tcspc("stage", "ingest-udp", "--bind", src["bind"], *common, "--quarantine",
-                      quar / "ingest", *(("--idle", src["idle"]) if src.get("idle") else ()))
+                      quar / "ingest", *(("--idle", src["idle"]) if src.get("idle") else ()),
+                      "--n-tdc", topo.n_tdc,
+                      *(x for k in ("reorder_window", "max_jump_cycles") if k in src
+                        for x in (f"--{k.replace('_', '-')}", src[k])))
     procs.append(Proc("source", argv, []))
     return procs
 
