@@ -428,7 +428,12 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
     if journal and run_id:
         meta = run_meta(journal, run_id)
         context.update({k: meta[k] for k in ("t_laser_win_ns", "window_ns") if k in meta})
-        backfill = worker_reader(lambda s, e: read_range(journal, run_id, s, e), n_tdc, (a, b))
+
+        def corrupt(first, n, why):  # never folded in: counted as a gap by the core
+            err.print(f"{name}: journal words [{first}, {first + n}) skipped: {why}")
+
+        backfill = worker_reader(lambda s, e: read_range(journal, run_id, s, e, corrupt),
+                                 n_tdc, (a, b))
 
         def ended():
             total = run_end(journal, run_id)

@@ -486,10 +486,18 @@ class Supervisor:
                   "restarts": {p.name: p.restarts for p in self.procs if p.restarts},
                   "journal_segments_pruned": self.pruned}
         if not self.failed:
-            result["reconciled"] = reconcile(self.topo)
-            result["accounting"] = accounting(self.topo, self.metrics)
+            try:
+                result["reconciled"] = reconcile(self.topo)
+                result["accounting"] = accounting(self.topo, self.metrics,
+                                                  result["reconciled"])
+            except Exception as exc:  # the run must end with a state, never "running"
+                self.failed = f"reconciling the run failed: {type(exc).__name__}: {exc}"
+                result["failed"] = self.failed
+                self.log(self.failed)
+        corrupt = (result.get("reconciled") or {}).get("corrupt_words", 0)
         self._write_status({"state": "failed" if self.failed else "finished",
-                            "result": result})
+                            "result": result,
+                            **({"journal_corrupt_words": corrupt} if corrupt else {})})
         return result
 
 
@@ -535,7 +543,9 @@ def reconcile(topo: Topology) -> dict:
 
         ranger = RangeCore(topo.range["calibration"], topo.range.get("estimator", "ml"))
     sink = ParquetSink(out)
-    redone, unrecoverable = [], []
+    redone, unrecoverable, corrupt_meas = [], [], []
+    corrupt_chunks: dict[int, list] = {}  # first word -> [first, words, reason]
+    withheld = 0
     window_ns = None
     for (a, b) in tdc_ranges(topo):
         for k in range(n_meas):
@@ -543,6 +553,18 @@ def reconcile(topo: Topology) -> dict:
                 continue
             if pruned_words(journal, topo.run, k * mc * n, min((k + 1) * mc, cycles) * n):
                 unrecoverable.append([k, a])  # its words were pruned (journal_keep_gb)
+                continue
+            bad = []
+            for _ in read_range(journal, topo.run, k * mc * n, min((k + 1) * mc, cycles) * n,
+                                lambda f, w, why, bad=bad: bad.append([f, w, why])):
+                pass  # a measurement's words are checked whole before any is used
+            if bad:
+                # a corrupt chunk's words are never data: the measurement is withheld
+                corrupt_meas.append([k, a])
+                for c in bad:
+                    corrupt_chunks[c[0]] = c
+                if (k, a) not in have_h:  # (a histogram already written is classified)
+                    withheld += (min((k + 1) * mc, cycles) - k * mc) * (b - a)
                 continue
             bounds = (ArtifactBounds(bounds_all.n_min[a:b], bounds_all.n_max[a:b],
                                      bounds_all.source) if bounds_all else None)
@@ -571,7 +593,10 @@ def reconcile(topo: Topology) -> dict:
                         sink.process(h2, b2)
             redone.append([k, a])
     return {"checked": True, "measurements": n_meas, "tdc_ranges": len(tdc_ranges(topo)),
-            "recomputed": redone, "unrecoverable": unrecoverable}
+            "recomputed": redone, "unrecoverable": unrecoverable, "corrupt": corrupt_meas,
+            "corrupt_chunks": sorted(corrupt_chunks.values()),
+            "corrupt_words": sum(c[1] for c in corrupt_chunks.values()),
+            "withheld_words": withheld}
 
 
 def _words_batch(words):
@@ -596,10 +621,13 @@ def _journal_gate_ns(journal: Path, run: str) -> float:
     return float(_journal_meta(journal, run).get("t_laser_win_ns", 140.0))
 
 
-def accounting(topo: Topology, metrics: dict[str, dict]) -> dict:
+def accounting(topo: Topology, metrics: dict[str, dict], reconciled: dict | None = None
+               ) -> dict:
     """Words in (journaled) = hit + no_hit + artifact + invalid_phase + malformed (from the
-    histograms dataset, each measurement once); messages and datagrams
-    rejected by reason (quarantined) per stage; datagrams lost (sequence gaps). Written to
+    histograms dataset, each measurement once) + words withheld (measurements that a
+    corrupt journal chunk kept from being recomputed: ``corrupt_words`` of them in the
+    corrupt chunks themselves); messages and datagrams rejected by reason (quarantined) per
+    stage; datagrams lost (sequence gaps), duplicated and late. Written to
     ``OUT/accounting/run=RUN.json``."""
     import polars as pl
 
@@ -616,11 +644,22 @@ def accounting(topo: Topology, metrics: dict[str, dict]) -> dict:
     journaled = journaled_total(topo.state / "journal", topo.run)
     span = run_end(topo.state / "journal", topo.run) or 0
     rejected = {name: m.get("rejected", {}) for name, m in metrics.items() if m.get("rejected")}
+    rec = reconciled or {}
+    withheld = int(rec.get("withheld_words", 0))
+    src = metrics.get("source", {})
     result = {"run": topo.run, "words_in": journaled, "classes": classes,
               "classified": sum(classes.values()),
-              "balanced": sum(classes.values()) == journaled,
+              "corrupt": int(rec.get("corrupt_words", 0)), "withheld": withheld,
+              "corrupt_measurements": rec.get("corrupt", []),
+              "balanced": sum(classes.values()) + withheld == journaled,
               "rejected_messages": rejected,
-              "lost_datagrams": metrics.get("source", {}).get("lost_datagrams", 0),
+              "lost_datagrams": src.get("lost_datagrams", 0),
+              "duplicate_datagrams": src.get("duplicates", 0),
+              "late_datagrams": src.get("late", 0),
+              "quarantine_dropped": {name: m["quarantine_dropped"] for name, m in
+                                     metrics.items() if m.get("quarantine_dropped")},
+              "checkpoints_discarded": {name: m["checkpoints_discarded"] for name, m in
+                                        metrics.items() if m.get("checkpoints_discarded")},
               "words_in_gaps": span - journaled,
               "measurements_files": len(parts)}
     path = out / "accounting" / f"run={topo.run}.json"

@@ -16,6 +16,15 @@ costs the disk a fraction of the stream's rate (50 M words/s raw is 200 MB/s, wh
 machine's disk sustains with fdatasync). ``compression=None`` writes raw segments
 (``RUN-000000.bin``; entries without ``enc``, offsets in words), which every reader still
 takes.
+
+Integrity. Every frame carries zstd's content checksum (XXH64 of its words; index entries
+say ``"check": "xxh64"``), so a bit flip or a truncated frame is detected when the frame is
+read, by :func:`read_range` and by ``zstd -d`` alike; a raw segment's entries carry the
+CRC-32 of their bytes (``"crc32"``). A damaged chunk is never yielded as words: it is
+reported to ``on_corrupt(first_word, words, reason)`` (default: raise JournalCorrupt).
+Frames written before checksums were added (no ``check`` in their entry) still read: a
+truncated one is still detected (its length or decoding fails), a flipped bit in one is
+not (they are reported as ``unchecked`` by :func:`verify`).
 """
 
 from __future__ import annotations
@@ -28,9 +37,18 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.capture import CaptureMeta
+from schemas.errors import TcspcError
 
 COMPRESSIONS = ("zstd", None)
 ZSTD_LEVEL = 1  # ~1 GB/s on photon-starving words; higher levels gain little on them
+
+
+class JournalCorrupt(TcspcError, ValueError):
+    """A journal chunk whose bytes fail their checksum, are cut short or do not decode."""
+
+    def __init__(self, first_word: int, words: int, reason: str):
+        super().__init__(f"journal words [{first_word}, {first_word + words}): {reason}")
+        self.first_word, self.words, self.reason = first_word, words, reason
 
 
 def segment_path(directory: str | Path, run: str, segment: int, enc: str | None) -> Path:
@@ -59,9 +77,11 @@ class JournalWriter:
         self.enc = compression
         self._codec = None
         if compression == "zstd":
-            import pyarrow as pa
+            import zstandard
 
-            self._codec = pa.Codec("zstd", compression_level=ZSTD_LEVEL)
+            # content checksum: a damaged frame fails to decode instead of giving words
+            self._codec = zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True,
+                                                   write_content_size=True)
         self.dir = Path(directory)
         self.dir.mkdir(parents=True, exist_ok=True)
         self.run, self.n_tdc = run, n_tdc
@@ -111,10 +131,14 @@ class JournalWriter:
         if self._codec is not None:  # one frame per chunk (releases the GIL)
             frame = self._codec.compress(memoryview(data).cast("B"))
             self.fh.write(frame)
-            entry.update(bytes=frame.size, enc=self.enc)
-            self.offset += frame.size
+            entry.update(bytes=len(frame), enc=self.enc, check="xxh64")
+            self.offset += len(frame)
         else:
-            self.fh.write(memoryview(data).cast("B"))
+            import zlib
+
+            raw = memoryview(data).cast("B")
+            self.fh.write(raw)
+            entry["crc32"] = zlib.crc32(raw)
             self.offset += n
         self.fh.flush()
         self.index.write(json.dumps(entry) + "\n")
@@ -149,9 +173,12 @@ class JournalWriter:
         self.index.close()
 
 
-def read_range(directory: str | Path, run: str, start: int, stop: int
-               ) -> Iterator[tuple[int, np.ndarray]]:
-    """Journaled words of ``run`` with stream index in [start, stop), as (first, words)."""
+def read_range(directory: str | Path, run: str, start: int, stop: int,
+               on_corrupt=None) -> Iterator[tuple[int, np.ndarray]]:
+    """Journaled words of ``run`` with stream index in [start, stop), as (first, words).
+
+    A chunk that fails its check is never yielded: ``on_corrupt(first_word, words,
+    reason)`` is told of it (its whole chunk), or, without one, JournalCorrupt is raised."""
     d = Path(directory)
     index = d / f"{run}.index.jsonl"
     if not index.exists():
@@ -167,21 +194,81 @@ def read_range(directory: str | Path, run: str, start: int, stop: int
         seg = segment_path(d, run, e["segment"], enc)
         if not seg.exists():  # pruned (retention): those words are gone
             continue
-        with open(seg, "rb") as fh:
-            if enc is None:
-                fh.seek(4 * (e["offset"] + a - lo))
-                raw = fh.read(4 * (b - a))
-            else:
-                fh.seek(e["offset"])
-                raw = _decompress(enc, fh.read(e["bytes"]), 4 * e["words"])
-                raw = memoryview(raw)[4 * (a - lo):4 * (b - lo)]
+        try:
+            raw = _read_chunk(seg, e)
+        except JournalCorrupt as exc:
+            if on_corrupt is None:
+                raise
+            on_corrupt(exc.first_word, exc.words, exc.reason)
+            continue
+        raw = memoryview(raw)[4 * (a - lo):4 * (b - lo)]
         yield a, np.frombuffer(raw, ">u4").astype(np.uint32)
 
 
-def _decompress(enc: str, frame: bytes, size: int):
-    import pyarrow as pa
+def _read_chunk(seg: Path, e: dict) -> bytes:
+    """The bytes of one index entry's whole chunk, checked."""
+    enc, n = e.get("enc"), e["words"]
+    with open(seg, "rb") as fh:
+        if enc is None:
+            fh.seek(4 * e["offset"])
+            raw = fh.read(4 * n)
+        else:
+            fh.seek(e["offset"])
+            frame = fh.read(e["bytes"])
+    if enc is None:
+        if len(raw) != 4 * n:
+            raise JournalCorrupt(e["first_word"], n, f"truncated: {len(raw)} of {4 * n} "
+                                 f"bytes in {seg.name}")
+        if "crc32" in e:
+            import zlib
 
-    return pa.Codec(enc).decompress(frame, decompressed_size=size)
+            if zlib.crc32(raw) != e["crc32"]:
+                raise JournalCorrupt(e["first_word"], n, f"CRC-32 mismatch in {seg.name}")
+        return raw
+    if len(frame) != e["bytes"]:
+        raise JournalCorrupt(e["first_word"], n, f"truncated frame: {len(frame)} of "
+                             f"{e['bytes']} bytes in {seg.name} at {e['offset']}")
+    return _decompress(enc, frame, 4 * n, e["first_word"], seg)
+
+
+def _decompress(enc: str, frame: bytes, size: int, first_word: int = 0,
+                seg: Path | None = None) -> bytes:
+    import zstandard
+
+    try:  # verifies the frame's content checksum when it has one
+        raw = zstandard.ZstdDecompressor().decompress(frame, max_output_size=size)
+    except zstandard.ZstdError as exc:
+        raise JournalCorrupt(first_word, size // 4, f"zstd frame in {seg and seg.name} does "
+                             f"not decode ({exc})") from None
+    if len(raw) != size:
+        raise JournalCorrupt(first_word, size // 4, f"zstd frame in {seg and seg.name} "
+                             f"holds {len(raw)} bytes, the index says {size}")
+    return raw
+
+
+def verify(directory: str | Path, run: str) -> dict:
+    """Read every chunk of ``run`` and check it: ``{chunks, words, corrupt: [[first_word,
+    words, reason], ...], corrupt_words, unchecked_chunks, pruned_chunks}``."""
+    d = Path(directory)
+    out = {"chunks": 0, "words": 0, "corrupt": [], "corrupt_words": 0,
+           "unchecked_chunks": 0, "pruned_chunks": 0}
+    for e in _entries(d / f"{run}.index.jsonl"):
+        if e.get("end"):
+            continue
+        out["chunks"] += 1
+        out["words"] += e["words"]
+        seg = segment_path(d, run, e["segment"], e.get("enc"))
+        if not seg.exists():
+            out["pruned_chunks"] += 1
+            continue
+        if "check" not in e and "crc32" not in e:
+            out["unchecked_chunks"] += 1
+        try:
+            _read_chunk(seg, e)
+        except JournalCorrupt as exc:
+            out["corrupt"].append([exc.first_word, exc.words, exc.reason])
+            out["corrupt_words"] += exc.words
+    return out
 
 
 def run_meta(directory: str | Path, run: str) -> dict:
