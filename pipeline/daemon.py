@@ -6,8 +6,10 @@ Every stage is its own process (``tcspc stage ...``), so the graph can also be s
 hand across hosts. The supervisor
 
 - starts the stages (sink first, source last), logs each to ``STATE/logs/NAME.log``;
-- restarts a stage that dies (up to ``restarts`` times each): the source resumes after what
-  its journal holds, a histogram worker from its checkpoint and the journal;
+- restarts a stage that dies, after an exponential backoff (``restart_backoff_s`` doubling
+  per restart in the window, up to ``restart_backoff_max_s``), at most ``restarts`` times
+  per stage in any ``restart_window_s``: the source resumes after what its journal holds,
+  a histogram worker from its checkpoint and the journal;
 - ends a stage whose upstream has finished but whose stop message was lost with a killed
   process (SIGTERM: it drains what is in flight, then finishes);
 - collects the stages' heartbeats (PUB/SUB) into ``STATE/status.json`` once a second, for
@@ -21,7 +23,12 @@ The topology file (all keys but ``[source]`` optional)::
     [daemon]
     state = "data/daemon"        # journal/, checkpoints/, quarantine/, logs/, status.json
     run = "street"               # run id (default: the source's name and the UTC time)
-    restarts = 5                 # per stage, then the daemon stops the graph and fails
+    restarts = 10                # per stage in any restart_window_s; one more death in the
+                                 # window and the daemon stops the graph and fails
+    restart_window_s = 600       # the budget's window (a stage that dies once an hour for
+                                 # a weekend is restarted every time)
+    restart_backoff_s = 0.5      # wait before a restart, doubling with each restart in
+    restart_backoff_max_s = 30   # the window, up to this
     journal_keep_gb = 50         # prune the oldest consumed segments beyond this (default:
                                  # keep all; a week-long run needs a bound)
     journal_compression = "zstd" # zstd (default: ~6 % of the raw bytes in photon-starving
@@ -69,6 +76,7 @@ from pathlib import Path
 import zmq
 
 from pipeline.atomic import atomic_path
+from pipeline.wire import TOKEN_ENV
 from schemas.errors import TcspcError
 
 SOURCE_KINDS = ("sim", "capture", "udp")
@@ -94,6 +102,9 @@ class Topology:
     n_tdc: int
     journal_keep_gb: float | None = None
     journal_compression: str = "zstd"
+    restart_window_s: float = 600.0
+    restart_backoff_s: float = 0.5
+    restart_backoff_max_s: float = 30.0
     date: str = field(default_factory=lambda: dt.date.today().isoformat())
 
     @property
@@ -110,7 +121,8 @@ class Topology:
 
 _KNOWN = {
     "daemon": {"state", "run", "restarts", "metrics", "hwm", "journal_keep_gb",
-               "journal_compression"},
+               "journal_compression", "restart_window_s", "restart_backoff_s",
+               "restart_backoff_max_s"},
     "source": {"kind", "scene", "cycles", "seed", "chip_seed", "rate", "capture", "bind",
                "idle", "n_tdc", "repeat", "reorder_window", "max_jump_cycles"},
     "histogram": {"workers", "measurement_cycles", "calibration", "n_tdc", "endpoints"},
@@ -173,11 +185,22 @@ def load_topology(path: str | Path | None, run: str | None = None,
     metrics = d.get("metrics") or f"ipc://{state.resolve()}/sock/metrics"
     for ep in [metrics, *(hist.get("endpoints") or [])]:
         _check_endpoint(ep, where)
-    return Topology(where, state, run, int(d.get("restarts", 5)), metrics,
+    from pipeline.wire import ID_PATTERN
+
+    if not ID_PATTERN.fullmatch(run):
+        raise TopologyError(f"{where}: run id {run!r}: use 1..64 of [A-Za-z0-9._-] (it "
+                            "becomes a directory name)")
+    budget = {k: float(d.get(k, default)) for k, default in (
+        ("restart_window_s", 600.0), ("restart_backoff_s", 0.5),
+        ("restart_backoff_max_s", 30.0))}
+    if any(v < 0 for v in budget.values()) or int(d.get("restarts", 10)) < 0:
+        raise TopologyError(f"{where} [daemon]: restarts and restart times must be >= 0")
+    return Topology(where, state, run, int(d.get("restarts", 10)), metrics,
                     int(d.get("hwm", 4)), src, hist, rng,
                     raw.get("sink", {"out": "data/stream"}), n_tdc,
                     float(d["journal_keep_gb"]) if "journal_keep_gb" in d else None,
-                    _journal_compression(d.get("journal_compression", "zstd"), where))
+                    _journal_compression(d.get("journal_compression", "zstd"), where),
+                    **budget)
 
 
 def _journal_compression(name, where: str) -> str:
@@ -226,6 +249,8 @@ class Proc:
     popen: subprocess.Popen | None = None
     restarts: int = 0
     finished: bool = False
+    restart_times: list[float] = field(default_factory=list)  #: within the budget window
+    restart_at: float | None = None   #: a restart waiting out its backoff
     exit_codes: list[int] = field(default_factory=list)
     upstream_done_at: float | None = None
     last_received: int | None = None
@@ -297,6 +322,40 @@ def build(topo: Topology) -> list[Proc]:
     return procs
 
 
+def run_token(state: Path, run: str) -> tuple[Path, str]:
+    """The run's token: random, in ``STATE/tokens/RUN.token`` (mode 0600, its directory
+    0700), made once per run and kept (a restarted daemon's stages and the old ones agree).
+    Every stage puts it in the headers it sends and checks it in those it takes."""
+    import secrets
+
+    d = state / "tokens"
+    d.mkdir(parents=True, exist_ok=True)
+    os.chmod(d, 0o700)
+    path = d / f"{run}.token"
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:
+        os.chmod(path, 0o600)
+        token = path.read_text().strip()
+        if len(token) >= 32:
+            return path, token
+        fd = os.open(path, os.O_WRONLY | os.O_TRUNC, 0o600)  # empty or cut short: anew
+    token = secrets.token_hex(32)
+    with os.fdopen(fd, "w") as fh:
+        fh.write(token + "\n")
+    return path, token
+
+
+def check_record(rec: dict, token: str | None) -> bool:
+    """A heartbeat record that carries the run's token (any record when none is set)."""
+    import hmac
+
+    if token is None:
+        return True
+    got = rec.get("token")
+    return isinstance(got, str) and hmac.compare_digest(got.encode(), token.encode())
+
+
 class Supervisor:
     def __init__(self, topo: Topology, log=print, poll_s: float = 0.2):
         self.topo, self.log, self.poll_s = topo, log, poll_s
@@ -308,8 +367,10 @@ class Supervisor:
         self.failed: str | None = None
         self.pruned = 0
         self._spans = None
+        self.forged_heartbeats = 0
         for d in ("logs", "sock", "journal", f"checkpoints/{topo.run}"):
             (topo.state / d).mkdir(parents=True, exist_ok=True)
+        self.token_file, self.token = run_token(topo.state, topo.run)
 
     # -------------------------------------------------------------- processes
     def _start(self, p: Proc) -> None:
@@ -317,7 +378,8 @@ class Supervisor:
         log.write(f"--- {dt.datetime.now(dt.UTC).isoformat()} start "
                   f"(restart {p.restarts}): {' '.join(p.argv)}\n".encode())
         log.flush()
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        # the run's token by file (never on a command line, where `ps` shows it)
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", TOKEN_ENV: str(self.token_file)}
         p.popen = subprocess.Popen(p.argv, stdout=log, stderr=subprocess.STDOUT, env=env)
         log.close()
 
@@ -341,6 +403,13 @@ class Supervisor:
                         p.popen.send_signal(signal.SIGTERM)
                         p.terminated = True
                 continue
+            if p.restart_at is not None:  # dead, its restart waiting out the backoff
+                if self.stop.is_set() and p.name == "source":
+                    p.finished, p.restart_at = True, None  # shutting down: no new source
+                elif now >= p.restart_at:
+                    p.restart_at = None
+                    self._start(p)
+                continue
             p.exit_codes.append(code)
             if code == 0 or (p.terminated and code == -signal.SIGTERM):
                 # (a SIGTERM we sent that landed as the process was already exiting, past
@@ -352,16 +421,23 @@ class Supervisor:
                 p.finished = True  # shutting down: the run ends here, no new source
                 self.log(f"{p.name}: ended (exit {code}) during shutdown")
                 continue
-            if p.restarts >= self.topo.restarts:
-                self.failed = (f"{p.name} died (exit {code}) {p.restarts + 1} times; giving up "
+            p.restart_times = [t for t in p.restart_times
+                               if now - t < self.topo.restart_window_s]
+            if len(p.restart_times) >= self.topo.restarts:
+                self.failed = (f"{p.name} died (exit {code}) {len(p.restart_times) + 1} "
+                               f"times within {self.topo.restart_window_s:.0f} s; giving up "
                                f"(see {self.topo.state / 'logs' / (p.name + '.log')})")
                 self.log(self.failed)
                 return True
+            backoff = min(self.topo.restart_backoff_max_s,
+                          self.topo.restart_backoff_s * 2 ** len(p.restart_times))
+            p.restart_times.append(now)
             p.restarts += 1
             p.terminated, p.upstream_done_at = False, None
-            self.log(f"{p.name}: died (exit {code}); restart {p.restarts} of "
-                     f"{self.topo.restarts}")
-            self._start(p)
+            p.restart_at = now + backoff
+            self.log(f"{p.name}: died (exit {code}); restart {p.restarts} in {backoff:.1f} s "
+                     f"({len(p.restart_times)} of {self.topo.restarts} in "
+                     f"{self.topo.restart_window_s:.0f} s)")
         return all(p.finished for p in self.procs)
 
     def shutdown(self) -> None:
@@ -389,6 +465,10 @@ class Supervisor:
                 if sub.poll(200):
                     try:
                         rec = json.loads(sub.recv())
+                        if not check_record(rec, self.token):
+                            self.forged_heartbeats += 1  # no token: not one of ours
+                            continue
+                        rec.pop("token", None)
                         prev = self.metrics.get(rec["stage"])
                         if prev and prev.get("pid") == rec.get("pid"):
                             dt_s = max(rec["t"] - prev["t"], 1e-6)
@@ -411,7 +491,9 @@ class Supervisor:
                 "pid": p.popen.pid if p.popen else None, "alive": alive,
                 "finished": p.finished, "restarts": p.restarts,
                 "heartbeat_age_s": round(now - m["t"], 2) if "t" in m else None,
-                "health": ("finished" if p.finished else "down" if not alive else
+                "health": ("finished" if p.finished else
+                           "restarting" if p.restart_at is not None else
+                           "down" if not alive else
                            "ok" if "t" in m and now - m["t"] < 5 else "silent"),
                 **{k: v for k, v in m.items() if k not in ("stage", "pid", "t")}}
         depth = {}
@@ -422,6 +504,7 @@ class Supervisor:
                 depth[p.name] = max(0, sent - got)
         return {"run": self.topo.run, "topology": self.topo.path, "updated": now,
                 "started": self.started, "state": "failed" if self.failed else "running",
+                "forged_heartbeats": self.forged_heartbeats,
                 "stages": stages, "queue_depth": depth}
 
     def _write_status(self, extra: dict | None = None) -> None:
