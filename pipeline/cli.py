@@ -245,6 +245,8 @@ _split = click.option("--split", default=None,
 _metrics = click.option("--metrics", default=None,
                         help="Endpoint to publish heartbeats and counters on (PUB).")
 _date = click.option("--date", default=None, help="The run's date partition (default: today).")
+_accept = click.option("--accept", "senders", multiple=True,
+                       help="Step id this stage takes messages from (repeat; default: any).")
 _journal_compression = click.option(
     "--journal-compression", type=click.Choice(["zstd", "none"]), default="zstd",
     show_default=True, help="Journal segments as zstd frames (RUN-N.bin.zst; `zstd -d` gives "
@@ -407,8 +409,9 @@ def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, n_tdc
 @_metrics
 @click.option("--name", default="histogram", show_default=True, help="Name in metrics.")
 @_date
+@_accept
 def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibration, quarantine,
-                    checkpoint, journal, run_id, metrics, name, date) -> None:
+                    checkpoint, journal, run_id, metrics, name, date, senders) -> None:
     """Per-TDC histograms of the word stream, per measurement or at the end of the run."""
     from pipeline.fanout import parse_range, worker_reader
     from pipeline.journal import read_range, run_end, run_meta
@@ -442,7 +445,8 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
                          measurement_cycles=measurement_cycles, step_id=name,
                          context=context)
     stats = run_stage(core, pull, push, quarantine=quarantine, checkpoint=checkpoint,
-                      run_ended=ended, metrics=metrics, name=name)
+                      run_ended=ended, metrics=metrics, name=name,
+                      senders=list(senders) or None)
     err.print(f"{name}: received {stats.received}, sent {stats.sent}, rejected "
               f"{dict(stats.rejected)}; backfilled {core.backfilled:,} words, skipped "
               f"{core.duplicates:,} already counted, unfilled gaps {core.gap_words:,}")
@@ -456,14 +460,16 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
 @click.option("--workers", default=1, show_default=True, help="Histogram workers upstream.")
 @click.option("--quarantine", type=click.Path(), default=None)
 @_metrics
-def stage_range(pull, push, calibration, estimator, workers, quarantine, metrics) -> None:
+@_accept
+def stage_range(pull, push, calibration, estimator, workers, quarantine, metrics,
+                senders) -> None:
     """Ranges of each measurement's histograms with a calibration (eq. 5.4)."""
     from pipeline.ranging import RangeCore
     from pipeline.stage import run_stage
 
     core = RangeCore(calibration, estimator)
     stats = run_stage(core, pull, push, quarantine=quarantine, expect_stops=workers,
-                      metrics=metrics, name="range")
+                      metrics=metrics, name="range", senders=list(senders) or None)
     err.print(f"range: {core.ranged} measurements ranged; rejected {dict(stats.rejected)}")
 
 
@@ -473,13 +479,14 @@ def stage_range(pull, push, calibration, estimator, workers, quarantine, metrics
 @click.option("--quarantine", type=click.Path(), default=None)
 @click.option("--workers", default=1, show_default=True, help="Stages feeding this sink.")
 @_metrics
-def stage_sink(pull, out, quarantine, workers, metrics) -> None:
+@_accept
+def stage_sink(pull, out, quarantine, workers, metrics, senders) -> None:
     """Parquet datasets (histograms, ranges), Hive-partitioned by date and run."""
     from pipeline.stage import ParquetSink, run_stage
 
     sink = ParquetSink(out)
     stats = run_stage(sink, pull, None, quarantine=quarantine, expect_stops=workers,
-                      metrics=metrics, name="sink")
+                      metrics=metrics, name="sink", senders=list(senders) or None)
     err.print(f"sink: wrote {sink.files} files; rejected {dict(stats.rejected)}")
 
 

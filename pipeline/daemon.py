@@ -276,16 +276,23 @@ def build(topo: Topology) -> list[Proc]:
     hist_eps = [topo.endpoint(topo.histogram, f"histogram-{i}", i) for i in range(len(ranges))]
     sink_ep = topo.endpoint(topo.sink, "sink")
     after_hist = sink_ep
+    hist_names = [f"histogram-{i}" for i in range(len(ranges))]
+
+    def accept(*names):  # the step ids a stage takes messages from
+        return [x for n in names for x in ("--accept", n)]
+
     procs = [Proc("sink", _tcspc("stage", "sink", "--pull", sink_ep, "--out", topo.sink["out"],
                                  "--quarantine", quar / "sink", "--workers",
-                                 1 if topo.range else len(ranges), *m),
+                                 1 if topo.range else len(ranges), *m,
+                                 *accept(*(["range"] if topo.range else []), *hist_names)),
                   ["range"] if topo.range else [f"histogram-{i}" for i in range(len(ranges))])]
     if topo.range:
         after_hist = topo.endpoint(topo.range, "range")
         procs.append(Proc("range", _tcspc(
             "stage", "range", "--pull", after_hist, "--push", sink_ep, "--calibration",
             topo.range["calibration"], "--estimator", topo.range.get("estimator", "ml"),
-            "--workers", len(ranges), "--quarantine", quar / "range", *m),
+            "--workers", len(ranges), "--quarantine", quar / "range", *m,
+            *accept(*hist_names)),
             [f"histogram-{i}" for i in range(len(ranges))]))
     mc = topo.histogram.get("measurement_cycles")
     cal = topo.histogram.get("calibration")
@@ -297,7 +304,7 @@ def build(topo: Topology) -> list[Proc]:
             *(("--calibration", cal) if cal else ()),
             "--quarantine", quar / f"histogram-{i}", "--checkpoint", ckpt / f"histogram-{i}.npz",
             "--journal", journal, "--run", run, "--name", f"histogram-{i}",
-            "--date", topo.date, *m), ["source"]))
+            "--date", topo.date, *m, *accept("source", "ingest")), ["source"]))
     src = topo.source
     common = [*(x for ep in hist_eps for x in ("--push", ep)), "--run", run,
               "--journal", journal, "--journal-compression", topo.journal_compression,

@@ -199,7 +199,8 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
               drain_ms: int = 1000, token: str | None = None,
               max_bytes: int = wire.MAX_MESSAGE_BYTES,
               quarantine_max_files: int = QUARANTINE_MAX_FILES,
-              quarantine_max_bytes: int = QUARANTINE_MAX_BYTES) -> StageStats:
+              quarantine_max_bytes: int = QUARANTINE_MAX_BYTES,
+              senders: list[str] | None = None) -> StageStats:
     """Run ``core`` between ``pull`` (bound) and ``push`` (connected) until a stop message,
     a signal or ``stop`` is set. Returns the counts.
 
@@ -218,7 +219,8 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
     (default: from $TCSPC_TOKEN_FILE); with one, a message without it is rejected
     (``bad_token``) and every message sent carries it. A checkpoint that cannot be trusted
     is set aside (``.bad``) with its reason on stderr, and the core rebuilds from the
-    journal."""
+    journal. ``senders``: the step ids this stage takes messages from (None: any); a
+    message from another is rejected (``unknown_sender``)."""
     ctx = context or zmq.Context.instance()
     stats = StageStats()
     token = token if token is not None else wire.load_token()
@@ -285,6 +287,9 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
             stats.received += 1
             try:
                 head, batch = wire.decode(frames, core.in_spec, max_bytes, token)
+                if senders is not None and head["step"] not in senders:
+                    raise wire.WireError("unknown_sender", f"step {head['step']!r} is not "
+                                         f"upstream of this stage ({senders})")
             except wire.WireError as exc:
                 reject(exc, frames)
                 continue
