@@ -254,3 +254,55 @@ def test_restarts_back_off_exponentially_within_a_budget_per_window(tmp_path):
         time.sleep(0.01)
     assert slow.restarts >= 6 and sup2.failed is None
     sup2.kill_all()
+
+
+def test_forged_and_poisoned_messages_in_a_running_graph_change_nothing(tmp_path, reference):
+    """While the graph runs: a forged stop and a forged word batch without the run's token,
+    a header lacking first_word with it, a batch from a step that is not upstream, and a
+    forged heartbeat. The datasets equal the uninterrupted run; each is counted."""
+    import pyarrow as pa
+    import zmq
+
+    from pipeline import wire
+    from schemas import RAW_WORDS
+
+    def inject(sup):
+        deadline = time.time() + 60
+        while sup.metrics.get("source", {}).get("words", 0) < 5e5:
+            assert time.time() < deadline
+            time.sleep(0.05)
+        token = sup.token_file.read_text().strip()
+        ctx = zmq.Context()
+        tx = ctx.socket(zmq.PUSH)
+        tx.connect(sup.topo.endpoint(sup.topo.histogram, "histogram-0", 0))
+        words = pa.record_batch([pa.array(np.full(N // 2 * 100, 0x200 | 2, np.uint32))],
+                                schema=RAW_WORDS.schema)
+        head = {"kind": "data", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
+                "run": "h", "seq": 1, "step": "source", "first_word": 0, "n_tdc": N // 2,
+                "t_laser_win_ns": 140.0}
+        tx.send_multipart(wire.encode({**head, "kind": "stop"}, None))
+        tx.send_multipart(wire.encode(head, words))
+        tx.send_multipart(wire.encode({k: v for k, v in head.items() if k != "first_word"},
+                                      words, token))
+        tx.send_multipart(wire.encode({**head, "step": "histogram-1"}, words, token))
+        pub = ctx.socket(zmq.PUB)
+        pub.connect(sup.topo.metrics)
+        time.sleep(0.3)  # (a PUB's subscriber joins late)
+        for _ in range(3):
+            pub.send(json.dumps({"stage": "histogram-0", "pid": 1, "t": time.time(),
+                                 "state": "finished", "received": 10**9}).encode())
+            time.sleep(0.1)
+        tx.close(linger=2000)
+        pub.close(linger=1000)
+        ctx.term()
+
+    res, sup = run_daemon(topology(tmp_path, cycles=CYCLES, rate=1.5e6), "h", inject)
+    assert res["failed"] is None and res["restarts"] == {}
+    _same(_histograms(tmp_path / "out", "h"), reference)
+    acc = res["accounting"]
+    assert acc["balanced"] and acc["words_in"] == CYCLES * N
+    assert acc["rejected_messages"] == {"histogram-0": {"bad_token": 2, "bad_header": 1,
+                                                        "unknown_sender": 1}}
+    st = json.loads((tmp_path / "state" / "status.json").read_text())
+    assert st["forged_heartbeats"] >= 1
+    assert st["stages"]["histogram-0"]["received"] < 10**9  # the forged record was dropped
