@@ -35,6 +35,9 @@ The topology file (all keys but ``[source]`` optional)::
                                  # light; `zstd -d` gives the raw capture) or "none"
     metrics = "ipc://..."        # default ipc://STATE/sock/metrics
     hwm = 4                      # ZeroMQ high-water mark, messages per socket
+    curve = "auto"               # ZeroMQ CURVE (keys in STATE/curve): "auto" turns it on
+                                 # when any endpoint is tcp:// to a non-loopback address;
+                                 # true / false force it
 
     [source]
     kind = "sim"                 # sim | capture | udp
@@ -105,6 +108,22 @@ class Topology:
     restart_window_s: float = 600.0
     restart_backoff_s: float = 0.5
     restart_backoff_max_s: float = 30.0
+    curve: str | bool = "auto"
+
+    def endpoints(self) -> list[str]:
+        """Every endpoint of the graph (for the CURVE decision)."""
+        eps = [self.metrics, self.endpoint(self.sink, "sink")]
+        eps += [self.endpoint(self.histogram, f"histogram-{i}", i)
+                for i in range(self.workers)]
+        if self.range:
+            eps.append(self.endpoint(self.range, "range"))
+        return eps
+
+    @property
+    def curve_on(self) -> bool:
+        from pipeline.curve import needs_curve
+
+        return self.curve is True or (self.curve == "auto" and needs_curve(self.endpoints()))
     date: str = field(default_factory=lambda: dt.date.today().isoformat())
 
     @property
@@ -122,7 +141,7 @@ class Topology:
 _KNOWN = {
     "daemon": {"state", "run", "restarts", "metrics", "hwm", "journal_keep_gb",
                "journal_compression", "restart_window_s", "restart_backoff_s",
-               "restart_backoff_max_s"},
+               "restart_backoff_max_s", "curve"},
     "source": {"kind", "scene", "cycles", "seed", "chip_seed", "rate", "capture", "bind",
                "idle", "n_tdc", "repeat", "reorder_window", "max_jump_cycles"},
     "histogram": {"workers", "measurement_cycles", "calibration", "n_tdc", "endpoints"},
@@ -200,7 +219,14 @@ def load_topology(path: str | Path | None, run: str | None = None,
                     raw.get("sink", {"out": "data/stream"}), n_tdc,
                     float(d["journal_keep_gb"]) if "journal_keep_gb" in d else None,
                     _journal_compression(d.get("journal_compression", "zstd"), where),
-                    **budget)
+                    **budget, curve=_curve(d.get("curve", "auto"), where))
+
+
+def _curve(value, where: str) -> str | bool:
+    if value not in ("auto", True, False):
+        raise TopologyError(f"{where}: [daemon] curve must be \"auto\", true or false, "
+                            f"found {value!r}")
+    return value
 
 
 def _journal_compression(name, where: str) -> str:
@@ -378,6 +404,11 @@ class Supervisor:
         for d in ("logs", "sock", "journal", f"checkpoints/{topo.run}"):
             (topo.state / d).mkdir(parents=True, exist_ok=True)
         self.token_file, self.token = run_token(topo.state, topo.run)
+        self.curve_dir = None
+        if topo.curve_on:
+            from pipeline.curve import ensure_keys
+
+            self.curve_dir = ensure_keys(topo.state)
 
     # -------------------------------------------------------------- processes
     def _start(self, p: Proc) -> None:
@@ -387,6 +418,10 @@ class Supervisor:
         log.flush()
         # the run's token by file (never on a command line, where `ps` shows it)
         env = {**os.environ, "PYTHONUNBUFFERED": "1", TOKEN_ENV: str(self.token_file)}
+        if self.curve_dir is not None:
+            from pipeline.curve import CURVE_ENV
+
+            env[CURVE_ENV] = str(self.curve_dir)
         p.popen = subprocess.Popen(p.argv, stdout=log, stderr=subprocess.STDOUT, env=env)
         log.close()
 
@@ -466,7 +501,12 @@ class Supervisor:
         sub = ctx.socket(zmq.SUB)
         sub.setsockopt(zmq.SUBSCRIBE, b"")
         sub.setsockopt(zmq.LINGER, 0)
-        sub.bind(self.topo.metrics)
+        from pipeline import curve
+        from pipeline.stage import bind
+
+        if self.curve_dir is not None:
+            curve.serve(sub, self.curve_dir)
+        bind(sub, self.topo.metrics)
         try:
             while not self.stop.is_set():
                 if sub.poll(200):

@@ -93,7 +93,18 @@ def bind(sock: zmq.Socket, endpoint: str) -> None:
             finally:
                 probe.close()
         path.parent.mkdir(parents=True, exist_ok=True)
+    from pipeline import curve
+
+    curve.serve(sock)  # with $TCSPC_CURVE_DIR: encrypted, authorized clients only
     sock.bind(endpoint)
+
+
+def connect(sock: zmq.Socket, endpoint: str) -> None:
+    """Connect ``endpoint`` (as a CURVE client with $TCSPC_CURVE_DIR)."""
+    from pipeline import curve
+
+    curve.client(sock)
+    sock.connect(endpoint)
 
 
 class Quarantine:
@@ -250,7 +261,7 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
     tx = None
     if push:
         tx = _socket(ctx, zmq.PUSH, hwm)
-        tx.connect(push)
+        connect(tx, push)
     last = {"run": "run", "seq": 0}
     beat = Metrics(metrics, name or core.step_id, ctx, token=token)
     stopped_by: set[str] = set()
@@ -360,7 +371,7 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
     txs = []
     for ep in pushes:
         tx = _socket(ctx, zmq.PUSH, hwm)
-        tx.connect(ep)
+        connect(tx, ep)
         txs.append(tx)
     beat = Metrics(metrics, step_id, ctx, token=token)
     halt = threading.Event()

@@ -24,7 +24,7 @@ import zmq
 
 from pipeline import datagram, wire
 from pipeline.journal import JournalWriter
-from pipeline.stage import Quarantine, _socket
+from pipeline.stage import Quarantine, _socket, connect
 from schemas.words import RAW_WORDS
 
 BATCH_WORDS = 1 << 18  # 1 MiB messages
@@ -190,7 +190,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     txs = []
     for ep in pushes:
         tx = _socket(ctx, zmq.PUSH, 4)
-        tx.connect(ep)
+        connect(tx, ep)
         txs.append(tx)
     if (split is not None and len(split) != len(txs)) or (split is None and len(txs) != 1):
         raise ValueError("one TDC range per endpoint")

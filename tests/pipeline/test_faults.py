@@ -306,3 +306,16 @@ def test_forged_and_poisoned_messages_in_a_running_graph_change_nothing(tmp_path
     st = json.loads((tmp_path / "state" / "status.json").read_text())
     assert st["forged_heartbeats"] >= 1
     assert st["stages"]["histogram-0"]["received"] < 10**9  # the forged record was dropped
+
+
+def test_a_graph_under_curve_gives_the_same_datasets(tmp_path, reference):
+    """CURVE turned on explicitly (on loopback): every stage socket and the heartbeats
+    encrypted and authenticated, the same datasets."""
+    topo = topology(tmp_path, cycles=CYCLES)
+    topo.write_text(topo.read_text().replace("restarts = 3", "restarts = 3\ncurve = true"))
+    res, sup = run_daemon(topo, "cv")
+    assert sup.curve_dir is not None and (sup.curve_dir / "server.key_secret").exists()
+    assert res["failed"] is None
+    _same(_histograms(tmp_path / "out", "cv"), reference)
+    assert res["accounting"]["balanced"]
+    assert "source" in sup.metrics  # heartbeats came through CURVE too

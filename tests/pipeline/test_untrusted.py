@@ -260,3 +260,47 @@ def test_a_stale_ipc_file_is_removed_and_a_live_one_is_not_stolen(tmp_path):
         s.close(linger=0)
     ctx.term()
     assert stat.S_ISSOCK(path.lstat().st_mode) or not path.exists()
+
+
+def test_curve_admits_only_the_graphs_keys(tmp_path):
+    """CURVE on loopback, turned on explicitly: a client with the graph's keys delivers; a
+    plain client and one with keys of its own do not."""
+    import zmq.auth
+
+    from pipeline import curve
+    from pipeline.stage import connect
+
+    keys = curve.ensure_keys(tmp_path / "state")
+    assert stat.S_IMODE(keys.stat().st_mode) == 0o700
+    assert stat.S_IMODE((keys / "client.key_secret").stat().st_mode) == 0o600
+    ctx = zmq.Context()
+    rx = ctx.socket(zmq.PULL)
+    curve.serve(rx, keys)
+    port = rx.bind_to_random_port("tcp://127.0.0.1")
+    ep = f"tcp://127.0.0.1:{port}"
+    plain = ctx.socket(zmq.PUSH)
+    plain.connect(ep)
+    other = ctx.socket(zmq.PUSH)
+    own_pub, own_sec = zmq.auth.load_certificate(
+        zmq.auth.create_certificates(str(tmp_path), "intruder")[1])
+    other.curve_secretkey, other.curve_publickey = own_sec, own_pub
+    other.curve_serverkey = zmq.auth.load_certificate(str(keys / "server.key"))[0]
+    other.connect(ep)
+    good = ctx.socket(zmq.PUSH)
+    os.environ[curve.CURVE_ENV] = str(keys)
+    try:
+        connect(good, ep)
+    finally:
+        del os.environ[curve.CURVE_ENV]
+    for s, msg in ((plain, b"plain"), (other, b"intruder"), (good, b"ours")):
+        s.send(msg)  # queued while the handshake runs (or fails)
+    got = []
+    while rx.poll(1500):
+        got.append(rx.recv())
+    assert got == [b"ours"]
+    assert curve.needs_curve(["tcp://10.0.0.2:5555"]) and curve.needs_curve(["tcp://*:1"])
+    assert not curve.needs_curve(["tcp://127.0.0.1:5555", "ipc:///tmp/x"])
+    for s in (rx, plain, other, good):
+        s.close(linger=0)
+    curve.stop_authenticators()
+    ctx.term()
