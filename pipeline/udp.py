@@ -13,6 +13,7 @@ rejected datagram, never a gap to fill.
 
 from __future__ import annotations
 
+import queue
 import socket
 import threading
 from collections import Counter, deque
@@ -33,6 +34,8 @@ REORDER_LINGER_S = 0.5         #: after the last datagram, wait this long for st
 MAX_JUMP_CYCLES = 1 << 20      #: a datagram this far past the run's newest cycle is refused
 MAX_JUMP_DATAGRAMS = 1 << 16   #: ... and this far in sequence number
 GATE_PS = (1_000, 10_000_000)  #: a gate outside 1 ns .. 10 us is not a gate
+RING_DATAGRAMS = 4096          #: received, not yet journaled (<= 256 MiB of datagrams)
+SEND_QUEUE = 64                #: journaled messages waiting for a slow stage downstream
 
 
 @dataclass
@@ -46,6 +49,9 @@ class IngestStats:
     gap_cycles: int = 0       #: cycles no datagram brought
     rejected: Counter = field(default_factory=Counter)
     quarantine_dropped: int = 0
+    ring_dropped: int = 0     #: received while the ring was full (journal too slow)
+    deferred_messages: int = 0  #: journaled, not sent (downstream stalled; it backfills)
+    deferred_words: int = 0
     messages: int = 0
     journal: list[str] = field(default_factory=list)  #: segment files written
 
@@ -54,7 +60,9 @@ class IngestStats:
                 "words": self.words, "duplicates": self.duplicates, "late": self.late,
                 "lost_datagrams": self.lost_datagrams, "gap_cycles": self.gap_cycles,
                 "rejected": dict(self.rejected),
-                "quarantine_dropped": self.quarantine_dropped}
+                "quarantine_dropped": self.quarantine_dropped,
+                "ring_dropped": self.ring_dropped, "deferred_messages": self.deferred_messages,
+                "deferred_words": self.deferred_words}
 
 
 def udp_socket(address: str = "127.0.0.1:0") -> socket.socket:
@@ -168,7 +176,8 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                    n_tdc: int | None = None, reorder_window: int = REORDER_WINDOW,
                    max_jump_cycles: int = MAX_JUMP_CYCLES,
                    max_jump_datagrams: int = MAX_JUMP_DATAGRAMS,
-                   linger_s: float = REORDER_LINGER_S, token: str | None = None
+                   linger_s: float = REORDER_LINGER_S, token: str | None = None,
+                   ring_datagrams: int = RING_DATAGRAMS, send_queue: int = SEND_QUEUE
                    ) -> IngestStats:
     """Receive until a datagram flagged last (and the reorder window is settled), ``stop``,
     or ``idle_s`` without data.
@@ -178,7 +187,16 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     (None: the first datagram's). ``reorder_window``: datagrams held to undo reordering.
     ``max_jump_cycles`` / ``max_jump_datagrams``: how far past the newest a first cycle or
     sequence number may jump before the datagram is refused. ``token``: the run's token
-    (default: $TCSPC_TOKEN_FILE)."""
+    (default: $TCSPC_TOKEN_FILE).
+
+    Three threads, so receiving never waits for downstream: a receiver puts datagrams into
+    a ring of ``ring_datagrams`` (when full, because the journal cannot keep up, a datagram
+    is counted in ``ring_dropped``); this thread checks, reassembles and journals them and
+    queues the batches; a sender passes them on. With a journal, a batch that finds the
+    send queue (``send_queue`` messages) full is not sent but counted
+    (``deferred_messages``): its words are in the journal, and the worker downstream fills
+    the hole from there when the next batch or the stop reaches it. Back-pressure thus
+    stops at the journal. Without a journal this thread waits for the sender instead."""
     import datetime as dt
 
     from pipeline.fanout import TdcSplitter
@@ -201,6 +219,38 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     reasm = Reassembler(reorder_window, max_jump_cycles, max_jump_datagrams)
     quar = Quarantine(quarantine)
     sock.settimeout(0.2)
+    ring: queue.Queue = queue.Queue(maxsize=ring_datagrams)
+    sendq: queue.Queue = queue.Queue(maxsize=send_queue)
+    halt_rx, abort_tx = threading.Event(), threading.Event()
+
+    def receiver():
+        while not halt_rx.is_set():
+            try:
+                data = sock.recv(datagram.MAX_PAYLOAD + 1)
+            except TimeoutError:
+                continue
+            except OSError:
+                return  # the socket was closed under us: the run is over
+            try:
+                ring.put_nowait(data)
+            except queue.Full:
+                stats.ring_dropped += 1  # (one writer: this thread)
+
+    def sender():
+        while True:
+            item = sendq.get()
+            if item is None:
+                return
+            for tx, frames in zip(txs, item, strict=True):
+                while not tx.poll(200, zmq.POLLOUT):
+                    if abort_tx.is_set():
+                        return
+                tx.send_multipart(frames, zmq.NOBLOCK)
+
+    rx_thread = threading.Thread(target=receiver, name="udp-receive", daemon=True)
+    tx_thread = threading.Thread(target=sender, name="udp-send", daemon=True)
+    rx_thread.start()
+    tx_thread.start()
     pending: list[np.ndarray] = []
     pending_first = None
     next_word = None
@@ -219,13 +269,22 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         ranges = split or [(0, n_tdc)]
         parts = (TdcSplitter(n_tdc, split).split(pending_first, words) if split
                  else [(pending_first, words)])
-        for tx, (f, w), rng in zip(txs, parts, ranges, strict=True):
+        item = []
+        for (f, w), rng in zip(parts, ranges, strict=True):
             batch = pa.record_batch([pa.array(w)], schema=RAW_WORDS.schema)
             head = {"kind": "data", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
                     "run": run, "seq": stats.messages, "step": "ingest",
                     "first_word": int(f), "n_tdc": rng[1] - rng[0], "n_tdc_total": n_tdc,
                     "tdc_range": list(rng), "t_laser_win_ns": gate_ps / 1000, "date": date}
-            tx.send_multipart(wire.encode(head, batch, token))
+            item.append(wire.encode(head, batch, token))
+        if journal is None:
+            sendq.put(item)  # nothing to fill a hole from: wait for downstream
+        else:
+            try:
+                sendq.put_nowait(item)
+            except queue.Full:  # downstream stalled: the journal has the words
+                stats.deferred_messages += 1
+                stats.deferred_words += int(words.size)
         stats.messages += 1
         pending, pending_first = [], None
 
@@ -261,8 +320,8 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             if last_end is not None and reasm.next_cycle >= last_end and not reasm.held:
                 break  # the last datagram and everything before it are in
             try:
-                data = sock.recv(datagram.MAX_PAYLOAD + 1)
-            except TimeoutError:
+                data = ring.get(timeout=0.2)
+            except queue.Empty:
                 idle += 0.2
                 if reasm.held and idle >= linger_s:  # a quiet stream: nothing will fill
                     for r in reasm.drain():         # the holes; hold no words back
@@ -311,20 +370,35 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             writer.close()
             stats.journal = [str(p) for p in writer.segments]
             writer = None
-        for tx in txs:
-            tx.send_multipart(wire.encode({
-                "kind": "stop", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
-                "run": run, "seq": stats.messages, "step": "ingest", "words": stats.words,
-                "datagrams": stats.datagrams, "lost_datagrams": stats.lost_datagrams,
-                "duplicates": stats.duplicates, "late": stats.late,
-                "gap_cycles": stats.gap_cycles, "rejected": dict(stats.rejected)},
-                None, token))
+        halt_rx.set()
+        rx_thread.join()
+        stats.datagrams += ring.qsize()  # came after the end: counted, not taken
+        stats.rejected["after_end"] += ring.qsize()
+        if not stats.rejected["after_end"]:
+            del stats.rejected["after_end"]
+        stop_head = {
+            "kind": "stop", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
+            "run": run, "seq": stats.messages, "step": "ingest", "words": stats.words,
+            "datagrams": stats.datagrams, "lost_datagrams": stats.lost_datagrams,
+            "duplicates": stats.duplicates, "late": stats.late,
+            "gap_cycles": stats.gap_cycles, "rejected": dict(stats.rejected)}
+        sendq.put([wire.encode(stop_head, None, token) for _ in txs])
+        sendq.put(None)
+        tx_thread.join(timeout=60)  # a downstream that never takes it: the daemon ends it
         beat.beat(force=True, state="finished", **stats.fields())
     finally:
+        halt_rx.set()
+        abort_tx.set()
+        if tx_thread.is_alive():
+            try:
+                sendq.put_nowait(None)
+            except queue.Full:
+                pass
+            tx_thread.join(timeout=2)
         if writer is not None:
             writer.close()
             stats.journal = [str(p) for p in writer.segments]
         beat.close()
         for tx in txs:
-            tx.close()
+            tx.close(linger=60_000 if not tx_thread.is_alive() else 0)
     return stats

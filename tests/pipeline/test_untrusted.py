@@ -304,3 +304,51 @@ def test_curve_admits_only_the_graphs_keys(tmp_path):
         s.close(linger=0)
     curve.stop_authenticators()
     ctx.term()
+
+
+def test_a_stalled_stage_downstream_loses_no_datagram(tmp_path):
+    """The histogram stage comes up only after the run's datagrams have all arrived (40 MB,
+    ten times the kernel's socket buffer): receiving never waits for it, every datagram is
+    journaled, and the stage fills what could not be sent from the journal. Its histograms
+    equal those of the words sent."""
+    from pipeline.fanout import worker_reader
+    from pipeline.journal import run_end
+    from stages.histogram import HistogramAccumulator, HistogramState
+
+    n_tdc, cyc, n = 128, 127, 600
+    words, _ = pattern_words(n * cyc, n_tdc, hit_prob=0.1, rng=9)
+    ctx = zmq.Context()
+    ep = f"ipc://{tmp_path}/h.sock"
+    sock = udp_socket("127.0.0.1:0")
+    port = sock.getsockname()[1]
+    res = {}
+    ingest = threading.Thread(target=lambda: res.update(s=run_udp_ingest(
+        sock, ep, run="st", journal=tmp_path / "j", idle_s=10, context=ctx, send_queue=2)))
+    ingest.start()
+    out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    for i in range(n):
+        out.sendto(datagram.encode(words[i * cyc * n_tdc:(i + 1) * cyc * n_tdc], i, i * cyc,
+                                   n_tdc, GATE_PS, last=(i == n - 1)), ("127.0.0.1", port))
+        time.sleep(0.001)
+    out.close()
+    time.sleep(1.0)  # the stage is still not there
+    core = HistogramCore(n_tdc, backfill=worker_reader(
+        lambda a, b: read_range(tmp_path / "j", "st", a, b), n_tdc, (0, n_tdc)))
+    sink = ctx.socket(zmq.PULL)
+    sink.bind(f"ipc://{tmp_path}/out.sock")
+    stage = run_stage(core, ep, f"ipc://{tmp_path}/out.sock", context=ctx,
+                      run_ended=lambda: run_end(tmp_path / "j", "st"))
+    ingest.join(timeout=60)
+    assert not ingest.is_alive()
+    head, batch = wire.decode(sink.recv_multipart())
+    sink.close(linger=0)
+    ctx.term()
+    s = res["s"]
+    assert s.accepted == n and s.lost_datagrams == 0 and s.ring_dropped == 0
+    assert s.deferred_messages > 0 and core.backfilled == s.deferred_words
+    assert core.gap_words == 0 and core.duplicates == 0 and stage.rejected == {}
+    ref = HistogramAccumulator(n_tdc)
+    ref.update(words)
+    got = HistogramState.from_table(pa.Table.from_batches([batch]))
+    assert head["words"] == words.size == core.words_total
+    assert np.array_equal(got.hits, ref.snapshot().hits)
