@@ -355,6 +355,30 @@ def build(topo: Topology) -> list[Proc]:
     return procs
 
 
+def _die_with_parent() -> None:
+    """In a stage (between fork and exec): SIGKILL it when the daemon dies, however the
+    daemon dies, so a killed daemon leaves no orphan writing to the run (a restarted daemon
+    resumes from the journal and the checkpoints, as after any crash). Linux only; the
+    signal follows the thread that started the stage, which lives as long as the run."""
+    # (nothing here may import or take a lock: other threads may hold them at the fork)
+    if _PRCTL is not None:
+        _PRCTL(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() == 1:  # the daemon died before the prctl: do not start at all
+        os._exit(1)
+
+
+def _load_prctl():
+    import ctypes
+
+    try:
+        return ctypes.CDLL(None).prctl
+    except (OSError, AttributeError):
+        return None  # not Linux: the journal's lock still keeps a second writer out
+
+
+_PRCTL = _load_prctl()
+
+
 def run_token(state: Path, run: str) -> tuple[Path, str]:
     """The run's token: random, in ``STATE/tokens/RUN.token`` (mode 0600, its directory
     0700), made once per run and kept (a restarted daemon's stages and the old ones agree).
@@ -422,7 +446,8 @@ class Supervisor:
             from pipeline.curve import CURVE_ENV
 
             env[CURVE_ENV] = str(self.curve_dir)
-        p.popen = subprocess.Popen(p.argv, stdout=log, stderr=subprocess.STDOUT, env=env)
+        p.popen = subprocess.Popen(p.argv, stdout=log, stderr=subprocess.STDOUT, env=env,
+                                   preexec_fn=_die_with_parent)
         log.close()
 
     def _check(self) -> bool:

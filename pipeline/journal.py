@@ -51,6 +51,10 @@ class JournalCorrupt(TcspcError, ValueError):
         self.first_word, self.words, self.reason = first_word, words, reason
 
 
+class JournalLocked(TcspcError, OSError):
+    """Another live process is writing this run's journal (one run, one writer)."""
+
+
 def segment_path(directory: str | Path, run: str, segment: int, enc: str | None) -> Path:
     """A segment's file: ``RUN-000000.bin``, or ``RUN-000000.bin.zst`` when compressed."""
     return Path(directory) / f"{run}-{segment:06d}.bin{'.zst' if enc == 'zstd' else ''}"
@@ -84,6 +88,7 @@ class JournalWriter:
                                                    write_content_size=True)
         self.dir = Path(directory)
         self.dir.mkdir(parents=True, exist_ok=True)
+        self._lock = _lock_run(self.dir, run)  # before anything is written
         self.run, self.n_tdc = run, n_tdc
         self.meta = dict(n_tdc=n_tdc, window_ns=window_ns, t_laser_win_ns=t_laser_win_ns)
         self.segment_words = segment_words
@@ -171,6 +176,28 @@ class JournalWriter:
         self.index.write(json.dumps({"end": True, "words": total}) + "\n")
         self.index.flush()
         self.index.close()
+        self._lock.close()  # (the kernel also drops it when a writer dies)
+
+
+def _lock_run(directory: Path, run: str):
+    """An exclusive lock on ``RUN.lock`` for this writer's life; JournalLocked if another
+    process holds it (a second source, or an orphan of a killed daemon still writing)."""
+    import fcntl
+
+    fh = open(directory / f"{run}.lock", "a+")
+    try:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        fh.seek(0)
+        holder = fh.read().strip() or "?"
+        fh.close()
+        raise JournalLocked(f"{directory}: run {run!r} is being journaled by another process "
+                            f"(pid {holder}); one run has one writer") from None
+    fh.seek(0)
+    fh.truncate()
+    fh.write(f"{os.getpid()}\n")
+    fh.flush()
+    return fh
 
 
 def read_range(directory: str | Path, run: str, start: int, stop: int,

@@ -319,3 +319,65 @@ def test_a_graph_under_curve_gives_the_same_datasets(tmp_path, reference):
     _same(_histograms(tmp_path / "out", "cv"), reference)
     assert res["accounting"]["balanced"]
     assert "source" in sup.metrics  # heartbeats came through CURVE too
+
+
+def test_sigkill_of_the_daemon_leaves_no_orphan_and_a_restart_resumes(tmp_path, reference):
+    """SIGKILL the daemon mid-run: its stages die with it (no orphan goes on writing the
+    journal); a daemon started again on the same run resumes it, and the datasets equal the
+    uninterrupted run's, every word once."""
+    import subprocess
+
+    topo = topology(tmp_path, cycles=CYCLES, rate=1e6)  # 3.2 s of words
+    cmd = [sys.executable, "-m", "pipeline.cli", "daemon", "--config", str(topo), "--run",
+           "d"]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    status = tmp_path / "state" / "status.json"
+    deadline = time.time() + 60
+    pids = []
+    while time.time() < deadline:
+        try:
+            st = json.loads(status.read_text())
+            if st["stages"]["source"].get("words", 0) > 1e6:
+                pids = [s["pid"] for s in st["stages"].values() if s["alive"]]
+                break
+        except (OSError, ValueError, KeyError):
+            pass
+        time.sleep(0.1)
+    assert len(pids) == 4  # source, two workers, sink
+    p.send_signal(signal.SIGKILL)
+    p.communicate(timeout=30)
+
+    def alive(pid):
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        return Path(f"/proc/{pid}/stat").exists() and \
+            Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+
+    deadline = time.time() + 0.5  # (an orphan would run on for ~2 s, to the run's end)
+    while any(alive(pid) for pid in pids) and time.time() < deadline:
+        time.sleep(0.05)
+    assert not [pid for pid in pids if alive(pid)], "orphaned stages"
+    index = tmp_path / "state" / "journal" / "d.index.jsonl"
+    size = index.stat().st_size
+    time.sleep(1.0)
+    assert index.stat().st_size == size  # nobody writes the journal any more
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    res = json.loads(out.stdout)
+    assert res["failed"] is None
+    _same(_histograms(tmp_path / "out", "d"), reference)
+    acc = res["accounting"]
+    assert acc["balanced"] and acc["words_in"] == CYCLES * N  # one writer: no word twice
+
+
+def test_one_run_has_one_journal_writer(tmp_path):
+    from pipeline.journal import JournalLocked
+
+    w = JournalWriter(tmp_path, "r", 4, 140.0)
+    with pytest.raises(JournalLocked, match=f"pid {os.getpid()}"):
+        JournalWriter(tmp_path, "r", 4, 140.0)
+    JournalWriter(tmp_path, "other", 4, 140.0).close()  # another run: its own lock
+    w.close()
+    JournalWriter(tmp_path, "r", 4, 140.0).close()  # released with the writer
