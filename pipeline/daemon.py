@@ -425,6 +425,7 @@ class Supervisor:
         self.pruned = 0
         self._spans = None
         self.forged_heartbeats = 0
+        self._status_failing = False
         for d in ("logs", "sock", "journal", f"checkpoints/{topo.run}"):
             (topo.state / d).mkdir(parents=True, exist_ok=True)
         self.token_file, self.token = run_token(topo.state, topo.run)
@@ -437,9 +438,12 @@ class Supervisor:
     # -------------------------------------------------------------- processes
     def _start(self, p: Proc) -> None:
         log = open(self.topo.state / "logs" / f"{p.name}.log", "ab")
-        log.write(f"--- {dt.datetime.now(dt.UTC).isoformat()} start "
-                  f"(restart {p.restarts}): {' '.join(p.argv)}\n".encode())
-        log.flush()
+        try:
+            log.write(f"--- {dt.datetime.now(dt.UTC).isoformat()} start "
+                      f"(restart {p.restarts}): {' '.join(p.argv)}\n".encode())
+            log.flush()
+        except OSError:
+            pass  # a full state disk: the stage starts all the same
         # the run's token by file (never on a command line, where `ps` shows it)
         env = {**os.environ, "PYTHONUNBUFFERED": "1", TOKEN_ENV: str(self.token_file)}
         if self.curve_dir is not None:
@@ -565,6 +569,7 @@ class Supervisor:
                 "heartbeat_age_s": round(now - m["t"], 2) if "t" in m else None,
                 "health": ("finished" if p.finished else
                            "restarting" if p.restart_at is not None else
+                           "paused" if alive and m.get("state") == "paused" else
                            "down" if not alive else
                            "ok" if "t" in m and now - m["t"] < 5 else "silent"),
                 **{k: v for k, v in m.items() if k not in ("stage", "pid", "t")}}
@@ -577,12 +582,21 @@ class Supervisor:
         return {"run": self.topo.run, "topology": self.topo.path, "updated": now,
                 "started": self.started, "state": "failed" if self.failed else "running",
                 "forged_heartbeats": self.forged_heartbeats,
+                "paused": {name: s.get("reason") for name, s in stages.items()
+                           if s["health"] == "paused"},
                 "stages": stages, "queue_depth": depth}
 
     def _write_status(self, extra: dict | None = None) -> None:
-        with atomic_path(self.topo.state / "status.json") as tmp:
-            tmp.write_text(json.dumps({**self.status(), **(extra or {})}, indent=1,
-                                      default=str))
+        try:
+            with atomic_path(self.topo.state / "status.json") as tmp:
+                tmp.write_text(json.dumps({**self.status(), **(extra or {})}, indent=1,
+                                          default=str))
+        except OSError as exc:  # a full state disk must not kill the supervisor
+            if not self._status_failing:
+                self.log(f"status.json not written: {exc}")
+            self._status_failing = True
+        else:
+            self._status_failing = False
 
     def _consumed_word(self) -> int:
         """The run's word index every histogram worker has checkpointed past."""

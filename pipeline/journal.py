@@ -51,6 +51,21 @@ class JournalCorrupt(TcspcError, ValueError):
         self.first_word, self.words, self.reason = first_word, words, reason
 
 
+DISK_FULL_ERRNOS = frozenset({28, 122, 30, 27})  # ENOSPC, EDQUOT, EROFS, EFBIG
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """An error a full, over-quota or read-only disk raises (wait and retry, not crash)."""
+    return isinstance(exc, OSError) and exc.errno in DISK_FULL_ERRNOS
+
+
+def _write_all(fd: int, data) -> None:
+    view = memoryview(data).cast("B")
+    while view.nbytes:
+        n = os.write(fd, view)
+        view = view[n:]
+
+
 class JournalLocked(TcspcError, OSError):
     """Another live process is writing this run's journal (one run, one writer)."""
 
@@ -98,16 +113,19 @@ class JournalWriter:
         self.fh = None
         self.offset = 0
         index = self.dir / f"{run}.index.jsonl"
-        if index.exists() and index.read_bytes()[-1:] not in (b"", b"\n"):
-            with open(index, "a") as fh:  # end a line a crash cut short
-                fh.write("\n")
-        self.index = open(index, "a")
+        # unbuffered: a write a full disk refuses is rolled back, never left in a buffer
+        self.index = open(index, "ab", buffering=0)
+        if index.read_bytes()[-1:] not in (b"", b"\n"):
+            _write_all(self.index.fileno(), b"\n")  # end a line a crash cut short
         meta = self.dir / f"{run}.meta.json"
         if not meta.exists():  # the run's constants, for a stage that starts after its end
             from pipeline.atomic import atomic_path
 
-            with atomic_path(meta) as tmp:
-                tmp.write_text(json.dumps({"run": run, **self.meta}))
+            try:
+                with atomic_path(meta) as tmp:
+                    tmp.write_text(json.dumps({"run": run, **self.meta}))
+            except OSError:
+                pass  # (derived: the index and the sidecars hold the same)
         self.segments: list[Path] = []
         self._be = np.empty(0, ">u4")
 
@@ -115,12 +133,15 @@ class JournalWriter:
         self._close_segment()
         self.segment += 1
         path = segment_path(self.dir, self.run, self.segment, self.enc)
-        self.fh = open(path, "ab")
+        self.fh = open(path, "ab", buffering=0)
         self.offset = self.fh.tell() if self.enc else 0  # bytes (compressed) or words
         self.words = 0
         self.segments.append(path)
 
     def append(self, first_word: int, words: np.ndarray) -> None:
+        """Journal one chunk: its bytes, then its index line. All or nothing: if the disk
+        refuses either (full, read-only), both files are cut back to where they were and
+        the OSError is raised, so the caller may wait and append the same chunk again."""
         if self.fh is None or self.words + words.size > self.segment_words:
             self._rotate()
         n = words.size
@@ -134,28 +155,37 @@ class JournalWriter:
         entry = {"first_word": int(first_word), "segment": self.segment,
                  "offset": self.offset, "words": int(n)}
         if self._codec is not None:  # one frame per chunk (releases the GIL)
-            frame = self._codec.compress(memoryview(data).cast("B"))
-            self.fh.write(frame)
-            entry.update(bytes=len(frame), enc=self.enc, check="xxh64")
-            self.offset += len(frame)
+            blob = self._codec.compress(memoryview(data).cast("B"))
+            entry.update(bytes=len(blob), enc=self.enc, check="xxh64")
+            step = len(blob)
         else:
             import zlib
 
-            raw = memoryview(data).cast("B")
-            self.fh.write(raw)
-            entry["crc32"] = zlib.crc32(raw)
-            self.offset += n
-        self.fh.flush()
-        self.index.write(json.dumps(entry) + "\n")
-        self.index.flush()
+            blob = memoryview(data).cast("B")
+            entry["crc32"] = zlib.crc32(blob)
+            step = n
+        seg_at, index_at = self.fh.tell(), self.index.tell()
+        try:
+            _write_all(self.fh.fileno(), blob)
+            _write_all(self.index.fileno(), (json.dumps(entry) + "\n").encode())
+        except OSError:
+            for fh, at in ((self.fh, seg_at), (self.index, index_at)):
+                try:
+                    os.ftruncate(fh.fileno(), at)
+                except OSError:
+                    pass
+            raise
+        self.offset += step
         self.words += n
 
     def _close_segment(self) -> None:
         if self.fh is None:
             return
-        self.fh.flush()
-        os.fsync(self.fh.fileno())
-        self.fh.close()
+        fh, self.fh = self.fh, None
+        try:
+            os.fsync(fh.fileno())
+        finally:
+            fh.close()
         path = self.segments[-1]
         cycles = self.words // self.n_tdc
         meta = CaptureMeta.from_dict({**self.meta, "cycles": cycles, "format": "tcspc-raw",
@@ -164,8 +194,10 @@ class JournalWriter:
         d = meta.to_dict()
         if self.enc:
             d["compression"] = self.enc
-        side.write_text(json.dumps(d))
-        self.fh = None
+        try:
+            side.write_text(json.dumps(d))
+        except OSError:  # (derived from the index: a full disk must not stop the journal)
+            side.unlink(missing_ok=True)
 
     def close(self) -> None:
         """Close the last segment and record the run's end (its total words)."""
@@ -173,8 +205,8 @@ class JournalWriter:
         total = 0
         for e in _entries(self.dir / f"{self.run}.index.jsonl"):
             total = max(total, e.get("first_word", 0) + e.get("words", 0))
-        self.index.write(json.dumps({"end": True, "words": total}) + "\n")
-        self.index.flush()
+        _write_all(self.index.fileno(), (json.dumps({"end": True, "words": total}) + "\n"
+                                          ).encode())
         self.index.close()
         self._lock.close()  # (the kernel also drops it when a writer dies)
 

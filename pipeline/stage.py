@@ -32,6 +32,18 @@ QUARANTINE_MAX_BYTES = 256 << 20   #: bytes kept per stage and run
 QUARANTINE_KEEP_BYTES = 1 << 20    #: of one message, the first this many bytes are kept
 
 
+class _GaveUp(Exception):
+    """A stop came while waiting for a full disk."""
+
+
+def _log(msg: str) -> None:
+    """A line in the stage's log; a full disk must not turn a log line into a crash."""
+    try:
+        print(msg, file=sys.stderr, flush=True)
+    except OSError:
+        pass
+
+
 class CheckpointError(TcspcError, ValueError):
     """A checkpoint that cannot be trusted (truncated, bit-flipped, not ours)."""
 
@@ -48,12 +60,17 @@ class StageStats:
     blocked_s: float = 0.0   #: time spent waiting to send (back-pressure from downstream)
     checkpoints_discarded: int = 0
     quarantine_dropped: int = 0  #: rejected messages counted but not kept (quarantine full)
+    checkpoint_failures: int = 0  #: checkpoints a full disk refused (skipped)
+    paused_s: float = 0.0        #: time waiting for a full disk
+    unwritten: int = 0           #: messages given up on a full disk at a signal (journaled)
 
     def fields(self, core=None) -> dict:
         out = {"received": self.received, "sent": self.sent,
                "rejected": dict(self.rejected), "blocked_s": round(self.blocked_s, 3),
                "checkpoints_discarded": self.checkpoints_discarded,
-               "quarantine_dropped": self.quarantine_dropped}
+               "quarantine_dropped": self.quarantine_dropped,
+               "checkpoint_failures": self.checkpoint_failures,
+               "paused_s": round(self.paused_s, 1), "unwritten": self.unwritten}
         for name in ("words_total", "measurement", "gap_words", "backfilled", "duplicates"):
             if hasattr(core, name):
                 out[name] = int(getattr(core, name))
@@ -250,8 +267,7 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
         except (CheckpointError, KeyError, ValueError, TypeError) as exc:
             # the journal holds every word: the fresh core refolds them (its backfill)
             core.restore(fresh)
-            print(f"checkpoint discarded, rebuilding from the journal: {exc}",
-                  file=sys.stderr, flush=True)
+            _log(f"checkpoint discarded, rebuilding from the journal: {exc}")
             ckpt.replace(ckpt.with_suffix(ckpt.suffix + ".bad"))
             stats.checkpoints_discarded += 1
     saved_at = time.monotonic()
@@ -276,8 +292,40 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
 
     def reject(exc, frames):
         stats.rejected[exc.reason] += 1
-        _quarantine(q, str(exc), frames)
+        try:
+            _quarantine(q, str(exc), frames)
+        except OSError:
+            q.dropped += 1  # a full disk: counted, not kept
         stats.quarantine_dropped = q.dropped
+
+    def checkpoint():
+        # a checkpoint the disk refuses is skipped: an older one only means more words
+        # refolded from the journal after a restart
+        try:
+            save_checkpoint(ckpt, core.snapshot())
+        except OSError as exc:
+            stats.checkpoint_failures += 1
+            _log(f"checkpoint not saved: {exc}")
+
+    def retry_disk_full(fn, *args):
+        """``fn(*args)``, waiting (paused, with back-off) while the disk is full; the stage
+        upstream is held back by the high-water marks meanwhile."""
+        from pipeline.journal import is_disk_full
+
+        wait = 0.2
+        while True:
+            try:
+                return fn(*args)
+            except OSError as exc:
+                if not is_disk_full(exc):
+                    raise
+                if stop.is_set():
+                    raise _GaveUp from None
+                stats.paused_s += wait
+                beat.beat(force=True, state="paused", reason=f"disk full: {exc}",
+                          **stats.fields(core))
+                time.sleep(wait)
+                wait = min(2 * wait, 5.0)
 
     try:
         while True:
@@ -315,17 +363,23 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
                     break
                 continue
             try:
-                out = core.process(head, batch)
+                out = retry_disk_full(core.process, head, batch)
             except Rejected as exc:  # the core's own refusal (a path outside the sink)
                 reject(exc, frames)
                 continue
+            except _GaveUp:  # a signal while the disk was full: the journal has the words
+                stats.unwritten += 1
+                continue
             send(out)
             if ckpt is not None and time.monotonic() - saved_at >= checkpoint_every_s:
-                save_checkpoint(ckpt, core.snapshot())
+                checkpoint()
                 saved_at = time.monotonic()
-        send(core.finish(last))
+        try:
+            send(retry_disk_full(core.finish, last))
+        except _GaveUp:
+            stats.unwritten += 1
         if ckpt is not None:
-            save_checkpoint(ckpt, core.snapshot())
+            checkpoint()
         if tx is not None:
             stop_head = {"kind": "stop", "schema": core.out_spec.name,
                          "version": core.out_spec.version, "run": last.get("run", "run"),
@@ -390,11 +444,37 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
     writer = ThreadPoolExecutor(1, "journal") if journal is not None else None
     pending = None  # (messages, journal write) of the batch before
 
+    paused = {}  # the journal writer's "disk full" while it waits (read by this thread)
+
+    def append(first, words):
+        # a full disk pauses the run (the source is deterministic: nothing is lost by
+        # waiting); a signal while waiting ends it after the last journaled batch
+        from pipeline.journal import is_disk_full
+
+        wait = 0.2
+        while True:
+            try:
+                journal.append(first, words)
+                paused.clear()
+                return
+            except OSError as exc:
+                if not is_disk_full(exc) or halt.is_set():
+                    raise
+                paused["reason"] = f"disk full: {exc}"
+                time.sleep(wait)
+                wait = min(2 * wait, 5.0)
+
     def send_pending():
         nonlocal blocked, pending
         msgs, wrote = pending
-        if wrote is not None:
-            wrote.result()
+        while wrote is not None:
+            try:
+                wrote.result(timeout=1.0)
+                break
+            except TimeoutError:
+                if paused:
+                    beat.beat(force=True, state="paused", reason=paused.get("reason"),
+                              sent=seq, words=sent)
         for tx, frames in zip(txs, msgs, strict=True):
             tb = time.perf_counter()
             tx.send_multipart(frames)
@@ -406,7 +486,7 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
             if halt.is_set():  # a signal: end the run cleanly after the last whole batch
                 break
             words = np.asarray(words, np.uint32)
-            wrote = (writer.submit(journal.append, first, words.astype(">u4"))
+            wrote = (writer.submit(append, first, words.astype(">u4"))
                      if writer is not None else None)  # (a copy: the words may be reused)
             parts = splitter.split(first, words) if splitter else [(first, words)]
             msgs = []
@@ -422,7 +502,7 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
                 send_pending()
             pending = (msgs, wrote)
             if seq == 0:  # in the stage's log: when the run's words began to flow
-                print(f"first batch sent at {time.time():.6f}", file=sys.stderr, flush=True)
+                _log(f"first batch sent at {time.time():.6f}")
             sent += words.size
             seq += 1
             beat.beat(state="running", sent=seq, words=sent, blocked_s=round(blocked, 3))

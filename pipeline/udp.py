@@ -16,6 +16,7 @@ from __future__ import annotations
 import queue
 import socket
 import threading
+import time
 from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,6 +53,8 @@ class IngestStats:
     ring_dropped: int = 0     #: received while the ring was full (journal too slow)
     deferred_messages: int = 0  #: journaled, not sent (downstream stalled; it backfills)
     deferred_words: int = 0
+    paused_s: float = 0.0     #: time intake waited for a full disk
+    unjournaled_words: int = 0  #: taken, but a stop came while the disk was full
     messages: int = 0
     journal: list[str] = field(default_factory=list)  #: segment files written
 
@@ -62,7 +65,8 @@ class IngestStats:
                 "rejected": dict(self.rejected),
                 "quarantine_dropped": self.quarantine_dropped,
                 "ring_dropped": self.ring_dropped, "deferred_messages": self.deferred_messages,
-                "deferred_words": self.deferred_words}
+                "deferred_words": self.deferred_words, "paused_s": round(self.paused_s, 1),
+                "unjournaled_words": self.unjournaled_words}
 
 
 def udp_socket(address: str = "127.0.0.1:0") -> socket.socket:
@@ -290,15 +294,13 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
 
     def take(d: datagram.Datagram):
         # released in stream order: journal (once per cycle), then batch for sending
-        nonlocal writer, pending_first, next_word
+        nonlocal pending_first, next_word
         first = d.first_cycle * n_tdc
         if next_word is not None and first != next_word:
             flush()  # a gap: the next batch starts where the words do
-        if journal is not None:
-            if writer is None:
-                writer = JournalWriter(journal, run, n_tdc, gate_ps / 1000,
-                                       segment_words=segment_words, compression=compression)
-            writer.append(first, d.words)
+        if journal is not None and not journal_words(first, d.words):
+            stats.unjournaled_words += int(d.words.size)  # a stop came while the disk was
+            return                                        # full: counted, never sent
         if pending_first is None:
             pending_first = first
         pending.append(d.words)
@@ -307,6 +309,32 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         stats.accepted += 1
         if sum(p.size for p in pending) >= BATCH_WORDS:
             flush()
+
+    def journal_words(first: int, words: np.ndarray) -> bool:
+        # a full disk pauses intake here (the receive thread goes on into the ring, whose
+        # overflow is counted): retried until there is room, or False at a stop
+        from pipeline.journal import is_disk_full
+
+        nonlocal writer
+        wait = 0.2
+        while True:
+            try:
+                if writer is None:
+                    writer = JournalWriter(journal, run, n_tdc, gate_ps / 1000,
+                                           segment_words=segment_words,
+                                           compression=compression)
+                writer.append(first, words)
+                return True
+            except OSError as exc:
+                if not is_disk_full(exc):
+                    raise
+                if stop.is_set():
+                    return False
+                stats.paused_s += wait
+                beat.beat(force=True, state="paused", reason=f"disk full: {exc}",
+                          **stats.fields())
+                time.sleep(wait)
+                wait = min(2 * wait, 5.0)
 
     def reject(reason: str, detail: str, data: bytes):
         stats.rejected[reason] += 1

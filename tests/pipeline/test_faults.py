@@ -381,3 +381,75 @@ def test_one_run_has_one_journal_writer(tmp_path):
     JournalWriter(tmp_path, "other", 4, 140.0).close()  # another run: its own lock
     w.close()
     JournalWriter(tmp_path, "r", 4, 140.0).close()  # released with the writer
+
+
+@pytest.fixture
+def tmpfs(tmp_path):
+    """A small RAM disk to fill up (root only: skipped elsewhere)."""
+    import subprocess
+
+    made = []
+
+    def mount(name, size):
+        d = tmp_path / name
+        d.mkdir()
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(d)],
+                           capture_output=True)
+        if r.returncode:
+            pytest.skip(f"cannot mount a tmpfs here: {r.stderr.decode().strip()}")
+        made.append(d)
+        return d
+
+    yield mount
+    for d in made:
+        subprocess.run(["umount", "-l", str(d)], capture_output=True)
+
+
+def _fill(d: Path) -> Path:
+    """Fill ``d`` to the last byte; the filler file to delete to free it."""
+    filler = d / "filler"
+    with open(filler, "wb", buffering=0) as fh:
+        for size in (1 << 20, 1 << 12, 1):
+            try:
+                while True:
+                    fh.write(b"\0" * size)
+            except OSError:
+                continue
+    return filler
+
+
+def _pause_then_free(sup, stage, filler_dir, after_words):
+    deadline = time.time() + 60
+    while sup.metrics.get("source", {}).get("words", 0) < after_words:
+        assert time.time() < deadline
+        time.sleep(0.02)
+    filler = _fill(filler_dir)
+    while stage not in sup.status()["paused"]:
+        assert time.time() < deadline, sup.status()["stages"][stage]
+        time.sleep(0.05)
+    time.sleep(1.0)  # paused, not dead
+    assert all(p.popen.poll() is None for p in sup.procs if not p.finished)
+    filler.unlink()
+
+
+def test_a_full_output_disk_pauses_the_sink_and_the_run_resumes(tmp_path, tmpfs, reference):
+    out = tmpfs("out", "4m")
+    topo = topology(tmp_path, cycles=CYCLES, rate=1.5e6)
+    topo.write_text(topo.read_text().replace(str(tmp_path / "out"), str(out)))
+    res, sup = run_daemon(topo, "o", lambda s: _pause_then_free(s, "sink", out, 5e5))
+    assert res["failed"] is None and res["restarts"] == {}
+    _same(_histograms(out, "o"), reference)
+    assert res["accounting"]["balanced"]
+    assert sup.metrics["sink"]["paused_s"] > 0
+
+
+def test_a_full_state_disk_pauses_intake_and_the_run_resumes(tmp_path, tmpfs, reference):
+    state = tmpfs("state", "48m")
+    topo = topology(tmp_path, cycles=CYCLES, rate=1.5e6)
+    topo.write_text(topo.read_text().replace(str(tmp_path / "state"), str(state)))
+    res, sup = run_daemon(topo, "s", lambda s: _pause_then_free(s, "source", state, 5e5))
+    assert res["failed"] is None and res["restarts"] == {}
+    _same(_histograms(tmp_path / "out", "s"), reference)
+    acc = res["accounting"]
+    assert acc["balanced"] and acc["words_in"] == CYCLES * N
+    assert json.loads((state / "status.json").read_text())["state"] == "finished"
