@@ -432,6 +432,7 @@ def _pause_then_free(sup, stage, filler_dir, after_words):
     filler.unlink()
 
 
+@pytest.mark.slow  # (~10 s; root for the tmpfs)
 def test_a_full_output_disk_pauses_the_sink_and_the_run_resumes(tmp_path, tmpfs, reference):
     out = tmpfs("out", "4m")
     topo = topology(tmp_path, cycles=CYCLES, rate=1.5e6)
@@ -443,6 +444,7 @@ def test_a_full_output_disk_pauses_the_sink_and_the_run_resumes(tmp_path, tmpfs,
     assert sup.metrics["sink"]["paused_s"] > 0
 
 
+@pytest.mark.slow  # (~10 s; root for the tmpfs)
 def test_a_full_state_disk_pauses_intake_and_the_run_resumes(tmp_path, tmpfs, reference):
     state = tmpfs("state", "48m")
     topo = topology(tmp_path, cycles=CYCLES, rate=1.5e6)
