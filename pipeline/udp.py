@@ -338,7 +338,10 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
 
     def reject(reason: str, detail: str, data: bytes):
         stats.rejected[reason] += 1
-        quar.put(reason, data, detail=detail)
+        try:
+            quar.put(reason, data, detail=detail)
+        except OSError:
+            quar.dropped += 1  # a full disk: counted, not kept
         stats.quarantine_dropped = quar.dropped
 
     try:
