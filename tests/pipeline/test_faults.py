@@ -22,7 +22,21 @@ from pipeline.journal import (
     segment_path,
     verify,
 )
-from tests.pipeline.test_daemon import N, dataset, run_daemon, topology
+
+
+def _daemon_helpers():
+    # test_daemon.py's scene and helpers, loaded by path (tests/ is not a package)
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "_test_daemon_helpers", Path(__file__).with_name("test_daemon.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+_h = _daemon_helpers()
+N, dataset, run_daemon, topology = _h.N, _h.dataset, _h.run_daemon, _h.topology
 
 CYCLES, MC = 200_000, 10_000
 
