@@ -6,7 +6,11 @@ measurement, the range stage when --calibration is given), samples every stage's
 memory (VmRSS) every 10 s, and reports per stage the RSS after warm-up and at the end, the
 largest, and the growth; writes the samples as parquet and a plot.
 
-    python benchmarks/soak.py --minutes 30 --rate 17e6 [--calibration DIR]
+    python benchmarks/soak.py --minutes 30 --rate 17e6 [--calibration DIR] [--kill-every 3]
+
+With ``--kill-every MIN`` a stage is SIGKILLed every MIN minutes, in turn histogram-0,
+histogram-1, the sink (and range); the report then says whether every word sent was
+journaled and classified once (nothing lost, nothing counted twice).
 """
 
 from __future__ import annotations
@@ -44,6 +48,8 @@ def main() -> None:
     ap.add_argument("--rate", type=float, default=17e6, help="words/s")
     ap.add_argument("--calibration", default=None)
     ap.add_argument("--warmup", type=float, default=2.0, help="minutes excluded")
+    ap.add_argument("--kill-every", type=float, default=None,
+                    help="SIGKILL a stage every this many minutes (in turn)")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results"))
     args = ap.parse_args()
     import polars as pl
@@ -75,12 +81,25 @@ measurement_cycles = 100000
                                    str(topo), "--run", "soak"], stdout=subprocess.PIPE,
                                   stderr=subprocess.DEVNULL, text=True)
         rows, t0 = [], time.time()
+        victims = ["histogram-0", "histogram-1", "sink"] + (["range"] if args.calibration
+                                                             else [])
+        kills, next_kill = [], (args.kill_every or 0) * 60
         while daemon.poll() is None:
-            time.sleep(10)
+            time.sleep(min(10, (args.kill_every or 1) * 60 / 4))
             try:
                 st = json.loads((tmp / "state" / "status.json").read_text())
             except (OSError, ValueError):
                 continue
+            if args.kill_every and time.time() - t0 >= next_kill:
+                name = victims[len(kills) % len(victims)]
+                pid = st["stages"].get(name, {}).get("pid")
+                if pid and st["stages"][name].get("alive"):
+                    import os
+                    import signal
+
+                    os.kill(pid, signal.SIGKILL)
+                    kills.append(name)
+                next_kill += args.kill_every * 60
             t = (time.time() - t0) / 60
             for name, s in st["stages"].items():
                 r = rss_mib(s["pid"]) if s.get("pid") else None
@@ -114,7 +133,13 @@ measurement_cycles = 100000
              f"words/s target ({acc['words_in'] / (elapsed * 60) / 1e6:.1f} M/s achieved "
              f"over the whole run); accounting balanced: {acc['balanced']}; journal "
              f"segments pruned: {result['journal_segments_pruned']}; restarts: "
-             f"{result['restarts'] or 'none'}", "",
+             f"{result['restarts'] or 'none'}",
+             *([f"stages SIGKILLed: {len(kills)} ({', '.join(kills)}); words sent "
+                f"{n * repeat:,}, journaled {acc['words_in']:,}, classified "
+                f"{acc['classified']:,}: "
+                + ("nothing lost, nothing counted twice" if acc["balanced"]
+                   and acc["words_in"] == n * repeat else "MISMATCH")] if args.kill_every
+               else []), "",
              f"#### resident memory per process (MiB), warm-up of {args.warmup:g} min excluded",
              "", markdown_table(summary)]
     emit(lines, args.out / "soak.md")

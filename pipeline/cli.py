@@ -282,6 +282,8 @@ _split = click.option("--split", default=None,
 _metrics = click.option("--metrics", default=None,
                         help="Endpoint to publish heartbeats and counters on (PUB).")
 _date = click.option("--date", default=None, help="The run's date partition (default: today).")
+_accept = click.option("--accept", "senders", multiple=True,
+                       help="Step id this stage takes messages from (repeat; default: any).")
 _journal_compression = click.option(
     "--journal-compression", type=click.Choice(["zstd", "none"]), default="zstd",
     show_default=True, help="Journal segments as zstd frames (RUN-N.bin.zst; `zstd -d` gives "
@@ -395,17 +397,24 @@ def stage_source_capture(capture, pushes, run_id, rate, journal, journal_compres
                    "they are passed on).")
 @click.option("--quarantine", type=click.Path(), default=None)
 @click.option("--idle", type=float, default=None, help="Stop after this many idle seconds.")
+@click.option("--n-tdc", type=click.IntRange(1, 65535), default=None,
+              help="The chip's TDCs per cycle (default: the first datagram's).")
+@click.option("--reorder-window", type=click.IntRange(1), default=None,
+              help="Datagrams held to undo UDP reordering (default 64).")
+@click.option("--max-jump-cycles", type=click.IntRange(1), default=None,
+              help="A datagram further past the newest cycle is refused (default 2^20).")
 @_journal_compression
 @_split
 @_metrics
 @_date
-def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, journal_compression,
-                     split, metrics, date) -> None:
+def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, n_tdc,
+                     reorder_window, max_jump_cycles, journal_compression, split, metrics,
+                     date) -> None:
     """The FPGA's UDP datagrams (docs/streaming.md) in, journaled raw-word batches out."""
     import signal
     import threading
 
-    from pipeline.udp import run_udp_ingest, udp_socket
+    from pipeline.udp import MAX_JUMP_CYCLES, REORDER_WINDOW, run_udp_ingest, udp_socket
 
     halt = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -413,9 +422,12 @@ def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, journ
     stats = run_udp_ingest(udp_socket(bind_addr), list(pushes), run=run_id, journal=journal,
                            quarantine=quarantine, idle_s=idle, split=_ranges(split),
                            metrics=metrics, date=date, stop=halt,
-                           compression=_compression(journal_compression))
+                           compression=_compression(journal_compression), n_tdc=n_tdc,
+                           reorder_window=reorder_window or REORDER_WINDOW,
+                           max_jump_cycles=max_jump_cycles or MAX_JUMP_CYCLES)
     err.print(f"ingest: {stats.datagrams} datagrams, {stats.words:,} words, "
-              f"{stats.lost_datagrams} lost, rejected {dict(stats.rejected)}")
+              f"{stats.lost_datagrams} lost, {stats.duplicates} duplicates, {stats.late} "
+              f"late, {stats.gap_cycles} cycles in gaps, rejected {dict(stats.rejected)}")
 
 
 @stage.command("histogram")
@@ -434,12 +446,14 @@ def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, journ
 @click.option("--run", "run_id", default=None, help="Run id of the journal to read.")
 @_metrics
 @click.option("--name", default="histogram", show_default=True, help="Name in metrics.")
+@_date
+@_accept
 def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibration, quarantine,
-                    checkpoint, journal, run_id, metrics, name) -> None:
+                    checkpoint, journal, run_id, metrics, name, date, senders) -> None:
     """Per-TDC histograms of the word stream, per measurement or at the end of the run."""
     from pipeline.caldir import read_bounds
     from pipeline.fanout import parse_range, worker_reader
-    from pipeline.journal import read_range, run_end
+    from pipeline.journal import read_range, run_end, run_meta
     from pipeline.stage import run_stage
     from stages.stream import HistogramCore
 
@@ -448,16 +462,28 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
     if bounds is not None:
         bounds = bounds.rows(a, b)
     backfill = ended = None
+    context = {"run": run_id} if run_id else {}
+    if date:
+        context["date"] = date
     if journal and run_id:
-        backfill = worker_reader(lambda s, e: read_range(journal, run_id, s, e), n_tdc, (a, b))
+        meta = run_meta(journal, run_id)
+        context.update({k: meta[k] for k in ("t_laser_win_ns", "window_ns") if k in meta})
+
+        def corrupt(first, n, why):  # never folded in: counted as a gap by the core
+            err.print(f"{name}: journal words [{first}, {first + n}) skipped: {why}")
+
+        backfill = worker_reader(lambda s, e: read_range(journal, run_id, s, e, corrupt),
+                                 n_tdc, (a, b))
 
         def ended():
             total = run_end(journal, run_id)
             return None if total is None else total // n_tdc * (b - a)
     core = HistogramCore(b - a, bounds, backfill=backfill, tdc_offset=a,
-                         measurement_cycles=measurement_cycles, step_id=name)
+                         measurement_cycles=measurement_cycles, step_id=name,
+                         context=context)
     stats = run_stage(core, pull, push, quarantine=quarantine, checkpoint=checkpoint,
-                      run_ended=ended, metrics=metrics, name=name)
+                      run_ended=ended, metrics=metrics, name=name,
+                      senders=list(senders) or None)
     err.print(f"{name}: received {stats.received}, sent {stats.sent}, rejected "
               f"{dict(stats.rejected)}; backfilled {core.backfilled:,} words, skipped "
               f"{core.duplicates:,} already counted, unfilled gaps {core.gap_words:,}")
@@ -471,14 +497,16 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
 @click.option("--workers", default=1, show_default=True, help="Histogram workers upstream.")
 @click.option("--quarantine", type=click.Path(), default=None)
 @_metrics
-def stage_range(pull, push, calibration, estimator, workers, quarantine, metrics) -> None:
+@_accept
+def stage_range(pull, push, calibration, estimator, workers, quarantine, metrics,
+                senders) -> None:
     """Ranges of each measurement's histograms with a calibration (eq. 5.4)."""
     from pipeline.ranging import RangeCore
     from pipeline.stage import run_stage
 
     core = RangeCore(calibration, estimator)
     stats = run_stage(core, pull, push, quarantine=quarantine, expect_stops=workers,
-                      metrics=metrics, name="range")
+                      metrics=metrics, name="range", senders=list(senders) or None)
     err.print(f"range: {core.ranged} measurements ranged; rejected {dict(stats.rejected)}")
 
 
@@ -488,13 +516,14 @@ def stage_range(pull, push, calibration, estimator, workers, quarantine, metrics
 @click.option("--quarantine", type=click.Path(), default=None)
 @click.option("--workers", default=1, show_default=True, help="Stages feeding this sink.")
 @_metrics
-def stage_sink(pull, out, quarantine, workers, metrics) -> None:
+@_accept
+def stage_sink(pull, out, quarantine, workers, metrics, senders) -> None:
     """Parquet datasets (histograms, ranges), Hive-partitioned by date and run."""
     from pipeline.stage import ParquetSink, run_stage
 
     sink = ParquetSink(out)
     stats = run_stage(sink, pull, None, quarantine=quarantine, expect_stops=workers,
-                      metrics=metrics, name="sink")
+                      metrics=metrics, name="sink", senders=list(senders) or None)
     err.print(f"sink: wrote {sink.files} files; rejected {dict(stats.rejected)}")
 
 

@@ -6,8 +6,10 @@ Every stage is its own process (``tcspc stage ...``), so the graph can also be s
 hand across hosts. The supervisor
 
 - starts the stages (sink first, source last), logs each to ``STATE/logs/NAME.log``;
-- restarts a stage that dies (up to ``restarts`` times each): the source resumes after what
-  its journal holds, a histogram worker from its checkpoint and the journal;
+- restarts a stage that dies, after an exponential backoff (``restart_backoff_s`` doubling
+  per restart in the window, up to ``restart_backoff_max_s``), at most ``restarts`` times
+  per stage in any ``restart_window_s``: the source resumes after what its journal holds,
+  a histogram worker from its checkpoint and the journal;
 - ends a stage whose upstream has finished but whose stop message was lost with a killed
   process (SIGTERM: it drains what is in flight, then finishes);
 - collects the stages' heartbeats (PUB/SUB) into ``STATE/status.json`` once a second, for
@@ -21,13 +23,21 @@ The topology file (all keys but ``[source]`` optional)::
     [daemon]
     state = "data/daemon"        # journal/, checkpoints/, quarantine/, logs/, status.json
     run = "street"               # run id (default: the source's name and the UTC time)
-    restarts = 5                 # per stage, then the daemon stops the graph and fails
+    restarts = 10                # per stage in any restart_window_s; one more death in the
+                                 # window and the daemon stops the graph and fails
+    restart_window_s = 600       # the budget's window (a stage that dies once an hour for
+                                 # a weekend is restarted every time)
+    restart_backoff_s = 0.5      # wait before a restart, doubling with each restart in
+    restart_backoff_max_s = 30   # the window, up to this
     journal_keep_gb = 50         # prune the oldest consumed segments beyond this (default:
                                  # keep all; a week-long run needs a bound)
     journal_compression = "zstd" # zstd (default: ~6 % of the raw bytes in photon-starving
                                  # light; `zstd -d` gives the raw capture) or "none"
     metrics = "ipc://..."        # default ipc://STATE/sock/metrics
     hwm = 4                      # ZeroMQ high-water mark, messages per socket
+    curve = "auto"               # ZeroMQ CURVE (keys in STATE/curve): "auto" turns it on
+                                 # when any endpoint is tcp:// to a non-loopback address;
+                                 # true / false force it
 
     [source]
     kind = "sim"                 # sim | capture | udp
@@ -69,6 +79,7 @@ from pathlib import Path
 import zmq
 
 from pipeline.atomic import atomic_path
+from pipeline.wire import TOKEN_ENV
 from schemas.errors import TcspcError
 
 SOURCE_KINDS = ("sim", "capture", "udp")
@@ -94,6 +105,25 @@ class Topology:
     n_tdc: int
     journal_keep_gb: float | None = None
     journal_compression: str = "zstd"
+    restart_window_s: float = 600.0
+    restart_backoff_s: float = 0.5
+    restart_backoff_max_s: float = 30.0
+    curve: str | bool = "auto"
+
+    def endpoints(self) -> list[str]:
+        """Every endpoint of the graph (for the CURVE decision)."""
+        eps = [self.metrics, self.endpoint(self.sink, "sink")]
+        eps += [self.endpoint(self.histogram, f"histogram-{i}", i)
+                for i in range(self.workers)]
+        if self.range:
+            eps.append(self.endpoint(self.range, "range"))
+        return eps
+
+    @property
+    def curve_on(self) -> bool:
+        from pipeline.curve import needs_curve
+
+        return self.curve is True or (self.curve == "auto" and needs_curve(self.endpoints()))
     date: str = field(default_factory=lambda: dt.date.today().isoformat())
 
     @property
@@ -110,9 +140,10 @@ class Topology:
 
 _KNOWN = {
     "daemon": {"state", "run", "restarts", "metrics", "hwm", "journal_keep_gb",
-               "journal_compression"},
+               "journal_compression", "restart_window_s", "restart_backoff_s",
+               "restart_backoff_max_s", "curve"},
     "source": {"kind", "scene", "cycles", "seed", "chip_seed", "rate", "capture", "bind",
-               "idle", "n_tdc", "repeat"},
+               "idle", "n_tdc", "repeat", "reorder_window", "max_jump_cycles"},
     "histogram": {"workers", "measurement_cycles", "calibration", "n_tdc", "endpoints"},
     "range": {"calibration", "estimator", "endpoint"},
     "sink": {"out", "endpoint"},
@@ -173,11 +204,29 @@ def load_topology(path: str | Path | None, run: str | None = None,
     metrics = d.get("metrics") or f"ipc://{state.resolve()}/sock/metrics"
     for ep in [metrics, *(hist.get("endpoints") or [])]:
         _check_endpoint(ep, where)
-    return Topology(where, state, run, int(d.get("restarts", 5)), metrics,
+    from pipeline.wire import ID_PATTERN
+
+    if not ID_PATTERN.fullmatch(run):
+        raise TopologyError(f"{where}: run id {run!r}: use 1..64 of [A-Za-z0-9._-] (it "
+                            "becomes a directory name)")
+    budget = {k: float(d.get(k, default)) for k, default in (
+        ("restart_window_s", 600.0), ("restart_backoff_s", 0.5),
+        ("restart_backoff_max_s", 30.0))}
+    if any(v < 0 for v in budget.values()) or int(d.get("restarts", 10)) < 0:
+        raise TopologyError(f"{where} [daemon]: restarts and restart times must be >= 0")
+    return Topology(where, state, run, int(d.get("restarts", 10)), metrics,
                     int(d.get("hwm", 4)), src, hist, rng,
                     raw.get("sink", {"out": "data/stream"}), n_tdc,
                     float(d["journal_keep_gb"]) if "journal_keep_gb" in d else None,
-                    _journal_compression(d.get("journal_compression", "zstd"), where))
+                    _journal_compression(d.get("journal_compression", "zstd"), where),
+                    **budget, curve=_curve(d.get("curve", "auto"), where))
+
+
+def _curve(value, where: str) -> str | bool:
+    if value not in ("auto", True, False):
+        raise TopologyError(f"{where}: [daemon] curve must be \"auto\", true or false, "
+                            f"found {value!r}")
+    return value
 
 
 def _journal_compression(name, where: str) -> str:
@@ -226,6 +275,8 @@ class Proc:
     popen: subprocess.Popen | None = None
     restarts: int = 0
     finished: bool = False
+    restart_times: list[float] = field(default_factory=list)  #: within the budget window
+    restart_at: float | None = None   #: a restart waiting out its backoff
     exit_codes: list[int] = field(default_factory=list)
     upstream_done_at: float | None = None
     last_received: int | None = None
@@ -251,16 +302,23 @@ def build(topo: Topology) -> list[Proc]:
     hist_eps = [topo.endpoint(topo.histogram, f"histogram-{i}", i) for i in range(len(ranges))]
     sink_ep = topo.endpoint(topo.sink, "sink")
     after_hist = sink_ep
+    hist_names = [f"histogram-{i}" for i in range(len(ranges))]
+
+    def accept(*names):  # the step ids a stage takes messages from
+        return [x for n in names for x in ("--accept", n)]
+
     procs = [Proc("sink", _tcspc("stage", "sink", "--pull", sink_ep, "--out", topo.sink["out"],
                                  "--quarantine", quar / "sink", "--workers",
-                                 1 if topo.range else len(ranges), *m),
+                                 1 if topo.range else len(ranges), *m,
+                                 *accept(*(["range"] if topo.range else []), *hist_names)),
                   ["range"] if topo.range else [f"histogram-{i}" for i in range(len(ranges))])]
     if topo.range:
         after_hist = topo.endpoint(topo.range, "range")
         procs.append(Proc("range", _tcspc(
             "stage", "range", "--pull", after_hist, "--push", sink_ep, "--calibration",
             topo.range["calibration"], "--estimator", topo.range.get("estimator", "ml"),
-            "--workers", len(ranges), "--quarantine", quar / "range", *m),
+            "--workers", len(ranges), "--quarantine", quar / "range", *m,
+            *accept(*hist_names)),
             [f"histogram-{i}" for i in range(len(ranges))]))
     mc = topo.histogram.get("measurement_cycles")
     cal = topo.histogram.get("calibration")
@@ -271,7 +329,8 @@ def build(topo: Topology) -> list[Proc]:
             *(("--measurement-cycles", mc) if mc else ()),
             *(("--calibration", cal) if cal else ()),
             "--quarantine", quar / f"histogram-{i}", "--checkpoint", ckpt / f"histogram-{i}.npz",
-            "--journal", journal, "--run", run, "--name", f"histogram-{i}", *m), ["source"]))
+            "--journal", journal, "--run", run, "--name", f"histogram-{i}",
+            "--date", topo.date, *m, *accept("source", "ingest")), ["source"]))
     src = topo.source
     common = [*(x for ep in hist_eps for x in ("--push", ep)), "--run", run,
               "--journal", journal, "--journal-compression", topo.journal_compression,
@@ -288,9 +347,70 @@ def build(topo: Topology) -> list[Proc]:
                       *(("--rate", src["rate"]) if src.get("rate") else ()))
     else:
         argv = _tcspc("stage", "ingest-udp", "--bind", src["bind"], *common, "--quarantine",
-                      quar / "ingest", *(("--idle", src["idle"]) if src.get("idle") else ()))
+                      quar / "ingest", *(("--idle", src["idle"]) if src.get("idle") else ()),
+                      "--n-tdc", topo.n_tdc,
+                      *(x for k in ("reorder_window", "max_jump_cycles") if k in src
+                        for x in (f"--{k.replace('_', '-')}", src[k])))
     procs.append(Proc("source", argv, []))
     return procs
+
+
+def _die_with_parent() -> None:
+    """In a stage (between fork and exec): SIGKILL it when the daemon dies, however the
+    daemon dies, so a killed daemon leaves no orphan writing to the run (a restarted daemon
+    resumes from the journal and the checkpoints, as after any crash). Linux only; the
+    signal follows the thread that started the stage, which lives as long as the run."""
+    # (nothing here may import or take a lock: other threads may hold them at the fork)
+    if _PRCTL is not None:
+        _PRCTL(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() == 1:  # the daemon died before the prctl: do not start at all
+        os._exit(1)
+
+
+def _load_prctl():
+    import ctypes
+
+    try:
+        return ctypes.CDLL(None).prctl
+    except (OSError, AttributeError):
+        return None  # not Linux: the journal's lock still keeps a second writer out
+
+
+_PRCTL = _load_prctl()
+
+
+def run_token(state: Path, run: str) -> tuple[Path, str]:
+    """The run's token: random, in ``STATE/tokens/RUN.token`` (mode 0600, its directory
+    0700), made once per run and kept (a restarted daemon's stages and the old ones agree).
+    Every stage puts it in the headers it sends and checks it in those it takes."""
+    import secrets
+
+    d = state / "tokens"
+    d.mkdir(parents=True, exist_ok=True)
+    os.chmod(d, 0o700)
+    path = d / f"{run}.token"
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:
+        os.chmod(path, 0o600)
+        token = path.read_text().strip()
+        if len(token) >= 32:
+            return path, token
+        fd = os.open(path, os.O_WRONLY | os.O_TRUNC, 0o600)  # empty or cut short: anew
+    token = secrets.token_hex(32)
+    with os.fdopen(fd, "w") as fh:
+        fh.write(token + "\n")
+    return path, token
+
+
+def check_record(rec: dict, token: str | None) -> bool:
+    """A heartbeat record that carries the run's token (any record when none is set)."""
+    import hmac
+
+    if token is None:
+        return True
+    got = rec.get("token")
+    return isinstance(got, str) and hmac.compare_digest(got.encode(), token.encode())
 
 
 class Supervisor:
@@ -304,17 +424,34 @@ class Supervisor:
         self.failed: str | None = None
         self.pruned = 0
         self._spans = None
+        self.forged_heartbeats = 0
+        self._status_failing = False
         for d in ("logs", "sock", "journal", f"checkpoints/{topo.run}"):
             (topo.state / d).mkdir(parents=True, exist_ok=True)
+        self.token_file, self.token = run_token(topo.state, topo.run)
+        self.curve_dir = None
+        if topo.curve_on:
+            from pipeline.curve import ensure_keys
+
+            self.curve_dir = ensure_keys(topo.state)
 
     # -------------------------------------------------------------- processes
     def _start(self, p: Proc) -> None:
         log = open(self.topo.state / "logs" / f"{p.name}.log", "ab")
-        log.write(f"--- {dt.datetime.now(dt.UTC).isoformat()} start "
-                  f"(restart {p.restarts}): {' '.join(p.argv)}\n".encode())
-        log.flush()
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        p.popen = subprocess.Popen(p.argv, stdout=log, stderr=subprocess.STDOUT, env=env)
+        try:
+            log.write(f"--- {dt.datetime.now(dt.UTC).isoformat()} start "
+                      f"(restart {p.restarts}): {' '.join(p.argv)}\n".encode())
+            log.flush()
+        except OSError:
+            pass  # a full state disk: the stage starts all the same
+        # the run's token by file (never on a command line, where `ps` shows it)
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", TOKEN_ENV: str(self.token_file)}
+        if self.curve_dir is not None:
+            from pipeline.curve import CURVE_ENV
+
+            env[CURVE_ENV] = str(self.curve_dir)
+        p.popen = subprocess.Popen(p.argv, stdout=log, stderr=subprocess.STDOUT, env=env,
+                                   preexec_fn=_die_with_parent)
         log.close()
 
     def _check(self) -> bool:
@@ -337,6 +474,13 @@ class Supervisor:
                         p.popen.send_signal(signal.SIGTERM)
                         p.terminated = True
                 continue
+            if p.restart_at is not None:  # dead, its restart waiting out the backoff
+                if self.stop.is_set() and p.name == "source":
+                    p.finished, p.restart_at = True, None  # shutting down: no new source
+                elif now >= p.restart_at:
+                    p.restart_at = None
+                    self._start(p)
+                continue
             p.exit_codes.append(code)
             if code == 0 or (p.terminated and code == -signal.SIGTERM):
                 # (a SIGTERM we sent that landed as the process was already exiting, past
@@ -348,16 +492,23 @@ class Supervisor:
                 p.finished = True  # shutting down: the run ends here, no new source
                 self.log(f"{p.name}: ended (exit {code}) during shutdown")
                 continue
-            if p.restarts >= self.topo.restarts:
-                self.failed = (f"{p.name} died (exit {code}) {p.restarts + 1} times; giving up "
+            p.restart_times = [t for t in p.restart_times
+                               if now - t < self.topo.restart_window_s]
+            if len(p.restart_times) >= self.topo.restarts:
+                self.failed = (f"{p.name} died (exit {code}) {len(p.restart_times) + 1} "
+                               f"times within {self.topo.restart_window_s:.0f} s; giving up "
                                f"(see {self.topo.state / 'logs' / (p.name + '.log')})")
                 self.log(self.failed)
                 return True
+            backoff = min(self.topo.restart_backoff_max_s,
+                          self.topo.restart_backoff_s * 2 ** len(p.restart_times))
+            p.restart_times.append(now)
             p.restarts += 1
             p.terminated, p.upstream_done_at = False, None
-            self.log(f"{p.name}: died (exit {code}); restart {p.restarts} of "
-                     f"{self.topo.restarts}")
-            self._start(p)
+            p.restart_at = now + backoff
+            self.log(f"{p.name}: died (exit {code}); restart {p.restarts} in {backoff:.1f} s "
+                     f"({len(p.restart_times)} of {self.topo.restarts} in "
+                     f"{self.topo.restart_window_s:.0f} s)")
         return all(p.finished for p in self.procs)
 
     def shutdown(self) -> None:
@@ -379,12 +530,21 @@ class Supervisor:
         sub = ctx.socket(zmq.SUB)
         sub.setsockopt(zmq.SUBSCRIBE, b"")
         sub.setsockopt(zmq.LINGER, 0)
-        sub.bind(self.topo.metrics)
+        from pipeline import curve
+        from pipeline.stage import bind
+
+        if self.curve_dir is not None:
+            curve.serve(sub, self.curve_dir)
+        bind(sub, self.topo.metrics)
         try:
             while not self.stop.is_set():
                 if sub.poll(200):
                     try:
                         rec = json.loads(sub.recv())
+                        if not check_record(rec, self.token):
+                            self.forged_heartbeats += 1  # no token: not one of ours
+                            continue
+                        rec.pop("token", None)
                         prev = self.metrics.get(rec["stage"])
                         if prev and prev.get("pid") == rec.get("pid"):
                             dt_s = max(rec["t"] - prev["t"], 1e-6)
@@ -407,7 +567,10 @@ class Supervisor:
                 "pid": p.popen.pid if p.popen else None, "alive": alive,
                 "finished": p.finished, "restarts": p.restarts,
                 "heartbeat_age_s": round(now - m["t"], 2) if "t" in m else None,
-                "health": ("finished" if p.finished else "down" if not alive else
+                "health": ("finished" if p.finished else
+                           "restarting" if p.restart_at is not None else
+                           "paused" if alive and m.get("state") == "paused" else
+                           "down" if not alive else
                            "ok" if "t" in m and now - m["t"] < 5 else "silent"),
                 **{k: v for k, v in m.items() if k not in ("stage", "pid", "t")}}
         depth = {}
@@ -418,12 +581,22 @@ class Supervisor:
                 depth[p.name] = max(0, sent - got)
         return {"run": self.topo.run, "topology": self.topo.path, "updated": now,
                 "started": self.started, "state": "failed" if self.failed else "running",
+                "forged_heartbeats": self.forged_heartbeats,
+                "paused": {name: s.get("reason") for name, s in stages.items()
+                           if s["health"] == "paused"},
                 "stages": stages, "queue_depth": depth}
 
     def _write_status(self, extra: dict | None = None) -> None:
-        with atomic_path(self.topo.state / "status.json") as tmp:
-            tmp.write_text(json.dumps({**self.status(), **(extra or {})}, indent=1,
-                                      default=str))
+        try:
+            with atomic_path(self.topo.state / "status.json") as tmp:
+                tmp.write_text(json.dumps({**self.status(), **(extra or {})}, indent=1,
+                                          default=str))
+        except OSError as exc:  # a full state disk must not kill the supervisor
+            if not self._status_failing:
+                self.log(f"status.json not written: {exc}")
+            self._status_failing = True
+        else:
+            self._status_failing = False
 
     def _consumed_word(self) -> int:
         """The run's word index every histogram worker has checkpointed past."""
@@ -482,10 +655,18 @@ class Supervisor:
                   "restarts": {p.name: p.restarts for p in self.procs if p.restarts},
                   "journal_segments_pruned": self.pruned}
         if not self.failed:
-            result["reconciled"] = reconcile(self.topo)
-            result["accounting"] = accounting(self.topo, self.metrics)
+            try:
+                result["reconciled"] = reconcile(self.topo)
+                result["accounting"] = accounting(self.topo, self.metrics,
+                                                  result["reconciled"])
+            except Exception as exc:  # the run must end with a state, never "running"
+                self.failed = f"reconciling the run failed: {type(exc).__name__}: {exc}"
+                result["failed"] = self.failed
+                self.log(self.failed)
+        corrupt = (result.get("reconciled") or {}).get("corrupt_words", 0)
         self._write_status({"state": "failed" if self.failed else "finished",
-                            "result": result})
+                            "result": result,
+                            **({"journal_corrupt_words": corrupt} if corrupt else {})})
         return result
 
 
@@ -531,7 +712,9 @@ def reconcile(topo: Topology) -> dict:
 
         ranger = RangeCore(topo.range["calibration"], topo.range.get("estimator", "ml"))
     sink = ParquetSink(out)
-    redone, unrecoverable = [], []
+    redone, unrecoverable, corrupt_meas = [], [], []
+    corrupt_chunks: dict[int, list] = {}  # first word -> [first, words, reason]
+    withheld = 0
     window_ns = None
     for (a, b) in tdc_ranges(topo):
         for k in range(n_meas):
@@ -539,6 +722,18 @@ def reconcile(topo: Topology) -> dict:
                 continue
             if pruned_words(journal, topo.run, k * mc * n, min((k + 1) * mc, cycles) * n):
                 unrecoverable.append([k, a])  # its words were pruned (journal_keep_gb)
+                continue
+            bad = []
+            for _ in read_range(journal, topo.run, k * mc * n, min((k + 1) * mc, cycles) * n,
+                                lambda f, w, why, bad=bad: bad.append([f, w, why])):
+                pass  # a measurement's words are checked whole before any is used
+            if bad:
+                # a corrupt chunk's words are never data: the measurement is withheld
+                corrupt_meas.append([k, a])
+                for c in bad:
+                    corrupt_chunks[c[0]] = c
+                if (k, a) not in have_h:  # (a histogram already written is classified)
+                    withheld += (min((k + 1) * mc, cycles) - k * mc) * (b - a)
                 continue
             bounds = (ArtifactBounds(bounds_all.n_min[a:b], bounds_all.n_max[a:b],
                                      bounds_all.source) if bounds_all else None)
@@ -567,7 +762,10 @@ def reconcile(topo: Topology) -> dict:
                         sink.process(h2, b2)
             redone.append([k, a])
     return {"checked": True, "measurements": n_meas, "tdc_ranges": len(tdc_ranges(topo)),
-            "recomputed": redone, "unrecoverable": unrecoverable}
+            "recomputed": redone, "unrecoverable": unrecoverable, "corrupt": corrupt_meas,
+            "corrupt_chunks": sorted(corrupt_chunks.values()),
+            "corrupt_words": sum(c[1] for c in corrupt_chunks.values()),
+            "withheld_words": withheld}
 
 
 def _words_batch(words):
@@ -592,10 +790,13 @@ def _journal_gate_ns(journal: Path, run: str) -> float:
     return float(_journal_meta(journal, run).get("t_laser_win_ns", 140.0))
 
 
-def accounting(topo: Topology, metrics: dict[str, dict]) -> dict:
+def accounting(topo: Topology, metrics: dict[str, dict], reconciled: dict | None = None
+               ) -> dict:
     """Words in (journaled) = hit + no_hit + artifact + invalid_phase + malformed (from the
-    histograms dataset, each measurement once); messages and datagrams
-    rejected by reason (quarantined) per stage; datagrams lost (sequence gaps). Written to
+    histograms dataset, each measurement once) + words withheld (measurements that a
+    corrupt journal chunk kept from being recomputed: ``corrupt_words`` of them in the
+    corrupt chunks themselves); messages and datagrams rejected by reason (quarantined) per
+    stage; datagrams lost (sequence gaps), duplicated and late. Written to
     ``OUT/accounting/run=RUN.json``."""
     import polars as pl
 
@@ -612,11 +813,22 @@ def accounting(topo: Topology, metrics: dict[str, dict]) -> dict:
     journaled = journaled_total(topo.state / "journal", topo.run)
     span = run_end(topo.state / "journal", topo.run) or 0
     rejected = {name: m.get("rejected", {}) for name, m in metrics.items() if m.get("rejected")}
+    rec = reconciled or {}
+    withheld = int(rec.get("withheld_words", 0))
+    src = metrics.get("source", {})
     result = {"run": topo.run, "words_in": journaled, "classes": classes,
               "classified": sum(classes.values()),
-              "balanced": sum(classes.values()) == journaled,
+              "corrupt": int(rec.get("corrupt_words", 0)), "withheld": withheld,
+              "corrupt_measurements": rec.get("corrupt", []),
+              "balanced": sum(classes.values()) + withheld == journaled,
               "rejected_messages": rejected,
-              "lost_datagrams": metrics.get("source", {}).get("lost_datagrams", 0),
+              "lost_datagrams": src.get("lost_datagrams", 0),
+              "duplicate_datagrams": src.get("duplicates", 0),
+              "late_datagrams": src.get("late", 0),
+              "quarantine_dropped": {name: m["quarantine_dropped"] for name, m in
+                                     metrics.items() if m.get("quarantine_dropped")},
+              "checkpoints_discarded": {name: m["checkpoints_discarded"] for name, m in
+                                        metrics.items() if m.get("checkpoints_discarded")},
               "words_in_gaps": span - journaled,
               "measurements_files": len(parts)}
     path = out / "accounting" / f"run={topo.run}.json"

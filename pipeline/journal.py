@@ -16,6 +16,15 @@ costs the disk a fraction of the stream's rate (50 M words/s raw is 200 MB/s, wh
 machine's disk sustains with fdatasync). ``compression=None`` writes raw segments
 (``RUN-000000.bin``; entries without ``enc``, offsets in words), which every reader still
 takes.
+
+Integrity. Every frame carries zstd's content checksum (XXH64 of its words; index entries
+say ``"check": "xxh64"``), so a bit flip or a truncated frame is detected when the frame is
+read, by :func:`read_range` and by ``zstd -d`` alike; a raw segment's entries carry the
+CRC-32 of their bytes (``"crc32"``). A damaged chunk is never yielded as words: it is
+reported to ``on_corrupt(first_word, words, reason)`` (default: raise JournalCorrupt).
+Frames written before checksums were added (no ``check`` in their entry) still read: a
+truncated one is still detected (its length or decoding fails), a flipped bit in one is
+not (they are reported as ``unchecked`` by :func:`verify`).
 """
 
 from __future__ import annotations
@@ -28,9 +37,37 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.capture import CaptureMeta
+from schemas.errors import TcspcError
 
 COMPRESSIONS = ("zstd", None)
 ZSTD_LEVEL = 1  # ~1 GB/s on photon-starving words; higher levels gain little on them
+
+
+class JournalCorrupt(TcspcError, ValueError):
+    """A journal chunk whose bytes fail their checksum, are cut short or do not decode."""
+
+    def __init__(self, first_word: int, words: int, reason: str):
+        super().__init__(f"journal words [{first_word}, {first_word + words}): {reason}")
+        self.first_word, self.words, self.reason = first_word, words, reason
+
+
+DISK_FULL_ERRNOS = frozenset({28, 122, 30, 27})  # ENOSPC, EDQUOT, EROFS, EFBIG
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """An error a full, over-quota or read-only disk raises (wait and retry, not crash)."""
+    return isinstance(exc, OSError) and exc.errno in DISK_FULL_ERRNOS
+
+
+def _write_all(fd: int, data) -> None:
+    view = memoryview(data).cast("B")
+    while view.nbytes:
+        n = os.write(fd, view)
+        view = view[n:]
+
+
+class JournalLocked(TcspcError, OSError):
+    """Another live process is writing this run's journal (one run, one writer)."""
 
 
 def segment_path(directory: str | Path, run: str, segment: int, enc: str | None) -> Path:
@@ -59,11 +96,14 @@ class JournalWriter:
         self.enc = compression
         self._codec = None
         if compression == "zstd":
-            import pyarrow as pa
+            import zstandard
 
-            self._codec = pa.Codec("zstd", compression_level=ZSTD_LEVEL)
+            # content checksum: a damaged frame fails to decode instead of giving words
+            self._codec = zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True,
+                                                   write_content_size=True)
         self.dir = Path(directory)
         self.dir.mkdir(parents=True, exist_ok=True)
+        self._lock = _lock_run(self.dir, run)  # before anything is written
         self.run, self.n_tdc = run, n_tdc
         self.meta = dict(n_tdc=n_tdc, window_ns=window_ns, t_laser_win_ns=t_laser_win_ns)
         self.segment_words = segment_words
@@ -73,10 +113,19 @@ class JournalWriter:
         self.fh = None
         self.offset = 0
         index = self.dir / f"{run}.index.jsonl"
-        if index.exists() and index.read_bytes()[-1:] not in (b"", b"\n"):
-            with open(index, "a") as fh:  # end a line a crash cut short
-                fh.write("\n")
-        self.index = open(index, "a")
+        # unbuffered: a write a full disk refuses is rolled back, never left in a buffer
+        self.index = open(index, "ab", buffering=0)
+        if index.read_bytes()[-1:] not in (b"", b"\n"):
+            _write_all(self.index.fileno(), b"\n")  # end a line a crash cut short
+        meta = self.dir / f"{run}.meta.json"
+        if not meta.exists():  # the run's constants, for a stage that starts after its end
+            from pipeline.atomic import atomic_path
+
+            try:
+                with atomic_path(meta) as tmp:
+                    tmp.write_text(json.dumps({"run": run, **self.meta}))
+            except OSError:
+                pass  # (derived: the index and the sidecars hold the same)
         self.segments: list[Path] = []
         self._be = np.empty(0, ">u4")
 
@@ -84,12 +133,15 @@ class JournalWriter:
         self._close_segment()
         self.segment += 1
         path = segment_path(self.dir, self.run, self.segment, self.enc)
-        self.fh = open(path, "ab")
+        self.fh = open(path, "ab", buffering=0)
         self.offset = self.fh.tell() if self.enc else 0  # bytes (compressed) or words
         self.words = 0
         self.segments.append(path)
 
     def append(self, first_word: int, words: np.ndarray) -> None:
+        """Journal one chunk: its bytes, then its index line. All or nothing: if the disk
+        refuses either (full, read-only), both files are cut back to where they were and
+        the OSError is raised, so the caller may wait and append the same chunk again."""
         if self.fh is None or self.words + words.size > self.segment_words:
             self._rotate()
         n = words.size
@@ -103,24 +155,37 @@ class JournalWriter:
         entry = {"first_word": int(first_word), "segment": self.segment,
                  "offset": self.offset, "words": int(n)}
         if self._codec is not None:  # one frame per chunk (releases the GIL)
-            frame = self._codec.compress(memoryview(data).cast("B"))
-            self.fh.write(frame)
-            entry.update(bytes=frame.size, enc=self.enc)
-            self.offset += frame.size
+            blob = self._codec.compress(memoryview(data).cast("B"))
+            entry.update(bytes=len(blob), enc=self.enc, check="xxh64")
+            step = len(blob)
         else:
-            self.fh.write(memoryview(data).cast("B"))
-            self.offset += n
-        self.fh.flush()
-        self.index.write(json.dumps(entry) + "\n")
-        self.index.flush()
+            import zlib
+
+            blob = memoryview(data).cast("B")
+            entry["crc32"] = zlib.crc32(blob)
+            step = n
+        seg_at, index_at = self.fh.tell(), self.index.tell()
+        try:
+            _write_all(self.fh.fileno(), blob)
+            _write_all(self.index.fileno(), (json.dumps(entry) + "\n").encode())
+        except OSError:
+            for fh, at in ((self.fh, seg_at), (self.index, index_at)):
+                try:
+                    os.ftruncate(fh.fileno(), at)
+                except OSError:
+                    pass
+            raise
+        self.offset += step
         self.words += n
 
     def _close_segment(self) -> None:
         if self.fh is None:
             return
-        self.fh.flush()
-        os.fsync(self.fh.fileno())
-        self.fh.close()
+        fh, self.fh = self.fh, None
+        try:
+            os.fsync(fh.fileno())
+        finally:
+            fh.close()
         path = self.segments[-1]
         cycles = self.words // self.n_tdc
         meta = CaptureMeta.from_dict({**self.meta, "cycles": cycles, "format": "tcspc-raw",
@@ -129,8 +194,10 @@ class JournalWriter:
         d = meta.to_dict()
         if self.enc:
             d["compression"] = self.enc
-        side.write_text(json.dumps(d))
-        self.fh = None
+        try:
+            side.write_text(json.dumps(d))
+        except OSError:  # (derived from the index: a full disk must not stop the journal)
+            side.unlink(missing_ok=True)
 
     def close(self) -> None:
         """Close the last segment and record the run's end (its total words)."""
@@ -138,14 +205,39 @@ class JournalWriter:
         total = 0
         for e in _entries(self.dir / f"{self.run}.index.jsonl"):
             total = max(total, e.get("first_word", 0) + e.get("words", 0))
-        self.index.write(json.dumps({"end": True, "words": total}) + "\n")
-        self.index.flush()
+        _write_all(self.index.fileno(), (json.dumps({"end": True, "words": total}) + "\n"
+                                          ).encode())
         self.index.close()
+        self._lock.close()  # (the kernel also drops it when a writer dies)
 
 
-def read_range(directory: str | Path, run: str, start: int, stop: int
-               ) -> Iterator[tuple[int, np.ndarray]]:
-    """Journaled words of ``run`` with stream index in [start, stop), as (first, words)."""
+def _lock_run(directory: Path, run: str):
+    """An exclusive lock on ``RUN.lock`` for this writer's life; JournalLocked if another
+    process holds it (a second source, or an orphan of a killed daemon still writing)."""
+    import fcntl
+
+    fh = open(directory / f"{run}.lock", "a+")
+    try:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        fh.seek(0)
+        holder = fh.read().strip() or "?"
+        fh.close()
+        raise JournalLocked(f"{directory}: run {run!r} is being journaled by another process "
+                            f"(pid {holder}); one run has one writer") from None
+    fh.seek(0)
+    fh.truncate()
+    fh.write(f"{os.getpid()}\n")
+    fh.flush()
+    return fh
+
+
+def read_range(directory: str | Path, run: str, start: int, stop: int,
+               on_corrupt=None) -> Iterator[tuple[int, np.ndarray]]:
+    """Journaled words of ``run`` with stream index in [start, stop), as (first, words).
+
+    A chunk that fails its check is never yielded: ``on_corrupt(first_word, words,
+    reason)`` is told of it (its whole chunk), or, without one, JournalCorrupt is raised."""
     d = Path(directory)
     index = d / f"{run}.index.jsonl"
     if not index.exists():
@@ -161,21 +253,91 @@ def read_range(directory: str | Path, run: str, start: int, stop: int
         seg = segment_path(d, run, e["segment"], enc)
         if not seg.exists():  # pruned (retention): those words are gone
             continue
-        with open(seg, "rb") as fh:
-            if enc is None:
-                fh.seek(4 * (e["offset"] + a - lo))
-                raw = fh.read(4 * (b - a))
-            else:
-                fh.seek(e["offset"])
-                raw = _decompress(enc, fh.read(e["bytes"]), 4 * e["words"])
-                raw = memoryview(raw)[4 * (a - lo):4 * (b - lo)]
+        try:
+            raw = _read_chunk(seg, e)
+        except JournalCorrupt as exc:
+            if on_corrupt is None:
+                raise
+            on_corrupt(exc.first_word, exc.words, exc.reason)
+            continue
+        raw = memoryview(raw)[4 * (a - lo):4 * (b - lo)]
         yield a, np.frombuffer(raw, ">u4").astype(np.uint32)
 
 
-def _decompress(enc: str, frame: bytes, size: int):
-    import pyarrow as pa
+def _read_chunk(seg: Path, e: dict) -> bytes:
+    """The bytes of one index entry's whole chunk, checked."""
+    enc, n = e.get("enc"), e["words"]
+    with open(seg, "rb") as fh:
+        if enc is None:
+            fh.seek(4 * e["offset"])
+            raw = fh.read(4 * n)
+        else:
+            fh.seek(e["offset"])
+            frame = fh.read(e["bytes"])
+    if enc is None:
+        if len(raw) != 4 * n:
+            raise JournalCorrupt(e["first_word"], n, f"truncated: {len(raw)} of {4 * n} "
+                                 f"bytes in {seg.name}")
+        if "crc32" in e:
+            import zlib
 
-    return pa.Codec(enc).decompress(frame, decompressed_size=size)
+            if zlib.crc32(raw) != e["crc32"]:
+                raise JournalCorrupt(e["first_word"], n, f"CRC-32 mismatch in {seg.name}")
+        return raw
+    if len(frame) != e["bytes"]:
+        raise JournalCorrupt(e["first_word"], n, f"truncated frame: {len(frame)} of "
+                             f"{e['bytes']} bytes in {seg.name} at {e['offset']}")
+    return _decompress(enc, frame, 4 * n, e["first_word"], seg)
+
+
+def _decompress(enc: str, frame: bytes, size: int, first_word: int = 0,
+                seg: Path | None = None) -> bytes:
+    import zstandard
+
+    try:  # verifies the frame's content checksum when it has one
+        raw = zstandard.ZstdDecompressor().decompress(frame, max_output_size=size)
+    except zstandard.ZstdError as exc:
+        raise JournalCorrupt(first_word, size // 4, f"zstd frame in {seg and seg.name} does "
+                             f"not decode ({exc})") from None
+    if len(raw) != size:
+        raise JournalCorrupt(first_word, size // 4, f"zstd frame in {seg and seg.name} "
+                             f"holds {len(raw)} bytes, the index says {size}")
+    return raw
+
+
+def verify(directory: str | Path, run: str) -> dict:
+    """Read every chunk of ``run`` and check it: ``{chunks, words, corrupt: [[first_word,
+    words, reason], ...], corrupt_words, unchecked_chunks, pruned_chunks}``."""
+    d = Path(directory)
+    out = {"chunks": 0, "words": 0, "corrupt": [], "corrupt_words": 0,
+           "unchecked_chunks": 0, "pruned_chunks": 0}
+    for e in _entries(d / f"{run}.index.jsonl"):
+        if e.get("end"):
+            continue
+        out["chunks"] += 1
+        out["words"] += e["words"]
+        seg = segment_path(d, run, e["segment"], e.get("enc"))
+        if not seg.exists():
+            out["pruned_chunks"] += 1
+            continue
+        if "check" not in e and "crc32" not in e:
+            out["unchecked_chunks"] += 1
+        try:
+            _read_chunk(seg, e)
+        except JournalCorrupt as exc:
+            out["corrupt"].append([exc.first_word, exc.words, exc.reason])
+            out["corrupt_words"] += exc.words
+    return out
+
+
+def run_meta(directory: str | Path, run: str) -> dict:
+    """The run's constants (``n_tdc``, ``t_laser_win_ns``, ``window_ns``) as its first
+    writer recorded them; {} for a journal written before they were."""
+    path = Path(directory) / f"{run}.meta.json"
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
 
 
 def run_end(directory: str | Path, run: str) -> int | None:

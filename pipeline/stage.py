@@ -23,9 +23,33 @@ import zmq
 from pipeline import wire
 from pipeline.atomic import atomic_path
 from pipeline.metrics import Metrics
+from schemas.errors import Rejected, TcspcError
 from schemas.outputs import HISTOGRAMS, RANGES
 
 DEFAULT_HWM = 4
+QUARANTINE_MAX_FILES = 1000        #: messages kept per stage and run (the excess is counted)
+QUARANTINE_MAX_BYTES = 256 << 20   #: bytes kept per stage and run
+QUARANTINE_KEEP_BYTES = 1 << 20    #: of one message, the first this many bytes are kept
+
+
+class _GaveUp(Exception):
+    """A stop came while waiting for a full disk."""
+
+
+def _log(msg: str) -> None:
+    """A line in the stage's log; a full disk must not turn a log line into a crash."""
+    try:
+        print(msg, file=sys.stderr, flush=True)
+    except OSError:
+        pass
+
+
+class CheckpointError(TcspcError, ValueError):
+    """A checkpoint that cannot be trusted (truncated, bit-flipped, not ours)."""
+
+
+class EndpointInUse(TcspcError, OSError):
+    """An ipc:// endpoint another live process is bound to."""
 
 
 @dataclass
@@ -34,50 +58,164 @@ class StageStats:
     sent: int = 0
     rejected: Counter = field(default_factory=Counter)
     blocked_s: float = 0.0   #: time spent waiting to send (back-pressure from downstream)
+    checkpoints_discarded: int = 0
+    quarantine_dropped: int = 0  #: rejected messages counted but not kept (quarantine full)
+    checkpoint_failures: int = 0  #: checkpoints a full disk refused (skipped)
+    paused_s: float = 0.0        #: time waiting for a full disk
+    unwritten: int = 0           #: messages given up on a full disk at a signal (journaled)
 
     def fields(self, core=None) -> dict:
         out = {"received": self.received, "sent": self.sent,
-               "rejected": dict(self.rejected), "blocked_s": round(self.blocked_s, 3)}
+               "rejected": dict(self.rejected), "blocked_s": round(self.blocked_s, 3),
+               "checkpoints_discarded": self.checkpoints_discarded,
+               "quarantine_dropped": self.quarantine_dropped,
+               "checkpoint_failures": self.checkpoint_failures,
+               "paused_s": round(self.paused_s, 1), "unwritten": self.unwritten}
         for name in ("words_total", "measurement", "gap_words", "backfilled", "duplicates"):
             if hasattr(core, name):
                 out[name] = int(getattr(core, name))
         return out
 
 
-def _socket(ctx: zmq.Context, kind: int, hwm: int) -> zmq.Socket:
+def _socket(ctx: zmq.Context, kind: int, hwm: int,
+            max_bytes: int | None = wire.MAX_MESSAGE_BYTES) -> zmq.Socket:
     s = ctx.socket(kind)
     s.setsockopt(zmq.LINGER, 2000)
     s.setsockopt(zmq.SNDHWM, hwm)
     s.setsockopt(zmq.RCVHWM, hwm)
+    if max_bytes is not None and kind in (zmq.PULL, zmq.SUB):
+        # ZeroMQ refuses a larger frame as it arrives (and drops that peer's connection),
+        # so an oversized message is never buffered; wire.decode checks the total
+        s.setsockopt(zmq.MAXMSGSIZE, max_bytes)
     return s
 
 
-def _quarantine(qdir: Path | None, n: int, reason: str, frames) -> None:
-    if qdir is None:
-        return
-    qdir.mkdir(parents=True, exist_ok=True)
+def bind(sock: zmq.Socket, endpoint: str) -> None:
+    """Bind ``endpoint``; an ipc:// path left by a dead process is removed first, one a live
+    process listens on is refused (libzmq would silently take it over, orphaning it)."""
+    if endpoint.startswith("ipc://"):
+        import socket as pysocket
+
+        path = Path(endpoint[len("ipc://"):])
+        if path.exists() or path.is_symlink():
+            probe = pysocket.socket(pysocket.AF_UNIX, pysocket.SOCK_STREAM)
+            probe.settimeout(1.0)
+            try:
+                probe.connect(str(path))
+            except (ConnectionRefusedError, FileNotFoundError, OSError):
+                path.unlink(missing_ok=True)  # stale: nobody holds it
+            else:
+                raise EndpointInUse(f"{endpoint}: a live process is bound there (another "
+                                    "stage or an orphan of a killed daemon); not taking it")
+            finally:
+                probe.close()
+        path.parent.mkdir(parents=True, exist_ok=True)
+    from pipeline import curve
+
+    curve.serve(sock)  # with $TCSPC_CURVE_DIR: encrypted, authorized clients only
+    sock.bind(endpoint)
+
+
+def connect(sock: zmq.Socket, endpoint: str) -> None:
+    """Connect ``endpoint`` (as a CURVE client with $TCSPC_CURVE_DIR)."""
+    from pipeline import curve
+
+    curve.client(sock)
+    sock.connect(endpoint)
+
+
+class Quarantine:
+    """Rejected input kept for inspection, bounded: at most ``max_files`` messages and
+    ``max_bytes`` per directory (a stage of a run); beyond that a message is counted in
+    ``dropped`` and not written. Counts persist across a restart (read back from the
+    directory)."""
+
+    def __init__(self, qdir: str | Path | None, max_files: int = QUARANTINE_MAX_FILES,
+                 max_bytes: int = QUARANTINE_MAX_BYTES):
+        self.dir = Path(qdir) if qdir else None
+        self.max_files, self.max_bytes = max_files, max_bytes
+        self.kept = self.bytes = self.dropped = 0
+        if self.dir is not None and self.dir.exists():
+            bins = list(self.dir.glob("*.bin"))
+            self.kept = len(bins)
+            self.bytes = sum(p.stat().st_size for p in bins)
+            drop = self.dir / "dropped.json"
+            if drop.exists():
+                try:
+                    self.dropped = int(json.loads(drop.read_text())["dropped"])
+                except (ValueError, KeyError, TypeError):
+                    self.dropped = 0
+
+    def put(self, reason: str, data: bytes, **meta) -> bool:
+        """Keep ``data`` (its first QUARANTINE_KEEP_BYTES) with its reason; False when the
+        quarantine is full and it was only counted."""
+        if self.dir is None:
+            return False
+        raw = data[:QUARANTINE_KEEP_BYTES]
+        if self.kept >= self.max_files or self.bytes + len(raw) > self.max_bytes:
+            self.dropped += 1
+            with atomic_path(self.dir / "dropped.json") as tmp:
+                tmp.write_text(json.dumps({"dropped": self.dropped}))
+            return False
+        self.dir.mkdir(parents=True, exist_ok=True)
+        n = self.kept + self.dropped + 1
+        (self.dir / f"{n:06d}.bin").write_bytes(raw)
+        (self.dir / f"{n:06d}.json").write_text(json.dumps({"reason": reason, "bytes":
+                                                            len(data), **meta}))
+        self.kept += 1
+        self.bytes += len(raw)
+        return True
+
+
+def _quarantine(q: Quarantine, reason: str, frames) -> None:
     raw = b"".join(bytes(f.buffer if hasattr(f, "buffer") else f) for f in frames)
-    (qdir / f"{n:06d}.bin").write_bytes(raw[:1 << 20])
-    (qdir / f"{n:06d}.json").write_text(json.dumps({"reason": reason, "frames": len(frames),
-                                                    "bytes": len(raw)}))
+    q.put(reason, raw, frames=len(frames))
+
+
+def _digest(state: dict) -> bytes:
+    import hashlib
+
+    import numpy as np
+
+    h = hashlib.sha256()
+    for k in sorted(state):
+        a = np.ascontiguousarray(state[k])
+        h.update(f"{k}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(memoryview(a).cast("B"))
+    return h.digest()
 
 
 def save_checkpoint(path: Path, state: dict) -> None:
-    """A core's snapshot as .npz (arrays only, written atomically; never pickled)."""
+    """A core's snapshot as .npz (arrays only, written atomically; never pickled), with a
+    SHA-256 of its arrays (``_sha256``) so a damaged file is known as such."""
     import numpy as np
 
+    digest = np.frombuffer(_digest(state), np.uint8)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
-            np.savez(fh, **state)
+            np.savez(fh, **state, _sha256=digest)
 
 
 def load_checkpoint(path: Path) -> dict | None:
+    """The snapshot in ``path`` (None: no file). A file that does not read back whole or
+    whose arrays do not match their checksum raises CheckpointError (a checkpoint written
+    before checksums were added is taken on the zip's own CRCs)."""
     import numpy as np
 
     if not path.exists():
         return None
-    with np.load(path, allow_pickle=False) as z:
-        return {k: z[k] for k in z.files}
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            state = {k: z[k] for k in z.files}
+    except Exception as exc:  # noqa: BLE001 (zipfile raises anything on a damaged file:
+        # BadZipFile, NotImplementedError for a flipped method field, struct.error, ...)
+        raise CheckpointError(f"{path}: unreadable checkpoint ({type(exc).__name__}: "
+                              f"{exc})") from None
+    digest = state.pop("_sha256", None)
+    if digest is not None and digest.tobytes() != _digest(state):
+        raise CheckpointError(f"{path}: checkpoint checksum mismatch (bit flip or torn "
+                              "write)")
+    return state
 
 
 def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HWM,
@@ -86,7 +224,11 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
               checkpoint: str | Path | None = None, checkpoint_every_s: float = 1.0,
               run_ended=None, idle_after_s: float = 2.0, expect_stops: int = 1,
               metrics: str | None = None, name: str | None = None,
-              drain_ms: int = 1000) -> StageStats:
+              drain_ms: int = 1000, token: str | None = None,
+              max_bytes: int = wire.MAX_MESSAGE_BYTES,
+              quarantine_max_files: int = QUARANTINE_MAX_FILES,
+              quarantine_max_bytes: int = QUARANTINE_MAX_BYTES,
+              senders: list[str] | None = None) -> StageStats:
     """Run ``core`` between ``pull`` (bound) and ``push`` (connected) until a stop message,
     a signal or ``stop`` is set. Returns the counts.
 
@@ -100,39 +242,90 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
     message it lets a restarted stage finish even if the source's stop was lost with the
     process that was killed. On SIGTERM/SIGINT (or ``stop``) the stage drains: it takes
     messages until none has come for ``drain_ms``, then finishes. ``expect_stops``: upstream
-    workers feeding this stage (a fan-out joins here), each ending with a stop.
-    ``metrics``: endpoint for heartbeats."""
+    workers feeding this stage (a fan-out joins here), each ending with a stop (one counted
+    per sending step). ``metrics``: endpoint for heartbeats. ``token``: the run's token
+    (default: from $TCSPC_TOKEN_FILE); with one, a message without it is rejected
+    (``bad_token``) and every message sent carries it. A checkpoint that cannot be trusted
+    is set aside (``.bad``) with its reason on stderr, and the core rebuilds from the
+    journal. ``senders``: the step ids this stage takes messages from (None: any); a
+    message from another is rejected (``unknown_sender``)."""
     ctx = context or zmq.Context.instance()
     stats = StageStats()
-    qdir = Path(quarantine) if quarantine else None
+    token = token if token is not None else wire.load_token()
+    q = Quarantine(quarantine, quarantine_max_files, quarantine_max_bytes)
     stop = stop or threading.Event()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: stop.set())
     ckpt = Path(checkpoint) if checkpoint else None
     if ckpt is not None:
-        state = load_checkpoint(ckpt)
-        if state is not None:
-            core.restore(state)
+        fresh = core.snapshot()
+        try:
+            state = load_checkpoint(ckpt)
+            if state is not None:
+                core.restore(state)
+        except (CheckpointError, KeyError, ValueError, TypeError) as exc:
+            # the journal holds every word: the fresh core refolds them (its backfill)
+            core.restore(fresh)
+            _log(f"checkpoint discarded, rebuilding from the journal: {exc}")
+            ckpt.replace(ckpt.with_suffix(ckpt.suffix + ".bad"))
+            stats.checkpoints_discarded += 1
     saved_at = time.monotonic()
     idle = 0.0
-    rx = _socket(ctx, zmq.PULL, hwm)
-    rx.bind(pull)
+    rx = _socket(ctx, zmq.PULL, hwm, max_bytes)
+    bind(rx, pull)
     tx = None
     if push:
         tx = _socket(ctx, zmq.PUSH, hwm)
-        tx.connect(push)
+        connect(tx, push)
     last = {"run": "run", "seq": 0}
-    beat = Metrics(metrics, name or core.step_id, ctx)
-    stops = 0
+    beat = Metrics(metrics, name or core.step_id, ctx, token=token)
+    stopped_by: set[str] = set()
 
     def send(messages):
         for head, batch in messages:
             if tx is not None:
                 t0 = time.perf_counter()
-                tx.send_multipart(wire.encode(head, batch))
+                tx.send_multipart(wire.encode(head, batch, token))
                 stats.blocked_s += time.perf_counter() - t0
                 stats.sent += 1
+
+    def reject(exc, frames):
+        stats.rejected[exc.reason] += 1
+        try:
+            _quarantine(q, str(exc), frames)
+        except OSError:
+            q.dropped += 1  # a full disk: counted, not kept
+        stats.quarantine_dropped = q.dropped
+
+    def checkpoint():
+        # a checkpoint the disk refuses is skipped: an older one only means more words
+        # refolded from the journal after a restart
+        try:
+            save_checkpoint(ckpt, core.snapshot())
+        except OSError as exc:
+            stats.checkpoint_failures += 1
+            _log(f"checkpoint not saved: {exc}")
+
+    def retry_disk_full(fn, *args):
+        """``fn(*args)``, waiting (paused, with back-off) while the disk is full; the stage
+        upstream is held back by the high-water marks meanwhile."""
+        from pipeline.journal import is_disk_full
+
+        wait = 0.2
+        while True:
+            try:
+                return fn(*args)
+            except OSError as exc:
+                if not is_disk_full(exc):
+                    raise
+                if stop.is_set():
+                    raise _GaveUp from None
+                stats.paused_s += wait
+                beat.beat(force=True, state="paused", reason=f"disk full: {exc}",
+                          **stats.fields(core))
+                time.sleep(wait)
+                wait = min(2 * wait, 5.0)
 
     try:
         while True:
@@ -152,34 +345,47 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
             frames = rx.recv_multipart(copy=False)
             stats.received += 1
             try:
-                head, batch = wire.decode(frames, core.in_spec)
+                head, batch = wire.decode(frames, core.in_spec, max_bytes, token)
+                if senders is not None and head["step"] not in senders:
+                    raise wire.WireError("unknown_sender", f"step {head['step']!r} is not "
+                                         f"upstream of this stage ({senders})")
             except wire.WireError as exc:
-                stats.rejected[exc.reason] += 1
-                _quarantine(qdir, sum(stats.rejected.values()), str(exc), frames)
+                reject(exc, frames)
                 continue
             last = head
             if head["kind"] == "stop":
-                stops += 1
-                if stops >= expect_stops:
+                stopped_by.add(head["step"])  # a stop repeated by one step counts once
+                if len(stopped_by) >= expect_stops:
                     # the stream's end: fold in whatever was lost in flight (journal)
                     total = run_ended() if run_ended is not None else None
                     if total is not None and hasattr(core, "catch_up"):
                         core.catch_up(total)
                     break
                 continue
-            send(core.process(head, batch))
+            try:
+                out = retry_disk_full(core.process, head, batch)
+            except Rejected as exc:  # the core's own refusal (a path outside the sink)
+                reject(exc, frames)
+                continue
+            except _GaveUp:  # a signal while the disk was full: the journal has the words
+                stats.unwritten += 1
+                continue
+            send(out)
             if ckpt is not None and time.monotonic() - saved_at >= checkpoint_every_s:
-                save_checkpoint(ckpt, core.snapshot())
+                checkpoint()
                 saved_at = time.monotonic()
-        send(core.finish(last))
+        try:
+            send(retry_disk_full(core.finish, last))
+        except _GaveUp:
+            stats.unwritten += 1
         if ckpt is not None:
-            save_checkpoint(ckpt, core.snapshot())
+            checkpoint()
         if tx is not None:
             stop_head = {"kind": "stop", "schema": core.out_spec.name,
                          "version": core.out_spec.version, "run": last.get("run", "run"),
                          "seq": stats.sent, "step": core.step_id,
                          "rejected": dict(stats.rejected)}
-            tx.send_multipart(wire.encode(stop_head, None))
+            tx.send_multipart(wire.encode(stop_head, None, token))
         beat.beat(force=True, state="finished", **stats.fields(core))
     finally:
         beat.close()
@@ -193,7 +399,8 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
                t_laser_win_ns: float, hwm: int = DEFAULT_HWM, rate_words_s: float | None = None,
                context: zmq.Context | None = None, journal=None,
                split: list[tuple[int, int]] | None = None, metrics: str | None = None,
-               window_ns: float | None = None, date: str | None = None) -> int:
+               window_ns: float | None = None, date: str | None = None,
+               token: str | None = None) -> int:
     """Send ``(first_word, words)`` batches as raw_words messages, then a stop. Returns the
     words sent. ``rate_words_s`` limits the rate (None: as fast as the consumer takes).
     With a ``journal`` (JournalWriter) every batch is journaled before it is sent. With
@@ -214,12 +421,13 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
     elif len(pushes) != 1:
         raise ValueError("several endpoints need TDC ranges to split by")
     ctx = context or zmq.Context.instance()
+    token = token if token is not None else wire.load_token()
     txs = []
     for ep in pushes:
         tx = _socket(ctx, zmq.PUSH, hwm)
-        tx.connect(ep)
+        connect(tx, ep)
         txs.append(tx)
-    beat = Metrics(metrics, step_id, ctx)
+    beat = Metrics(metrics, step_id, ctx, token=token)
     halt = threading.Event()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):
@@ -236,11 +444,37 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
     writer = ThreadPoolExecutor(1, "journal") if journal is not None else None
     pending = None  # (messages, journal write) of the batch before
 
+    paused = {}  # the journal writer's "disk full" while it waits (read by this thread)
+
+    def append(first, words):
+        # a full disk pauses the run (the source is deterministic: nothing is lost by
+        # waiting); a signal while waiting ends it after the last journaled batch
+        from pipeline.journal import is_disk_full
+
+        wait = 0.2
+        while True:
+            try:
+                journal.append(first, words)
+                paused.clear()
+                return
+            except OSError as exc:
+                if not is_disk_full(exc) or halt.is_set():
+                    raise
+                paused["reason"] = f"disk full: {exc}"
+                time.sleep(wait)
+                wait = min(2 * wait, 5.0)
+
     def send_pending():
         nonlocal blocked, pending
         msgs, wrote = pending
-        if wrote is not None:
-            wrote.result()
+        while wrote is not None:
+            try:
+                wrote.result(timeout=1.0)
+                break
+            except TimeoutError:
+                if paused:
+                    beat.beat(force=True, state="paused", reason=paused.get("reason"),
+                              sent=seq, words=sent)
         for tx, frames in zip(txs, msgs, strict=True):
             tb = time.perf_counter()
             tx.send_multipart(frames)
@@ -252,7 +486,7 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
             if halt.is_set():  # a signal: end the run cleanly after the last whole batch
                 break
             words = np.asarray(words, np.uint32)
-            wrote = (writer.submit(journal.append, first, words.astype(">u4"))
+            wrote = (writer.submit(append, first, words.astype(">u4"))
                      if writer is not None else None)  # (a copy: the words may be reused)
             parts = splitter.split(first, words) if splitter else [(first, words)]
             msgs = []
@@ -263,12 +497,12 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
                         "first_word": int(f), "n_tdc": rng[1] - rng[0],
                         "n_tdc_total": n_tdc, "tdc_range": list(rng),
                         "t_laser_win_ns": t_laser_win_ns, **extra}
-                msgs.append(wire.encode(head, batch))  # a copy: the words may be reused
+                msgs.append(wire.encode(head, batch, token))  # a copy: the words may be reused
             if pending is not None:
                 send_pending()
             pending = (msgs, wrote)
             if seq == 0:  # in the stage's log: when the run's words began to flow
-                print(f"first batch sent at {time.time():.6f}", file=sys.stderr, flush=True)
+                _log(f"first batch sent at {time.time():.6f}")
             sent += words.size
             seq += 1
             beat.beat(state="running", sent=seq, words=sent, blocked_s=round(blocked, 3))
@@ -287,7 +521,8 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
         for tx in txs:
             tx.send_multipart(wire.encode({"kind": "stop", "schema": RAW_WORDS.name,
                                            "version": RAW_WORDS.version, "run": run,
-                                           "seq": seq, "step": step_id, "words": sent}, None))
+                                           "seq": seq, "step": step_id, "words": sent},
+                                          None, token))
         beat.beat(force=True, state="finished", sent=seq, words=sent,
                   blocked_s=round(blocked, 3))
     finally:
@@ -318,12 +553,24 @@ class ParquetSink:
         self.last: Path | None = None
 
     def path(self, header: dict) -> Path:
+        """The message's file; a header whose run, date or schema could lead outside the
+        output directory is refused (WireError ``bad_path``), whoever sent it."""
         import datetime as dt
 
         day = header.get("date") or dt.date.today().isoformat()
         first = (header.get("tdc_range") or [0])[0]
-        return (self.out / header["schema"] / f"date={day}" / f"run={header['run']}"
+        for key, value, pattern in (("schema", header["schema"], wire.ID_PATTERN),
+                                    ("run", header["run"], wire.ID_PATTERN),
+                                    ("date", day, wire.DATE_PATTERN)):
+            if not isinstance(value, str) or not pattern.fullmatch(value):
+                raise wire.WireError("bad_path", f"header {key} = {value!r:.80} is not a "
+                                                 "safe path component")
+        path = (self.out / header["schema"] / f"date={day}" / f"run={header['run']}"
                 / f"part-{int(header['seq']):06d}-t{int(first):03d}.parquet")
+        root = self.out.resolve()
+        if not path.resolve().is_relative_to(root):
+            raise wire.WireError("bad_path", f"{path} resolves outside {root}")
+        return path
 
     def process(self, header: dict, batch) -> list:
         import pyarrow as pa

@@ -1,16 +1,23 @@
 """The ingest: the FPGA's UDP datagrams in, journaled raw-word batches out.
 
 Binds 127.0.0.1 unless told otherwise. Every datagram is accounted for: taken (its words
-journaled to capture segments before they are passed on), or rejected by reason and
-quarantined; gaps in the sequence numbers are counted as lost datagrams.
+journaled to capture segments before they are passed on), a duplicate (counted, dropped),
+late (it came after its reorder window closed: counted and quarantined), or rejected by
+reason and quarantined. UDP reorders and duplicates, so datagrams are reassembled by first
+cycle in a bounded reorder window and each cycle is journaled once, in order; cycles no
+datagram brought are a gap (counted), and sequence numbers never seen are lost datagrams.
+Every header field is bounded against the run: a cycle or sequence number beyond the
+window (``max_jump_cycles``, ``max_jump_datagrams``), another TDC count or gate, is a
+rejected datagram, never a gap to fill.
 """
 
 from __future__ import annotations
 
-import json
+import queue
 import socket
 import threading
-from collections import Counter
+import time
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -19,20 +26,47 @@ import zmq
 
 from pipeline import datagram, wire
 from pipeline.journal import JournalWriter
-from pipeline.stage import _socket
+from pipeline.stage import Quarantine, _socket, connect
 from schemas.words import RAW_WORDS
 
 BATCH_WORDS = 1 << 18  # 1 MiB messages
+REORDER_WINDOW = 64            #: datagrams held to put reordered ones back in place
+REORDER_LINGER_S = 0.5         #: after the last datagram, wait this long for stragglers
+MAX_JUMP_CYCLES = 1 << 20      #: a datagram this far past the run's newest cycle is refused
+MAX_JUMP_DATAGRAMS = 1 << 16   #: ... and this far in sequence number
+GATE_PS = (1_000, 10_000_000)  #: a gate outside 1 ns .. 10 us is not a gate
+RING_DATAGRAMS = 4096          #: received, not yet journaled (<= 256 MiB of datagrams)
+SEND_QUEUE = 64                #: journaled messages waiting for a slow stage downstream
 
 
 @dataclass
 class IngestStats:
-    datagrams: int = 0
+    datagrams: int = 0        #: received (every one, whatever became of it)
+    accepted: int = 0         #: journaled and passed on
     words: int = 0
-    lost_datagrams: int = 0
+    duplicates: int = 0       #: same sequence number and cycles as one already taken
+    late: int = 0             #: arrived after its reorder window closed (quarantined)
+    lost_datagrams: int = 0   #: sequence numbers never received within the run's span
+    gap_cycles: int = 0       #: cycles no datagram brought
     rejected: Counter = field(default_factory=Counter)
+    quarantine_dropped: int = 0
+    ring_dropped: int = 0     #: received while the ring was full (journal too slow)
+    deferred_messages: int = 0  #: journaled, not sent (downstream stalled; it backfills)
+    deferred_words: int = 0
+    paused_s: float = 0.0     #: time intake waited for a full disk
+    unjournaled_words: int = 0  #: taken, but a stop came while the disk was full
     messages: int = 0
     journal: list[str] = field(default_factory=list)  #: segment files written
+
+    def fields(self) -> dict:
+        return {"received": self.datagrams, "accepted": self.accepted, "sent": self.messages,
+                "words": self.words, "duplicates": self.duplicates, "late": self.late,
+                "lost_datagrams": self.lost_datagrams, "gap_cycles": self.gap_cycles,
+                "rejected": dict(self.rejected),
+                "quarantine_dropped": self.quarantine_dropped,
+                "ring_dropped": self.ring_dropped, "deferred_messages": self.deferred_messages,
+                "deferred_words": self.deferred_words, "paused_s": round(self.paused_s, 1),
+                "unjournaled_words": self.unjournaled_words}
 
 
 def udp_socket(address: str = "127.0.0.1:0") -> socket.socket:
@@ -44,43 +78,190 @@ def udp_socket(address: str = "127.0.0.1:0") -> socket.socket:
     return s
 
 
+class Reassembler:
+    """Datagrams in arrival order in, runs of whole cycles in stream order out.
+
+    Holds up to ``window`` datagrams keyed by first cycle; the one that continues the stream
+    is released at once. When the window is full, the hole before the oldest held datagram
+    is given up as a gap (its cycles counted) and the stream moves on. Sequence numbers are
+    unwrapped (32-bit) against the newest seen; the lost count is the span of sequence
+    numbers minus those taken.
+    """
+
+    def __init__(self, window: int = REORDER_WINDOW, max_jump_cycles: int = MAX_JUMP_CYCLES,
+                 max_jump_datagrams: int = MAX_JUMP_DATAGRAMS):
+        if window < 1:
+            raise ValueError(f"reorder window must be >= 1 datagram, found {window}")
+        self.window, self.max_jump_cycles = window, max_jump_cycles
+        self.max_jump_datagrams = max_jump_datagrams
+        self.held: dict[int, tuple[int, datagram.Datagram]] = {}  # first cycle -> (seq, d)
+        self.next_cycle = 0          #: cycles before this are journaled or given up
+        self.newest_cycle = 0        #: end of the newest datagram accepted
+        self.seq_lo = self.seq_hi = None  # unwrapped span of accepted sequence numbers
+        self.seqs_seen = 0  # taken or late: received, whatever became of it
+        self.recent: deque = deque(maxlen=4 * window)  # (seq, first cycle) released
+        self.recent_set: set = set()
+        self.gap_cycles = 0
+
+    def _unwrap(self, seq: int) -> int:
+        if self.seq_hi is None:
+            return seq
+        d = (seq - self.seq_hi) & 0xFFFFFFFF
+        return self.seq_hi + (d - (1 << 32) if d >= 1 << 31 else d)
+
+    def lost(self) -> int:
+        return 0 if self.seq_hi is None else self.seq_hi - self.seq_lo + 1 - self.seqs_seen
+
+    def offer(self, d: datagram.Datagram) -> tuple[str, list]:
+        """Take one checked datagram: ``("taken" | "duplicate" | "late", released)``,
+        ``released`` the datagrams now in stream order. Out-of-window fields raise
+        DatagramError."""
+        seq = self._unwrap(d.seq)
+        if self.seq_hi is not None and abs(seq - self.seq_hi) > self.max_jump_datagrams:
+            raise datagram.DatagramError("seq_out_of_window", f"sequence {d.seq} is "
+                                         f"{seq - self.seq_hi:+d} from the newest")
+        if d.first_cycle - max(self.newest_cycle, self.next_cycle) > self.max_jump_cycles:
+            raise datagram.DatagramError("cycle_out_of_window", f"first cycle {d.first_cycle}"
+                                         f" is beyond the run's newest {self.newest_cycle} "
+                                         f"+ {self.max_jump_cycles}")
+        key = (seq, d.first_cycle)
+        if key in self.recent_set or (d.first_cycle in self.held
+                                      and self.held[d.first_cycle][0] == seq):
+            return "duplicate", []
+        if d.first_cycle < self.next_cycle:
+            if self.seq_lo is not None and self.seq_lo <= seq <= self.seq_hi:
+                self.seqs_seen += 1  # it came (too late): not a lost datagram
+            return "late", []
+        if d.first_cycle in self.held:
+            raise datagram.DatagramError("conflict", f"cycle {d.first_cycle} again with "
+                                         f"sequence {d.seq}, held with another")
+        self.held[d.first_cycle] = (seq, d)
+        self.seqs_seen += 1
+        self.seq_lo = seq if self.seq_lo is None else min(self.seq_lo, seq)
+        self.seq_hi = seq if self.seq_hi is None else max(self.seq_hi, seq)
+        self.newest_cycle = max(self.newest_cycle, d.first_cycle + d.n_cycles)
+        out = self._release()
+        while len(self.held) > self.window:  # the window is full: give up the hole
+            out += self._skip()
+        return "taken", out
+
+    def _release(self) -> list:
+        out = []
+        while self.next_cycle in self.held:
+            seq, d = self.held.pop(self.next_cycle)
+            out.append(d)
+            if len(self.recent) == self.recent.maxlen:
+                self.recent_set.discard(self.recent[0])
+            self.recent.append((seq, d.first_cycle))
+            self.recent_set.add((seq, d.first_cycle))
+            self.next_cycle += d.n_cycles
+        return out
+
+    def _skip(self) -> list:
+        first = min(self.held)
+        self.gap_cycles += first - self.next_cycle
+        self.next_cycle = first
+        return self._release()
+
+    def drain(self) -> list:
+        """The run's end: release everything held, the holes counted as gaps."""
+        out = []
+        while self.held:
+            out += self._skip()
+        return out
+
+
 def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "udp",
                    journal: str | Path | None = None, segment_words: int = 1 << 24,
                    quarantine: str | Path | None = None, stop: threading.Event | None = None,
                    idle_s: float | None = None, context: zmq.Context | None = None,
                    split: list[tuple[int, int]] | None = None, metrics: str | None = None,
-                   date: str | None = None, compression: str | None = "zstd") -> IngestStats:
-    """Receive until a datagram flagged last, ``stop``, or ``idle_s`` without data.
+                   date: str | None = None, compression: str | None = "zstd",
+                   n_tdc: int | None = None, reorder_window: int = REORDER_WINDOW,
+                   max_jump_cycles: int = MAX_JUMP_CYCLES,
+                   max_jump_datagrams: int = MAX_JUMP_DATAGRAMS,
+                   linger_s: float = REORDER_LINGER_S, token: str | None = None,
+                   ring_datagrams: int = RING_DATAGRAMS, send_queue: int = SEND_QUEUE
+                   ) -> IngestStats:
+    """Receive until a datagram flagged last (and the reorder window is settled), ``stop``,
+    or ``idle_s`` without data.
 
     ``split``: TDC ranges, one per endpoint of ``push`` (a fan-out by TDC range; datagrams
-    hold whole cycles, so every batch splits cleanly)."""
+    hold whole cycles, so every batch splits cleanly). ``n_tdc``: the chip's TDC count
+    (None: the first datagram's). ``reorder_window``: datagrams held to undo reordering.
+    ``max_jump_cycles`` / ``max_jump_datagrams``: how far past the newest a first cycle or
+    sequence number may jump before the datagram is refused. ``token``: the run's token
+    (default: $TCSPC_TOKEN_FILE).
+
+    Three threads, so receiving never waits for downstream: a receiver puts datagrams into
+    a ring of ``ring_datagrams`` (when full, because the journal cannot keep up, a datagram
+    is counted in ``ring_dropped``); this thread checks, reassembles and journals them and
+    queues the batches; a sender passes them on. With a journal, a batch that finds the
+    send queue (``send_queue`` messages) full is not sent but counted
+    (``deferred_messages``): its words are in the journal, and the worker downstream fills
+    the hole from there when the next batch or the stop reaches it. Back-pressure thus
+    stops at the journal. Without a journal this thread waits for the sender instead."""
     import datetime as dt
 
     from pipeline.fanout import TdcSplitter
     from pipeline.metrics import Metrics
 
     ctx = context or zmq.Context.instance()
+    token = token if token is not None else wire.load_token()
     pushes = [push] if isinstance(push, str) else list(push)
     txs = []
     for ep in pushes:
         tx = _socket(ctx, zmq.PUSH, 4)
-        tx.connect(ep)
+        connect(tx, ep)
         txs.append(tx)
     if (split is not None and len(split) != len(txs)) or (split is None and len(txs) != 1):
         raise ValueError("one TDC range per endpoint")
-    beat = Metrics(metrics, "source", ctx)
+    beat = Metrics(metrics, "source", ctx, token=token)
     date = date or dt.date.today().isoformat()
     stop = stop or threading.Event()
     stats = IngestStats()
-    seqs = datagram.SequenceTracker()
-    qdir = Path(quarantine) if quarantine else None
+    reasm = Reassembler(reorder_window, max_jump_cycles, max_jump_datagrams)
+    quar = Quarantine(quarantine)
     sock.settimeout(0.2)
+    ring: queue.Queue = queue.Queue(maxsize=ring_datagrams)
+    sendq: queue.Queue = queue.Queue(maxsize=send_queue)
+    halt_rx, abort_tx = threading.Event(), threading.Event()
+
+    def receiver():
+        while not halt_rx.is_set():
+            try:
+                data = sock.recv(datagram.MAX_PAYLOAD + 1)
+            except TimeoutError:
+                continue
+            except OSError:
+                return  # the socket was closed under us: the run is over
+            try:
+                ring.put_nowait(data)
+            except queue.Full:
+                stats.ring_dropped += 1  # (one writer: this thread)
+
+    def sender():
+        while True:
+            item = sendq.get()
+            if item is None:
+                return
+            for tx, frames in zip(txs, item, strict=True):
+                while not tx.poll(200, zmq.POLLOUT):
+                    if abort_tx.is_set():
+                        return
+                tx.send_multipart(frames, zmq.NOBLOCK)
+
+    rx_thread = threading.Thread(target=receiver, name="udp-receive", daemon=True)
+    tx_thread = threading.Thread(target=sender, name="udp-send", daemon=True)
+    rx_thread.start()
+    tx_thread.start()
     pending: list[np.ndarray] = []
     pending_first = None
     next_word = None
-    n_tdc = gate_ns = None
+    gate_ps = None
     writer: JournalWriter | None = None
     idle = 0.0
+    last_end = None   # the cycle after the datagram flagged last, once it came
 
     def flush():
         nonlocal pending, pending_first
@@ -92,36 +273,93 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         ranges = split or [(0, n_tdc)]
         parts = (TdcSplitter(n_tdc, split).split(pending_first, words) if split
                  else [(pending_first, words)])
-        for tx, (f, w), rng in zip(txs, parts, ranges, strict=True):
+        item = []
+        for (f, w), rng in zip(parts, ranges, strict=True):
             batch = pa.record_batch([pa.array(w)], schema=RAW_WORDS.schema)
             head = {"kind": "data", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
                     "run": run, "seq": stats.messages, "step": "ingest",
                     "first_word": int(f), "n_tdc": rng[1] - rng[0], "n_tdc_total": n_tdc,
-                    "tdc_range": list(rng), "t_laser_win_ns": gate_ns, "date": date}
-            tx.send_multipart(wire.encode(head, batch))
+                    "tdc_range": list(rng), "t_laser_win_ns": gate_ps / 1000, "date": date}
+            item.append(wire.encode(head, batch, token))
+        if journal is None:
+            sendq.put(item)  # nothing to fill a hole from: wait for downstream
+        else:
+            try:
+                sendq.put_nowait(item)
+            except queue.Full:  # downstream stalled: the journal has the words
+                stats.deferred_messages += 1
+                stats.deferred_words += int(words.size)
         stats.messages += 1
         pending, pending_first = [], None
 
-    def journal_words(first, words):
-        # the same journal the sources write: readable while written, closed with the
-        # run's end, so a restarted stage downstream can fill its gaps from it
+    def take(d: datagram.Datagram):
+        # released in stream order: journal (once per cycle), then batch for sending
+        nonlocal pending_first, next_word
+        first = d.first_cycle * n_tdc
+        if next_word is not None and first != next_word:
+            flush()  # a gap: the next batch starts where the words do
+        if journal is not None and not journal_words(first, d.words):
+            stats.unjournaled_words += int(d.words.size)  # a stop came while the disk was
+            return                                        # full: counted, never sent
+        if pending_first is None:
+            pending_first = first
+        pending.append(d.words)
+        next_word = first + d.words.size
+        stats.words += d.words.size
+        stats.accepted += 1
+        if sum(p.size for p in pending) >= BATCH_WORDS:
+            flush()
+
+    def journal_words(first: int, words: np.ndarray) -> bool:
+        # a full disk pauses intake here (the receive thread goes on into the ring, whose
+        # overflow is counted): retried until there is room, or False at a stop
+        from pipeline.journal import is_disk_full
+
         nonlocal writer
-        if journal is None:
-            return
-        if writer is None:
-            writer = JournalWriter(journal, run, n_tdc, gate_ns, segment_words=segment_words,
-                                   compression=compression)
-        writer.append(first, words)
+        wait = 0.2
+        while True:
+            try:
+                if writer is None:
+                    writer = JournalWriter(journal, run, n_tdc, gate_ps / 1000,
+                                           segment_words=segment_words,
+                                           compression=compression)
+                writer.append(first, words)
+                return True
+            except OSError as exc:
+                if not is_disk_full(exc):
+                    raise
+                if stop.is_set():
+                    return False
+                stats.paused_s += wait
+                beat.beat(force=True, state="paused", reason=f"disk full: {exc}",
+                          **stats.fields())
+                time.sleep(wait)
+                wait = min(2 * wait, 5.0)
+
+    def reject(reason: str, detail: str, data: bytes):
+        stats.rejected[reason] += 1
+        try:
+            quar.put(reason, data, detail=detail)
+        except OSError:
+            quar.dropped += 1  # a full disk: counted, not kept
+        stats.quarantine_dropped = quar.dropped
 
     try:
         while not stop.is_set():
-            beat.beat(state="running", received=stats.datagrams, sent=stats.messages,
-                      words=stats.words, rejected=dict(stats.rejected),
-                      lost_datagrams=stats.lost_datagrams)
+            stats.gap_cycles, stats.lost_datagrams = reasm.gap_cycles, reasm.lost()
+            beat.beat(state="running", **stats.fields())
+            if last_end is not None and reasm.next_cycle >= last_end and not reasm.held:
+                break  # the last datagram and everything before it are in
             try:
-                data = sock.recv(datagram.MAX_PAYLOAD + 1)
-            except TimeoutError:
+                data = ring.get(timeout=0.2)
+            except queue.Empty:
                 idle += 0.2
+                if reasm.held and idle >= linger_s:  # a quiet stream: nothing will fill
+                    for r in reasm.drain():         # the holes; hold no words back
+                        take(r)
+                    flush()
+                if last_end is not None and idle >= linger_s:
+                    break  # stragglers of the run's end did not come: gaps
                 if idle_s is not None and idle >= idle_s:
                     break
                 continue
@@ -131,50 +369,67 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                 d = datagram.decode(data)
                 if n_tdc is not None and d.n_tdc != n_tdc:
                     raise datagram.DatagramError("n_tdc_mismatch",
-                                                 f"{d.n_tdc} TDCs after {n_tdc}")
+                                                 f"{d.n_tdc} TDCs, the run has {n_tdc}")
+                if not GATE_PS[0] <= d.t_laser_win_ps <= GATE_PS[1] or (
+                        gate_ps is not None and d.t_laser_win_ps != gate_ps):
+                    raise datagram.DatagramError("bad_gate", f"gate {d.t_laser_win_ps} ps "
+                                                 f"(run: {gate_ps}, bounds {GATE_PS})")
+                if d.n_cycles == 0:
+                    raise datagram.DatagramError("empty", "no cycles")
+                verdict, released = reasm.offer(d)
             except datagram.DatagramError as exc:
-                stats.rejected[exc.reason] += 1
-                if qdir is not None:
-                    qdir.mkdir(parents=True, exist_ok=True)
-                    k = sum(stats.rejected.values())
-                    (qdir / f"{k:06d}.bin").write_bytes(data)
-                    (qdir / f"{k:06d}.json").write_text(json.dumps({"reason": str(exc)}))
+                reject(exc.reason, str(exc), data)
                 continue
-            stats.lost_datagrams += seqs.see(d.seq)
-            n_tdc = d.n_tdc
-            gate_ns = d.t_laser_win_ps / 1000
-            first = d.first_cycle * n_tdc
-            if next_word is not None and first != next_word:
-                flush()  # a gap: the next batch starts where the words do
-            if pending_first is None:
-                pending_first = first
-            pending.append(d.words)
-            next_word = first + d.words.size
-            journal_words(first, d.words)
-            stats.words += d.words.size
-            if sum(p.size for p in pending) >= BATCH_WORDS:
-                flush()
+            if verdict == "duplicate":
+                stats.duplicates += 1
+                continue
+            if verdict == "late":
+                stats.late += 1
+                reject("late", f"cycles {d.first_cycle}.. came after their window closed "
+                               f"(the stream is at {reasm.next_cycle})", data)
+                continue
+            n_tdc, gate_ps = d.n_tdc, d.t_laser_win_ps
+            for r in released:
+                take(r)
             if d.last:
-                break
+                last_end = d.first_cycle + d.n_cycles
+        for r in reasm.drain():
+            take(r)
         flush()
+        stats.gap_cycles, stats.lost_datagrams = reasm.gap_cycles, reasm.lost()
         if writer is not None:  # the run's end is on disk before anyone hears of it
             writer.close()
             stats.journal = [str(p) for p in writer.segments]
             writer = None
-        for tx in txs:
-            tx.send_multipart(wire.encode({
-                "kind": "stop", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
-                "run": run, "seq": stats.messages, "step": "ingest", "words": stats.words,
-                "datagrams": stats.datagrams, "lost_datagrams": stats.lost_datagrams,
-                "rejected": dict(stats.rejected)}, None))
-        beat.beat(force=True, state="finished", received=stats.datagrams,
-                  sent=stats.messages, words=stats.words, rejected=dict(stats.rejected),
-                  lost_datagrams=stats.lost_datagrams)
+        halt_rx.set()
+        rx_thread.join()
+        stats.datagrams += ring.qsize()  # came after the end: counted, not taken
+        stats.rejected["after_end"] += ring.qsize()
+        if not stats.rejected["after_end"]:
+            del stats.rejected["after_end"]
+        stop_head = {
+            "kind": "stop", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
+            "run": run, "seq": stats.messages, "step": "ingest", "words": stats.words,
+            "datagrams": stats.datagrams, "lost_datagrams": stats.lost_datagrams,
+            "duplicates": stats.duplicates, "late": stats.late,
+            "gap_cycles": stats.gap_cycles, "rejected": dict(stats.rejected)}
+        sendq.put([wire.encode(stop_head, None, token) for _ in txs])
+        sendq.put(None)
+        tx_thread.join(timeout=60)  # a downstream that never takes it: the daemon ends it
+        beat.beat(force=True, state="finished", **stats.fields())
     finally:
+        halt_rx.set()
+        abort_tx.set()
+        if tx_thread.is_alive():
+            try:
+                sendq.put_nowait(None)
+            except queue.Full:
+                pass
+            tx_thread.join(timeout=2)
         if writer is not None:
             writer.close()
             stats.journal = [str(p) for p in writer.segments]
         beat.close()
         for tx in txs:
-            tx.close()
+            tx.close(linger=60_000 if not tx_thread.is_alive() else 0)
     return stats

@@ -33,9 +33,12 @@ class HistogramCore:
 
     def __init__(self, n_tdc: int, bounds: ArtifactBounds | None = None,
                  step_id: str = "histogram", engine: str | None = None, backfill=None,
-                 tdc_offset: int = 0, measurement_cycles: int | None = None):
+                 tdc_offset: int = 0, measurement_cycles: int | None = None,
+                 context: dict | None = None):
         """``backfill(start, stop)`` yields (first_word, words) of a gap in the stream (the
-        pipeline reads them from the journal); None: gaps are counted, not filled."""
+        pipeline reads them from the journal); None: gaps are counted, not filled.
+        ``context``: the run's run id, gate, window and date known before any message (a
+        worker restarted after its source ended hears none, yet must label its output)."""
         if measurement_cycles is not None and measurement_cycles < 1:
             raise ValueError(f"measurement_cycles must be >= 1, found {measurement_cycles}")
         self.step_id = step_id
@@ -52,7 +55,7 @@ class HistogramCore:
         self.backfilled = 0
         self.gap_words = 0
         self.words_total = 0      #: words folded in over the run (restored from checkpoints)
-        self.context: dict = {}   #: gate setting and the like, from the input headers
+        self.context: dict = dict(context or {})  #: gate and the like, from the headers
         self._out: list = []
 
     # ------------------------------------------------------------------ folding
@@ -126,7 +129,7 @@ class HistogramCore:
         return out
 
     def process(self, header: dict, batch: pa.RecordBatch) -> list:
-        self.context = {"run": header.get("run", "run"),
+        self.context = {**self.context, "run": header.get("run", "run"),
                         **{k: header[k] for k in ("t_laser_win_ns", "window_ns",
                                                   "n_tdc_total", "date") if k in header}}
         words = batch.column("word").to_numpy(zero_copy_only=False).astype(np.uint32,

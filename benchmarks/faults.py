@@ -1,0 +1,366 @@
+"""Faults: every scenario of issue 16 against the daemon, each compared with a clean run of
+the same input, as one table.
+
+For each scenario the daemon runs the same 16-TDC scene (2 histogram workers, a histogram
+per 10 000 cycles) or the same UDP datagrams, with the fault injected while it runs; its
+histograms dataset is then compared measurement by measurement with the clean run's.
+Columns: words (or datagrams) sent, journaled, lost silently (never journaled and not
+counted as a gap, duplicate, late or rejection: must be 0), wrong measurements (differ from
+the clean run: must be 0), withheld (measurements absent from the dataset, each of which
+must be counted in the accounting), crashes (stage restarts), and the run's delay against
+the clean run (the machine is shared: the delays are rough).
+
+    python benchmarks/faults.py [--out benchmarks/results/faults.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.datapath import emit, machine  # noqa: E402
+
+N, CYCLES, MC = 16, 200_000, 10_000
+SCENE = """
+name = "small"
+[sensor]
+n_pixels = 16
+[gate]
+t_laser_win_ns = 140.0
+delay_ns = 100.0
+[[targets]]
+pixels = [0, 15]
+distance_m = 1.5
+reflectivity = 0.002
+surface = "mirror"
+[[ambient]]
+kind = "lux"
+lux = 800.0
+"""
+
+
+def topology(d: Path, rate: float | None = 1.5e6, extra: str = "", udp_port=None) -> Path:
+    (d / "small.toml").write_text(SCENE)
+    src = (f'kind = "udp"\nbind = "127.0.0.1:{udp_port}"\nn_tdc = {N}\nidle = 4'
+           if udp_port else
+           f'kind = "sim"\nscene = "{d / "small.toml"}"\ncycles = {CYCLES}\nseed = 5\n'
+           + (f"rate = {rate}" if rate else ""))
+    mc = 640 if udp_port else MC
+    (d / "topo.toml").write_text(f"""
+[daemon]
+state = "{d / 'state'}"
+{extra}
+[source]
+{src}
+[histogram]
+workers = 2
+measurement_cycles = {mc}
+[sink]
+out = "{d / 'out'}"
+""")
+    return d / "topo.toml"
+
+
+def histograms(out: Path, run: str) -> dict:
+    import polars as pl
+
+    parts = list(out.glob(f"histograms/date=*/run={run}/*.parquet"))
+    if not parts:
+        return {}
+    h = pl.read_parquet(parts)
+    return {(m.rsplit("-m", 1)[1], t): (c, tuple(n)) for m, t, c, n in zip(
+        h["measurement"], h["tdc"], h["cycles"], h["counts"].to_list(), strict=True)}
+
+
+def run_daemon(topo: Path, run: str, during=None) -> tuple[dict, object, float]:
+    from pipeline.daemon import Supervisor, load_topology
+
+    sup = Supervisor(load_topology(topo, run), log=lambda m: None)
+    res = {}
+    t0 = time.perf_counter()
+    t = threading.Thread(target=lambda: res.update(sup.run()))
+    t.start()
+    if during:
+        during(sup)
+    t.join()
+    return res, sup, time.perf_counter() - t0
+
+
+def wait_words(sup, words: float) -> None:
+    deadline = time.time() + 120
+    while sup.metrics.get("source", {}).get("words", 0) < words:
+        if time.time() > deadline:
+            raise RuntimeError("the source never got going")
+        time.sleep(0.02)
+
+
+def kill(sup, name: str) -> None:
+    os.kill(sup.by_name[name].popen.pid, signal.SIGKILL)
+
+
+def compare(ref: dict, got: dict) -> tuple[int, int]:
+    """(wrong, withheld) measurement-TDC rows, as measurements of 16 TDCs."""
+    wrong = sum(1 for k, v in got.items() if ref.get(k) != v)
+    missing = sum(1 for k in ref if k not in got)
+    return -(-wrong // N), -(-missing // N)
+
+
+def row(name, injected, sent, res, sup, dt, ref_dt, ref, got, extra_lost=0):
+    acc = res.get("accounting") or {}
+    journaled = acc.get("words_in", 0)
+    wrong, missing = compare(ref, got)
+    # withheld measurements must each be in the accounting (a corrupt journal chunk)
+    counted = {int(k) for k, _ in acc.get("corrupt_measurements", [])}
+    absent = {int(k) for k, _ in ref} - {int(k) for k, _ in got}
+    note = "" if not absent else (" (counted)" if absent <= counted else " (NOT counted)")
+    lost = max(0, sent - journaled - acc.get("words_in_gaps", 0)) + extra_lost
+    crashes = sum(res.get("restarts", {}).values())
+    return (f"| {name} | {injected} | {sent:,} | {journaled:,} | {lost:,} | {wrong} | "
+            f"{missing}{note} | {crashes} | {dt - ref_dt:+.1f} |")
+
+
+def sim_scenarios(tmp: Path, lines: list[str]) -> None:
+    ref_dir = tmp / "ref"
+    ref_dir.mkdir()
+    res, sup, ref_dt = run_daemon(topology(ref_dir), "r")
+    ref = histograms(ref_dir / "out", "r")
+    sent = CYCLES * N
+    lines.append(row("clean run", "nothing", sent, res, sup, ref_dt, ref_dt, ref, ref))
+
+    def scenario(name, injected, during=None, extra="", pre=None, post=None, cleanup=None):
+        d = tmp / name.replace(" ", "_")
+        d.mkdir()
+        topo = topology(d, extra=extra)
+        if pre:
+            pre(d, topo)
+        res, sup, dt = run_daemon(topo, "r", during)
+        if post:
+            res = post(d, topo, res) or res
+        lines.append(row(name, injected, sent, res, sup, dt, ref_dt, ref,
+                         histograms(d / "out", "r")))
+        if cleanup:
+            cleanup(d)
+        print(lines[-1], flush=True)
+
+    scenario("kill a worker", "SIGKILL histogram-1 at 1 M words",
+             lambda s: (wait_words(s, 1e6), kill(s, "histogram-1")))
+    scenario("kill sink and source", "SIGKILL sink at 0.6 M, source at 1.4 M words",
+             lambda s: (wait_words(s, 6e5), kill(s, "sink"), wait_words(s, 1.4e6),
+                        kill(s, "source")))
+
+    def torn_checkpoint(s):
+        wait_words(s, 1e6)
+        p = s.by_name["histogram-1"].popen
+        ck = s.topo.state / "checkpoints" / "r" / "histogram-1.npz"
+        os.kill(p.pid, signal.SIGKILL)
+        p.wait()
+        ck.write_bytes(ck.read_bytes()[:100])
+
+    scenario("corrupt checkpoint", "SIGKILL histogram-1, its checkpoint cut to 100 B",
+             torn_checkpoint)
+
+    def forged(s):
+        import pyarrow as pa
+        import zmq
+
+        from pipeline import wire
+        from schemas import RAW_WORDS
+
+        wait_words(s, 5e5)
+        ctx = zmq.Context()
+        tx = ctx.socket(zmq.PUSH)
+        tx.connect(s.topo.endpoint(s.topo.histogram, "histogram-0", 0))
+        head = {"kind": "data", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
+                "run": "r", "seq": 1, "step": "source", "first_word": 0, "n_tdc": 8,
+                "t_laser_win_ns": 140.0}
+        words = pa.record_batch([pa.array(np.full(800, 0x202, np.uint32))],
+                                schema=RAW_WORDS.schema)
+        tx.send_multipart(wire.encode({**head, "kind": "stop"}, None))
+        tx.send_multipart(wire.encode(head, words))
+        for _ in range(6):
+            tx.send_multipart(wire.encode({k: v for k, v in head.items()
+                                           if k != "t_laser_win_ns"}, words))
+        tx.send_multipart(wire.encode({**head, "date": "../../.."}, words))
+        tx.close(linger=2000)
+        ctx.term()
+
+    scenario("forged and poisoned messages", "a stop, a batch, 7 bad headers, no token",
+             forged)
+
+    def corrupt_repair(d, topo, res):
+        from pipeline import daemon
+        from pipeline.journal import _entries, segment_path
+
+        # the sink lost measurements 3 and 11 in flight; one journal frame of 3 is flipped
+        for k in (3, 11):
+            for p in (d / "out").glob(f"histograms/date=*/run=r/part-{k:06d}-*.parquet"):
+                p.unlink()
+        j = d / "state" / "journal"
+        e = next(e for e in _entries(j / "r.index.jsonl") if not e.get("end")
+                 and e["first_word"] <= 3 * MC * N < e["first_word"] + e["words"])
+        seg = segment_path(j, "r", e["segment"], "zstd")
+        b = bytearray(seg.read_bytes())
+        b[e["offset"] + e["bytes"] // 2] ^= 1
+        seg.write_bytes(bytes(b))
+        topo_ = daemon.load_topology(topo, "r")
+        rec = daemon.reconcile(topo_)
+        return {**res, "reconciled": rec,
+                "accounting": daemon.accounting(topo_, {}, rec)}
+
+    scenario("corrupt journal frame", "a bit flipped in a frame the repair reads",
+             post=corrupt_repair)
+
+    def daemon_kill(d, topo):
+        cmd = [sys.executable, "-m", "pipeline.cli", "daemon", "--config", str(topo),
+               "--run", "r"]
+        p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        status = d / "state" / "status.json"
+        while True:
+            try:
+                if json.loads(status.read_text())["stages"]["source"].get("words", 0) > 1e6:
+                    break
+            except (OSError, ValueError, KeyError):
+                pass
+            time.sleep(0.05)
+        p.send_signal(signal.SIGKILL)
+        p.wait()
+        time.sleep(0.5)
+
+    scenario("kill the daemon", "SIGKILL the daemon at 1 M words, start it again (delay: "
+             "the second daemon's run only)",
+             pre=daemon_kill)
+    if os.geteuid() == 0:
+        for which, stage in (("out", "sink"), ("state", "source")):
+            def full(s, which=which, stage=stage):
+                wait_words(s, 5e5)
+                target = s.topo.state if which == "state" else Path(s.topo.sink["out"])
+                filler = target / "filler"
+                with open(filler, "wb", buffering=0) as fh:
+                    for size in (1 << 20, 1 << 12, 1):
+                        try:
+                            while True:
+                                fh.write(b"\0" * size)
+                        except OSError:
+                            continue
+                while stage not in s.status()["paused"]:
+                    time.sleep(0.05)
+                time.sleep(2.0)
+                filler.unlink()
+
+            def mount(d, topo, which=which):
+                (d / which).mkdir()
+                subprocess.run(["mount", "-t", "tmpfs", "-o", "size=48m", "tmpfs",
+                                str(d / which)], check=True)
+
+            scenario(f"full {which} disk", f"{which} tmpfs filled for 2 s", full,
+                     pre=mount, cleanup=lambda d, which=which: subprocess.run(
+                         ["umount", "-l", str(d / which)]))
+
+
+def udp_scenarios(tmp: Path, lines: list[str]) -> None:
+    from pipeline import datagram
+    from stages.testpattern import pattern_words
+
+    n, cyc = 1000, 64
+    words, _ = pattern_words(n * cyc, N, hit_prob=0.1, rng=3)
+    dgs = [datagram.encode(words[i * cyc * N:(i + 1) * cyc * N], i, i * cyc, N, 140_000,
+                           last=(i == n - 1)) for i in range(n)]
+
+    def feed(schedule, rate, stall=None):
+        def during(sup):
+            while "source" not in sup.metrics:
+                time.sleep(0.05)
+            port = int(sup.topo.source["bind"].rsplit(":", 1)[1])
+            out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            t0 = time.perf_counter()
+            for i, data in enumerate(schedule):
+                if stall and i == 100:
+                    os.kill(sup.by_name[stall].popen.pid, signal.SIGSTOP)
+                if stall and i == 100 + int(3 * rate):
+                    os.kill(sup.by_name[stall].popen.pid, signal.SIGCONT)
+                out.sendto(data, ("127.0.0.1", port))
+                ahead = (i + 1) / rate - (time.perf_counter() - t0)
+                if ahead > 0:
+                    time.sleep(ahead)
+            out.close()
+        return during
+
+    def run(name, schedule, rate, stall=None):
+        d = tmp / f"udp_{name.replace(' ', '_')}"
+        d.mkdir()
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        res, sup, dt = run_daemon(topology(d, udp_port=port), "u",
+                                  feed(schedule, rate, stall))
+        return res, sup, dt, histograms(d / "out", "u")
+
+    res, sup, ref_dt, ref = run("clean", dgs, 1000)
+
+    def line(name, injected, res, sup, dt, got, n_sent):
+        acc = res.get("accounting") or {}
+        src = sup.metrics.get("source", {})
+        # lost: datagrams neither journaled nor counted (duplicate, late, rejected, gap)
+        taken = src.get("accepted", 0)
+        counted = (src.get("duplicates", 0) + sum(src.get("rejected", {}).values()))
+        lost_silent = n_sent - taken - counted
+        wrong, missing = compare(ref, got)
+        return (f"| {name} | {injected} | {n_sent:,} datagrams | {acc.get('words_in', 0):,}"
+                f" words ({taken:,} datagrams) | {lost_silent} | {wrong} | {missing} "
+                f"(gaps {acc.get('words_in_gaps', 0):,} words) | "
+                f"{sum(res.get('restarts', {}).values())} | {dt - ref_dt:+.1f} |")
+
+    lines.append(line("UDP clean", "nothing", res, sup, ref_dt, ref, n))
+    print(lines[-1], flush=True)
+    order = list(range(n))
+    rng = np.random.default_rng(0)
+    for i in rng.choice(n - 2, 90, replace=False):
+        order[i], order[i + 1] = order[i + 1], order[i]
+    schedule = [dgs[i] for i in order]
+    for i in sorted(rng.choice(n - 1, 70, replace=False), reverse=True):
+        schedule.insert(i + 3, dgs[i])
+    w = np.zeros(cyc * N, np.uint32)
+    schedule[500:500] = [datagram.encode(w, 7, 2**62, N, 140_000),
+                         datagram.encode(w, 8, 2**40, N, 140_000),
+                         b"garbage", datagram.encode(w, 9, 5, 8, 140_000)[:-4]]
+    res, sup, dt, got = run("hostile", schedule, 1000)
+    lines.append(line("UDP reordered/duplicated/poisoned",
+                      "~90 swaps, 70 duplicates, 4 poisoned", res, sup, dt, got,
+                      len(schedule)))
+    print(lines[-1], flush=True)
+    res, sup, dt, got = run("stalled", dgs, 200, stall="histogram-0")
+    lines.append(line("UDP, a stage stalled", "SIGSTOP histogram-0 for 3 s at 200/s",
+                      res, sup, dt, got, n))
+    print(lines[-1], flush=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+    lines = ["# Faults: the daemon against a clean run of the same input", "",
+             machine(), "",
+             "| scenario | injected | sent | journaled | lost silently | wrong measurements "
+             "| withheld (counted) | crashes | delay vs clean (s) |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    with tempfile.TemporaryDirectory(dir=Path.cwd()) as d:
+        sim_scenarios(Path(d), lines)
+        udp_scenarios(Path(d), lines)
+    emit(lines, args.out)
+
+
+if __name__ == "__main__":
+    main()

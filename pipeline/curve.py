@@ -1,0 +1,108 @@
+"""ZeroMQ CURVE for a graph that spans hosts: encryption and authentication of every
+socket, with keys in the daemon's state directory.
+
+``STATE/curve/`` (mode 0700) holds ``server.key`` / ``server.key_secret`` (every bound
+socket serves with them) and ``client.key`` / ``client.key_secret`` (every connecting socket
+presents them); ``authorized/`` holds the public client keys a bound socket accepts (the
+ZAP authenticator of each process reads it). Secret files are mode 0600. A stage turns
+CURVE on when ``$TCSPC_CURVE_DIR`` names that directory (the daemon sets it; for stages
+started by hand on another host, copy the directory there). Off by default on loopback; the
+daemon turns it on when any endpoint is tcp:// to a non-loopback address, or by config.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+import shutil
+import threading
+from pathlib import Path
+
+import zmq
+
+CURVE_ENV = "TCSPC_CURVE_DIR"
+_auth_lock = threading.Lock()
+_authenticators: dict[int, object] = {}  # per context: one ZAP handler thread
+
+
+def ensure_keys(state: str | Path) -> Path:
+    """Create (once) and return the key directory ``STATE/curve``."""
+    import zmq.auth
+
+    d = Path(state) / "curve"
+    auth = d / "authorized"
+    if not (d / "server.key_secret").exists() or not (d / "client.key_secret").exists():
+        d.mkdir(parents=True, exist_ok=True)
+        os.chmod(d, 0o700)
+        zmq.auth.create_certificates(str(d), "server")
+        zmq.auth.create_certificates(str(d), "client")
+    auth.mkdir(exist_ok=True)
+    shutil.copyfile(d / "client.key", auth / "client.key")
+    for p in d.glob("*.key_secret"):
+        os.chmod(p, 0o600)
+    os.chmod(d, 0o700)
+    return d
+
+
+def key_dir() -> Path | None:
+    """The key directory when CURVE is on for this process, else None."""
+    v = os.environ.get(CURVE_ENV)
+    return Path(v) if v else None
+
+
+def needs_curve(endpoints: list[str]) -> bool:
+    """True when any endpoint is tcp:// to an address that is not loopback."""
+    for ep in endpoints:
+        if not ep.startswith("tcp://"):
+            continue
+        host = ep[len("tcp://"):].rsplit(":", 1)[0].strip("[]")
+        if host in ("localhost", "*"):
+            if host == "*":
+                return True  # every interface: reachable from the network
+            continue
+        try:
+            if not ipaddress.ip_address(host).is_loopback:
+                return True
+        except ValueError:
+            return True  # a host name: assume it is another host
+    return False
+
+
+def serve(sock: zmq.Socket, keys: Path | None = None) -> None:
+    """Make ``sock`` (about to bind) a CURVE server accepting only authorized clients."""
+    import zmq.auth
+    from zmq.auth.thread import ThreadAuthenticator
+
+    keys = keys or key_dir()
+    if keys is None:
+        return
+    with _auth_lock:
+        ctx = sock.context
+        if id(ctx) not in _authenticators:
+            auth = ThreadAuthenticator(ctx)
+            auth.start()
+            auth.configure_curve(domain="*", location=str(keys / "authorized"))
+            _authenticators[id(ctx)] = auth
+    public, secret = zmq.auth.load_certificate(str(keys / "server.key_secret"))
+    sock.curve_secretkey, sock.curve_publickey = secret, public
+    sock.curve_server = True
+
+
+def client(sock: zmq.Socket, keys: Path | None = None) -> None:
+    """Make ``sock`` (about to connect) a CURVE client of the graph's server key."""
+    import zmq.auth
+
+    keys = keys or key_dir()
+    if keys is None:
+        return
+    public, secret = zmq.auth.load_certificate(str(keys / "client.key_secret"))
+    server, _ = zmq.auth.load_certificate(str(keys / "server.key"))
+    sock.curve_secretkey, sock.curve_publickey = secret, public
+    sock.curve_serverkey = server
+
+
+def stop_authenticators() -> None:
+    with _auth_lock:
+        for auth in _authenticators.values():
+            auth.stop()
+        _authenticators.clear()
