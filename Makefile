@@ -32,7 +32,7 @@ lint: $(STAMP)
 
 docs: $(STAMP)  ## regenerate docs/schemas.md from schemas/ and docs/cli.md from the commands
 	$(VENV)/bin/tcspc schema --markdown > docs/schemas.md
-	$(PY) -m pipeline.cli_docs > docs/cli.md
+	$(PY) -m pipeline.cli.docs > docs/cli.md
 
 clean:
 	rm -rf $(VENV) .prefect data .pytest_cache .hypothesis

@@ -31,13 +31,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.datapath import emit, machine  # noqa: E402
-from pipeline.calibrate import (  # noqa: E402
+from pipeline.offline.calibrate import (  # noqa: E402
     add_delay,
     density_histograms,
     refilled,
     write_caldir,
 )
-from pipeline.simulate import SimulatedCapture  # noqa: E402
+from pipeline.offline.simulate import SimulatedCapture  # noqa: E402
 from stages import calibration as cal  # noqa: E402
 from stages.models.scene import scene_from_dict  # noqa: E402
 

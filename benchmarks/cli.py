@@ -42,7 +42,7 @@ def timed(cmd: list[str], repeat: int) -> tuple[float, str]:
 
 
 def make_capture(tmp: Path, cycles: int, tile: int) -> Path:
-    from pipeline.capture import Capture, CaptureWriter
+    from pipeline.io.capture import Capture, CaptureWriter
 
     one = tmp / "street"
     subprocess.run([*TCSPC, "simulate", str(ROOT / "scenes" / "street.toml"), "--cycles",
@@ -95,7 +95,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         capture = make_capture(tmp, args.cycles, args.tile)
-        from pipeline.capture import Capture
+        from pipeline.io.capture import Capture
 
         n_words = Capture(capture).n_words
         cal = calibration_bounds(tmp)

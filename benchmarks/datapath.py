@@ -24,7 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.capture import CaptureWriter  # noqa: E402
+from pipeline.io.capture import CaptureWriter  # noqa: E402
 from schemas.words import N_CLASSES  # noqa: E402
 from stages.artifact import ArtifactBounds  # noqa: E402
 from stages.codec import classify_words, decode_fields  # noqa: E402
@@ -157,7 +157,8 @@ def run_capture(gb: float, workdir: Path) -> dict:
         for _ in range(n_blocks):
             w.write(block)
     code = ("import json, sys, time; sys.path.insert(0, %r);"
-            "from pipeline.capture import Capture; from pipeline.offline import histogram_capture;"
+            "from pipeline.io.capture import Capture;"
+            "from pipeline.offline.datapath import histogram_capture;"
             "cap = Capture(%r); t0 = time.perf_counter(); s, b = histogram_capture(cap);"
             "dt = time.perf_counter() - t0;"
             "print(json.dumps({'words': cap.n_words, 'seconds': dt, 'passes': 2,"

@@ -86,7 +86,7 @@ def histograms(out: Path, run: str) -> dict:
 
 
 def run_daemon(topo: Path, run: str, during=None) -> tuple[dict, object, float]:
-    from pipeline.daemon import Supervisor, load_topology
+    from pipeline.stream.daemon import Supervisor, load_topology
 
     sup = Supervisor(load_topology(topo, run), log=lambda m: None)
     res = {}
@@ -176,7 +176,7 @@ def sim_scenarios(tmp: Path, lines: list[str]) -> None:
         import pyarrow as pa
         import zmq
 
-        from pipeline import wire
+        from pipeline.stream import wire
         from schemas import RAW_WORDS
 
         wait_words(s, 5e5)
@@ -201,8 +201,8 @@ def sim_scenarios(tmp: Path, lines: list[str]) -> None:
              forged)
 
     def corrupt_repair(d, topo, res):
-        from pipeline import daemon
-        from pipeline.journal import _entries, segment_path
+        from pipeline.stream import daemon
+        from pipeline.stream.journal import _entries, segment_path
 
         # the sink lost measurements 3 and 11 in flight; one journal frame of 3 is flipped
         for k in (3, 11):
@@ -271,7 +271,7 @@ def sim_scenarios(tmp: Path, lines: list[str]) -> None:
 
 
 def udp_scenarios(tmp: Path, lines: list[str]) -> None:
-    from pipeline import datagram
+    from pipeline.stream import datagram
     from stages.testpattern import pattern_words
 
     n, cyc = 1000, 64

@@ -28,7 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.datapath import emit, machine  # noqa: E402
-from pipeline.capture import CaptureWriter  # noqa: E402
+from pipeline.io.capture import CaptureWriter  # noqa: E402
 from stages.testpattern import pattern_words  # noqa: E402
 
 
@@ -125,7 +125,7 @@ measurement_cycles = 100000
                .with_columns(growth_pct=(pl.col("at end") / pl.col("after warm-up") - 1) * 100)
                .sort("stage"))
     _plot(df, args.out / "soak.png")
-    from pipeline.report import markdown_table
+    from pipeline.report.report import markdown_table
 
     acc = result["accounting"]
     lines = [f"command: `python {' '.join(sys.argv)}`", f"machine: {machine()}", "",

@@ -24,8 +24,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.datapath import emit, machine  # noqa: E402
-from pipeline.figures import speed_error_figure  # noqa: E402
-from pipeline.report import markdown_table, speed_error_summary  # noqa: E402
+from pipeline.report.figures import speed_error_figure  # noqa: E402
+from pipeline.report.report import markdown_table, speed_error_summary  # noqa: E402
 from stages.ranging import ESTIMATORS  # noqa: E402
 from stages.ranging_eval import PLACES, Setup, draw, score  # noqa: E402
 

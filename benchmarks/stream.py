@@ -25,7 +25,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.datapath import emit, machine  # noqa: E402
-from pipeline.capture import CaptureWriter  # noqa: E402
+from pipeline.io.capture import CaptureWriter  # noqa: E402
 from stages.testpattern import pattern_words  # noqa: E402
 
 CLI = [sys.executable, "-m", "pipeline.cli", "stage"]

@@ -25,10 +25,10 @@ from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 
 from flows.common import new_run_dir, report, scene_dict, simulate
-from pipeline.atomic import atomic_path
-from pipeline.calibrate import add_delay, lsb_campaign, quality, read_density
-from pipeline.capture import Capture
-from pipeline.report import markdown_table
+from pipeline.io.atomic import atomic_path
+from pipeline.io.capture import Capture
+from pipeline.offline.calibrate import add_delay, lsb_campaign, quality, read_density
+from pipeline.report.report import markdown_table
 from schemas.errors import CalibrationError
 
 #: five levels (a cubic through four would have no residual to judge it by), from below the
@@ -100,8 +100,8 @@ def publish(candidate: str, current: str) -> str:
 
 @task(cache_policy=NO_CACHE)
 def plots(candidate: str, fit: dict, run: str) -> list[str]:
-    from pipeline.calibrate import read_lsb_fit
-    from pipeline.figures import density_figure, lsb_figure
+    from pipeline.offline.calibrate import read_lsb_fit
+    from pipeline.report.figures import density_figure, lsb_figure
 
     res, _ = read_density(candidate)
     a = density_figure(res, Path(run) / "density.png")
@@ -152,7 +152,7 @@ def calibration_campaign(out: str = "data/calibration", lux: list[float] | None 
     run = new_run_dir(out, "calibration_campaign")
     cache = str(Path(out) / "cache")
     if journal:
-        from pipeline.journal import JournalCapture
+        from pipeline.stream.journal import JournalCapture
 
         if not density_runs or not delay_run:
             raise CalibrationError("a campaign on a daemon's journal needs density_runs and "

@@ -15,11 +15,11 @@ from pathlib import Path
 from prefect import get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 
-from pipeline.atomic import atomic_path
-from pipeline.calibrate import software_version
-from pipeline.capture import Capture
-from pipeline.report import write_report
-from pipeline.simulate import simulate_capture
+from pipeline.io.atomic import atomic_path
+from pipeline.io.capture import Capture
+from pipeline.offline.calibrate import software_version
+from pipeline.offline.simulate import simulate_capture
+from pipeline.report.report import write_report
 from stages.models.scene import scene_from_dict
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -2,7 +2,7 @@
 under ``./data``.
 
 1. the data path checked exactly on a synthetic capture, and the street scene's peaks
-   where their distances put them (``pipeline.demo``);
+   where their distances put them (``pipeline.report.demo``);
 2. a calibration campaign on the simulated chip (Prefect flow, embedded ephemeral API):
    density tests at five light levels, the LSB polynomial, the zero-distance delay, a
    report with plots; published to ``data/calibration/current`` unless worse;
@@ -37,8 +37,8 @@ def run_story(out: str | Path = "data", cycles: int = 100_000,
               calibration_cycles: int = 400_000, inl_rms: float = 0.5,
               console: Console | None = None) -> dict:
     from flows.calibration import calibration_campaign
-    from pipeline.daemon import Supervisor, load_topology
-    from pipeline.demo import run_demo
+    from pipeline.report.demo import run_demo
+    from pipeline.stream.daemon import Supervisor, load_topology
 
     con = console or Console(stderr=True)
     out = Path(out)
@@ -105,7 +105,7 @@ def run_story(out: str | Path = "data", cycles: int = 100_000,
 
 def _street_figure(out: Path, ranges: pl.DataFrame) -> Path:
     """The picture of what the daemon found: ranges per pixel, one car pixel's histogram."""
-    from pipeline.figures import street_figure
+    from pipeline.report.figures import street_figure
 
     per_pixel = (ranges.filter(pl.col("detected")).group_by("tdc")
                  .agg(pl.col("distance_m").median()).sort("tdc"))

@@ -18,9 +18,9 @@ from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 
 from flows.common import new_run_dir, report, scene_dict, simulate
-from pipeline.capture import Capture
-from pipeline.ranging import range_capture
-from pipeline.report import markdown_table
+from pipeline.io.capture import Capture
+from pipeline.offline.ranging import range_capture
+from pipeline.report.report import markdown_table
 
 C_M_PER_NS = 0.299792458
 WINDOW_BEFORE_CLOSE_NS = 40.0
@@ -78,7 +78,7 @@ def figures(points: pl.DataFrame, summary: pl.DataFrame, run: str) -> list[str]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from pipeline.figures import _save
+    from pipeline.report.figures import _save
 
     run = Path(run)
     paths = []

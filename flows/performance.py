@@ -15,7 +15,7 @@ from prefect import flow, task
 from prefect.cache_policies import INPUTS, TASK_SOURCE
 
 from flows.common import new_run_dir, report
-from pipeline.report import markdown_table
+from pipeline.report.report import markdown_table
 from stages.models.performance import TABLE_2_2, measure_detection, predict
 
 
@@ -52,7 +52,7 @@ def figures(g: pl.DataFrame, v: pl.DataFrame, run: str) -> list[str]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from pipeline.figures import _save
+    from pipeline.report.figures import _save
 
     fig, ax = plt.subplots(1, 2, figsize=(12, 4.2), sharey=True)
     for k, gated in enumerate((False, True)):

@@ -15,8 +15,8 @@ import polars as pl
 from prefect import flow, task
 
 from flows.common import new_run_dir, report
-from pipeline.figures import speed_error_figure
-from pipeline.report import markdown_table, speed_error_summary
+from pipeline.report.figures import speed_error_figure
+from pipeline.report.report import markdown_table, speed_error_summary
 from stages.ranging import ESTIMATORS
 from stages.ranging_eval import PLACES, Setup, draw, score
 

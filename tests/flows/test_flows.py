@@ -7,7 +7,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.calibrate import quality
+from pipeline.offline.calibrate import quality
 
 N_PIX = 4
 SMALL_CAL = dict(n_pixels=N_PIX, cycles=150_000, delay_cycles=100_000,
@@ -139,7 +139,7 @@ def test_speed_vs_error(harness, tmp_path):
 def test_flow_cli_lists_runs_and_checks_parameters():
     from click.testing import CliRunner
 
-    from pipeline.cli import cli
+    from pipeline.cli.app import cli
 
     runner = CliRunner()
     res = runner.invoke(cli, ["flow", "list"])
@@ -181,7 +181,7 @@ def test_a_sweep_fans_out_over_a_dask_cluster(harness, tmp_path):
     from click.testing import CliRunner
     from distributed import LocalCluster
 
-    from pipeline.cli import cli
+    from pipeline.cli.app import cli
 
     with LocalCluster(n_workers=1, threads_per_worker=2, processes=False,
                       dashboard_address=None) as cluster:
@@ -200,9 +200,9 @@ def test_campaign_and_sweep_against_a_daemon(campaign, tmp_path, harness):
     from flows.calibration import calibration_campaign
     from flows.common import scene_dict
     from flows.distance_sweep import distance_sweep
-    from pipeline.capture import Capture
-    from pipeline.daemon import Supervisor, load_topology
-    from pipeline.journal import JournalWriter
+    from pipeline.io.capture import Capture
+    from pipeline.stream.daemon import Supervisor, load_topology
+    from pipeline.stream.journal import JournalWriter
 
     out, r = campaign
     journal = tmp_path / "state" / "journal"

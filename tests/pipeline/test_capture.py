@@ -4,7 +4,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from pipeline.capture import Capture, CaptureWriter, write_capture
+from pipeline.io.capture import Capture, CaptureWriter, write_capture
 from schemas import CaptureError
 from stages.testpattern import pattern_words
 

@@ -10,7 +10,7 @@ import pyarrow.parquet as pq
 import pytest
 from click.testing import CliRunner
 
-from pipeline.cli import cli
+from pipeline.cli.app import cli
 from schemas import HISTOGRAMS, validate
 
 JOHNSON = np.array([0b0000, 0b0001, 0b0011, 0b0111, 0b1111, 0b1110, 0b1100, 0b1000])
@@ -144,8 +144,8 @@ def test_decode_writes_every_non_empty_word(independent, tmp_path):
 
 @pytest.mark.parametrize("seed", [1, 2])
 def test_randomly_corrupted_captures_are_fully_accounted(tmp_path, seed):
-    from pipeline.capture import Capture, write_capture
-    from pipeline.offline import histogram_capture
+    from pipeline.io.capture import Capture, write_capture
+    from pipeline.offline.datapath import histogram_capture
     from stages.testpattern import pattern_words
 
     words, _ = pattern_words(2000, 128, hit_prob=0.2, rng=seed)
@@ -183,8 +183,8 @@ def test_pattern_and_schema_commands(tmp_path):
 def test_histogram_makes_a_second_pass_when_the_first_chunk_misleads(tmp_path, monkeypatch):
     """One pass normally; a capture whose first chunk shows another D2nd block than the
     whole (the light changed) gets a second pass, said on stderr, and exact histograms."""
-    from pipeline.capture import Capture, CaptureWriter
-    from pipeline.offline import histogram_capture
+    from pipeline.io.capture import Capture, CaptureWriter
+    from pipeline.offline.datapath import histogram_capture
     from stages.artifact import estimate_bounds
     from stages.codec import encode_words
     from stages.histogram import HistogramAccumulator
@@ -223,7 +223,7 @@ def test_the_command_line_starts_without_the_heavy_modules():
     import subprocess
     import sys
 
-    code = ("import sys; from pipeline.cli import cli; from click.testing import CliRunner; "
+    code = ("import sys; from pipeline.cli.app import cli; from click.testing import CliRunner; "
             "r = CliRunner().invoke(cli, ['--help']); assert r.exit_code == 0, r.output; "
             "heavy = ('numpy', 'pyarrow', 'numba', 'scipy', 'polars', 'prefect'); "
             "print(sorted(m for m in heavy if m in sys.modules))")

@@ -6,7 +6,7 @@ import pyarrow.parquet as pq
 import pytest
 from click.testing import CliRunner
 
-from pipeline.cli import cli
+from pipeline.cli.app import cli
 from schemas import CALIBRATION_INL, CALIBRATION_TDC, validate
 
 SCENE = """

@@ -2,7 +2,7 @@
 
 from pathlib import Path
 
-from pipeline.cli_docs import cli_markdown
+from pipeline.cli.docs import cli_markdown
 
 DOCS = Path(__file__).parents[2] / "docs" / "cli.md"
 

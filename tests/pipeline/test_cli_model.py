@@ -4,7 +4,7 @@ from pathlib import Path
 import polars as pl
 from click.testing import CliRunner
 
-from pipeline.cli import cli
+from pipeline.cli.app import cli
 
 SCENES = Path(__file__).parents[2] / "scenes"
 

@@ -12,8 +12,8 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.daemon import Supervisor, TopologyError, load_topology
-from pipeline.journal import read_range
+from pipeline.stream.daemon import Supervisor, TopologyError, load_topology
+from pipeline.stream.journal import read_range
 from stages.histogram import HistogramAccumulator
 
 N = 16
@@ -39,8 +39,8 @@ lux = 800.0
 def caldir(tmp_path_factory):
     """A calibration of the 16-pixel chip: LSB against light from four density tests (the
     range's light differs from any one test's), and a delay."""
-    from pipeline.calibrate import add_delay, lsb_campaign
-    from pipeline.simulate import simulate_capture
+    from pipeline.offline.calibrate import add_delay, lsb_campaign
+    from pipeline.offline.simulate import simulate_capture
     from stages.models.scene import scene_from_dict
 
     d = tmp_path_factory.mktemp("cal")
@@ -152,7 +152,7 @@ def test_daemon_end_to_end_with_ranges(tmp_path, caldir):
     assert st["stages"]["histogram-0"]["words_total"] == 45_000 * N // 2  # heartbeats
     from click.testing import CliRunner
 
-    from pipeline.cli import cli
+    from pipeline.cli.app import cli
 
     out = CliRunner().invoke(cli, ["status", "--state", str(tmp_path / "state")])
     assert out.exit_code == 0, out.output
@@ -186,7 +186,7 @@ def test_sigkill_of_the_sink_and_the_source_is_reconciled(tmp_path, caldir):
 
 
 def test_udp_daemon_accounts_for_corrupted_datagrams(tmp_path):
-    from pipeline import datagram
+    from pipeline.stream import datagram
     from stages.testpattern import pattern_words
 
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
@@ -260,8 +260,8 @@ def test_a_reset_peak_below_the_calibrated_window_is_not_a_target(caldir):
     """A calibration's LSB too small for this light puts its x_T above the real reset
     peak; the last populated code must bound the search so the peak is not taken for a
     target (it once was, 5 m before the window)."""
-    from pipeline.calibrate import lsb_at
-    from pipeline.ranging import range_state
+    from pipeline.offline.calibrate import lsb_at
+    from pipeline.offline.ranging import range_state
     from schemas.words import N_CLASSES
     from stages.histogram import HistogramState
 
@@ -282,7 +282,13 @@ def test_a_reset_peak_below_the_calibrated_window_is_not_a_target(caldir):
 
 @pytest.mark.parametrize("enc, ext", [("zstd", ".bin.zst"), (None, ".bin")])
 def test_journal_retention_prunes_only_what_every_worker_is_past(tmp_path, enc, ext):
-    from pipeline.journal import IndexSpans, JournalWriter, prune, pruned_words, segment_spans
+    from pipeline.stream.journal import (
+        IndexSpans,
+        JournalWriter,
+        prune,
+        pruned_words,
+        segment_spans,
+    )
 
     w = JournalWriter(tmp_path, "r", 4, 140.0, segment_words=1000, compression=enc)
     for i in range(10):

@@ -1,4 +1,4 @@
-from pipeline.demo import run_demo
+from pipeline.report.demo import run_demo
 
 
 def test_demo_runs_and_checks_itself(tmp_path):

@@ -14,7 +14,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.journal import (
+from pipeline.stream.journal import (
     JournalCorrupt,
     JournalWriter,
     _entries,
@@ -101,7 +101,7 @@ def test_a_truncated_checkpoint_is_discarded_and_rebuilt_from_the_journal(tmp_pa
 
 
 def test_a_bit_flipped_checkpoint_is_refused(tmp_path):
-    from pipeline.stage import CheckpointError, load_checkpoint, save_checkpoint
+    from pipeline.stream.stage import CheckpointError, load_checkpoint, save_checkpoint
 
     state = {"hits": np.arange(64, dtype=np.uint64).reshape(4, 16),
              "counters": np.array([1, 2, 3], np.int64)}
@@ -126,7 +126,7 @@ def test_a_corrupt_journal_met_by_the_repair_path_is_reported_never_used(
     are recomputed from the journal at the end; one frame there has a flipped bit and the
     last is cut short. Those measurements are withheld and counted, the rest equal the
     uninterrupted run, and the run ends "finished", never left "running"."""
-    import pipeline.daemon as daemon
+    import pipeline.stream.daemon as daemon
 
     real = daemon.reconcile
     lost = {(2, 0), (2, 8), (7, 8), (19, 0)}
@@ -234,7 +234,7 @@ def test_restarts_back_off_exponentially_within_a_budget_per_window(tmp_path):
     """A stage that dies at once is restarted after 0.05, 0.1, 0.2 s ... and the run fails
     when it dies more than ``restarts`` times in the window; a stage that dies less often
     than the window is long is restarted every time."""
-    from pipeline.daemon import Proc, Supervisor, load_topology
+    from pipeline.stream.daemon import Proc, Supervisor, load_topology
 
     topo = load_topology(topology(tmp_path, cycles=1000))
     topo.restarts, topo.restart_window_s = 3, 30.0
@@ -277,7 +277,7 @@ def test_forged_and_poisoned_messages_in_a_running_graph_change_nothing(tmp_path
     import pyarrow as pa
     import zmq
 
-    from pipeline import wire
+    from pipeline.stream import wire
     from schemas import RAW_WORDS
 
     def inject(sup):
@@ -387,7 +387,7 @@ def test_sigkill_of_the_daemon_leaves_no_orphan_and_a_restart_resumes(tmp_path, 
 
 
 def test_one_run_has_one_journal_writer(tmp_path):
-    from pipeline.journal import JournalLocked
+    from pipeline.stream.journal import JournalLocked
 
     w = JournalWriter(tmp_path, "r", 4, 140.0)
     with pytest.raises(JournalLocked, match=f"pid {os.getpid()}"):

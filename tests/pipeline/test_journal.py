@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.capture import Capture
-from pipeline.journal import JournalCapture, JournalWriter, read_range, segment_files
+from pipeline.io.capture import Capture
+from pipeline.stream.journal import JournalCapture, JournalWriter, read_range, segment_files
 from stages.testpattern import pattern_words
 
 N_TDC = 16

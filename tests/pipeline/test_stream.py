@@ -10,9 +10,9 @@ import numpy as np
 import polars as pl
 import zmq
 
-from pipeline import wire
-from pipeline.simulate import make_simulator
-from pipeline.stage import run_stage
+from pipeline.offline.simulate import make_simulator
+from pipeline.stream import wire
+from pipeline.stream.stage import run_stage
 from schemas import RAW_WORDS
 from stages.histogram import HistogramAccumulator
 from stages.stream import HistogramCore
@@ -83,9 +83,9 @@ def test_udp_ingest_accounts_for_every_datagram(tmp_path):
     the words journaled and forwarded exactly."""
     import socket as pysocket
 
-    from pipeline import datagram
-    from pipeline.capture import Capture
-    from pipeline.udp import run_udp_ingest, udp_socket
+    from pipeline.io.capture import Capture
+    from pipeline.stream import datagram
+    from pipeline.stream.udp import run_udp_ingest, udp_socket
     from stages.testpattern import pattern_words
 
     ctx = zmq.Context()
@@ -131,7 +131,7 @@ def test_udp_ingest_accounts_for_every_datagram(tmp_path):
     assert np.array_equal(forwarded, np.concatenate(sent_words))
     assert got[1][0] == 8 * 32 * 128  # the batch after the gap starts at its first word
     assert stopped["words"] == forwarded.size and stopped["lost_datagrams"] == 1
-    from pipeline.journal import read_range, run_end
+    from pipeline.stream.journal import read_range, run_end
 
     journaled = np.concatenate([w for _, w in read_range(tmp_path / "journal", "u1", 0,
                                                          10**12)])

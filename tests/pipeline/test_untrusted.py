@@ -15,10 +15,10 @@ import pyarrow as pa
 import pytest
 import zmq
 
-from pipeline import datagram, wire
-from pipeline.journal import read_range, run_end
-from pipeline.stage import ParquetSink, run_stage
-from pipeline.udp import run_udp_ingest, udp_socket
+from pipeline.stream import datagram, wire
+from pipeline.stream.journal import read_range, run_end
+from pipeline.stream.stage import ParquetSink, run_stage
+from pipeline.stream.udp import run_udp_ingest, udp_socket
 from schemas import RAW_WORDS
 from stages.stream import HistogramCore
 from stages.testpattern import pattern_words
@@ -227,7 +227,7 @@ def test_oversized_messages_stop_at_the_socket(tmp_path):
 
 
 def test_quarantine_is_bounded_and_counts_what_it_drops(tmp_path):
-    from pipeline.stage import Quarantine
+    from pipeline.stream.stage import Quarantine
 
     q = Quarantine(tmp_path / "q", max_files=5, max_bytes=10_000)
     kept = [q.put("bad", bytes(100)) for _ in range(8)]
@@ -240,7 +240,7 @@ def test_quarantine_is_bounded_and_counts_what_it_drops(tmp_path):
 
 
 def test_a_stale_ipc_file_is_removed_and_a_live_one_is_not_stolen(tmp_path):
-    from pipeline.stage import EndpointInUse, bind
+    from pipeline.stream.stage import EndpointInUse, bind
 
     path = tmp_path / "s"
     raw = socket.socket(socket.AF_UNIX)
@@ -267,8 +267,8 @@ def test_curve_admits_only_the_graphs_keys(tmp_path):
     plain client and one with keys of its own do not."""
     import zmq.auth
 
-    from pipeline import curve
-    from pipeline.stage import connect
+    from pipeline.stream import curve
+    from pipeline.stream.stage import connect
 
     keys = curve.ensure_keys(tmp_path / "state")
     assert stat.S_IMODE(keys.stat().st_mode) == 0o700
@@ -311,8 +311,8 @@ def test_a_stalled_stage_downstream_loses_no_datagram(tmp_path):
     ten times the kernel's socket buffer): receiving never waits for it, every datagram is
     journaled, and the stage fills what could not be sent from the journal. Its histograms
     equal those of the words sent."""
-    from pipeline.fanout import worker_reader
-    from pipeline.journal import run_end
+    from pipeline.stream.fanout import worker_reader
+    from pipeline.stream.journal import run_end
     from stages.histogram import HistogramAccumulator, HistogramState
 
     n_tdc, cyc, n = 128, 127, 600

@@ -4,7 +4,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from pipeline import datagram, wire
+from pipeline.stream import datagram, wire
 from schemas import HISTOGRAMS, RAW_WORDS
 from stages.codec import encode_words
 

@@ -176,8 +176,8 @@ def test_delay_within_5_ps_through_the_pipeline_given_a_perfect_density_test(tmp
     peak, the peak by the range stage's ML), on a calibration holding the chip's true INL
     at a dimmer light: within 5 ps on every TDC. End to end the density test's INL
     statistics add to this (benchmarks/calibration.py: ~1/sqrt(cycles))."""
-    from pipeline.calibrate import add_delay, write_caldir
-    from pipeline.simulate import SimulatedCapture
+    from pipeline.offline.calibrate import add_delay, write_caldir
+    from pipeline.offline.simulate import SimulatedCapture
 
     chip = make_chip(N, 4)
     n_den = 0.29
@@ -271,8 +271,8 @@ def test_delay_end_to_end_is_the_density_tests_statistics(tmp_path):
     """density test (6.4e7 cycles at 29 % STARTs) -> calibrate delay (in situ) against the
     truth: 16.4 ps RMS, 29 ps worst in benchmarks/calibration.py (falling as 1/sqrt(cycles);
     5 ps needs ~5e8-1.6e9 cycles, see docs/calibration.md)."""
-    from pipeline.calibrate import add_delay, density_from_capture, write_caldir
-    from pipeline.simulate import SimulatedCapture
+    from pipeline.offline.calibrate import add_delay, density_from_capture, write_caldir
+    from pipeline.offline.simulate import SimulatedCapture
 
     sensor = {"n_pixels": N, "hot_pixels": []}
     dens = scene_from_dict({"name": "density", "sensor": sensor, "dark_counts": True,
@@ -296,8 +296,8 @@ def test_codes_under_the_reset_peak_filled_from_a_test_at_another_light():
     where T falls): the INL error just below them is minus that sum. A second test at
     dimmer light (reset peak ~10 codes higher) measures them; filled from it, weighted by
     the errors, the error there shrinks to the statistics'."""
-    from pipeline.calibrate import density_histograms
-    from pipeline.simulate import SimulatedCapture
+    from pipeline.offline.calibrate import density_histograms
+    from pipeline.offline.simulate import SimulatedCapture
 
     sensor = {"n_pixels": N, "hot_pixels": []}
     caps = [SimulatedCapture(scene_from_dict({"name": "density", "sensor": sensor,

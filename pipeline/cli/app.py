@@ -77,8 +77,8 @@ def _warn_uncertain(bounds) -> None:
 
 
 def _open(path: str, calibration: str | None):
-    from pipeline.caldir import read_bounds
-    from pipeline.capture import Capture
+    from pipeline.io.caldir import read_bounds
+    from pipeline.io.capture import Capture
 
     cap = Capture(path)
     bounds = read_bounds(calibration, cap.meta.n_tdc) if calibration else None
@@ -109,7 +109,7 @@ _quiet = click.option("-q", "--quiet", is_flag=True, help="No progress bar or su
 @_quiet
 def decode(capture, out, include_no_hit, calibration, engine, quiet) -> None:
     """Decode CAPTURE (NAME.bin) into a decoded_events parquet file."""
-    from pipeline.offline import decode_capture
+    from pipeline.offline.datapath import decode_capture
 
     cap, bounds = _open(capture, calibration)
     t0 = time.perf_counter()
@@ -130,7 +130,7 @@ def decode(capture, out, include_no_hit, calibration, engine, quiet) -> None:
 @_quiet
 def histogram(capture, out, measurement, calibration, engine, quiet) -> None:
     """Per-TDC histograms of first-stage codes of CAPTURE's hit words."""
-    from pipeline.offline import histogram_capture, write_histograms
+    from pipeline.offline.datapath import histogram_capture, write_histograms
 
     cap, bounds = _open(capture, calibration)
     t0 = time.perf_counter()
@@ -159,7 +159,7 @@ def pattern(out, cycles, n_tdc, hit_prob, peak_code, seed) -> None:
     Its sidecar's truth holds the intended class counts, so decode and histogram can be
     checked against it.
     """
-    from pipeline.capture import CaptureWriter
+    from pipeline.io.capture import CaptureWriter
     from schemas import WORD_CLASSES
     from stages.testpattern import pattern_words
 
@@ -207,7 +207,7 @@ def schema(markdown) -> None:
 def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, invalid_rate,
              ideal_tdc, quiet) -> None:
     """Simulate SCENE_PATH: a raw capture whose sidecar holds the truth."""
-    from pipeline.simulate import simulate_capture
+    from pipeline.offline.simulate import simulate_capture
 
     t0 = time.perf_counter()
     with _progress(cycles, 1, quiet, "simulate", "cycles") as step:
@@ -237,7 +237,7 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
 @_quiet
 def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, quiet) -> None:
     """Distance per pixel (eq. 5.4) with uncertainty and a detection decision."""
-    from pipeline.ranging import range_capture
+    from pipeline.offline.ranging import range_capture
 
     t0 = time.perf_counter()
     table = range_capture(capture, calibration, out, estimator,
@@ -295,7 +295,7 @@ def _compression(name: str) -> str | None:
 
 
 def _ranges(split: str | None):
-    from pipeline.fanout import parse_range
+    from pipeline.stream.fanout import parse_range
 
     return None if split is None else [parse_range(x) for x in split.split(",")]
 
@@ -303,7 +303,7 @@ def _ranges(split: str | None):
 def _skip_journaled(batches, journal, run_id):
     """A restarted source resumes after what its journal already holds (deterministic
     sources only: the simulator and capture replay)."""
-    from pipeline.journal import journaled_words
+    from pipeline.stream.journal import journaled_words
 
     done = journaled_words(journal, run_id) if journal else 0
     for first, words in batches:
@@ -329,9 +329,9 @@ def _skip_journaled(batches, journal, run_id):
 def stage_source_sim(scene_path, cycles, pushes, seed, chip_seed, run_id, rate, journal,
                      journal_compression, split, metrics, date) -> None:
     """The simulator as a source: raw-word batches of SCENE_PATH."""
-    from pipeline.journal import JournalWriter
-    from pipeline.simulate import make_simulator
-    from pipeline.stage import run_source
+    from pipeline.offline.simulate import make_simulator
+    from pipeline.stream.journal import JournalWriter
+    from pipeline.stream.stage import run_source
 
     sim = make_simulator(scene_path, cycles, seed=seed, chip_seed=chip_seed)
     n = sim.n_tdc
@@ -362,9 +362,9 @@ def stage_source_sim(scene_path, cycles, pushes, seed, chip_seed, run_id, rate, 
 def stage_source_capture(capture, pushes, run_id, rate, journal, journal_compression, split,
                          metrics, date, repeat) -> None:
     """Replay a capture into the stream, at a chosen rate or as fast as it is taken."""
-    from pipeline.capture import Capture
-    from pipeline.journal import JournalWriter
-    from pipeline.stage import run_source
+    from pipeline.io.capture import Capture
+    from pipeline.stream.journal import JournalWriter
+    from pipeline.stream.stage import run_source
 
     cap = Capture(capture)
     run_id = run_id or cap.name
@@ -414,7 +414,7 @@ def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, n_tdc
     import signal
     import threading
 
-    from pipeline.udp import MAX_JUMP_CYCLES, REORDER_WINDOW, run_udp_ingest, udp_socket
+    from pipeline.stream.udp import MAX_JUMP_CYCLES, REORDER_WINDOW, run_udp_ingest, udp_socket
 
     halt = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -451,10 +451,10 @@ def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, n_tdc
 def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibration, quarantine,
                     checkpoint, journal, run_id, metrics, name, date, senders) -> None:
     """Per-TDC histograms of the word stream, per measurement or at the end of the run."""
-    from pipeline.caldir import read_bounds
-    from pipeline.fanout import parse_range, worker_reader
-    from pipeline.journal import read_range, run_end, run_meta
-    from pipeline.stage import run_stage
+    from pipeline.io.caldir import read_bounds
+    from pipeline.stream.fanout import parse_range, worker_reader
+    from pipeline.stream.journal import read_range, run_end, run_meta
+    from pipeline.stream.stage import run_stage
     from stages.stream import HistogramCore
 
     a, b = parse_range(tdc_range) if tdc_range else (0, n_tdc)
@@ -501,8 +501,8 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
 def stage_range(pull, push, calibration, estimator, workers, quarantine, metrics,
                 senders) -> None:
     """Ranges of each measurement's histograms with a calibration (eq. 5.4)."""
-    from pipeline.ranging import RangeCore
-    from pipeline.stage import run_stage
+    from pipeline.offline.ranging import RangeCore
+    from pipeline.stream.stage import run_stage
 
     core = RangeCore(calibration, estimator)
     stats = run_stage(core, pull, push, quarantine=quarantine, expect_stops=workers,
@@ -519,7 +519,7 @@ def stage_range(pull, push, calibration, estimator, workers, quarantine, metrics
 @_accept
 def stage_sink(pull, out, quarantine, workers, metrics, senders) -> None:
     """Parquet datasets (histograms, ranges), Hive-partitioned by date and run."""
-    from pipeline.stage import ParquetSink, run_stage
+    from pipeline.stream.stage import ParquetSink, run_stage
 
     sink = ParquetSink(out)
     stats = run_stage(sink, pull, None, quarantine=quarantine, expect_stops=workers,
@@ -530,14 +530,14 @@ def stage_sink(pull, out, quarantine, workers, metrics, senders) -> None:
 @cli.command()
 @click.option("--config", type=click.Path(exists=True, dir_okay=False), default=None,
               help="Topology TOML (default: the street scene through 2 workers; see "
-                   "pipeline/daemon.py for the keys).")
+                   "pipeline/stream/daemon.py for the keys).")
 @click.option("--run", "run_id", default=None, help="Run id (default: from the config).")
 def daemon(config, run_id) -> None:
     """Start the stream graph under a supervisor that restarts crashed stages; on exit,
     reconcile the datasets with the journal and write the run's accounting."""
     import signal
 
-    from pipeline.daemon import Supervisor, load_topology
+    from pipeline.stream.daemon import Supervisor, load_topology
 
     topo = load_topology(config, run_id)
     sup = Supervisor(topo, log=lambda m: err.print(f"daemon: {m}", highlight=False))
@@ -639,9 +639,9 @@ def _module_command(module: str, attr: str):
 
 
 _LAZY = {  # name: (module, attribute, short help)
-    "calibrate": ("pipeline.cli_calibrate", "calibrate",
+    "calibrate": ("pipeline.cli.calibrate", "calibrate",
                   "Density test, LSB against light, and zero-distance delay."),
-    "model": ("pipeline.cli_model", "model",
+    "model": ("pipeline.cli.model", "model",
               "Chapter 2: link budget, ambient light, transmission, prediction, histograms."),
 }
 #: Short help of the commands added by the layers above through the entry point.

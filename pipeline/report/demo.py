@@ -15,8 +15,8 @@ import numpy as np
 import polars as pl
 from rich.console import Console
 
-from pipeline.capture import Capture, CaptureWriter
-from pipeline.offline import decode_capture, histogram_capture, write_histograms
+from pipeline.io.capture import Capture, CaptureWriter
+from pipeline.offline.datapath import decode_capture, histogram_capture, write_histograms
 from schemas.words import WORD_CLASSES
 from stages.testpattern import pattern_words
 
@@ -71,9 +71,9 @@ def _street(out: Path, con: Console, cycles: int = 20_000) -> dict:
     the code its distance predicts: tau = T_LW - delay - 2 d / c over the chip's LSB."""
     from scipy.constants import c
 
-    from pipeline.simulate import simulate_capture
+    from pipeline.offline.simulate import simulate_capture
 
-    scene = Path(__file__).resolve().parents[1] / "scenes" / "street.toml"
+    scene = Path(__file__).resolve().parents[2] / "scenes" / "street.toml"
     raw = out / "raw" / "street"
     meta, sim = simulate_capture(scene, cycles, raw, seed=1)
     cap = Capture(raw)

@@ -30,7 +30,7 @@ class Metrics:
             self.sock = (context or zmq.Context.instance()).socket(zmq.PUB)
             self.sock.setsockopt(zmq.SNDHWM, 16)
             self.sock.setsockopt(zmq.LINGER, 500)
-            from pipeline import curve
+            from pipeline.stream import curve
 
             curve.client(self.sock)  # with $TCSPC_CURVE_DIR
             self.sock.connect(endpoint)

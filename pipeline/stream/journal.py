@@ -9,7 +9,7 @@ By default (``compression="zstd"``) a segment is ``RUN-000000.bin.zst``: each ap
 chunk one zstd frame (level 1), its index entry ``{first_word, segment, offset, bytes,
 words, enc: "zstd"}`` with the frame's byte offset, so a word range is read back frame by
 frame. Concatenated frames are one zstd stream: ``zstd -d RUN-000000.bin.zst`` gives the
-raw capture ``RUN-000000.bin`` of DESIGN.md byte for byte, and :class:`pipeline.capture.
+raw capture ``RUN-000000.bin`` of DESIGN.md byte for byte, and :class:`pipeline.io.capture.
 Capture` reads the compressed segment directly. Photon-starving words (mostly no-hit words,
 the same 128 per cycle) shrink to ~6 %, a 30 %-hit density test to ~33 %: the journal then
 costs the disk a fraction of the stream's rate (50 M words/s raw is 200 MB/s, what this
@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.capture import CaptureMeta
+from pipeline.io.capture import CaptureMeta
 from schemas.errors import TcspcError
 
 COMPRESSIONS = ("zstd", None)
@@ -119,7 +119,7 @@ class JournalWriter:
             _write_all(self.index.fileno(), b"\n")  # end a line a crash cut short
         meta = self.dir / f"{run}.meta.json"
         if not meta.exists():  # the run's constants, for a stage that starts after its end
-            from pipeline.atomic import atomic_path
+            from pipeline.io.atomic import atomic_path
 
             try:
                 with atomic_path(meta) as tmp:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from pipeline.capture import Capture, CaptureMeta, CaptureWriter
+from pipeline.io.capture import Capture, CaptureMeta, CaptureWriter
 from stages.models.scene import Scene, evaluate, load_scene
 from stages.simulator.chip import make_chip
 from stages.simulator.source import Simulator

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 
-from pipeline.atomic import atomic_path
-from pipeline.capture import Capture
+from pipeline.io.atomic import atomic_path
+from pipeline.io.capture import Capture
 from schemas.outputs import HISTOGRAMS
 from schemas.words import DECODED_EVENTS, N_CLASSES, WORD_CLASSES
 from stages.artifact import ArtifactBounds, estimate_bounds

@@ -24,9 +24,9 @@ from pathlib import Path
 import numpy as np
 import zmq
 
-from pipeline import datagram, wire
-from pipeline.journal import JournalWriter
-from pipeline.stage import Quarantine, _socket, connect
+from pipeline.stream import datagram, wire
+from pipeline.stream.journal import JournalWriter
+from pipeline.stream.stage import Quarantine, _socket, connect
 from schemas.words import RAW_WORDS
 
 BATCH_WORDS = 1 << 18  # 1 MiB messages
@@ -203,8 +203,8 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     stops at the journal. Without a journal this thread waits for the sender instead."""
     import datetime as dt
 
-    from pipeline.fanout import TdcSplitter
-    from pipeline.metrics import Metrics
+    from pipeline.stream.fanout import TdcSplitter
+    from pipeline.stream.metrics import Metrics
 
     ctx = context or zmq.Context.instance()
     token = token if token is not None else wire.load_token()
@@ -313,7 +313,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     def journal_words(first: int, words: np.ndarray) -> bool:
         # a full disk pauses intake here (the receive thread goes on into the ring, whose
         # overflow is counted): retried until there is room, or False at a stop
-        from pipeline.journal import is_disk_full
+        from pipeline.stream.journal import is_disk_full
 
         nonlocal writer
         wait = 0.2

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import zmq
 
-from pipeline import wire
-from pipeline.atomic import atomic_path
-from pipeline.metrics import Metrics
+from pipeline.io.atomic import atomic_path
+from pipeline.stream import wire
+from pipeline.stream.metrics import Metrics
 from schemas.errors import Rejected, TcspcError
 from schemas.outputs import HISTOGRAMS, RANGES
 
@@ -110,7 +110,7 @@ def bind(sock: zmq.Socket, endpoint: str) -> None:
             finally:
                 probe.close()
         path.parent.mkdir(parents=True, exist_ok=True)
-    from pipeline import curve
+    from pipeline.stream import curve
 
     curve.serve(sock)  # with $TCSPC_CURVE_DIR: encrypted, authorized clients only
     sock.bind(endpoint)
@@ -118,7 +118,7 @@ def bind(sock: zmq.Socket, endpoint: str) -> None:
 
 def connect(sock: zmq.Socket, endpoint: str) -> None:
     """Connect ``endpoint`` (as a CURVE client with $TCSPC_CURVE_DIR)."""
-    from pipeline import curve
+    from pipeline.stream import curve
 
     curve.client(sock)
     sock.connect(endpoint)
@@ -310,7 +310,7 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
     def retry_disk_full(fn, *args):
         """``fn(*args)``, waiting (paused, with back-off) while the disk is full; the stage
         upstream is held back by the high-water marks meanwhile."""
-        from pipeline.journal import is_disk_full
+        from pipeline.stream.journal import is_disk_full
 
         wait = 0.2
         while True:
@@ -409,7 +409,7 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
     import numpy as np
     import pyarrow as pa
 
-    from pipeline.fanout import TdcSplitter
+    from pipeline.stream.fanout import TdcSplitter
     from schemas.words import RAW_WORDS
 
     pushes = [push] if isinstance(push, str) else list(push)
@@ -449,7 +449,7 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
     def append(first, words):
         # a full disk pauses the run (the source is deterministic: nothing is lost by
         # waiting); a signal while waiting ends it after the last journaled batch
-        from pipeline.journal import is_disk_full
+        from pipeline.stream.journal import is_disk_full
 
         wait = 0.2
         while True:

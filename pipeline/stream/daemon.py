@@ -78,8 +78,8 @@ from pathlib import Path
 
 import zmq
 
-from pipeline.atomic import atomic_path
-from pipeline.wire import TOKEN_ENV
+from pipeline.io.atomic import atomic_path
+from pipeline.stream.wire import TOKEN_ENV
 from schemas.errors import TcspcError
 
 SOURCE_KINDS = ("sim", "capture", "udp")
@@ -121,7 +121,7 @@ class Topology:
 
     @property
     def curve_on(self) -> bool:
-        from pipeline.curve import needs_curve
+        from pipeline.stream.curve import needs_curve
 
         return self.curve is True or (self.curve == "auto" and needs_curve(self.endpoints()))
     date: str = field(default_factory=lambda: dt.date.today().isoformat())
@@ -204,7 +204,7 @@ def load_topology(path: str | Path | None, run: str | None = None,
     metrics = d.get("metrics") or f"ipc://{state.resolve()}/sock/metrics"
     for ep in [metrics, *(hist.get("endpoints") or [])]:
         _check_endpoint(ep, where)
-    from pipeline.wire import ID_PATTERN
+    from pipeline.stream.wire import ID_PATTERN
 
     if not ID_PATTERN.fullmatch(run):
         raise TopologyError(f"{where}: run id {run!r}: use 1..64 of [A-Za-z0-9._-] (it "
@@ -247,7 +247,7 @@ def _source_n_tdc(src: dict, hist: dict, where: str) -> int:
 
         return load_scene(src["scene"]).sensor.n_pixels
     if src["kind"] == "capture":
-        from pipeline.capture import Capture
+        from pipeline.io.capture import Capture
 
         return Capture(src["capture"]).meta.n_tdc
     n = src.get("n_tdc") or hist.get("n_tdc")
@@ -257,7 +257,7 @@ def _source_n_tdc(src: dict, hist: dict, where: str) -> int:
 
 
 def default_topology() -> dict:
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     return {"daemon": {"state": "data/daemon"},
             "source": {"kind": "sim", "scene": str(root / "scenes" / "street.toml"),
                        "cycles": 100_000, "seed": 1},
@@ -288,7 +288,7 @@ def _tcspc(*args) -> list[str]:
 
 
 def tdc_ranges(topo: Topology) -> list[tuple[int, int]]:
-    from pipeline.fanout import equal_ranges
+    from pipeline.stream.fanout import equal_ranges
 
     return equal_ranges(topo.n_tdc, topo.workers)
 
@@ -431,7 +431,7 @@ class Supervisor:
         self.token_file, self.token = run_token(topo.state, topo.run)
         self.curve_dir = None
         if topo.curve_on:
-            from pipeline.curve import ensure_keys
+            from pipeline.stream.curve import ensure_keys
 
             self.curve_dir = ensure_keys(topo.state)
 
@@ -447,7 +447,7 @@ class Supervisor:
         # the run's token by file (never on a command line, where `ps` shows it)
         env = {**os.environ, "PYTHONUNBUFFERED": "1", TOKEN_ENV: str(self.token_file)}
         if self.curve_dir is not None:
-            from pipeline.curve import CURVE_ENV
+            from pipeline.stream.curve import CURVE_ENV
 
             env[CURVE_ENV] = str(self.curve_dir)
         p.popen = subprocess.Popen(p.argv, stdout=log, stderr=subprocess.STDOUT, env=env,
@@ -530,8 +530,8 @@ class Supervisor:
         sub = ctx.socket(zmq.SUB)
         sub.setsockopt(zmq.SUBSCRIBE, b"")
         sub.setsockopt(zmq.LINGER, 0)
-        from pipeline import curve
-        from pipeline.stage import bind
+        from pipeline.stream import curve
+        from pipeline.stream.stage import bind
 
         if self.curve_dir is not None:
             curve.serve(sub, self.curve_dir)
@@ -600,7 +600,7 @@ class Supervisor:
 
     def _consumed_word(self) -> int:
         """The run's word index every histogram worker has checkpointed past."""
-        from pipeline.stage import load_checkpoint
+        from pipeline.stream.stage import load_checkpoint
 
         least = None
         for i, (a, b) in enumerate(tdc_ranges(self.topo)):
@@ -618,7 +618,7 @@ class Supervisor:
     def _prune(self) -> None:
         if self.topo.journal_keep_gb is None:
             return
-        from pipeline.journal import IndexSpans, prune
+        from pipeline.stream.journal import IndexSpans, prune
 
         if self._spans is None:
             self._spans = IndexSpans(self.topo.state / "journal", self.topo.run)
@@ -684,9 +684,9 @@ def reconcile(topo: Topology) -> dict:
     """Recompute from the journal every (measurement, TDC range) the datasets lack; a
     measurement is words [k M N, (k + 1) M N) of the run whatever happened to the stream,
     so the recomputed one is the one an uninterrupted run would have written."""
-    from pipeline.fanout import worker_reader
-    from pipeline.journal import pruned_words, read_range, run_end
-    from pipeline.stage import ParquetSink
+    from pipeline.stream.fanout import worker_reader
+    from pipeline.stream.journal import pruned_words, read_range, run_end
+    from pipeline.stream.stage import ParquetSink
     from stages.artifact import ArtifactBounds
     from stages.stream import HistogramCore
 
@@ -703,12 +703,12 @@ def reconcile(topo: Topology) -> dict:
     have_r = _dataset_parts(out, "ranges", topo.run) if topo.range else None
     bounds_all = None
     if topo.histogram.get("calibration"):
-        from pipeline.caldir import read_bounds
+        from pipeline.io.caldir import read_bounds
 
         bounds_all = read_bounds(topo.histogram["calibration"], n)
     ranger = None
     if topo.range:
-        from pipeline.ranging import RangeCore
+        from pipeline.offline.ranging import RangeCore
 
         ranger = RangeCore(topo.range["calibration"], topo.range.get("estimator", "ml"))
     sink = ParquetSink(out)
@@ -800,7 +800,7 @@ def accounting(topo: Topology, metrics: dict[str, dict], reconciled: dict | None
     ``OUT/accounting/run=RUN.json``."""
     import polars as pl
 
-    from pipeline.journal import journaled_total, run_end
+    from pipeline.stream.journal import journaled_total, run_end
     from schemas.words import WORD_CLASSES
 
     out = Path(topo.sink["out"])

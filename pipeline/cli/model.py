@@ -146,13 +146,13 @@ def predict_cmd(config, distance, gated, out_path, plot, as_json) -> None:
     if out_path:
         import polars as pl
 
-        from pipeline.atomic import atomic_path
+        from pipeline.io.atomic import atomic_path
 
         with atomic_path(out_path) as tmp:
             pl.DataFrame(table_2_2_rows(np.arange(1.0, 61.0))).write_parquet(tmp)
         click.echo(f"wrote {out_path}", err=True)
     if plot:
-        from pipeline.figures import figure_2_13
+        from pipeline.report.figures import figure_2_13
 
         figure_2_13(plot)
         click.echo(f"wrote {plot}", err=True)
@@ -220,7 +220,7 @@ def histogram(scene_path, pixel, cycles, plot, as_json) -> None:
               type=click.Path())
 def figures(out_dir) -> None:
     """Regenerate Figures 2.2, 2.13, 2.16 and 2.18 as PNGs."""
-    from pipeline.figures import all_figures
+    from pipeline.report.figures import all_figures
 
     for p in all_figures(out_dir):
         click.echo(str(p))

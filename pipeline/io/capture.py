@@ -98,7 +98,7 @@ class Capture:
     def __init__(self, path: str | os.PathLike, strict: bool = True):
         self.bin_path, self.json_path = capture_paths(path)
         zst = self.bin_path.with_name(self.bin_path.name + ".zst")
-        # a zstd-compressed capture (a journal segment, see pipeline.journal): the same
+        # a zstd-compressed capture (a journal segment, see pipeline.stream.journal): the same
         # words, read through a streaming decompressor
         self.compressed = not self.bin_path.is_file() and zst.is_file()
         if self.compressed:

@@ -21,9 +21,9 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from pipeline.atomic import atomic_path
-from pipeline.caldir import read_tdc_table
-from pipeline.capture import Capture
+from pipeline.io.atomic import atomic_path
+from pipeline.io.caldir import read_tdc_table
+from pipeline.io.capture import Capture
 from schemas.errors import CalibrationError
 from schemas.outputs import CALIBRATION_INL, CALIBRATION_TDC
 from schemas.words import N_CODES
@@ -276,13 +276,13 @@ def add_delay(capture, caldir: str | Path, log=None) -> np.ndarray:
     comes from the LSB polynomial, or from the capture's own reset peak where that is
     trustworthy: found where the polynomial puts it, on codes the density test measured,
     with the return (located first on the polynomial's axis) well clear of it
-    (:func:`pipeline.ranging.time_axis`); the source of each TDC's scale, and why the
+    (:func:`pipeline.offline.ranging.time_axis`); the source of each TDC's scale, and why the
     reset peak was declined, are recorded. A TDC without a delay gets the reason in
     ``meta.json`` (``delay.reasons``). Raises CalibrationError, leaving ``caldir`` as it
     was, when no TDC got a delay.
     """
-    from pipeline.caldir import read_bounds
-    from pipeline.ranging import time_axis
+    from pipeline.io.caldir import read_bounds
+    from pipeline.offline.ranging import time_axis
     from stages.ranging import Histograms, ml
 
     cap = capture if hasattr(capture, "iter_chunks") else Capture(capture)

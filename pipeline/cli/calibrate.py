@@ -6,14 +6,14 @@ import click
 import numpy as np
 from rich.console import Console
 
-from pipeline.calibrate import (
+from pipeline.io.capture import Capture
+from pipeline.offline.calibrate import (
     add_delay,
     density_from_capture,
     lsb_at,
     lsb_campaign,
     write_caldir,
 )
-from pipeline.capture import Capture
 from schemas.errors import CalibrationError
 from stages import calibration as cal
 from stages.histogram import HistogramAccumulator
@@ -62,7 +62,7 @@ def density(capture, out, plot, fill, inl_rms) -> None:
     write_caldir(out, res, second, [cap.bin_path] + [c.bin_path for c in others])
     _report(res, second)
     if plot:
-        from pipeline.figures import density_figure
+        from pipeline.report.figures import density_figure
 
         density_figure(res, plot)
     err.print(f"wrote {out}")
@@ -82,7 +82,7 @@ def lsb(captures, out, plot, inl_rms) -> None:
     err.print(f"cubic fit over n = {n.min():.3f}..{n.max():.3f}; residuals up to "
               f"{np.nanmax(np.abs(fit.residual_ps)):.3f} ps")
     if plot:
-        from pipeline.figures import lsb_figure
+        from pipeline.report.figures import lsb_figure
 
         lsb_figure(n, lsbs, fit, plot)
     err.print(f"wrote {out}")
@@ -131,7 +131,7 @@ def track(capture, calibration, out, tolerance_ps) -> None:
     Background in an ordinary range capture is a density test too; its signal peaks are
     masked. Reports each TDC's drift from the calibration's LSB at the capture's light.
     """
-    from pipeline.caldir import read_bounds
+    from pipeline.io.caldir import read_bounds
 
     cap = Capture(capture)
     acc = HistogramAccumulator(cap.meta.n_tdc, read_bounds(calibration, cap.meta.n_tdc),
@@ -155,7 +155,7 @@ def track(capture, calibration, out, tolerance_ps) -> None:
     if out:
         import polars as pl
 
-        from pipeline.atomic import atomic_path
+        from pipeline.io.atomic import atomic_path
 
         with atomic_path(out) as tmp:
             pl.DataFrame({"tdc": np.arange(d.size, dtype=np.uint16),

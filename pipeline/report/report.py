@@ -7,7 +7,7 @@ from pathlib import Path
 
 import polars as pl
 
-from pipeline.atomic import atomic_path
+from pipeline.io.atomic import atomic_path
 
 
 def markdown_table(df: pl.DataFrame, digits: int = 3) -> str:

@@ -11,7 +11,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.constants import c as C_LIGHT  # noqa: E402
 
-from pipeline.atomic import atomic_path  # noqa: E402
+from pipeline.io.atomic import atomic_path  # noqa: E402
 from stages.models.performance import (  # noqa: E402
     TABLE_2_2,
     SystemSpec,

@@ -27,12 +27,12 @@ def _walk(cmd: click.Command, ctx: click.Context, path: list[str]):
 def cli_markdown(group: click.Group | None = None, prog: str = "tcspc") -> str:
     """The markdown reference of every command under ``group`` (default: ``tcspc``)."""
     if group is None:
-        from pipeline.cli import cli as group
+        from pipeline.cli.app import cli as group
     root = click.Context(group, info_name=prog, max_content_width=WIDTH, terminal_width=WIDTH,
                          **group.context_settings)
     lines = ["# Command-line reference", "",
              "Generated from the commands' own help by `make docs` "
-             "(`python -m pipeline.cli_docs > docs/cli.md`); a test fails when it drifts. "
+             "(`python -m pipeline.cli.docs > docs/cli.md`); a test fails when it drifts. "
              "Each command also answers `--help`.", ""]
     for path, cmd, ctx in _walk(group, root, [prog]):
         lines += [f"{'#' * min(len(path) + 1, 4)} `{' '.join(path)}`", "", "```text",

@@ -10,10 +10,10 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from scipy.constants import c as C_LIGHT
 
-from pipeline.atomic import atomic_path
-from pipeline.caldir import read_bounds, read_tdc_table
-from pipeline.calibrate import lsb_at, read_density
-from pipeline.capture import Capture
+from pipeline.io.atomic import atomic_path
+from pipeline.io.caldir import read_bounds, read_tdc_table
+from pipeline.io.capture import Capture
+from pipeline.offline.calibrate import lsb_at, read_density
 from schemas.errors import CalibrationError
 from schemas.outputs import HISTOGRAMS, RANGES
 from schemas.words import N_CODES

@@ -1,0 +1,5 @@
+"""``python -m pipeline.cli``: the ``tcspc`` command."""
+
+from pipeline.cli.app import main
+
+main()
