@@ -26,8 +26,9 @@ from prefect.cache_policies import NO_CACHE
 
 from flows.common import new_run_dir, report, scene_dict, simulate
 from pipeline.io.atomic import atomic_path
+from pipeline.io.caldir import load_calibration
 from pipeline.io.capture import Capture
-from pipeline.offline.calibrate import add_delay, lsb_campaign, quality, read_density
+from pipeline.offline.calibrate import add_delay, lsb_campaign, quality
 from pipeline.report.report import markdown_table
 from schemas.errors import CalibrationError
 
@@ -79,7 +80,7 @@ def measure_delay(capture, candidate: str) -> tuple[list[float], str]:
         return (add_delay(capture, candidate) * 1e9).tolist(), ""
     except CalibrationError as exc:
         get_run_logger().warning("no delay: %s", exc)
-        return [float("nan")] * read_density(candidate)[0].n_tdc, str(exc)
+        return [float("nan")] * load_calibration(candidate).n_tdc, str(exc)
 
 
 @task(cache_policy=NO_CACHE)
@@ -100,12 +101,12 @@ def publish(candidate: str, current: str) -> str:
 
 @task(cache_policy=NO_CACHE)
 def plots(candidate: str, fit: dict, run: str) -> list[str]:
-    from pipeline.offline.calibrate import read_lsb_fit
     from pipeline.report.figures import density_figure, lsb_figure
 
-    res, _ = read_density(candidate)
+    calib = load_calibration(candidate)
+    res = calib.density
     a = density_figure(res, Path(run) / "density.png")
-    b = lsb_figure(np.asarray(fit["n"]), np.asarray(fit["lsb_ps"]), read_lsb_fit(candidate),
+    b = lsb_figure(np.asarray(fit["n"]), np.asarray(fit["lsb_ps"]), calib.lsb_fit,
                    Path(run) / "lsb.png")
     return [str(a), str(b)]
 

@@ -16,8 +16,8 @@ from prefect import get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 
 from pipeline.io.atomic import atomic_path
+from pipeline.io.caldir import software_version
 from pipeline.io.capture import Capture
-from pipeline.offline.calibrate import software_version
 from pipeline.offline.simulate import simulate_capture
 from pipeline.report.report import write_report
 from stages.models.scene import scene_from_dict

@@ -18,6 +18,7 @@ from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 
 from flows.common import new_run_dir, report, scene_dict, simulate
+from pipeline.io.caldir import load_calibration
 from pipeline.io.capture import Capture
 from pipeline.offline.ranging import range_capture
 from pipeline.report.report import markdown_table
@@ -45,7 +46,9 @@ def gate_ns(distance_m: float, delay_ns: float = 100.0, short_gate_ns: float = 1
 def range_point(capture: str, calibration: str, out: str, estimator: str,
                 distance_m: float) -> list[dict]:
     """Range one capture; a row per TDC with the error against ``distance_m``."""
-    t = range_capture(capture, calibration, out, estimator)
+    t, note = range_capture(capture, load_calibration(calibration), out, estimator)
+    if note:
+        get_run_logger().warning("%s: %s", capture, note)
     d = t.column("distance_m").to_numpy()
     rows = pl.from_arrow(t).with_columns(
         true_m=pl.lit(distance_m), error_m=pl.lit(d) - distance_m,

@@ -88,8 +88,6 @@ def test_every_pipeline_module_lives_in_a_room():
     assert not loose, f"modules outside the rooms of pipeline/: {loose}"
 
 
-@pytest.mark.xfail(strict=True, reason="issue 19.2: offline.calibrate and offline.ranging "
-                   "import each other (time_axis one way, lsb_at/read_density the other)")
 def test_no_import_circle_between_modules_of_pipeline():
     """No module of pipeline imports, even lazily, a module that imports it back."""
     graph: dict[str, set[str]] = {}

@@ -237,11 +237,15 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
 @_quiet
 def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, quiet) -> None:
     """Distance per pixel (eq. 5.4) with uncertainty and a detection decision."""
+    from pipeline.io.caldir import load_calibration
     from pipeline.offline.ranging import range_capture
 
     t0 = time.perf_counter()
-    table = range_capture(capture, calibration, out, estimator,
-                          None if irf_ps is None else irf_ps * 1e-12, p_fa)
+    calib = load_calibration(calibration)
+    table, note = range_capture(capture, calib, out, estimator,
+                                None if irf_ps is None else irf_ps * 1e-12, p_fa)
+    if note:
+        err.print(f"[yellow]warning:[/yellow] {note}", highlight=False)
     if not quiet:
         import polars as pl
 
@@ -253,17 +257,14 @@ def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, quiet) -> None
                   f"{det['distance_m'].max() if det.height else float('nan'):.3f} m, median "
                   f"sigma {det['sigma_m'].median() if det.height else float('nan'):.4f} m")
         err.print(f"wrote {out}")
-    _warn_no_delay(calibration)
+    _warn_no_delay(calib)
 
 
-def _warn_no_delay(calibration) -> None:
+def _warn_no_delay(calib) -> None:
     """TDCs the calibration has no delay for are not ranged: say how many and why."""
-    import json
     from collections import Counter
 
-    reasons = json.loads((Path(calibration) / "meta.json").read_text()).get(
-        "delay", {}).get("reasons", [])
-    why = Counter(r for r in reasons if r)
+    why = Counter(r for r in calib.delay_reasons if r)
     if why:
         err.print(f"[yellow]warning:[/yellow] {sum(why.values())} TDC(s) not ranged, no delay "
                   "in the calibration: " + "; ".join(f"{n} {r}" for r, n in why.most_common()),
@@ -501,13 +502,15 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
 def stage_range(pull, push, calibration, estimator, workers, quarantine, metrics,
                 senders) -> None:
     """Ranges of each measurement's histograms with a calibration (eq. 5.4)."""
+    from pipeline.io.caldir import load_calibration
     from pipeline.offline.ranging import RangeCore
     from pipeline.stream.stage import run_stage
 
-    core = RangeCore(calibration, estimator)
+    core = RangeCore(load_calibration(calibration), estimator)
     stats = run_stage(core, pull, push, quarantine=quarantine, expect_stops=workers,
                       metrics=metrics, name="range", senders=list(senders) or None)
-    err.print(f"range: {core.ranged} measurements ranged; rejected {dict(stats.rejected)}")
+    err.print(f"range: {core.ranged} measurements ranged; rejected {dict(stats.rejected)}"
+              + (f"; calibration notes {core.notes}" if core.notes else ""), highlight=False)
 
 
 @stage.command("sink")

@@ -10,7 +10,6 @@ from pipeline.io.capture import Capture
 from pipeline.offline.calibrate import (
     add_delay,
     density_from_capture,
-    lsb_at,
     lsb_campaign,
     write_caldir,
 )
@@ -131,17 +130,18 @@ def track(capture, calibration, out, tolerance_ps) -> None:
     Background in an ordinary range capture is a density test too; its signal peaks are
     masked. Reports each TDC's drift from the calibration's LSB at the capture's light.
     """
-    from pipeline.io.caldir import read_bounds
+    from pipeline.io.caldir import load_calibration
 
+    calib = load_calibration(calibration)
     cap = Capture(capture)
-    acc = HistogramAccumulator(cap.meta.n_tdc, read_bounds(calibration, cap.meta.n_tdc),
-                               count_artifacts=True)
+    acc = HistogramAccumulator(cap.meta.n_tdc, calib.bounds, count_artifacts=True)
     for first, words in cap.iter_chunks():
         acc.update(words, first)
     st = acc.snapshot()
     light = float(st.hits.sum() / (st.n_tdc * max(st.cycles.max(), 1)))
-    with warnings_as_notes():
-        expected = lsb_at(calibration, light)
+    expected, note = calib.lsb_s(light)
+    if note:
+        err.print(f"[yellow]note:[/yellow] {note}", highlight=False)
     tr = cal.track_lsb(st.hits, st.cycles, cap.meta.window_ns * 1e-9, expected,
                        artifacts=st.artifacts)
     d = tr.drift_ps
@@ -164,17 +164,3 @@ def track(capture, calibration, out, tolerance_ps) -> None:
         err.print(f"wrote {out}")
 
 
-class warnings_as_notes:
-    """Show a calibration's out-of-range warning as a line on stderr, not a traceback."""
-
-    def __enter__(self):
-        import warnings
-
-        self._ctx = warnings.catch_warnings(record=True)
-        self._caught = self._ctx.__enter__()
-        warnings.simplefilter("always")
-
-    def __exit__(self, *exc):
-        self._ctx.__exit__(*exc)
-        for w in self._caught:
-            err.print(f"note: {w.message}")

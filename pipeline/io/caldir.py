@@ -1,18 +1,35 @@
-"""Reading what the data path needs from a calibration directory (DESIGN.md "Outputs")."""
+"""Calibration directories (DESIGN.md "Outputs"), loaded and saved in one place.
+
+A directory holds ``tdc.parquet`` (calibration_tdc), ``inl.parquet`` (calibration_inl) and
+``meta.json``: schema version, software version, date, the SHA-256 of every capture it came
+from, the light level of each density test, the scaling of the LSB polynomial's x and the
+delay measurement with a reason for every TDC without a delay.
+:func:`load_calibration` reads and validates the whole directory once into a
+:class:`stages.calibration_set.Calibration`; :func:`save_calibration` writes one atomically
+(a failure leaves the old directory in place). :func:`read_bounds` reads only what the
+data path needs (Nmin/Nmax)."""
 
 from __future__ import annotations
 
+import datetime as dt
+import hashlib
 import json
 import os
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 
+from pipeline.io.atomic import atomic_path
 from schemas.core import validate
 from schemas.errors import CalibrationError, SchemaMismatch, SchemaVersionError
-from schemas.outputs import CALIBRATION_TDC
+from schemas.outputs import CALIBRATION_INL, CALIBRATION_TDC
+from schemas.words import N_CODES
+from stages import calibration as cal
 from stages.artifact import ArtifactBounds
+from stages.calibration_set import Calibration
 
 
 def read_tdc_table(caldir: str | os.PathLike):
@@ -52,3 +69,133 @@ def read_bounds(caldir: str | os.PathLike, n_tdc: int) -> ArtifactBounds:
     return ArtifactBounds(table.column("n_min").to_numpy()[order],
                           table.column("n_max").to_numpy()[order],
                           source=f"calibration:{Path(caldir).resolve()}")
+
+
+def software_version() -> str:
+    try:
+        return version("tcspc-lidar")
+    except PackageNotFoundError:  # pragma: no cover - running from a source tree
+        return "unknown"
+
+
+def sha256(path: Path, chunk: int = 1 << 22) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def load_calibration(caldir: str | os.PathLike) -> Calibration:
+    """The whole calibration directory, validated, as one immutable object."""
+    caldir = Path(caldir)
+    tdc = read_tdc_table(caldir)
+    inl_path = caldir / "inl.parquet"
+    if not inl_path.is_file():
+        raise CalibrationError(f"{caldir}: no inl.parquet (not a density-test calibration)")
+    inl = pq.read_table(inl_path)
+    try:
+        validate(inl, CALIBRATION_INL, str(inl_path), allow_extra=True)
+    except (SchemaMismatch, SchemaVersionError) as exc:
+        raise CalibrationError(str(exc)) from exc
+    meta_path = caldir / "meta.json"
+    try:
+        meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+    except json.JSONDecodeError as exc:
+        raise CalibrationError(f"{meta_path}: not valid JSON: {exc}") from exc
+    n = tdc.num_rows
+    if inl.num_rows != n * N_CODES:
+        raise CalibrationError(f"{inl_path}: {inl.num_rows} rows, {n} TDCs x {N_CODES} codes "
+                               "expected")
+    order = np.argsort(tdc.column("tdc").to_numpy())
+    if not np.array_equal(tdc.column("tdc").to_numpy()[order], np.arange(n)):
+        raise CalibrationError(f"{caldir}: tdc.parquet must hold TDCs 0..{n - 1} once each")
+
+    def col(name):
+        return tdc.column(name).to_numpy(zero_copy_only=False)[order]
+
+    key = np.lexsort((inl.column("code").to_numpy(), inl.column("tdc").to_numpy()))
+
+    def grid(c):
+        return inl.column(c).to_numpy()[key].reshape(n, N_CODES)
+
+    ok = col("ok").astype(bool) if "ok" in tdc.column_names else np.ones(n, bool)
+    d = meta.get("density", {})
+    density = cal.DensityResult(col("lsb_ps") * 1e-12,
+                                np.asarray(d.get("x_t", np.full(n, np.nan)), np.float64),
+                                grid("width_lsb"), grid("dnl_lsb"), grid("inl_lsb"),
+                                np.full(n, np.nan),
+                                np.full(n, d.get("detections_per_pixel_per_cycle", np.nan)),
+                                ok, np.asarray(d.get("inl_error_lsb", np.full(n, np.nan)),
+                                               np.float64))
+    second = cal.SecondStage(*(col(c).astype(np.int64) for c in ("n_min", "n_max", "n_th",
+                                                                  "pdm")))
+    px = meta.get("lsb_poly_x")
+    fit = None
+    if px is not None:
+        fit = cal.LsbFit(np.stack(col("lsb_poly")), px["mean"], px["scale"],
+                         tuple(px["n_range"]),
+                         np.asarray(meta.get("lsb_residual_ps", np.empty((n, 0)))))
+    delay = np.asarray(col("delay_ps"), np.float64) * 1e-12
+    dm = meta.get("delay", {})
+    return Calibration(density, second, fit, delay, tuple(dm.get("reasons", ())),
+                       dm.get("irf_sigma_s"), meta, str(caldir))
+
+
+def save_calibration(calibration: Calibration, out: str | os.PathLike,
+                     sources: list | None = None) -> Path:
+    """Write a calibration directory atomically (a failure leaves the old one in place).
+    ``sources``: the captures it came from (recorded with their SHA-256); by default the
+    ones its provenance already names."""
+    c, n = calibration, calibration.n_tdc
+    density, second, fit = c.density, c.second, c.lsb_fit
+    lsb_ps = density.lsb_s * 1e12
+    poly = fit.coef if fit is not None else np.column_stack([lsb_ps, np.zeros((n, 3))])
+    delay = np.where(np.isfinite(c.delay_s), c.delay_s * 1e12, np.nan)
+    tdc = pa.table({
+        "tdc": pa.array(np.arange(n), pa.uint16()),
+        "lsb_ps": pa.array(lsb_ps),
+        "lsb_poly": pa.FixedSizeListArray.from_arrays(pa.array(np.ravel(poly)), 4),
+        "n_min": pa.array(np.maximum(second.n_min, 0), pa.uint16()),
+        "n_max": pa.array(np.maximum(second.n_max, 0), pa.uint16()),
+        "n_th": pa.array(np.maximum(second.n_th, 0), pa.uint16()),
+        "pdm": pa.array(np.maximum(second.pdm, 0), pa.uint16()),
+        "delay_ps": pa.array(delay, pa.float64(), mask=~np.isfinite(delay)),
+        "ok": pa.array(np.asarray(density.ok, bool)),
+    }, schema=CALIBRATION_TDC.schema)
+    codes = np.arange(N_CODES)
+    inl = pa.table({
+        "tdc": pa.array(np.repeat(np.arange(n), N_CODES), pa.uint16()),
+        "code": pa.array(np.tile(codes, n), pa.uint16()),
+        "width_lsb": pa.array(np.ravel(density.width_lsb)),
+        "dnl_lsb": pa.array(np.ravel(density.dnl_lsb)),
+        "inl_lsb": pa.array(np.ravel(density.inl_lsb)),
+    }, schema=CALIBRATION_INL.schema)
+    if sources is None:
+        recorded = c.meta.get("sources", [])
+    else:
+        recorded = [{"path": str(p), "sha256": sha256(Path(p))} for p in sources]
+    meta = {
+        **{k: v for k, v in c.meta.items() if k not in ("lsb_poly_x", "lsb_residual_ps",
+                                                         "delay")},
+        "schema_version": CALIBRATION_TDC.version, "software": software_version(),
+        "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "sources": recorded,
+        "density": {**c.meta.get("density", {}),
+                    "detections_per_pixel_per_cycle": float(
+                        np.nanmean(density.detections_per_cycle)),
+                    "x_t": np.asarray(density.x_t).tolist(),
+                    "inl_error_lsb": np.asarray(density.inl_error_lsb).tolist(),
+                    "flagged_tdcs": np.flatnonzero(~np.asarray(density.ok, bool)).tolist()},
+        **({"lsb_poly_x": {"mean": fit.x_mean, "scale": fit.x_scale,
+                           "n_range": list(fit.n_range)},
+            "lsb_residual_ps": np.asarray(fit.residual_ps).tolist()} if fit else {}),
+        **({"delay": c.meta["delay"]} if "delay" in c.meta else {}),
+    }
+    out = Path(out)
+    with atomic_path(out) as tmp:
+        tmp.mkdir(parents=True)
+        pq.write_table(tdc, tmp / "tdc.parquet")
+        pq.write_table(inl, tmp / "inl.parquet")
+        (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
+    return out

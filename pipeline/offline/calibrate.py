@@ -1,49 +1,21 @@
-"""Calibration campaigns on captures: density test, LSB against light, delay; and the
-calibration directory (DESIGN.md "Outputs") written atomically with its provenance.
-
-A calibration directory holds ``tdc.parquet`` (calibration_tdc), ``inl.parquet``
-(calibration_inl) and ``meta.json``: schema version, software version, date, the SHA-256
-of every capture it came from, the light level of each density test, and the scaling of
-the LSB polynomial's x.
-"""
+"""Calibration campaigns on captures: density test, LSB against light, delay. Each result
+is a :class:`stages.calibration_set.Calibration`, saved with its provenance by
+``pipeline.io.caldir.save_calibration`` (atomically) and loaded once by
+``load_calibration``."""
 
 from __future__ import annotations
 
-import datetime as dt
-import hashlib
-import json
-import warnings
 from dataclasses import dataclass
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 import numpy as np
-import pyarrow as pa
-import pyarrow.parquet as pq
 
-from pipeline.io.atomic import atomic_path
-from pipeline.io.caldir import read_tdc_table
+from pipeline.io.caldir import load_calibration, save_calibration
 from pipeline.io.capture import Capture
 from schemas.errors import CalibrationError
-from schemas.outputs import CALIBRATION_INL, CALIBRATION_TDC
-from schemas.words import N_CODES
 from stages import calibration as cal
+from stages.calibration_set import Calibration, time_axis
 from stages.histogram import HistogramAccumulator
-
-
-def software_version() -> str:
-    try:
-        return version("tcspc-lidar")
-    except PackageNotFoundError:  # pragma: no cover - running from a source tree
-        return "unknown"
-
-
-def sha256(path: Path, chunk: int = 1 << 22) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while block := fh.read(chunk):
-            h.update(block)
-    return h.hexdigest()
 
 
 def density_histograms(capture: Capture, progress=None):
@@ -108,107 +80,12 @@ def density_from_capture(capture: Capture, inl_rms_lsb: float | None = 0.3,
 
 def write_caldir(out: str | Path, density: cal.DensityResult, second: cal.SecondStage,
                  sources: list[Path], lsb_fit: cal.LsbFit | None = None,
-                 delay_s: np.ndarray | None = None, extra: dict | None = None) -> Path:
-    """Write a calibration directory atomically (a failure leaves the old one in place)."""
-    n = density.n_tdc
-    lsb_ps = density.lsb_s * 1e12
-    if lsb_fit is not None:
-        poly = lsb_fit.coef
-    else:  # a single density test: a constant polynomial at its LSB
-        poly = np.column_stack([lsb_ps, np.zeros((n, 3))])
-    tdc = pa.table({
-        "tdc": pa.array(np.arange(n), pa.uint16()),
-        "lsb_ps": pa.array(lsb_ps),
-        "lsb_poly": pa.FixedSizeListArray.from_arrays(pa.array(poly.ravel()), 4),
-        "n_min": pa.array(np.maximum(second.n_min, 0), pa.uint16()),
-        "n_max": pa.array(np.maximum(second.n_max, 0), pa.uint16()),
-        "n_th": pa.array(np.maximum(second.n_th, 0), pa.uint16()),
-        "pdm": pa.array(np.maximum(second.pdm, 0), pa.uint16()),
-        "delay_ps": pa.array([None] * n if delay_s is None else delay_s * 1e12,
-                             pa.float64()),
-        "ok": pa.array(density.ok),
-    }, schema=CALIBRATION_TDC.schema)
-    codes = np.arange(N_CODES)
-    inl = pa.table({
-        "tdc": pa.array(np.repeat(np.arange(n), N_CODES), pa.uint16()),
-        "code": pa.array(np.tile(codes, n), pa.uint16()),
-        "width_lsb": pa.array(density.width_lsb.ravel()),
-        "dnl_lsb": pa.array(density.dnl_lsb.ravel()),
-        "inl_lsb": pa.array(density.inl_lsb.ravel()),
-    }, schema=CALIBRATION_INL.schema)
-    meta = {
-        "schema_version": CALIBRATION_TDC.version, "software": software_version(),
-        "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "sources": [{"path": str(p), "sha256": sha256(Path(p))} for p in sources],
-        "density": {"detections_per_pixel_per_cycle": float(
-            np.nanmean(density.detections_per_cycle)),
-            "x_t": density.x_t.tolist(), "inl_error_lsb": density.inl_error_lsb.tolist(),
-            "flagged_tdcs": np.flatnonzero(~density.ok).tolist()},
-        **({"lsb_poly_x": {"mean": lsb_fit.x_mean, "scale": lsb_fit.x_scale,
-                           "n_range": list(lsb_fit.n_range)},
-            "lsb_residual_ps": lsb_fit.residual_ps.tolist()} if lsb_fit else {}),
-        **(extra or {}),
-    }
-    out = Path(out)
-    with atomic_path(out) as tmp:
-        tmp.mkdir(parents=True)
-        pq.write_table(tdc, tmp / "tdc.parquet")
-        pq.write_table(inl, tmp / "inl.parquet")
-        (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
-    return out
-
-
-def read_density(caldir: str | Path) -> tuple[cal.DensityResult, dict]:
-    """The density-test part of a calibration directory, as a DensityResult."""
-    caldir = Path(caldir)
-    tdc = read_tdc_table(caldir)
-    inl = pq.read_table(caldir / "inl.parquet")
-    meta = json.loads((caldir / "meta.json").read_text())
-    n = tdc.num_rows
-    grid = lambda c: inl.column(c).to_numpy().reshape(n, N_CODES)  # noqa: E731
-    lsb = tdc.column("lsb_ps").to_numpy() * 1e-12
-    ok = tdc.column("ok").to_numpy() if "ok" in tdc.column_names else np.ones(n, bool)
-    d = meta.get("density", {})
-    res = cal.DensityResult(lsb, np.asarray(d.get("x_t", np.full(n, np.nan))),
-                            grid("width_lsb"), grid("dnl_lsb"), grid("inl_lsb"),
-                            np.full(n, np.nan),
-                            np.full(n, d.get("detections_per_pixel_per_cycle", np.nan)),
-                            ok, np.asarray(d.get("inl_error_lsb", np.full(n, np.nan))))
-    return res, meta
-
-
-def read_lsb_fit(caldir: str | Path) -> cal.LsbFit | None:
-    """The directory's LSB-against-light fit, or None when it holds one density test."""
-    caldir = Path(caldir)
-    meta = json.loads((caldir / "meta.json").read_text())
-    px = meta.get("lsb_poly_x")
-    if px is None:
-        return None
-    poly = np.stack(read_tdc_table(caldir).column("lsb_poly").to_numpy(zero_copy_only=False))
-    return cal.LsbFit(poly, px["mean"], px["scale"], tuple(px["n_range"]),
-                      np.asarray(meta.get("lsb_residual_ps", np.empty((poly.shape[0], 0)))))
-
-
-def lsb_at(caldir: str | Path, n_light: float) -> np.ndarray:
-    """Per-TDC LSB (s) at a light level from the directory's polynomial (eq. 5.1); warns
-    when the level lies outside the fitted range."""
-    caldir = Path(caldir)
-    tdc = read_tdc_table(caldir)
-    meta = json.loads((caldir / "meta.json").read_text())
-    fit = read_lsb_fit(caldir)
-    if fit is None:
-        n_cal = meta.get("density", {}).get("detections_per_pixel_per_cycle")
-        if n_cal is not None and abs(n_light - n_cal) > 0.02:
-            warnings.warn(f"{caldir}: one density test at {n_cal:.3g} detections per pixel per "
-                          f"cycle, used at {n_light:.3g}: the LSB changes with light (up to "
-                          "40 ps, section 5.1); run `tcspc calibrate lsb` over this range",
-                          stacklevel=2)
-        return tdc.column("lsb_ps").to_numpy() * 1e-12
-    lo, hi = fit.n_range
-    if not fit.in_range(n_light):
-        warnings.warn(f"{caldir}: light level {n_light:.3g} detections per pixel per cycle "
-                      f"is outside the LSB fit's range [{lo:.3g}, {hi:.3g}]", stacklevel=2)
-    return fit.lsb_ps(n_light) * 1e-12
+                 extra: dict | None = None) -> Path:
+    """A new calibration (a density test, and the LSB against light where fitted, no delay
+    yet) saved to ``out`` atomically (a failure leaves the old one in place)."""
+    calibration = Calibration(density, second, lsb_fit, np.full(density.n_tdc, np.nan), (),
+                              None, dict(extra or {}))
+    return save_calibration(calibration, out, sources)
 
 
 def lsb_campaign(captures: list, out: str | Path, inl_rms_lsb: float = 0.5,
@@ -274,59 +151,61 @@ def add_delay(capture, caldir: str | Path, log=None) -> np.ndarray:
     The peak's tau is the range stage's: the pile-up-exact ML on the calibrated time axis
     (so a target at zero distance ranges to zero). The axis's scale at the capture's light
     comes from the LSB polynomial, or from the capture's own reset peak where that is
-    trustworthy: found where the polynomial puts it, on codes the density test measured,
+    trustworthy: found where its uniform light ends, on codes the density test measured,
     with the return (located first on the polynomial's axis) well clear of it
-    (:func:`pipeline.offline.ranging.time_axis`); the source of each TDC's scale, and why the
-    reset peak was declined, are recorded. A TDC without a delay gets the reason in
+    (:func:`stages.calibration_set.time_axis`); the source of each TDC's scale, and why
+    the reset peak was declined, are recorded. A TDC without a delay gets the reason in
     ``meta.json`` (``delay.reasons``). Raises CalibrationError, leaving ``caldir`` as it
     was, when no TDC got a delay.
     """
-    from pipeline.io.caldir import read_bounds
-    from pipeline.offline.ranging import time_axis
     from stages.ranging import Histograms, ml
 
     cap = capture if hasattr(capture, "iter_chunks") else Capture(capture)
-    res, meta = read_density(caldir)
-    acc = HistogramAccumulator(cap.meta.n_tdc, read_bounds(caldir, cap.meta.n_tdc))
+    calib = load_calibration(caldir)
+    if calib.n_tdc != cap.meta.n_tdc:
+        raise CalibrationError(f"{caldir}: calibrates {calib.n_tdc} TDCs, {cap.bin_path} has "
+                               f"{cap.meta.n_tdc}")
+    res = calib.density
+    acc = HistogramAccumulator(cap.meta.n_tdc, calib.bounds)
     for first, words in cap.iter_chunks():
         acc.update(words, first)
     state = acc.snapshot()
     light = float(state.hits.sum() / (state.n_tdc * max(state.cycles.max(), 1)))  # eq. 5.1
     window_s = cap.meta.window_ns * 1e-9
 
-    def estimate(tau_edges, x_t, scale):
-        irf = cal.histogram_sigma_s(state.hits, res, scale)
+    def estimate(axis):
+        irf = cal.histogram_sigma_s(state.hits, res, axis.scale)
         irf = irf[np.isfinite(irf) & (irf > 0)]  # an empty histogram's width is 0
-        widths = np.diff(tau_edges, axis=1)
+        widths = np.diff(axis.tau_edges_s, axis=1)
         # the instrument response; 1 LSB where no TDC's peak says (as the range stage)
         sigma = float(np.median(irf)) if irf.size else \
             float(np.nanmedian(widths)) if np.isfinite(widths).any() else 200e-12
-        h = Histograms.from_codes(state.hits, tau_edges, state.cycles, window_s, x_t=x_t)
+        h = Histograms.from_codes(state.hits, axis.tau_edges_s, state.cycles, window_s,
+                                  x_t=axis.x_t)
         return ml(h, sigma), sigma
 
+    def code_of(t_s, tau_edges, keep):
+        return np.array([np.interp(window_s - t, e, np.arange(e.size, dtype=np.float64))
+                         if k and np.isfinite(t) and np.all(np.isfinite(e)) else np.nan
+                         for t, e, k in zip(t_s, tau_edges, keep, strict=True)])
+
     # the return first on the polynomial's axis, so the reset peak's fit can keep clear of it
-    tau_edges, x_t, scale, _ = time_axis(state, caldir, window_s, density=res)
-    first, _ = estimate(tau_edges, x_t, scale)
-    returns = np.array([np.interp(window_s - t, e, np.arange(e.size, dtype=np.float64))
-                        if det and np.isfinite(t) and np.all(np.isfinite(e)) else np.nan
-                        for t, e, det in zip(first.t_s, tau_edges, first.detected,
-                                             strict=True)])
-    tau_edges, x_t, scale, source = time_axis(state, caldir, window_s, in_situ=True,
-                                              density=res, returns=returns)
-    est, sigma = estimate(tau_edges, x_t, scale)
+    axis = time_axis(calib, state.hits, state.cycles, window_s)
+    first, _ = estimate(axis)
+    returns = code_of(first.t_s, axis.tau_edges_s, first.detected)
+    axis = time_axis(calib, state.hits, state.cycles, window_s, in_situ=True, returns=returns)
+    est, sigma = estimate(axis)
     d = cal.delay_s(cap.meta.t_laser_win_ns * 1e-9, window_s - est.t_s)
     # where the return sits: a return partly under the reset peak's mask or at the window's
     # end is biased (fit on one flank), one with a handful of counts is no measurement
-    lsb = np.nanmedian(np.diff(tau_edges, axis=1), axis=1)
-    at = np.array([np.interp(window_s - t, e, np.arange(e.size, dtype=np.float64))
-                   if np.isfinite(t) and np.all(np.isfinite(e)) else np.nan
-                   for t, e in zip(est.t_s, tau_edges, strict=True)])
+    lsb = np.nanmedian(np.diff(axis.tau_edges_s, axis=1), axis=1)
+    at = code_of(est.t_s, axis.tau_edges_s, np.ones(state.n_tdc, bool))
     reach = DELAY_CLEAR_SIGMAS * sigma / lsb  # codes the return spreads over, each side
     reasons = np.full(state.n_tdc, "", dtype=object)
     reasons[~np.isfinite(d)] = "no peak position (estimator gave none)"
     reasons[at < 1 + reach] = ("return at the window's end (partly cut off): move the gate "
                                "(T_laser-win) later")
-    reasons[at > np.floor(x_t) - RESET_MASK - reach] = (
+    reasons[at > np.floor(axis.x_t) - RESET_MASK - reach] = (
         "return within reach of the reset peak (partly masked): move the gate "
         "(T_laser-win) earlier")
     reasons[np.asarray(est.signal_counts, np.float64) < DELAY_MIN_COUNTS] = (
@@ -335,47 +214,32 @@ def add_delay(capture, caldir: str | Path, log=None) -> np.ndarray:
     reasons[~np.asarray(est.detected, bool)] = "no return detected at the false-alarm rate"
     # the polynomial away from the light it was fitted at is a guess (0.7 ns of delay at
     # 0.8 detections a cycle on a fit over 0.02-0.69): only the capture's reset peak helps
-    fit = read_lsb_fit(caldir)
-    if fit is not None:
-        lo, hi = fit.n_range
-        off_fit = "" if fit.in_range(light) else \
-            f"light {light:.3g} outside the LSB fit's range [{lo:.3g}, {hi:.3g}]"
-    else:
-        n_cal = meta.get("density", {}).get("detections_per_pixel_per_cycle", light)
-        off_fit = "" if abs(light - n_cal) <= 0.02 else \
-            f"one density test at {n_cal:.3g} detections a cycle, the capture at {light:.3g}"
-    if off_fit:
-        guess = (source != "reset peak") & (reasons == "")
-        reasons[guess] = [f"{off_fit}, and the capture's own reset peak not usable "
+    if axis.note:
+        guess = (axis.source != "reset peak") & (reasons == "")
+        reasons[guess] = [f"{axis.note}, and the capture's own reset peak not usable "
                           f"({str(src).split(': ', 1)[-1]}): run `tcspc calibrate lsb` "
-                          "over this light" for src in source[guess]]
+                          "over this light" for src in axis.source[guess]]
     reasons[state.hits.sum(axis=1) == 0] = "no hits in the capture"
-    reasons[~np.asarray(res.ok, bool)] = "flagged by the density test"
+    reasons[~calib.ok] = "flagged by the density test"
     d = np.where(reasons == "", d, np.nan)
     if not np.isfinite(d).any():
         counts = {r: int(np.sum(reasons == r)) for r in sorted(set(reasons.tolist()))}
         raise CalibrationError(f"{cap.bin_path}: no TDC got a delay ({counts}); {caldir} "
                                "is left as it was")
+    source = axis.source
     if log:
         log(f"return found on the polynomial's axis on {int(np.isfinite(returns).sum())} of "
             f"{state.n_tdc} TDCs; time axis from the capture's reset peak on "
             f"{int(np.sum(source == 'reset peak'))}")
-    tdc = read_tdc_table(caldir)
-    second = cal.SecondStage(*(tdc.column(c).to_numpy().astype(np.int64)
-                               for c in ("n_min", "n_max", "n_th", "pdm")))
-    sources = [Path(s["path"]) for s in meta["sources"] if Path(s["path"]).exists()]
-    extra = {k: v for k, v in meta.items() if k.startswith("lsb_")}
-    write_caldir(caldir, res, second, sources + getattr(cap, "paths", [cap.bin_path]),
-                 lsb_fit=read_lsb_fit(caldir),
-                 delay_s=d, extra={**extra, "delay": {
-                     "capture": str(cap.bin_path), "light": light,
-                     "counts_used": np.round(est.signal_counts).tolist(),
-                     "sigma_ps": np.round(est.sigma_s * 1e12, 3).tolist(),
-                     "scale_from": source.tolist(),
-                     "scale_from_reset_peak": int(np.sum(source == "reset peak")),
-                     "tdcs_with_delay": int(np.isfinite(d).sum()),
-                     "reasons": reasons.tolist(),
-                     "irf_sigma_s": sigma}})
+    calib = calib.with_delay(d, reasons.tolist(), sigma, {
+        "capture": str(cap.bin_path), "light": light,
+        "counts_used": np.round(est.signal_counts).tolist(),
+        "sigma_ps": np.round(est.sigma_s * 1e12, 3).tolist(),
+        "scale_from": source.tolist(),
+        "scale_from_reset_peak": int(np.sum(source == "reset peak")),
+        "tdcs_with_delay": int(np.isfinite(d).sum())})
+    sources = [Path(s["path"]) for s in calib.meta.get("sources", []) if Path(s["path"]).exists()]
+    save_calibration(calib, caldir, sources + getattr(cap, "paths", [cap.bin_path]))
     return d
 
 
@@ -408,12 +272,12 @@ class Quality:
 
 
 def quality(caldir: str | Path) -> Quality:
-    res, meta = read_density(caldir)
-    ok = res.ok
-    delay = read_tdc_table(caldir).column("delay_ps").to_numpy(zero_copy_only=False)
-    resid = np.asarray(meta.get("lsb_residual_ps", []), np.float64)
+    calib = load_calibration(caldir)
+    ok = calib.ok
+    resid = np.asarray(calib.meta.get("lsb_residual_ps", []), np.float64)
     return Quality(int(ok.sum()),
-                   float(np.nanmedian(res.inl_error_lsb[ok])) if ok.any() else float("inf"),
+                   float(np.nanmedian(calib.density.inl_error_lsb[ok])) if ok.any()
+                   else float("inf"),
                    float(np.sqrt(np.nanmean(resid ** 2))) if resid.ndim == 2
                    and resid.shape[1] > 4 else float("nan"),
-                   bool(np.isfinite(np.asarray(delay, np.float64)).any()))
+                   calib.has_delay)

@@ -11,111 +11,46 @@ import pyarrow.parquet as pq
 from scipy.constants import c as C_LIGHT
 
 from pipeline.io.atomic import atomic_path
-from pipeline.io.caldir import read_bounds, read_tdc_table
 from pipeline.io.capture import Capture
-from pipeline.offline.calibrate import lsb_at, read_density
 from schemas.errors import CalibrationError
 from schemas.outputs import HISTOGRAMS, RANGES
-from schemas.words import N_CODES
 from stages import calibration as cal
+from stages.calibration_set import Calibration, time_axis
 from stages.histogram import HistogramAccumulator, HistogramState
 from stages.ranging import Estimate, Histograms, estimate
 
 
-def time_axis(state: HistogramState, caldir: str | Path, window_s: float,
-              in_situ: bool = False, density: cal.DensityResult | None = None,
-              returns: np.ndarray | None = None):
-    """The calibrated time axis of a histogram state: per-code tau edges (n_tdc, 513), the
-    code where tau = T falls (x_T), the scale (seconds per unit of the density test's code
-    boundaries) and where each TDC's scale came from (with the reason where the capture's
-    own reset peak was declined).
-
-    The code boundaries are the density test's (INL); their scale at this measurement's
-    light comes from the LSB polynomial (eq. 5.1) read where the window's end falls
-    (:func:`stages.calibration.scale_at_light`), or, with ``in_situ``, from the capture's
-    own reset peak, looked for where its uniform light ends and trusted only where the
-    density test measured those codes and no return (``returns``: each TDC's return code,
-    NaN for none) lies close to it (:func:`stages.calibration.scale_in_situ`).
-    ``density``: the directory's density test when the caller has read it already (the
-    range stage does, per measurement).
-    """
-    if density is None:
-        density, _ = read_density(caldir)
-    rows = slice(state.tdc_offset, state.tdc_offset + state.n_tdc)  # a worker's TDC range
-    if rows.stop > density.n_tdc:
-        raise CalibrationError(f"{caldir}: calibrates {density.n_tdc} TDCs, the histograms "
-                               f"reach TDC {rows.stop - 1}")
-    density = cal.density_rows(density, rows)
-    light = float(state.hits.sum() / (state.n_tdc * max(state.cycles.max(), 1)))
-    bounds = cal.code_bounds(density)
-    scale = cal.scale_at_light(density, lsb_at(caldir, light)[rows], window_s)
-    source = np.full(state.n_tdc, "lsb polynomial", dtype=object)
-    if in_situ:
-        own, ok, why = cal.scale_in_situ(state.hits, state.cycles, density, window_s,
-                                         returns=returns)
-        scale = np.where(ok, own, scale)
-        source = np.where(ok, "reset peak", "lsb polynomial: " + why.astype(str)) \
-            .astype(object)
-    tau_edges = bounds * scale[:, None]
-    x_t = _x_t(tau_edges, window_s)
-    # ... unless the data say otherwise: nothing lies beyond the reset peak, so where the
-    # uniform light ends (the last populated code, with light below it) bounds it. A
-    # calibration whose LSB is off for this light (a single density test used at another
-    # light) would otherwise leave the reset peak inside the searched codes, where it wins
-    # as a false target. Without ambient light there is no such step: the last populated
-    # code is then a return's tail, and bounding x_T there masked the return itself.
-    return tau_edges, _bounded_by_light(state.hits, x_t), scale, source
-
-
-def _bounded_by_light(hits: np.ndarray, x_t: np.ndarray) -> np.ndarray:
-    """x_T bounded by where the uniform light ends, where the light shows a step there
-    (:func:`stages.calibration.light_end`)."""
-    top, step = cal.light_end(hits)
-    return np.where(step, np.minimum(x_t, top), x_t)
-
-
-def _x_t(tau_edges: np.ndarray, window_s: float) -> np.ndarray:
-    """Where tau = T falls on the code axis (fractional code), per TDC."""
-    k = np.clip((tau_edges <= window_s).sum(axis=1) - 1, 0, N_CODES - 1)
-    r = np.arange(tau_edges.shape[0])
-    return k + (window_s - tau_edges[r, k]) / (tau_edges[r, k + 1] - tau_edges[r, k])
-
-
-def range_state(state: HistogramState, caldir: str | Path, window_s: float,
+def range_state(state: HistogramState, calibration: Calibration, window_s: float,
                 t_laser_win_s: float, estimator: str = "ml", sigma_s: float | None = None,
-                p_fa: float = 1e-3) -> tuple[Estimate, np.ndarray, np.ndarray]:
+                p_fa: float = 1e-3) -> tuple[Estimate, np.ndarray, np.ndarray, str]:
     """Ranges of every pixel of a histogram state with a calibration.
 
-    The time axis from :func:`time_axis` (INL, and the LSB polynomial at this
-    measurement's light, eq. 5.1), the delay from the calibration's eq. 5.3 measurement.
-    ``sigma_s``, the instrument response, defaults to the one measured at zero distance
-    (stored with the delay), else 1 LSB. Returns the estimate, distances and sigmas in
-    metres.
+    The time axis from :func:`stages.calibration_set.time_axis` (INL, and the LSB
+    polynomial at this measurement's light, eq. 5.1), the delay from the calibration's eq.
+    5.3 measurement. ``sigma_s``, the instrument response, defaults to the one measured at
+    zero distance (stored with the delay), else 1 LSB. A pixel without a delay is not
+    detected. Returns the estimate, distances and sigmas in metres, and a note for the
+    user ("" when the calibration covers this measurement's light).
     """
-    density, meta = read_density(caldir)
-    tdc = read_tdc_table(caldir)
-    rows = slice(state.tdc_offset, state.tdc_offset + state.n_tdc)
-    if rows.stop > tdc.num_rows:
-        raise CalibrationError(f"{caldir}: calibrates {tdc.num_rows} TDCs, the histograms "
-                               f"reach TDC {rows.stop - 1}")
-    delay = tdc.column("delay_ps").to_numpy(zero_copy_only=False)[rows]
-    if delay is None or np.all(np.isnan(np.asarray(delay, np.float64))):
-        raise CalibrationError(f"{caldir}: no delay (run `tcspc calibrate delay` on a "
-                               "zero-distance capture first)")
-    delay_s = np.asarray(delay, np.float64) * 1e-12
-    tau_edges, x_t, _, _ = time_axis(state, caldir, window_s, density=density)
+    if not calibration.has_delay:
+        raise CalibrationError(f"{calibration.path}: no delay (run `tcspc calibrate delay` "
+                               "on a zero-distance capture first)")
+    try:
+        calib = calibration.rows(state.tdc_offset, state.tdc_offset + state.n_tdc)
+    except ValueError as exc:
+        raise CalibrationError(str(exc)) from exc
+    axis = time_axis(calib, state.hits, state.cycles, window_s)
     if sigma_s is None:
-        sigma_s = float(meta.get("delay", {}).get(
-            "irf_sigma_s", np.median(np.diff(tau_edges, axis=1))))
-    h = Histograms.from_codes(state.hits, tau_edges, state.cycles, window_s, x_t=x_t)
+        sigma_s = calib.irf_sigma_s or float(np.nanmedian(np.diff(axis.tau_edges_s, axis=1)))
+    h = Histograms.from_codes(state.hits, axis.tau_edges_s, state.cycles, window_s,
+                              x_t=axis.x_t)
     est = estimate(h, sigma_s, estimator, p_fa)
-    tau = window_s - est.t_s
-    distance = cal.distance_m(t_laser_win_s, delay_s, tau)
+    distance = cal.distance_m(t_laser_win_s, calib.delay_s, window_s - est.t_s)
     # a pixel without a delay (flagged by `calibrate delay`, reason in meta.json) has no
     # distance: never a detection with a NaN or a guessed range
     est = dataclasses.replace(est, detected=np.asarray(est.detected, bool)
-                              & np.isfinite(delay_s))
-    return est, distance, est.sigma_s * C_LIGHT / 2
+                              & np.isfinite(calib.delay_s))
+    return est, distance, est.sigma_s * C_LIGHT / 2, axis.note
 
 
 def ranges_table(measurement: str, est: Estimate, distance_m: np.ndarray,
@@ -134,22 +69,27 @@ def ranges_table(measurement: str, est: Estimate, distance_m: np.ndarray,
     }, schema=RANGES.schema)
 
 
-def range_capture(capture: str | Path, caldir: str | Path, out: str | Path,
+def range_capture(capture: str | Path, calibration: Calibration, out: str | Path,
                   estimator: str = "ml", sigma_s: float | None = None,
-                  p_fa: float = 1e-3) -> pa.Table:
+                  p_fa: float = 1e-3) -> tuple[pa.Table, str]:
+    """Range a whole capture; returns the ranges table and the note of
+    :func:`range_state`."""
     cap = Capture(capture)
-    acc = HistogramAccumulator(cap.meta.n_tdc, read_bounds(caldir, cap.meta.n_tdc))
+    if calibration.n_tdc != cap.meta.n_tdc:
+        raise CalibrationError(f"{calibration.path}: calibrates {calibration.n_tdc} TDCs, "
+                               f"{cap.bin_path} has {cap.meta.n_tdc}")
+    acc = HistogramAccumulator(cap.meta.n_tdc, calibration.bounds)
     for first, words in cap.iter_chunks():
         acc.update(words, first)
-    est, d, s = range_state(acc.snapshot(), caldir, cap.meta.window_ns * 1e-9,
-                            cap.meta.t_laser_win_ns * 1e-9, estimator, sigma_s, p_fa)
+    est, d, s, note = range_state(acc.snapshot(), calibration, cap.meta.window_ns * 1e-9,
+                                  cap.meta.t_laser_win_ns * 1e-9, estimator, sigma_s, p_fa)
     table = ranges_table(cap.name, est, d, s)
     table = table.replace_schema_metadata({**table.schema.metadata,
-                                           b"tcspc.calibration": str(Path(caldir)).encode(),
+                                           b"tcspc.calibration": calibration.path.encode(),
                                            b"tcspc.capture": str(cap.bin_path).encode()})
     with atomic_path(out) as tmp:
         pq.write_table(table, tmp)
-    return table
+    return table, note
 
 
 class RangeCore:
@@ -160,26 +100,30 @@ class RangeCore:
     in_spec = HISTOGRAMS
     out_spec = RANGES
 
-    def __init__(self, caldir: str | Path, estimator: str = "ml", window_ns: float = 80.0,
-                 step_id: str = "range", forward_histograms: bool = True):
-        read_density(caldir)  # fail at start, not on the first message
-        self.caldir, self.estimator, self.window_ns = Path(caldir), estimator, window_ns
+    def __init__(self, calibration: Calibration, estimator: str = "ml",
+                 window_ns: float = 80.0, step_id: str = "range",
+                 forward_histograms: bool = True):
+        if not calibration.has_delay:  # fail at start, not on the first message
+            raise CalibrationError(f"{calibration.path}: no delay (run `tcspc calibrate "
+                                   "delay` on a zero-distance capture first)")
+        self.calibration, self.estimator, self.window_ns = calibration, estimator, window_ns
         self.step_id, self.forward = step_id, forward_histograms
         self.ranged = 0
+        self.notes: dict[str, int] = {}  #: what the calibration said, and how often
 
     def process(self, header: dict, batch: pa.RecordBatch) -> list:
-        import warnings
-
         state = HistogramState.from_table(pa.Table.from_batches([batch]))
         window_s = float(header.get("window_ns", self.window_ns)) * 1e-9
         gate_s = float(header["t_laser_win_ns"]) * 1e-9
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # light outside the LSB fit: noted in the header
-            est, d, s = range_state(state, self.caldir, window_s, gate_s, self.estimator)
+        est, d, s, note = range_state(state, self.calibration, window_s, gate_s,
+                                      self.estimator)
+        if note:  # light outside the LSB fit: counted, and in the ranges' header
+            self.notes[note] = self.notes.get(note, 0) + 1
         name = str(header.get("measurement", header["run"]))
         table = ranges_table(name, est, d, s, state.tdc_offset)
         head = {**header, "schema": RANGES.name, "version": RANGES.version,
-                "step": self.step_id, "detected": int(np.sum(est.detected))}
+                "step": self.step_id, "detected": int(np.sum(est.detected)),
+                **({"calibration_note": note} if note else {})}
         self.ranged += 1
         out = [(head, b) for b in table.to_batches()]
         return ([(header, batch)] if self.forward else []) + out

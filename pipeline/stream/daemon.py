@@ -708,9 +708,11 @@ def reconcile(topo: Topology) -> dict:
         bounds_all = read_bounds(topo.histogram["calibration"], n)
     ranger = None
     if topo.range:
+        from pipeline.io.caldir import load_calibration
         from pipeline.offline.ranging import RangeCore
 
-        ranger = RangeCore(topo.range["calibration"], topo.range.get("estimator", "ml"))
+        ranger = RangeCore(load_calibration(topo.range["calibration"]),
+                           topo.range.get("estimator", "ml"))
     sink = ParquetSink(out)
     redone, unrecoverable, corrupt_meas = [], [], []
     corrupt_chunks: dict[int, list] = {}  # first word -> [first, words, reason]

@@ -260,14 +260,15 @@ def test_a_reset_peak_below_the_calibrated_window_is_not_a_target(caldir):
     """A calibration's LSB too small for this light puts its x_T above the real reset
     peak; the last populated code must bound the search so the peak is not taken for a
     target (it once was, 5 m before the window)."""
-    from pipeline.offline.calibrate import lsb_at
+    from pipeline.io.caldir import load_calibration
     from pipeline.offline.ranging import range_state
     from schemas.words import N_CLASSES
     from stages.histogram import HistogramState
 
     rng = np.random.default_rng(1)
     cycles = 20_000
-    x_t = 80e-9 / lsb_at(caldir, 0.05)
+    calib = load_calibration(caldir)
+    x_t = 80e-9 / calib.lsb_s(0.05)[0]
     hits = np.zeros((N, 512), np.uint64)
     for i in range(N):
         top = int(x_t[i]) - 15                      # the real reset peak, 15 codes lower
@@ -276,7 +277,8 @@ def test_a_reset_peak_below_the_calibrated_window_is_not_a_target(caldir):
     cc = np.zeros((N_CLASSES, N), np.uint64)
     cc[0] = hits.sum(1)
     cc[1] = cycles - cc[0]
-    est, d, _ = range_state(HistogramState(hits, cc, int(cc.sum())), caldir, 80e-9, 140e-9)
+    est, d, _, _ = range_state(HistogramState(hits, cc, int(cc.sum())), calib, 80e-9,
+                               140e-9)
     assert not est.detected.any(), d[est.detected]
 
 
