@@ -21,7 +21,7 @@ from rich.progress import (
 from rich.table import Table
 
 # Heavy modules (numpy, pyarrow, numba, scipy) are imported in the commands that use them:
-# `tcspc --help` and a command's own --help stay fast (tests/pipeline/test_cli.py checks).
+# `tcspc --help` and a command's own --help stay fast (tests/pipeline/cli/test_cli.py checks).
 
 err = Console(stderr=True)
 out = Console()

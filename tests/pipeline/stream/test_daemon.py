@@ -341,7 +341,7 @@ def test_the_documented_queries_run_on_a_daemon_dataset(tmp_path, caldir):
     import re
 
     run_daemon(topology(tmp_path, caldir, cycles=30_000), "q")
-    root = Path(__file__).parents[2]
+    root = Path(__file__).parents[3]
 
     def blocks(name):
         return re.findall(r"```python\n(.*?)```", (root / name).read_text(), re.S)

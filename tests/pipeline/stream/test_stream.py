@@ -17,22 +17,17 @@ from schemas import RAW_WORDS
 from stages.histogram import HistogramAccumulator
 from stages.stream import HistogramCore
 
-SCENES = Path(__file__).parents[2] / "scenes"
+SCENES = Path(__file__).parents[3] / "scenes"
 
 
-def test_three_processes_give_the_offline_histograms(tmp_path):
-    """source-sim -> histogram -> sink over ipc://, each a real process, against the same
-    words histogrammed in-process."""
+def test_a_source_a_histogram_and_a_sink_give_the_offline_histograms(tmp_path, run_stages):
+    """source-sim -> histogram -> sink over ipc://, as three processes and as three threads
+    (the same commands), against the same words histogrammed offline."""
     ep_h, ep_s = f"ipc://{tmp_path}/h", f"ipc://{tmp_path}/s"
-    cli = [sys.executable, "-m", "pipeline.cli", "stage"]
-    procs = [
-        subprocess.Popen(cli + ["sink", "--pull", ep_s, "--out", str(tmp_path / "data")]),
-        subprocess.Popen(cli + ["histogram", "--pull", ep_h, "--push", ep_s]),
-        subprocess.Popen(cli + ["source-sim", str(SCENES / "street.toml"), "--cycles",
-                                "6000", "--push", ep_h, "--seed", "3", "--run", "r1"]),
-    ]
-    for p in procs:
-        assert p.wait(timeout=120) == 0
+    run_stages(["sink", "--pull", ep_s, "--out", str(tmp_path / "data")],
+               ["histogram", "--pull", ep_h, "--push", ep_s],
+               ["source-sim", str(SCENES / "street.toml"), "--cycles", "6000", "--push", ep_h,
+                "--seed", "3", "--run", "r1"])
     got = pl.read_parquet(tmp_path / "data" / "histograms", hive_partitioning=True)
     assert got["run"].unique().to_list() == ["r1"]
     sim = make_simulator(SCENES / "street.toml", 6000, seed=3)

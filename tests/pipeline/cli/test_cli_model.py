@@ -6,7 +6,7 @@ from click.testing import CliRunner
 
 from pipeline.cli.app import cli
 
-SCENES = Path(__file__).parents[2] / "scenes"
+SCENES = Path(__file__).parents[3] / "scenes"
 
 
 def run(*args):

@@ -4,7 +4,7 @@ from pathlib import Path
 
 from pipeline.cli.docs import cli_markdown
 
-DOCS = Path(__file__).parents[2] / "docs" / "cli.md"
+DOCS = Path(__file__).parents[3] / "docs" / "cli.md"
 
 
 def test_cli_reference_does_not_drift():
