@@ -91,7 +91,7 @@ def one(cycles: int, args, tmp: Path) -> dict:
     caldir = write_caldir(tmp / f"cal-{cycles}", res, second, [])
     t1 = time.perf_counter()
     dcap = SimulatedCapture(delay, args.delay_cycles, chip_seed=args.chip_seed, seed=2)
-    d = add_delay(dcap, caldir)
+    d = add_delay(dcap, caldir).delay_s
     t_delay = time.perf_counter() - t1
     err = (d - (100e-9 + 2 * 0.001 / C_LIGHT)) * 1e12
     return {"cycles": cycles, "density_s": t_density, "delay_s": t_delay,

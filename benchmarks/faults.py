@@ -86,7 +86,8 @@ def histograms(out: Path, run: str) -> dict:
 
 
 def run_daemon(topo: Path, run: str, during=None) -> tuple[dict, object, float]:
-    from pipeline.stream.daemon import Supervisor, load_topology
+    from pipeline.stream.daemon import Supervisor
+    from pipeline.stream.topology import load_topology
 
     sup = Supervisor(load_topology(topo, run), log=lambda m: None)
     res = {}
@@ -215,7 +216,9 @@ def sim_scenarios(tmp: Path, lines: list[str]) -> None:
         b = bytearray(seg.read_bytes())
         b[e["offset"] + e["bytes"] // 2] ^= 1
         seg.write_bytes(bytes(b))
-        topo_ = daemon.load_topology(topo, "r")
+        from pipeline.stream.topology import load_topology
+
+        topo_ = load_topology(topo, "r")
         rec = daemon.reconcile(topo_)
         return {**res, "reconciled": rec,
                 "accounting": daemon.accounting(topo_, {}, rec)}

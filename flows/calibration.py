@@ -77,7 +77,7 @@ def measure_delay(capture, candidate: str) -> tuple[list[float], str]:
     there is none ("" when some TDC got one). A candidate without a delay is not failed
     here: the verdict refuses it against a current calibration that has one."""
     try:
-        return (add_delay(capture, candidate) * 1e9).tolist(), ""
+        return (add_delay(capture, candidate).delay_s * 1e9).tolist(), ""
     except CalibrationError as exc:
         get_run_logger().warning("no delay: %s", exc)
         return [float("nan")] * load_calibration(candidate).n_tdc, str(exc)

@@ -38,7 +38,8 @@ def run_story(out: str | Path = "data", cycles: int = 100_000,
               console: Console | None = None) -> dict:
     from flows.calibration import calibration_campaign
     from pipeline.report.demo import run_demo
-    from pipeline.stream.daemon import Supervisor, load_topology
+    from pipeline.stream.daemon import Supervisor
+    from pipeline.stream.topology import load_topology
 
     con = console or Console(stderr=True)
     out = Path(out)

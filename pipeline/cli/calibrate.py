@@ -100,19 +100,17 @@ def delay(capture, out) -> None:
     where the return keeps clear of it; otherwise the LSB polynomial does (within the
     statistics of the density tests' INL either way). Prints how many TDCs got a delay
     and why the others did not; exits non-zero, leaving CALDIR as it was, when none did."""
-    import json
     from collections import Counter
-    from pathlib import Path
 
-    d = add_delay(capture, out, log=lambda m: err.print(f"delay: {m}", highlight=False))
-    used = json.loads((Path(out) / "meta.json").read_text())["delay"]
+    calib = add_delay(capture, out, log=lambda m: err.print(f"delay: {m}", highlight=False))
+    d, used = calib.delay_s, calib.meta["delay"]
     got = np.isfinite(d)
     err.print(f"delay on {int(got.sum())} of {d.size} TDCs: "
               f"{np.nanmin(d) * 1e9:.4f}..{np.nanmax(d) * 1e9:.4f} ns; time axis from the "
               f"capture's reset peak on {used['scale_from_reset_peak']} of {d.size} TDCs; "
               f"wrote {out}", highlight=False)
     if not got.all():
-        why = Counter(r for r in used["reasons"] if r)
+        why = Counter(r for r in calib.delay_reasons if r)
         err.print(f"[yellow]warning:[/yellow] no delay on {int((~got).sum())} TDC(s) "
                   f"{np.flatnonzero(~got)[:12].tolist()}: "
                   + "; ".join(f"{n} {r}" for r, n in why.most_common()), highlight=False)

@@ -144,9 +144,10 @@ DELAY_MIN_COUNTS, DELAY_CLEAR_SIGMAS = 20, 3.0
 RESET_MASK = 6  #: codes below x_T masked by the estimators (Histograms.from_codes margin)
 
 
-def add_delay(capture, caldir: str | Path, log=None) -> np.ndarray:
+def add_delay(capture, caldir: str | Path, log=None) -> Calibration:
     """Measure the system delay per TDC on a zero-distance capture (eq. 5.3) and rewrite
-    ``caldir`` with it (atomically). Returns the delay in seconds (NaN where none).
+    ``caldir`` with it (atomically). Returns the calibration as written (its ``delay_s``
+    in seconds, NaN where there is none, and ``delay_reasons``).
 
     The peak's tau is the range stage's: the pile-up-exact ML on the calibrated time axis
     (so a target at zero distance ranges to zero). The axis's scale at the capture's light
@@ -240,7 +241,7 @@ def add_delay(capture, caldir: str | Path, log=None) -> np.ndarray:
         "tdcs_with_delay": int(np.isfinite(d).sum())})
     sources = [Path(s["path"]) for s in calib.meta.get("sources", []) if Path(s["path"]).exists()]
     save_calibration(calib, caldir, sources + getattr(cap, "paths", [cap.bin_path]))
-    return d
+    return calib
 
 
 @dataclass(frozen=True)

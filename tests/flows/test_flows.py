@@ -201,8 +201,9 @@ def test_campaign_and_sweep_against_a_daemon(campaign, tmp_path, harness):
     from flows.common import scene_dict
     from flows.distance_sweep import distance_sweep
     from pipeline.io.capture import Capture
-    from pipeline.stream.daemon import Supervisor, load_topology
+    from pipeline.stream.daemon import Supervisor
     from pipeline.stream.journal import JournalWriter
+    from pipeline.stream.topology import load_topology
 
     out, r = campaign
     journal = tmp_path / "state" / "journal"

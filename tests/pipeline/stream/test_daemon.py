@@ -12,8 +12,9 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.stream.daemon import Supervisor, TopologyError, load_topology
+from pipeline.stream.daemon import Supervisor
 from pipeline.stream.journal import read_range
+from pipeline.stream.topology import TopologyError, load_topology
 from stages.histogram import HistogramAccumulator
 
 N = 16

@@ -234,7 +234,8 @@ def test_restarts_back_off_exponentially_within_a_budget_per_window(tmp_path):
     """A stage that dies at once is restarted after 0.05, 0.1, 0.2 s ... and the run fails
     when it dies more than ``restarts`` times in the window; a stage that dies less often
     than the window is long is restarted every time."""
-    from pipeline.stream.daemon import Proc, Supervisor, load_topology
+    from pipeline.stream.daemon import Proc, Supervisor
+    from pipeline.stream.topology import load_topology
 
     topo = load_topology(topology(tmp_path, cycles=1000))
     topo.restarts, topo.restart_window_s = 3, 30.0

@@ -1,0 +1,347 @@
+"""``tcspc stage ...``, ``tcspc daemon`` and ``tcspc status``: the stream's commands (each
+stage alone, the supervised graph, its health). Loaded when one of them is named."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import click
+from rich.console import Console
+from rich.table import Table
+
+from pipeline.cli.app import _calibration, err
+
+
+@click.group()
+def stage() -> None:
+    """Run one stage of the stream alone (the graph can span processes and hosts)."""
+
+
+_push = click.option("--push", "pushes", required=True, multiple=True,
+                     help="Endpoint to send to, e.g. ipc:///tmp/h; one per worker with --split.")
+_split = click.option("--split", default=None,
+                      help="Fan out by TDC range, one range per --push: 0:64,64:128.")
+_metrics = click.option("--metrics", default=None,
+                        help="Endpoint to publish heartbeats and counters on (PUB).")
+_date = click.option("--date", default=None, help="The run's date partition (default: today).")
+_accept = click.option("--accept", "senders", multiple=True,
+                       help="Step id this stage takes messages from (repeat; default: any).")
+_journal_compression = click.option(
+    "--journal-compression", type=click.Choice(["zstd", "none"]), default="zstd",
+    show_default=True, help="Journal segments as zstd frames (RUN-N.bin.zst; `zstd -d` gives "
+                            "the raw capture) or raw (RUN-N.bin).")
+
+
+def _compression(name: str) -> str | None:
+    return None if name == "none" else name
+
+
+def _ranges(split: str | None):
+    from pipeline.stream.fanout import parse_range
+
+    return None if split is None else [parse_range(x) for x in split.split(",")]
+
+
+def _skip_journaled(batches, journal, run_id):
+    """A restarted source resumes after what its journal already holds (deterministic
+    sources only: the simulator and capture replay)."""
+    from pipeline.stream.journal import journaled_words
+
+    done = journaled_words(journal, run_id) if journal else 0
+    for first, words in batches:
+        if first + words.size <= done:
+            continue
+        yield first, words
+
+
+@stage.command("source-sim")
+@click.argument("scene_path", type=click.Path(exists=True, dir_okay=False))
+@click.option("--cycles", default=40_000, show_default=True, type=click.IntRange(1))
+@_push
+@click.option("--seed", default=0, show_default=True)
+@click.option("--chip-seed", default=1, show_default=True)
+@click.option("--run", "run_id", default="sim", show_default=True)
+@click.option("--rate", type=float, default=None, help="Words per second (default: max).")
+@click.option("--journal", type=click.Path(), default=None,
+              help="Journal the words here before sending them.")
+@_journal_compression
+@_split
+@_metrics
+@_date
+def stage_source_sim(scene_path, cycles, pushes, seed, chip_seed, run_id, rate, journal,
+                     journal_compression, split, metrics, date) -> None:
+    """The simulator as a source: raw-word batches of SCENE_PATH."""
+    from pipeline.offline.simulate import make_simulator
+    from pipeline.stream.journal import JournalWriter
+    from pipeline.stream.stage import run_source
+
+    sim = make_simulator(scene_path, cycles, seed=seed, chip_seed=chip_seed)
+    n = sim.n_tdc
+    gate = sim.sm.scene.gate.t_laser_win_ns
+    batches = _skip_journaled(((first * n, w) for first, w in sim.batches(cycles)), journal,
+                              run_id)
+    jw = JournalWriter(journal, run_id, n, gate, sim.sm.scene.sensor.window_ns,
+                       compression=_compression(journal_compression)) if journal else None
+    sent = run_source(batches, list(pushes), step_id="source", run=run_id, n_tdc=n,
+                      t_laser_win_ns=gate, rate_words_s=rate, journal=jw, split=_ranges(split),
+                      metrics=metrics, window_ns=sim.sm.scene.sensor.window_ns, date=date)
+    err.print(f"source-sim: sent {sent:,} words")
+
+
+@stage.command("source-capture")
+@click.argument("capture", type=click.Path())
+@_push
+@click.option("--run", "run_id", default=None, help="Run id (default: the capture's name)")
+@click.option("--rate", type=float, default=None, help="Words per second (default: max).")
+@click.option("--journal", type=click.Path(), default=None,
+              help="Journal the words here before sending them.")
+@_journal_compression
+@_split
+@_metrics
+@_date
+@click.option("--repeat", default=1, show_default=True, type=click.IntRange(1),
+              help="Replay the capture this many times as one run (soak tests).")
+def stage_source_capture(capture, pushes, run_id, rate, journal, journal_compression, split,
+                         metrics, date, repeat) -> None:
+    """Replay a capture into the stream, at a chosen rate or as fast as it is taken."""
+    from pipeline.io.capture import Capture
+    from pipeline.stream.journal import JournalWriter
+    from pipeline.stream.stage import run_source
+
+    cap = Capture(capture)
+    run_id = run_id or cap.name
+    n = cap.meta.n_tdc
+
+    def replay():
+        for k in range(repeat):
+            for first, w in cap.iter_chunks(max(1, (1 << 18) // n) * n):
+                # the chunk's buffer is reused: run_source journals and sends (copying)
+                # each batch before it asks for the next
+                yield k * cap.n_words + first, w
+
+    batches = _skip_journaled(replay(), journal, run_id)
+    jw = (JournalWriter(journal, run_id, n, cap.meta.t_laser_win_ns, cap.meta.window_ns,
+                        compression=_compression(journal_compression)) if journal else None)
+    sent = run_source(batches, list(pushes), step_id="source", run=run_id,
+                      n_tdc=n, t_laser_win_ns=cap.meta.t_laser_win_ns,
+                      rate_words_s=rate, journal=jw, split=_ranges(split), metrics=metrics,
+                      window_ns=cap.meta.window_ns, date=date)
+    err.print(f"source-capture: sent {sent:,} words")
+
+
+@stage.command("ingest-udp")
+@click.option("--bind", "bind_addr", default="127.0.0.1:9000", show_default=True,
+              help="host:port to listen on (127.0.0.1 unless you choose otherwise)")
+@_push
+@click.option("--run", "run_id", default="udp", show_default=True)
+@click.option("--journal", type=click.Path(), default=None,
+              help="Directory for the raw words as capture segments (written before "
+                   "they are passed on).")
+@click.option("--quarantine", type=click.Path(), default=None)
+@click.option("--idle", type=float, default=None, help="Stop after this many idle seconds.")
+@click.option("--n-tdc", type=click.IntRange(1, 65535), default=None,
+              help="The chip's TDCs per cycle (default: the first datagram's).")
+@click.option("--reorder-window", type=click.IntRange(1), default=None,
+              help="Datagrams held to undo UDP reordering (default 64).")
+@click.option("--max-jump-cycles", type=click.IntRange(1), default=None,
+              help="A datagram further past the newest cycle is refused (default 2^20).")
+@_journal_compression
+@_split
+@_metrics
+@_date
+def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, n_tdc,
+                     reorder_window, max_jump_cycles, journal_compression, split, metrics,
+                     date) -> None:
+    """The FPGA's UDP datagrams (docs/streaming.md) in, journaled raw-word batches out."""
+    import signal
+    import threading
+
+    from pipeline.stream.udp import MAX_JUMP_CYCLES, REORDER_WINDOW, run_udp_ingest, udp_socket
+
+    halt = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: halt.set())
+    stats = run_udp_ingest(udp_socket(bind_addr), list(pushes), run=run_id, journal=journal,
+                           quarantine=quarantine, idle_s=idle, split=_ranges(split),
+                           metrics=metrics, date=date, stop=halt,
+                           compression=_compression(journal_compression), n_tdc=n_tdc,
+                           reorder_window=reorder_window or REORDER_WINDOW,
+                           max_jump_cycles=max_jump_cycles or MAX_JUMP_CYCLES)
+    err.print(f"ingest: {stats.datagrams} datagrams, {stats.words:,} words, "
+              f"{stats.lost_datagrams} lost, {stats.duplicates} duplicates, {stats.late} "
+              f"late, {stats.gap_cycles} cycles in gaps, rejected {dict(stats.rejected)}")
+
+
+@stage.command("histogram")
+@click.option("--pull", required=True, help="Endpoint to bind for input")
+@click.option("--push", required=True, help="Endpoint to send to")
+@click.option("--n-tdc", default=128, show_default=True, help="TDCs per cycle (the chip's).")
+@click.option("--tdc-range", default=None, help="This worker's TDCs, FIRST:END (a fan-out).")
+@click.option("--measurement-cycles", type=click.IntRange(1), default=None,
+              help="Emit a histogram per this many cycles (default: one at the run's end).")
+@_calibration
+@click.option("--quarantine", type=click.Path(), default=None)
+@click.option("--checkpoint", type=click.Path(), default=None,
+              help="Checkpoint file: restored at start, saved after every batch.")
+@click.option("--journal", type=click.Path(), default=None,
+              help="The source's journal directory, to fill gaps after a restart.")
+@click.option("--run", "run_id", default=None, help="Run id of the journal to read.")
+@_metrics
+@click.option("--name", default="histogram", show_default=True, help="Name in metrics.")
+@_date
+@_accept
+def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibration, quarantine,
+                    checkpoint, journal, run_id, metrics, name, date, senders) -> None:
+    """Per-TDC histograms of the word stream, per measurement or at the end of the run."""
+    from pipeline.io.caldir import read_bounds
+    from pipeline.stream.fanout import parse_range, worker_reader
+    from pipeline.stream.journal import read_range, run_end, run_meta
+    from pipeline.stream.stage import run_stage
+    from stages.stream import HistogramCore
+
+    a, b = parse_range(tdc_range) if tdc_range else (0, n_tdc)
+    bounds = read_bounds(calibration, n_tdc) if calibration else None
+    if bounds is not None:
+        bounds = bounds.rows(a, b)
+    backfill = ended = None
+    context = {"run": run_id} if run_id else {}
+    if date:
+        context["date"] = date
+    if journal and run_id:
+        meta = run_meta(journal, run_id)
+        context.update({k: meta[k] for k in ("t_laser_win_ns", "window_ns") if k in meta})
+
+        def corrupt(first, n, why):  # never folded in: counted as a gap by the core
+            err.print(f"{name}: journal words [{first}, {first + n}) skipped: {why}")
+
+        backfill = worker_reader(lambda s, e: read_range(journal, run_id, s, e, corrupt),
+                                 n_tdc, (a, b))
+
+        def ended():
+            total = run_end(journal, run_id)
+            return None if total is None else total // n_tdc * (b - a)
+    core = HistogramCore(b - a, bounds, backfill=backfill, tdc_offset=a,
+                         measurement_cycles=measurement_cycles, step_id=name,
+                         context=context)
+    stats = run_stage(core, pull, push, quarantine=quarantine, checkpoint=checkpoint,
+                      run_ended=ended, metrics=metrics, name=name,
+                      senders=list(senders) or None)
+    err.print(f"{name}: received {stats.received}, sent {stats.sent}, rejected "
+              f"{dict(stats.rejected)}; backfilled {core.backfilled:,} words, skipped "
+              f"{core.duplicates:,} already counted, unfilled gaps {core.gap_words:,}")
+
+
+@stage.command("range")
+@click.option("--pull", required=True, help="Endpoint to bind for input (histograms)")
+@click.option("--push", required=True, help="Endpoint to send ranges and histograms to")
+@click.option("--calibration", required=True, type=click.Path(exists=True, file_okay=False))
+@click.option("--estimator", default="ml", show_default=True)
+@click.option("--workers", default=1, show_default=True, help="Histogram workers upstream.")
+@click.option("--quarantine", type=click.Path(), default=None)
+@_metrics
+@_accept
+def stage_range(pull, push, calibration, estimator, workers, quarantine, metrics,
+                senders) -> None:
+    """Ranges of each measurement's histograms with a calibration (eq. 5.4)."""
+    from pipeline.io.caldir import load_calibration
+    from pipeline.offline.ranging import RangeCore
+    from pipeline.stream.stage import run_stage
+
+    core = RangeCore(load_calibration(calibration), estimator)
+    stats = run_stage(core, pull, push, quarantine=quarantine, expect_stops=workers,
+                      metrics=metrics, name="range", senders=list(senders) or None)
+    err.print(f"range: {core.ranged} measurements ranged; rejected {dict(stats.rejected)}"
+              + (f"; calibration notes {core.notes}" if core.notes else ""), highlight=False)
+
+
+@stage.command("sink")
+@click.option("--pull", required=True, help="Endpoint to bind for input")
+@click.option("--out", required=True, type=click.Path(), help="dataset root")
+@click.option("--quarantine", type=click.Path(), default=None)
+@click.option("--workers", default=1, show_default=True, help="Stages feeding this sink.")
+@_metrics
+@_accept
+def stage_sink(pull, out, quarantine, workers, metrics, senders) -> None:
+    """Parquet datasets (histograms, ranges), Hive-partitioned by date and run."""
+    from pipeline.stream.stage import ParquetSink, run_stage
+
+    sink = ParquetSink(out)
+    stats = run_stage(sink, pull, None, quarantine=quarantine, expect_stops=workers,
+                      metrics=metrics, name="sink", senders=list(senders) or None)
+    err.print(f"sink: wrote {sink.files} files; rejected {dict(stats.rejected)}")
+
+
+@click.command()
+@click.option("--config", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="Topology TOML (default: the street scene through 2 workers; see "
+                   "pipeline/stream/daemon.py for the keys).")
+@click.option("--run", "run_id", default=None, help="Run id (default: from the config).")
+def daemon(config, run_id) -> None:
+    """Start the stream graph under a supervisor that restarts crashed stages; on exit,
+    reconcile the datasets with the journal and write the run's accounting."""
+    import signal
+
+    from pipeline.stream.daemon import Supervisor
+    from pipeline.stream.topology import load_topology
+
+    topo = load_topology(config, run_id)
+    sup = Supervisor(topo, log=lambda m: err.print(f"daemon: {m}", highlight=False))
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: sup.stop.set())
+    result = sup.run()
+    click.echo(json.dumps(result, indent=1))
+    if result["failed"]:
+        sys.exit(1)
+
+
+@click.command()
+@click.option("--state", default="data/daemon", show_default=True, type=click.Path(),
+              help="The daemon's state directory.")
+@click.option("--watch", type=float, default=None, help="Refresh every this many seconds.")
+@click.option("--json", "as_json", is_flag=True, help="Print status.json as it is.")
+def status(state, watch, as_json) -> None:
+    """Live view of a running daemon: per-stage health, rates, queues, restarts."""
+    import time as _time
+
+    from rich.live import Live
+
+    path = Path(state) / "status.json"
+    if not path.exists():
+        raise click.ClickException(f"{path}: no status (is a daemon running with --state "
+                                   f"{state}?)")
+    if as_json:
+        click.echo(path.read_text())
+        return
+    con = Console(width=None if sys.stdout.isatty() else 160)  # piped: no wrapped columns
+    if watch is None:
+        con.print(_status_table(json.loads(path.read_text())))
+        return
+    with Live(_status_table(json.loads(path.read_text())), console=con) as live:
+        while True:
+            _time.sleep(watch)
+            live.update(_status_table(json.loads(path.read_text())))
+
+
+def _status_table(st: dict):
+    import time as _time
+
+
+    age = _time.time() - st["updated"]
+    state = st["state"] if st["state"] != "running" or age < 5 else \
+        f"not updated for {age:.0f} s (daemon gone?)"
+    t = Table(title=f"run {st['run']}: {state}")
+    for col in ("stage", "health", "pid", "restarts", "received", "sent", "M words/s",
+                "queue", "blocked s", "rejected"):
+        t.add_column(col)
+    for name, s in st["stages"].items():
+        rate = s.get("rate_words_s")
+        t.add_row(name, s["health"], str(s.get("pid")), str(s["restarts"]),
+                  str(s.get("received", "")), str(s.get("sent", "")),
+                  f"{rate / 1e6:.1f}" if rate is not None else "",
+                  str(st["queue_depth"].get(name, "")), str(s.get("blocked_s", "")),
+                  str(s.get("rejected") or ""))
+    return t
+
+

@@ -1,0 +1,180 @@
+"""The end of a daemon's run: the datasets reconciled with the journal (a measurement lost
+in flight with a killed range or sink stage is recomputed from the journaled words: the
+same code, the same numbers) and the run's accounting (words journaled = hit + no_hit +
+artifact + invalid_phase + malformed, rejections by reason, corrupt and withheld words)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from pipeline.io.atomic import atomic_path
+from pipeline.stream.topology import Topology, tdc_ranges
+
+
+def _dataset_parts(out: Path, schema: str, run: str) -> dict[tuple[int, int], Path]:
+    parts = {}
+    for p in out.glob(f"{schema}/date=*/run={run}/part-*.parquet"):
+        _, k, t = p.stem.split("-")
+        parts[(int(k), int(t[1:]))] = p
+    return parts
+
+
+def reconcile(topo: Topology) -> dict:
+    """Recompute from the journal every (measurement, TDC range) the datasets lack; a
+    measurement is words [k M N, (k + 1) M N) of the run whatever happened to the stream,
+    so the recomputed one is the one an uninterrupted run would have written."""
+    from pipeline.stream.fanout import worker_reader
+    from pipeline.stream.journal import pruned_words, read_range, run_end
+    from pipeline.stream.stage import ParquetSink
+    from stages.artifact import ArtifactBounds
+    from stages.stream import HistogramCore
+
+    journal = topo.state / "journal"
+    total = run_end(journal, topo.run)
+    if total is None:
+        return {"checked": False, "why": "the journal has no end (the source did not finish)"}
+    n = topo.n_tdc
+    cycles = total // n
+    mc = topo.histogram.get("measurement_cycles") or max(cycles, 1)
+    n_meas = max(1, -(-cycles // mc))
+    out = Path(topo.sink["out"])
+    have_h = _dataset_parts(out, "histograms", topo.run)
+    have_r = _dataset_parts(out, "ranges", topo.run) if topo.range else None
+    bounds_all = None
+    if topo.histogram.get("calibration"):
+        from pipeline.io.caldir import read_bounds
+
+        bounds_all = read_bounds(topo.histogram["calibration"], n)
+    ranger = None
+    if topo.range:
+        from pipeline.io.caldir import load_calibration
+        from pipeline.offline.ranging import RangeCore
+
+        ranger = RangeCore(load_calibration(topo.range["calibration"]),
+                           topo.range.get("estimator", "ml"))
+    sink = ParquetSink(out)
+    redone, unrecoverable, corrupt_meas = [], [], []
+    corrupt_chunks: dict[int, list] = {}  # first word -> [first, words, reason]
+    withheld = 0
+    window_ns = None
+    for (a, b) in tdc_ranges(topo):
+        for k in range(n_meas):
+            if (k, a) in have_h and (have_r is None or (k, a) in have_r):
+                continue
+            if pruned_words(journal, topo.run, k * mc * n, min((k + 1) * mc, cycles) * n):
+                unrecoverable.append([k, a])  # its words were pruned (journal_keep_gb)
+                continue
+            bad = []
+            for _ in read_range(journal, topo.run, k * mc * n, min((k + 1) * mc, cycles) * n,
+                                lambda f, w, why, bad=bad: bad.append([f, w, why])):
+                pass  # a measurement's words are checked whole before any is used
+            if bad:
+                # a corrupt chunk's words are never data: the measurement is withheld
+                corrupt_meas.append([k, a])
+                for c in bad:
+                    corrupt_chunks[c[0]] = c
+                if (k, a) not in have_h:  # (a histogram already written is classified)
+                    withheld += (min((k + 1) * mc, cycles) - k * mc) * (b - a)
+                continue
+            bounds = (ArtifactBounds(bounds_all.n_min[a:b], bounds_all.n_max[a:b],
+                                     bounds_all.source) if bounds_all else None)
+            core = HistogramCore(b - a, bounds, tdc_offset=a,
+                                 measurement_cycles=topo.histogram.get("measurement_cycles"))
+            core.measurement = k
+            w = b - a
+            lo = k * mc * w
+            hi = min((k + 1) * mc, cycles) * w
+            core.next_word = lo
+            if window_ns is None:
+                window_ns = _journal_window_ns(journal, topo.run)
+            gate = _journal_gate_ns(journal, topo.run)
+            msgs = []
+            for f, words in worker_reader(lambda s, e: read_range(journal, topo.run, s, e),
+                                          n, (a, b))(lo, hi):
+                msgs += core.process({"run": topo.run, "first_word": f, "seq": k,
+                                      "t_laser_win_ns": gate, "window_ns": window_ns,
+                                      "date": topo.date}, _words_batch(words))
+            if hi < (k + 1) * mc * w:
+                msgs += core.finish({"run": topo.run})
+            for head, batch in msgs:
+                sink.process(head, batch)
+                if ranger is not None:
+                    for h2, b2 in ranger.process(head, batch)[1:]:
+                        sink.process(h2, b2)
+            redone.append([k, a])
+    return {"checked": True, "measurements": n_meas, "tdc_ranges": len(tdc_ranges(topo)),
+            "recomputed": redone, "unrecoverable": unrecoverable, "corrupt": corrupt_meas,
+            "corrupt_chunks": sorted(corrupt_chunks.values()),
+            "corrupt_words": sum(c[1] for c in corrupt_chunks.values()),
+            "withheld_words": withheld}
+
+
+def _words_batch(words):
+    import pyarrow as pa
+
+    from schemas.words import RAW_WORDS
+
+    return pa.record_batch([pa.array(words)], schema=RAW_WORDS.schema)
+
+
+def _journal_meta(journal: Path, run: str) -> dict:
+    for side in sorted(journal.glob(f"{run}-*.json")):
+        return json.loads(side.read_text())
+    return {}
+
+
+def _journal_window_ns(journal: Path, run: str) -> float:
+    return float(_journal_meta(journal, run).get("window_ns", 80.0))
+
+
+def _journal_gate_ns(journal: Path, run: str) -> float:
+    return float(_journal_meta(journal, run).get("t_laser_win_ns", 140.0))
+
+
+def accounting(topo: Topology, metrics: dict[str, dict], reconciled: dict | None = None
+               ) -> dict:
+    """Words in (journaled) = hit + no_hit + artifact + invalid_phase + malformed (from the
+    histograms dataset, each measurement once) + words withheld (measurements that a
+    corrupt journal chunk kept from being recomputed: ``corrupt_words`` of them in the
+    corrupt chunks themselves); messages and datagrams rejected by reason (quarantined) per
+    stage; datagrams lost (sequence gaps), duplicated and late. Written to
+    ``OUT/accounting/run=RUN.json``."""
+    import polars as pl
+
+    from pipeline.stream.journal import journaled_total, run_end
+    from schemas.words import WORD_CLASSES
+
+    out = Path(topo.sink["out"])
+    parts = sorted(_dataset_parts(out, "histograms", topo.run).values())
+    cols = [f"n_{c}" for c in WORD_CLASSES]
+    classes = dict.fromkeys(WORD_CLASSES, 0)
+    if parts:
+        sums = pl.scan_parquet(parts).select([pl.col(c).sum() for c in cols]).collect()
+        classes = {c: int(sums[f"n_{c}"][0]) for c in WORD_CLASSES}
+    journaled = journaled_total(topo.state / "journal", topo.run)
+    span = run_end(topo.state / "journal", topo.run) or 0
+    rejected = {name: m.get("rejected", {}) for name, m in metrics.items() if m.get("rejected")}
+    rec = reconciled or {}
+    withheld = int(rec.get("withheld_words", 0))
+    src = metrics.get("source", {})
+    result = {"run": topo.run, "words_in": journaled, "classes": classes,
+              "classified": sum(classes.values()),
+              "corrupt": int(rec.get("corrupt_words", 0)), "withheld": withheld,
+              "corrupt_measurements": rec.get("corrupt", []),
+              "balanced": sum(classes.values()) + withheld == journaled,
+              "rejected_messages": rejected,
+              "lost_datagrams": src.get("lost_datagrams", 0),
+              "duplicate_datagrams": src.get("duplicates", 0),
+              "late_datagrams": src.get("late", 0),
+              "quarantine_dropped": {name: m["quarantine_dropped"] for name, m in
+                                     metrics.items() if m.get("quarantine_dropped")},
+              "checkpoints_discarded": {name: m["checkpoints_discarded"] for name, m in
+                                        metrics.items() if m.get("checkpoints_discarded")},
+              "words_in_gaps": span - journaled,
+              "measurements_files": len(parts)}
+    path = out / "accounting" / f"run={topo.run}.json"
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(result, indent=1))
+    result["path"] = str(path)
+    return result
