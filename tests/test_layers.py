@@ -53,7 +53,8 @@ ROOMS = {
     "offline": {"io", "offline"},
     "stream": {"io", "offline", "stream"},
     "report": {"io", "offline", "report"},
-    "cli": {"io", "offline", "stream", "report", "cli"},
+    "view": {"io", "offline", "stream", "view"},
+    "cli": {"io", "offline", "stream", "report", "view", "cli"},
 }
 
 
