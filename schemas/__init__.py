@@ -11,6 +11,7 @@ from schemas.errors import (
     SchemaVersionError,
     TcspcError,
 )
+from schemas.instruments import LINOSPAD2_EVENTS, PTU_T2_EVENTS, PTU_T3_EVENTS
 from schemas.outputs import CALIBRATION_INL, CALIBRATION_TDC, HISTOGRAMS, RANGES
 from schemas.words import (
     ARTIFACT,
@@ -26,7 +27,8 @@ from schemas.words import (
     WORD_CLASSES,
 )
 
-ALL_SPECS = (RAW_WORDS, DECODED_EVENTS, HISTOGRAMS, CALIBRATION_TDC, CALIBRATION_INL, RANGES)
+ALL_SPECS = (RAW_WORDS, DECODED_EVENTS, HISTOGRAMS, CALIBRATION_TDC, CALIBRATION_INL, RANGES,
+             PTU_T2_EVENTS, PTU_T3_EVENTS, LINOSPAD2_EVENTS)
 
 
 def docs_markdown() -> str:
@@ -36,7 +38,8 @@ def docs_markdown() -> str:
 
 __all__ = [
     "ALL_SPECS", "ARTIFACT", "CALIBRATION_INL", "CALIBRATION_TDC", "CalibrationError",
-    "CaptureError", "DECODED_EVENTS", "docs_markdown", "HISTOGRAMS", "HIT", "INVALID_PHASE",
+    "CaptureError", "DECODED_EVENTS", "LINOSPAD2_EVENTS", "PTU_T2_EVENTS", "PTU_T3_EVENTS",
+    "docs_markdown", "HISTOGRAMS", "HIT", "INVALID_PHASE",
     "MALFORMED",
     "N_CLASSES", "N_CODES", "N_CODES_2ND", "NO_HIT", "RANGES", "RAW_WORDS", "SchemaMismatch",
     "SchemaSpec", "SchemaVersionError", "TcspcError", "WORD_CLASSES", "field", "validate",
