@@ -5,22 +5,34 @@ from __future__ import annotations
 import pyarrow as pa
 
 from schemas.core import SchemaSpec, field
-from schemas.words import N_CODES
 
-HISTOGRAMS = SchemaSpec("histograms", "1.0", (
+HISTOGRAMS = SchemaSpec("histograms", "2.0", (
     field("measurement", pa.string(), "", "name of the measurement (capture or run)"),
-    field("tdc", pa.uint16(), "", "TDC address (0-based)"),
+    field("tdc", pa.uint16(), "", "TDC address (0-based); for an instrument's file the row it "
+          "histograms: a PTU input channel, a LinoSPAD2 TDC or pixel"),
     field("cycles", pa.uint64(), "cycle", "DAQ cycles this TDC was read in (every word at "
-          "its position counts, whatever its class)"),
-    field("counts", pa.list_(pa.uint64(), N_CODES), "count",
-          "hits per first-stage code D1st = 0..511"),
-    # Added fields (minor growth of the contract): the word-class accounting per TDC.
+          "its position counts, whatever its class); a PTU T3 file: sync periods covered; "
+          "LinoSPAD2: acquisition cycles"),
+    field("counts", pa.list_(pa.uint64()), "count",
+          "hits per code: D1st = 0..511 for the thesis chip (512 entries), dtime codes for "
+          "a PTU T3 file, fine codes 0..139 for LinoSPAD2"),
     field("n_hit", pa.uint64(), "word", "hit words (sum of counts)"),
     field("n_no_hit", pa.uint64(), "word", "no_hit words (no START in the cycle)"),
     field("n_artifact", pa.uint64(), "word", "artifact words (D2nd outside [Nmin, Nmax])"),
     field("n_invalid_phase", pa.uint64(), "word", "words with a bubble in a phase code"),
     field("n_malformed", pa.uint64(), "word", "words with bad markers or address"),
+    # 2.0: instruments other than the thesis chip (code count and bin width differ)
+    field("instrument", pa.string(), "", "what made the counts: 'tcspc-chip' (Table 5.1 "
+          "words; codes need the calibration's INL), 'picoquant-t3' (PTU T3 dtime codes), "
+          "'linospad2' (fine codes of a carry chain)"),
+    field("bin_width_ps", pa.float64(), "ps", "width of one code where the instrument "
+          "states it (PTU resolution, LinoSPAD2 nominal 17.857 ps); null for the chip, "
+          "whose code widths come from its calibration", nullable=True),
 ))
+
+#: The major versions of ``histograms`` this software reads: 1.x (counts a fixed list of
+#: 512, no instrument) is upgraded on read by :func:`pipeline.io.histograms.read_histograms`.
+HISTOGRAMS_READS = (1, 2)
 
 CALIBRATION_TDC = SchemaSpec("calibration_tdc", "1.1", (
     field("tdc", pa.uint16(), "", "TDC address (0-based)"),

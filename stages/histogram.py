@@ -16,6 +16,9 @@ from schemas.words import ARTIFACT, HIT, N_CLASSES, N_CODES, N_CODES_2ND, WORD_C
 from stages.artifact import ArtifactBounds, estimate_bounds
 from stages.datapath import WordTables, accumulate, accumulate_self_bounded
 
+#: ``histograms.instrument`` of the thesis chip's D1st histograms
+CHIP = "tcspc-chip"
+
 
 def _frozen(a: np.ndarray) -> np.ndarray:
     a = np.array(a, copy=True)
@@ -70,8 +73,10 @@ class HistogramState:
         """The ``histograms`` dataset of this state, one row per TDC."""
         n = self.n_tdc
         cc = self.class_counts
-        counts = pa.FixedSizeListArray.from_arrays(pa.array(self.hits.ravel(), pa.uint64()),
-                                                   N_CODES)
+        width = self.hits.shape[1]
+        counts = pa.ListArray.from_arrays(
+            pa.array(np.arange(n + 1, dtype=np.int32) * np.int32(width)),
+            pa.array(self.hits.ravel(), pa.uint64()))
         cols = {
             "measurement": pa.array([measurement] * n, pa.string()),
             "tdc": pa.array(np.arange(n, dtype=np.uint16) + np.uint16(self.tdc_offset)),
@@ -80,11 +85,22 @@ class HistogramState:
         }
         for i, name in enumerate(WORD_CLASSES):
             cols[f"n_{name}"] = pa.array(cc[i].astype(np.uint64))
+        cols["instrument"] = pa.array([CHIP] * n, pa.string())
+        cols["bin_width_ps"] = pa.nulls(n, pa.float64())
         return pa.Table.from_pydict(cols, schema=HISTOGRAMS.schema)
 
     @classmethod
     def from_table(cls, table: pa.Table) -> HistogramState:
-        """Rebuild a state from a ``histograms`` table (one measurement, rows by TDC)."""
+        """Rebuild a state from a ``histograms`` table (one measurement, rows by TDC).
+
+        Only the thesis chip's rows: an instrument's histograms (PTU, LinoSPAD2) have no
+        word classes or artifact bounds to rebuild, and are refused by name.
+        """
+        if "instrument" in table.column_names:
+            other = set(table.column("instrument").to_pylist()) - {CHIP}
+            if other:
+                raise ValueError(f"histograms of {sorted(other)} are not the thesis chip's "
+                                 "D1st histograms; this path takes only 'tcspc-chip' rows")
         order = np.argsort(table.column("tdc").to_numpy())
         hits = np.stack(table.column("counts").to_numpy(zero_copy_only=False))[order]
         cc = np.stack([table.column(f"n_{name}").to_numpy()[order] for name in WORD_CLASSES])

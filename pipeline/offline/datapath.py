@@ -10,6 +10,7 @@ import pyarrow.parquet as pq
 
 from pipeline.io.atomic import atomic_path
 from pipeline.io.capture import Capture
+from pipeline.io.histograms import write_histogram_table
 from schemas.outputs import HISTOGRAMS
 from schemas.words import DECODED_EVENTS, N_CLASSES, WORD_CLASSES
 from stages.artifact import ArtifactBounds, estimate_bounds
@@ -61,12 +62,7 @@ def histogram_capture(cap: Capture, bounds: ArtifactBounds | None = None,
 def write_histograms(state: HistogramState, measurement: str, out: str | Path,
                      provenance: dict[str, str] | None = None) -> None:
     """Write a ``histograms`` parquet file atomically, with provenance in its metadata."""
-    table = state.to_table(measurement)
-    meta = dict(table.schema.metadata or {})
-    meta.update({f"tcspc.{k}".encode(): str(v).encode() for k, v in (provenance or {}).items()})
-    table = table.replace_schema_metadata(meta)
-    with atomic_path(out) as tmp:
-        pq.write_table(table, tmp)
+    write_histogram_table(state.to_table(measurement), out, provenance)
 
 
 def decode_capture(cap: Capture, out: str | Path, bounds: ArtifactBounds | None = None,

@@ -56,7 +56,7 @@ def run_demo(out: str | Path = "data", cycles: int = 100_000, seed: int = 0,
 
     con.rule("5. query the outputs with Polars")
     peaks = (pl.read_parquet(hist_path)
-             .with_columns(peak_code=pl.col("counts").arr.arg_max())
+             .with_columns(peak_code=pl.col("counts").list.arg_max())
              .select("tdc", "cycles", "n_hit", "n_artifact", "peak_code"))
     con.print(peaks.head(5))
     by_class = (pl.scan_parquet(events_path).group_by("word_class").len()
