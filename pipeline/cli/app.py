@@ -95,6 +95,10 @@ _calibration = click.option("--calibration", "calibration", type=click.Path(exis
 _engine = click.option("--engine", type=click.Choice(["numba", "numpy"]), default=None,
                        help="Hot-path engine (default: numba where installed).")
 _quiet = click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
+_format = click.option("--format", "fmt", type=click.Choice(["tcspc", "ptu", "linospad2"]),
+                       default=None, help="Input format (default: read from the content).")
+_firmware = click.option("--firmware", type=click.Choice(["2212b", "2212s"]), default="2212b",
+                         show_default=True, help="LinoSPAD2 firmware (pixel mapping).")
 
 
 @cli.command()
@@ -104,9 +108,23 @@ _quiet = click.option("-q", "--quiet", is_flag=True, help="No progress bar or su
               help="Also write no_hit words as rows (they are always counted).")
 @_calibration
 @_engine
+@_format
+@_firmware
 @_quiet
-def decode(capture, out, include_no_hit, calibration, engine, quiet) -> None:
-    """Decode CAPTURE (NAME.bin) into a decoded_events parquet file."""
+def decode(capture, out, include_no_hit, calibration, engine, fmt, firmware, quiet) -> None:
+    """Decode CAPTURE into an events parquet file.
+
+    A tcspc capture (NAME.bin) gives decoded_events; a PTU file its photons and markers
+    (T2: channel and absolute time in ps; T3: channel, sync number, dtime); a LinoSPAD2
+    file its pixel words (cycle, TDC, pixel, code, fine code).
+    """
+    from pipeline.cli import instruments
+
+    fmt = instruments.detect(capture, fmt)
+    if fmt != "tcspc":
+        _not_for_instruments(fmt, calibration=calibration, include_no_hit=include_no_hit)
+        instruments.decode(capture, fmt, out, firmware, quiet)
+        return
     from pipeline.offline.datapath import decode_capture
 
     cap, bounds = _open(capture, calibration)
@@ -125,9 +143,25 @@ def decode(capture, out, include_no_hit, calibration, engine, quiet) -> None:
 @click.option("--measurement", default=None, help="Measurement name (default: capture name)")
 @_calibration
 @_engine
+@_format
+@_firmware
+@click.option("--by", type=click.Choice(["tdc", "pixel"]), default="tdc", show_default=True,
+              help="LinoSPAD2: a row per TDC (64) or per pixel (256).")
 @_quiet
-def histogram(capture, out, measurement, calibration, engine, quiet) -> None:
-    """Per-TDC histograms of first-stage codes of CAPTURE's hit words."""
+def histogram(capture, out, measurement, calibration, engine, fmt, firmware, by,
+              quiet) -> None:
+    """Histograms of CAPTURE, a row per TDC (histograms dataset).
+
+    A tcspc capture: first-stage codes of its hit words. A PTU T3 file: dtime codes, a row
+    per input channel. A LinoSPAD2 file: fine codes, a row per TDC or pixel (--by).
+    """
+    from pipeline.cli import instruments
+
+    fmt = instruments.detect(capture, fmt)
+    if fmt != "tcspc":
+        _not_for_instruments(fmt, calibration=calibration)
+        instruments.histogram(capture, fmt, out, measurement, firmware, by, quiet)
+        return
     from pipeline.offline.datapath import histogram_capture, write_histograms
 
     cap, bounds = _open(capture, calibration)
@@ -225,16 +259,44 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
 
 @cli.command("range", short_help="Distance per pixel (eq. 5.4) from a capture and a calibration.")
 @click.argument("capture", type=click.Path())
-@click.option("--calibration", required=True, type=click.Path(exists=True, file_okay=False))
+@click.option("--calibration", default=None, type=click.Path(exists=True, file_okay=False),
+              help="Calibration directory (a tcspc capture needs one).")
 @click.option("--out", required=True, type=click.Path(), help="ranges.parquet to write")
 @click.option("--estimator", type=click.Choice(["ml", "fast", "matched", "centroid", "gaussfit"]),
               default="ml", show_default=True)
 @click.option("--irf-ps", type=float, default=None,
               help="Instrument response sigma (default: measured with the delay, else 1 LSB).")
 @click.option("--p-fa", default=1e-3, show_default=True, help="False-alarm probability.")
+@click.option("--delay-ps", type=float, default=None,
+              help="PTU T3: the system delay (time of a zero-distance return after the sync).")
+@click.option("--zero", type=click.Path(exists=True), default=None,
+              help="PTU T3: a zero-distance file (or its histograms) to measure the delay on.")
+@click.option("--gate", default=None, help="PTU T3: only returns in LO:HI ns after the sync.")
+@_format
 @_quiet
-def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, quiet) -> None:
-    """Distance per pixel (eq. 5.4) with uncertainty and a detection decision."""
+def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate, fmt,
+              quiet) -> None:
+    """Distance per pixel (eq. 5.4) with uncertainty and a detection decision.
+
+    CAPTURE is a tcspc capture (with --calibration), or a PicoQuant T3 file or its
+    histograms (with --delay-ps or --zero): a PicoQuant board's dtime bins are calibrated
+    by its maker, so no INL is applied; the output says so.
+    """
+    from pipeline.cli import instruments
+
+    fmt = instruments.detect(capture, fmt)
+    if fmt != "tcspc":
+        if calibration:
+            raise click.UsageError("--calibration is the thesis chip's; an instrument's "
+                                   "file takes --delay-ps or --zero")
+        instruments.range_instrument(capture, fmt, out, delay_ps, zero, gate, estimator,
+                                     irf_ps, p_fa, "2212b", quiet)
+        return
+    if calibration is None:
+        raise click.UsageError("a tcspc capture needs --calibration")
+    if delay_ps is not None or zero is not None or gate is not None:
+        raise click.UsageError("--delay-ps, --zero and --gate are for an instrument's file; "
+                               "a tcspc capture takes its delay from --calibration")
     from pipeline.io.caldir import load_calibration
     from pipeline.offline.ranging import range_capture
 
@@ -256,6 +318,13 @@ def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, quiet) -> None
                   f"sigma {det['sigma_m'].median() if det.height else float('nan'):.4f} m")
         err.print(f"wrote {out}")
     _warn_no_delay(calib)
+
+
+def _not_for_instruments(fmt: str, **given) -> None:
+    """Options of the thesis chip's path refused (not ignored) on an instrument's file."""
+    used = [k.replace("_", "-") for k, v in given.items() if v]
+    if used:
+        raise click.UsageError(f"--{', --'.join(used)}: not for a {fmt} file")
 
 
 def _warn_no_delay(calib) -> None:

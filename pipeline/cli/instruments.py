@@ -1,0 +1,135 @@
+"""The offline commands on real instruments' files (PTU, LinoSPAD2): the parts of
+``tcspc decode``, ``histogram`` and ``range`` that are not the thesis chip's."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import click
+
+from pipeline.cli.app import err
+
+
+def detect(path: str, given: str | None) -> str:
+    """The format of ``path``: ``--format`` if given, else read from the content; a
+    parquet file is a ``histograms`` dataset (``range`` takes those)."""
+    from pipeline.io.formats import resolve_format
+
+    if given is None and Path(path).is_file() and Path(path).read_bytes()[:4] == b"PAR1":
+        return "histograms"
+    return resolve_format(path, given)
+
+
+def _print_summary(summary, quiet: bool) -> None:
+    lines = summary.lines()
+    for line in lines if not quiet else [ln for ln in lines if ln.startswith("warning")]:
+        err.print(line, highlight=False, markup=False)
+
+
+def _check_accounting(summary) -> None:
+    if summary.accounted != summary.records:
+        raise click.ClickException(f"accounting error: {summary.accounted:,} records "
+                                   f"classified, {summary.records:,} read")
+
+
+def histograms_of(path: str, fmt: str, measurement: str | None, firmware: str, by: str):
+    """(histograms table, summary or None) of an instrument's file or a histograms file."""
+    from pipeline.offline import instruments as inst
+
+    if fmt == "histograms":
+        from pipeline.io.histograms import read_histograms
+
+        return read_histograms(path), None
+    if fmt == "ptu":
+        return inst.histogram_ptu(path, measurement)
+    if fmt == "linospad2":
+        return inst.histogram_linospad2(path, firmware, by, measurement)
+    raise click.ClickException(f"{path}: {fmt} is not an instrument format")
+
+
+def histogram(path: str, fmt: str, out: str, measurement, firmware: str, by: str,
+              quiet: bool) -> None:
+    from pipeline.offline.instruments import write_instrument_histograms
+
+    table, summary = histograms_of(path, fmt, measurement, firmware, by)
+    _check_accounting(summary)
+    write_instrument_histograms(table, out, path, summary)
+    _print_summary(summary, quiet)
+    if not quiet:
+        err.print(f"wrote {out} ({table.num_rows} rows)")
+
+
+def decode(path: str, fmt: str, out: str, firmware: str, quiet: bool) -> None:
+    from pipeline.offline.instruments import decode_instrument
+
+    summary = decode_instrument(path, fmt, out, firmware)
+    _check_accounting(summary)
+    _print_summary(summary, quiet)
+    if not quiet:
+        err.print(f"wrote {out}")
+
+
+def _gate(gate: str | None):
+    if gate is None:
+        return None
+    try:
+        lo, hi = (float(x) for x in gate.split(":"))
+    except ValueError:
+        raise click.BadParameter(f"--gate takes LO:HI in ns, found {gate!r}") from None
+    if not 0 <= lo < hi:
+        raise click.BadParameter(f"--gate needs 0 <= LO < HI, found {gate!r}")
+    return lo, hi
+
+
+def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estimator,
+                     irf_ps, p_fa, firmware: str, quiet: bool) -> None:
+    """Ranges of a T3 file's (or its histograms') channels on the instrument's own uniform
+    time axis, with a given delay or one measured on a zero-distance file."""
+    import numpy as np
+    import polars as pl
+
+    from pipeline.io.atomic import atomic_path
+    from pipeline.offline.instruments import measured_delay, range_uniform
+    from pipeline.offline.ranging import ranges_table
+
+    if (delay_ps is None) == (zero is None):
+        raise click.UsageError("an instrument's file needs its delay: give --delay-ps or "
+                               "--zero ZERO_DISTANCE_FILE (not both)")
+    t0 = time.perf_counter()
+    g = _gate(gate)
+    table, _ = histograms_of(path, fmt, None, firmware, "tdc")
+    sigma = None if irf_ps is None else irf_ps * 1e-12
+    if zero is not None:
+        ztable, _ = histograms_of(zero, detect(zero, None), None, firmware, "tdc")
+        delay, zsigma = measured_delay(ztable, sigma, estimator, p_fa, g)
+        if ztable.num_rows != table.num_rows:
+            raise click.ClickException(f"{zero} has {ztable.num_rows} channels, {path} "
+                                       f"{table.num_rows}")
+        if sigma is None and np.isfinite(zsigma).any():
+            sigma = float(np.nanmedian(zsigma))
+        how = f"measured on {zero} ({int(np.isfinite(delay).sum())} of {delay.size} channels)"
+        if not np.isfinite(delay).any():
+            raise click.ClickException(f"{zero}: no return detected on any channel, no delay")
+    else:
+        delay = np.full(table.num_rows, delay_ps * 1e-12)
+        how = f"given, {delay_ps:g} ps"
+    est, d, s, note = range_uniform(table, delay, sigma, estimator, p_fa, g)
+    name = table.column("measurement")[0].as_py() if table.num_rows else Path(path).stem
+    ranges = ranges_table(name, est, d, s)
+    ranges = ranges.replace_schema_metadata({
+        **ranges.schema.metadata, b"tcspc.source": str(path).encode(),
+        b"tcspc.delay": how.encode(), b"tcspc.time_axis": note.encode()})
+    import pyarrow.parquet as pq
+
+    with atomic_path(out) as tmp:
+        pq.write_table(ranges, tmp)
+    err.print(f"time axis: {note}; delay {how}", highlight=False)
+    if not quiet:
+        df = pl.from_arrow(ranges)
+        for r in df.iter_rows(named=True):
+            err.print(f"  channel {r['tdc']}: " + (
+                f"{r['distance_m']:.4f} m +- {r['sigma_m']:.4f} m, {r['signal_counts']:.0f} "
+                "signal counts" if r["detected"] else "not detected"), highlight=False)
+        err.print(f"{int(df['detected'].sum())} of {df.height} channels detected "
+                  f"({estimator}) in {time.perf_counter() - t0:.2f} s; wrote {out}")
