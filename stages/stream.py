@@ -16,7 +16,7 @@ import numpy as np
 import pyarrow as pa
 
 from schemas.outputs import HISTOGRAMS
-from schemas.words import RAW_WORDS, WORD_CLASSES
+from schemas.words import RAW_WORDS
 from stages.artifact import ArtifactBounds
 from stages.histogram import HistogramAccumulator
 
@@ -34,17 +34,22 @@ class HistogramCore:
     def __init__(self, n_tdc: int, bounds: ArtifactBounds | None = None,
                  step_id: str = "histogram", engine: str | None = None, backfill=None,
                  tdc_offset: int = 0, measurement_cycles: int | None = None,
-                 context: dict | None = None):
+                 context: dict | None = None, accumulator=None):
         """``backfill(start, stop)`` yields (first_word, words) of a gap in the stream (the
         pipeline reads them from the journal); None: gaps are counted, not filled.
         ``context``: the run's run id, gate, window and date known before any message (a
-        worker restarted after its source ended hears none, yet must label its output)."""
+        worker restarted after its source ended hears none, yet must label its output).
+        ``accumulator``: another instrument's accumulator in place of the thesis chip's
+        (:mod:`stages.instruments.accumulate`: a PTU T3 or LinoSPAD2 file replayed through
+        the graph); it has the same ``update``/``snapshot``/``reset`` and its own
+        ``checkpoint``/``restore_checkpoint``."""
         if measurement_cycles is not None and measurement_cycles < 1:
             raise ValueError(f"measurement_cycles must be >= 1, found {measurement_cycles}")
         self.step_id = step_id
         self.n_tdc = n_tdc
-        self.acc = HistogramAccumulator(n_tdc, bounds, engine=engine, step_id=step_id,
-                                        tdc_offset=tdc_offset)
+        self.instrument = accumulator is not None
+        self.acc = accumulator if accumulator is not None else HistogramAccumulator(
+            n_tdc, bounds, engine=engine, step_id=step_id, tdc_offset=tdc_offset)
         self.tdc_offset = tdc_offset
         self.m_words = None if measurement_cycles is None else measurement_cycles * n_tdc
         self.measurement = 0      #: index of the measurement being filled
@@ -116,8 +121,7 @@ class HistogramCore:
                 "cycles": [cycles0, cycles0 + int(state.cycles.max(initial=0))],
                 "tdc_range": [self.tdc_offset, self.tdc_offset + self.n_tdc],
                 "words": state.words,
-                "class_counts": dict(zip(WORD_CLASSES, state.class_counts.sum(1).tolist(),
-                                         strict=True)),
+                "class_counts": state.totals(),
                 **{k2: v for k2, v in self.context.items() if k2 != "run"}}
         self._out += [(head, batch) for batch in table.to_batches()]
         self.acc.reset()
@@ -146,6 +150,10 @@ class HistogramCore:
     # ------------------------------------------------------------------ checkpoints
     def snapshot(self) -> dict:
         """Arrays and counters to checkpoint (the runner stores them; never pickled)."""
+        if self.instrument:
+            return {**self.acc.checkpoint(),
+                    "counters": np.array([0, -1, self.next_word, self.measurement,
+                                          self.words_total], np.int64)}
         st = self.acc.snapshot()
         return {"hits": st.hits, "class_counts": st.class_counts,
                 "counters": np.array([st.words, st.last_seq, self.next_word,
@@ -156,6 +164,9 @@ class HistogramCore:
 
         words, last_seq, next_word, measurement, total = (int(x) for x in state["counters"])
         self.words_total = total
+        self.next_word, self.measurement = next_word, measurement
+        if self.instrument:
+            self.acc.restore_checkpoint(state)
+            return
         self.acc.restore(HistogramState(state["hits"], state["class_counts"], words, last_seq,
                                         self.tdc_offset))
-        self.next_word, self.measurement = next_word, measurement

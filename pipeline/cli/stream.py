@@ -131,6 +131,51 @@ def stage_source_capture(capture, pushes, run_id, rate, journal, journal_compres
     err.print(f"source-capture: sent {sent:,} words")
 
 
+@stage.command("source-file")
+@click.argument("path", type=click.Path(exists=True, dir_okay=False))
+@_push
+@click.option("--run", "run_id", default=None, help="Run id (default: the file's name)")
+@click.option("--rate", type=float, default=None,
+              help="Records per second (default: as fast as they are taken).")
+@click.option("--format", "fmt", type=click.Choice(["ptu", "linospad2"]), default=None,
+              help="Input format (default: read from the content).")
+@click.option("--firmware", type=click.Choice(["2212b", "2212s"]), default="2212b",
+              show_default=True, help="LinoSPAD2 firmware.")
+@click.option("--journal", type=click.Path(), default=None,
+              help="Journal the records here before sending them.")
+@_journal_compression
+@_split
+@_metrics
+@_date
+def stage_source_file(path, pushes, run_id, rate, fmt, firmware, journal, journal_compression,
+                      split, metrics, date) -> None:
+    """Replay an instrument's file (PTU T3, LinoSPAD2) into the stream: its raw records, in
+    order, as one run; the histogram worker decodes them (``--instrument-file``)."""
+    from pipeline.io.formats import (
+        instrument_tail_bytes,
+        instrument_timing_ns,
+        instrument_words,
+        resolve_format,
+    )
+    from pipeline.stream.journal import JournalWriter
+    from pipeline.stream.stage import run_source
+
+    fmt = resolve_format(path, fmt)
+    run_id = run_id or Path(path).stem
+    period = instrument_timing_ns(path, fmt)
+    tail = instrument_tail_bytes(path, fmt)
+    if tail:
+        err.print(f"source-file: warning: {path} ends with {tail} bytes that make no whole "
+                  "record (truncated); they are not sent")
+    batches = _skip_journaled(instrument_words(path, fmt, 1 << 18), journal, run_id)
+    jw = (JournalWriter(journal, run_id, 1, period, period,
+                        compression=_compression(journal_compression)) if journal else None)
+    sent = run_source(batches, list(pushes), step_id="source", run=run_id, n_tdc=1,
+                      t_laser_win_ns=period, rate_words_s=rate, journal=jw,
+                      split=_ranges(split), metrics=metrics, window_ns=period, date=date)
+    err.print(f"source-file: sent {sent:,} {fmt} records")
+
+
 @stage.command("ingest-udp")
 @click.option("--bind", "bind_addr", default="127.0.0.1:9000", show_default=True,
               help="host:port to listen on (127.0.0.1 unless you choose otherwise)")
@@ -192,8 +237,16 @@ def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, n_tdc
 @click.option("--name", default="histogram", show_default=True, help="Name in metrics.")
 @_date
 @_accept
+@click.option("--instrument-file", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="The stream is this PTU T3 / LinoSPAD2 file's records (source-file): "
+                   "histogram them as that instrument does.")
+@click.option("--format", "fmt", type=click.Choice(["ptu", "linospad2"]), default=None,
+              help="With --instrument-file: its format (default: from the content).")
+@click.option("--firmware", type=click.Choice(["2212b", "2212s"]), default="2212b",
+              show_default=True, help="With --instrument-file: LinoSPAD2 firmware.")
 def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibration, quarantine,
-                    checkpoint, journal, run_id, metrics, name, date, senders) -> None:
+                    checkpoint, journal, run_id, metrics, name, date, senders, instrument_file,
+                    fmt, firmware) -> None:
     """Per-TDC histograms of the word stream, per measurement or at the end of the run."""
     from pipeline.io.caldir import read_bounds
     from pipeline.stream.fanout import parse_range, worker_reader
@@ -222,9 +275,19 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
         def ended():
             total = run_end(journal, run_id)
             return None if total is None else total // n_tdc * (b - a)
+    acc = None
+    if instrument_file:
+        from pipeline.io.formats import resolve_format
+        from pipeline.offline.instruments import instrument_accumulator
+
+        if (a, b) != (0, n_tdc) or measurement_cycles or calibration:
+            raise click.UsageError("--instrument-file: one worker over the whole stream, no "
+                                   "--measurement-cycles or --calibration")
+        acc = instrument_accumulator(instrument_file, resolve_format(instrument_file, fmt),
+                                     firmware)
     core = HistogramCore(b - a, bounds, backfill=backfill, tdc_offset=a,
                          measurement_cycles=measurement_cycles, step_id=name,
-                         context=context)
+                         context=context, accumulator=acc)
     stats = run_stage(core, pull, push, quarantine=quarantine, checkpoint=checkpoint,
                       run_ended=ended, metrics=metrics, name=name,
                       senders=list(senders) or None)

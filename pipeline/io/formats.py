@@ -51,3 +51,53 @@ def resolve_format(path: str | Path, given: str | None) -> str:
     if given not in FORMATS:
         raise FormatError(f"--format must be one of {', '.join(FORMATS)}, found {given!r}")
     return given
+
+
+def instrument_words(path: str | Path, fmt: str, chunk_words: int = 1 << 20):
+    """``(first_word, words)`` of an instrument's file as raw uint32 records in file order
+    (PTU: the records after the header; LinoSPAD2: every word), in bounded chunks: what the
+    daemon's ``file`` source replays. Trailing bytes that make no whole record are not a
+    record; :func:`instrument_tail_bytes` tells how many there are."""
+    import numpy as np
+
+    start = _data_offset(path, fmt)
+    n = (Path(path).stat().st_size - start) // 4
+    if fmt == "linospad2":  # whole cycles only, so any chunk decodes alone
+        from stages.instruments.linospad2 import WORDS_PER_CYCLE
+
+        chunk_words = max(1, chunk_words // WORDS_PER_CYCLE) * WORDS_PER_CYCLE
+    with open(path, "rb") as f:
+        f.seek(start)
+        first = 0
+        while first < n:
+            words = np.fromfile(f, dtype="<u4", count=min(chunk_words, n - first))
+            if words.size == 0:
+                break
+            yield first, words.astype(np.uint32, copy=False)
+            first += words.size
+
+
+def instrument_tail_bytes(path: str | Path, fmt: str) -> int:
+    """Bytes after the last whole record (a truncated file has some)."""
+    return (Path(path).stat().st_size - _data_offset(path, fmt)) % 4
+
+
+def instrument_timing_ns(path: str | Path, fmt: str) -> float:
+    """The period the file's times are measured in, ns: a PTU's sync period (200 ns at 5
+    MHz), LinoSPAD2's 2.5 ns clock; the stream's ``t_laser_win_ns``."""
+    if fmt == "ptu":
+        from pipeline.io.ptu import read_header
+
+        h = read_header(path)
+        return 1e9 / h.sync_rate_hz if h.sync_rate_hz else 1.0
+    return 2.5
+
+
+def _data_offset(path, fmt: str) -> int:
+    if fmt == "ptu":
+        from pipeline.io.ptu import read_header
+
+        return int(read_header(path).data_offset)
+    if fmt == "linospad2":
+        return 0
+    raise FormatError(f"{path}: {fmt!r} is not an instrument format")

@@ -40,10 +40,13 @@ The topology file (all keys but ``[source]`` optional)::
                                  # true / false force it
 
     [source]
-    kind = "sim"                 # sim | capture | udp
+    kind = "sim"                 # sim | capture | udp | file
     scene = "scenes/street.toml" # sim: scene, cycles, seed, chip_seed, rate (words/s)
     capture = "data/raw/street"  # capture: the capture to replay, rate, repeat (times)
     bind = "127.0.0.1:9000"      # udp: where to listen, idle (s) to end the run
+    file = "run.ptu"             # file: a PTU T3 or LinoSPAD2 file, rate (records/s),
+                                 # format (default: from the content), firmware; one
+                                 # histogram worker, one measurement, no [range]
 
     [histogram]
     workers = 2                  # fan-out by TDC range
@@ -136,6 +139,7 @@ def build(topo: Topology) -> list[Proc]:
             "--workers", len(ranges), "--quarantine", quar / "range", *m,
             *accept(*hist_names)),
             [f"histogram-{i}" for i in range(len(ranges))]))
+    src = topo.source
     mc = topo.histogram.get("measurement_cycles")
     cal = topo.histogram.get("calibration")
     for i, (a, b) in enumerate(ranges):
@@ -146,8 +150,9 @@ def build(topo: Topology) -> list[Proc]:
             *(("--calibration", cal) if cal else ()),
             "--quarantine", quar / f"histogram-{i}", "--checkpoint", ckpt / f"histogram-{i}.npz",
             "--journal", journal, "--run", run, "--name", f"histogram-{i}",
-            "--date", topo.date, *m, *accept("source", "ingest")), ["source"]))
-    src = topo.source
+            "--date", topo.date, *m, *accept("source", "ingest"),
+            *(("--instrument-file", src["file"], "--format", src["format"], "--firmware",
+               src.get("firmware", "2212b")) if src["kind"] == "file" else ())), ["source"]))
     common = [*(x for ep in hist_eps for x in ("--push", ep)), "--run", run,
               "--journal", journal, "--journal-compression", topo.journal_compression,
               "--split", ",".join(f"{a}:{b}" for a, b in ranges),
@@ -156,6 +161,10 @@ def build(topo: Topology) -> list[Proc]:
         argv = _tcspc("stage", "source-sim", src["scene"], "--cycles",
                       src.get("cycles", 40_000), "--seed", src.get("seed", 0), "--chip-seed",
                       src.get("chip_seed", 1), *common,
+                      *(("--rate", src["rate"]) if src.get("rate") else ()))
+    elif src["kind"] == "file":
+        argv = _tcspc("stage", "source-file", src["file"], *common, "--format", src["format"],
+                      "--firmware", src.get("firmware", "2212b"),
                       *(("--rate", src["rate"]) if src.get("rate") else ()))
     elif src["kind"] == "capture":
         argv = _tcspc("stage", "source-capture", src["capture"], *common,

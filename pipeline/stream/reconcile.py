@@ -80,7 +80,8 @@ def reconcile(topo: Topology) -> dict:
             bounds = (ArtifactBounds(bounds_all.n_min[a:b], bounds_all.n_max[a:b],
                                      bounds_all.source) if bounds_all else None)
             core = HistogramCore(b - a, bounds, tdc_offset=a,
-                                 measurement_cycles=topo.histogram.get("measurement_cycles"))
+                                 measurement_cycles=topo.histogram.get("measurement_cycles"),
+                                 accumulator=_instrument_accumulator(topo))
             core.measurement = k
             w = b - a
             lo = k * mc * w
@@ -108,6 +109,30 @@ def reconcile(topo: Topology) -> dict:
             "corrupt_chunks": sorted(corrupt_chunks.values()),
             "corrupt_words": sum(c[1] for c in corrupt_chunks.values()),
             "withheld_words": withheld}
+
+
+def _instrument_accumulator(topo: Topology):
+    """A file source's records are histogrammed as its instrument does (the same code as
+    the live worker and the offline command); None for the thesis chip's words."""
+    if topo.source.get("kind") != "file":
+        return None
+    from pipeline.offline.instruments import instrument_accumulator
+
+    return instrument_accumulator(topo.source["file"], topo.source["format"],
+                                  topo.source.get("firmware", "2212b"))
+
+
+def _class_totals(parts: list[Path]) -> dict[str, int]:
+    """An instrument's record classes (photons, markers, overflow, ...) over the parts,
+    from the totals the sink keeps in each file's metadata."""
+    import pyarrow.parquet as pq
+
+    totals: dict[str, int] = {}
+    for p in parts:
+        meta = pq.read_schema(p).metadata or {}
+        for k, v in json.loads(meta.get(b"tcspc.class_counts", b"{}")).items():
+            totals[k] = totals.get(k, 0) + int(v)
+    return totals
 
 
 def _words_batch(words):
@@ -149,7 +174,9 @@ def accounting(topo: Topology, metrics: dict[str, dict], reconciled: dict | None
     parts = sorted(_dataset_parts(out, "histograms", topo.run).values())
     cols = [f"n_{c}" for c in WORD_CLASSES]
     classes = dict.fromkeys(WORD_CLASSES, 0)
-    if parts:
+    if parts and topo.source.get("kind") == "file":  # an instrument's record classes
+        classes = _class_totals(parts)
+    elif parts:
         sums = pl.scan_parquet(parts).select([pl.col(c).sum() for c in cols]).collect()
         classes = {c: int(sums[f"n_{c}"][0]) for c in WORD_CLASSES}
     journaled = journaled_total(topo.state / "journal", topo.run)

@@ -577,8 +577,15 @@ class ParquetSink:
         import pyarrow.parquet as pq
 
         path = self.path(header)
+        table = pa.Table.from_batches([batch])
+        if isinstance(header.get("class_counts"), dict):  # the run's accounting reads it back
+            import json
+
+            table = table.replace_schema_metadata({
+                **(table.schema.metadata or {}),
+                b"tcspc.class_counts": json.dumps(header["class_counts"]).encode()})
         with atomic_path(path) as tmp:
-            pq.write_table(pa.Table.from_batches([batch]), tmp)
+            pq.write_table(table, tmp)
         self.files += 1
         self.last = path
         return []

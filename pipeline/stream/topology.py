@@ -10,7 +10,7 @@ from pathlib import Path
 
 from schemas.errors import TcspcError
 
-SOURCE_KINDS = ("sim", "capture", "udp")
+SOURCE_KINDS = ("sim", "capture", "udp", "file")
 GRACE_S = 3.0  # after its upstream finished, a stage gets this long to stop by itself
 
 
@@ -71,7 +71,8 @@ _KNOWN = {
                "journal_compression", "restart_window_s", "restart_backoff_s",
                "restart_backoff_max_s", "curve"},
     "source": {"kind", "scene", "cycles", "seed", "chip_seed", "rate", "capture", "bind",
-               "idle", "n_tdc", "repeat", "reorder_window", "max_jump_cycles"},
+               "idle", "n_tdc", "repeat", "reorder_window", "max_jump_cycles", "file",
+               "format", "firmware"},
     "histogram": {"workers", "measurement_cycles", "calibration", "n_tdc", "endpoints"},
     "range": {"calibration", "estimator", "endpoint"},
     "sink": {"out", "endpoint"},
@@ -106,10 +107,12 @@ def load_topology(path: str | Path | None, run: str | None = None,
     kind = src.get("kind")
     if kind not in SOURCE_KINDS:
         raise TopologyError(f"{where} [source] kind {kind!r}: use one of {SOURCE_KINDS}")
-    need = {"sim": "scene", "capture": "capture", "udp": "bind"}[kind]
+    need = {"sim": "scene", "capture": "capture", "udp": "bind", "file": "file"}[kind]
     if need not in src:
         raise TopologyError(f"{where} [source]: kind {kind!r} needs {need!r}")
     hist = dict(raw.get("histogram", {}))
+    if kind == "file":
+        _check_file_source(src, hist, raw.get("range"), where)
     n_tdc = _source_n_tdc(src, hist, where)
     workers = int(hist.get("workers", 1))
     if not 1 <= workers <= n_tdc:
@@ -127,7 +130,7 @@ def load_topology(path: str | Path | None, run: str | None = None,
                                 "(run `tcspc flow run calibration_campaign` first)")
     state = Path(d.get("state", "data/daemon"))
     run = run or d.get("run") or (
-        f"{Path(src.get('scene') or src.get('capture') or 'udp').stem}-"
+        f"{Path(src.get('scene') or src.get('capture') or src.get('file') or 'udp').stem}-"
         f"{dt.datetime.now(dt.UTC).strftime('%Y%m%dT%H%M%SZ')}")
     metrics = d.get("metrics") or f"ipc://{state.resolve()}/sock/metrics"
     for ep in [metrics, *(hist.get("endpoints") or [])]:
@@ -169,7 +172,40 @@ def _check_endpoint(ep: str, where: str) -> None:
         raise TopologyError(f"{where}: endpoint {ep!r}: use ipc://PATH or tcp://HOST:PORT")
 
 
+def _check_file_source(src: dict, hist: dict, rng, where: str) -> None:
+    """An instrument's file (PTU T3, LinoSPAD2) replayed: its records are one ordered
+    stream (a PTU record's time depends on the overflows before it), so one histogram
+    worker, one measurement (the file), and no [range] (the range stage is the thesis
+    chip's; `tcspc range` takes a T3 file's histograms offline)."""
+    from pipeline.io.formats import FormatError, resolve_format
+
+    path = Path(src["file"])
+    if not path.is_file():
+        raise TopologyError(f"{where} [source]: file {str(path)!r} not found")
+    try:
+        fmt = resolve_format(path, src.get("format"))
+    except FormatError as exc:
+        raise TopologyError(f"{where} [source]: {exc}") from None
+    if fmt not in ("ptu", "linospad2"):
+        raise TopologyError(f"{where} [source]: kind \"file\" replays a PTU or LinoSPAD2 "
+                            f"file; {str(path)!r} is {fmt} (use kind = \"capture\")")
+    src["format"] = fmt
+    if src.get("firmware", "2212b") not in ("2212b", "2212s"):
+        raise TopologyError(f"{where} [source] firmware {src['firmware']!r}: use 2212b or "
+                            "2212s")
+    if int(hist.get("workers", 1)) != 1 or "measurement_cycles" in hist \
+            or "calibration" in hist:
+        raise TopologyError(f"{where} [histogram]: a file source takes one worker, no "
+                            "measurement_cycles and no calibration (one measurement: the "
+                            "file)")
+    if rng is not None:
+        raise TopologyError(f"{where}: no [range] with a file source (the range stage is the "
+                            "thesis chip's; range a T3 file's histograms with `tcspc range`)")
+
+
 def _source_n_tdc(src: dict, hist: dict, where: str) -> int:
+    if src["kind"] == "file":
+        return 1  # one ordered stream of records
     if src["kind"] == "sim":
         from stages.models.scene import load_scene
 
