@@ -63,9 +63,10 @@ def instrument_words(path: str | Path, fmt: str, chunk_words: int = 1 << 20):
     start = _data_offset(path, fmt)
     n = (Path(path).stat().st_size - start) // 4
     if fmt == "linospad2":  # whole cycles only, so any chunk decodes alone
-        from stages.instruments.linospad2 import WORDS_PER_CYCLE
+        from stages.instruments.linospad2 import LINES, WORDS_PER_LINE
 
-        chunk_words = max(1, chunk_words // WORDS_PER_CYCLE) * WORDS_PER_CYCLE
+        per_cycle = LINES * WORDS_PER_LINE
+        chunk_words = max(1, chunk_words // per_cycle) * per_cycle
     with open(path, "rb") as f:
         f.seek(start)
         first = 0

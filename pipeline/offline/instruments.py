@@ -22,12 +22,18 @@ from scipy.constants import c as C_LIGHT
 
 from pipeline.io.atomic import atomic_path
 from pipeline.io.formats import FormatError
-from schemas.outputs import HISTOGRAMS
+from stages.instruments.accumulate import (
+    LINOSPAD2,
+    PICOQUANT_T3,
+    Linospad2Accumulator,
+    PtuT3Accumulator,
+    instrument_table,
+)
 from stages.ranging import Histograms, estimate
 
-PICOQUANT_T3 = "picoquant-t3"
-LINOSPAD2 = "linospad2"
-_CLASS_COLUMNS = ("n_no_hit", "n_artifact", "n_invalid_phase", "n_malformed")
+__all__ = ["LINOSPAD2", "PICOQUANT_T3", "FileSummary", "decode_instrument",
+           "histogram_linospad2", "histogram_ptu", "instrument_accumulator",
+           "instrument_table", "measured_delay", "range_uniform"]
 
 
 @dataclass
@@ -58,72 +64,61 @@ class FileSummary:
         return out + self.notes
 
 
-def instrument_table(measurement: str, counts: np.ndarray, cycles, instrument: str,
-                     bin_width_ps: float | None, rows=None) -> pa.Table:
-    """``histograms`` 2.0 rows of an instrument: ``counts`` (n_rows, n_codes) uint64,
-    ``cycles`` per row (or one for all), ``rows`` the ``tdc`` value of each row."""
-    counts = np.ascontiguousarray(counts, np.uint64)
-    n, k = counts.shape
-    rows = np.arange(n) if rows is None else np.asarray(rows)
-    cols = {
-        "measurement": pa.array([measurement] * n, pa.string()),
-        "tdc": pa.array(rows.astype(np.uint16)),
-        "cycles": pa.array(np.broadcast_to(np.asarray(cycles, np.uint64), (n,)).copy()),
-        "counts": pa.ListArray.from_arrays(pa.array(np.arange(n + 1, dtype=np.int32) * k),
-                                           pa.array(counts.ravel())),
-        "n_hit": pa.array(counts.sum(axis=1, dtype=np.uint64)),
-        **{c: pa.array(np.zeros(n, np.uint64)) for c in _CLASS_COLUMNS},
-        "instrument": pa.array([instrument] * n, pa.string()),
-        "bin_width_ps": pa.array([bin_width_ps] * n, pa.float64()),
-    }
-    return pa.Table.from_pydict(cols, schema=HISTOGRAMS.schema)
+def instrument_accumulator(path: str | Path, fmt: str, firmware: str = "2212b",
+                           by: str = "tdc"):
+    """The accumulator an instrument's file is histogrammed with, live and offline: a PTU
+    T3 file's record format, resolution and input channels from its header."""
+    if fmt == "ptu":
+        from pipeline.io.ptu import read_header
+
+        header = read_header(path)
+        if header.format.mode != "T3":
+            raise FormatError(f"{path}: {header.format.name} holds T2 records (absolute "
+                              "times, no start-stop time to histogram); `tcspc decode` "
+                              "gives its photons")
+        return PtuT3Accumulator(header.format, header.resolution_s, header.input_channels)
+    if fmt == "linospad2":
+        if by not in ("tdc", "pixel"):
+            raise FormatError(f"--by must be tdc or pixel, found {by!r}")
+        return Linospad2Accumulator(firmware, by)
+    raise FormatError(f"{path}: {fmt!r} is not an instrument format")
+
+
+def _fold_file(path, fmt: str, acc, measurement: str | None, chunk_words: int):
+    from pipeline.io.formats import instrument_tail_bytes, instrument_words
+
+    t0 = time.perf_counter()
+    for first, words in instrument_words(path, fmt, chunk_words):
+        acc.update(words, first)
+    state = acc.snapshot()
+    table = state.to_table(measurement or Path(path).stem)
+    classes = state.totals()
+    events = classes.pop("photons" if fmt == "ptu" else "valid")
+    summary = FileSummary(str(path), fmt, state.words, events, classes,
+                          instrument_tail_bytes(path, fmt) > 0,
+                          seconds=time.perf_counter() - t0)
+    return table, state, summary
 
 
 def histogram_ptu(path: str | Path, measurement: str | None = None,
                   chunk_records: int = 1 << 22) -> tuple[pa.Table, FileSummary]:
     """A PTU T3 file's histograms: a row per input channel, counts per dtime code (up to
     the last code any channel used: nothing is dropped), ``cycles`` the sync periods."""
-    from pipeline.io.ptu import histogram_t3, read_header
-
-    t0 = time.perf_counter()
-    header = read_header(path)
-    if header.format.mode != "T3":
-        raise FormatError(f"{path}: {header.format.name} holds T2 records (absolute times, "
-                          "no start-stop time to histogram); `tcspc decode` gives its photons")
-    counts, header, tally, truncated = histogram_t3(path, chunk_records=chunk_records)
-    used = int(np.flatnonzero(counts.any(axis=0))[-1]) + 1 if counts.any() else 1
-    table = instrument_table(measurement or Path(path).stem, counts[:, :used],
-                             tally.n_syncs, PICOQUANT_T3, header.resolution_s * 1e12)
-    summary = _ptu_summary(path, tally, truncated, time.perf_counter() - t0)
-    summary.notes.append(f"{header.format.name}: {counts.shape[0]} channels x {used} dtime "
-                         f"codes of {header.resolution_s * 1e12:g} ps, "
-                         f"{tally.n_syncs:,} sync periods")
+    acc = instrument_accumulator(path, "ptu")
+    table, state, summary = _fold_file(path, "ptu", acc, measurement, chunk_records)
+    summary.notes.append(f"{acc.fmt.name}: {table.num_rows} channels x "
+                         f"{len(table.column('counts')[0]) if table.num_rows else 0} dtime "
+                         f"codes of {acc.bin_width_ps:g} ps, {state.n_cycles:,} sync periods")
     return table, summary
-
-
-def _ptu_summary(path, tally, truncated: bool, seconds: float) -> FileSummary:
-    return FileSummary(str(path), "ptu", tally.n_records, tally.n_photons,
-                       {"markers": tally.n_markers, "overflow": tally.n_overflow_records,
-                        "invalid": tally.n_invalid, "out_of_range": tally.n_out_of_range},
-                       truncated, seconds=seconds)
 
 
 def histogram_linospad2(path: str | Path, firmware: str = "2212b", by: str = "tdc",
                         measurement: str | None = None) -> tuple[pa.Table, FileSummary]:
     """A LinoSPAD2 file's fine-code histograms, a row per TDC (64) or pixel (256)."""
-    from stages.instruments.linospad2 import CODE_PS
-
-    from pipeline.io.linospad2 import histogram_file
-
-    t0 = time.perf_counter()
-    counts, tally = histogram_file(path, firmware, by)
-    table = instrument_table(measurement or Path(path).stem, counts, tally.cycles,
-                             LINOSPAD2, CODE_PS)
-    summary = FileSummary(str(path), "linospad2", tally.words, tally.valid,
-                          {"invalid": tally.invalid, "line_65": tally.line65},
-                          tally.truncated, seconds=time.perf_counter() - t0)
-    summary.notes.append(f"firmware {firmware}: {counts.shape[0]} {by}s x {counts.shape[1]} "
-                         f"fine codes, {tally.cycles:,} cycles")
+    acc = instrument_accumulator(path, "linospad2", firmware, by)
+    table, state, summary = _fold_file(path, "linospad2", acc, measurement, 1 << 20)
+    summary.notes.append(f"firmware {firmware}: {table.num_rows} {by}s x 140 fine codes, "
+                         f"{state.n_cycles:,} cycles")
     return table, summary
 
 
