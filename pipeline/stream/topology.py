@@ -190,6 +190,16 @@ def _check_file_source(src: dict, hist: dict, rng, where: str) -> None:
         raise TopologyError(f"{where} [source]: kind \"file\" replays a PTU or LinoSPAD2 "
                             f"file; {str(path)!r} is {fmt} (use kind = \"capture\")")
     src["format"] = fmt
+    if fmt == "ptu":
+        from pipeline.io.ptu import PtuError, read_header
+
+        try:
+            mode = read_header(path).format.mode
+        except PtuError as exc:
+            raise TopologyError(f"{where} [source]: {exc}") from None
+        if mode != "T3":
+            raise TopologyError(f"{where} [source]: {str(path)!r} holds {mode} records; the "
+                                "stream histograms T3 files (`tcspc decode` takes T2)")
     if src.get("firmware", "2212b") not in ("2212b", "2212s"):
         raise TopologyError(f"{where} [source] firmware {src['firmware']!r}: use 2212b or "
                             "2212s")
