@@ -152,8 +152,8 @@ def stage_source_file(path, pushes, run_id, rate, fmt, firmware, journal, journa
     """Replay an instrument's file (PTU T3, LinoSPAD2) into the stream: its raw records, in
     order, as one run; the histogram worker decodes them (``--instrument-file``)."""
     from pipeline.io.formats import (
-        instrument_tail_bytes,
         instrument_timing_ns,
+        instrument_truncation,
         instrument_words,
         resolve_format,
     )
@@ -163,10 +163,9 @@ def stage_source_file(path, pushes, run_id, rate, fmt, firmware, journal, journa
     fmt = resolve_format(path, fmt)
     run_id = run_id or Path(path).stem
     period = instrument_timing_ns(path, fmt)
-    tail = instrument_tail_bytes(path, fmt)
-    if tail:
-        err.print(f"source-file: warning: {path} ends with {tail} bytes that make no whole "
-                  "record (truncated); they are not sent")
+    damage = instrument_truncation(path, fmt)
+    if damage:
+        err.print(f"source-file: warning: {damage}; the records before the damage are sent")
     batches = _skip_journaled(instrument_words(path, fmt, 1 << 18), journal, run_id)
     jw = (JournalWriter(journal, run_id, 1, period, period,
                         compression=_compression(journal_compression)) if journal else None)

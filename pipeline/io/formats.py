@@ -60,8 +60,7 @@ def instrument_words(path: str | Path, fmt: str, chunk_words: int = 1 << 20):
     record; :func:`instrument_tail_bytes` tells how many there are."""
     import numpy as np
 
-    start = _data_offset(path, fmt)
-    n = (Path(path).stat().st_size - start) // 4
+    start, n = _records(path, fmt)
     if fmt == "linospad2":  # whole cycles only, so any chunk decodes alone
         from stages.instruments.linospad2 import LINES, WORDS_PER_LINE
 
@@ -78,9 +77,19 @@ def instrument_words(path: str | Path, fmt: str, chunk_words: int = 1 << 20):
             first += words.size
 
 
-def instrument_tail_bytes(path: str | Path, fmt: str) -> int:
-    """Bytes after the last whole record (a truncated file has some)."""
-    return (Path(path).stat().st_size - _data_offset(path, fmt)) % 4
+def instrument_truncation(path: str | Path, fmt: str) -> str:
+    """A one-line account of a truncated file ('' when it is whole): a PTU file holding
+    fewer records than its header declares, or bytes that make no whole record or (for
+    LinoSPAD2) no whole cycle."""
+    if fmt == "ptu":
+        from pipeline.io.ptu import read_header
+
+        return read_header(path).truncation
+    size = Path(path).stat().st_size
+    from stages.instruments.linospad2 import LINES, WORDS_PER_LINE
+
+    over = size % (4 * LINES * WORDS_PER_LINE)
+    return (f"{path}: truncated: {over} bytes after the last whole cycle" if over else "")
 
 
 def instrument_timing_ns(path: str | Path, fmt: str) -> float:
@@ -94,11 +103,13 @@ def instrument_timing_ns(path: str | Path, fmt: str) -> float:
     return 2.5
 
 
-def _data_offset(path, fmt: str) -> int:
+def _records(path, fmt: str) -> tuple[int, int]:
+    """(byte offset of the first record, records to read)."""
     if fmt == "ptu":
         from pipeline.io.ptu import read_header
 
-        return int(read_header(path).data_offset)
+        h = read_header(path)
+        return int(h.data_offset), int(h.n_readable)
     if fmt == "linospad2":
-        return 0
+        return 0, Path(path).stat().st_size // 4
     raise FormatError(f"{path}: {fmt!r} is not an instrument format")

@@ -59,8 +59,8 @@ class FileSummary:
         out = [f"{self.path} ({self.format}): {self.records:,} records in {self.seconds:.2f} s "
                f"({rate:.1f} M records/s): " + ", ".join(parts)]
         if self.truncated:
-            out.append("warning: the file is truncated; the records before the damage were "
-                       "kept")
+            out.append("warning: the records before the damage were kept (histograms "
+                       "flagged truncated=true in their metadata)")
         return out + self.notes
 
 
@@ -76,7 +76,7 @@ def instrument_accumulator(path: str | Path, fmt: str, firmware: str = "2212b",
             raise FormatError(f"{path}: {header.format.name} holds T2 records (absolute "
                               "times, no start-stop time to histogram); `tcspc decode` "
                               "gives its photons")
-        return PtuT3Accumulator(header.format, header.resolution_s, header.input_channels)
+        return PtuT3Accumulator(header.format, header.resolution_s, header.n_input_channels)
     if fmt == "linospad2":
         if by not in ("tdc", "pixel"):
             raise FormatError(f"--by must be tdc or pixel, found {by!r}")
@@ -85,7 +85,7 @@ def instrument_accumulator(path: str | Path, fmt: str, firmware: str = "2212b",
 
 
 def _fold_file(path, fmt: str, acc, measurement: str | None, chunk_words: int):
-    from pipeline.io.formats import instrument_tail_bytes, instrument_words
+    from pipeline.io.formats import instrument_truncation, instrument_words
 
     t0 = time.perf_counter()
     for first, words in instrument_words(path, fmt, chunk_words):
@@ -94,9 +94,11 @@ def _fold_file(path, fmt: str, acc, measurement: str | None, chunk_words: int):
     table = state.to_table(measurement or Path(path).stem)
     classes = state.totals()
     events = classes.pop("photons" if fmt == "ptu" else "valid")
-    summary = FileSummary(str(path), fmt, state.words, events, classes,
-                          instrument_tail_bytes(path, fmt) > 0,
+    damage = instrument_truncation(path, fmt)
+    summary = FileSummary(str(path), fmt, state.words, events, classes, bool(damage),
                           seconds=time.perf_counter() - t0)
+    if damage:
+        summary.notes.append(f"warning: {damage}")
     return table, state, summary
 
 
