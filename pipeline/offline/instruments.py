@@ -134,31 +134,58 @@ def write_instrument_histograms(table: pa.Table, out: str | Path, source: str | 
 
 def decode_instrument(path: str | Path, fmt: str, out: str | Path,
                       firmware: str = "2212b") -> FileSummary:
-    """Decode a PTU or LinoSPAD2 file into its events dataset, streaming, atomically."""
+    """Decode a PTU or LinoSPAD2 file into its events dataset (``ptu_t2_events``,
+    ``ptu_t3_events`` or ``linospad2_events``), streaming in bounded memory, atomically;
+    every record accounted for in the returned summary."""
+    from pipeline.io.formats import instrument_truncation, instrument_words
+    from schemas.instruments import LINOSPAD2_EVENTS, PTU_T2_EVENTS, PTU_T3_EVENTS
+
     t0 = time.perf_counter()
+    damage = instrument_truncation(path, fmt)
     if fmt == "ptu":
-        from pipeline.io.ptu import iter_decoded_batches
+        from pipeline.io.ptu import DecodeReport, iter_decoded_batches, read_header
 
-        batches = iter_decoded_batches(path)
+        report = DecodeReport()
+        spec = PTU_T3_EVENTS if read_header(path).format.is_t3 else PTU_T2_EVENTS
+        batches = iter_decoded_batches(path, report=report)
     elif fmt == "linospad2":
-        from pipeline.io.linospad2 import iter_decoded_batches as lino_batches
+        from stages.instruments.linospad2 import LINES, WORDS_PER_LINE, decode_words
 
-        batches = lino_batches(path, firmware)
+        spec, tally = LINOSPAD2_EVENTS, {"valid": 0, "invalid": 0, "line_65": 0, "words": 0}
+        per_cycle = LINES * WORDS_PER_LINE
+
+        def lino():
+            for first, words in instrument_words(path, fmt, 1 << 20):
+                whole = words.size - words.size % per_cycle
+                tally["words"] += words.size
+                tally["partial_cycle"] = words.size - whole
+                d = decode_words(words[:whole], firmware, first_cycle=first // per_cycle)
+                for k, v in (("valid", d.tally.valid), ("invalid", d.tally.invalid),
+                             ("line_65", d.tally.line65)):
+                    tally[k] += v
+                cols = d.columns()
+                yield pa.RecordBatch.from_arrays([pa.array(cols[n]) for n in spec.names],
+                                                 schema=spec.schema)
+        batches = lino()
     else:
         raise FormatError(f"decode_instrument: {fmt!r} is not an instrument format")
-    writer = None
-    with atomic_path(out) as tmp:
-        try:
-            for batch in batches:
-                if writer is None:
-                    writer = pq.ParquetWriter(tmp, batch.schema)
-                writer.write_batch(batch)
-            summary = batches.summary() if hasattr(batches, "summary") else None
-        finally:
-            if writer is not None:
-                writer.close()
-    if summary is None:
-        raise FormatError(f"{path}: the reader gave no accounting")
+    with atomic_path(out) as tmp, pq.ParquetWriter(tmp, spec.schema) as writer:
+        for batch in batches:
+            writer.write_batch(batch)
+    if fmt == "ptu":
+        summary = FileSummary(str(path), fmt, report.n_records_read,
+                              report.n_photons + report.n_sync,
+                              {"markers": report.n_markers,
+                               "overflow": report.n_overflow_records,
+                               "invalid": report.n_invalid}, bool(damage))
+        if report.n_sync:
+            summary.notes.append(f"{report.n_sync:,} of the events are sync events (T2: "
+                                 "kept as photons of the sync channel)")
+    else:
+        summary = FileSummary(str(path), fmt, tally.pop("words"), tally.pop("valid"), tally,
+                              bool(damage))
+    if damage:
+        summary.notes.append(f"warning: {damage}")
     summary.seconds = time.perf_counter() - t0
     return summary
 
