@@ -25,7 +25,6 @@ class FormatError(TcspcError, ValueError):
 
 def detect_format(path: str | Path) -> str:
     """The format of ``path`` (one of :data:`FORMATS`), from its content."""
-    from pipeline.io.linospad2 import looks_like_linospad2
     from pipeline.io.ptu import is_ptu
 
     path = Path(path)
@@ -35,8 +34,11 @@ def detect_format(path: str | Path) -> str:
     if json_path.is_file() and (
             bin_path.is_file() or bin_path.with_name(bin_path.name + ".zst").is_file()):
         return "tcspc"
-    if path.is_file() and looks_like_linospad2(path):
-        return "linospad2"
+    if path.is_file():
+        from pipeline.io.linospad2 import looks_like_linospad2
+
+        if looks_like_linospad2(path):
+            return "linospad2"
     if not path.exists():
         raise FormatError(f"{path}: no such file")
     raise FormatError(f"{path}: not a PTU file (no PQTTTR magic), not a tcspc capture (no "
