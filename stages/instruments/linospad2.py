@@ -314,7 +314,7 @@ class CodeDensity:
     def sigma_ps(self, convention: str = "upper") -> np.ndarray:
         """Binomial standard error of ``code_time_ps(convention)``: the share F of hits
         below that point is binomial, so ``sqrt(F (1 - F) / N) x 2500 ps``."""
-        f = self.code_time_ps(convention) / CLOCK_PS
+        f = np.clip(self.code_time_ps(convention) / CLOCK_PS, 0.0, 1.0)
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.sqrt(f * (1 - f) / self.hits[:, None]) * CLOCK_PS
 
@@ -507,3 +507,49 @@ def _null_ratios(counts, published_counts, rows, rng, n_null: int) -> np.ndarray
         with np.errstate(invalid="ignore", divide="ignore"):
             out[i, rows] = np.sqrt(np.mean((fa - fb) ** 2, axis=1)) * CLOCK_PS / exp
     return out
+
+
+# ------------------------------------------------------------------ synthetic captures
+
+def simulate_words(width_ps, cycles: int, rng: np.random.Generator, firmware: str = "2212b",
+                   words_per_line: int = WORDS_PER_LINE, fill: float = 0.5,
+                   mean_gap_periods: int = 400) -> np.ndarray:
+    """Words of a uniform-light capture whose chains have the given code widths.
+
+    ``width_ps``: (256, 140) per pixel or (64, 140) per TDC (each row sums to 2500). Each
+    TDC line holds a binomial(words_per_line, ``fill``) number of hits, valid words first,
+    codes increasing (clock periods ``1..2 x mean_gap_periods`` apart), pixel bits uniform,
+    fine codes drawn from the row's widths; bit 30 mirrors bit 31 as in the sample capture;
+    the 65th line holds one valid word (pixel bits 01, code 354) then padding, as there.
+
+    >>> w = simulate_words(np.full((64, 140), CODE_PS), 2, np.random.default_rng(0),
+    ...                    words_per_line=8)
+    >>> t = decode_words(w, "2212b", words_per_line=8).tally
+    >>> t.accounted, t.line65_valid, t.words == 2 * LINES * 8
+    (True, 2, True)
+    """
+    check_firmware(firmware)
+    width = np.asarray(width_ps, np.float64)
+    if width.shape not in ((N_PIXEL, N_FINE), (N_TDC, N_FINE)):
+        raise ValueError(f"simulate_words: widths must be (256 or 64, 140), found {width.shape}")
+    cdf = np.cumsum(width, axis=1) / width.sum(axis=1, keepdims=True)
+    shape = (cycles, N_TDC, words_per_line)
+    n_hits = rng.binomial(words_per_line, fill, size=shape[:2])
+    valid = np.arange(words_per_line)[None, None, :] < n_hits[..., None]
+    period = np.cumsum(rng.integers(1, 2 * mean_gap_periods, size=shape), axis=2)
+    bits = rng.integers(0, PIXELS_PER_TDC, size=shape)
+    tdc = np.broadcast_to(np.arange(N_TDC)[None, :, None], shape)
+    row = pixel_of(tdc, bits, firmware).astype(np.int64) if width.shape[0] == N_PIXEL else tdc
+    u = rng.random(shape)
+    fine = np.zeros(shape, np.int64)
+    for k in range(N_FINE - 1):  # inverse CDF, one comparison per code (140), not per word
+        fine += u >= cdf[row, k]
+    code = period * N_FINE + fine
+    if code.max(initial=0) > int(CODE_MASK):
+        raise ValueError("simulate_words: codes overflow 28 bits; fewer words or periods")
+    pixel_words = np.where(valid, (np.uint32(3 << 30) | (bits.astype(np.uint32) << PIXEL_SHIFT)
+                                   | code.astype(np.uint32)), np.uint32(0))
+    out = np.zeros((cycles, LINES, words_per_line), np.uint32)
+    out[:, : LINES - 1] = pixel_words
+    out[:, LINES - 1, 0] = np.uint32(3 << 30) | np.uint32(1 << 28) | np.uint32(354)
+    return out.ravel()
