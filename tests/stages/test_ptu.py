@@ -137,7 +137,7 @@ def random_words(code, n, rng):
     return words
 
 
-@pytest.mark.parametrize("code", ALL_CODES)
+@pytest.mark.parametrize("code", ALL_CODES, ids=hex)
 def test_formats_follow_the_published_table(code):
     fmt = record_format(code)
     mode, period, dtime_bits = PUBLISHED[code]
@@ -153,7 +153,7 @@ def test_unknown_record_type_names_the_code_in_hex():
         record_format(0xABCDEF)
 
 
-@pytest.mark.parametrize("code", ALL_CODES)
+@pytest.mark.parametrize("code", ALL_CODES, ids=hex)
 def test_every_record_type_matches_the_reference(code, engine):
     rng = np.random.default_rng(code)
     words = random_words(code, 20000, rng)
@@ -172,7 +172,7 @@ def test_every_record_type_matches_the_reference(code, engine):
     assert got.dtime is None if not fmt.is_t3 else got.dtime.dtype == np.uint16
 
 
-@pytest.mark.parametrize("code", ALL_CODES)
+@pytest.mark.parametrize("code", ALL_CODES, ids=hex)
 def test_engines_agree_on_every_record_type(code):
     words = random_words(code, 50000, np.random.default_rng(1))
     fmt = record_format(code)
@@ -223,7 +223,7 @@ def encode(code, times, channels, dtimes, rng):
     return np.array(out, np.uint32), wraps
 
 
-@pytest.mark.parametrize("code", ALL_CODES)
+@pytest.mark.parametrize("code", ALL_CODES, ids=hex)
 def test_many_wraps_give_exact_times(code, engine):
     """Times across many wraps come back exactly, also far past 2**53 (where a float would
     round): a multi-overflow record jumps there, and any format can start there."""
@@ -254,7 +254,7 @@ def test_many_wraps_give_exact_times(code, engine):
     assert late.wraps == start + wraps
 
 
-@pytest.mark.parametrize("code", ALL_CODES)
+@pytest.mark.parametrize("code", ALL_CODES, ids=hex)
 @settings(max_examples=20, deadline=None)
 @given(cuts=st.lists(st.integers(0, 6000), max_size=8), wraps0=st.integers(0, 1 << 30))
 def test_chunked_decode_equals_whole(code, cuts, wraps0):
@@ -284,7 +284,7 @@ def test_chunked_decode_equals_whole(code, cuts, wraps0):
         assert np.array_equal(hist_parts, hist_whole) and tally == t
 
 
-@pytest.mark.parametrize("code", T3_CODES)
+@pytest.mark.parametrize("code", T3_CODES, ids=hex)
 def test_histogram_is_the_decoded_photons_and_counts_the_rest(code, engine):
     words = random_words(code, 30000, np.random.default_rng(5))
     fmt = record_format(code)
