@@ -237,6 +237,9 @@ def _header_from_tags(where: str, tags: dict, version: str, data_offset: int,
         return tags[name]
 
     code = need("TTResultFormat_TTTRRecType")
+    if not isinstance(code, int) or isinstance(code, bool):
+        raise PtuError(f"{where}: TTResultFormat_TTTRRecType must be an integer, found "
+                       f"{code!r}")
     try:
         fmt = record_format(code)
     except ValueError as exc:
@@ -264,6 +267,8 @@ def _header_from_tags(where: str, tags: dict, version: str, data_offset: int,
         except ValueError as exc:
             raise PtuError(f"{where}: MeasDesc_GlobalResolution: {exc}") from None
     sync = tags.get("TTResult_SyncRate")
+    if not isinstance(sync, int | float) or isinstance(sync, bool):
+        sync = None  # informational only: a missing or odd value is not an error
     return PtuHeader(where, int(code), fmt, version, float(resolution), float(global_res),
                      float(sync) if sync is not None else None, int(n_records), data_offset,
                      size, tags)
@@ -336,7 +341,8 @@ def histogram_t3(path: str | os.PathLike, chunk_records: int = CHUNK_RECORDS,
     if auto:
         seen = np.flatnonzero(counts.any(axis=1))
         rows = max(header.n_input_channels, int(seen[-1]) + 1 if seen.size else 0)
-        counts = counts[:rows].copy()
+        if rows < counts.shape[0]:
+            counts = counts[:rows].copy()
     return counts, header, tally, header.truncated
 
 
