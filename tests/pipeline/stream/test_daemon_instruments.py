@@ -17,11 +17,10 @@ from pipeline.cli.app import cli
 from pipeline.stream.daemon import Supervisor
 from pipeline.stream.topology import TopologyError, load_topology
 
-DATA = Path(__file__).parents[4] / "shared" / "data"
+DATA = Path(__file__).parents[2] / "data"  # tests/data: copies of ../shared/data
 T3 = DATA / "picoquant" / "hydraharp_v20_t3.ptu"
 T2 = DATA / "picoquant" / "picoharp_v30_t2.ptu"
 LINO = DATA / "linospad2" / "test_data_2212b.dat"
-pytestmark = pytest.mark.skipif(not T3.exists(), reason="shared instrument data not present")
 
 
 def topology(tmp_path, path, extra_source="", extra="", workers=1):
