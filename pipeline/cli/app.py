@@ -425,7 +425,7 @@ def main() -> None:
 
         if not isinstance(exc, TcspcError | OSError):
             raise
-        err.print(f"[red]error:[/red] {exc}", highlight=False)
+        err.print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)  # one line
         sys.exit(2)
 
 

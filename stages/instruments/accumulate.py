@@ -85,8 +85,11 @@ class PtuT3Accumulator:
                  engine: str | None = None):
         if not fmt.is_t3:
             raise ValueError(f"{fmt.name} is a T2 format: there is no dtime to histogram")
+        from stages.instruments.ptu import resolution_ps_fraction
+
         self.fmt, self.engine = fmt, engine
-        self.bin_width_ps = float(resolution_s) * 1e12
+        # headers store 64 ps as the float32 rounding 6.3999999744e-11 s: the exact value
+        self.bin_width_ps = float(resolution_ps_fraction(resolution_s))
         self.n_channels = int(n_channels or fmt.n_channels)
         self.reset(keep_position=False)
 

@@ -1,0 +1,106 @@
+"""The offline commands on real instruments' files: the format read from the content, the
+same commands as for the thesis chip, one-line errors and non-zero exits on bad files."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pyarrow.parquet as pq
+import pytest
+
+from pipeline.io.formats import FormatError, detect_format
+
+DATA = Path(__file__).parents[2] / "data"
+T3 = DATA / "picoquant" / "hydraharp_v20_t3.ptu"
+T2 = DATA / "picoquant" / "picoharp_v30_t2.ptu"
+LINO = DATA / "linospad2" / "test_data_2212b.dat"
+ROOT = Path(__file__).parents[3]
+
+
+def tcspc(*args, cwd=None):
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.run([sys.executable, "-m", "pipeline.cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=300, env=env, cwd=cwd)
+
+
+def test_formats_are_read_from_the_content(tmp_path):
+    assert detect_format(T3) == "ptu" and detect_format(T2) == "ptu"
+    assert detect_format(LINO) == "linospad2"
+    renamed = tmp_path / "run.dat"
+    renamed.write_bytes(T3.read_bytes())
+    assert detect_format(renamed) == "ptu"  # the extension is not trusted
+    junk = tmp_path / "junk.bin"
+    junk.write_bytes(np.random.default_rng(1).bytes(52_000))
+    with pytest.raises(FormatError, match="give --format"):
+        detect_format(junk)
+
+
+def test_t3_histogram_decode_and_their_accounting(tmp_path):
+    h, e = tmp_path / "h.parquet", tmp_path / "e.parquet"
+    r = tcspc("histogram", T3, "--out", h)
+    assert r.returncode == 0, r.stderr
+    assert "106,349 records" in r.stderr and "28,466 overflow" in r.stderr
+    hist = pl.read_parquet(h)
+    assert hist.height == 2 and hist["instrument"].unique().to_list() == ["picoquant-t3"]
+    assert hist["bin_width_ps"].to_list() == [64.0, 64.0]
+    assert pq.read_schema(h).metadata[b"tcspc.version"] == b"2.0"
+    r = tcspc("decode", T3, "--out", e)
+    assert r.returncode == 0, r.stderr
+    ev = pl.read_parquet(e)
+    assert ev.columns == ["kind", "channel", "nsync", "dtime"]
+    # the decoded photons histogram to the same counts, channel by channel
+    for ch in (0, 1):
+        d = ev.filter((pl.col("kind") == 0) & (pl.col("channel") == ch))["dtime"].to_numpy()
+        counts = np.stack(hist.sort("tdc")["counts"].to_numpy())[ch]
+        assert np.array_equal(np.bincount(d, minlength=counts.size), counts)
+
+
+def test_t2_decode_and_refusal_to_histogram(tmp_path):
+    r = tcspc("decode", T2, "--out", tmp_path / "t2.parquet")
+    assert r.returncode == 0, r.stderr
+    ev = pl.read_parquet(tmp_path / "t2.parquet")
+    assert ev.columns == ["kind", "channel", "time_ps"]
+    assert (ev["time_ps"].diff().drop_nulls() >= 0).all()  # overflow-corrected: monotone
+    r = tcspc("histogram", T2, "--out", tmp_path / "h.parquet")
+    assert r.returncode == 2 and "T2 records" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "h.parquet").exists()
+
+
+def test_linospad2_by_tdc_and_pixel(tmp_path):
+    for by, rows in (("tdc", 64), ("pixel", 256)):
+        r = tcspc("histogram", LINO, "--by", by, "--out", tmp_path / f"{by}.parquet")
+        assert r.returncode == 0, r.stderr
+        h = pl.read_parquet(tmp_path / f"{by}.parquet")
+        assert h.height == rows and h["counts"].list.len().unique().to_list() == [140]
+        assert h["cycles"].unique().to_list() == [20]
+    a = np.stack(pl.read_parquet(tmp_path / "tdc.parquet")["counts"].to_numpy())
+    b = np.stack(pl.read_parquet(tmp_path / "pixel.parquet")["counts"].to_numpy())
+    assert np.array_equal(a, b.reshape(64, 4, 140).sum(axis=1))  # 2212b: pixel = 4 TDC + k
+
+
+@pytest.mark.parametrize("damage", ["truncated", "magic", "empty"])
+def test_bad_files_give_one_line_and_a_nonzero_exit(tmp_path, damage):
+    raw = T3.read_bytes()
+    bad = tmp_path / "bad.ptu"
+    if damage == "truncated":  # mid-record: the records before the damage are kept
+        bad.write_bytes(raw[: len(raw) - 4 * 1000 - 2])
+        r = tcspc("histogram", bad, "--out", tmp_path / "h.parquet")
+        assert r.returncode == 0, r.stderr
+        assert "truncated" in r.stderr and "kept" in r.stderr
+        meta = pq.read_schema(tmp_path / "h.parquet").metadata
+        assert meta[b"tcspc.truncated"] == b"True"
+        return
+    bad.write_bytes(b"NOTAPTU!" + raw[8:] if damage == "magic" else b"")
+    r = tcspc("histogram", bad, "--out", tmp_path / "h.parquet")
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) <= 3
+    r = tcspc("histogram", bad, "--format", "ptu", "--out", tmp_path / "h.parquet")
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+
+
+def test_chip_options_are_refused_on_an_instrument_file(tmp_path):
+    r = tcspc("histogram", T3, "--calibration", tmp_path, "--out", tmp_path / "h.parquet")
+    assert r.returncode == 2 and "not for a ptu file" in r.stderr
