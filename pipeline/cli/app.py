@@ -103,7 +103,8 @@ _firmware = click.option("--firmware", type=click.Choice(["2212b", "2212s"]), de
 
 @cli.command()
 @click.argument("capture", type=click.Path())
-@click.option("--out", required=True, type=click.Path(), help="events.parquet to write")
+@click.option("--out", required=True, type=click.Path(),
+              help="events.parquet to write (a PTU file: FILE.h5 writes Photon-HDF5)")
 @click.option("--include-no-hit", is_flag=True,
               help="Also write no_hit words as rows (they are always counted).")
 @_calibration

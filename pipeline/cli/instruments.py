@@ -63,11 +63,29 @@ def histogram(path: str, fmt: str, out: str, measurement, firmware: str, by: str
 def decode(path: str, fmt: str, out: str, firmware: str, quiet: bool) -> None:
     from pipeline.offline.instruments import decode_instrument
 
+    if Path(out).suffix.lower() in (".h5", ".hdf5"):
+        return _photon_hdf5(path, fmt, out, quiet)
+
     summary = decode_instrument(path, fmt, out, firmware)
     _check_accounting(summary)
     _print_summary(summary, quiet)
     if not quiet:
         err.print(f"wrote {out}")
+
+
+def _photon_hdf5(path: str, fmt: str, out: str, quiet: bool) -> None:
+    """``tcspc decode FILE.ptu --out FILE.h5``: the photons as Photon-HDF5 (phconvert)."""
+    if fmt != "ptu":
+        raise click.UsageError(f"Photon-HDF5 export takes a PTU file; {path} is {fmt}")
+    from pipeline.io.ptu import export_photon_hdf5
+
+    try:
+        info = export_photon_hdf5(path, out)
+    except ModuleNotFoundError as exc:
+        raise click.ClickException(f"{exc}; or: pip install 'tcspc-lidar[hdf5]'") from None
+    if not quiet:
+        err.print(f"wrote {out} (Photon-HDF5): " + ", ".join(
+            f"{k} {v:,}" for k, v in info.items() if isinstance(v, int)), highlight=False)
 
 
 def _gate(gate: str | None):
