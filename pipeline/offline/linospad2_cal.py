@@ -110,10 +110,12 @@ def comparison_table(result: CalibrationComparison) -> pa.Table:
 
 
 def compare_with_published(dat, csv, firmware: str = "2212b", by: str = "pixel",
-                           seed: int = 0, n_null: int = N_NULL) -> pa.Table:
+                           seed: int = 0, n_null: int = N_NULL,
+                           words_per_line: int = lino.WORDS_PER_LINE) -> pa.Table:
     """Per pixel (or TDC): pixel, hits, rms_ps, max_ps, expected_rms_ps, dead_codes, ...
     (:func:`comparison_table`); rows without hits in either table hold NaN."""
-    return comparison_table(compare(dat, csv, firmware, by, seed=seed, n_null=n_null))
+    return comparison_table(compare(dat, csv, firmware, by, seed=seed, n_null=n_null,
+                                    words_per_line=words_per_line))
 
 
 def convention_scan(dat, csv, firmware: str = "2212b") -> pa.Table:
