@@ -149,6 +149,19 @@ def test_the_published_convention_is_the_upper_edge():
 
 
 @needs_data
+def test_the_four_pixels_of_a_tdc_share_one_chain_and_tdcs_differ():
+    """Each pixel against the other 3 of its TDC is statistics (in both tables); a TDC
+    against the next one is not: per-TDC calibration pools 4x the hits legitimately."""
+    res = {k: cal.comparison_summary(v)
+           for k, v in cal.shared_chains(DAT, CSV, "2212b", n_null=200).items()}
+    mine, pub, control = res.values()
+    for s in (mine, pub):
+        assert abs(s["median_ratio"] - s["null_median_ratio"]) < 0.1
+        assert s["p_below_0.01"] <= 8      # ~2.5 expected by chance of ~250
+    assert control["median_ratio"] > 1.2 and control["p_below_0.01"] >= 8
+
+
+@needs_data
 @pytest.mark.slow   # matplotlib: ~3-7 s
 def test_the_figure_is_written(tmp_path):
     res = cal.compare(DAT, CSV, "2212b", n_null=20)
