@@ -79,6 +79,10 @@ def main() -> None:
         f"({t['expected_p_below_0.01']:.1f}) |",
         f"| mean difference, measured - published (ps) | {p['mean_diff_ps']:+.1f} ± "
         f"{p['mean_diff_se_ps']:.1f} | {t['mean_diff_ps']:+.1f} ± {t['mean_diff_se_ps']:.1f} |",
+        f"| excess mean square over the expectation (ps²) | {p['excess_ms_ps2']:+.0f} ± "
+        f"{p['excess_ms_se_ps2']:.0f} | {t['excess_ms_ps2']:+.0f} ± {t['excess_ms_se_ps2']:.0f} |",
+        f"| systematic RMS difference, 2σ upper limit (ps) | "
+        f"{p['systematic_limit_ps']:.1f} | {t['systematic_limit_ps']:.1f} |",
         f"| median dead codes: this capture / published / both | "
         f"{p['median_dead_codes']:.0f} / {p['median_published_dead_codes']:.0f} / "
         f"{p['median_dead_in_both']:.0f} | {t['median_dead_codes']:.0f} / "

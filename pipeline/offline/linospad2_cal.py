@@ -193,6 +193,9 @@ def summary(result: CalibrationComparison) -> dict:
         "mean_diff_ps": float(np.mean(c.mean_ps[live])),
         # rows are independent captures of independent chains: the standard error
         "mean_diff_se_ps": float(np.std(c.mean_ps[live], ddof=1) / np.sqrt(live.sum())),
+        # a systematic RMS difference s would add s^2 to every row's mean square: the
+        # measured excess over the binomial expectation, and its 2-sigma upper limit on s
+        **_systematic(c.rms_ps[live] ** 2 - c.expected_rms_ps[live] ** 2),
         "median_dead_codes": float(np.median(c.dead_codes[live])),
         "median_published_dead_codes": float(np.median(c.published_dead_codes[live])),
         "median_dead_in_both": float(np.median(c.dead_in_both[live])),
@@ -206,6 +209,13 @@ def summary(result: CalibrationComparison) -> dict:
             "expected_p_below_0.01": float(0.01 * live.sum()),
         })
     return out
+
+
+def _systematic(excess_ps2: np.ndarray) -> dict:
+    mean = float(np.mean(excess_ps2))
+    se = float(np.std(excess_ps2, ddof=1) / np.sqrt(excess_ps2.size))
+    return {"excess_ms_ps2": mean, "excess_ms_se_ps2": se,
+            "systematic_limit_ps": float(np.sqrt(max(0.0, mean + 2 * se)))}
 
 
 def write_figure(result: CalibrationComparison, out, pixel: int | None = None,
