@@ -31,6 +31,7 @@ Every word is accounted for (:class:`Tally`): ``valid + invalid + line65 == word
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from typing import Literal
 
 import numpy as np
 
@@ -49,7 +50,9 @@ CODE_PS = CLOCK_PS / N_FINE
 VALID_BIT = np.uint32(1 << 31)
 PIXEL_SHIFT = np.uint32(28)
 CODE_MASK = np.uint32(0x0FFF_FFFF)
-FIRMWARES = ("2212b", "2212s")
+#: the firmware revisions decoded here (their pixel maps differ; see the module docstring)
+Firmware = Literal["2212b", "2212s"]
+FIRMWARES: tuple[Firmware, ...] = ("2212b", "2212s")
 #: conventions for the time of a fine code within the clock period (see :class:`CodeDensity`)
 CONVENTIONS = ("lower", "centre", "upper")
 
