@@ -10,6 +10,7 @@ the Markdown summary (``benchmarks/results/linospad2_calibration.md``) and the f
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from pathlib import Path
@@ -29,6 +30,7 @@ FIGURE = ROOT / "docs" / "img" / "linospad2_calibration.png"
 
 
 def main() -> None:
+    load = os.getloadavg()[0]
     t0 = time.perf_counter()
     by_pixel = cal.compare(DAT, CSV, FIRMWARE, by="pixel", seed=0)
     by_tdc = cal.compare(DAT, CSV, FIRMWARE, by="tdc", seed=1)
@@ -43,7 +45,8 @@ def main() -> None:
         "# LinoSPAD2 code-density calibration against the published table",
         "",
         f"`{' '.join(['python', 'benchmarks/linospad2_calibration.py'])}` on {machine()}; "
-        f"{elapsed:.1f} s (with the figure and {cal.N_NULL} Monte Carlo draws per table).",
+        f"{elapsed:.1f} s (with the figure and {cal.N_NULL} Monte Carlo draws per table; "
+        f"1-minute load average {load:.1f} at the start, other work shared the cores).",
         "",
         f"Capture `{DAT.name}` ({DAT.stat().st_size} bytes, firmware {FIRMWARE}): "
         f"{tally.cycles} cycles, {tally.words} words = {tally.valid} photon words + "
