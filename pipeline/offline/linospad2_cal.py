@@ -59,10 +59,9 @@ def _published_by(published_ps: np.ndarray, firmware: str, by: str):
     if not np.all((n > 0) | (published_ps[:, -1] == 0)):
         raise lio.Linospad2Error("published rows are not single histograms: they cannot "
                                  "be pooled per TDC")
-    pixel_tdc = lino.tdc_of(np.arange(lino.N_PIXEL), firmware).astype(np.int64)
-    pooled = np.zeros((lino.N_TDC, lino.N_FINE), np.int64)
-    np.add.at(pooled, pixel_tdc, np.where(n[:, None] > 0, counts, 0))
-    return np.nan_to_num(lino.code_density(pooled).upper_ps), pooled
+    pooled = lino.pool_by_tdc(np.where(n[:, None] > 0, counts, 0), firmware)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.nan_to_num(lino.code_density(pooled).upper_ps), pooled
 
 
 def compare(dat, csv, firmware: str = "2212b", by: str = "pixel", convention: str = "upper",
@@ -110,10 +109,12 @@ def comparison_table(result: CalibrationComparison) -> pa.Table:
 
 
 def compare_with_published(dat, csv, firmware: str = "2212b", by: str = "pixel",
-                           seed: int = 0, n_null: int = N_NULL) -> pa.Table:
+                           seed: int = 0, n_null: int = N_NULL,
+                           words_per_line: int = lino.WORDS_PER_LINE) -> pa.Table:
     """Per pixel (or TDC): pixel, hits, rms_ps, max_ps, expected_rms_ps, dead_codes, ...
     (:func:`comparison_table`); rows without hits in either table hold NaN."""
-    return comparison_table(compare(dat, csv, firmware, by, seed=seed, n_null=n_null))
+    return comparison_table(compare(dat, csv, firmware, by, seed=seed, n_null=n_null,
+                                    words_per_line=words_per_line))
 
 
 def convention_scan(dat, csv, firmware: str = "2212b") -> pa.Table:
@@ -132,6 +133,42 @@ def convention_scan(dat, csv, firmware: str = "2212b") -> pa.Table:
         rows["mean_diff_ps"].append(float(np.mean(c.mean_ps[live])))
         rows["median_pixel_rms_ps"].append(float(np.median(c.rms_ps[live])))
     return pa.table(rows)
+
+
+def shared_chains(dat, csv, firmware: str = "2212b", seed: int = 0,
+                  n_null: int = N_NULL) -> dict[str, lino.Comparison]:
+    """Do the 4 pixels of a TDC share one chain? Each pixel against the other 3 of its
+    TDC, in this capture and in the published table; and, as a control that the test can
+    see a difference, each TDC against the next one (this capture, 4 pixels pooled)."""
+    counts, _ = lio.histogram_file(dat, firmware, by="pixel")
+    counts = counts.astype(np.int64)
+    pub_counts, n = lino.counts_from_cumulative(lio.read_published_calibration(csv))
+    pub_counts = np.where(n[:, None] > 0, pub_counts, 0)
+    rng = np.random.default_rng(seed)
+    tdc = lino.pool_by_tdc(counts, firmware)
+    nxt = np.roll(tdc, -1, axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        nxt_ps = np.nan_to_num(lino.code_density(nxt).upper_ps)
+    return {
+        "this capture: pixel vs the other 3 of its TDC":
+            lino.pixels_against_their_tdc(counts, firmware, rng, n_null),
+        "published: pixel vs the other 3 of its TDC":
+            lino.pixels_against_their_tdc(pub_counts, firmware, rng, n_null),
+        "control, this capture: TDC vs the next TDC":
+            lino.compare_code_times(tdc, nxt_ps, published_counts=nxt, rng=rng,
+                                    n_null=n_null),
+    }
+
+
+def comparison_summary(c: lino.Comparison) -> dict:
+    """Median ratio (and the null's), share within 2x, p < 0.01 count, for any comparison."""
+    live = c.live & (c.published_hits > 0)
+    null = c.null_ratio[:, live]
+    return {"live": int(live.sum()), "median_rms_ps": float(np.median(c.rms_ps[live])),
+            "median_ratio": float(np.median(c.ratio[live])),
+            "null_median_ratio": float(np.nanmedian(null)) if null.size else float("nan"),
+            "within_2x": float(np.mean(c.ratio[live] < 2)),
+            "p_below_0.01": int(np.sum(c.p_value[live] < 0.01))}
 
 
 def summary(result: CalibrationComparison) -> dict:
@@ -156,6 +193,9 @@ def summary(result: CalibrationComparison) -> dict:
         "mean_diff_ps": float(np.mean(c.mean_ps[live])),
         # rows are independent captures of independent chains: the standard error
         "mean_diff_se_ps": float(np.std(c.mean_ps[live], ddof=1) / np.sqrt(live.sum())),
+        # a systematic RMS difference s would add s^2 to every row's mean square: the
+        # measured excess over the binomial expectation, and its 2-sigma upper limit on s
+        **_systematic(c.rms_ps[live] ** 2 - c.expected_rms_ps[live] ** 2),
         "median_dead_codes": float(np.median(c.dead_codes[live])),
         "median_published_dead_codes": float(np.median(c.published_dead_codes[live])),
         "median_dead_in_both": float(np.median(c.dead_in_both[live])),
@@ -169,6 +209,13 @@ def summary(result: CalibrationComparison) -> dict:
             "expected_p_below_0.01": float(0.01 * live.sum()),
         })
     return out
+
+
+def _systematic(excess_ps2: np.ndarray) -> dict:
+    mean = float(np.mean(excess_ps2))
+    se = float(np.std(excess_ps2, ddof=1) / np.sqrt(excess_ps2.size))
+    return {"excess_ms_ps2": mean, "excess_ms_se_ps2": se,
+            "systematic_limit_ps": float(np.sqrt(max(0.0, mean + 2 * se)))}
 
 
 def write_figure(result: CalibrationComparison, out, pixel: int | None = None,

@@ -31,6 +31,7 @@ Every word is accounted for (:class:`Tally`): ``valid + invalid + line65 == word
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from typing import Literal
 
 import numpy as np
 
@@ -49,7 +50,9 @@ CODE_PS = CLOCK_PS / N_FINE
 VALID_BIT = np.uint32(1 << 31)
 PIXEL_SHIFT = np.uint32(28)
 CODE_MASK = np.uint32(0x0FFF_FFFF)
-FIRMWARES = ("2212b", "2212s")
+#: the firmware revisions decoded here (their pixel maps differ; see the module docstring)
+Firmware = Literal["2212b", "2212s"]
+FIRMWARES: tuple[Firmware, ...] = ("2212b", "2212s")
 #: conventions for the time of a fine code within the clock period (see :class:`CodeDensity`)
 CONVENTIONS = ("lower", "centre", "upper")
 
@@ -489,6 +492,36 @@ def compare_code_times(counts, published_ps, convention: str = "upper",
         p_value=p_value,
         null_ratio=null,
     )
+
+
+def pool_by_tdc(counts, firmware: str) -> np.ndarray:
+    """(64, 140) counts of the 4 pixels of each TDC summed, from (256, 140) per pixel.
+
+    >>> c = np.zeros((256, 140), np.int64); c[[0, 1, 64], 5] = 1
+    >>> int(pool_by_tdc(c, "2212b")[0, 5]), int(pool_by_tdc(c, "2212s")[0, 5])
+    (2, 2)
+    """
+    counts = np.asarray(counts, np.int64)
+    if counts.shape != (N_PIXEL, N_FINE):
+        raise ValueError(f"pool_by_tdc: counts must be (256, 140), found {counts.shape}")
+    pooled = np.zeros((N_TDC, N_FINE), np.int64)
+    np.add.at(pooled, tdc_of(np.arange(N_PIXEL), firmware).astype(np.int64), counts)
+    return pooled
+
+
+def pixels_against_their_tdc(counts, firmware: str, rng: np.random.Generator | None = None,
+                             n_null: int = 0) -> Comparison:
+    """Each pixel's code times against the other 3 pixels of its TDC pooled (one capture).
+
+    The 4 pixels of a TDC share its carry chain, so their tables should differ by
+    statistics only (ratio ~ the Monte Carlo null's); TDCs against each other should not.
+    """
+    counts = np.asarray(counts, np.int64)
+    pooled = pool_by_tdc(counts, firmware)
+    others = pooled[tdc_of(np.arange(N_PIXEL), firmware).astype(np.int64)] - counts
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ref = np.nan_to_num(code_density(others).upper_ps)
+    return compare_code_times(counts, ref, published_counts=others, rng=rng, n_null=n_null)
 
 
 def _null_ratios(counts, published_counts, rows, rng, n_null: int) -> np.ndarray:

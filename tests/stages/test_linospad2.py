@@ -212,3 +212,17 @@ def test_comparison_is_statistics_for_equal_chains_and_not_for_a_shift():
         lino.compare_code_times(a, pub, n_null=5)
     with pytest.raises(ValueError, match="does not match"):
         lino.compare_code_times(a[:10], pub)
+
+
+@pytest.mark.parametrize("firmware", lino.FIRMWARES)
+def test_pixels_of_one_chain_agree_and_of_different_chains_do_not(firmware):
+    rng = np.random.default_rng(17)
+    per_tdc = widths_table(rng, rows=64)
+    n = np.full(256, 3000)
+    shared = rng.multinomial(n, per_tdc[lino.tdc_of(np.arange(256), firmware)] / 2500)
+    c = lino.pixels_against_their_tdc(shared, firmware, np.random.default_rng(0), 50)
+    assert 0.7 < np.median(c.ratio) < 1.0 and np.mean(c.p_value < 0.01) < 0.05
+    own = rng.multinomial(n, widths_table(rng) / 2500)      # every pixel its own chain
+    c = lino.pixels_against_their_tdc(own, firmware)
+    assert np.median(c.ratio) > 2
+    assert lino.pool_by_tdc(shared, firmware).sum() == shared.sum()
