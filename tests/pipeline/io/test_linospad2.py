@@ -15,10 +15,10 @@ from schemas.errors import TcspcError
 from schemas.instruments import LINOSPAD2_EVENTS
 from stages.instruments import linospad2 as lino
 
-DATA = Path("/work/shared/data/linospad2")
+DATA = Path(__file__).parents[2] / "data" / "linospad2"  # copies of ../shared/data
 DAT = DATA / "test_data_2212b.dat"
 CSV = DATA / "TDC_A5_#36_2212b.csv"
-PTU = sorted(Path("/work/shared/data/picoquant").glob("*.ptu"))
+PTU = sorted((Path(__file__).parents[2] / "data" / "picoquant").glob("*.ptu"))
 
 needs_data = pytest.mark.skipif(not DAT.exists() or not CSV.exists(),
                                 reason=f"the shared LinoSPAD2 sample is not in {DATA}")
@@ -169,7 +169,7 @@ def test_a_byte_swapped_capture_is_not_linospad2(tmp_path):
     assert lio.looks_like_linospad2(path) is False
 
 
-@pytest.mark.skipif(not PTU, reason="no PicoQuant PTU sample in /work/shared/data/picoquant")
+@pytest.mark.skipif(not PTU, reason="no PicoQuant PTU sample in tests/data/picoquant")
 @pytest.mark.parametrize("ptu", PTU, ids=lambda p: p.name)
 def test_a_ptu_file_is_not_linospad2(ptu, tmp_path):
     assert lio.looks_like_linospad2(ptu) is False
