@@ -248,6 +248,7 @@ class Supervisor:
         self.started = time.time()
         self.failed: str | None = None
         self.pruned = 0
+        self._durable = 0  #: measurements known to be on disk (see _durable_word)
         self._spans = None
         self.forged_heartbeats = 0
         self._status_failing = False
@@ -438,7 +439,29 @@ class Supervisor:
                 return 0
             cycles = int(st["counters"][2]) // (b - a)
             least = cycles if least is None else min(least, cycles)
-        return (least or 0) * self.topo.n_tdc
+        return min((least or 0) * self.topo.n_tdc, self._durable_word())
+
+    def _durable_word(self) -> int:
+        """The run's word index below which every measurement is on disk in the sink's
+        datasets (histograms, and ranges when ranged), for every TDC range. A worker that
+        checkpointed past a measurement has only *sent* it: a range or sink stage killed
+        with it in flight loses it, and the end-of-run reconciliation recomputes it from
+        the journal, so retention must not prune those words before they are written.
+        (A run without measurement_cycles is one measurement: nothing is durable before
+        its end, and nothing is pruned.)"""
+        mc = self.topo.histogram.get("measurement_cycles")
+        if not mc:
+            return 0
+        out = Path(self.topo.sink["out"])
+        parts = [out / s / f"date={self.topo.date}" / f"run={self.topo.run}"
+                 for s in ("histograms", *(["ranges"] if self.topo.range else []))]
+        firsts = [a for a, _ in tdc_ranges(self.topo)]
+        k = self._durable
+        while all((d / f"part-{k:06d}-t{a:03d}.parquet").exists()
+                  for d in parts for a in firsts):
+            k += 1
+        self._durable = k
+        return k * int(mc) * self.topo.n_tdc
 
     def _prune(self) -> None:
         if self.topo.journal_keep_gb is None:
