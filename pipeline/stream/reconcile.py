@@ -96,7 +96,7 @@ def reconcile(topo: Topology) -> dict:
                 msgs += core.process({"run": topo.run, "first_word": f, "seq": k,
                                       "t_laser_win_ns": gate, "window_ns": window_ns,
                                       "date": topo.date}, _words_batch(words))
-            if hi < (k + 1) * mc * w:
+            if hi < (k + 1) * mc * w or core.m_words is None:  # (one measurement: the run)
                 msgs += core.finish({"run": topo.run})
             for head, batch in msgs:
                 sink.process(head, batch)

@@ -177,7 +177,7 @@ def test_pattern_and_schema_commands(tmp_path):
     meta = json.loads((tmp_path / "p.json").read_text())
     assert sum(meta["truth"]["class_counts"].values()) == 100 * 128
     res = CliRunner().invoke(cli, ["schema", "--markdown"])
-    assert "### `histograms` (version 1.0)" in res.output
+    assert "### `histograms` (version 2.0)" in res.output
 
 
 def test_histogram_makes_a_second_pass_when_the_first_chunk_misleads(tmp_path, monkeypatch):
