@@ -292,75 +292,91 @@ def _histogram_numpy(words, fmt, counts, wraps):
 # --- numba engine: one loop per layout and mode ------------------------------------------
 
 if numba is not None:
+    # Counters live in locals (registers) and are stored once at the end: an increment of
+    # an array element per record is a store the compiler cannot keep apart from the
+    # output's (or the histogram's) stores.
     @numba.njit(cache=True, nogil=True)
     def _decode_picoharp_t3(words, wrap, wraps, kind, channel, time, dtime, counts):
         n = 0
         base = wraps * wrap
+        n_photon = n_marker = n_sync = n_overflow = n_invalid = 0
         for i in range(words.size):
             w = np.int64(words[i])
             c = w >> 28
             d = (w >> 16) & 0xFFF
             if c == 15:
                 if d == 0:
-                    counts[_OVERFLOW] += 1
+                    n_overflow += 1
                     wraps += 1
                     base += wrap
                     continue
                 if d > 15:
-                    counts[_INVALID] += 1
+                    n_invalid += 1
                     continue
-                counts[_MARKER] += 1
+                n_marker += 1
                 kind[n] = MARKER
                 channel[n] = d
                 dtime[n] = 0
             elif 1 <= c <= 4:
-                counts[_PHOTON] += 1
+                n_photon += 1
                 kind[n] = PHOTON
                 channel[n] = c - 1
                 dtime[n] = d
             else:
-                counts[_INVALID] += 1
+                n_invalid += 1
                 continue
             time[n] = base + (w & 0xFFFF)
             n += 1
+        counts[_PHOTON] += n_photon
+        counts[_MARKER] += n_marker
+        counts[_SYNC] += n_sync
+        counts[_OVERFLOW] += n_overflow
+        counts[_INVALID] += n_invalid
         return n, wraps
 
     @numba.njit(cache=True, nogil=True)
     def _decode_picoharp_t2(words, wrap, wraps, kind, channel, time, counts):
         n = 0
         base = wraps * wrap
+        n_photon = n_marker = n_sync = n_overflow = n_invalid = 0
         for i in range(words.size):
             w = np.int64(words[i])
             c = w >> 28
             if c == 15:
                 m = w & 0xF
                 if m == 0:
-                    counts[_OVERFLOW] += 1
+                    n_overflow += 1
                     wraps += 1
                     base += wrap
                     continue
-                counts[_MARKER] += 1
+                n_marker += 1
                 kind[n] = MARKER
                 channel[n] = m
             elif c == 0:
-                counts[_SYNC] += 1
+                n_sync += 1
                 kind[n] = PHOTON
                 channel[n] = SYNC_CHANNEL
             elif c <= 4:
-                counts[_PHOTON] += 1
+                n_photon += 1
                 kind[n] = PHOTON
                 channel[n] = c - 1
             else:
-                counts[_INVALID] += 1
+                n_invalid += 1
                 continue
             time[n] = base + (w & 0x0FFFFFFF)
             n += 1
+        counts[_PHOTON] += n_photon
+        counts[_MARKER] += n_marker
+        counts[_SYNC] += n_sync
+        counts[_OVERFLOW] += n_overflow
+        counts[_INVALID] += n_invalid
         return n, wraps
 
     @numba.njit(cache=True, nogil=True)
     def _decode_hydraharp_t3(words, wrap, multi, wraps, kind, channel, time, dtime, counts):
         n = 0
         base = wraps * wrap
+        n_photon = n_marker = n_sync = n_overflow = n_invalid = 0
         for i in range(words.size):
             w = np.int64(words[i])
             c = (w >> 25) & 0x3F
@@ -368,29 +384,35 @@ if numba is not None:
             if w >> 31:
                 if c == 63:
                     k = max(f, 1) if multi else 1
-                    counts[_OVERFLOW] += 1
+                    n_overflow += 1
                     wraps += k
                     base += k * wrap
                     continue
                 if c < 1 or c > 15:
-                    counts[_INVALID] += 1
+                    n_invalid += 1
                     continue
-                counts[_MARKER] += 1
+                n_marker += 1
                 kind[n] = MARKER
                 dtime[n] = 0
             else:
-                counts[_PHOTON] += 1
+                n_photon += 1
                 kind[n] = PHOTON
                 dtime[n] = (w >> 10) & 0x7FFF
             channel[n] = c
             time[n] = base + f
             n += 1
+        counts[_PHOTON] += n_photon
+        counts[_MARKER] += n_marker
+        counts[_SYNC] += n_sync
+        counts[_OVERFLOW] += n_overflow
+        counts[_INVALID] += n_invalid
         return n, wraps
 
     @numba.njit(cache=True, nogil=True)
     def _decode_hydraharp_t2(words, wrap, multi, wraps, kind, channel, time, counts):
         n = 0
         base = wraps * wrap
+        n_photon = n_marker = n_sync = n_overflow = n_invalid = 0
         for i in range(words.size):
             w = np.int64(words[i])
             c = (w >> 25) & 0x3F
@@ -398,81 +420,96 @@ if numba is not None:
             if w >> 31:
                 if c == 63:
                     k = max(f, 1) if multi else 1
-                    counts[_OVERFLOW] += 1
+                    n_overflow += 1
                     wraps += k
                     base += k * wrap
                     continue
                 if c == 0:
-                    counts[_SYNC] += 1
+                    n_sync += 1
                     kind[n] = PHOTON
                     channel[n] = SYNC_CHANNEL
                 elif c <= 15:
-                    counts[_MARKER] += 1
+                    n_marker += 1
                     kind[n] = MARKER
                     channel[n] = c
                 else:
-                    counts[_INVALID] += 1
+                    n_invalid += 1
                     continue
             else:
-                counts[_PHOTON] += 1
+                n_photon += 1
                 kind[n] = PHOTON
                 channel[n] = c
             time[n] = base + f
             n += 1
+        counts[_PHOTON] += n_photon
+        counts[_MARKER] += n_marker
+        counts[_SYNC] += n_sync
+        counts[_OVERFLOW] += n_overflow
+        counts[_INVALID] += n_invalid
         return n, wraps
 
     @numba.njit(cache=True, nogil=True)
     def _histogram_picoharp_t3(words, wraps, hist, tally):
         n_channels, n_bins = hist.shape
         max_dtime = np.int64(-1)
+        n_photon = n_marker = n_overflow = n_invalid = n_out = 0
         for i in range(words.size):
             w = np.int64(words[i])
             c = w >> 28
             d = (w >> 16) & 0xFFF
             if c == 15:
                 if d == 0:
-                    tally[_OVERFLOW] += 1
+                    n_overflow += 1
                     wraps += 1
                 elif d <= 15:
-                    tally[_MARKER] += 1
+                    n_marker += 1
                 else:
-                    tally[_INVALID] += 1
+                    n_invalid += 1
             elif 1 <= c <= 4:
-                tally[_PHOTON] += 1
-                if d > max_dtime:
-                    max_dtime = d
+                n_photon += 1
+                max_dtime = max(max_dtime, d)
                 if c - 1 < n_channels and d < n_bins:
                     hist[c - 1, d] += 1
                 else:
-                    tally[5] += 1
+                    n_out += 1
             else:
-                tally[_INVALID] += 1
+                n_invalid += 1
+        tally[_PHOTON] += n_photon
+        tally[_MARKER] += n_marker
+        tally[_OVERFLOW] += n_overflow
+        tally[_INVALID] += n_invalid
+        tally[5] += n_out
         return wraps, max_dtime
 
     @numba.njit(cache=True, nogil=True)
     def _histogram_hydraharp_t3(words, multi, wraps, hist, tally):
         n_channels, n_bins = hist.shape
         max_dtime = np.int64(-1)
+        n_photon = n_marker = n_overflow = n_invalid = n_out = 0
         for i in range(words.size):
             w = np.int64(words[i])
             c = (w >> 25) & 0x3F
             if w >> 31:
                 if c == 63:
-                    tally[_OVERFLOW] += 1
+                    n_overflow += 1
                     wraps += max(w & 0x3FF, 1) if multi else 1
                 elif 1 <= c <= 15:
-                    tally[_MARKER] += 1
+                    n_marker += 1
                 else:
-                    tally[_INVALID] += 1
+                    n_invalid += 1
             else:
                 d = (w >> 10) & 0x7FFF
-                tally[_PHOTON] += 1
-                if d > max_dtime:
-                    max_dtime = d
+                n_photon += 1
+                max_dtime = max(max_dtime, d)
                 if c < n_channels and d < n_bins:
                     hist[c, d] += 1
                 else:
-                    tally[5] += 1
+                    n_out += 1
+        tally[_PHOTON] += n_photon
+        tally[_MARKER] += n_marker
+        tally[_OVERFLOW] += n_overflow
+        tally[_INVALID] += n_invalid
+        tally[5] += n_out
         return wraps, max_dtime
 
 
