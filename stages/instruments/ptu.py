@@ -530,9 +530,10 @@ def _decode_numba(words, fmt, wraps):
     else:
         m, wraps = _decode_hydraharp_t2(words, fmt.wrap, fmt.multi_overflow, wraps, kind,
                                         channel, time, counts)
-    # copies, so the caller does not hold the full-size buffers of a sparse chunk
-    return (kind[:m].copy(), channel[:m].copy(), time[:m].copy(), dtime[:m].copy(), counts,
-            int(wraps))
+    if m < n // 2:  # a sparse chunk: copy, so the caller does not hold buffers twice as big
+        kind, channel, time, dtime = kind[:m].copy(), channel[:m].copy(), time[:m].copy(), \
+            dtime[:m].copy()
+    return kind[:m], channel[:m], time[:m], dtime[:m], counts, int(wraps)
 
 
 def _check(words, engine):
