@@ -119,6 +119,17 @@ class PtuHeader:
                 f"file holds {self.records_in_file}{part}")
 
     @property
+    def warning(self) -> str:
+        """What a caller should report about the data section ('' when it is regular): a
+        truncation, or bytes after the declared records (which are not read)."""
+        if self.truncated:
+            return self.truncation
+        if self.trailing_bytes:
+            return (f"{self.path}: {self.trailing_bytes} bytes after the {self.n_records} "
+                    "declared records, not read")
+        return ""
+
+    @property
     def n_input_channels(self) -> int:
         """Inputs (detector channels) the header describes, at most what records address.
 

@@ -252,6 +252,7 @@ def test_truncated_mid_record(good, tmp_path):
     cut.write_bytes(path.read_bytes()[:h.data_offset + 4 * 60 + 3])
     hc = read_header(cut)
     assert hc.truncated and hc.records_in_file == 60 and hc.n_readable == 60
+    assert hc.warning == hc.truncation and "60 and 3 bytes" in hc.warning
     t = decode(cut)  # lenient: whole records decoded, flagged
     assert t.equals(decode_table(words[:60], 0x00010303))
     assert t.schema.metadata[b"ptu.truncated"] == b"true"
@@ -262,6 +263,17 @@ def test_truncated_mid_record(good, tmp_path):
                          "100 records, the file holds 60 and 3 bytes of a partial record")
     assert str(cut) in msg
     one_line_error(histogram_t3, cut, strict=True, match="truncated")
+
+
+def test_bytes_after_the_declared_records_are_reported(good, tmp_path):
+    path, words = good
+    extra = tmp_path / "extra.ptu"
+    extra.write_bytes(path.read_bytes() + b"\1\2\3\4\5\6")
+    h = read_header(extra)
+    assert not h.truncated and h.trailing_bytes == 6 and h.n_readable == 100
+    assert h.warning == f"{extra}: 6 bytes after the 100 declared records, not read"
+    assert decode(extra).equals(decode(path))
+    assert read_header(path).warning == ""
 
 
 def decode_table(words, code):
