@@ -16,10 +16,13 @@ one-line :class:`PtuError` that names the file.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
+import io
 import os
 import struct
 import sys
+import warnings
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +34,7 @@ from pipeline.io.atomic import atomic_path
 from schemas.errors import TcspcError
 from schemas.instruments import PTU_T2_EVENTS, PTU_T3_EVENTS
 from stages.instruments.ptu import (
+    SYNC_CHANNEL,
     Decoded,
     RecordFormat,
     Tally,
@@ -113,6 +117,17 @@ class PtuHeader:
         part = f" and {data % 4} bytes of a partial record" if data % 4 else ""
         return (f"{self.path}: truncated: the header declares {self.n_records} records, the "
                 f"file holds {self.records_in_file}{part}")
+
+    @property
+    def warning(self) -> str:
+        """What a caller should report about the data section ('' when it is regular): a
+        truncation, or bytes after the declared records (which are not read)."""
+        if self.truncated:
+            return self.truncation
+        if self.trailing_bytes:
+            return (f"{self.path}: {self.trailing_bytes} bytes after the {self.n_records} "
+                    "declared records, not read")
+        return ""
 
     @property
     def n_input_channels(self) -> int:
@@ -540,3 +555,93 @@ def write_ptu(path: str | os.PathLike, record_type_code: int,
                 fh.seek(count_at)
                 fh.write(struct.pack("<q", written))
     return Path(path)
+
+
+# --- Photon-HDF5 --------------------------------------------------------------------------
+
+def export_photon_hdf5(path_ptu: str | os.PathLike, out_h5: str | os.PathLike,
+                       engine: str | None = None, strict: bool = True) -> dict:
+    """Write a PTU file's photons as Photon-HDF5 (needs ``phconvert``, which needs PyTables).
+
+    Decoding is this module's (exact, every record counted); phconvert only writes and
+    validates the file (``measurement_type = "generic"``). ``timestamps`` are the
+    overflow-corrected nsync (T3) or timetag (T2) in units of
+    ``MeasDesc_GlobalResolution``, ``detectors`` the 0-based input, ``nanotimes`` the
+    dtime (T3). Markers and T2 sync events are not photons and are not written; their
+    counts are in the file's ``description``. Photon-HDF5 is written from whole arrays:
+    memory grows with the file (about 11 bytes per photon), unlike the other readers here.
+
+    Returns the counters of the decode (records read, photons, markers, ...) and
+    phconvert's warnings about optional fields left out (``"warnings"``).
+    """
+    try:
+        import phconvert
+    except ImportError as exc:  # an optional dependency: say how to get it
+        raise ModuleNotFoundError("export_photon_hdf5 needs phconvert (pip install "
+                                  "phconvert; it brings PyTables)") from exc
+    report = DecodeReport()
+    table = pa.Table.from_batches(
+        list(iter_decoded_batches(path_ptu, report=report, engine=engine, strict=strict)),
+        schema=(PTU_T3_EVENTS if read_header(path_ptu).format.is_t3
+                else PTU_T2_EVENTS).schema)
+    h = report.header
+    fmt = h.format
+    kind = table.column("kind").to_numpy()
+    channel = table.column("channel").to_numpy()
+    photon = (kind == 0) & (channel != SYNC_CHANNEL)
+    if fmt.is_t3:
+        timestamps = table.column("nsync").to_numpy()[photon].astype(np.int64)
+    else:  # back to timetags: time_ps is timetag x the resolution, exactly
+        frac = resolution_ps_fraction(h.global_resolution_s)
+        if frac.denominator != 1:
+            raise PtuError(f"{h.path}: a T2 resolution of {float(frac)} ps is not a whole "
+                           "number of ps: export from the timetags is not implemented")
+        timestamps = table.column("time_ps").to_numpy()[photon] // frac.numerator
+    photon_data = {
+        "timestamps": timestamps,
+        "detectors": channel[photon],
+        "timestamps_specs": {"timestamps_unit": h.global_resolution_s},
+        "measurement_specs": {"measurement_type": "generic", "detectors_specs": {
+            "spectral_ch1": np.unique(channel[photon]).astype(np.int64)}},
+    }
+    if fmt.is_t3:
+        photon_data["nanotimes"] = table.column("dtime").to_numpy()[photon]
+        photon_data["nanotimes_specs"] = {
+            "tcspc_unit": h.resolution_s, "tcspc_num_bins": fmt.n_dtime_codes,
+            "tcspc_range": h.resolution_s * fmt.n_dtime_codes}
+    n_pixels = max(int(channel[photon].max()) + 1 if photon.any() else 1,
+                   h.n_input_channels)
+    data = {
+        "description": (f"PicoQuant {fmt.name} ({h.path}): {report.n_photons} photons; not "
+                        f"written: {report.n_markers} markers, {report.n_sync} sync events, "
+                        f"{report.n_overflow_records} overflow records, {report.n_invalid} "
+                        f"invalid records; truncated: {report.truncated}"),
+        "photon_data": photon_data,
+        "setup": {"num_pixels": n_pixels, "num_spots": 1, "num_spectral_ch": 1,
+                  "num_polarization_ch": 1, "num_split_ch": 1,
+                  "modulated_excitation": False, "lifetime": fmt.is_t3,
+                  "excitation_alternated": [False],
+                  # the sync is the laser's clock: pulsed at the sync rate when known
+                  "excitation_cw": [not h.sync_rate_hz]},
+        "provenance": {"filename": str(path_ptu), "software": "tcspc-lidar"},
+    }
+    if h.sync_rate_hz:
+        data["setup"]["laser_repetition_rates"] = [h.sync_rate_hz]
+        photon_data["measurement_specs"]["laser_repetition_rate"] = h.sync_rate_hz
+    final = Path(out_h5).resolve()
+    with atomic_path(out_h5) as tmp, warnings.catch_warnings(record=True) as caught, \
+            contextlib.redirect_stdout(io.StringIO()):  # phconvert prints "Saving: ..."
+        warnings.simplefilter("always")
+        phconvert.hdf5.save_photon_hdf5(data, h5_fname=str(tmp), overwrite=True,
+                                        close=True)
+        import tables  # phconvert's dependency: name the file where it will live
+
+        with tables.open_file(str(tmp), "r+") as h5:
+            for name, value in (("filename", final.name), ("filename_full", str(final))):
+                node = h5.get_node("/identity", name)
+                title = node.title
+                node._f_remove()
+                h5.create_array("/identity", name, obj=value.encode(), title=title)
+    counters = {k: v for k, v in vars(report).items() if k != "header"}
+    # phconvert's notes on optional fields left out (wavelengths, author)
+    return {**counters, "warnings": [str(w.message) for w in caught]}

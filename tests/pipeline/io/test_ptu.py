@@ -252,6 +252,7 @@ def test_truncated_mid_record(good, tmp_path):
     cut.write_bytes(path.read_bytes()[:h.data_offset + 4 * 60 + 3])
     hc = read_header(cut)
     assert hc.truncated and hc.records_in_file == 60 and hc.n_readable == 60
+    assert hc.warning == hc.truncation and "60 and 3 bytes" in hc.warning
     t = decode(cut)  # lenient: whole records decoded, flagged
     assert t.equals(decode_table(words[:60], 0x00010303))
     assert t.schema.metadata[b"ptu.truncated"] == b"true"
@@ -262,6 +263,17 @@ def test_truncated_mid_record(good, tmp_path):
                          "100 records, the file holds 60 and 3 bytes of a partial record")
     assert str(cut) in msg
     one_line_error(histogram_t3, cut, strict=True, match="truncated")
+
+
+def test_bytes_after_the_declared_records_are_reported(good, tmp_path):
+    path, words = good
+    extra = tmp_path / "extra.ptu"
+    extra.write_bytes(path.read_bytes() + b"\1\2\3\4\5\6")
+    h = read_header(extra)
+    assert not h.truncated and h.trailing_bytes == 6 and h.n_readable == 100
+    assert h.warning == f"{extra}: 6 bytes after the 100 declared records, not read"
+    assert decode(extra).equals(decode(path))
+    assert read_header(path).warning == ""
 
 
 def decode_table(words, code):
@@ -366,3 +378,37 @@ def test_corrupt_header_fails_cleanly(tmp_path, flips):
         decode(bad)
     except PtuError as exc:
         assert "\n" not in str(exc)
+
+
+# --- Photon-HDF5 (phconvert is optional: not in the project's environment) -----------------
+
+def test_photon_hdf5_without_phconvert_says_how_to_get_it(good, tmp_path, monkeypatch):
+    from pipeline.io.ptu import export_photon_hdf5
+
+    monkeypatch.setitem(__import__("sys").modules, "phconvert", None)
+    with pytest.raises(ModuleNotFoundError, match=r"needs phconvert \(pip install phconvert"):
+        export_photon_hdf5(good[0], tmp_path / "x.h5")
+    assert not (tmp_path / "x.h5").exists()
+
+
+@pytest.mark.parametrize("code", [0x01010304, 0x00010203], ids=hex)
+def test_photon_hdf5_holds_the_photons(tmp_path, code):
+    phconvert = pytest.importorskip("phconvert")
+    tables = pytest.importorskip("tables")
+    from pipeline.io.ptu import export_photon_hdf5
+
+    words = some_records(code, 4000, seed=4)
+    src = write_ptu(tmp_path / "s.ptu", code, words)
+    out = tmp_path / "s.h5"
+    got = export_photon_hdf5(src, out)
+    d = decode_records(words, record_format(code))
+    photon = (d.kind == 0) & (d.channel != SYNC_CHANNEL)
+    assert got["n_records_read"] == 4000 and got["n_photons"] == photon.sum()
+    phconvert.hdf5.assert_valid_photon_hdf5(str(out), warnings=False)
+    with tables.open_file(str(out)) as h5:
+        pd = h5.root.photon_data
+        assert np.array_equal(pd.timestamps.read(), d.time[photon].astype(np.int64))
+        assert np.array_equal(pd.detectors.read(), d.channel[photon])
+        if d.dtime is not None:
+            assert np.array_equal(pd.nanotimes.read(), d.dtime[photon])
+        assert h5.root.identity.filename.read().decode() == "s.h5"
