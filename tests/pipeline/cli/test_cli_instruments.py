@@ -104,3 +104,18 @@ def test_bad_files_give_one_line_and_a_nonzero_exit(tmp_path, damage):
 def test_chip_options_are_refused_on_an_instrument_file(tmp_path):
     r = tcspc("histogram", T3, "--calibration", tmp_path, "--out", tmp_path / "h.parquet")
     assert r.returncode == 2 and "not for a ptu file" in r.stderr
+
+
+def test_decode_to_photon_hdf5(tmp_path):
+    phconvert = pytest.importorskip("phconvert")  # dev and hdf5 extras install it
+    out = tmp_path / "hh.h5"
+    r = tcspc("decode", T3, "--out", out)
+    assert r.returncode == 0, r.stderr
+    phconvert.hdf5.assert_valid_photon_hdf5(str(out), warnings=False)
+    import tables
+
+    with tables.open_file(str(out)) as h5:
+        det = h5.root.photon_data.detectors.read()
+        assert np.bincount(det).tolist() == [45012, 32871]  # the histogram's n_hit per channel
+    r = tcspc("decode", LINO, "--out", tmp_path / "l.h5")
+    assert r.returncode != 0 and "takes a PTU file" in r.stderr

@@ -380,7 +380,7 @@ def test_corrupt_header_fails_cleanly(tmp_path, flips):
         assert "\n" not in str(exc)
 
 
-# --- Photon-HDF5 (phconvert is optional: not in the project's environment) -----------------
+# --- Photon-HDF5 (phconvert: the hdf5 extra, and in dev so these run in CI) --------------
 
 def test_photon_hdf5_without_phconvert_says_how_to_get_it(good, tmp_path, monkeypatch):
     from pipeline.io.ptu import export_photon_hdf5
