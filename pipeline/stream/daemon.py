@@ -84,6 +84,7 @@ from pipeline.io.atomic import atomic_path
 from pipeline.stream.reconcile import accounting, reconcile
 from pipeline.stream.topology import (
     GRACE_S,
+    STARTUP_S,
     Topology,
     tdc_ranges,
 )
@@ -104,8 +105,9 @@ class Proc:
     restart_at: float | None = None   #: a restart waiting out its backoff
     exit_codes: list[int] = field(default_factory=list)
     upstream_done_at: float | None = None
-    last_received: int | None = None
+    last_received: tuple | None = None
     terminated: bool = False
+    started_at: float = 0.0
 
 
 def _tcspc(*args) -> list[str]:
@@ -276,6 +278,7 @@ class Supervisor:
             from pipeline.stream.curve import CURVE_ENV
 
             env[CURVE_ENV] = str(self.curve_dir)
+        p.started_at = time.time()
         p.popen = subprocess.Popen(p.argv, stdout=log, stderr=subprocess.STDOUT, env=env,
                                    preexec_fn=_die_with_parent)
         log.close()
@@ -289,9 +292,15 @@ class Supervisor:
             code = p.popen.poll()
             if code is None:
                 if p.upstream and all(self.by_name[u].finished for u in p.upstream):
-                    got = self.metrics.get(p.name, {}).get("received")
-                    if p.upstream_done_at is None or got != p.last_received:
-                        p.upstream_done_at = now  # still taking messages: not stuck
+                    # progress: messages taken or words folded in (a restarted worker
+                    # backfilling from the journal takes no message), as this process
+                    # incarnation reports them; one not heard from yet is starting up
+                    m = self.metrics.get(p.name, {})
+                    heard = m.get("pid") == p.popen.pid
+                    got = (m.get("received"), m.get("words_total")) if heard else None
+                    starting = not heard and now - p.started_at < STARTUP_S
+                    if p.upstream_done_at is None or got != p.last_received or starting:
+                        p.upstream_done_at = now  # still working: not stuck
                         p.last_received = got
                     if now - p.upstream_done_at > GRACE_S and not p.terminated:
                         # its stop was lost with a killed process: let it drain and finish

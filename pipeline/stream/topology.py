@@ -12,6 +12,7 @@ from schemas.errors import TcspcError
 
 SOURCE_KINDS = ("sim", "capture", "udp", "file")
 GRACE_S = 3.0  # after its upstream finished, a stage gets this long to stop by itself
+STARTUP_S = 60.0  # ... counted from its first heartbeat (a loaded machine's start-up)
 
 
 class TopologyError(TcspcError, ValueError):
