@@ -4,7 +4,6 @@ accounted for."""
 
 import os
 import signal
-import threading
 import time
 from pathlib import Path
 
@@ -14,7 +13,6 @@ import pytest
 from click.testing import CliRunner
 
 from pipeline.cli.app import cli
-from pipeline.stream.daemon import Supervisor
 from pipeline.stream.topology import TopologyError, load_topology
 
 DATA = Path(__file__).parents[2] / "data"  # tests/data: copies of ../shared/data
@@ -42,16 +40,18 @@ out = "{tmp_path / 'out'}"
     return tmp_path / "topo.toml"
 
 
-def run_daemon(topo_path, run, during=None):
-    sup = Supervisor(load_topology(topo_path, run), log=lambda m: None)
-    result = {}
-    t = threading.Thread(target=lambda: result.update(sup.run()))
-    t.start()
-    if during:
-        during(sup)
-    t.join(timeout=240)
-    assert not t.is_alive(), "daemon did not finish"
-    return result, sup
+def _daemon_helpers():
+    # test_daemon.py's helpers, loaded by path (tests/ is not a package), as test_faults.py
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "_test_daemon_helpers", Path(__file__).with_name("test_daemon.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+run_daemon = _daemon_helpers().run_daemon
 
 
 def offline_histograms(tmp_path, path, *args):
