@@ -58,6 +58,14 @@ The topology file (all keys but ``[source]`` optional)::
     [sink]
     out = "data/stream"
 
+    [view]                       # leave out: no web page; with it, `tcspc view` runs
+    port = 5006                  # beside the graph (restarted if it dies, ended with the
+    bind = "127.0.0.1"           # daemon): loopback by default, a token in the URL
+    layout = "16x8"              # elsewhere (STATE/view.url); the array's columns x rows
+
+The daemon publishes each status it writes on ``ipc://STATE/sock/status`` (PUB), so the
+web page is pushed the health without reading the file.
+
 Endpoints default to ``ipc://STATE/sock/NAME``; give ``endpoint`` (or ``endpoints``, one
 per worker) in a section to use ``tcp://`` instead.
 """
@@ -107,6 +115,11 @@ class Proc:
 
 def _tcspc(*args) -> list[str]:
     return [sys.executable, "-m", "pipeline.cli", *map(str, args)]
+
+
+def status_endpoint(state: Path) -> str:
+    """Where the daemon publishes each status it writes (the web page subscribes)."""
+    return f"ipc://{Path(state).resolve()}/sock/status"
 
 
 def build(topo: Topology) -> list[Proc]:
@@ -219,6 +232,39 @@ def run_token(state: Path, run: str) -> tuple[Path, str]:
     return path, token
 
 
+#: A dead web page server ([view]) is started again after this long.
+VIEW_RESTART_S = 5.0
+
+
+def view_proc(topo: Topology) -> Proc | None:
+    """``tcspc view`` on the run's state, datasets and calibration, with the [view] keys."""
+    v = topo.view
+    if v is None:
+        return None
+    cal = (topo.range or {}).get("calibration") or topo.histogram.get("calibration")
+    return Proc("view", _tcspc(
+        "view", "--state", topo.state, "--out", topo.sink["out"], "--run", topo.run,
+        "--port", v.get("port", 5006), "--bind", v.get("bind", "127.0.0.1"),
+        *(("--calibration", cal) if cal else ()),
+        *(("--layout", v["layout"]) if v.get("layout") else ())), [])
+
+
+def _status_pub(ctx, state: Path, log):
+    """The status PUB (None when it cannot be bound: the daemon runs all the same)."""
+    from pipeline.stream.stage import bind
+
+    pub = ctx.socket(zmq.PUB)
+    pub.setsockopt(zmq.SNDHWM, 2)
+    pub.setsockopt(zmq.LINGER, 0)
+    try:
+        bind(pub, status_endpoint(state))
+    except (zmq.ZMQError, OSError) as exc:
+        log(f"status PUB not bound ({exc}); the web page reads status.json instead")
+        pub.close()
+        return None
+    return pub
+
+
 def check_record(rec: dict, token: str | None) -> bool:
     """A heartbeat record that carries the run's token (any record when none is set)."""
     import hmac
@@ -242,6 +288,8 @@ class Supervisor:
         self._spans = None
         self.forged_heartbeats = 0
         self._status_failing = False
+        self._status_msg: bytes | None = None  #: the last status, for the status PUB
+        self.view = view_proc(topo)  #: the web page's server ([view]), beside the graph
         for d in ("logs", "sock", "journal", f"checkpoints/{topo.run}"):
             (topo.state / d).mkdir(parents=True, exist_ok=True)
         self.token_file, self.token = run_token(topo.state, topo.run)
@@ -352,8 +400,15 @@ class Supervisor:
         if self.curve_dir is not None:
             curve.serve(sub, self.curve_dir)
         bind(sub, self.topo.metrics)
+        pub, sent = _status_pub(ctx, self.topo.state, self.log), None
         try:
             while not self.stop.is_set():
+                if pub is not None and self._status_msg is not sent:
+                    sent = self._status_msg  # (this thread owns the PUB socket)
+                    try:
+                        pub.send(sent, zmq.NOBLOCK)
+                    except zmq.ZMQError:
+                        pass  # nobody listening, or a slow page: the next one will do
                 if sub.poll(200):
                     try:
                         rec = json.loads(sub.recv())
@@ -372,6 +427,8 @@ class Supervisor:
                         continue  # a malformed record is not worth a crash
         finally:
             sub.close()
+            if pub is not None:
+                pub.close()
 
     def status(self) -> dict:
         now = time.time()
@@ -396,7 +453,8 @@ class Supervisor:
             if p.upstream and got is not None:
                 depth[p.name] = max(0, sent - got)
         return {"run": self.topo.run, "topology": self.topo.path, "updated": now,
-                "started": self.started, "state": "failed" if self.failed else "running",
+                "started": self.started, "pid": os.getpid(),
+                "state": "failed" if self.failed else "running",
                 "forged_heartbeats": self.forged_heartbeats,
                 "paused": {name: s.get("reason") for name, s in stages.items()
                            if s["health"] == "paused"},
@@ -404,9 +462,10 @@ class Supervisor:
 
     def _write_status(self, extra: dict | None = None) -> None:
         try:
+            text = json.dumps({**self.status(), **(extra or {})}, indent=1, default=str)
+            self._status_msg = text.encode()
             with atomic_path(self.topo.state / "status.json") as tmp:
-                tmp.write_text(json.dumps({**self.status(), **(extra or {})}, indent=1,
-                                          default=str))
+                tmp.write_text(text)
         except OSError as exc:  # a full state disk must not kill the supervisor
             if not self._status_failing:
                 self.log(f"status.json not written: {exc}")
@@ -448,6 +507,8 @@ class Supervisor:
         collector = threading.Thread(target=self._collect, daemon=True)
         collector.start()
         time.sleep(0.2)
+        if self.view is not None:
+            self._start(self.view)
         for p in self.procs:
             self._start(p)
         self.log(f"run {self.topo.run}: {len(self.procs)} stages started "
@@ -460,6 +521,7 @@ class Supervisor:
                 if time.time() - last > 1.0:
                     self._write_status()
                     self._prune()
+                    self._keep_view()
                     last = time.time()
                 time.sleep(self.poll_s)
         finally:
@@ -483,7 +545,36 @@ class Supervisor:
         self._write_status({"state": "failed" if self.failed else "finished",
                             "result": result,
                             **({"journal_corrupt_words": corrupt} if corrupt else {})})
+        self._end_view()
         return result
+
+    # -------------------------------------------------------------- the web page ([view])
+    def _keep_view(self) -> None:
+        """The page's server is not part of the graph: it is restarted when it dies (after
+        VIEW_RESTART_S, logged) and never fails the run."""
+        v = self.view
+        if v is None or v.popen is None or v.popen.poll() is None:
+            return
+        now = time.time()
+        if v.restart_at is None:
+            v.exit_codes.append(v.popen.returncode)
+            v.restart_at = now + VIEW_RESTART_S
+            self.log(f"view: died (exit {v.popen.returncode}); restart in {VIEW_RESTART_S:.0f} s "
+                     f"(see {self.topo.state / 'logs' / 'view.log'})")
+        elif now >= v.restart_at:
+            v.restart_at, v.restarts = None, v.restarts + 1
+            self._start(v)
+
+    def _end_view(self) -> None:
+        v = self.view
+        if v is None or v.popen is None or v.popen.poll() is not None:
+            return
+        v.popen.terminate()
+        try:
+            v.popen.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            v.popen.kill()
+            v.popen.wait()
 
 
 # ------------------------------------------------------------------ reconcile, accounting
