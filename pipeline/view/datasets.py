@@ -83,7 +83,8 @@ class RunIndex:
                 if not self._covers(max(ks)):
                     self.firsts = []  # a worker's first file not written yet: look again
                     self._scanned = 0.0
-            self.have[schema] = sorted(k for k, f in ks.items() if f >= set(self.firsts))
+            self.have[schema] = sorted(k for k, f in ks.items()
+                                       if self.firsts and f >= set(self.firsts))
 
     def _covers(self, k: int) -> bool:
         """The workers' files of measurement ``k`` tile TDCs 0..n_tdc-1 with no hole."""

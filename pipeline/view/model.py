@@ -150,7 +150,8 @@ class ViewModel:
         return tr
 
     def run_known(self, run: str) -> bool:
-        return any(r["run"] == run for r in self.runs) or run == self.live_run
+        return any(r["run"] == run for r in self.runs) or \
+            run == (self.status or {}).get("run")
 
     @property
     def calibration(self):

@@ -31,6 +31,7 @@ from pipeline.view import render
 from pipeline.view.status import datagram_counts, health_rows
 
 WIDTH = 1180
+NO_RUN = "(none)"
 TEMPLATE = Template("""{% extends base %}
 {% block title %}tcspc view{% endblock %}
 {% block postamble %}<style>body{font-family:system-ui,sans-serif;margin:8px 16px}
@@ -186,7 +187,7 @@ class Page:
 
     # ------------------------------------------------------------------ callbacks
     def _on_run(self, attr, old, new):
-        if new and new != self.run:
+        if new and new != self.run and new != NO_RUN:
             self.run, self.tdc = new, None
             self.follow.active = True
             self.update()
@@ -227,16 +228,18 @@ class Page:
             self.run = m.default_run()
         if self.run and self.run not in runs:
             runs.insert(0, self.run)
-        self._put(self.run_pick, "options", runs or ["(none)"])
-        self._put(self.run_pick, "value", self.run or "(none)")
+        self._put(self.run_pick, "options", runs or [NO_RUN])
+        self._put(self.run_pick, "value", self.run or NO_RUN)
         if not self.run:
             self._put(self.sensor_info, "text", render.note(
                 f"No run under {m.out} yet, and no daemon status in {m.state}. Start one "
                 "(tcspc daemon) or point --out / --state at a run's directories.", "warn"))
             return
         tr = m.track(self.run)
-        self._put(self.identity, "text", render.identity(tr.identity, self.run))
         have = tr.index.have["histograms"]
+        ident = tr.identity
+        self._put(self.identity, "text", render.identity(ident, self.run)
+                  if have or ident["journaled"] or ident["final"] else "")
         if not have:
             known = m.run_known(self.run)
             self._put(self.sensor_info, "text", render.note(
