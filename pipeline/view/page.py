@@ -71,6 +71,8 @@ def _map(title: str, field: str, cmap_title: str, tooltips):
     mapper = LinearColorMapper(palette=Viridis256, nan_color="#d0d7de")
     p.rect("x", "y", 0.94, 0.94, source=src, fill_color={"field": field, "transform": mapper},
            line_color="line", line_width=2)
+    p.text("x", "y", text="tdc", source=src, text_align="center", text_baseline="middle",
+           text_font_size="8pt", text_color="#ffffff", text_alpha=0.8)
     p.add_tools(HoverTool(tooltips=tooltips))
     p.add_layout(ColorBar(color_mapper=mapper, title=cmap_title, width=10), "right")
     p.axis.visible = False
@@ -167,8 +169,9 @@ class Page:
                   legend_label="at the density test's light")
         p.scatter("tdc", "lsb_at_light_ps", source=self.lsb_src, color="#0969da", size=5,
                   legend_label="at this measurement's light (eq. 5.1)")
-        p.legend.location = "top_left"
         p.legend.label_text_font_size = "11px"
+        p.legend.orientation = "horizontal"
+        p.add_layout(p.legend[0], "below")
         self.lsb_fig = p
         self.inl_src = ColumnDataSource({"code": [], "inl": []})
         q = figure(title="INL of the chosen TDC", width=580, height=280,
@@ -219,7 +222,8 @@ class Page:
         m = self.m
         st = m.daemon()
         self._put(self.banner, "text", render.banner(st.kind, st.text))
-        self._put(self.health, "text", render.health_table(health_rows(m.status, m.history)))
+        self._put(self.health, "text", render.health_table(
+            health_rows(m.status, m.history, stale=st.kind == "lost")))
         self._put(self.datagrams, "text", render.datagrams(datagram_counts(m.status)))
         runs = [r["run"] for r in m.runs]
         if m.live_run and m.live_run not in runs:

@@ -9,10 +9,11 @@ from html import escape
 COLOURS = {"running": "#1a7f37", "finished": "#0969da", "failed": "#cf222e",
            "lost": "#cf222e", "absent": "#6e7781"}
 HEALTH_COLOURS = {"ok": "#1a7f37", "finished": "#0969da", "silent": "#bf8700",
+                  "unknown": "#6e7781",
                   "paused": "#bf8700", "restarting": "#bf8700", "down": "#cf222e"}
 HEALTH_HELP = ("ok: a heartbeat in the last 5 s; silent: alive, no heartbeat; restarting: "
                "died, restart waiting out its backoff; down: process gone; paused: disk full; "
-               "finished: done")
+               "finished: done; unknown: the daemon stopped reporting")
 
 
 def num(x, digits: int = 0) -> str:
@@ -87,8 +88,10 @@ def health_table(rows: list[dict]) -> str:
                        f'<td style="padding:2px 0">{v}</td>' for f, v in cells) + "</tr>")
     out.append("</table>")
     out.append(f'<p style="color:#6e7781;font-size:12px;margin:4px 0">{HEALTH_HELP}. '
-               "queue: messages sent to a stage and not yet taken; blocked: time a stage "
-               "waited on a slower one downstream.</p>")
+               "words/s: raw words through the source and the histogram workers (the range "
+               "and sink stages pass messages: one per measurement and worker); queue: "
+               "messages sent to a stage and not yet taken; blocked: time a stage waited on "
+               "a slower one downstream.</p>")
     return "".join(out)
 
 

@@ -180,9 +180,11 @@ class RateHistory:
         return [m for _, _, m in self.series.get(stage, ()) if m is not None]
 
 
-def health_rows(status: dict | None, history: RateHistory | None = None) -> list[dict]:
+def health_rows(status: dict | None, history: RateHistory | None = None,
+                stale: bool = False) -> list[dict]:
     """One row per stage, in the daemon's order (sink first, source last: the page shows them
-    source first, as the data flows)."""
+    source first, as the data flows). ``stale``: the daemon stopped reporting, so nothing
+    is known of its stages now (they die with it): their health reads "unknown"."""
     if not status:
         return []
     depth = status.get("queue_depth") or {}
@@ -191,7 +193,8 @@ def health_rows(status: dict | None, history: RateHistory | None = None) -> list
         words = history.words_s(name) if history else []
         msgs = history.msgs_s(name) if history else []
         rows.append({
-            "stage": name, "health": s.get("health", "?"), "pid": s.get("pid"),
+            "stage": name, "health": "unknown" if stale and s.get("health") != "finished"
+            else s.get("health", "?"), "pid": s.get("pid"),
             "restarts": int(s.get("restarts", 0)),
             "words_s": s.get("rate_words_s"), "msgs_s": msgs[-1] if msgs else None,
             "words_series": words, "msgs_series": msgs,
