@@ -60,7 +60,6 @@ def with_view(tmp: Path, capture: Path, calibration: str | None, tag: str, brows
 
 
 def benchmark(args) -> None:
-    import numpy as np
 
     from pipeline.io.capture import CaptureWriter
     from stages.testpattern import pattern_words
