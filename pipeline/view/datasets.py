@@ -22,8 +22,10 @@ from schemas.words import WORD_CLASSES
 
 PART = re.compile(r"part-(\d{6,})-t(\d{3,})\.parquet$")
 #: A full listing of a run's directory this often (a measurement backfilled at the end of
-#: the run, by reconciliation, lands behind the newest).
-RESCAN_S = 30.0
+#: the run, by reconciliation, lands behind the newest; ``rescan()`` asks for one sooner).
+RESCAN_S = 300.0
+#: Measurement numbers probed past a missing one.
+LOOK_AHEAD = 8
 
 
 def list_runs(out: str | Path) -> list[dict]:
@@ -86,6 +88,10 @@ class RunIndex:
             self.have[schema] = sorted(k for k, f in ks.items()
                                        if self.firsts and f >= set(self.firsts))
 
+    def rescan(self) -> None:
+        """List the directory again at the next refresh (the run ended: backfilled files)."""
+        self._scanned = 0.0
+
     def _covers(self, k: int) -> bool:
         """The workers' files of measurement ``k`` tile TDCs 0..n_tdc-1 with no hole."""
         import pyarrow.parquet as pq
@@ -99,12 +105,18 @@ class RunIndex:
         return self.n_tdc is None or end == self.n_tdc
 
     def _probe(self, schema: str) -> None:
-        d = self.dirs.get(schema)
-        if d is None:
+        """The measurements after the newest known, by name; past a missing one (lost in
+        flight with a killed stage, written again at the run's end) up to LOOK_AHEAD."""
+        if self.dirs.get(schema) is None:
             return
         k = (self.have[schema][-1] + 1) if self.have[schema] else 0
-        while all(self.path(schema, k, f).exists() for f in self.firsts):
-            self.have[schema].append(k)
+        misses = 0
+        while misses <= LOOK_AHEAD:
+            if all(self.path(schema, k, f).exists() for f in self.firsts):
+                self.have[schema].append(k)
+                misses = 0
+            else:
+                misses += 1
             k += 1
 
     def path(self, schema: str, k: int, first: int) -> Path:

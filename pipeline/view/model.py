@@ -88,6 +88,8 @@ class ViewModel:
         tr.index.refresh(now)
         if tr.accounting is None:
             tr.accounting = datasets.read_accounting(self.out, tr.run)
+            if tr.accounting is not None:
+                tr.index.rescan()  # the run ended: reconciliation may have backfilled
             tr.left = tr.tally.add(tr.index, tr.index.have["histograms"])
             tr.tally.read_journal(self.state / "journal", tr.run)
         self._drift(tr, now)

@@ -293,3 +293,19 @@ def test_an_online_lsb_that_matches_the_calibration_drifts_by_nothing(vd):
                                 {c: np.zeros(vd.N) for c in WORD_CLASSES}, ((0, vd.N),))
     d = sensor.lsb_drift(meas, calib, 80e-9)
     assert d["n"] >= vd.N - 2 and abs(d["median_ps"]) < 0.5
+
+
+def test_a_measurement_lost_in_flight_is_stepped_over_and_found_at_the_end(tmp_path, vd):
+    for k in (0, 2, 3):  # measurement 1 lost with a killed sink; reconciled at the end
+        for first in (0, 8):
+            vd.write_part(tmp_path, vd.RUN, k, first, vd.hits_for(8))
+    idx = datasets.RunIndex(tmp_path, vd.RUN, n_tdc=vd.N)
+    idx.refresh()
+    for first in (0, 8):
+        vd.write_part(tmp_path, vd.RUN, 4, first, vd.hits_for(8))
+    idx.refresh(now=time.time())
+    assert idx.have["histograms"] == [0, 2, 3, 4]
+    for first in (0, 8):
+        vd.write_part(tmp_path, vd.RUN, 1, first, vd.hits_for(8))
+    idx.rescan()
+    assert idx.refresh() == [1] and idx.have["histograms"] == [0, 1, 2, 3, 4]
