@@ -112,6 +112,16 @@ def benchmark(args) -> None:
     emit(lines, args.out)
 
 
+def top(page, locator) -> float:
+    """The element's top on the page (retried: a Div the server just changed is redrawn)."""
+    for _ in range(50):
+        box = locator.bounding_box()
+        if box is not None:
+            return box["y"] + page.evaluate("window.scrollY")
+        time.sleep(0.1)
+    raise RuntimeError(f"{locator} is not on the page")
+
+
 def screenshots(args) -> None:
     """The street scene live, the page open, one screenshot per panel into ``args.screenshots``."""
     from playwright.sync_api import sync_playwright
@@ -127,7 +137,7 @@ state = "{tmp / 'state'}"
 [source]
 kind = "sim"
 scene = "{ROOT / 'scenes' / 'street.toml'}"
-cycles = 600000
+cycles = {int(args.cycles)}
 seed = 1
 rate = 2.5e6
 [histogram]
@@ -154,9 +164,9 @@ port = 0
             page.goto(url_file.read_text().strip())
             page.wait_for_selector('[data-field="distance"]', timeout=120_000)
             time.sleep(args.settle)  # sparklines and a few LSB estimates
-            tops = [page.locator("h2", has_text=t).first.bounding_box()["y"]
+            tops = [top(page, page.locator("h2", has_text=t).first)
                     for t in ("1. Health", "2. Sensor", "3. Calibration")]
-            start = page.locator('[data-field="daemon-state"]').first.bounding_box()["y"] - 8
+            start = top(page, page.locator('[data-field="daemon-state"]').first) - 8
             full = page.evaluate("document.documentElement.scrollHeight")
             for name, (a, b) in zip(("health", "sensor", "calibration"),
                                     [(start, tops[1]), (tops[1], tops[2]), (tops[2], full)],
@@ -178,7 +188,9 @@ def main() -> None:
     ap.add_argument("--calibration", default="data/calibration/current")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/view.md"))
     ap.add_argument("--screenshots", default=None, help="Save the page's panels here instead.")
-    ap.add_argument("--settle", type=float, default=20.0,
+    ap.add_argument("--cycles", type=float, default=2e6,
+                    help="Cycles of the street scene for --screenshots (at 2.5 M words/s).")
+    ap.add_argument("--settle", type=float, default=60.0,
                     help="Seconds the page runs before the screenshots.")
     args = ap.parse_args()
     if args.screenshots:

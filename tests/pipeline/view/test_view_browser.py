@@ -146,13 +146,19 @@ def num(text):
     return int(re.sub(r"[^\d-]", "", text))
 
 
+def top(page, locator) -> float:
+    """The element's top on the page (retried: a Div the server just changed is redrawn)."""
+    return wait_for(f"{locator}", lambda: (locator.bounding_box() or {}).get("y"), 10, 0.1) \
+        + page.evaluate("window.scrollY")
+
+
 def shoot_panels(page, out: Path, prefix: str) -> list[Path]:
     """One screenshot per panel (the page's three sections, the banner with the health)."""
     page.screenshot(path=str(out / f"{prefix}full.png"), full_page=True)
-    tops = [page.locator("h2", has_text=t).first.bounding_box()["y"]
+    tops = [top(page, page.locator("h2", has_text=t).first)
             for t in ("1. Health", "2. Sensor", "3. Calibration")]
     full = page.evaluate("document.documentElement.scrollHeight")
-    start = page.locator('[data-field="daemon-state"]').first.bounding_box()["y"] - 8
+    start = top(page, page.locator('[data-field="daemon-state"]').first) - 8
     spans = [(start, tops[1]), (tops[1], tops[2]), (tops[2], full)]
     paths = []
     for name, (a, b) in zip(("health", "sensor", "calibration"), spans, strict=True):
