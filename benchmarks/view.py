@@ -26,12 +26,22 @@ from benchmarks.datapath import emit, machine  # noqa: E402
 from benchmarks.stream import run_daemon  # noqa: E402
 
 CHROMIUM = "/usr/bin/chromium"
+TAGS = {"no page": "none", "view server, no page open": "server",
+        "view server, page open": "page"}
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def tcspc(*args) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "pipeline.cli", *map(str, args)],
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+
+
+def cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a process so far (its threads included)."""
+    import os
+
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def with_view(tmp: Path, capture: Path, calibration: str | None, tag: str, browser=None):
@@ -47,7 +57,9 @@ def with_view(tmp: Path, capture: Path, calibration: str | None, tag: str, brows
             page = browser.new_page(viewport={"width": 1240, "height": 900})
             page.goto(url)
             page.wait_for_selector('[data-field="daemon-state"]', timeout=60_000)
+        cpu0 = cpu_s(view.pid)
         secs, startup, res = run_daemon(tmp, capture, 2, calibration, tag)
+        res["view_cpu_s"] = cpu_s(view.pid) - cpu0
         if page is not None:
             shown = page.locator('[data-field="measurement"]')
             res["page_followed"] = shown.count() and tag in shown.first.inner_text()
@@ -77,15 +89,16 @@ def benchmark(args) -> None:
                 w.write(block)
         words = n * block.size
         browser = pw.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
-        followed = []
+        followed, view_cpu = [], {m: [] for m in rows}
         for i in range(args.repeat):
             for mode in rows:  # interleaved: a busy machine's drift falls on every mode
-                tag = f"r{i}-{len(rows[mode])}-{mode.split()[0][:4]}{mode.count('open')}"
+                tag = f"r{i}-{TAGS[mode]}"
                 if mode == "no page":
                     secs, _, res = run_daemon(tmp, tmp / "cap", 2, calibration, tag)
                 else:
                     secs, _, res = with_view(tmp, tmp / "cap", calibration, tag,
                                              browser if "open" in mode else None)
+                    view_cpu[mode].append(res["view_cpu_s"] / secs)
                     if "open" in mode:
                         followed.append(bool(res.get("page_followed")))
                 assert res["accounting"]["balanced"], res
@@ -100,11 +113,14 @@ def benchmark(args) -> None:
              f"{', range' if calibration else ''}, sink, journal on) from its first batch to "
              "its last dataset file; each mode run "
              f"{args.repeat} times, interleaved.", "",
-             "| mode | M words/s (median) | runs | vs no page |", "|---|---:|---|---:|"]
+             "| mode | M words/s (median) | runs | vs no page | view server's CPU |",
+             "|---|---:|---|---:|---:|"]
     for mode, vals in rows.items():
         med = statistics.median(vals)
+        cpu = (f"{100 * statistics.median(view_cpu[mode]):.1f} % of a core"
+               if view_cpu[mode] else "-")
         lines.append(f"| {mode} | {med:.1f} | {', '.join(f'{v:.1f}' for v in vals)} | "
-                     f"{100 * (med / base - 1):+.1f} % |")
+                     f"{100 * (med / base - 1):+.1f} % | {cpu} |")
     spread = max(rows["no page"]) - min(rows["no page"])
     lines += ["", f"Run-to-run spread without the page: {spread:.1f} M words/s "
                   f"({100 * spread / base:.0f} % of the median). The open page followed the "

@@ -210,8 +210,8 @@ class ViewModel:
 
     def drift_series(self, run: str) -> dict:
         tr = self.tracks.get(run)
-        rows = sorted((d for d in (tr.drift.values() if tr else ()) if d.get("n")),
-                      key=lambda d: d["k"])
+        done = tuple(tr.drift.values()) if tr else ()  # (one C call: the worker may add)
+        rows = sorted((d for d in done if d.get("n")), key=lambda d: d["k"])
         return {k: np.array([d[k] for d in rows], np.float64)
                 for k in ("k", "median_ps", "p10_ps", "p90_ps", "light")}
 
