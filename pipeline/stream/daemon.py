@@ -63,8 +63,8 @@ The topology file (all keys but ``[source]`` optional)::
     bind = "127.0.0.1"           # daemon): loopback by default, a token in the URL
     layout = "16x8"              # elsewhere (STATE/view.url); the array's columns x rows
 
-The daemon publishes each status it writes on ``ipc://STATE/sock/status`` (PUB), so the
-web page is pushed the health without reading the file.
+The daemon publishes each status it writes on ``ipc://STATE/sock/status`` (PUB) for the
+web page (``pipeline.stream.sidecar``).
 
 Endpoints default to ``ipc://STATE/sock/NAME``; give ``endpoint`` (or ``endpoints``, one
 per worker) in a section to use ``tcp://`` instead.
@@ -87,6 +87,7 @@ import zmq
 
 from pipeline.io.atomic import atomic_path
 from pipeline.stream.reconcile import accounting, reconcile
+from pipeline.stream.sidecar import Sidecar, status_pub, view_args
 from pipeline.stream.topology import (
     GRACE_S,
     Topology,
@@ -115,11 +116,6 @@ class Proc:
 
 def _tcspc(*args) -> list[str]:
     return [sys.executable, "-m", "pipeline.cli", *map(str, args)]
-
-
-def status_endpoint(state: Path) -> str:
-    """Where the daemon publishes each status it writes (the web page subscribes)."""
-    return f"ipc://{Path(state).resolve()}/sock/status"
 
 
 def build(topo: Topology) -> list[Proc]:
@@ -232,39 +228,6 @@ def run_token(state: Path, run: str) -> tuple[Path, str]:
     return path, token
 
 
-#: A dead web page server ([view]) is started again after this long.
-VIEW_RESTART_S = 5.0
-
-
-def view_proc(topo: Topology) -> Proc | None:
-    """``tcspc view`` on the run's state, datasets and calibration, with the [view] keys."""
-    v = topo.view
-    if v is None:
-        return None
-    cal = (topo.range or {}).get("calibration") or topo.histogram.get("calibration")
-    return Proc("view", _tcspc(
-        "view", "--state", topo.state, "--out", topo.sink["out"], "--run", topo.run,
-        "--port", v.get("port", 5006), "--bind", v.get("bind", "127.0.0.1"),
-        *(("--calibration", cal) if cal else ()),
-        *(("--layout", v["layout"]) if v.get("layout") else ())), [])
-
-
-def _status_pub(ctx, state: Path, log):
-    """The status PUB (None when it cannot be bound: the daemon runs all the same)."""
-    from pipeline.stream.stage import bind
-
-    pub = ctx.socket(zmq.PUB)
-    pub.setsockopt(zmq.SNDHWM, 2)
-    pub.setsockopt(zmq.LINGER, 0)
-    try:
-        bind(pub, status_endpoint(state))
-    except (zmq.ZMQError, OSError) as exc:
-        log(f"status PUB not bound ({exc}); the web page reads status.json instead")
-        pub.close()
-        return None
-    return pub
-
-
 def check_record(rec: dict, token: str | None) -> bool:
     """A heartbeat record that carries the run's token (any record when none is set)."""
     import hmac
@@ -289,7 +252,9 @@ class Supervisor:
         self.forged_heartbeats = 0
         self._status_failing = False
         self._status_msg: bytes | None = None  #: the last status, for the status PUB
-        self.view = view_proc(topo)  #: the web page's server ([view]), beside the graph
+        args = view_args(topo)  # the web page's server ([view]), beside the graph
+        self.view = None if args is None else Sidecar(
+            Proc("view", _tcspc(*args), []), self._start, log, topo.state / "logs" / "view.log")
         for d in ("logs", "sock", "journal", f"checkpoints/{topo.run}"):
             (topo.state / d).mkdir(parents=True, exist_ok=True)
         self.token_file, self.token = run_token(topo.state, topo.run)
@@ -400,7 +365,7 @@ class Supervisor:
         if self.curve_dir is not None:
             curve.serve(sub, self.curve_dir)
         bind(sub, self.topo.metrics)
-        pub, sent = _status_pub(ctx, self.topo.state, self.log), None
+        pub, sent = status_pub(ctx, self.topo.state, self.log), None
         try:
             while not self.stop.is_set():
                 if pub is not None and self._status_msg is not sent:
@@ -508,7 +473,7 @@ class Supervisor:
         collector.start()
         time.sleep(0.2)
         if self.view is not None:
-            self._start(self.view)
+            self._start(self.view.proc)
         for p in self.procs:
             self._start(p)
         self.log(f"run {self.topo.run}: {len(self.procs)} stages started "
@@ -521,7 +486,8 @@ class Supervisor:
                 if time.time() - last > 1.0:
                     self._write_status()
                     self._prune()
-                    self._keep_view()
+                    if self.view is not None:
+                        self.view.keep()
                     last = time.time()
                 time.sleep(self.poll_s)
         finally:
@@ -545,36 +511,9 @@ class Supervisor:
         self._write_status({"state": "failed" if self.failed else "finished",
                             "result": result,
                             **({"journal_corrupt_words": corrupt} if corrupt else {})})
-        self._end_view()
+        if self.view is not None:
+            self.view.end()
         return result
-
-    # -------------------------------------------------------------- the web page ([view])
-    def _keep_view(self) -> None:
-        """The page's server is not part of the graph: it is restarted when it dies (after
-        VIEW_RESTART_S, logged) and never fails the run."""
-        v = self.view
-        if v is None or v.popen is None or v.popen.poll() is None:
-            return
-        now = time.time()
-        if v.restart_at is None:
-            v.exit_codes.append(v.popen.returncode)
-            v.restart_at = now + VIEW_RESTART_S
-            self.log(f"view: died (exit {v.popen.returncode}); restart in {VIEW_RESTART_S:.0f} s "
-                     f"(see {self.topo.state / 'logs' / 'view.log'})")
-        elif now >= v.restart_at:
-            v.restart_at, v.restarts = None, v.restarts + 1
-            self._start(v)
-
-    def _end_view(self) -> None:
-        v = self.view
-        if v is None or v.popen is None or v.popen.poll() is not None:
-            return
-        v.popen.terminate()
-        try:
-            v.popen.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            v.popen.kill()
-            v.popen.wait()
 
 
 # ------------------------------------------------------------------ reconcile, accounting

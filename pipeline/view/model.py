@@ -4,8 +4,9 @@ run followed its measurements, accounting identity and LSB drift.
 :meth:`ViewModel.refresh` runs about once a second on the server's event loop (the pages
 are then only rendered from it): it costs one status message or one ``stat`` of
 status.json, a probe of the next measurement's file names, and the new files once. The
-online LSB estimate (~1 s of CPU per 128-TDC measurement) runs on a worker thread, and
-only while it takes under ``DRIFT_CPU_SHARE`` of the time: on a long run it is sampled.
+online LSB estimate (~0.5 s of CPU per 128-TDC measurement) runs on a worker thread, and
+only while it takes under ``DRIFT_CPU_SHARE`` of a core: on a long run it is sampled. With
+no page open nothing but the status is read.
 """
 
 from __future__ import annotations
@@ -22,7 +23,9 @@ from pipeline.view import datasets, sensor
 from pipeline.view.status import RateHistory, StatusFeed, daemon_state, read_status
 
 #: The online LSB estimate may use this share of one core, at most.
-DRIFT_CPU_SHARE = 0.1
+DRIFT_CPU_SHARE = 0.03
+#: With no page open for this long, a refresh only takes the daemon's status.
+IDLE_S = 10.0
 #: A run no page has asked about for this long is no longer followed.
 FORGET_S = 120.0
 RUNS_EVERY_S = 5.0
@@ -65,12 +68,16 @@ class ViewModel:
         self._drift_busy = threading.Event()
         self._drift_next = 0.0
         self.updated = 0.0
+        self.asked = 0.0  #: when a page last asked for anything
 
     # ---------------------------------------------------------------- refresh
     def refresh(self, now: float | None = None) -> None:
         now = time.time() if now is None else now
         self.status = self.feed.poll() if self.feed else read_status(self.state)
         self.history.add(self.status)
+        self.updated = now
+        if now - self.asked > IDLE_S:
+            return  # nobody is looking: nothing else is read (a page asks, then it is)
         if now - self._runs_at > RUNS_EVERY_S or not self.runs:
             self.runs = datasets.list_runs(self.out)
             self._runs_at = now
@@ -82,7 +89,6 @@ class ViewModel:
                 del self.tracks[name]
                 continue
             self._refresh_track(tr, now)
-        self.updated = now
 
     def _refresh_track(self, tr: RunTrack, now: float) -> None:
         tr.index.refresh(now)
@@ -121,6 +127,12 @@ class ViewModel:
 
         threading.Thread(target=work, name="lsb-drift", daemon=True).start()
 
+    def wake(self) -> None:
+        """A page opened: bring everything up to date now, not at the next tick."""
+        if time.time() - self.asked > IDLE_S:
+            self.asked = time.time()
+            self.refresh()
+
     # ---------------------------------------------------------------- what pages ask
     @property
     def live_run(self) -> str | None:
@@ -148,7 +160,7 @@ class ViewModel:
             tr = RunTrack(run, datasets.RunIndex(self.out, run, n_tdc), consts)
             self.tracks[run] = tr
             self._refresh_track(tr, time.time())
-        tr.asked = time.time()
+        tr.asked = self.asked = time.time()
         return tr
 
     def run_known(self, run: str) -> bool:

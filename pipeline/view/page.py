@@ -87,6 +87,7 @@ class Page:
     def __init__(self, doc, model):
         self.doc, self.m = doc, model
         self.shown: dict = {}
+        model.wake()
         self.run = model.default_run()
         self.tdc: int | None = None
         self.banner = Div(width=WIDTH)

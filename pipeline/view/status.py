@@ -2,7 +2,7 @@
 plain rows and a state sentence out.
 
 The daemon writes ``STATE/status.json`` once a second and publishes the same record on
-``ipc://STATE/sock/status`` (``pipeline.stream.daemon.status_endpoint``). The view
+``ipc://STATE/sock/status`` (``pipeline.stream.sidecar.status_endpoint``). The view
 subscribes (pushed, no file polling while the daemon runs) and falls back to the file when
 nothing is published: a finished run, a daemon that has died, or one from before the PUB.
 """
@@ -52,7 +52,7 @@ class StatusFeed:
     def __init__(self, state: str | Path, endpoint: str | None = None, context=None):
         import zmq
 
-        from pipeline.stream.daemon import status_endpoint
+        from pipeline.stream.sidecar import status_endpoint
 
         self.state = Path(state)
         self.endpoint = endpoint or status_endpoint(self.state)

@@ -75,7 +75,7 @@ def test_health_rows_show_what_the_status_says_source_first(vd):
 
 
 def test_the_feed_takes_the_published_status_and_falls_back_to_the_file(tmp_path, vd):
-    from pipeline.stream.daemon import status_endpoint
+    from pipeline.stream.sidecar import status_endpoint
 
     (tmp_path / "sock").mkdir()
     (tmp_path / "status.json").write_text(json.dumps(vd.status(1.0, "finished")))

@@ -36,10 +36,9 @@ def test_the_view_section_is_read_and_checked(tmp_path):
     path.write_text(topo_text(tmp_path, '[view]\nport = 0\nlayout = "8x2"\n'))
     topo = load_topology(path, "r")
     assert topo.view == {"port": 0, "bind": "127.0.0.1", "layout": "8x2"}
-    from pipeline.stream.daemon import view_proc
+    from pipeline.stream.sidecar import view_args
 
-    argv = [str(a) for a in view_proc(topo).argv]
-    assert argv[argv.index("view") + 1:] == [
+    assert view_args(topo)[1:] == [
         "--state", str(topo.state), "--out", str(tmp_path / "out"), "--run", "r", "--port", "0",
         "--bind", "127.0.0.1", "--layout", "8x2"]
     for bad in ('port = 70000', 'port = "x"', 'layout = "16"', 'colour = "red"'):
@@ -179,3 +178,15 @@ def test_alive_needs_the_token_when_there_is_one(server):
     base = url.split("?")[0]
     assert get(base + "alive")[0] == 403
     assert get(base + "alive?token=tok")[0] == 200
+
+
+def test_with_no_page_open_only_the_status_is_read(tmp_path, vd):
+    from pipeline.view.model import IDLE_S, ViewModel
+
+    for first in (0, 8):
+        vd.write_part(tmp_path / "out", vd.RUN, 0, first, vd.hits_for(8))
+    m = ViewModel(tmp_path / "state", tmp_path / "out", None, feed=False)
+    m.refresh(now=time.time() + IDLE_S + 1)
+    assert m.runs == [] and m.tracks == {}
+    doc = page_of(m)  # a page opens: everything is read at once
+    assert f"{vd.RUN}-m000000" in texts(doc) and [r["run"] for r in m.runs] == [vd.RUN]
