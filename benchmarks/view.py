@@ -96,14 +96,16 @@ def benchmark(args) -> None:
                 if mode == "no page":
                     secs, _, res = run_daemon(tmp, tmp / "cap", 2, calibration, tag)
                 else:
+                    page_open = mode == "view server, page open"
                     secs, _, res = with_view(tmp, tmp / "cap", calibration, tag,
-                                             browser if "open" in mode else None)
+                                             browser if page_open else None)
                     view_cpu[mode].append(res["view_cpu_s"] / secs)
-                    if "open" in mode:
+                    if page_open:
                         followed.append(bool(res.get("page_followed")))
                 assert res["accounting"]["balanced"], res
                 rows[mode].append(words / secs / 1e6)
-                print(f"{mode}: {rows[mode][-1]:.1f} M words/s", file=sys.stderr)
+                print(f"{mode}: {rows[mode][-1]:.1f} M words/s; view server "
+                      f"{res.get('view_cpu_s', 0):.2f} CPU s in {secs:.1f} s", file=sys.stderr)
         browser.close()
     base = statistics.median(rows["no page"])
     lines = [f"command: `python benchmarks/view.py --words {args.words:.3g} --repeat "

@@ -6,6 +6,7 @@ browser polls nothing but a tiny ``/alive`` to notice that the server itself is 
 from __future__ import annotations
 
 import hmac
+import time
 
 import numpy as np
 from bokeh.layouts import column, row
@@ -31,6 +32,8 @@ from pipeline.view import render
 from pipeline.view.status import datagram_counts, health_rows
 
 WIDTH = 1180
+#: While following the newest, the sensor panel is redrawn at most this often.
+SENSOR_EVERY_S = 2.0
 NO_RUN = "(none)"
 TEMPLATE = Template("""{% extends base %}
 {% block title %}tcspc view{% endblock %}
@@ -141,7 +144,7 @@ class Page:
             "Hits per cycle per pixel (black edge: dead, red edge: hot)", "hits_per_cycle",
             "hits/cycle", [("TDC", "@tdc"), ("hits/cycle", "@hits_per_cycle{0.0000}"),
                            ("hits", "@n_hit"), ("flag", "@flag")])
-        self.hist_src = ColumnDataSource({"code": [], "count": [], "floor": []})
+        self.hist_src = ColumnDataSource({"code": [], "right": [], "count": [], "floor": []})
         figs = []
         for log in (False, True):
             p = figure(width=WIDTH, height=300, y_axis_type="log" if log else "linear",
@@ -220,6 +223,13 @@ class Page:
 
     # ------------------------------------------------------------------ the update
     def update(self):
+        self.doc.hold("combine")  # every change of this update in one message
+        try:
+            self._update()
+        finally:
+            self.doc.unhold()
+
+    def _update(self):
         m = self.m
         st = m.daemon()
         self._put(self.banner, "text", render.banner(st.kind, st.text))
@@ -257,7 +267,10 @@ class Page:
         if self.follow.active:
             self._put(self.k_pick, "value", len(have) - 1)
         pos = min(int(self.k_pick.value), len(have) - 1)
-        self._show_measurement(tr, have[pos], len(have))
+        now = time.time()
+        if not self.follow.active or now - self.shown.get("sensor_at", 0) >= SENSOR_EVERY_S:
+            self.shown["sensor_at"] = now  # (a fast replay: the newest, every 2 s)
+            self._show_measurement(tr, have[pos], len(have))
         self._draw_drift()
 
     def _show_measurement(self, tr, k: int, count: int):
@@ -360,6 +373,10 @@ class Page:
             self._put(self.cal_info, "text", render.note(
                 f"No calibration to show: {self.m.cal_error}.", "warn"))
             return
+        key = (id(cal), round(light, 3))  # the same light to 0.1 %: nothing to redraw
+        if self.shown.get("lsb") == key:
+            return
+        self.shown["lsb"] = key
         from pipeline.view.sensor import calibration_frames
 
         f = calibration_frames(cal, light)
@@ -381,6 +398,9 @@ class Page:
         cal = self.m.calibration
         if cal is None or self.tdc is None or self.tdc >= cal.n_tdc:
             return
+        if self.shown.get("inl") == (id(cal), self.tdc):
+            return
+        self.shown["inl"] = (id(cal), self.tdc)
         inl = np.asarray(cal.density.inl_lsb[self.tdc], np.float64)
         self.inl_src.data = {"code": np.arange(inl.size), "inl": inl}
         self.inl_fig.title.text = f"INL of TDC {self.tdc}"

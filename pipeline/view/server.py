@@ -81,6 +81,7 @@ def make_server(model, port: int = 5006, bind: str = "127.0.0.1", token: str | N
                     extra_patterns=[("/alive", Alive)], check_unused_sessions_milliseconds=5000,
                     unused_session_lifetime_milliseconds=15000)
     server.start()
+    model.warm()
     model.refresh()
     PeriodicCallback(_safe(model.refresh), refresh_ms).start()
     return server, page_url(bind, server.port, token)

@@ -143,7 +143,7 @@ def test_the_identity_while_running_and_at_the_end(tmp_path, vd):
     idx = datasets.RunIndex(tmp_path, vd.RUN, n_tdc=vd.N)
     idx.refresh()
     tally = datasets.Tally()
-    assert tally.add(idx, idx.have["histograms"]) == 0
+    assert tally.add(idx, idx.have["histograms"], budget_s=10) == 0
     journal = tmp_path / "journal"
     journal.mkdir()
     index = journal / f"{vd.RUN}.index.jsonl"

@@ -91,7 +91,9 @@ def test_a_missing_run_and_an_empty_one(tmp_path, vd):
     assert f"Run {vd.RUN} running" in t and "no measurement written yet" in t
 
 
-def test_the_page_follows_the_newest_measurement_and_a_daemon_that_dies(tmp_path, vd):
+def test_the_page_follows_the_newest_measurement_and_a_daemon_that_dies(tmp_path, vd,
+                                                                       monkeypatch):
+    monkeypatch.setattr("pipeline.view.page.SENSOR_EVERY_S", 0.0)
     out = tmp_path / "out"
     (tmp_path / "state").mkdir()
     st = tmp_path / "state" / "status.json"
