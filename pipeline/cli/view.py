@@ -44,7 +44,11 @@ def _from_config(config: str | None) -> dict:
               help="The array as COLUMNSxROWS, TDC t at column t % COLUMNS  [default: 16x8 "
                    "for 128 TDCs]")
 @click.option("--open", "open_browser", is_flag=True, help="Open the page in a browser too.")
-def view(config, state, out, calibration, run_id, port, bind, layout, open_browser) -> None:
+@click.option("--nice", type=click.IntRange(0, 19), default=10, show_default=True,
+              help="Lower the server's CPU priority by this much: on a busy machine the "
+                   "daemon's stages go first.")
+def view(config, state, out, calibration, run_id, port, bind, layout, open_browser,
+         nice) -> None:
     """Serve the live web page of a daemon and its datasets: per-stage health, the sensor's
     latest measurement (histograms, distance and counts maps), the calibration in use and
     the drift of the online LSB estimate. Works the same on a running daemon, a replayed
@@ -52,6 +56,7 @@ def view(config, state, out, calibration, run_id, port, bind, layout, open_brows
 
     After `make demo`: `.venv/bin/tcspc view`, then open the printed URL.
     """
+    import os
     import signal
 
     from pipeline.view.model import ViewModel
@@ -72,6 +77,8 @@ def view(config, state, out, calibration, run_id, port, bind, layout, open_brows
             raise click.BadParameter(str(exc), param_hint="--layout") from None
     port = cfg.get("port", 5006) if port is None else port
     bind = bind or cfg.get("bind") or "127.0.0.1"
+    if nice:
+        os.nice(nice)  # (the LSB estimate's thread too: it starts later, with this)
     model = ViewModel(state, out, calibration, run_id or cfg.get("run"), layout)
     try:
         server, url = make_server(model, port, bind)

@@ -197,6 +197,7 @@ class Page:
         if new and new != self.run and new != NO_RUN:
             self.run, self.tdc = new, None
             self.follow.active = True
+            self.shown["sensor_at"] = 0.0  # drawn now, not at the next 2 s
             self.update()
 
     def _on_k(self, attr, old, new):
