@@ -23,7 +23,7 @@ from pipeline.view import datasets, sensor
 from pipeline.view.status import RateHistory, StatusFeed, daemon_state, read_status
 
 #: The online LSB estimate may use this share of one core, at most.
-DRIFT_CPU_SHARE = 0.03
+DRIFT_CPU_SHARE = 0.05
 #: With no page open for this long, a refresh only takes the daemon's status.
 IDLE_S = 10.0
 #: A run no page has asked about for this long is no longer followed.

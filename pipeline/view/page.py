@@ -62,6 +62,17 @@ background:#cf222e;color:white;font-size:16px;z-index:10}</style>{% endblock %}
 """)
 
 
+def _box(height: int) -> Div:
+    """A Div of fixed size for text the server changes: a Div that may change size makes
+    the browser lay the whole page out and redraw every plot (~25 % of a core while the
+    page follows a run, against ~7 % with fixed sizes)."""
+    return Div(width=WIDTH, height=height, styles={"overflow": "hidden"})
+
+
+def health_height(rows: int) -> int:
+    return 80 + 28 * rows
+
+
 def _section(title: str, text: str) -> Div:
     return Div(text=f'<h2 style="margin:14px 0 2px 0">{title}</h2><p style="margin:0;'
                     f'color:#57606a">{text}</p>', width=WIDTH)
@@ -93,7 +104,7 @@ class Page:
         model.wake()
         self.run = model.default_run()
         self.tdc: int | None = None
-        self.banner = Div(width=WIDTH)
+        self.banner = _box(58)
         self.run_pick = Select(title="Run (the daemon's, or any under the datasets)",
                                width=330)
         self.k_pick = Slider(title="Measurement", start=0, end=1, value=0, step=1, width=330)
@@ -101,10 +112,9 @@ class Page:
         self.tdc_pick = Spinner(title="TDC (or click a pixel)", low=0, step=1, value=0,
                                 width=150)
         self.log = Checkbox(label="log scale", active=True)
-        self.identity, self.health, self.datagrams = Div(width=WIDTH), Div(width=WIDTH), \
-            Div(width=WIDTH)
-        self.sensor_info, self.hist_info = Div(width=WIDTH), Div(width=WIDTH)
-        self.cal_info = Div(width=WIDTH)
+        self.identity, self.health, self.datagrams = _box(66), _box(health_height(0)), \
+            _box(0)
+        self.sensor_info, self.hist_info, self.cal_info = _box(44), _box(26), _box(54)
         self._sensor_figures()
         self._calibration_figures()
         self.run_pick.on_change("value", self._on_run)
@@ -234,9 +244,12 @@ class Page:
         m = self.m
         st = m.daemon()
         self._put(self.banner, "text", render.banner(st.kind, st.text))
-        self._put(self.health, "text", render.health_table(
-            health_rows(m.status, m.history, stale=st.kind == "lost")))
-        self._put(self.datagrams, "text", render.datagrams(datagram_counts(m.status)))
+        rows = health_rows(m.status, m.history, stale=st.kind == "lost")
+        self._put(self.health, "height", health_height(len(rows)))  # (a new size: rarely)
+        self._put(self.health, "text", render.health_table(rows))
+        grams = render.datagrams(datagram_counts(m.status))
+        self._put(self.datagrams, "height", 26 if grams else 0)
+        self._put(self.datagrams, "text", grams)
         runs = [r["run"] for r in m.runs]
         if m.live_run and m.live_run not in runs:
             runs.insert(0, m.live_run)
