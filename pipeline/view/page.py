@@ -123,6 +123,8 @@ class Page:
         self.log.on_change("active", lambda a, o, n: self._draw_histogram(force=True))
         for src in (self.dist_src, self.count_src):
             src.selected.on_change("indices", lambda a, o, n, src=src: self._on_tap(src, n))
+        # three roots, each laid out on its own: the text that changes every second (top)
+        # never makes the browser lay out and redraw the plots below it
         doc.add_root(column(
             Div(text="<h1 style='margin:4px 0'>tcspc live view</h1><p style='margin:0;"
                      f"color:#57606a'>The daemon's health, what the sensor sees, and the "
@@ -131,16 +133,18 @@ class Page:
             self.banner, row(self.run_pick, self.k_pick, self.follow, self.tdc_pick, self.log),
             _section("1. Health", "Every stage of the graph: is it alive, how fast, is data "
                                   "waiting or being refused; and does every word add up."),
-            self.identity, self.health, self.datagrams,
+            self.identity, self.health, self.datagrams, name="health"))
+        doc.add_root(column(
             _section("2. Sensor", "The chosen measurement: distance and counts per pixel "
                                   "(hover for the numbers, click a pixel to see its "
                                   "histogram)."),
             self.sensor_info, row(self.dist_fig, self.count_fig), self.hist_info,
-            self.hist_lin, self.hist_log,
+            self.hist_lin, self.hist_log, name="sensor"))
+        doc.add_root(column(
             _section("3. Calibration", "The calibration the ranges use, and how far the LSB "
                                        "measured on this run's own background has drifted "
                                        "from it."),
-            self.cal_info, row(self.lsb_fig, self.inl_fig), self.drift_fig))
+            self.cal_info, row(self.lsb_fig, self.inl_fig), self.drift_fig, name="calibration"))
         self.update()
         doc.add_periodic_callback(self.update, 1000)
 
