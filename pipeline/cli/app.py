@@ -389,6 +389,8 @@ _LAZY = {  # name: (module, attribute, short help)
                   "Density test, LSB against light, and zero-distance delay."),
     "model": ("pipeline.cli.model", "model",
               "Chapter 2: link budget, ambient light, transmission, prediction, histograms."),
+    "view": ("pipeline.cli.view", "view",
+             "The live web page: daemon health, the sensor's histograms and maps, calibration."),
 }
 #: Short help of the commands added by the layers above through the entry point.
 _ENTRY_HELP = {"flow": "Run or serve the Prefect flows (calibration, sweeps, reports).",

@@ -61,6 +61,14 @@ The topology file (all keys but ``[source]`` optional)::
     [sink]
     out = "data/stream"
 
+    [view]                       # leave out: no web page; with it, `tcspc view` runs
+    port = 5006                  # beside the graph (restarted if it dies, ended with the
+    bind = "127.0.0.1"           # daemon): loopback by default, a token in the URL
+    layout = "16x8"              # elsewhere (STATE/view.url); the array's columns x rows
+
+The daemon publishes each status it writes on ``ipc://STATE/sock/status`` (PUB) for the
+web page (``pipeline.stream.sidecar``).
+
 Endpoints default to ``ipc://STATE/sock/NAME``; give ``endpoint`` (or ``endpoints``, one
 per worker) in a section to use ``tcp://`` instead.
 """
@@ -82,6 +90,7 @@ import zmq
 
 from pipeline.io.atomic import atomic_path
 from pipeline.stream.reconcile import accounting, reconcile
+from pipeline.stream.sidecar import Sidecar, status_pub, view_args
 from pipeline.stream.topology import (
     GRACE_S,
     STARTUP_S,
@@ -254,6 +263,10 @@ class Supervisor:
         self._spans = None
         self.forged_heartbeats = 0
         self._status_failing = False
+        self._status_msg: bytes | None = None  #: the last status, for the status PUB
+        args = view_args(topo)  # the web page's server ([view]), beside the graph
+        self.view = None if args is None else Sidecar(
+            Proc("view", _tcspc(*args), []), self._start, log, topo.state / "logs" / "view.log")
         for d in ("logs", "sock", "journal", f"checkpoints/{topo.run}"):
             (topo.state / d).mkdir(parents=True, exist_ok=True)
         self.token_file, self.token = run_token(topo.state, topo.run)
@@ -371,8 +384,15 @@ class Supervisor:
         if self.curve_dir is not None:
             curve.serve(sub, self.curve_dir)
         bind(sub, self.topo.metrics)
+        pub, sent = status_pub(ctx, self.topo.state, self.log), None
         try:
             while not self.stop.is_set():
+                if pub is not None and self._status_msg is not sent:
+                    sent = self._status_msg  # (this thread owns the PUB socket)
+                    try:
+                        pub.send(sent, zmq.NOBLOCK)
+                    except zmq.ZMQError:
+                        pass  # nobody listening, or a slow page: the next one will do
                 if sub.poll(200):
                     try:
                         rec = json.loads(sub.recv())
@@ -391,6 +411,8 @@ class Supervisor:
                         continue  # a malformed record is not worth a crash
         finally:
             sub.close()
+            if pub is not None:
+                pub.close()
 
     def status(self) -> dict:
         now = time.time()
@@ -415,7 +437,8 @@ class Supervisor:
             if p.upstream and got is not None:
                 depth[p.name] = max(0, sent - got)
         return {"run": self.topo.run, "topology": self.topo.path, "updated": now,
-                "started": self.started, "state": "failed" if self.failed else "running",
+                "started": self.started, "pid": os.getpid(),
+                "state": "failed" if self.failed else "running",
                 "forged_heartbeats": self.forged_heartbeats,
                 "paused": {name: s.get("reason") for name, s in stages.items()
                            if s["health"] == "paused"},
@@ -423,9 +446,10 @@ class Supervisor:
 
     def _write_status(self, extra: dict | None = None) -> None:
         try:
+            text = json.dumps({**self.status(), **(extra or {})}, indent=1, default=str)
+            self._status_msg = text.encode()
             with atomic_path(self.topo.state / "status.json") as tmp:
-                tmp.write_text(json.dumps({**self.status(), **(extra or {})}, indent=1,
-                                          default=str))
+                tmp.write_text(text)
         except OSError as exc:  # a full state disk must not kill the supervisor
             if not self._status_failing:
                 self.log(f"status.json not written: {exc}")
@@ -489,6 +513,8 @@ class Supervisor:
         collector = threading.Thread(target=self._collect, daemon=True)
         collector.start()
         time.sleep(0.2)
+        if self.view is not None:
+            self._start(self.view.proc)
         for p in self.procs:
             self._start(p)
         self.log(f"run {self.topo.run}: {len(self.procs)} stages started "
@@ -501,6 +527,8 @@ class Supervisor:
                 if time.time() - last > 1.0:
                     self._write_status()
                     self._prune()
+                    if self.view is not None:
+                        self.view.keep()
                     last = time.time()
                 time.sleep(self.poll_s)
         finally:
@@ -524,6 +552,8 @@ class Supervisor:
         self._write_status({"state": "failed" if self.failed else "finished",
                             "result": result,
                             **({"journal_corrupt_words": corrupt} if corrupt else {})})
+        if self.view is not None:
+            self.view.end()
         return result
 
 

@@ -4,6 +4,7 @@ docstring), validated into a :class:`Topology`, and the TDC ranges of its worker
 from __future__ import annotations
 
 import datetime as dt
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +39,7 @@ class Topology:
     restart_backoff_s: float = 0.5
     restart_backoff_max_s: float = 30.0
     curve: str | bool = "auto"
+    view: dict | None = None   #: [view]: the web page beside the graph (None: no page)
 
     def endpoints(self) -> list[str]:
         """Every endpoint of the graph (for the CURVE decision)."""
@@ -77,6 +79,7 @@ _KNOWN = {
     "histogram": {"workers", "measurement_cycles", "calibration", "n_tdc", "endpoints"},
     "range": {"calibration", "estimator", "endpoint"},
     "sink": {"out", "endpoint"},
+    "view": {"port", "bind", "layout"},
 }
 
 
@@ -151,7 +154,27 @@ def load_topology(path: str | Path | None, run: str | None = None,
                     raw.get("sink", {"out": "data/stream"}), n_tdc,
                     float(d["journal_keep_gb"]) if "journal_keep_gb" in d else None,
                     _journal_compression(d.get("journal_compression", "zstd"), where),
-                    **budget, curve=_curve(d.get("curve", "auto"), where))
+                    **budget, curve=_curve(d.get("curve", "auto"), where),
+                    view=_view(raw.get("view"), where))
+
+
+def _view(sec: dict | None, where: str) -> dict | None:
+    """The [view] section: ``port`` (0..65535, 0 any free one), ``bind`` (an address; a
+    non-loopback one puts a token in the page's URL), ``layout`` ("16x8")."""
+    if sec is None:
+        return None
+    port = sec.get("port", 5006)
+    if not isinstance(port, int) or isinstance(port, bool) or not 0 <= port <= 65535:
+        raise TopologyError(f"{where} [view] port = {port!r}: use 0..65535")
+    bind = sec.get("bind", "127.0.0.1")
+    if not isinstance(bind, str) or not bind:
+        raise TopologyError(f"{where} [view] bind = {bind!r}: use an address, e.g. 127.0.0.1")
+    layout = sec.get("layout")
+    if layout is not None and not (isinstance(layout, str)
+                                   and re.fullmatch(r"\d+x\d+", layout)):
+        raise TopologyError(f"{where} [view] layout = {layout!r}: use COLUMNSxROWS, e.g. "
+                            "\"16x8\"")
+    return {"port": port, "bind": bind, **({"layout": layout} if layout else {})}
 
 
 def _curve(value, where: str) -> str | bool:

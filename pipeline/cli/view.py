@@ -1,0 +1,102 @@
+"""``tcspc view``: the live web page of a daemon and its datasets (loaded when named)."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+import click
+
+from pipeline.cli.app import err
+
+
+def _from_config(config: str | None) -> dict:
+    """state, out, calibration, run and the [view] keys of a daemon topology."""
+    if not config:
+        return {}
+    from pipeline.stream.topology import load_topology
+
+    topo = load_topology(config)
+    raw = tomllib.loads(Path(config).read_text())
+    cal = (topo.range or {}).get("calibration") or topo.histogram.get("calibration")
+    return {"state": str(topo.state), "out": str(topo.sink["out"]), "calibration": cal,
+            "run": (raw.get("daemon") or {}).get("run"), **(topo.view or {})}
+
+
+@click.command()
+@click.option("--config", type=click.Path(exists=True, dir_okay=False),
+              help="A daemon topology: take its state, datasets, calibration and [view] keys.")
+@click.option("--state", default=None, type=click.Path(file_okay=False),
+              help="The daemon's state directory (status.json)  [default: data/daemon]")
+@click.option("--out", default=None, type=click.Path(file_okay=False),
+              help="The datasets' directory (the sink's out)  [default: data/stream]")
+@click.option("--calibration", default=None, type=click.Path(),
+              help="The calibration in use  [default: the topology's, else "
+                   "data/calibration/current when there is one]")
+@click.option("--run", "run_id", default=None,
+              help="The run shown first  [default: the daemon's, else the newest]")
+@click.option("--port", type=click.IntRange(0, 65535), default=None,
+              help="TCP port (0: any free one)  [default: 5006]")
+@click.option("--bind", default=None,
+              help="Address to listen on; any but loopback puts a token in the URL  "
+                   "[default: 127.0.0.1]")
+@click.option("--layout", default=None,
+              help="The array as COLUMNSxROWS, TDC t at column t % COLUMNS  [default: 16x8 "
+                   "for 128 TDCs]")
+@click.option("--open", "open_browser", is_flag=True, help="Open the page in a browser too.")
+@click.option("--nice", type=click.IntRange(0, 19), default=10, show_default=True,
+              help="Lower the server's CPU priority by this much: on a busy machine the "
+                   "daemon's stages go first.")
+def view(config, state, out, calibration, run_id, port, bind, layout, open_browser,
+         nice) -> None:
+    """Serve the live web page of a daemon and its datasets: per-stage health, the sensor's
+    latest measurement (histograms, distance and counts maps), the calibration in use and
+    the drift of the online LSB estimate. Works the same on a running daemon, a replayed
+    capture or a finished run (pick it on the page). Ctrl-C stops it.
+
+    After `make demo`: `.venv/bin/tcspc view`, then open the printed URL.
+    """
+    import os
+    import signal
+
+    from pipeline.view.model import ViewModel
+    from pipeline.view.sensor import parse_layout
+    from pipeline.view.server import make_server, write_url
+
+    cfg = _from_config(config)
+    state = Path(state or cfg.get("state") or "data/daemon")
+    out = Path(out or cfg.get("out") or "data/stream")
+    calibration = calibration or cfg.get("calibration")
+    if calibration is None and Path("data/calibration/current/tdc.parquet").exists():
+        calibration = "data/calibration/current"
+    layout = layout or cfg.get("layout")
+    if layout:
+        try:
+            parse_layout(layout, 1)
+        except ValueError as exc:
+            raise click.BadParameter(str(exc), param_hint="--layout") from None
+    port = cfg.get("port", 5006) if port is None else port
+    bind = bind or cfg.get("bind") or "127.0.0.1"
+    if nice:
+        os.nice(nice)  # (the LSB estimate's thread too: it starts later, with this)
+    model = ViewModel(state, out, calibration, run_id or cfg.get("run"), layout)
+    try:
+        server, url = make_server(model, port, bind)
+    except OSError as exc:
+        raise click.ClickException(f"cannot listen on {bind}:{port}: {exc.strerror or exc} "
+                                   "(another `tcspc view`? use --port)") from None
+    where = write_url(state, url) if state.exists() else None
+    click.echo(url, nl=True)
+    err.print(f"tcspc view: open {url} (state {state}, datasets {out}, calibration "
+              f"{calibration or 'none'}){f'; URL in {where}' if where else ''}; Ctrl-C stops",
+              highlight=False, soft_wrap=True)
+    loop = server.io_loop
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: loop.add_callback_from_signal(loop.stop))
+    if open_browser:
+        loop.add_callback(lambda: server.show("/"))
+    try:
+        loop.start()
+    finally:
+        server.stop()
+        model.close()
