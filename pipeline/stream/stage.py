@@ -281,13 +281,34 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
     last = {"run": "run", "seq": 0}
     beat = Metrics(metrics, name or core.step_id, ctx, token=token)
     stopped_by: set[str] = set()
+    given_up: list = []  # non-empty once a signal gave up on an unresponsive consumer
+
+    def deliver(frames) -> bool:
+        """Send, waiting while downstream is full (back-pressure); after a signal, a
+        downstream that takes nothing for ``drain_ms`` is given up on (a stage restarted
+        after its consumer finished would otherwise block for ever): the message is
+        counted as unwritten, and its words are in the journal for the end of the run."""
+        if given_up and stop.is_set() and not tx.poll(0, zmq.POLLOUT):
+            stats.unwritten += 1
+            return False
+        t0 = time.perf_counter()
+        waited = 0
+        try:
+            while not tx.poll(200, zmq.POLLOUT):
+                waited += 200
+                beat.beat(state="blocked", **stats.fields(core))
+                if stop.is_set() and (waited >= drain_ms or given_up):
+                    given_up.append(True)  # the rest go the same way, without waiting
+                    stats.unwritten += 1
+                    return False
+            tx.send_multipart(frames)
+            return True
+        finally:
+            stats.blocked_s += time.perf_counter() - t0
 
     def send(messages):
         for head, batch in messages:
-            if tx is not None:
-                t0 = time.perf_counter()
-                tx.send_multipart(wire.encode(head, batch, token))
-                stats.blocked_s += time.perf_counter() - t0
+            if tx is not None and deliver(wire.encode(head, batch, token)):
                 stats.sent += 1
 
     def reject(exc, frames):
@@ -385,13 +406,13 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
                          "version": core.out_spec.version, "run": last.get("run", "run"),
                          "seq": stats.sent, "step": core.step_id,
                          "rejected": dict(stats.rejected)}
-            tx.send_multipart(wire.encode(stop_head, None, token))
+            deliver(wire.encode(stop_head, None, token))
         beat.beat(force=True, state="finished", **stats.fields(core))
     finally:
         beat.close()
         rx.close(linger=0)
         if tx is not None:
-            tx.close()
+            tx.close(linger=0 if stop.is_set() else None)
     return stats
 
 

@@ -352,3 +352,39 @@ def test_a_stalled_stage_downstream_loses_no_datagram(tmp_path):
     got = HistogramState.from_table(pa.Table.from_batches([batch]))
     assert head["words"] == words.size == core.words_total
     assert np.array_equal(got.hits, ref.snapshot().hits)
+
+
+def test_a_stage_whose_consumer_is_gone_still_stops_on_sigterm(tmp_path):
+    """A worker restarted after its sink finished (killed just after its stop was sent)
+    refolds the run and has nobody to send to: a SIGTERM must still end it (the messages
+    are counted unwritten; the end of the run recomputes them from the journal). Seen: such
+    a worker blocked in send for ever and the daemon never finished."""
+    import signal
+    import subprocess
+    import sys
+
+    pull, push = f"ipc://{tmp_path}/in", f"ipc://{tmp_path}/nobody"
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "stage", "histogram",
+                             "--pull", pull, "--push", push, "--n-tdc", "4",
+                             "--measurement-cycles", "10"], stderr=subprocess.PIPE,
+                            text=True)
+    ctx = zmq.Context()
+    tx = ctx.socket(zmq.PUSH)
+    tx.connect(pull)
+    words, _ = pattern_words(100, 4, rng=1)
+    for k in range(3):
+        head = {"kind": "data", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
+                "run": "r", "seq": k, "step": "source", "first_word": k * words.size,
+                "n_tdc": 4, "t_laser_win_ns": 140.0}
+        tx.send_multipart(wire.encode(head, pa.record_batch([pa.array(words)],
+                                                            schema=RAW_WORDS.schema)))
+    time.sleep(3)  # it has folded them and is blocked sending 30 measurements to nobody
+    assert proc.poll() is None
+    proc.send_signal(signal.SIGTERM)
+    try:
+        err = proc.communicate(timeout=20)[1]
+    finally:
+        proc.kill()
+        tx.close(linger=0)
+        ctx.term()
+    assert proc.returncode == 0, err
