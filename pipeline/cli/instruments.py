@@ -56,6 +56,9 @@ def histogram(path: str, fmt: str, out: str, measurement, firmware: str, by: str
     _check_accounting(summary)
     write_instrument_histograms(table, out, path, summary)
     _print_summary(summary, quiet)
+    if summary.events == 0:  # said even with --quiet: an all-zero histogram is suspicious
+        err.print(f"warning: {path}: no photon in the file; the histograms are all zero",
+                  highlight=False)
     if not quiet:
         err.print(f"wrote {out} ({table.num_rows} rows)")
 

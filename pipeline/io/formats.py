@@ -59,9 +59,14 @@ def instrument_words(path: str | Path, fmt: str, chunk_words: int = 1 << 20):
     """``(first_word, words)`` of an instrument's file as raw uint32 records in file order
     (PTU: the records after the header; LinoSPAD2: every word), in bounded chunks: what the
     daemon's ``file`` source replays. Trailing bytes that make no whole record are not a
-    record; :func:`instrument_tail_bytes` tells how many there are."""
+    record; :func:`instrument_truncation` says so."""
     import numpy as np
 
+    if fmt == "ptu":  # the PTU reader's own chunks (the records the header declares)
+        from pipeline.io.ptu import iter_chunks
+
+        yield from iter_chunks(path, chunk_words)  # (a reused buffer: use before next)
+        return
     start, n = _records(path, fmt)
     if fmt == "linospad2":  # whole cycles only, so any chunk decodes alone
         from stages.instruments.linospad2 import LINES, WORDS_PER_LINE
@@ -106,12 +111,7 @@ def instrument_timing_ns(path: str | Path, fmt: str) -> float:
 
 
 def _records(path, fmt: str) -> tuple[int, int]:
-    """(byte offset of the first record, records to read)."""
-    if fmt == "ptu":
-        from pipeline.io.ptu import read_header
-
-        h = read_header(path)
-        return int(h.data_offset), int(h.n_readable)
+    """(byte offset of the first record, records to read) of a LinoSPAD2 file."""
     if fmt == "linospad2":
         return 0, Path(path).stat().st_size // 4
     raise FormatError(f"{path}: {fmt!r} is not an instrument format")
