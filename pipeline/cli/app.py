@@ -21,8 +21,17 @@ from rich.table import Table
 # Heavy modules (numpy, pyarrow, numba, scipy) are imported in the commands that use them:
 # `tcspc --help` and a command's own --help stay fast (tests/pipeline/cli/test_cli.py checks).
 
-err = Console(stderr=True)
-out = Console()
+
+
+def console(stderr: bool = False) -> Console:
+    """A console that wraps lines only on a terminal: piped or captured, one message stays
+    one line (logs are grepped; a path longer than 80 columns must not split a sentence)."""
+    stream = sys.stderr if stderr else sys.stdout
+    return Console(stderr=stderr, soft_wrap=not stream.isatty())
+
+
+err = console(stderr=True)
+out = console()
 
 
 class _RateColumn(ProgressColumn):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 import numpy as np
-from rich.console import Console
+from pipeline.cli.app import console
 
 from pipeline.io.capture import Capture
 from pipeline.offline.calibrate import (
@@ -17,7 +17,7 @@ from schemas.errors import CalibrationError
 from stages import calibration as cal
 from stages.histogram import HistogramAccumulator
 
-err = Console(stderr=True)
+err = console(stderr=True)
 
 
 @click.group()

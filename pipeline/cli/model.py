@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 import numpy as np
-from rich.console import Console
+from pipeline.cli.app import console
 from rich.table import Table
 
 from stages.models import atmosphere as atm
@@ -18,7 +18,7 @@ from stages.models.performance import TABLE_2_2, predict, table_2_2_rows
 from stages.models.scene import evaluate, load_scene
 from stages.models.tcspc import crlb_tof, first_photon_histogram
 
-out = Console()
+out = console()
 
 
 def _jsonable(v):
