@@ -1,7 +1,7 @@
 """Soak: the daemon for a long run at a fixed rate, its stages' memory sampled throughout.
 
 Replays a capture of synthetic words (5 % hits) repeatedly as one run at ``--rate`` words/s
-through ``tcspc daemon`` (journal on with retention, 2 histogram workers, histograms per
+through ``tcspc daemon`` (journal on with retention, ``--workers`` histogram workers, histograms per
 measurement, the range stage when --calibration is given), samples every stage's resident
 memory (VmRSS) every 10 s, and reports per stage the RSS after warm-up and at the end, the
 largest, and the growth; writes the samples as parquet and a plot.
@@ -48,6 +48,8 @@ def main() -> None:
     ap.add_argument("--rate", type=float, default=17e6, help="words/s")
     ap.add_argument("--calibration", default=None)
     ap.add_argument("--warmup", type=float, default=2.0, help="minutes excluded")
+    ap.add_argument("--workers", type=int, default=2,
+                    help="histogram workers (on 2 cores one is faster: docs/performance.md)")
     ap.add_argument("--kill-every", type=float, default=None,
                     help="SIGKILL a stage every this many minutes (in turn)")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results"))
@@ -73,7 +75,7 @@ capture = "{tmp / 'cap'}"
 repeat = {repeat}
 rate = {args.rate}
 [histogram]
-workers = 2
+workers = {args.workers}
 measurement_cycles = 100000
 """ + (f'[range]\ncalibration = "{args.calibration}"\n' if args.calibration else "")
             + f'[sink]\nout = "{tmp / "out"}"\n')
@@ -81,8 +83,8 @@ measurement_cycles = 100000
                                    str(topo), "--run", "soak"], stdout=subprocess.PIPE,
                                   stderr=subprocess.DEVNULL, text=True)
         rows, t0 = [], time.time()
-        victims = ["histogram-0", "histogram-1", "sink"] + (["range"] if args.calibration
-                                                             else [])
+        victims = ([f"histogram-{i}" for i in range(args.workers)] + ["sink"]
+                   + (["range"] if args.calibration else []))
         kills, next_kill = [], (args.kill_every or 0) * 60
         while daemon.poll() is None:
             time.sleep(min(10, (args.kill_every or 1) * 60 / 4))
