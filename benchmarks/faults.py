@@ -34,22 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.datapath import emit, machine  # noqa: E402
 
 N, CYCLES, MC = 16, 200_000, 10_000
-SCENE = """
-name = "small"
-[sensor]
-n_pixels = 16
-[gate]
-t_laser_win_ns = 140.0
-delay_ns = 100.0
-[[targets]]
-pixels = [0, 15]
-distance_m = 1.5
-reflectivity = 0.002
-surface = "mirror"
-[[ambient]]
-kind = "lux"
-lux = 800.0
-"""
+SCENE = (Path(__file__).resolve().parents[1] / "scenes" / "small16.toml").read_text()
 
 
 def topology(d: Path, rate: float | None = 1.5e6, extra: str = "", udp_port=None) -> Path:

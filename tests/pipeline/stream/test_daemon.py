@@ -18,22 +18,7 @@ from pipeline.stream.topology import TopologyError, load_topology
 from stages.histogram import HistogramAccumulator
 
 N = 16
-SCENE = """
-name = "small"
-[sensor]
-n_pixels = 16
-[gate]
-t_laser_win_ns = 140.0
-delay_ns = 100.0
-[[targets]]
-pixels = [0, 15]
-distance_m = 1.5
-reflectivity = 0.002
-surface = "mirror"
-[[ambient]]
-kind = "lux"
-lux = 800.0
-"""
+SCENE = (Path(__file__).parents[3] / "scenes" / "small16.toml").read_text()
 
 
 @pytest.fixture(scope="module")
