@@ -111,6 +111,14 @@ def plots(candidate: str, fit: dict, run: str) -> list[str]:
     return [str(a), str(b)]
 
 
+def _finite(stat, values) -> float:
+    """``stat`` over the finite values; NaN when there is none (every TDC flagged), said
+    by the value rather than by a numpy warning."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    return float(stat(v)) if v.size else float("nan")
+
+
 def _truth_check(captures: list, delay_capture, fit: dict,
                  delay_ns: list[float]) -> tuple[str, dict]:
     """Against the simulator's truth (when the captures carry it): LSB error per density
@@ -124,10 +132,10 @@ def _truth_check(captures: list, delay_capture, fit: dict,
     dt = _open(delay_capture).meta.truth
     d_true = dt["delay_ns"] + 2 * np.nan_to_num(np.array(dt["distance_m"], float)) / 0.299792458
     d_err_ps = (np.asarray(delay_ns) - d_true) * 1e3
-    figures = {"lsb_error_rms_ps": float(np.sqrt(np.nanmean(err ** 2))),
-               "lsb_error_max_ps": float(np.nanmax(np.abs(err))),
-               "delay_error_median_ps": float(np.nanmedian(d_err_ps)),
-               "delay_error_rms_ps": float(np.sqrt(np.nanmean(d_err_ps ** 2)))}
+    figures = {"lsb_error_rms_ps": _finite(lambda v: np.sqrt(np.mean(v ** 2)), err),
+               "lsb_error_max_ps": _finite(lambda v: np.max(np.abs(v)), err),
+               "delay_error_median_ps": _finite(np.median, d_err_ps),
+               "delay_error_rms_ps": _finite(lambda v: np.sqrt(np.mean(v ** 2)), d_err_ps)}
     text = (f"LSB against the chip's truth over {err.shape[1]} light levels: RMS error "
             f"{figures['lsb_error_rms_ps']:.3f} ps, worst {figures['lsb_error_max_ps']:.3f} ps."
             f"\nDelay against the truth (system delay + 2 d / c): median error "
@@ -193,9 +201,10 @@ def calibration_campaign(out: str = "data/calibration", lux: list[float] | None 
     truth_text, truth = _truth_check(density_caps, delay_cap, fit, delay_ns)
     tests = pl.DataFrame({"capture": [_label(c) for c in density_caps],
                           "detections_per_pixel_per_cycle": fit["n"],
-                          "lsb_mean_ps": np.nanmean(np.asarray(fit["lsb_ps"]), axis=0),
-                          "lsb_min_ps": np.nanmin(np.asarray(fit["lsb_ps"]), axis=0),
-                          "lsb_max_ps": np.nanmax(np.asarray(fit["lsb_ps"]), axis=0)})
+                          **{f"lsb_{name}_ps": [_finite(fn, col) for col in
+                                                np.asarray(fit["lsb_ps"], float).T]
+                             for name, fn in (("mean", np.mean), ("min", np.min),
+                                              ("max", np.max))}})
     tests.write_parquet(run / "tests.parquet")
     q = quality(candidate)
     summary = {"run": str(run), "candidate": candidate, "current": current,
