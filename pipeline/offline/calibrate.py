@@ -123,7 +123,7 @@ def lsb_from_states(tests: list, window_s: float, inl_rms_lsb: float = 0.5,
     the index of the test kept."""
     names = names or [f"test {i}" for i in range(len(tests))]
     results = []
-    for name, (state, second) in zip(names, tests, strict=True):
+    for name, (state, _) in zip(names, tests, strict=True):
         res = cal.density_test(state.hits, state.cycles, window_s, artifacts=state.artifacts)
         results.append(res)
         if log:
