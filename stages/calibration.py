@@ -212,7 +212,7 @@ def cycles_needed(inl_rms_lsb: float, n_codes: float = 395.0,
 def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
                  min_hits: int = 1000, exclude: np.ndarray | None = None,
                  fill: tuple[np.ndarray, np.ndarray] | None = None,
-                 artifacts: np.ndarray | None = None) -> DensityResult:
+                 artifacts: np.ndarray | None = None, combine: bool = False) -> DensityResult:
     """DNL, INL and LSB of every TDC from the D1st histograms of a uniform-light capture.
 
     Parameters
@@ -238,6 +238,10 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
         counts after each artifact code are too high by its rate (the simulated chip's
         ~1e-4 a cycle at three codes), every width there too small by as much, and the
         INL bows by ~0.015 LSB (~3 ps) mid-window.
+    combine : bool
+        With ``fill``, every code this test measured also takes the inverse-variance mean
+        of its own width and the fill's: the INL then has the statistics of all the tests
+        (the DNL does not change with light, only the LSB), not only this one's.
     """
     hits = np.asarray(hits, np.float64)
     cycles = np.asarray(cycles, np.float64)
@@ -251,7 +255,8 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
         res = _one_tdc(hits[t], cycles[t], window_s,
                        None if exclude is None else exclude[t],
                        None if fill is None else (fill[0][t], fill[1][t]),
-                       None if artifacts is None else np.asarray(artifacts[t], np.float64))
+                       None if artifacts is None else np.asarray(artifacts[t], np.float64),
+                       combine)
         if res is None:
             ok[t] = False
             continue
@@ -262,7 +267,7 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
 
 
 def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill=None,
-             artifacts=None):
+             artifacts=None, combine=False):
     # the reset peak: the largest count in the upper part of the code range
     top = int(np.argmax(np.where(np.arange(N_CODES) > 16, h, -1)))
     # The low edge is usable: for uniform light, code 0 (which also collects every START the
@@ -292,7 +297,7 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill
     w[edge] = phase_mean[np.arange(N_CODES)[edge] % 8] / scale
     if fill is not None:
         w = _refill(w, edge, interior, phase_mean / scale,
-                    _coates_var(h, at_risk) / scale ** 2, *fill)
+                    _coates_var(h, at_risk) / scale ** 2, *fill, combine=combine)
     bound = np.concatenate([[0.0], np.cumsum(w)])   # B_k in interior-LSB units
     # x_T: the reset peak fitted over these boundaries, above the uniform part (the
     # interior's density, at risk there) that ends at T
@@ -360,11 +365,12 @@ def _coates_var(h, r):
         return h / (r * (r - h))
 
 
-def _refill(w, edge, interior, phase_mean, stat_var, f_w, f_var):
+def _refill(w, edge, interior, phase_mean, stat_var, f_w, f_var, combine=False):
     """The edge codes' widths (``w``, interior-LSB units, where ``phase_mean`` (8,) already
     stands) as the inverse-variance mean of that and ``f_w`` (another test's, any unit:
     brought to this one's by the codes both measured); ``stat_var``: the variance of each
-    measured width of ``w``."""
+    measured width of ``w``. With ``combine``, the measured codes too (their own width
+    against ``f_w``, each by its variance)."""
     common = interior[np.isfinite(f_w[interior])]
     if common.size < 32:
         return w
@@ -380,6 +386,12 @@ def _refill(w, edge, interior, phase_mean, stat_var, f_w, f_var):
     use = edge & np.isfinite(f) & np.isfinite(fv) & (fv > 0)
     out = w.copy()
     out[use] = (w[use] / v_pm + f[use] / fv[use]) / (1 / v_pm + 1 / fv[use])
+    if combine:
+        sv = np.full(w.size, np.nan)
+        sv[interior] = stat_var[interior]
+        both = (~edge & np.isfinite(f) & np.isfinite(fv) & (fv > 0) & np.isfinite(sv)
+                & (sv > 0))
+        out[both] = (w[both] / sv[both] + f[both] / fv[both]) / (1 / sv[both] + 1 / fv[both])
     return out
 
 

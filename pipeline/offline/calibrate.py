@@ -36,13 +36,16 @@ def density_histograms(capture: Capture, progress=None):
     return acc.snapshot(), second
 
 
-def refilled(state, res: cal.DensityResult, others: list, window_s: float):
+def refilled(state, res: cal.DensityResult, others: list, window_s: float,
+             combine: bool = False):
     """``res`` (of histograms ``state``) again, with the codes under its reset peak taking
     the widths that ``others`` (``(state, result)`` pairs of density tests at other light)
-    measured there, each weighted against the phase mean by its error."""
+    measured there, each weighted against the phase mean by its error; with ``combine``,
+    every code takes the inverse-variance mean of all the tests' widths."""
     tests = [(r, cal.width_variance(st.hits, st.cycles, r, st.artifacts)) for st, r in others]
     return cal.density_test(state.hits, state.cycles, window_s,
-                            fill=cal.fill_from(tests, res), artifacts=state.artifacts)
+                            fill=cal.fill_from(tests, res), artifacts=state.artifacts,
+                            combine=combine)
 
 
 def density_from_capture(capture: Capture, inl_rms_lsb: float | None = 0.3,
@@ -115,7 +118,7 @@ def lsb_campaign(captures: list, out: str | Path, inl_rms_lsb: float = 0.5,
 
 
 def lsb_from_states(tests: list, window_s: float, inl_rms_lsb: float = 0.5,
-                    names: list[str] | None = None, log=None):
+                    names: list[str] | None = None, log=None, combine: bool = False):
     """:func:`lsb_campaign` on histograms: ``tests`` a list of ``(state, second)`` pairs
     (:func:`density_histograms` of each density test). Returns ``(density, second, fit,
     n, lsbs, i_best)``: the density test kept for the INL (filled from the others), its
@@ -141,7 +144,7 @@ def lsb_from_states(tests: list, window_s: float, inl_rms_lsb: float = 0.5,
     best = results[i_best]
     others = [(tests[i][0], r) for i, r in enumerate(results) if i != i_best]
     if others:
-        best = refilled(tests[i_best][0], best, others, window_s)
+        best = refilled(tests[i_best][0], best, others, window_s, combine)
         if log:
             log(f"INL from {names[i_best]}; the codes under its reset peak also "
                 f"from the {len(others)} other test(s)")
