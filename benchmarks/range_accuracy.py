@@ -307,6 +307,8 @@ def main() -> None:
         rows.append((name, config, summary(err, det, sets, sig)))
         print(f"{name}: {rows[-1][2]['rms']:.3f} cm RMS", file=sys.stderr)
     t_cal = time.perf_counter() - t0
+    diag = diagnostics(base, chip, d_light[i_best], ranges, r_light, delay_state, z_light,
+                       args)
     set_names = list(dict.fromkeys(p["set"] for p in plan))
     lines = [f"command: `python {' '.join(sys.argv)}`", f"machine: {machine()}", "",
              f"{len(plan) * args.tdcs} targets, 0.5-63 m ({len(plan)} captures of "
@@ -324,8 +326,43 @@ def main() -> None:
         lines.append(f"| {name} | {s['rms']:.3f} | {s['max']:.2f} | {s['bias']:+.3f} | "
                      f"{s['detected']}/{s['n']} | {s['stat']:.3f} | "
                      + " | ".join(f"{s[k]:.3f}" for k in set_names) + " |")
-    lines += budget(rows)
+    lines += budget(rows) + ["", diag]
     emit(lines, args.out)
+
+
+def diagnostics(base: Calibration, chip, n_density, ranges, r_light, delay_state, z_light,
+                args) -> str:
+    """The calibration against truth: INL RMS (codes below x_T), the LSB at each range
+    capture's light, the delay."""
+    from stages.calibration_set import time_axis
+
+    res = base.density
+    _, x_t, inl_t = chip.window_truth(n_density, WINDOW_S)
+    k = np.arange(inl_t.shape[1])[None, :]
+    e = np.where(k < x_t[:, None] - 1, res.inl_lsb - inl_t, np.nan)
+    inl_rms = np.sqrt(np.nanmean(e ** 2, axis=1))
+    lsb_err = []
+    for st, light in zip(ranges, r_light, strict=True):
+        axis = time_axis(base, st.hits, st.cycles, WINDOW_S)
+        lsb_err.append(WINDOW_S / _x_t_of(axis) * 1e12
+                       - chip.window_truth(light, WINDOW_S)[0] * 1e12)
+    lsb_err = np.concatenate(lsb_err)
+    d = delay_from_state(base, delay_state, WINDOW_S, 140e-9).delay_s
+    derr = (d - args.delay_ns * 1e-9) * 1e12
+    return (f"Calibration against truth: INL RMS over the window {np.median(inl_rms):.3f} "
+            f"LSB median, {np.max(inl_rms):.3f} worst TDC; the window LSB on the range "
+            f"captures' axes {np.sqrt(np.mean(lsb_err ** 2)):.3f} ps RMS, "
+            f"{np.max(np.abs(lsb_err)):.3f} ps worst; the delay "
+            f"{np.sqrt(np.nanmean(derr ** 2)):.1f} ps RMS, {np.nanmax(np.abs(derr)):.1f} ps "
+            f"worst (n = {z_light:.2f}).")
+
+
+def _x_t_of(axis) -> np.ndarray:
+    """Where tau = T falls on an axis before it is bounded by the light: T over the scale
+    at the polynomial's LSB, read back as an LSB."""
+    from stages.calibration_set import _x_t
+
+    return _x_t(axis.tau_edges_s, WINDOW_S)
 
 
 def budget(rows) -> list[str]:
