@@ -234,7 +234,8 @@ def run(config: set, base: Calibration, chip, plan, ranges, r_light, n_density, 
         sigma = None
         if "sigma" in config:
             sigma = float(np.median(np.hypot(SIGMA_OPT_S, chip.jitter_s(light))))
-        est, d, s, _ = range_state(st, calib, WINDOW_S, p["gate_s"], estimator, sigma)
+        est, d, s, _ = range_state(st, calib, WINDOW_S, p["gate_s"], estimator, sigma,
+                                   in_situ=args.in_situ and "lsb" not in config)
         errs.append(d - p["distance_m"])
         det.append(np.asarray(est.detected, bool))
         sig.append(s)
@@ -283,6 +284,8 @@ def main() -> None:
     ap.add_argument("--ambient-hz", type=float, default=2e6,
                     help="the range captures' background rate")
     ap.add_argument("--estimator", default="ml")
+    ap.add_argument("--in-situ", action="store_true",
+                    help="range on the axis scaled by each capture's own reset peak")
     ap.add_argument("--inl-from", choices=["best", "all"], default="best",
                     help="the INL from the best density test (its reset-peak codes filled "
                          "from the others) or from all of them (inverse-variance)")

@@ -111,7 +111,7 @@ class Calibration:
         if fit is not None:
             fit = cal.LsbFit(fit.coef[sl], fit.x_mean, fit.x_scale, fit.n_range,
                              np.asarray(fit.residual_ps)[sl] if np.ndim(fit.residual_ps) == 2
-                             else fit.residual_ps)
+                             else fit.residual_ps, fit.levels)
         return dataclasses.replace(
             self, density=cal.density_rows(self.density, sl),
             second=cal.SecondStage(*(np.asarray(getattr(self.second, f))[sl]
