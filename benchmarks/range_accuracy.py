@@ -222,8 +222,8 @@ def run(config: set, base: Calibration, chip, plan, ranges, r_light, n_density, 
         calib = dataclasses.replace(calib, density=true_inl_density(calib.density, chip,
                                                                     n_density))
     if "lsb" in config:
-        calib = _TrueLsb(**{f.name: getattr(calib, f.name)
-                            for f in dataclasses.fields(Calibration)}, chip=chip, lights=lights)
+        fields = {f.name: getattr(calib, f.name) for f in dataclasses.fields(Calibration)}
+        calib = _TrueLsb(**{**fields, "lsb_fit": None}, chip=chip, lights=lights)
     if "delay" in config:
         calib = dataclasses.replace(calib, delay_s=np.full(chip.n_tdc, args.delay_ns * 1e-9),
                                     delay_reasons=())
@@ -286,7 +286,7 @@ def main() -> None:
     ap.add_argument("--estimator", default="ml")
     ap.add_argument("--in-situ", action="store_true",
                     help="range on the axis scaled by each capture's own reset peak")
-    ap.add_argument("--inl-from", choices=["best", "all"], default="best",
+    ap.add_argument("--inl-from", choices=["best", "all"], default="all",
                     help="the INL from the best density test (its reset-peak codes filled "
                          "from the others) or from all of them (inverse-variance)")
     ap.add_argument("--chip-seed", type=int, default=4)

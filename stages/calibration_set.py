@@ -165,7 +165,7 @@ def time_axis(calibration: Calibration, hits: np.ndarray, cycles: np.ndarray,
     light = float(hits.sum() / (hits.shape[0] * max(np.max(cycles), 1)))
     bounds = cal.code_bounds(density)
     lsb, note = calibration.lsb_s(light)
-    scale = cal.scale_at_light(density, lsb, window_s)
+    scale = cal.scale_at_light(density, lsb, window_s, calibration.lsb_fit, light)
     source = np.full(hits.shape[0], "lsb polynomial", dtype=object)
     if in_situ:
         own, ok, why = cal.scale_in_situ(hits, cycles, density, window_s, returns=returns)
