@@ -103,13 +103,15 @@ class Estimate:
 
 def _background(lam, w, valid, at_risk):
     """Background intensity per second over the valid bins: a mean, then the mean again
-    without the bins above it by 5 Poisson sigmas (the returns). A median is biased on
+    without the bins above it by 5 Poisson sigmas and a count (the returns). A median is biased on
     small counts and needs a sort per histogram."""
     vw = np.where(valid, w, 0.0)
     rate = np.where(valid, lam, 0.0).sum(1) / np.maximum(vw.sum(1), 1e-300)
     expect = rate[:, None] * w
-    noise = np.sqrt(expect / np.maximum(at_risk, 1.0))  # lambda ~ counts / at-risk
-    keep = valid & (lam <= expect + 5 * noise)
+    r = np.maximum(at_risk, 1.0)  # lambda ~ counts / at-risk
+    # 5 Poisson sigmas and a count: at 0.001 counts a bin every bin that holds one is
+    # 30 sigmas up, and leaving them all out set the background to 0 (every count a return)
+    keep = valid & (lam <= expect + (5 * np.sqrt(expect * r) + 1) / r)
     return np.where(keep, lam, 0).sum(1) / np.maximum(np.where(keep, w, 0).sum(1), 1e-300)
 
 

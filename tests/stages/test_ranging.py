@@ -159,13 +159,19 @@ def _tail_by_sum(c: int, b: float) -> float:
         return 1.0
     if b == 0:
         return 0.0
+
+    def pmf(k):
+        return math.exp(-b + k * math.log(b) - math.lgamma(k + 1))
+
+    if c <= b:  # the tail is large: one less the lower sum
+        return 1.0 - math.fsum(pmf(k) for k in range(c))
     total, k = 0.0, c
-    term = math.exp(-b + c * math.log(b) - math.lgamma(c + 1))
-    while term > total * 1e-18 or k < b:
+    while True:  # terms fall from c > b on
+        term = pmf(k)
         total += term
+        if term < total * 1e-18:
+            return total
         k += 1
-        term *= b / k
-    return total
 
 
 @pytest.mark.parametrize("b", BACKGROUNDS + [2.5, 30.0, 5e3])
@@ -256,8 +262,11 @@ def test_signal_below_the_threshold_is_not_detected_above_it_is(b):
     else:
         flat[::int(round(1 / b))] = 1.0
     counts = np.tile(flat, (2, 1))
-    counts[0, 1501] = np.floor(b + 0.3 * (thr - b)) + (1 if b < 1 else 0)
-    counts[1, 1501] = thr + 3 + np.sqrt(thr)
+    # a return of sigma one bin (the peak search boxes +-1.5 sigma), its middle bin below
+    # the threshold in row 0, above it in row 1
+    shape = np.exp(-0.5 * np.arange(-2, 3) ** 2)
+    counts[0, 1499:1504] = np.floor(b + 0.3 * shape * (thr - b)) + (b < 1)
+    counts[1, 1499:1504] = np.floor(b + shape * (thr - b + 3 + np.sqrt(thr)))
     h = Histograms(counts, np.tile(np.arange(n_bins + 1) * B, (2, 1)), np.full(2, 1e9),
                    np.ones_like(counts, bool))
     for estimator in ("fast", "ml"):
