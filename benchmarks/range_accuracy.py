@@ -21,8 +21,9 @@ estimate at a time: the delay, the LSB at the capture's light (eq. 5.1), the INL
 density test's, at its light), both (the exact time axis), and the instrument response
 sigma; the last rows stack them. Truth is used here only, never by the estimators.
 
-    python benchmarks/range_accuracy.py [--tdcs 32] [--density-cycles 8e6]
-        [--range-cycles 20000] [--estimator ml] [--out benchmarks/results/range_accuracy.md]
+    python benchmarks/range_accuracy.py [--tdcs 32] [--density-cycles 4e6]
+        [--range-cycles 20000] [--estimator ml] [--inl-from all|best] [--cache data/cache]
+        [--out benchmarks/results/range_accuracy.md]
 """
 
 from __future__ import annotations
