@@ -430,3 +430,30 @@ def test_inl_from_all_tests_and_the_table_beyond_the_window():
         assert np.abs(both[0].inl_lsb[t, span] - inl_t[t, span]).max() < 0.5
     single = cal.density_test(tests[0][0].hits, tests[0][0].cycles, 80e-9)
     assert np.all(np.isnan(single.inl_lsb[k[None, :] > single.x_t[:, None]]))
+
+
+def test_lsb_levels_survive_the_calibration_directory(tmp_path):
+    """The levels are saved (meta.json) and the loaded fit interpolates as the saved one;
+    a directory written before them (no levels) falls back to the cubic."""
+    import json
+
+    from pipeline.io.caldir import load_calibration
+    from pipeline.offline.calibrate import write_caldir
+
+    chip = make_chip(N, 4)
+    levels = np.array([0.3, 0.02, 0.15, 0.06, 0.5])  # any order
+    fit = cal.fit_lsb(levels, np.column_stack([chip.window_truth(n, 80e-9)[0] * 1e12
+                                               for n in levels]))
+    dens = _perfect_density(chip, 0.5)
+    second = cal.SecondStage(*(np.full(N, v) for v in (10, 140, 20, 80)))
+    d = write_caldir(tmp_path / "cal", dens, second, [], lsb_fit=fit)
+    back = load_calibration(d).lsb_fit
+    np.testing.assert_array_equal(back.levels, levels)
+    np.testing.assert_allclose(back.lsb_ps(0.1), fit.lsb_ps(0.1), rtol=1e-12)
+    assert np.abs(fit.lsb_ps(0.1) - fit.cubic_ps(0.1)).max() > 1e-3  # not the cubic
+    meta = json.loads((d / "meta.json").read_text())
+    del meta["lsb_poly_x"]["levels"]
+    (d / "meta.json").write_text(json.dumps(meta))
+    old = load_calibration(d).lsb_fit
+    assert old.levels is None
+    np.testing.assert_allclose(old.lsb_ps(0.1), fit.cubic_ps(0.1), rtol=1e-12)
