@@ -212,7 +212,7 @@ def cycles_needed(inl_rms_lsb: float, n_codes: float = 395.0,
 def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
                  min_hits: int = 1000, exclude: np.ndarray | None = None,
                  fill: tuple[np.ndarray, np.ndarray] | None = None,
-                 artifacts: np.ndarray | None = None) -> DensityResult:
+                 artifacts: np.ndarray | None = None, combine: bool = False) -> DensityResult:
     """DNL, INL and LSB of every TDC from the D1st histograms of a uniform-light capture.
 
     Parameters
@@ -238,6 +238,10 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
         counts after each artifact code are too high by its rate (the simulated chip's
         ~1e-4 a cycle at three codes), every width there too small by as much, and the
         INL bows by ~0.015 LSB (~3 ps) mid-window.
+    combine : bool
+        With ``fill``, every code this test measured also takes the inverse-variance mean
+        of its own width and the fill's: the INL then has the statistics of all the tests
+        (the DNL does not change with light, only the LSB), not only this one's.
     """
     hits = np.asarray(hits, np.float64)
     cycles = np.asarray(cycles, np.float64)
@@ -251,7 +255,8 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
         res = _one_tdc(hits[t], cycles[t], window_s,
                        None if exclude is None else exclude[t],
                        None if fill is None else (fill[0][t], fill[1][t]),
-                       None if artifacts is None else np.asarray(artifacts[t], np.float64))
+                       None if artifacts is None else np.asarray(artifacts[t], np.float64),
+                       combine)
         if res is None:
             ok[t] = False
             continue
@@ -262,7 +267,7 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
 
 
 def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill=None,
-             artifacts=None):
+             artifacts=None, combine=False):
     # the reset peak: the largest count in the upper part of the code range
     top = int(np.argmax(np.where(np.arange(N_CODES) > 16, h, -1)))
     # The low edge is usable: for uniform light, code 0 (which also collects every START the
@@ -292,7 +297,7 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill
     w[edge] = phase_mean[np.arange(N_CODES)[edge] % 8] / scale
     if fill is not None:
         w = _refill(w, edge, interior, phase_mean / scale,
-                    _coates_var(h, at_risk) / scale ** 2, *fill)
+                    _coates_var(h, at_risk) / scale ** 2, *fill, combine=combine)
     bound = np.concatenate([[0.0], np.cumsum(w)])   # B_k in interior-LSB units
     # x_T: the reset peak fitted over these boundaries, above the uniform part (the
     # interior's density, at risk there) that ends at T
@@ -308,6 +313,12 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill
     inl = b_lsb[:N_CODES] - np.arange(N_CODES)
     width = np.diff(b_lsb)
     beyond = np.arange(N_CODES) > x_t
+    if fill is not None:
+        # beyond the window the table continues over the codes other (dimmer) tests
+        # measured: the time axis at a dimmer light reads its x_T there
+        known = np.isfinite(fill[0]) & np.isfinite(fill[1]) & (fill[1] > 0)
+        gap = np.flatnonzero(beyond & ~known)
+        beyond = np.arange(N_CODES) >= (gap[0] if gap.size else N_CODES)
     width[beyond] = np.nan
     inl[beyond] = np.nan
     err = x_t * INL_RMS_FACTOR / np.sqrt(max(h[interior].sum(), 1.0))
@@ -360,11 +371,12 @@ def _coates_var(h, r):
         return h / (r * (r - h))
 
 
-def _refill(w, edge, interior, phase_mean, stat_var, f_w, f_var):
+def _refill(w, edge, interior, phase_mean, stat_var, f_w, f_var, combine=False):
     """The edge codes' widths (``w``, interior-LSB units, where ``phase_mean`` (8,) already
     stands) as the inverse-variance mean of that and ``f_w`` (another test's, any unit:
     brought to this one's by the codes both measured); ``stat_var``: the variance of each
-    measured width of ``w``."""
+    measured width of ``w``. With ``combine``, the measured codes too (their own width
+    against ``f_w``, each by its variance)."""
     common = interior[np.isfinite(f_w[interior])]
     if common.size < 32:
         return w
@@ -380,6 +392,12 @@ def _refill(w, edge, interior, phase_mean, stat_var, f_w, f_var):
     use = edge & np.isfinite(f) & np.isfinite(fv) & (fv > 0)
     out = w.copy()
     out[use] = (w[use] / v_pm + f[use] / fv[use]) / (1 / v_pm + 1 / fv[use])
+    if combine:
+        sv = np.full(w.size, np.nan)
+        sv[interior] = stat_var[interior]
+        both = (~edge & np.isfinite(f) & np.isfinite(fv) & (fv > 0) & np.isfinite(sv)
+                & (sv > 0))
+        out[both] = (w[both] / sv[both] + f[both] / fv[both]) / (1 / sv[both] + 1 / fv[both])
     return out
 
 
@@ -429,17 +447,52 @@ def track_lsb(hits: np.ndarray, cycles: np.ndarray, window_s: float,
 
 @dataclass(frozen=True)
 class LsbFit:
-    """LSB(n) per TDC as a cubic in scaled x = (n - x_mean) / x_scale (eq. 5.1's n)."""
+    """LSB(n) per TDC (eq. 5.1's n): the measured LSBs at the density tests' light levels,
+    interpolated, and the cubic in scaled x = (n - x_mean) / x_scale fitted to them.
+
+    Inside the levels' range the LSB is a cubic spline through the measured points in
+    sqrt(n) (:meth:`lsb_ps`): each point is measured to ~0.002 ps, while one cubic over
+    0.02-0.75 detections a cycle leaves residuals of up to ~0.4 ps where the IR drop bends
+    (the simulated chip saturates), and 0.1 ps of LSB is ~20 ps of range at mid-window.
+    sqrt(n) spreads the flow's levels (roughly geometric) evenly, where the bend is, and a
+    spline through them misses the simulated curve by <= 0.03 ps against 0.08 in n
+    (benchmarks/range_accuracy.py). Outside the range, and without the points (an old
+    calibration), the cubic, as eq. 5.1 has it.
+    """
 
     coef: np.ndarray      #: (n_tdc, 4), c0 + c1 x + c2 x^2 + c3 x^3, in ps
     x_mean: float
     x_scale: float
     n_range: tuple[float, float]
     residual_ps: np.ndarray  #: (n_tdc, n_points)
+    levels: np.ndarray | None = None  #: (n_points,) the light levels of the residuals
 
-    def lsb_ps(self, n) -> np.ndarray:
+    def cubic_ps(self, n) -> np.ndarray:
+        """eq. 5.1's cubic at ``n``."""
         x = (np.asarray(n, np.float64) - self.x_mean) / self.x_scale
         return self.coef @ np.array([np.ones_like(x), x, x * x, x * x * x])
+
+    def points_ps(self) -> np.ndarray:
+        """(n_tdc, n_points) the measured LSBs: the cubic at the levels plus its residuals."""
+        return self.cubic_ps(self.levels).reshape(self.coef.shape[0], -1) + np.asarray(
+            self.residual_ps).reshape(self.coef.shape[0], -1)
+
+    def lsb_ps(self, n) -> np.ndarray:
+        n = np.asarray(n, np.float64)
+        lv = None if self.levels is None else np.asarray(self.levels, np.float64)
+        if lv is None or lv.size < 3 or n.ndim or not self.in_range(float(n)):
+            return self.cubic_ps(n)
+        order = np.argsort(lv)
+        lv, y = lv[order], self.points_ps()[:, order]
+        good = np.all(np.isfinite(y), axis=1)
+        if not (good.any() and np.all(np.diff(lv) > 0)):  # two tests at one light
+            return self.cubic_ps(n)
+        from scipy.interpolate import CubicSpline
+
+        out = np.full(y.shape[0], np.nan)
+        spline = CubicSpline(np.sqrt(lv), y[good].T, axis=0)
+        out[good] = spline(np.sqrt(min(max(float(n), lv[0]), lv[-1])))
+        return out
 
     def in_range(self, n) -> bool:
         lo, hi = self.n_range
@@ -465,7 +518,7 @@ def fit_lsb(n: np.ndarray, lsb_ps: np.ndarray) -> LsbFit:
     coef = np.full((y.shape[0], 4), np.nan)
     coef[good] = np.linalg.lstsq(v, y[good].T, rcond=None)[0].T
     resid = y - coef @ v.T
-    return LsbFit(coef, x_mean, x_scale, (float(n.min()), float(n.max())), resid)
+    return LsbFit(coef, x_mean, x_scale, (float(n.min()), float(n.max())), resid, n)
 
 
 # ----------------------------------------------------------------- code -> time, delay
@@ -518,15 +571,42 @@ def _bound_at(bounds: np.ndarray, x) -> np.ndarray:
     return np.where(good, b0 + (x - k[:, 0]) * (b1 - b0), np.nan)
 
 
-def scale_at_light(density: DensityResult, lsb_s, window_s: float) -> np.ndarray:
+def scale_at_light(density: DensityResult, lsb_s, window_s: float,
+                   fit: LsbFit | None = None, light: float | None = None) -> np.ndarray:
     """Seconds per unit of :func:`code_bounds` at a light whose LSB (the window over the
     code span, eq. 5.1's polynomial) is ``lsb_s``: tau = T falls at code ``x_T = T / lsb``,
     which is ``B(x_T)`` units of the density test's boundaries, so the scale is
     ``T / B(x_T)``. (``B(k) * lsb`` instead is off by ``tau INL(x_T) / x_T``: the density
-    test's INL is zero at its own x_T only; ~60 ps at mid-window for 0.5 LSB.)"""
+    test's INL is zero at its own x_T only; ~60 ps at mid-window for 0.5 LSB.)
+
+    With ``fit`` and ``light`` inside its levels, the scale itself is interpolated: each
+    density test's measured LSB gives its scale ``T / B(T / LSB_i)``, and a cubic spline
+    in sqrt(n) through those reads it at ``light``. The scale follows the VCOs' speed,
+    smooth in the light; the window LSB does not: as x_T moves across codes it carries
+    the INL there (``LSB = scale B(x_T) / x_T``), a ripple of ~0.1 ps (0.3 LSB of INL
+    over 395 codes) that no smooth curve through the tests' LSBs follows, and 0.1 ps is
+    ~20 ps of range at mid-window."""
+    bounds = code_bounds(density)
+    ok = np.asarray(density.ok, bool)
+    levels = None if fit is None or fit.levels is None else np.asarray(fit.levels, np.float64)
+    if (levels is not None and light is not None and levels.size >= 3
+            and fit.in_range(light) and np.unique(levels).size == levels.size):
+        from scipy.interpolate import CubicSpline
+
+        order = np.argsort(levels)
+        pts = fit.points_ps()[:, order] * 1e-12
+        s_pts = np.column_stack([window_s / _bound_at(bounds, window_s / pts[:, j])
+                                 for j in range(pts.shape[1])])
+        good = np.all(np.isfinite(s_pts), axis=1) & ok
+        scale = np.full(bounds.shape[0], np.nan)
+        if good.any():
+            spline = CubicSpline(np.sqrt(levels[order]), s_pts[good].T, axis=0)
+            scale[good] = spline(np.sqrt(min(max(light, levels[order][0]),
+                                             levels[order][-1])))
+        return scale
     x_t = window_s / np.asarray(lsb_s, np.float64)
-    scale = window_s / _bound_at(code_bounds(density), x_t)
-    return np.where(np.asarray(density.ok, bool), scale, np.nan)  # a dead TDC has no axis
+    scale = window_s / _bound_at(bounds, x_t)
+    return np.where(ok, scale, np.nan)  # a dead TDC has no axis
 
 
 #: Codes below where the light ends searched for the reset peak.

@@ -111,7 +111,7 @@ class Calibration:
         if fit is not None:
             fit = cal.LsbFit(fit.coef[sl], fit.x_mean, fit.x_scale, fit.n_range,
                              np.asarray(fit.residual_ps)[sl] if np.ndim(fit.residual_ps) == 2
-                             else fit.residual_ps)
+                             else fit.residual_ps, fit.levels)
         return dataclasses.replace(
             self, density=cal.density_rows(self.density, sl),
             second=cal.SecondStage(*(np.asarray(getattr(self.second, f))[sl]
@@ -165,7 +165,7 @@ def time_axis(calibration: Calibration, hits: np.ndarray, cycles: np.ndarray,
     light = float(hits.sum() / (hits.shape[0] * max(np.max(cycles), 1)))
     bounds = cal.code_bounds(density)
     lsb, note = calibration.lsb_s(light)
-    scale = cal.scale_at_light(density, lsb, window_s)
+    scale = cal.scale_at_light(density, lsb, window_s, calibration.lsb_fit, light)
     source = np.full(hits.shape[0], "lsb polynomial", dtype=object)
     if in_situ:
         own, ok, why = cal.scale_in_situ(hits, cycles, density, window_s, returns=returns)

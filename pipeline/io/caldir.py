@@ -133,9 +133,12 @@ def load_calibration(caldir: str | os.PathLike) -> Calibration:
     px = meta.get("lsb_poly_x")
     fit = None
     if px is not None:
+        resid = np.asarray(meta.get("lsb_residual_ps", np.empty((n, 0))), np.float64)
+        levels = px.get("levels")  # absent in calibrations before the spline: the cubic
         fit = cal.LsbFit(np.stack(col("lsb_poly")), px["mean"], px["scale"],
-                         tuple(px["n_range"]),
-                         np.asarray(meta.get("lsb_residual_ps", np.empty((n, 0)))))
+                         tuple(px["n_range"]), resid,
+                         None if levels is None or len(levels) != resid.shape[-1]
+                         else np.asarray(levels, np.float64))
     delay = np.asarray(col("delay_ps"), np.float64) * 1e-12
     dm = meta.get("delay", {})
     return Calibration(density, second, fit, delay, tuple(dm.get("reasons", ())),
@@ -188,7 +191,9 @@ def save_calibration(calibration: Calibration, out: str | os.PathLike,
                     "inl_error_lsb": np.asarray(density.inl_error_lsb).tolist(),
                     "flagged_tdcs": np.flatnonzero(~np.asarray(density.ok, bool)).tolist()},
         **({"lsb_poly_x": {"mean": fit.x_mean, "scale": fit.x_scale,
-                           "n_range": list(fit.n_range)},
+                           "n_range": list(fit.n_range),
+                           **({"levels": np.asarray(fit.levels).tolist()}
+                              if fit.levels is not None else {})},
             "lsb_residual_ps": np.asarray(fit.residual_ps).tolist()} if fit else {}),
         **({"delay": c.meta["delay"]} if "delay" in c.meta else {}),
     }

@@ -22,15 +22,19 @@ from stages.ranging import Estimate, Histograms, estimate
 
 def range_state(state: HistogramState, calibration: Calibration, window_s: float,
                 t_laser_win_s: float, estimator: str = "ml", sigma_s: float | None = None,
-                p_fa: float = 1e-3) -> tuple[Estimate, np.ndarray, np.ndarray, str]:
+                p_fa: float = 1e-3, in_situ: bool = False
+                ) -> tuple[Estimate, np.ndarray, np.ndarray, str]:
     """Ranges of every pixel of a histogram state with a calibration.
 
     The time axis from :func:`stages.calibration_set.time_axis` (INL, and the LSB
     polynomial at this measurement's light, eq. 5.1), the delay from the calibration's eq.
-    5.3 measurement. ``sigma_s``, the instrument response, defaults to the one measured at
-    zero distance (stored with the delay), else 1 LSB. A pixel without a delay is not
-    detected. Returns the estimate, distances and sigmas in metres, and a note for the
-    user ("" when the calibration covers this measurement's light).
+    5.3 measurement. With ``in_situ``, the axis's scale comes from the capture's own reset
+    peak where that is trustworthy, as ``calibrate delay`` does (the returns located first
+    on the polynomial's axis, so that the reset peak's fit keeps clear of them), else
+    from the polynomial. ``sigma_s``, the instrument response, defaults to the one
+    measured at zero distance (stored with the delay), else 1 LSB. A pixel without a
+    delay is not detected. Returns the estimate, distances and sigmas in metres, and a
+    note for the user ("" when the calibration covers this measurement's light).
     """
     if not calibration.has_delay:
         raise CalibrationError(f"{calibration.path}: no delay (run `tcspc calibrate delay` "
@@ -42,15 +46,32 @@ def range_state(state: HistogramState, calibration: Calibration, window_s: float
     axis = time_axis(calib, state.hits, state.cycles, window_s)
     if sigma_s is None:
         sigma_s = calib.irf_sigma_s or float(np.nanmedian(np.diff(axis.tau_edges_s, axis=1)))
-    h = Histograms.from_codes(state.hits, axis.tau_edges_s, state.cycles, window_s,
-                              x_t=axis.x_t)
-    est = estimate(h, sigma_s, estimator, p_fa)
+
+    def run(axis):
+        h = Histograms.from_codes(state.hits, axis.tau_edges_s, state.cycles, window_s,
+                                  x_t=axis.x_t)
+        return estimate(h, sigma_s, estimator, p_fa)
+
+    est = run(axis)
+    if in_situ:
+        returns = _codes_of(window_s - est.t_s, axis.tau_edges_s, est.detected)
+        situ = time_axis(calib, state.hits, state.cycles, window_s, in_situ=True,
+                         returns=returns)
+        if np.any(situ.source == "reset peak"):
+            axis, est = situ, run(situ)
     distance = cal.distance_m(t_laser_win_s, calib.delay_s, window_s - est.t_s)
     # a pixel without a delay (flagged by `calibrate delay`, reason in meta.json) has no
     # distance: never a detection with a NaN or a guessed range
     est = dataclasses.replace(est, detected=np.asarray(est.detected, bool)
                               & np.isfinite(calib.delay_s))
     return est, distance, est.sigma_s * C_LIGHT / 2, axis.note
+
+
+def _codes_of(tau_s, tau_edges_s, keep) -> np.ndarray:
+    """Fractional codes of times ``tau_s`` on each row's axis (NaN where not ``keep``)."""
+    return np.array([np.interp(t, e, np.arange(e.size, dtype=np.float64))
+                     if k and np.isfinite(t) and np.all(np.isfinite(e)) else np.nan
+                     for t, e, k in zip(tau_s, tau_edges_s, keep, strict=True)])
 
 
 def ranges_table(measurement: str, est: Estimate, distance_m: np.ndarray,

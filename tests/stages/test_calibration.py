@@ -362,3 +362,98 @@ def test_artifact_starts_leave_the_at_risk_count():
     # a snapshot without them cannot restore an accumulator that counts them
     with pytest.raises(ValueError, match="artifact"):
         acc.restore(type(st)(st.hits, st.class_counts, st.words))
+
+
+def test_scale_between_light_levels_is_the_chips_not_the_cubics():
+    """Between the density tests' levels the scale is a spline (in sqrt(n)) through each
+    test's T / B(T / LSB_i): within 15 ps of the chip's boundaries (codes 20-380) over
+    0.03-0.74 detections a cycle, where eq. 5.1's cubic through the window LSBs (their
+    INL ripple and the chip's saturating LSB) is off by up to 0.2 ns (issue 15)."""
+    chip = make_chip(N, 4)
+    levels = np.array([0.02, 0.06, 0.15, 0.3, 0.5, 0.75])
+    fit = cal.fit_lsb(levels, np.column_stack([chip.window_truth(n, 80e-9)[0] * 1e12
+                                               for n in levels]))
+    lsb0, x0, inl0 = chip.window_truth(0.75, 80e-9)  # the table continued beyond its x_T
+    dnl0 = np.diff(np.concatenate([inl0, inl0[:, -1:]], axis=1), axis=1)
+    dens = cal.DensityResult(lsb0, x0, 1 + dnl0, dnl0, inl0, np.full(N, 1e7),
+                             np.full(N, 0.75), np.ones(N, bool), np.zeros(N))
+    b = cal.code_bounds(dens)
+    new, old = [], []
+    for n in np.linspace(0.03, 0.74, 15):
+        true = chip.boundaries_s(n)[:, 20:380]
+        s_new = cal.scale_at_light(dens, fit.lsb_ps(n) * 1e-12, 80e-9, fit, n)
+        s_old = cal.scale_at_light(dens, fit.cubic_ps(n) * 1e-12, 80e-9)
+        new.append(np.abs(b[:, 20:380] * s_new[:, None] - true).max())
+        old.append(np.abs(b[:, 20:380] * s_old[:, None] - true).max())
+    assert max(new) < 15e-12 and max(old) > 5 * max(new), (max(new), max(old))  # 12, 199 ps
+    # at a level itself the test's own scale, and outside the levels the cubic
+    s = cal.scale_at_light(dens, fit.lsb_ps(0.3) * 1e-12, 80e-9, fit, 0.3)
+    np.testing.assert_allclose(b[:, 300] * s, chip.boundaries_s(0.3)[:, 300], rtol=1e-9)
+    out = cal.scale_at_light(dens, fit.lsb_ps(0.9) * 1e-12, 80e-9, fit, 0.9)
+    np.testing.assert_array_equal(out, cal.scale_at_light(dens, fit.cubic_ps(0.9) * 1e-12,
+                                                          80e-9))
+
+
+def test_inl_from_all_tests_and_the_table_beyond_the_window():
+    """``combine``: every code the inverse-variance mean over the tests that measured it
+    (the INL error falls by about sqrt(all hits / the kept test's)); and the table goes
+    on beyond the kept test's window over the codes the dimmer tests measured."""
+    from pipeline.offline.calibrate import density_histograms, lsb_from_states
+    from pipeline.offline.simulate import SimulatedCapture
+
+    sensor = {"n_pixels": N, "hot_pixels": []}
+    caps = [SimulatedCapture(scene_from_dict({"name": "density", "sensor": sensor,
+                                              "dark_counts": True,
+                                              "ambient": [{"kind": "lux", "lux": lux}]}),
+                             1_000_000, chip_seed=4, seed=seed)
+            for lux, seed in ((3500.0, 1), (1800.0, 2), (900.0, 3), (400.0, 4))]
+    tests = [density_histograms(c) for c in caps]
+    alone = lsb_from_states(tests, 80e-9, inl_rms_lsb=1.0, combine=False)
+    both = lsb_from_states(tests, 80e-9, inl_rms_lsb=1.0)
+    assert alone[5] == both[5] == 0  # the brightest test keeps the INL
+    truth = caps[0].truth["chip"]
+    inl_t, x_t = np.array(truth["inl_window_lsb"]), np.array(truth["x_t"])
+    k = np.arange(512)
+
+    def rms(r):
+        return np.median([np.sqrt(np.mean((r.inl_lsb[t] - inl_t[t])[k < x_t[t] - 1] ** 2))
+                          for t in range(N)])
+
+    assert rms(both[0]) < 0.8 * rms(alone[0]), (rms(both[0]), rms(alone[0]))
+    # beyond the kept test's x_T: finite where the dimmest test measured, and true there
+    dim_x = tests[3][0]
+    x_dim = cal.density_test(dim_x.hits, dim_x.cycles, 80e-9).x_t
+    for t in range(N):
+        span = np.arange(int(np.ceil(x_t[t])) + 1, int(x_dim[t]) - cal.EDGE_MARGIN - 2)
+        assert span.size > 5 and np.all(np.isfinite(both[0].inl_lsb[t, span]))
+        # the true INL there, in the kept test's units (it continues past T)
+        assert np.abs(both[0].inl_lsb[t, span] - inl_t[t, span]).max() < 0.5
+    single = cal.density_test(tests[0][0].hits, tests[0][0].cycles, 80e-9)
+    assert np.all(np.isnan(single.inl_lsb[k[None, :] > single.x_t[:, None]]))
+
+
+def test_lsb_levels_survive_the_calibration_directory(tmp_path):
+    """The levels are saved (meta.json) and the loaded fit interpolates as the saved one;
+    a directory written before them (no levels) falls back to the cubic."""
+    import json
+
+    from pipeline.io.caldir import load_calibration
+    from pipeline.offline.calibrate import write_caldir
+
+    chip = make_chip(N, 4)
+    levels = np.array([0.3, 0.02, 0.15, 0.06, 0.5])  # any order
+    fit = cal.fit_lsb(levels, np.column_stack([chip.window_truth(n, 80e-9)[0] * 1e12
+                                               for n in levels]))
+    dens = _perfect_density(chip, 0.5)
+    second = cal.SecondStage(*(np.full(N, v) for v in (10, 140, 20, 80)))
+    d = write_caldir(tmp_path / "cal", dens, second, [], lsb_fit=fit)
+    back = load_calibration(d).lsb_fit
+    np.testing.assert_array_equal(back.levels, levels)
+    np.testing.assert_allclose(back.lsb_ps(0.1), fit.lsb_ps(0.1), rtol=1e-12)
+    assert np.abs(fit.lsb_ps(0.1) - fit.cubic_ps(0.1)).max() > 1e-3  # not the cubic
+    meta = json.loads((d / "meta.json").read_text())
+    del meta["lsb_poly_x"]["levels"]
+    (d / "meta.json").write_text(json.dumps(meta))
+    old = load_calibration(d).lsb_fit
+    assert old.levels is None
+    np.testing.assert_allclose(old.lsb_ps(0.1), fit.cubic_ps(0.1), rtol=1e-12)
