@@ -28,7 +28,7 @@ from flows.common import new_run_dir, report, scene_dict, simulate
 from pipeline.io.atomic import atomic_path
 from pipeline.io.caldir import load_calibration
 from pipeline.io.capture import Capture
-from pipeline.offline.calibrate import add_delay, lsb_campaign, quality
+from pipeline.offline.calibrate import add_delay, lsb_campaign, over_finite, quality
 from pipeline.report.report import markdown_table
 from schemas.errors import CalibrationError
 
@@ -111,14 +111,6 @@ def plots(candidate: str, fit: dict, run: str) -> list[str]:
     return [str(a), str(b)]
 
 
-def _finite(stat, values) -> float:
-    """``stat`` over the finite values; NaN when there is none (every TDC flagged), said
-    by the value rather than by a numpy warning."""
-    v = np.asarray(values, float)
-    v = v[np.isfinite(v)]
-    return float(stat(v)) if v.size else float("nan")
-
-
 def _truth_check(captures: list, delay_capture, fit: dict,
                  delay_ns: list[float]) -> tuple[str, dict]:
     """Against the simulator's truth (when the captures carry it): LSB error per density
@@ -132,10 +124,10 @@ def _truth_check(captures: list, delay_capture, fit: dict,
     dt = _open(delay_capture).meta.truth
     d_true = dt["delay_ns"] + 2 * np.nan_to_num(np.array(dt["distance_m"], float)) / 0.299792458
     d_err_ps = (np.asarray(delay_ns) - d_true) * 1e3
-    figures = {"lsb_error_rms_ps": _finite(lambda v: np.sqrt(np.mean(v ** 2)), err),
-               "lsb_error_max_ps": _finite(lambda v: np.max(np.abs(v)), err),
-               "delay_error_median_ps": _finite(np.median, d_err_ps),
-               "delay_error_rms_ps": _finite(lambda v: np.sqrt(np.mean(v ** 2)), d_err_ps)}
+    figures = {"lsb_error_rms_ps": over_finite(lambda v: np.sqrt(np.mean(v ** 2)), err),
+               "lsb_error_max_ps": over_finite(lambda v: np.max(np.abs(v)), err),
+               "delay_error_median_ps": over_finite(np.median, d_err_ps),
+               "delay_error_rms_ps": over_finite(lambda v: np.sqrt(np.mean(v ** 2)), d_err_ps)}
     text = (f"LSB against the chip's truth over {err.shape[1]} light levels: RMS error "
             f"{figures['lsb_error_rms_ps']:.3f} ps, worst {figures['lsb_error_max_ps']:.3f} ps."
             f"\nDelay against the truth (system delay + 2 d / c): median error "
@@ -201,7 +193,7 @@ def calibration_campaign(out: str = "data/calibration", lux: list[float] | None 
     truth_text, truth = _truth_check(density_caps, delay_cap, fit, delay_ns)
     tests = pl.DataFrame({"capture": [_label(c) for c in density_caps],
                           "detections_per_pixel_per_cycle": fit["n"],
-                          **{f"lsb_{name}_ps": [_finite(fn, col) for col in
+                          **{f"lsb_{name}_ps": [over_finite(fn, col) for col in
                                                 np.asarray(fit["lsb_ps"], float).T]
                              for name, fn in (("mean", np.mean), ("min", np.min),
                                               ("max", np.max))}})

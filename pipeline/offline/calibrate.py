@@ -18,6 +18,14 @@ from stages.calibration_set import Calibration, time_axis
 from stages.histogram import HistogramAccumulator
 
 
+def over_finite(stat, values) -> float:
+    """``stat`` over the finite values; NaN when there is none (every TDC flagged), said
+    by the value rather than by a numpy warning."""
+    v = np.asarray(values, np.float64)
+    v = v[np.isfinite(v)]
+    return float(stat(v)) if v.size else float("nan")
+
+
 def density_histograms(capture: Capture, progress=None):
     """A uniform-light capture's D1st histograms (artifact words apart, by code) and
     second-stage parameters: two passes, the second stage's bounds first."""
@@ -136,8 +144,9 @@ def lsb_from_states(tests: list, window_s: float, inl_rms_lsb: float = 0.5,
         res = cal.density_test(state.hits, state.cycles, window_s, artifacts=state.artifacts)
         results.append(res)
         if log:
-            log(f"{name}: {np.nanmean(res.detections_per_cycle):.3f} STARTs per "
-                f"pixel per cycle, LSB {np.nanmean(res.lsb_s) * 1e12:.2f} ps (mean)")
+            log(f"{name}: {over_finite(np.mean, res.detections_per_cycle):.3f} STARTs per "
+                f"pixel per cycle, LSB {over_finite(np.mean, res.lsb_s) * 1e12:.2f} ps (mean "
+                f"of {np.isfinite(res.lsb_s).sum()} TDCs)")
     n = np.array([np.nanmean(r.detections_per_cycle) for r in results])
     lsbs = np.column_stack([r.lsb_s * 1e12 for r in results])
     fit = cal.fit_lsb(n, lsbs)
@@ -232,7 +241,10 @@ def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: 
     d = cal.delay_s(t_laser_win_s, window_s - est.t_s)
     # where the return sits: a return partly under the reset peak's mask or at the window's
     # end is biased (fit on one flank), one with a handful of counts is no measurement
-    lsb = np.nanmedian(np.diff(axis.tau_edges_s, axis=1), axis=1)
+    widths = np.diff(axis.tau_edges_s, axis=1)
+    has = np.isfinite(widths).any(axis=1)  # a TDC without a time axis has no width
+    lsb = np.full(state.n_tdc, np.nan)
+    lsb[has] = np.nanmedian(widths[has], axis=1)
     at = code_of(est.t_s, axis.tau_edges_s, np.ones(state.n_tdc, bool))
     reach = DELAY_CLEAR_SIGMAS * sigma / lsb  # codes the return spreads over, each side
     reasons = np.full(state.n_tdc, "", dtype=object)
@@ -310,6 +322,6 @@ def quality(caldir: str | Path) -> Quality:
     return Quality(int(ok.sum()),
                    float(np.nanmedian(calib.density.inl_error_lsb[ok])) if ok.any()
                    else float("inf"),
-                   float(np.sqrt(np.nanmean(resid ** 2))) if resid.ndim == 2
+                   over_finite(lambda v: np.sqrt(np.mean(v ** 2)), resid) if resid.ndim == 2
                    and resid.shape[1] > 4 else float("nan"),
                    calib.has_delay)
