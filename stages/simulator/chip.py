@@ -335,7 +335,7 @@ def random_chip(seed: int | np.random.Generator, n_tdc: int = 16,
     knobs drawn (what a failing sweep reports to reproduce it).
 
     >>> chip, knobs = random_chip(3, n_tdc=4)
-    >>> chip.n_tdc, sorted(knobs) == sorted(ZOO_RANGES)
+    >>> chip.n_tdc, set(ZOO_RANGES) <= set(knobs)
     (4, True)
     """
     r = {**ZOO_RANGES, **(ranges or {})}
