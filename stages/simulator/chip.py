@@ -60,6 +60,8 @@ class Chip:
     reset_offset_ps: float = 0.0
     #: the reset peak's extra spread (the enable edge's jitter, rms ps), over the TDC's own
     reset_jitter_ps: float = 0.0
+    #: the second stage measures time in the VCO cycle (True), not (phase + frac) / 8
+    d2nd_in_time: bool = False
 
     @property
     def n_tdc(self) -> int:
@@ -74,6 +76,20 @@ class Chip:
         """Smallest D2nd a hit with this P1st can have (the wrap at n_max included)."""
         w = self.width
         out = np.empty(self.n_tdc, np.int64)
+        if self.d2nd_in_time:  # over every VCO cycle of the counter
+            b = np.arange(N_CODES + 1)[None, :] + self.inl_lsb
+            c8 = np.arange(0, N_CODES, 8)
+            span = b[:, c8 + 8] - b[:, c8]
+            lo = (b[:, c8 + p1st] - b[:, c8]) / span
+            hi = (b[:, c8 + p1st + 1] - b[:, c8]) / span
+            for t in range(self.n_tdc):
+                e = (self.d2nd_edges[t, :w[t] + 1] if self.d2nd_edges is not None
+                     else np.arange(w[t] + 1) / w[t])
+                m = np.flatnonzero(((e[:-1, None] < hi[t][None, :])
+                                    & (e[1:, None] > lo[t][None, :])).any(axis=1))
+                d2 = self.n_th[t] + m
+                out[t] = np.where(d2 > self.n_max[t], d2 - w[t], d2).min()
+            return out
         if self.d2nd_edges is not None:
             for t in range(self.n_tdc):  # the codes whose fine interval meets p1st's eighth
                 e = self.d2nd_edges[t, :w[t] + 1]
@@ -165,6 +181,8 @@ class Chip:
             out["reset_offset_ps"] = self.reset_offset_ps
         if self.reset_jitter_ps:
             out["reset_jitter_ps"] = self.reset_jitter_ps
+        if self.d2nd_in_time:
+            out["d2nd_in_time"] = True
         return out
 
     def reset_jitter_s(self, detections_per_pixel_per_cycle: float) -> np.ndarray:
@@ -181,7 +199,8 @@ def make_chip(n_tdc: int = 128, rng: np.random.Generator | int | None = 0, *,
               artifact_rate: float = 2.9e-4, artifact_codes=(41, 169, 297),
               n_min_range=(12, 28), width_range=(110, 150), d2nd_dnl: float = 0.0,
               dead_codes: int = 0, lsb_quad_ps: float = 0.0, reset_ns: float | None = None,
-              reset_offset_ps: float = 0.0, reset_jitter_ps: float = 0.0) -> Chip:
+              reset_offset_ps: float = 0.0, reset_jitter_ps: float = 0.0,
+              d2nd_in_time: bool = False) -> Chip:
     """A chip with the thesis's characteristics, drawn from ``rng``.
 
     ``inl_scale = 0`` gives an ideal TDC (uniform codes); ``artifact_rate = 0`` none.
@@ -203,6 +222,10 @@ def make_chip(n_tdc: int = 128, rng: np.random.Generator | int | None = 0, *,
     - ``reset_offset_ps``: a START from the reset period is at tau = T + this (the TDC's
       enable released off the window's opening); 0 is the thesis's chip (tau = T).
     - ``reset_jitter_ps``: extra rms spread of the reset peak (the enable edge's jitter).
+    - ``d2nd_in_time``: the second stage measures the time since the VCO cycle began
+      (its 8 phases as wide as the first stage's INL makes them, PDM where phase 4 starts
+      in time), not ``(phase + frac) / 8`` (every phase an eighth of the block, so a
+      narrow phase's eighth of D2nd codes is sparse: the default, kept for its bytes).
 
     Examples
     --------
@@ -241,7 +264,7 @@ def make_chip(n_tdc: int = 128, rng: np.random.Generator | int | None = 0, *,
     return Chip(lsb0, lsb_light_ps, profile, n_sat, inl, jitter_fwhm_lsb, n_min, n_max,
                 n_th, artifact_rate * prob, np.asarray(artifact_codes, np.int64),
                 edges, float(lsb_quad_ps), dead, None if reset_ns is None else float(reset_ns),
-                float(reset_offset_ps), float(reset_jitter_ps))
+                float(reset_offset_ps), float(reset_jitter_ps), bool(d2nd_in_time))
 
 
 #: First-stage codes a dead code may be (every third: a dead code's neighbours are live).
@@ -281,14 +304,24 @@ def _d2nd_edges(amplitude: float, n_th, n_max, width, rng: np.random.Generator):
     return out
 
 
-def second_stage(chip: Chip, tdc: np.ndarray, code: np.ndarray, frac: np.ndarray) -> np.ndarray:
-    """D2nd of hits: the fine position ((code % 8) + frac) / 8 in the VCO cycle, on the
-    second stage's scale from n_th, wrapping at n_max back to n_min."""
+def second_stage(chip: Chip, tdc: np.ndarray, code: np.ndarray, frac: np.ndarray,
+                 boundaries: np.ndarray | None = None) -> np.ndarray:
+    """D2nd of hits: the fine position ((code % 8) + frac) / 8 in the VCO cycle (in time
+    where ``chip.d2nd_in_time``, on ``boundaries``, the simulator's), on the second
+    stage's scale from n_th, wrapping at n_max back to n_min."""
     w = chip.width[tdc]
-    if chip.d2nd_edges is None:
-        mod = np.minimum(np.floor(((code % 8) + frac) / 8 * w), w - 1).astype(np.int64)
-    else:  # the code whose fine interval holds the position (as the compiled kernel)
+    if chip.d2nd_in_time:
+        b = (np.arange(N_CODES + 1)[None, :] + chip.inl_lsb) if boundaries is None \
+            else boundaries
+        k8 = code - code % 8
+        lo, hi = b[tdc, k8], b[tdc, k8 + 8]
+        f = (b[tdc, code] + frac * (b[tdc, code + 1] - b[tdc, code]) - lo) / (hi - lo)
+        f = np.minimum(np.maximum(f, 0.0), 1.0 - 1e-16)
+    else:
         f = ((code % 8) + frac) / 8
+    if chip.d2nd_edges is None:
+        mod = np.minimum(np.floor(f * w), w - 1).astype(np.int64)
+    else:  # the code whose fine interval holds the position (as the compiled kernel)
         mod = np.empty(f.size, np.int64)
         for t in np.unique(tdc):
             sel = tdc == t
@@ -312,7 +345,7 @@ ZOO_RANGES = {
     "lsb_centre_ps": (185.0, 235.0),
     "lsb_spread_ps": (1.0, 8.0),         # across the array
     "lsb_light_ps": (10.0, 60.0),        # growth with light (section 5.1: up to 40 ps)
-    "n_sat": (0.1, 0.6),                 # light scale of the 1 - exp growth
+    "n_sat": (0.1, 1.5),                 # light scale of the 1 - exp growth (thesis's: 0.25)
     "lsb_quad_ps": (-15.0, 15.0),        # curvature beyond it, ps at n = 1
     "inl_scale": (0.5, 1.3),             # |DNL| stays < 0.55 LSB (clipped)
     "jitter_fwhm_lsb": (0.8, 1.8),       # section 3.2: 1.2
@@ -325,6 +358,7 @@ ZOO_RANGES = {
     "reset_ns": (8.0, 60.0),             # the reset peak's height (thesis's scenes: 20 ns)
     "reset_jitter_ps": (0.0, 150.0),     # the reset peak's extra spread
     "reset_offset_ps": (0.0, 0.0),       # off in the sweep: see docs/simulator.md
+    "d2nd_in_time": (1, 1),              # 1: the second stage measures time (physical)
 }
 
 
@@ -332,7 +366,8 @@ def random_chip(seed: int | np.random.Generator, n_tdc: int = 16,
                 ranges: dict | None = None) -> tuple[Chip, dict]:
     """A chip of the zoo: every knob drawn from ``ranges`` (defaults :data:`ZOO_RANGES`,
     any subset overridden) with a generator seeded by ``seed``. Returns the chip and the
-    knobs drawn (what a failing sweep reports to reproduce it).
+    knobs drawn (what a failing sweep reports to reproduce it). Overriding one range (or
+    fixing a knob, ``(x, x)``) leaves the other knobs of a seed as they were.
 
     >>> chip, knobs = random_chip(3, n_tdc=4)
     >>> chip.n_tdc, set(ZOO_RANGES) <= set(knobs)
@@ -345,7 +380,7 @@ def random_chip(seed: int | np.random.Generator, n_tdc: int = 16,
         lo, hi = r[name]
         if isinstance(lo, int) and isinstance(hi, int):
             return int(rng.integers(lo, hi + 1))
-        return float(rng.uniform(lo, hi)) if hi > lo else float(lo)
+        return float(rng.uniform(lo, hi))  # drawn even when fixed: the others stay put
 
     k = {name: draw(name) for name in r}
     k["width_lo"] = min(k["width_lo"], N_CODES_2ND - 2 - (k["n_min_lo"] + 16) - 40 + 1)
@@ -359,5 +394,6 @@ def random_chip(seed: int | np.random.Generator, n_tdc: int = 16,
         artifact_codes=codes, n_min_range=(k["n_min_lo"], k["n_min_lo"] + 16),
         width_range=(k["width_lo"], k["width_lo"] + 40), d2nd_dnl=k["d2nd_dnl"],
         dead_codes=k["dead_codes"], lsb_quad_ps=k["lsb_quad_ps"], reset_ns=k["reset_ns"],
-        reset_offset_ps=k["reset_offset_ps"], reset_jitter_ps=k["reset_jitter_ps"])
+        reset_offset_ps=k["reset_offset_ps"], reset_jitter_ps=k["reset_jitter_ps"],
+        d2nd_in_time=bool(k["d2nd_in_time"]))
     return chip, k

@@ -395,7 +395,8 @@ if numba is not None:
     def _fast_kernel(index, tdc_ev, e_ev, rng, n_tdc, j_lo, j_hi, m_a, c_a, l_end, de,
                      inv_de, inv, m_sig, tof, bg, inv_sg, k_pdf, start, phi0, window, jitter,
                      period, inv_step, code_tab, bnd, inv_w, n_th, n_min, n_max, johnson,
-                     words, is_artifact, next_live, reset_off, reset_jit, d2_edges):
+                     words, is_artifact, next_live, reset_off, reset_jit, d2_edges,
+                     d2_time):
         n_art = j_lo.shape[1]
         n_inv = inv.shape[1]
         n_g = code_tab.shape[1]
@@ -470,10 +471,19 @@ if numba is not None:
                 frac = min(max(frac, 0.0), 1.0 - 1e-16)
                 w = n_max[t] - n_min[t] + 1
                 # codes are >= 0: & 7 and >> 3 are % 8 and // 8 without Python's sign rules
-                if d2_edges.shape[1] == 0:
-                    mod = min(int(((k & 7) + frac) / 8.0 * w), w - 1)
-                else:  # the zoo's second-stage DNL: searchsorted(edges, f, "right") - 1
+                if d2_time:  # the zoo's second stage in time (as chip.second_stage)
+                    k8 = k - (k & 7)
+                    f = (bnd[t, k] + frac * (bnd[t, k + 1] - bnd[t, k]) - bnd[t, k8]) / (
+                        bnd[t, k8 + 8] - bnd[t, k8])
+                    f = min(max(f, 0.0), 1.0 - 1e-16)
+                else:
                     f = ((k & 7) + frac) / 8.0
+                if d2_edges.shape[1] == 0:
+                    if d2_time:
+                        mod = min(int(f * w), w - 1)
+                    else:
+                        mod = min(int(((k & 7) + frac) / 8.0 * w), w - 1)
+                else:  # the zoo's second-stage DNL: searchsorted(edges, f, "right") - 1
                     a, b = 0, d2_edges.shape[1]
                     while a < b:
                         c = (a + b) // 2
@@ -515,5 +525,6 @@ def fast_chunk_numba(engine: FastEngine, chip: Chip, codes: CodeTable, jitter_s:
                  PHASE_ENCODE.astype(np.int64), words, art, codes.next_live,
                  chip.reset_offset_ps * 1e-12,
                  jitter_s if reset_jitter_s is None else reset_jitter_s,
-                 np.zeros((o.n_tdc, 0)) if chip.d2nd_edges is None else chip.d2nd_edges)
+                 np.zeros((o.n_tdc, 0)) if chip.d2nd_edges is None else chip.d2nd_edges,
+                 bool(chip.d2nd_in_time))
     return art

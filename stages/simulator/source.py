@@ -151,7 +151,7 @@ class Simulator:
             tdc, code, frac = digitize(self.codes, self.jitter, self.optics.window_s, starts,
                                        n, z, self.chip.reset_offset_ps * 1e-12,
                                        self.reset_jitter)
-            d2 = second_stage(self.chip, tdc, code, frac)
+            d2 = second_stage(self.chip, tdc, code, frac, self.boundaries)
             lo = self.chip.n_max[tdc] + 1
             d2 = np.where(art, lo + np.floor(r * (256 - lo)).astype(np.int64), d2)
             words[ev.index] = encode_words(code // 8, code % 8, d2 // 8, d2 % 8, tdc)

@@ -162,3 +162,32 @@ def test_reset_peak_height_position_and_spread():
     assert 2.0 < m_off - m20 < 4.0  # 600 ps is ~3 codes
     _, _, s_wide, _ = peak(dataclasses.replace(base, reset_jitter_ps=300.0))
     assert s_wide > 1.3 * s20
+
+
+def test_second_stage_in_time_is_flat_under_uniform_light():
+    """``d2nd_in_time``: the second stage measures time in the VCO cycle, so uniform light
+    fills its block evenly whatever the first stage's phase widths (the default mapping,
+    (phase + frac) / 8, makes a narrow phase's eighth of the block sparse); Nth is the
+    smallest D2nd at P1st = 0 and PDM (where phase 4 starts, in time) about that at
+    P1st = 4."""
+    spreads = []
+    for in_time in (False, True):
+        chip = make_chip(N, 3, inl_scale=1.3, d2nd_in_time=in_time, artifact_rate=0.0)
+        words, sim = words_of(chip, scene(lux=300.0), 40_000)
+        tdc, d1, d2 = hits_of(chip, words)
+        x_t = chip.window_truth(sim.light, 80e-9)[1]
+        keep = d1 < x_t[tdc] - 10  # away from the reset peak
+        ratio = []
+        for i in range(N):  # hits per eighth of the block, in fine order from Nth
+            w = chip.width[i]
+            mod = (d2[keep & (tdc == i)] - chip.n_th[i]) % w
+            eighth = np.bincount(mod * 8 // w, minlength=8)
+            ratio.append(eighth.min() / np.median(eighth))
+        spreads.append(min(ratio))
+        if in_time:
+            p1 = d1 % 8
+            for i in range(N):
+                assert d2[(tdc == i) & (p1 == 0)].min() == chip.n_th[i]
+                # PDM's truth is over every VCO cycle of the counter, some beyond x_T
+                assert 0 <= d2[(tdc == i) & (p1 == 4)].min() - chip.pdm[i] <= 2
+    assert spreads[0] < 0.65 < 0.75 < spreads[1]
