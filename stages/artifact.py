@@ -94,6 +94,7 @@ MIN_CONTRAST = 8.0      #: block level over artifact density below which a TDC i
 MAX_OUTSIDE = 0.1       #: share of the counts outside the block above which a TDC is ambiguous
 OUTSIDE_CAP = 16.0      #: the fitted artifact density is at most the block's level over this
 MIN_BLOCK_DENSITY = 2.0  #: counts per block code below which the edges are uncertain
+LEVEL_SPAN = 0.25       #: codes above this x the level are the block's, for its median
 
 
 def estimate_bounds(d2nd_hist: np.ndarray) -> ArtifactBounds:
@@ -105,7 +106,8 @@ def estimate_bounds(d2nd_hist: np.ndarray) -> ArtifactBounds:
     far below the block's. The model follows it: each code inside the block has its own
     Poisson rate, anything from ``BLOCK_FLOOR`` times the block's level up (the level: the
     median count of the codes that hold the top half of the mass, block codes whatever the
-    DNL); each side outside has one rate of its own, fitted, at most the level over
+    DNL, and at most twice the block's median: a reset peak's spike can hold half the
+    mass); each side outside has one rate of its own, fitted, at most the level over
     ``OUTSIDE_CAP``. The block is the [a, b] of
     highest profile likelihood, found exactly for all TDCs at once (the likelihood
     separates into a term of a and a term of b, so a running maximum finds the best pair).
@@ -162,6 +164,17 @@ def estimate_bounds(d2nd_hist: np.ndarray) -> ArtifactBounds:
     in_top = np.zeros_like(top)
     np.put_along_axis(in_top, order, top, axis=1)
     level = _masked_median(k, in_top)
+    # ... at most twice the block's median (that of the codes above LEVEL_SPAN of the level,
+    # taken three times: sparse artifact codes stay below): the top half of the mass can
+    # sit on a few codes far above the rest. A bright density test's reset peak (its
+    # STARTs all at tau = T) puts a third of the hits on the eighth of the block its
+    # jitter reaches, 4-6x the other codes: the floor rose above them and the block was
+    # cut (Nmax 228 -> 166 on a chip of the zoo with a 35 ns reset period at 0.75
+    # detections a cycle, issue 15).
+    median = level
+    for _ in range(3):
+        median = _masked_median(k, k >= (LEVEL_SPAN * median)[:, None])
+    level = np.minimum(level, 2.0 * median)
     floor = (BLOCK_FLOOR * level)[:, None]
 
     # a side of m codes holding s counts, at its fitted rate, which the physics caps far

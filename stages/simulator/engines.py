@@ -323,7 +323,9 @@ class CodeTable:
     """Code lookup of every TDC: a uniform grid of tau (1/4 LSB) gives the code at each
     cell's left edge; a cell is narrower than any code (DNL > -0.55 LSB, so codes are wider
     than 0.45 LSB), so it holds at most one boundary and one comparison settles the code.
-    int16 at 4 points per LSB keeps the table at 512 KiB for 128 TDCs (cache-resident)."""
+    int16 at 4 points per LSB keeps the table at 512 KiB for 128 TDCs (cache-resident).
+    A dead code (zero width: the chip zoo's) is never output: crossing a boundary goes to
+    the next live code (``next_live``)."""
 
     def __init__(self, boundaries: np.ndarray, per_lsb: int = 4):
         self.b = boundaries
@@ -334,10 +336,16 @@ class CodeTable:
         self.code = np.empty(grid.shape, np.int16)
         for i in range(n_tdc):  # once per simulation
             self.code[i] = np.searchsorted(boundaries[i], grid[i], side="right") - 1
-        if np.any(np.diff(boundaries, axis=1) <= self.step[:, None]):
+        widths = np.diff(boundaries, axis=1)
+        live = widths > 0
+        if np.any(live & (widths <= self.step[:, None])):
             raise ValueError("a code is narrower than the lookup grid: raise per_lsb")
         self.inv_step = 1.0 / self.step
-        self.inv_width = 1.0 / np.diff(boundaries, axis=1)
+        self.inv_width = np.divide(1.0, widths, out=np.zeros_like(widths), where=live)
+        # the code after k that has a width (k + 1 but past a dead code), per TDC
+        self.next_live = np.tile(np.arange(1, n + 1, dtype=np.int64), (n_tdc, 1))
+        for i, k in zip(*np.nonzero(~live), strict=True):  # the few dead codes
+            self.next_live[i, :k][self.next_live[i, :k] == k] = self.next_live[i, k]
 
     def lookup(self, tdc: np.ndarray, tau: np.ndarray):
         x = np.mod(tau, self.period[tdc])          # the 9-bit counter wraps
@@ -345,24 +353,32 @@ class CodeTable:
         g = np.minimum((x * self.inv_step[tdc]).astype(np.int64), n_g - 1)
         k = self.code.ravel()[tdc * n_g + g].astype(np.int64)
         b = self.b.ravel()
-        k = np.minimum(k + (x >= b[tdc * n_b + np.minimum(k + 1, n_b - 1)]), n_b - 2)
+        cross = x >= b[tdc * n_b + np.minimum(k + 1, n_b - 1)]
+        k = np.minimum(np.where(cross, self.next_live.ravel()[tdc * n_b + k], k), n_b - 2)
         frac = (x - b[tdc * n_b + k]) * self.inv_width.ravel()[tdc * (n_b - 1) + k]
         return k, np.clip(frac, 0.0, np.nextafter(1.0, 0.0))
 
 
 def digitize(codes: CodeTable, jitter_s: np.ndarray, window_s: float, starts: Starts,
-             n_tdc: int, z: np.ndarray):
+             n_tdc: int, z: np.ndarray, reset_offset_s: float = 0.0,
+             reset_jitter_s: np.ndarray | None = None):
     """Codes (D1st) and fractional positions of photon STARTs; artifact codes pass through.
 
     ``tau = window - t`` (reversed timing; a START in the reset period is the window's
-    beginning, tau = window), plus the TDC's Gaussian jitter, then the code whose
-    boundaries hold it; codes wrap at 512 (9 bits).
+    beginning, tau = window, or ``window + reset_offset_s`` on a chip of the zoo), plus the
+    TDC's Gaussian jitter (``reset_jitter_s`` for the reset period's STARTs, where given),
+    then the code whose boundaries hold it; codes wrap at 512 (9 bits).
     """
     tdc = starts.index % n_tdc
     photon = starts.kind == KIND_PHOTON
     t = np.nan_to_num(starts.t_s, nan=0.0)
     tau = window_s - np.clip(t, 0.0, window_s)     # t < 0: the reset period, tau = window
-    tau = np.maximum(tau + z * jitter_s[tdc], 0.0)
+    reset = t < 0
+    if reset_offset_s:
+        tau = np.where(reset, tau + reset_offset_s, tau)
+    jitter = jitter_s[tdc] if reset_jitter_s is None else np.where(
+        reset, reset_jitter_s[tdc], jitter_s[tdc])
+    tau = np.maximum(tau + z * jitter, 0.0)
     code, frac = codes.lookup(tdc, tau)
     return tdc, np.where(photon, code, starts.code), frac
 
@@ -379,7 +395,8 @@ if numba is not None:
     def _fast_kernel(index, tdc_ev, e_ev, rng, n_tdc, j_lo, j_hi, m_a, c_a, l_end, de,
                      inv_de, inv, m_sig, tof, bg, inv_sg, k_pdf, start, phi0, window, jitter,
                      period, inv_step, code_tab, bnd, inv_w, n_th, n_min, n_max, johnson,
-                     words, is_artifact):
+                     words, is_artifact, next_live, reset_off, reset_jit, d2_edges,
+                     d2_time):
         n_art = j_lo.shape[1]
         n_inv = inv.shape[1]
         n_g = code_tab.shape[1]
@@ -437,21 +454,44 @@ if numba is not None:
                     tt = new
                     if done:
                         break
-                tau = window - min(max(tt, 0.0), window)
-                tau = max(tau + rng.standard_normal() * jitter[t], 0.0)
+                if tt < 0.0:  # the reset period: the window's beginning (+ the zoo's offset)
+                    tau = max(window + reset_off + rng.standard_normal() * reset_jit[t], 0.0)
+                else:
+                    tau = window - min(tt, window)
+                    tau = max(tau + rng.standard_normal() * jitter[t], 0.0)
                 x = tau
                 while x >= period[t]:  # the 9-bit counter wraps
                     x -= period[t]
                 g = min(int(x * inv_step[t]), n_g - 1)
                 k = np.int64(code_tab[t, g])
                 if x >= bnd[t, min(k + 1, n_b - 1)]:
-                    k += 1
+                    k = next_live[t, k]
                 k = min(k, n_b - 2)
                 frac = (x - bnd[t, k]) * inv_w[t, k]
                 frac = min(max(frac, 0.0), 1.0 - 1e-16)
                 w = n_max[t] - n_min[t] + 1
                 # codes are >= 0: & 7 and >> 3 are % 8 and // 8 without Python's sign rules
-                mod = min(int(((k & 7) + frac) / 8.0 * w), w - 1)
+                if d2_time:  # the zoo's second stage in time (as chip.second_stage)
+                    k8 = k - (k & 7)
+                    f = (bnd[t, k] + frac * (bnd[t, k + 1] - bnd[t, k]) - bnd[t, k8]) / (
+                        bnd[t, k8 + 8] - bnd[t, k8])
+                    f = min(max(f, 0.0), 1.0 - 1e-16)
+                else:
+                    f = ((k & 7) + frac) / 8.0
+                if d2_edges.shape[1] == 0:
+                    if d2_time:
+                        mod = min(int(f * w), w - 1)
+                    else:
+                        mod = min(int(((k & 7) + frac) / 8.0 * w), w - 1)
+                else:  # the zoo's second-stage DNL: searchsorted(edges, f, "right") - 1
+                    a, b = 0, d2_edges.shape[1]
+                    while a < b:
+                        c = (a + b) // 2
+                        if d2_edges[t, c] <= f:
+                            a = c + 1
+                        else:
+                            b = c
+                    mod = min(max(a - 1, 0), w - 1)
                 d2 = n_th[t] + mod
                 d2 -= w * (d2 > n_max[t])
                 is_artifact[q] = False
@@ -466,7 +506,8 @@ if numba is not None:
 
 
 def fast_chunk_numba(engine: FastEngine, chip: Chip, codes: CodeTable, jitter_s: np.ndarray,
-                     ev: Events, rng: np.random.Generator, words_t: np.ndarray) -> np.ndarray:
+                     ev: Events, rng: np.random.Generator, words_t: np.ndarray,
+                     reset_jitter_s: np.ndarray | None = None) -> np.ndarray:
     """Fill the TDC-major words ``words_t`` (n_tdc, n_cycles) at the STARTs of ``ev``;
     returns which STARTs are artifacts. TDC-major writes are sequential per TDC; the caller
     transposes once (cycle-major scattered writes missed the cache at almost every START).
@@ -481,5 +522,9 @@ def fast_chunk_numba(engine: FastEngine, chip: Chip, codes: CodeTable, jitter_s:
                  o.m_signal, o.tof_s, o.bg_hz, engine.inv_sigma, engine.k_pdf, engine.start,
                  engine.phi0, o.window_s, jitter_s, codes.period, codes.inv_step, codes.code,
                  codes.b, codes.inv_width, chip.n_th, chip.n_min, chip.n_max,
-                 PHASE_ENCODE.astype(np.int64), words, art)
+                 PHASE_ENCODE.astype(np.int64), words, art, codes.next_live,
+                 chip.reset_offset_ps * 1e-12,
+                 jitter_s if reset_jitter_s is None else reset_jitter_s,
+                 np.zeros((o.n_tdc, 0)) if chip.d2nd_edges is None else chip.d2nd_edges,
+                 bool(chip.d2nd_in_time))
     return art

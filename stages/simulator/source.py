@@ -7,6 +7,7 @@ the same bytes however a consumer batches them, and chunks can be drawn in any o
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -97,10 +98,13 @@ class Simulator:
             spad = optics.sigma_s if spad_sigma_s is None else spad_sigma_s
         else:
             raise ValueError("Simulator needs a scene model or optics")
+        if chip.reset_ns is not None:  # the zoo's chip has its own reset period
+            self.optics = dataclasses.replace(self.optics, reset_s=chip.reset_ns * 1e-9)
         self.light = detections_per_pixel_per_cycle(self.optics)
         self.boundaries = chip.boundaries_s(self.light)
         self.codes = CodeTable(self.boundaries)
         self.jitter = chip.jitter_s(self.light)
+        self.reset_jitter = chip.reset_jitter_s(self.light)
         self.engine = (FastEngine(chip, self.optics, self.boundaries) if engine == "fast"
                        else ReferenceEngine(chip, self.optics, self.boundaries, spad))
         self.malformed_rate, self.invalid_rate = malformed_rate, invalid_rate
@@ -138,15 +142,16 @@ class Simulator:
         if starts is None:
             words_t = np.repeat(self._template, n_cycles).reshape(n, n_cycles)
             art = fast_chunk_numba(self.engine, self.chip, self.codes, self.jitter, ev, rng,
-                                   words_t)
+                                   words_t, self.reset_jitter)
             words = np.ascontiguousarray(words_t.T).reshape(-1)
         else:
             words = np.tile(self._template, n_cycles)
             art = starts.kind == KIND_ARTIFACT
             z, r = draw_tails(rng, art)
             tdc, code, frac = digitize(self.codes, self.jitter, self.optics.window_s, starts,
-                                       n, z)
-            d2 = second_stage(self.chip, tdc, code, frac)
+                                       n, z, self.chip.reset_offset_ps * 1e-12,
+                                       self.reset_jitter)
+            d2 = second_stage(self.chip, tdc, code, frac, self.boundaries)
             lo = self.chip.n_max[tdc] + 1
             d2 = np.where(art, lo + np.floor(r * (256 - lo)).astype(np.int64), d2)
             words[ev.index] = encode_words(code // 8, code % 8, d2 // 8, d2 % 8, tdc)
@@ -202,7 +207,8 @@ class Simulator:
             "delay_ns": g.delay_ns, "t_laser_win_ns": g.t_laser_win_ns,
             "detections_per_pixel_per_cycle": self.light,
             "sigma_optical_ps": self.optics.sigma_s * 1e12,
-            "reset_ns": s.reset_ns,
+            "reset_ns": self.optics.reset_s * 1e9 if self.chip.reset_ns is not None
+            else s.reset_ns,
             "class_counts": {name: self.result.class_counts[i].tolist()
                              for i, name in enumerate(WORD_CLASSES)},
             "cycles": self.result.cycles,
