@@ -28,6 +28,8 @@ must know (at 1e-4 artifacts a cycle, ~0.015 LSB of INL).
 
 from __future__ import annotations
 
+import ctypes
+import importlib.util
 import sys
 import threading
 from dataclasses import dataclass
@@ -48,10 +50,10 @@ from schemas.words import (
 from stages.artifact import ArtifactBounds
 from stages.codec import MARKER_MASK, MARKER_VALUE, MAX_TDC, PHASE_DECODE
 
-try:  # numba is a dependency, but the numpy path must work (and is tested) without it
-    import numba
-except ImportError:  # pragma: no cover - exercised only where numba is missing
-    numba = None
+# numba is a dependency, but the numpy path must work (and is tested) without it. It is
+# imported only when a kernel is compiled or the dispatcher is needed: a process whose
+# kernels load from stages.nativecode never imports it (0.5-0.9 s saved at start-up).
+HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 
 ENGINES = ("numba", "numpy")
 #: Words per numpy sub-chunk: ~6 int32 temporaries of this length stay within L2.
@@ -68,7 +70,7 @@ _N_LO, _N_HI = 4, 6
 
 def default_engine() -> str:
     """numba where it is installed, else numpy."""
-    return "numba" if numba is not None else "numpy"
+    return "numba" if HAVE_NUMBA else "numpy"
 
 
 def _state_classes() -> np.ndarray:
@@ -120,6 +122,11 @@ class WordTables:
     @cached_property
     def in_block(self) -> np.ndarray:
         return self.bounds.in_block()
+
+    @cached_property
+    def in_block_u8(self) -> np.ndarray:
+        """``in_block`` as bytes, for the C kernel."""
+        return np.ascontiguousarray(self.in_block, np.uint8)
 
     @cached_property
     def _numpy_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -212,51 +219,57 @@ def _accumulate_numpy(words: np.ndarray, first_word: int, tables: WordTables,
         class_counts[cls] += per_tdc[states == cls].sum(axis=0).astype(np.uint64)
 
 
-if numba is not None:
-    @numba.njit(cache=True, nogil=True)
-    def _kernel(words, pos0, n_tdc, phase, inblock, hits, class_counts, d2mode, offset,
-                arts, count_arts):
-        pos = pos0
-        mask = np.uint32(MARKER_MASK)
-        marker = np.uint32(MARKER_VALUE)
-        for i in range(words.size):
-            w = words[i]
-            addr = (w >> 1) & 0xFF
-            if (w & mask) != marker or addr != pos + offset:
-                cls = MALFORMED
+def _kernel_loop(words, pos0, n_tdc, phase, inblock, hits, class_counts, d2mode, offset,
+                 arts, count_arts):
+    pos = pos0
+    mask = np.uint32(MARKER_MASK)
+    marker = np.uint32(MARKER_VALUE)
+    for i in range(words.size):
+        w = words[i]
+        addr = (w >> 1) & 0xFF
+        if (w & mask) != marker or addr != pos + offset:
+            cls = MALFORMED
+        else:
+            p1 = phase[(w >> 12) & 0xF]
+            p2 = phase[(w >> 22) & 0xF]
+            if p1 < 0 or p2 < 0:
+                cls = INVALID_PHASE
+            elif (w & 0x7FFFF000) == 0:
+                cls = NO_HIT
             else:
-                p1 = phase[(w >> 12) & 0xF]
-                p2 = phase[(w >> 22) & 0xF]
-                if p1 < 0 or p2 < 0:
-                    cls = INVALID_PHASE
-                elif (w & 0x7FFFF000) == 0:
-                    cls = NO_HIT
-                else:
-                    d2 = ((w >> 26) & 0x1F) * 8 + p2
-                    if not inblock[pos, d2]:
-                        cls = ARTIFACT
-                        if count_arts:
-                            if d2mode:
-                                arts[pos, d2] += 1
-                            else:
-                                arts[pos, ((w >> 16) & 0x3F) * 8 + p1] += 1
-                    else:
-                        cls = HIT
+                d2 = ((w >> 26) & 0x1F) * 8 + p2
+                if not inblock[pos, d2]:
+                    cls = ARTIFACT
+                    if count_arts:
                         if d2mode:
-                            hits[pos, d2] += 1
+                            arts[pos, d2] += 1
                         else:
-                            hits[pos, ((w >> 16) & 0x3F) * 8 + p1] += 1
-            class_counts[cls, pos] += 1
-            pos += 1
-            if pos == n_tdc:
-                pos = 0
+                            arts[pos, ((w >> 16) & 0x3F) * 8 + p1] += 1
+                else:
+                    cls = HIT
+                    if d2mode:
+                        hits[pos, d2] += 1
+                    else:
+                        hits[pos, ((w >> 16) & 0x3F) * 8 + p1] += 1
+        class_counts[cls, pos] += 1
+        pos += 1
+        if pos == n_tdc:
+            pos = 0
 
 
 def _accumulate_numba(words, first_word, tables, hits, class_counts, artifacts=None):
     count = artifacts is not None
-    _kernel(words, first_word % tables.n_tdc, tables.n_tdc, PHASE_DECODE,
-            tables.in_block, hits, class_counts, tables.mode == "d2nd", tables.tdc_offset,
-            artifacts if count else np.zeros((1, 1), np.uint64), count)
+    arts = artifacts if count else np.zeros((1, 1), np.uint64)
+    fn = _native("kernel")
+    if fn is not None and all(_plain(a, np.uint64) for a in (hits, class_counts, arts)):
+        fn(words.ctypes.data, words.size, first_word % tables.n_tdc, tables.n_tdc,
+           PHASE_DECODE.ctypes.data, tables.in_block_u8.ctypes.data, hits.ctypes.data,
+           hits.shape[1], class_counts.ctypes.data, tables.mode == "d2nd",
+           tables.tdc_offset, arts.ctypes.data, arts.shape[0], arts.shape[1], count)
+        return
+    _jitted("kernel")(words, first_word % tables.n_tdc, tables.n_tdc, PHASE_DECODE,
+                      tables.in_block, hits, class_counts, tables.mode == "d2nd",
+                      tables.tdc_offset, arts, count)
 
 
 def accumulate(words: np.ndarray, first_word: int, tables: WordTables, hits: np.ndarray,
@@ -282,7 +295,7 @@ def accumulate(words: np.ndarray, first_word: int, tables: WordTables, hits: np.
     words = np.ascontiguousarray(words, dtype=np.uint32)
     engine = engine or default_engine()
     if engine == "numba":
-        if numba is None:
+        if not HAVE_NUMBA:
             raise RuntimeError("engine='numba' requested but numba is not installed")
         _accumulate_numba(words, first_word, tables, hits, class_counts, artifacts)
     elif engine == "numpy":
@@ -328,10 +341,19 @@ def accumulate_self_bounded(words: np.ndarray, first_word: int, n_tdc: int,
     words = np.ascontiguousarray(words, dtype=np.uint32)
     engine = engine or default_engine()
     if engine == "numba":
-        if numba is None:
+        if not HAVE_NUMBA:
             raise RuntimeError("engine='numba' requested but numba is not installed")
-        _self_bounded_kernel(words, first_word % n_tdc, n_tdc, PHASE_DECODE, core_lo, core_hi,
-                             cand, d2nd, edge, class_counts)
+        fn = _native("self_bounded")
+        core_lo = np.ascontiguousarray(core_lo, np.int64)
+        core_hi = np.ascontiguousarray(core_hi, np.int64)
+        if fn is not None and all(_plain(a, np.uint64) for a in (cand, d2nd, edge,
+                                                                  class_counts)):
+            fn(words.ctypes.data, words.size, first_word % n_tdc, n_tdc,
+               PHASE_DECODE.ctypes.data, core_lo.ctypes.data, core_hi.ctypes.data,
+               cand.ctypes.data, d2nd.ctypes.data, edge.ctypes.data, class_counts.ctypes.data)
+        else:
+            _jitted("self_bounded")(words, first_word % n_tdc, n_tdc, PHASE_DECODE, core_lo,
+                                    core_hi, cand, d2nd, edge, class_counts)
     elif engine == "numpy":
         _self_bounded_numpy(words, first_word, n_tdc, core_lo, core_hi, cand, d2nd, edge,
                             class_counts)
@@ -358,37 +380,106 @@ def _self_bounded_numpy(words, first_word, n_tdc, core_lo, core_hi, cand, d2nd, 
         .astype(np.uint64)
     out = (d2 < core_lo[p]) | (d2 > core_hi[p])
     key = (p[out] * N_CODES_2ND + d2[out]) * N_CODES + d1[out]
-    edge.reshape(-1)[:] += np.bincount(key, minlength=edge.size).astype(np.uint64)
+    cells, n = np.unique(key, return_counts=True)  # few: not a bincount over 16.7 M cells
+    edge.reshape(-1)[cells] += n.astype(np.uint64)
 
 
-if numba is not None:
-    @numba.njit(cache=True, nogil=True)
-    def _self_bounded_kernel(words, pos0, n_tdc, phase, core_lo, core_hi, cand, d2nd, edge,
-                             class_counts):
-        pos = pos0
-        mask = np.uint32(MARKER_MASK)
-        marker = np.uint32(MARKER_VALUE)
-        for i in range(words.size):
-            w = words[i]
-            addr = (w >> 1) & 0xFF
-            if (w & mask) != marker or addr != pos:
-                cls = MALFORMED
+def _self_bounded_loop(words, pos0, n_tdc, phase, core_lo, core_hi, cand, d2nd, edge,
+                       class_counts):
+    pos = pos0
+    mask = np.uint32(MARKER_MASK)
+    marker = np.uint32(MARKER_VALUE)
+    for i in range(words.size):
+        w = words[i]
+        addr = (w >> 1) & 0xFF
+        if (w & mask) != marker or addr != pos:
+            cls = MALFORMED
+        else:
+            p1 = phase[(w >> 12) & 0xF]
+            p2 = phase[(w >> 22) & 0xF]
+            if p1 < 0 or p2 < 0:
+                cls = INVALID_PHASE
+            elif (w & 0x7FFFF000) == 0:
+                cls = NO_HIT
             else:
-                p1 = phase[(w >> 12) & 0xF]
-                p2 = phase[(w >> 22) & 0xF]
-                if p1 < 0 or p2 < 0:
-                    cls = INVALID_PHASE
-                elif (w & 0x7FFFF000) == 0:
-                    cls = NO_HIT
-                else:
-                    cls = HIT
-                    d1 = ((w >> 16) & 0x3F) * 8 + p1
-                    d2 = ((w >> 26) & 0x1F) * 8 + p2
-                    cand[pos, d1] += 1
-                    d2nd[pos, d2] += 1
-                    if d2 < core_lo[pos] or d2 > core_hi[pos]:
-                        edge[pos, d2, d1] += 1
-            class_counts[cls, pos] += 1
-            pos += 1
-            if pos == n_tdc:
-                pos = 0
+                cls = HIT
+                d1 = ((w >> 16) & 0x3F) * 8 + p1
+                d2 = ((w >> 26) & 0x1F) * 8 + p2
+                cand[pos, d1] += 1
+                d2nd[pos, d2] += 1
+                if d2 < core_lo[pos] or d2 > core_hi[pos]:
+                    edge[pos, d2, d1] += 1
+        class_counts[cls, pos] += 1
+        pos += 1
+        if pos == n_tdc:
+            pos = 0
+
+
+# --- the numba engine: the loops above, compiled -----------------------------------------
+#
+# The same loop bodies run either as numba-dispatched functions (``_jitted``, numba's cache)
+# or as C callbacks loaded without numba (``_native``, stages.nativecode): arrays go in as
+# pointers and sizes and are rebuilt with ``numba.carray``.
+
+_P, _I = ctypes.c_void_p, ctypes.c_int64
+_ARGTYPES = {
+    # words, n, pos0, n_tdc, phase, inblock(u8), hits, n_bins, class_counts, d2mode,
+    # offset, arts, arts_rows, arts_cols, count_arts
+    "kernel": [_P, _I, _I, _I, _P, _P, _P, _I, _P, _I, _I, _P, _I, _I, _I],
+    # words, n, pos0, n_tdc, phase, core_lo, core_hi, cand, d2nd, edge, class_counts
+    "self_bounded": [_P, _I, _I, _I, _P, _P, _P, _P, _P, _P, _P],
+}
+_LOOPS = {"kernel": _kernel_loop, "self_bounded": _self_bounded_loop}
+_JITTED: dict = {}
+
+
+def _plain(a: np.ndarray, dtype) -> bool:
+    return a.dtype == dtype and a.flags.c_contiguous and a.flags.writeable
+
+
+def _jitted(name: str):
+    """The loop ``name`` through numba's dispatcher (and numba's on-disk cache)."""
+    fn = _JITTED.get(name)
+    if fn is None:
+        import numba
+
+        fn = _JITTED[name] = numba.njit(cache=True, nogil=True)(_LOOPS[name])
+    return fn
+
+
+def _native(name: str):
+    """The loop ``name`` as a C kernel loaded without numba, or None (then ``_jitted``)."""
+    from stages import nativecode
+
+    return nativecode.kernel(name, __file__, _ARGTYPES[name], lambda: _build(name))
+
+
+def _build(name: str):
+    import numba
+    from numba import carray, types
+
+    loop = numba.njit(nogil=True)(_LOOPS[name])
+    p = types.CPointer
+    u32, u64, i64, i8, u8 = types.uint32, types.uint64, types.int64, types.int8, types.uint8
+    if name == "kernel":
+        sig = types.void(p(u32), i64, i64, i64, p(i8), p(u8), p(u64), i64, p(u64), i64,
+                         i64, p(u64), i64, i64, i64)
+
+        def c_kernel(w, n, pos0, n_tdc, phase, inblock, hits, n_bins, cc, d2mode, offset,
+                     arts, arts_rows, arts_cols, count_arts):
+            loop(carray(w, (n,)), pos0, n_tdc, carray(phase, (16,)),
+                 carray(inblock, (n_tdc, N_CODES_2ND)), carray(hits, (n_tdc, n_bins)),
+                 carray(cc, (N_CLASSES, n_tdc)), d2mode != 0, offset,
+                 carray(arts, (arts_rows, arts_cols)), count_arts != 0)
+
+        return numba.cfunc(sig, nopython=True)(c_kernel)
+    sig = types.void(p(u32), i64, i64, i64, p(i8), p(i64), p(i64), p(u64), p(u64), p(u64),
+                     p(u64))
+
+    def c_self_bounded(w, n, pos0, n_tdc, phase, lo, hi, cand, d2nd, edge, cc):
+        loop(carray(w, (n,)), pos0, n_tdc, carray(phase, (16,)), carray(lo, (n_tdc,)),
+             carray(hi, (n_tdc,)), carray(cand, (n_tdc, N_CODES)),
+             carray(d2nd, (n_tdc, N_CODES_2ND)), carray(edge, (n_tdc, N_CODES_2ND, N_CODES)),
+             carray(cc, (N_CLASSES, n_tdc)))
+
+    return numba.cfunc(sig, nopython=True)(c_self_bounded)

@@ -240,6 +240,7 @@ class SelfBoundingHistogram:
         # (n_tdc, 256, 512) uint64: 134 MB of address space for 128 TDCs, pages touched only
         # where edge words land
         self._edge = np.zeros((n_tdc, N_CODES_2ND, N_CODES), np.uint64)
+        self._edges = [self._edge]  # with those of merged forks, summed only where needed
         self._class_counts = np.zeros((N_CLASSES, n_tdc), np.uint64)
         self._words = 0
         self._core: tuple[np.ndarray, np.ndarray] | None = None
@@ -256,10 +257,39 @@ class SelfBoundingHistogram:
                                 self._d2nd, self._edge, self._class_counts, self.engine)
         self._words += words.size
 
+    def fork(self) -> SelfBoundingHistogram:
+        """An empty accumulator with this one's provisional cores (set by its first
+        update), for other words of the same capture, e.g. in another thread (the
+        kernels release the GIL); fold it back with :meth:`merge`. Give ``first_word``
+        to every update of a fork."""
+        if self._core is None:
+            raise ValueError("fork() needs the provisional cores: update() first")
+        other = SelfBoundingHistogram(self.n_tdc, self.engine, self.margin,
+                                      self.count_artifacts)
+        other._core = self._core
+        return other
+
+    def merge(self, other: SelfBoundingHistogram) -> None:
+        """Fold a fork's counts into this accumulator (the sum of the parts of a split
+        stream; the edge counts are summed at :meth:`finish`, where they are needed)."""
+        if other._core is not self._core:
+            raise ValueError("merge() takes a fork of this accumulator")
+        self._cand += other._cand
+        self._d2nd += other._d2nd
+        self._class_counts += other._class_counts
+        self._edges += other._edges
+        self._words += other._words
+
     def _provisional_core(self, words, start):
-        probe = HistogramAccumulator(self.n_tdc, engine=self.engine, mode="d2nd")
-        probe.update(words, start)
-        b = estimate_bounds(probe.snapshot().hits)
+        # the candidates' D2nd histogram of this batch, from the same kernel with a core
+        # that spans every code (so no edge word is kept)
+        d2nd = np.zeros_like(self._d2nd)
+        accumulate_self_bounded(words.ravel(), start, self.n_tdc,
+                                np.zeros(self.n_tdc, np.int64),
+                                np.full(self.n_tdc, N_CODES_2ND - 1, np.int64),
+                                np.zeros_like(self._cand), d2nd, self._edge,
+                                np.zeros_like(self._class_counts), self.engine)
+        b = estimate_bounds(d2nd)
         lo = b.n_min.astype(np.int64) + self.margin
         hi = b.n_max.astype(np.int64) - self.margin
         empty = b.uncertain | (lo > hi)
@@ -276,8 +306,11 @@ class SelfBoundingHistogram:
         inside = core_empty | ((bounds.n_min <= lo) & (hi <= bounds.n_max))
         if not inside.all():
             return None, bounds
-        outside = ~bounds.in_block()
-        arts = np.stack([self._edge[t][outside[t]].sum(axis=0) for t in range(self.n_tdc)]) \
+        # edge rows are read only where they can hold a count: outside the bounds, and
+        # where some candidate had that D2nd (an untouched row is a page never faulted in)
+        outside = ~bounds.in_block() & (self._d2nd > 0)
+        arts = np.stack([sum(e[t][outside[t]].sum(axis=0) for e in self._edges)
+                         for t in range(self.n_tdc)]) \
             if self.n_tdc else np.zeros((0, N_CODES), np.uint64)
         arts = arts.astype(np.uint64)
         cc = self._class_counts.copy()

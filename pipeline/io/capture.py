@@ -25,6 +25,9 @@ VERSION = 1
 #: Words per read: 4 MiB, well inside the bounded-memory budget and large enough to
 #: amortise per-call overhead.
 CHUNK_WORDS = 1 << 20
+#: Buffers :meth:`Capture.iter_chunks` cycles through: a chunk it yielded stays valid
+#: until this many less one further chunks are read (16 MiB at the default chunk size).
+CHUNK_RING = 4
 
 
 @dataclass(frozen=True)
@@ -94,6 +97,10 @@ class Capture:
         When True (the default), a word count that disagrees with ``cycles * n_tdc`` in
         the sidecar is an error; when False, the file's own length is used.
     """
+
+    #: a view :meth:`iter_chunks` yielded stays valid while this many less one further
+    #: chunks are read
+    chunk_ring = CHUNK_RING
 
     def __init__(self, path: str | os.PathLike, strict: bool = True):
         self.bin_path, self.json_path = capture_paths(path)
@@ -186,16 +193,19 @@ class Capture:
     def iter_chunks(self, chunk_words: int = CHUNK_WORDS) -> Iterator[tuple[int, np.ndarray]]:
         """Yield ``(first_word, words)`` over the whole capture in arrival order.
 
-        ``words`` is a view of one reused buffer (native uint32): use it before asking
-        for the next chunk, or copy it. Chunks are whole cycles where the file allows.
+        ``words`` is a view of one of :data:`CHUNK_RING` reused buffers (native uint32):
+        it stays valid until ``CHUNK_RING - 1`` more chunks have been asked for (so a
+        caller may hand a few chunks to other threads), then it is overwritten; copy it
+        to keep it. Chunks are whole cycles where the file allows.
         """
         n_tdc = self.meta.n_tdc
         chunk_words = max(n_tdc, chunk_words // n_tdc * n_tdc)
-        buf = np.empty(chunk_words, np.uint32)
+        ring = [np.empty(min(chunk_words, self.n_words), np.uint32)
+                for _ in range(min(CHUNK_RING, -(-self.n_words // chunk_words)))]
         with self._open() as fh:
-            for first in range(0, self.n_words, chunk_words):
+            for i, first in enumerate(range(0, self.n_words, chunk_words)):
                 n = min(chunk_words, self.n_words - first)
-                view = buf[:n]
+                view = ring[i % len(ring)][:n]
                 self._readinto(fh, view)
                 yield first, view
 

@@ -1,0 +1,139 @@
+"""Compiled kernels that load in milliseconds: numba's machine code, kept as an object file
+and mapped with llvmlite alone.
+
+numba's own cache (``cache=True``) saves the compile, not the start-up: a fresh process
+pays numba's import (0.16-0.32 s on the 2-core VM) and, at a kernel's first call, its
+typing and lowering registries (0.36-0.6 s) before the first word, which on a 100 M-word
+capture is as long as the loop itself. Here numba compiles a kernel once as a C callback
+(pointers and sizes in, nothing out: no Python object, no allocation, nothing that can
+raise), the object code is written beside numba's cache, and every later process loads it
+with llvmlite's MCJIT (what numba itself does with its cache, less numba) and calls it
+through ctypes, which releases the GIL. The entry is keyed by the kernel's source module,
+numba, llvmlite, Python and the host CPU; any failure falls back to numba's dispatcher,
+which runs the same kernel body (the tests hold both to the numpy twin).
+
+Environment: ``TCSPC_NATIVE=0`` turns this off (numba's dispatcher only).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import json
+import os
+import sys
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+# A C callback's object code declares the helpers of its error path (numba's GIL and
+# exception helpers), which these kernels never take (they cannot raise): where the
+# process does not define one, it is bound to abort(), never to be called.
+_lock = threading.Lock()
+_engines: list = []  # one MCJIT engine per loaded kernel, kept for the process
+_loaded: dict[str, Callable | None] = {}
+#: why a kernel could not be had natively (name -> error), for diagnostics and tests
+failures: dict[str, str] = {}
+
+
+def enabled() -> bool:
+    return os.environ.get("TCSPC_NATIVE", "1") != "0"
+
+
+def _cache_dir(module_file: str) -> Path | None:
+    """numba's cache directory for a module: NUMBA_CACHE_DIR, else its __pycache__."""
+    env = os.environ.get("NUMBA_CACHE_DIR")
+    d = Path(env) if env else Path(module_file).parent / "__pycache__"
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    return d if os.access(d, os.W_OK) else None
+
+
+def _key(name: str, module_file: str, ll) -> str:
+    import importlib.util
+
+    import llvmlite
+
+    h = hashlib.sha256()
+    h.update(Path(module_file).read_bytes())
+    # numba's version file, read rather than imported (importlib.metadata costs 40 ms)
+    spec = importlib.util.find_spec("numba")
+    h.update(Path(spec.origin).with_name("_version.py").read_bytes())
+    for part in (name, llvmlite.__version__, sys.version,
+                 ll.get_process_triple(), ll.get_host_cpu_name(),
+                 ll.get_host_cpu_features().flatten()):
+        h.update(part.encode() + b"\0")
+    return h.hexdigest()[:20]
+
+
+def _binding():
+    import llvmlite.binding as ll
+
+    ll.initialize_native_target()
+    ll.initialize_native_asmprinter()
+    return ll
+
+
+def _map(ll, obj: bytes, symbol: str, undefined: list[str], argtypes) -> Callable:
+    abort = ctypes.cast(ctypes.CDLL(None).abort, ctypes.c_void_p).value
+    for sym in undefined:
+        if not sym.startswith("llvm.") and not ll.address_of_symbol(sym):
+            ll.add_symbol(sym, abort)
+    tm = ll.Target.from_default_triple().create_target_machine()
+    engine = ll.create_mcjit_compiler(ll.parse_assembly(""), tm)
+    _engines.append(engine)
+    engine.add_object_file(ll.ObjectFileRef.from_data(obj))
+    engine.finalize_object()
+    addr = engine.get_function_address(symbol)
+    if not addr:
+        raise RuntimeError(f"{symbol} not found in its object code")
+    return ctypes.CFUNCTYPE(None, *argtypes)(addr)
+
+
+def kernel(name: str, module_file: str, argtypes: list, build: Callable) -> Callable | None:
+    """The C kernel ``name`` as a ctypes function, or None where it cannot be had.
+
+    ``build()`` compiles it (numba imported then) and returns ``numba.cfunc``'s result;
+    ``argtypes`` are the ctypes types of its arguments (pointers as ``c_void_p``).
+    """
+    if not enabled():
+        return None
+    with _lock:
+        if name in _loaded:
+            return _loaded[name]
+        fn = None
+        try:
+            ll = _binding()
+            d = _cache_dir(module_file)
+            key = _key(name, module_file, ll)
+            base = d / f"{Path(module_file).stem}.{name}-{key}" if d else None
+            obj_path, info_path = (None, None) if base is None else (
+                base.with_name(base.name + ".o"), base.with_name(base.name + ".json"))
+            if info_path is not None and info_path.is_file():
+                info = json.loads(info_path.read_text())
+                obj = obj_path.read_bytes()
+            else:
+                cf = build()
+                lib = cf._library
+                # the object code numba's own cache would hold (its JIT target machine)
+                obj = lib._codegen._tm.emit_object(lib._final_module)
+                info = {"symbol": cf.native_name,
+                        "undefined": sorted(f.name for f in lib._final_module.functions
+                                            if f.is_declaration)}
+                if base is not None:  # object first, then the index: a reader sees both
+                    _write(obj_path, obj)
+                    _write(info_path, json.dumps(info).encode())
+            fn = _map(ll, obj, info["symbol"], info["undefined"], argtypes)
+        except Exception as exc:  # noqa: BLE001 - any failure: numba's dispatcher instead
+            failures[name] = f"{type(exc).__name__}: {exc}"
+            fn = None
+        _loaded[name] = fn
+        return fn
+
+
+def _write(path: Path, data: bytes) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{threading.get_ident()}")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
