@@ -312,13 +312,30 @@ def accumulate(words: np.ndarray, first_word: int, tables: WordTables, hits: np.
 # hits, 59 at 30 %, one core: cache misses). Instead: every candidate (a word that is
 # neither malformed, invalid nor no_hit) is counted by D1st and by D2nd, both small tables,
 # and only candidates whose D2nd lies outside a provisional core of each TDC's block (from
-# the capture's first chunk, shrunk by a margin) are also counted jointly. The final
+# the capture's first chunk, shrunk by a margin) are also kept: the edge words. The final
 # bounds come from the whole D2nd marginal; when each contains its TDC's core, the hits
-# are the candidates less the joint counts outside the bounds, exactly.
+# are the candidates less the edge words outside the bounds, exactly.
+#
+# The edge words (the artifact and the core's margins: ~1 % of the words) are kept as keys
+# ``(tdc * 256 + D2nd) * 512 + D1st`` in a buffer, not counted in a dense (tdc, D2nd, D1st)
+# table: that table's 134 MB are touched sparsely, and each touch faulted in a zeroed page
+# (a 2 MiB one where numpy asks for huge pages): 30-250 ms per table, per thread, on a
+# capture whose edge words were 7 500. The dense table takes only the keys that do not
+# fit in the buffer (a dark capture, where every candidate is an edge word).
+
+#: edge-word keys a buffer holds before the dense table takes the rest (32 MiB)
+EDGE_KEYS = 1 << 23
+
+
+def edge_key(tdc, d2nd, d1st):
+    """The key of an edge word (see the comment above)."""
+    return (tdc * N_CODES_2ND + d2nd) * N_CODES + d1st
+
 
 def accumulate_self_bounded(words: np.ndarray, first_word: int, n_tdc: int,
                             core_lo: np.ndarray, core_hi: np.ndarray, cand: np.ndarray,
-                            d2nd: np.ndarray, edge: np.ndarray, class_counts: np.ndarray,
+                            d2nd: np.ndarray, keys: np.ndarray, fill: np.ndarray,
+                            edge: np.ndarray, class_counts: np.ndarray,
                             engine: str | None = None) -> None:
     """Fold ``words`` into the one-pass state in place (see the comment above).
 
@@ -333,36 +350,44 @@ def accumulate_self_bounded(words: np.ndarray, first_word: int, n_tdc: int,
         Candidates by D1st.
     d2nd : uint64 (n_tdc, 256)
         Candidates by D2nd.
+    keys : uint32 (capacity,), fill : int64 (1,)
+        Edge words by :func:`edge_key`, ``keys[:fill[0]]`` used.
     edge : uint64 (n_tdc, 256, 512)
-        Candidates outside the core, by (D2nd, D1st).
+        Edge words that found the buffer full, by (D2nd, D1st); any array when ``fill[0] +
+        words.size <= keys.size`` (then none can).
     class_counts : uint64 (N_CLASSES, n_tdc)
         Malformed, invalid_phase and no_hit as usual; every candidate under ``HIT``.
     """
     words = np.ascontiguousarray(words, dtype=np.uint32)
+    core_lo = np.ascontiguousarray(core_lo, np.int64)
+    core_hi = np.ascontiguousarray(core_hi, np.int64)
+    if fill[0] + words.size > keys.size and edge.shape != (n_tdc, N_CODES_2ND, N_CODES):
+        raise ValueError("the key buffer may fill up: edge must be (n_tdc, 256, 512)")
     engine = engine or default_engine()
     if engine == "numba":
         if not HAVE_NUMBA:
             raise RuntimeError("engine='numba' requested but numba is not installed")
         fn = _native("self_bounded")
-        core_lo = np.ascontiguousarray(core_lo, np.int64)
-        core_hi = np.ascontiguousarray(core_hi, np.int64)
         if fn is not None and all(_plain(a, np.uint64) for a in (cand, d2nd, edge,
-                                                                  class_counts)):
+                                                                  class_counts)) \
+                and _plain(keys, np.uint32) and _plain(fill, np.int64):
             fn(words.ctypes.data, words.size, first_word % n_tdc, n_tdc,
                PHASE_DECODE.ctypes.data, core_lo.ctypes.data, core_hi.ctypes.data,
-               cand.ctypes.data, d2nd.ctypes.data, edge.ctypes.data, class_counts.ctypes.data)
+               cand.ctypes.data, d2nd.ctypes.data, keys.ctypes.data, keys.size,
+               fill.ctypes.data, edge.ctypes.data, edge.shape[0], edge.shape[1],
+               edge.shape[2], class_counts.ctypes.data)
         else:
             _jitted("self_bounded")(words, first_word % n_tdc, n_tdc, PHASE_DECODE, core_lo,
-                                    core_hi, cand, d2nd, edge, class_counts)
+                                    core_hi, cand, d2nd, keys, fill, edge, class_counts)
     elif engine == "numpy":
-        _self_bounded_numpy(words, first_word, n_tdc, core_lo, core_hi, cand, d2nd, edge,
-                            class_counts)
+        _self_bounded_numpy(words, first_word, n_tdc, core_lo, core_hi, cand, d2nd, keys,
+                            fill, edge, class_counts)
     else:
         raise ValueError(f"engine must be one of {ENGINES}, found {engine!r}")
 
 
-def _self_bounded_numpy(words, first_word, n_tdc, core_lo, core_hi, cand, d2nd, edge,
-                        class_counts):
+def _self_bounded_numpy(words, first_word, n_tdc, core_lo, core_hi, cand, d2nd, keys, fill,
+                        edge, class_counts):
     from stages.codec import classify_words, decode_fields
 
     f = decode_fields(words)
@@ -379,16 +404,23 @@ def _self_bounded_numpy(words, first_word, n_tdc, core_lo, core_hi, cand, d2nd, 
     d2nd += np.bincount(p * N_CODES_2ND + d2, minlength=d2nd.size).reshape(d2nd.shape) \
         .astype(np.uint64)
     out = (d2 < core_lo[p]) | (d2 > core_hi[p])
-    key = (p[out] * N_CODES_2ND + d2[out]) * N_CODES + d1[out]
-    cells, n = np.unique(key, return_counts=True)  # few: not a bincount over 16.7 M cells
-    edge.reshape(-1)[cells] += n.astype(np.uint64)
+    key = edge_key(p[out], d2[out], d1[out])
+    n0 = int(fill[0])
+    room = min(key.size, keys.size - n0)  # in word order, as the loop fills it
+    keys[n0:n0 + room] = key[:room]
+    fill[0] = n0 + room
+    if room < key.size:
+        cells, n = np.unique(key[room:], return_counts=True)
+        edge.reshape(-1)[cells] += n.astype(np.uint64)
 
 
-def _self_bounded_loop(words, pos0, n_tdc, phase, core_lo, core_hi, cand, d2nd, edge,
-                       class_counts):
+def _self_bounded_loop(words, pos0, n_tdc, phase, core_lo, core_hi, cand, d2nd, keys, fill,
+                       edge, class_counts):
     pos = pos0
     mask = np.uint32(MARKER_MASK)
     marker = np.uint32(MARKER_VALUE)
+    nk = fill[0]
+    cap = keys.size
     for i in range(words.size):
         w = words[i]
         addr = (w >> 1) & 0xFF
@@ -408,11 +440,16 @@ def _self_bounded_loop(words, pos0, n_tdc, phase, core_lo, core_hi, cand, d2nd, 
                 cand[pos, d1] += 1
                 d2nd[pos, d2] += 1
                 if d2 < core_lo[pos] or d2 > core_hi[pos]:
-                    edge[pos, d2, d1] += 1
+                    if nk < cap:
+                        keys[nk] = (pos * 256 + d2) * 512 + d1
+                        nk += 1
+                    else:
+                        edge[pos, d2, d1] += 1
         class_counts[cls, pos] += 1
         pos += 1
         if pos == n_tdc:
             pos = 0
+    fill[0] = nk
 
 
 # --- the numba engine: the loops above, compiled -----------------------------------------
@@ -426,8 +463,9 @@ _ARGTYPES = {
     # words, n, pos0, n_tdc, phase, inblock(u8), hits, n_bins, class_counts, d2mode,
     # offset, arts, arts_rows, arts_cols, count_arts
     "kernel": [_P, _I, _I, _I, _P, _P, _P, _I, _P, _I, _I, _P, _I, _I, _I],
-    # words, n, pos0, n_tdc, phase, core_lo, core_hi, cand, d2nd, edge, class_counts
-    "self_bounded": [_P, _I, _I, _I, _P, _P, _P, _P, _P, _P, _P],
+    # words, n, pos0, n_tdc, phase, core_lo, core_hi, cand, d2nd, keys, capacity, fill,
+    # edge, edge dims (3), class_counts
+    "self_bounded": [_P, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I, _P, _P, _I, _I, _I, _P],
 }
 _LOOPS = {"kernel": _kernel_loop, "self_bounded": _self_bounded_loop}
 _JITTED: dict = {}
@@ -473,13 +511,14 @@ def _build(name: str):
                  carray(arts, (arts_rows, arts_cols)), count_arts != 0)
 
         return numba.cfunc(sig, nopython=True)(c_kernel)
-    sig = types.void(p(u32), i64, i64, i64, p(i8), p(i64), p(i64), p(u64), p(u64), p(u64),
-                     p(u64))
+    sig = types.void(p(u32), i64, i64, i64, p(i8), p(i64), p(i64), p(u64), p(u64), p(u32),
+                     i64, p(i64), p(u64), i64, i64, i64, p(u64))
 
-    def c_self_bounded(w, n, pos0, n_tdc, phase, lo, hi, cand, d2nd, edge, cc):
+    def c_self_bounded(w, n, pos0, n_tdc, phase, lo, hi, cand, d2nd, keys, capacity, fill,
+                       edge, e0, e1, e2, cc):
         loop(carray(w, (n,)), pos0, n_tdc, carray(phase, (16,)), carray(lo, (n_tdc,)),
              carray(hi, (n_tdc,)), carray(cand, (n_tdc, N_CODES)),
-             carray(d2nd, (n_tdc, N_CODES_2ND)), carray(edge, (n_tdc, N_CODES_2ND, N_CODES)),
-             carray(cc, (N_CLASSES, n_tdc)))
+             carray(d2nd, (n_tdc, N_CODES_2ND)), carray(keys, (capacity,)),
+             carray(fill, (1,)), carray(edge, (e0, e1, e2)), carray(cc, (N_CLASSES, n_tdc)))
 
     return numba.cfunc(sig, nopython=True)(c_self_bounded)

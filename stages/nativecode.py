@@ -21,14 +21,37 @@ import ctypes
 import hashlib
 import json
 import os
+import re
 import sys
 import threading
 from collections.abc import Callable
 from pathlib import Path
 
-# A C callback's object code declares the helpers of its error path (numba's GIL and
-# exception helpers), which these kernels never take (they cannot raise): where the
-# process does not define one, it is bound to abort(), never to be called.
+# A C callback's code declares the helpers of its error path (numba's GIL and exception
+# helpers, NRT's destructor call), which these kernels never take (they cannot raise, and
+# their arrays own no memory). Those declarations get bodies that trap, internal to the
+# object: it then needs nothing numba would provide, and nothing is added to the process's
+# symbol table (which numba's own JIT reads: a stub there would be called by numba's code).
+_DECLARE = re.compile(r"^declare (.*?) (@\S+?)\((.*)\)(.*)$")
+
+
+def _self_contained(ir: str) -> str:
+    """``ir`` with every non-intrinsic declaration defined as a trap."""
+    lines, trap = [], False
+    for line in ir.splitlines():
+        m = _DECLARE.match(line)
+        if m and not m.group(2).lstrip("@\"").startswith("llvm."):
+            ret, name, params, rest = m.groups()
+            lines += [f"define internal {ret} {name}({params}){rest} {{",
+                      "  call void @llvm.trap()", "  unreachable", "}"]
+            trap = True
+        else:
+            lines.append(line)
+    if trap and "@llvm.trap()" not in ir:
+        lines.append("declare void @llvm.trap()")
+    return "\n".join(lines) + "\n"
+
+
 _lock = threading.Lock()
 _engines: list = []  # one MCJIT engine per loaded kernel, kept for the process
 _loaded: dict[str, Callable | None] = {}
@@ -58,6 +81,7 @@ def _key(name: str, module_file: str, ll) -> str:
 
     h = hashlib.sha256()
     h.update(Path(module_file).read_bytes())
+    h.update(Path(__file__).read_bytes())
     # numba's version file, read rather than imported (importlib.metadata costs 40 ms)
     spec = importlib.util.find_spec("numba")
     h.update(Path(spec.origin).with_name("_version.py").read_bytes())
@@ -76,11 +100,7 @@ def _binding():
     return ll
 
 
-def _map(ll, obj: bytes, symbol: str, undefined: list[str], argtypes) -> Callable:
-    abort = ctypes.cast(ctypes.CDLL(None).abort, ctypes.c_void_p).value
-    for sym in undefined:
-        if not sym.startswith("llvm.") and not ll.address_of_symbol(sym):
-            ll.add_symbol(sym, abort)
+def _map(ll, obj: bytes, symbol: str, argtypes) -> Callable:
     tm = ll.Target.from_default_triple().create_target_machine()
     engine = ll.create_mcjit_compiler(ll.parse_assembly(""), tm)
     _engines.append(engine)
@@ -117,15 +137,15 @@ def kernel(name: str, module_file: str, argtypes: list, build: Callable) -> Call
             else:
                 cf = build()
                 lib = cf._library
-                # the object code numba's own cache would hold (its JIT target machine)
-                obj = lib._codegen._tm.emit_object(lib._final_module)
-                info = {"symbol": cf.native_name,
-                        "undefined": sorted(f.name for f in lib._final_module.functions
-                                            if f.is_declaration)}
+                mod = ll.parse_assembly(_self_contained(str(lib._final_module)))
+                mod.verify()
+                # object code as numba's own cache holds it (numba's JIT target machine)
+                obj = lib._codegen._tm.emit_object(mod)
+                info = {"symbol": cf.native_name}
                 if base is not None:  # object first, then the index: a reader sees both
                     _write(obj_path, obj)
                     _write(info_path, json.dumps(info).encode())
-            fn = _map(ll, obj, info["symbol"], info["undefined"], argtypes)
+            fn = _map(ll, obj, info["symbol"], argtypes)
         except Exception as exc:  # noqa: BLE001 - any failure: numba's dispatcher instead
             failures[name] = f"{type(exc).__name__}: {exc}"
             fn = None

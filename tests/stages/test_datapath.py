@@ -128,3 +128,38 @@ def test_bad_arguments():
     with pytest.raises(ValueError, match="engine must be one of"):
         accumulate(np.zeros(4, np.uint32), 0, t, np.zeros((4, 512), np.uint64),
                    np.zeros((5, 4), np.uint64), "cuda")
+
+
+@pytest.mark.parametrize("kernel", ["kernel", "self_bounded"])
+def test_the_numba_engine_loads_natively_and_both_ways_agree(kernel, rng, monkeypatch):
+    """The numba engine's loops run as C kernels loaded without numba (stages.nativecode)
+    or through numba's dispatcher: the same results, the numpy twin's."""
+    import stages.datapath as dp
+    from stages import nativecode
+
+    assert dp._native(kernel) is not None, nativecode.failures.get(kernel)
+    n = 16
+    words = corrupt(pattern_words(3000, n, hit_prob=0.3, artifact_prob=0.02, rng=3)[0],
+                    rng, 0.02)
+    bounds = ArtifactBounds(np.full(n, 20), np.full(n, 150))
+
+    def once(engine):
+        if kernel == "kernel":
+            t = WordTables(n, bounds)
+            out = (np.zeros((n, 512), np.uint64), np.zeros((N_CLASSES, n), np.uint64),
+                   np.zeros((n, 512), np.uint64))
+            accumulate(words, 5, t, out[0], out[1], engine, out[2])
+            return out
+        out = (np.zeros((n, 512), np.uint64), np.zeros((n, 256), np.uint64),
+               np.zeros(4000, np.uint32), np.zeros(1, np.int64),
+               np.zeros((n, 256, 512), np.uint64), np.zeros((N_CLASSES, n), np.uint64))
+        dp.accumulate_self_bounded(words, 5, n, np.full(n, 40), np.full(n, 120), *out[:6],
+                                   engine)
+        return out
+
+    native = once("numba")
+    monkeypatch.setattr(dp, "_native", lambda name: None)
+    dispatched = once("numba")
+    twin = once("numpy")
+    for a, b, c in zip(native, dispatched, twin, strict=True):
+        assert np.array_equal(a, b) and np.array_equal(a, c)
