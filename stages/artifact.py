@@ -213,7 +213,8 @@ def _xlogy(x, y) -> np.ndarray:
     ym = y[m]
     log = np.full(ym.shape, np.nan)  # log of a negative number or NaN
     pos = ym > 0
-    log[pos] = [math.log(v) for v in ym[pos].tolist()]
+    yp = ym[pos]
+    log[pos] = np.fromiter(map(math.log, yp.tolist()), np.float64, yp.size)
     log[ym == 0] = -np.inf
     with np.errstate(invalid="ignore"):  # 0 * nan, inf * 0: nan, as scipy's
         out[m] = x[m] * log

@@ -227,7 +227,9 @@ def _kernel_loop(words, pos0, n_tdc, phase, inblock, hits, class_counts, d2mode,
     for i in range(words.size):
         w = words[i]
         addr = (w >> 1) & 0xFF
-        if (w & mask) != marker or addr != pos + offset:
+        if w == marker | ((pos + offset) << 1):  # the common case first: a no_hit word
+            cls = NO_HIT
+        elif (w & mask) != marker or addr != pos + offset:
             cls = MALFORMED
         else:
             p1 = phase[(w >> 12) & 0xF]
@@ -424,7 +426,9 @@ def _self_bounded_loop(words, pos0, n_tdc, phase, core_lo, core_hi, cand, d2nd, 
     for i in range(words.size):
         w = words[i]
         addr = (w >> 1) & 0xFF
-        if (w & mask) != marker or addr != pos:
+        if w == marker | (pos << 1):  # the common case first: a no_hit word
+            cls = NO_HIT
+        elif (w & mask) != marker or addr != pos:
             cls = MALFORMED
         else:
             p1 = phase[(w >> 12) & 0xF]

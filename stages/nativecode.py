@@ -64,14 +64,19 @@ def enabled() -> bool:
 
 
 def _cache_dir(module_file: str) -> Path | None:
-    """numba's cache directory for a module: NUMBA_CACHE_DIR, else its __pycache__."""
+    """Where numba would cache a module's kernels: NUMBA_CACHE_DIR, else its __pycache__,
+    else (a read-only install) the user's cache directory; None when none is writable."""
     env = os.environ.get("NUMBA_CACHE_DIR")
-    d = Path(env) if env else Path(module_file).parent / "__pycache__"
-    try:
-        d.mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return None
-    return d if os.access(d, os.W_OK) else None
+    xdg = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    for d in ([Path(env)] if env else [Path(module_file).parent / "__pycache__",
+                                        Path(xdg) / "tcspc-lidar"]):
+        try:
+            d.mkdir(parents=True, exist_ok=True)
+        except OSError:
+            continue
+        if os.access(d, os.W_OK):
+            return d
+    return None
 
 
 def _key(name: str, module_file: str, ll) -> str:
@@ -128,10 +133,12 @@ def kernel(name: str, module_file: str, argtypes: list, build: Callable) -> Call
             ll = _binding()
             d = _cache_dir(module_file)
             key = _key(name, module_file, ll)
-            base = d / f"{Path(module_file).stem}.{name}-{key}" if d else None
-            obj_path, info_path = (None, None) if base is None else (
-                base.with_name(base.name + ".o"), base.with_name(base.name + ".json"))
-            if info_path is not None and info_path.is_file():
+            if d is None:  # nowhere to keep it: numba's dispatcher (and its cache)
+                raise RuntimeError("no writable cache directory")
+            base = d / f"{Path(module_file).stem}.{name}-{key}"
+            obj_path = base.with_name(base.name + ".o")
+            info_path = base.with_name(base.name + ".json")
+            if info_path.is_file():
                 info = json.loads(info_path.read_text())
                 obj = obj_path.read_bytes()
             else:
@@ -142,9 +149,8 @@ def kernel(name: str, module_file: str, argtypes: list, build: Callable) -> Call
                 # object code as numba's own cache holds it (numba's JIT target machine)
                 obj = lib._codegen._tm.emit_object(mod)
                 info = {"symbol": cf.native_name}
-                if base is not None:  # object first, then the index: a reader sees both
-                    _write(obj_path, obj)
-                    _write(info_path, json.dumps(info).encode())
+                _write(obj_path, obj)  # the object first, then its index: a reader sees both
+                _write(info_path, json.dumps(info).encode())
             fn = _map(ll, obj, info["symbol"], argtypes)
         except Exception as exc:  # noqa: BLE001 - any failure: numba's dispatcher instead
             failures[name] = f"{type(exc).__name__}: {exc}"
