@@ -102,7 +102,20 @@ def histogram_capture(cap: Capture, bounds: ArtifactBounds | None = None,
     summing its own counts: the result is the same for any number."""
     if threads is None:  # the numpy engine holds the GIL too often to gain from threads
         threads = default_threads() if (engine or default_engine()) == "numba" else 1
-    stable = getattr(cap, "chunk_ring", 1)  # see Capture.iter_chunks
+    # a capture's chunks can go to the threads as they are read, from a ring of buffers
+    # (Capture.iter_chunks) long enough for the chunks in flight; other sources' are copied
+    ring = getattr(cap, "chunk_ring", None)
+    if ring is not None and threads > 1:
+        cap.chunk_ring = max(ring, threads + 2)
+    try:
+        return _histogram_capture(cap, bounds, engine, progress, log, threads,
+                                  getattr(cap, "chunk_ring", 1))
+    finally:
+        if ring is not None:
+            cap.chunk_ring = ring
+
+
+def _histogram_capture(cap, bounds, engine, progress, log, threads, stable):
     if bounds is None:
         one = SelfBoundingHistogram(cap.meta.n_tdc, engine=engine)
         chunks = iter(cap.iter_chunks())
