@@ -222,7 +222,14 @@ def _xlogy(x, y) -> np.ndarray:
 
 
 def _masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Row-wise median of ``values`` where ``mask``; 0 for a row with no such value."""
-    has = mask.any(axis=1)
-    med = np.nanmedian(np.where(mask | ~has[:, None], values, np.nan), axis=1)
-    return np.where(has, med, 0.0)
+    """Row-wise median of ``values`` where ``mask``; 0 for a row with no such value.
+
+    What ``np.nanmedian`` gives on the masked values (the mean of the two middle ones),
+    without it: it imports numpy.ma (20-45 ms) on the command line's path."""
+    n = mask.sum(axis=1)
+    ranked = np.sort(np.where(mask, values, np.inf), axis=1)
+    lo = np.take_along_axis(ranked, np.maximum(n - 1, 0)[:, None] // 2, axis=1)[:, 0]
+    hi = np.take_along_axis(ranked, (n // 2)[:, None], axis=1)[:, 0]
+    with np.errstate(invalid="ignore"):  # inf - inf in rows without a value
+        med = (lo + hi) / 2
+    return np.where(n > 0, med, 0.0)
