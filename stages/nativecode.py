@@ -1,16 +1,18 @@
-"""Compiled kernels that load in milliseconds: numba's machine code, kept as an object file
-and mapped with llvmlite alone.
+"""Compiled kernels that load in milliseconds: numba's machine code, kept as a shared
+library (or an object file) and loaded without numba.
 
 numba's own cache (``cache=True``) saves the compile, not the start-up: a fresh process
 pays numba's import (0.16-0.32 s on the 2-core VM) and, at a kernel's first call, its
 typing and lowering registries (0.36-0.6 s) before the first word, which on a 100 M-word
 capture is as long as the loop itself. Here numba compiles a kernel once as a C callback
 (pointers and sizes in, nothing out: no Python object, no allocation, nothing that can
-raise), the object code is written beside numba's cache, and every later process loads it
-with llvmlite's MCJIT (what numba itself does with its cache, less numba) and calls it
+raise) and its code is kept beside numba's cache: linked into a shared library by the
+system's C compiler or linker where there is one (a later process loads it with ctypes in
+a millisecond), and as an object file that llvmlite's MCJIT loads where there is none
+(what numba itself does with its cache, less numba: 30-100 ms). Either way it is called
 through ctypes, which releases the GIL. The entry is keyed by the kernel's source module,
-numba, llvmlite, Python and the host CPU; any failure falls back to numba's dispatcher,
-which runs the same kernel body (the tests hold both to the numpy twin).
+this module, numba, llvmlite, Python and the host CPU; any failure falls back to numba's
+dispatcher, which runs the same kernel body (the tests hold both to the numpy twin).
 
 Environment: ``TCSPC_NATIVE=0`` turns this off (numba's dispatcher only).
 """
@@ -21,7 +23,10 @@ import ctypes
 import hashlib
 import json
 import os
+import platform
 import re
+import shutil
+import subprocess
 import sys
 import threading
 from collections.abc import Callable
@@ -53,7 +58,7 @@ def _self_contained(ir: str) -> str:
 
 
 _lock = threading.Lock()
-_engines: list = []  # one MCJIT engine per loaded kernel, kept for the process
+_engines: list = []  # the MCJIT engines and libraries of the loaded kernels, kept
 _loaded: dict[str, Callable | None] = {}
 #: why a kernel could not be had natively (name -> error), for diagnostics and tests
 failures: dict[str, str] = {}
@@ -79,21 +84,31 @@ def _cache_dir(module_file: str) -> Path | None:
     return None
 
 
-def _key(name: str, module_file: str, ll) -> str:
+def _host() -> str:
+    """The CPU the code is compiled for, without importing llvmlite."""
+    try:
+        info = Path("/proc/cpuinfo").read_text().split("\n\n", 1)[0]
+        return "\n".join(ln for ln in info.splitlines()
+                         if ln.split(":")[0].strip() in ("model name", "flags", "vendor_id"))
+    except OSError:
+        return platform.processor() + platform.machine()
+
+
+def _version_file(package: str) -> bytes:
     import importlib.util
 
-    import llvmlite
+    spec = importlib.util.find_spec(package)
+    return Path(spec.origin).with_name("_version.py").read_bytes()
 
+
+def _key(name: str, module_file: str) -> str:
     h = hashlib.sha256()
-    h.update(Path(module_file).read_bytes())
-    h.update(Path(__file__).read_bytes())
-    # numba's version file, read rather than imported (importlib.metadata costs 40 ms)
-    spec = importlib.util.find_spec("numba")
-    h.update(Path(spec.origin).with_name("_version.py").read_bytes())
-    for part in (name, llvmlite.__version__, sys.version,
-                 ll.get_process_triple(), ll.get_host_cpu_name(),
-                 ll.get_host_cpu_features().flatten()):
-        h.update(part.encode() + b"\0")
+    for part in (Path(module_file).read_bytes(), Path(__file__).read_bytes(),
+                 # numba's and llvmlite's version files, read rather than imported
+                 _version_file("numba"), _version_file("llvmlite"), name.encode(),
+                 sys.version.encode(), sys.platform.encode(), platform.machine().encode(),
+                 _host().encode()):
+        h.update(part + b"\0")
     return h.hexdigest()[:20]
 
 
@@ -117,6 +132,39 @@ def _map(ll, obj: bytes, symbol: str, argtypes) -> Callable:
     return ctypes.CFUNCTYPE(None, *argtypes)(addr)
 
 
+def _shared(path: Path, symbol: str, argtypes) -> Callable:
+    lib = ctypes.CDLL(str(path))
+    _engines.append(lib)
+    fn = lib[symbol]
+    fn.argtypes, fn.restype = argtypes, None
+    return fn
+
+
+def _link(ll, mod, so_path: Path) -> bool:
+    """Link ``mod`` into a shared library at ``so_path``: position-independent code for
+    the host CPU, linked by the system's C compiler or linker (False where none is)."""
+    linker = shutil.which("cc") or shutil.which("gcc") or shutil.which("ld")
+    if linker is None:
+        return False
+    tm = ll.Target.from_triple(mod.triple).create_target_machine(
+        cpu=ll.get_host_cpu_name(), features=ll.get_host_cpu_features().flatten(), opt=3,
+        reloc="pic", codemodel="default")
+    tag = f"{os.getpid()}-{threading.get_ident()}"
+    obj = so_path.with_name(f".{so_path.name}.{tag}.o")
+    tmp = so_path.with_name(f".{so_path.name}.{tag}")
+    try:
+        obj.write_bytes(tm.emit_object(mod))
+        res = subprocess.run([linker, "-shared", "-o", str(tmp), str(obj)],
+                             capture_output=True, timeout=120)
+        if res.returncode != 0:
+            return False
+        os.replace(tmp, so_path)
+        return True
+    finally:
+        obj.unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
+
+
 def kernel(name: str, module_file: str, argtypes: list, build: Callable) -> Callable | None:
     """The C kernel ``name`` as a ctypes function, or None where it cannot be had.
 
@@ -130,28 +178,34 @@ def kernel(name: str, module_file: str, argtypes: list, build: Callable) -> Call
             return _loaded[name]
         fn = None
         try:
-            ll = _binding()
             d = _cache_dir(module_file)
-            key = _key(name, module_file, ll)
             if d is None:  # nowhere to keep it: numba's dispatcher (and its cache)
                 raise RuntimeError("no writable cache directory")
-            base = d / f"{Path(module_file).stem}.{name}-{key}"
-            obj_path = base.with_name(base.name + ".o")
-            info_path = base.with_name(base.name + ".json")
+            base = d / f"{Path(module_file).stem}.{name}-{_key(name, module_file)}"
+            so_path, obj_path, info_path = (base.with_name(base.name + ext)
+                                            for ext in (".so", ".o", ".json"))
             if info_path.is_file():
                 info = json.loads(info_path.read_text())
-                obj = obj_path.read_bytes()
+                if info.get("shared") and so_path.is_file():
+                    try:
+                        fn = _shared(so_path, info["symbol"], argtypes)
+                    except OSError:  # (a library that does not load here: the object)
+                        fn = None
+                if fn is None:
+                    fn = _map(_binding(), obj_path.read_bytes(), info["symbol"], argtypes)
             else:
+                ll = _binding()
                 cf = build()
                 lib = cf._library
                 mod = ll.parse_assembly(_self_contained(str(lib._final_module)))
                 mod.verify()
                 # object code as numba's own cache holds it (numba's JIT target machine)
                 obj = lib._codegen._tm.emit_object(mod)
-                info = {"symbol": cf.native_name}
-                _write(obj_path, obj)  # the object first, then its index: a reader sees both
+                info = {"symbol": cf.native_name, "shared": _link(ll, mod, so_path)}
+                _write(obj_path, obj)  # the code first, then its index: a reader sees both
                 _write(info_path, json.dumps(info).encode())
-            fn = _map(ll, obj, info["symbol"], argtypes)
+                fn = (_shared(so_path, info["symbol"], argtypes) if info["shared"] else
+                      _map(ll, obj, info["symbol"], argtypes))
         except Exception as exc:  # noqa: BLE001 - any failure: numba's dispatcher instead
             failures[name] = f"{type(exc).__name__}: {exc}"
             fn = None
