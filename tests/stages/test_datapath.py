@@ -183,3 +183,24 @@ def test_a_process_with_the_kernels_cached_runs_them_without_numba():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)
     assert res.stdout.strip() == "[]", res.stdout + res.stderr
+
+
+def test_without_a_linker_the_kernel_is_loaded_from_its_object_code(tmp_path, monkeypatch,
+                                                                    rng):
+    """No cc or ld on the machine: the object code is mapped with llvmlite's MCJIT, and a
+    second process-like load reads it back from the cache; same counts as the numpy twin."""
+    import stages.datapath as dp
+    from stages import nativecode
+
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(nativecode.shutil, "which", lambda name: None)
+    n = 8
+    words = corrupt(pattern_words(2000, n, hit_prob=0.3, rng=4)[0], rng, 0.02)
+    t = WordTables(n, ArtifactBounds(np.full(n, 20), np.full(n, 150)))
+    ref = run(words, n, 0, t.bounds, "numpy")
+    for _ in range(2):  # built, then loaded from the cache
+        monkeypatch.setattr(nativecode, "_loaded", {})
+        assert dp._native("kernel") is not None, nativecode.failures
+        hits, cc = run(words, n, 0, t.bounds, "numba")
+        assert np.array_equal(hits, ref[0]) and np.array_equal(cc, ref[1])
+    assert not list(tmp_path.glob("*.so")) and list(tmp_path.glob("datapath.kernel-*.o"))
