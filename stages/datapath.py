@@ -16,7 +16,11 @@ reference :func:`stages.codec.classify_words`:
     Keys and tables are code-major (``code * n_tdc + position``): position-major strides
     of 4 KiB put the no-hit words of a cycle into one cache set and ran five times slower.
 ``numba``
-    One compiled loop over the words with the same semantics.
+    One compiled loop over the words with the same semantics (a plain Python function
+    here, compiled by numba). A process runs it as a C kernel that loads without numba
+    (:mod:`stages.nativecode`, 1-2 ms against numba's 0.5-0.9 s of import and first call)
+    or, where that cannot be had, through numba's dispatcher. Either releases the GIL, so
+    threads may fill separate states at once.
 
 State is two arrays: ``hits`` (n_tdc, n_bins) of uint64 and ``class_counts``
 (N_CLASSES, n_tdc) of uint64. The per-TDC cycle count is the column sum of
