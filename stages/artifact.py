@@ -14,6 +14,7 @@ there.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -144,8 +145,6 @@ def estimate_bounds(d2nd_hist: np.ndarray) -> ArtifactBounds:
     >>> b = estimate_bounds(h * 1000); int(b.n_min[0]), int(b.n_max[0])  # more data
     (20, 149)
     """
-    from scipy.special import xlogy
-
     h = np.asarray(d2nd_hist)
     if h.ndim != 2 or h.shape[1] != N_CODES_2ND:
         raise ValueError(f"estimate_bounds: d2nd_hist must be (n_tdc, {N_CODES_2ND}), "
@@ -183,11 +182,11 @@ def estimate_bounds(d2nd_hist: np.ndarray) -> ArtifactBounds:
 
     def outside(s, m):
         rate = np.minimum(s / np.maximum(m, 1), cap)
-        return xlogy(s, rate) - m * rate
+        return _xlogy(s, rate) - m * rate
 
     # profile log-likelihood of [a, b] = inside(a..b) + below(a) + above(b)
     rate_in = np.maximum(k, floor)
-    p_in = np.concatenate([np.zeros((n_tdc, 1)), np.cumsum(xlogy(k, rate_in) - rate_in,
+    p_in = np.concatenate([np.zeros((n_tdc, 1)), np.cumsum(_xlogy(k, rate_in) - rate_in,
                                                          axis=1)], axis=1)
     p_k = np.concatenate([np.zeros((n_tdc, 1)), np.cumsum(k, axis=1)], axis=1)
     term_a = outside(p_k[:, :-1], codes[None, :]) - p_in[:, :-1]            # a = 0..n-1
@@ -217,8 +216,33 @@ def estimate_bounds(d2nd_hist: np.ndarray) -> ArtifactBounds:
                           uncertain=reasons != "", reasons=tuple(reasons.tolist()))
 
 
+def _xlogy(x, y) -> np.ndarray:
+    """``x * log(y)``, 0 where ``x == 0`` (and y is not NaN): scipy.special.xlogy bit for bit
+    (the C library's log, as scipy's loop calls it; numpy's own log may differ in the last
+    bit), without importing scipy.special (0.3-0.6 s) on the command line's path."""
+    x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+    out = np.zeros(x.shape)
+    m = (x != 0) | np.isnan(y)
+    ym = y[m]
+    log = np.full(ym.shape, np.nan)  # log of a negative number or NaN
+    pos = ym > 0
+    yp = ym[pos]
+    log[pos] = np.fromiter(map(math.log, yp.tolist()), np.float64, yp.size)
+    log[ym == 0] = -np.inf
+    with np.errstate(invalid="ignore"):  # 0 * nan, inf * 0: nan, as scipy's
+        out[m] = x[m] * log
+    return out
+
+
 def _masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Row-wise median of ``values`` where ``mask``; 0 for a row with no such value."""
-    has = mask.any(axis=1)
-    med = np.nanmedian(np.where(mask | ~has[:, None], values, np.nan), axis=1)
-    return np.where(has, med, 0.0)
+    """Row-wise median of ``values`` where ``mask``; 0 for a row with no such value.
+
+    What ``np.nanmedian`` gives on the masked values (the mean of the two middle ones),
+    without it: it imports numpy.ma (20-45 ms) on the command line's path."""
+    n = mask.sum(axis=1)
+    ranked = np.sort(np.where(mask, values, np.inf), axis=1)
+    lo = np.take_along_axis(ranked, np.maximum(n - 1, 0)[:, None] // 2, axis=1)[:, 0]
+    hi = np.take_along_axis(ranked, (n // 2)[:, None], axis=1)[:, 0]
+    with np.errstate(invalid="ignore"):  # inf - inf in rows without a value
+        med = (lo + hi) / 2
+    return np.where(n > 0, med, 0.0)

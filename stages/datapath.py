@@ -16,7 +16,11 @@ reference :func:`stages.codec.classify_words`:
     Keys and tables are code-major (``code * n_tdc + position``): position-major strides
     of 4 KiB put the no-hit words of a cycle into one cache set and ran five times slower.
 ``numba``
-    One compiled loop over the words with the same semantics.
+    One compiled loop over the words with the same semantics (a plain Python function
+    here, compiled by numba). A process runs it as a C kernel that loads without numba
+    (:mod:`stages.nativecode`, 1-2 ms against numba's 0.5-0.9 s of import and first call)
+    or, where that cannot be had, through numba's dispatcher. Either releases the GIL, so
+    threads may fill separate states at once.
 
 State is two arrays: ``hits`` (n_tdc, n_bins) of uint64 and ``class_counts``
 (N_CLASSES, n_tdc) of uint64. The per-TDC cycle count is the column sum of
@@ -28,6 +32,8 @@ must know (at 1e-4 artifacts a cycle, ~0.015 LSB of INL).
 
 from __future__ import annotations
 
+import ctypes
+import importlib.util
 import sys
 import threading
 from dataclasses import dataclass
@@ -48,10 +54,10 @@ from schemas.words import (
 from stages.artifact import ArtifactBounds
 from stages.codec import MARKER_MASK, MARKER_VALUE, MAX_TDC, PHASE_DECODE
 
-try:  # numba is a dependency, but the numpy path must work (and is tested) without it
-    import numba
-except ImportError:  # pragma: no cover - exercised only where numba is missing
-    numba = None
+# numba is a dependency, but the numpy path must work (and is tested) without it. It is
+# imported only when a kernel is compiled or the dispatcher is needed: a process whose
+# kernels load from stages.nativecode never imports it (0.5-0.9 s saved at start-up).
+HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 
 ENGINES = ("numba", "numpy")
 #: Words per numpy sub-chunk: ~6 int32 temporaries of this length stay within L2.
@@ -68,7 +74,7 @@ _N_LO, _N_HI = 4, 6
 
 def default_engine() -> str:
     """numba where it is installed, else numpy."""
-    return "numba" if numba is not None else "numpy"
+    return "numba" if HAVE_NUMBA else "numpy"
 
 
 def _state_classes() -> np.ndarray:
@@ -120,6 +126,11 @@ class WordTables:
     @cached_property
     def in_block(self) -> np.ndarray:
         return self.bounds.in_block()
+
+    @cached_property
+    def in_block_u8(self) -> np.ndarray:
+        """``in_block`` as bytes, for the C kernel."""
+        return np.ascontiguousarray(self.in_block, np.uint8)
 
     @cached_property
     def _numpy_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -212,51 +223,59 @@ def _accumulate_numpy(words: np.ndarray, first_word: int, tables: WordTables,
         class_counts[cls] += per_tdc[states == cls].sum(axis=0).astype(np.uint64)
 
 
-if numba is not None:
-    @numba.njit(cache=True, nogil=True)
-    def _kernel(words, pos0, n_tdc, phase, inblock, hits, class_counts, d2mode, offset,
-                arts, count_arts):
-        pos = pos0
-        mask = np.uint32(MARKER_MASK)
-        marker = np.uint32(MARKER_VALUE)
-        for i in range(words.size):
-            w = words[i]
-            addr = (w >> 1) & 0xFF
-            if (w & mask) != marker or addr != pos + offset:
-                cls = MALFORMED
+def _kernel_loop(words, pos0, n_tdc, phase, inblock, hits, class_counts, d2mode, offset,
+                 arts, count_arts):
+    pos = pos0
+    mask = np.uint32(MARKER_MASK)
+    marker = np.uint32(MARKER_VALUE)
+    for i in range(words.size):
+        w = words[i]
+        addr = (w >> 1) & 0xFF
+        if w == marker | ((pos + offset) << 1):  # the common case first: a no_hit word
+            cls = NO_HIT
+        elif (w & mask) != marker or addr != pos + offset:
+            cls = MALFORMED
+        else:
+            p1 = phase[(w >> 12) & 0xF]
+            p2 = phase[(w >> 22) & 0xF]
+            if p1 < 0 or p2 < 0:
+                cls = INVALID_PHASE
+            elif (w & 0x7FFFF000) == 0:
+                cls = NO_HIT
             else:
-                p1 = phase[(w >> 12) & 0xF]
-                p2 = phase[(w >> 22) & 0xF]
-                if p1 < 0 or p2 < 0:
-                    cls = INVALID_PHASE
-                elif (w & 0x7FFFF000) == 0:
-                    cls = NO_HIT
-                else:
-                    d2 = ((w >> 26) & 0x1F) * 8 + p2
-                    if not inblock[pos, d2]:
-                        cls = ARTIFACT
-                        if count_arts:
-                            if d2mode:
-                                arts[pos, d2] += 1
-                            else:
-                                arts[pos, ((w >> 16) & 0x3F) * 8 + p1] += 1
-                    else:
-                        cls = HIT
+                d2 = ((w >> 26) & 0x1F) * 8 + p2
+                if not inblock[pos, d2]:
+                    cls = ARTIFACT
+                    if count_arts:
                         if d2mode:
-                            hits[pos, d2] += 1
+                            arts[pos, d2] += 1
                         else:
-                            hits[pos, ((w >> 16) & 0x3F) * 8 + p1] += 1
-            class_counts[cls, pos] += 1
-            pos += 1
-            if pos == n_tdc:
-                pos = 0
+                            arts[pos, ((w >> 16) & 0x3F) * 8 + p1] += 1
+                else:
+                    cls = HIT
+                    if d2mode:
+                        hits[pos, d2] += 1
+                    else:
+                        hits[pos, ((w >> 16) & 0x3F) * 8 + p1] += 1
+        class_counts[cls, pos] += 1
+        pos += 1
+        if pos == n_tdc:
+            pos = 0
 
 
 def _accumulate_numba(words, first_word, tables, hits, class_counts, artifacts=None):
     count = artifacts is not None
-    _kernel(words, first_word % tables.n_tdc, tables.n_tdc, PHASE_DECODE,
-            tables.in_block, hits, class_counts, tables.mode == "d2nd", tables.tdc_offset,
-            artifacts if count else np.zeros((1, 1), np.uint64), count)
+    arts = artifacts if count else np.zeros((1, 1), np.uint64)
+    fn = _native("kernel")
+    if fn is not None and all(_plain(a, np.uint64) for a in (hits, class_counts, arts)):
+        fn(words.ctypes.data, words.size, first_word % tables.n_tdc, tables.n_tdc,
+           PHASE_DECODE.ctypes.data, tables.in_block_u8.ctypes.data, hits.ctypes.data,
+           hits.shape[1], class_counts.ctypes.data, tables.mode == "d2nd",
+           tables.tdc_offset, arts.ctypes.data, arts.shape[0], arts.shape[1], count)
+        return
+    _jitted("kernel")(words, first_word % tables.n_tdc, tables.n_tdc, PHASE_DECODE,
+                      tables.in_block, hits, class_counts, tables.mode == "d2nd",
+                      tables.tdc_offset, arts, count)
 
 
 def accumulate(words: np.ndarray, first_word: int, tables: WordTables, hits: np.ndarray,
@@ -282,7 +301,7 @@ def accumulate(words: np.ndarray, first_word: int, tables: WordTables, hits: np.
     words = np.ascontiguousarray(words, dtype=np.uint32)
     engine = engine or default_engine()
     if engine == "numba":
-        if numba is None:
+        if not HAVE_NUMBA:
             raise RuntimeError("engine='numba' requested but numba is not installed")
         _accumulate_numba(words, first_word, tables, hits, class_counts, artifacts)
     elif engine == "numpy":
@@ -299,13 +318,30 @@ def accumulate(words: np.ndarray, first_word: int, tables: WordTables, hits: np.
 # hits, 59 at 30 %, one core: cache misses). Instead: every candidate (a word that is
 # neither malformed, invalid nor no_hit) is counted by D1st and by D2nd, both small tables,
 # and only candidates whose D2nd lies outside a provisional core of each TDC's block (from
-# the capture's first chunk, shrunk by a margin) are also counted jointly. The final
+# the capture's first chunk, shrunk by a margin) are also kept: the edge words. The final
 # bounds come from the whole D2nd marginal; when each contains its TDC's core, the hits
-# are the candidates less the joint counts outside the bounds, exactly.
+# are the candidates less the edge words outside the bounds, exactly.
+#
+# The edge words (the artifact and the core's margins: ~1 % of the words) are kept as keys
+# ``(tdc * 256 + D2nd) * 512 + D1st`` in a buffer, not counted in a dense (tdc, D2nd, D1st)
+# table: that table's 134 MB are touched sparsely, and each touch faulted in a zeroed page
+# (a 2 MiB one where numpy asks for huge pages): 30-250 ms per table, per thread, on a
+# capture whose edge words were 7 500. The dense table takes only the keys that do not
+# fit in the buffer (a dark capture, where every candidate is an edge word).
+
+#: edge-word keys a buffer holds before the dense table takes the rest (32 MiB)
+EDGE_KEYS = 1 << 23
+
+
+def edge_key(tdc, d2nd, d1st):
+    """The key of an edge word (see the comment above)."""
+    return (tdc * N_CODES_2ND + d2nd) * N_CODES + d1st
+
 
 def accumulate_self_bounded(words: np.ndarray, first_word: int, n_tdc: int,
                             core_lo: np.ndarray, core_hi: np.ndarray, cand: np.ndarray,
-                            d2nd: np.ndarray, edge: np.ndarray, class_counts: np.ndarray,
+                            d2nd: np.ndarray, keys: np.ndarray, fill: np.ndarray,
+                            edge: np.ndarray, class_counts: np.ndarray,
                             engine: str | None = None) -> None:
     """Fold ``words`` into the one-pass state in place (see the comment above).
 
@@ -320,27 +356,44 @@ def accumulate_self_bounded(words: np.ndarray, first_word: int, n_tdc: int,
         Candidates by D1st.
     d2nd : uint64 (n_tdc, 256)
         Candidates by D2nd.
+    keys : uint32 (capacity,), fill : int64 (1,)
+        Edge words by :func:`edge_key`, ``keys[:fill[0]]`` used.
     edge : uint64 (n_tdc, 256, 512)
-        Candidates outside the core, by (D2nd, D1st).
+        Edge words that found the buffer full, by (D2nd, D1st); any array when ``fill[0] +
+        words.size <= keys.size`` (then none can).
     class_counts : uint64 (N_CLASSES, n_tdc)
         Malformed, invalid_phase and no_hit as usual; every candidate under ``HIT``.
     """
     words = np.ascontiguousarray(words, dtype=np.uint32)
+    core_lo = np.ascontiguousarray(core_lo, np.int64)
+    core_hi = np.ascontiguousarray(core_hi, np.int64)
+    if fill[0] + words.size > keys.size and edge.shape != (n_tdc, N_CODES_2ND, N_CODES):
+        raise ValueError("the key buffer may fill up: edge must be (n_tdc, 256, 512)")
     engine = engine or default_engine()
     if engine == "numba":
-        if numba is None:
+        if not HAVE_NUMBA:
             raise RuntimeError("engine='numba' requested but numba is not installed")
-        _self_bounded_kernel(words, first_word % n_tdc, n_tdc, PHASE_DECODE, core_lo, core_hi,
-                             cand, d2nd, edge, class_counts)
+        fn = _native("self_bounded")
+        if fn is not None and all(_plain(a, np.uint64) for a in (cand, d2nd, edge,
+                                                                  class_counts)) \
+                and _plain(keys, np.uint32) and _plain(fill, np.int64):
+            fn(words.ctypes.data, words.size, first_word % n_tdc, n_tdc,
+               PHASE_DECODE.ctypes.data, core_lo.ctypes.data, core_hi.ctypes.data,
+               cand.ctypes.data, d2nd.ctypes.data, keys.ctypes.data, keys.size,
+               fill.ctypes.data, edge.ctypes.data, edge.shape[0], edge.shape[1],
+               edge.shape[2], class_counts.ctypes.data)
+        else:
+            _jitted("self_bounded")(words, first_word % n_tdc, n_tdc, PHASE_DECODE, core_lo,
+                                    core_hi, cand, d2nd, keys, fill, edge, class_counts)
     elif engine == "numpy":
-        _self_bounded_numpy(words, first_word, n_tdc, core_lo, core_hi, cand, d2nd, edge,
-                            class_counts)
+        _self_bounded_numpy(words, first_word, n_tdc, core_lo, core_hi, cand, d2nd, keys,
+                            fill, edge, class_counts)
     else:
         raise ValueError(f"engine must be one of {ENGINES}, found {engine!r}")
 
 
-def _self_bounded_numpy(words, first_word, n_tdc, core_lo, core_hi, cand, d2nd, edge,
-                        class_counts):
+def _self_bounded_numpy(words, first_word, n_tdc, core_lo, core_hi, cand, d2nd, keys, fill,
+                        edge, class_counts):
     from stages.codec import classify_words, decode_fields
 
     f = decode_fields(words)
@@ -357,38 +410,123 @@ def _self_bounded_numpy(words, first_word, n_tdc, core_lo, core_hi, cand, d2nd, 
     d2nd += np.bincount(p * N_CODES_2ND + d2, minlength=d2nd.size).reshape(d2nd.shape) \
         .astype(np.uint64)
     out = (d2 < core_lo[p]) | (d2 > core_hi[p])
-    key = (p[out] * N_CODES_2ND + d2[out]) * N_CODES + d1[out]
-    edge.reshape(-1)[:] += np.bincount(key, minlength=edge.size).astype(np.uint64)
+    key = edge_key(p[out], d2[out], d1[out])
+    n0 = int(fill[0])
+    room = min(key.size, keys.size - n0)  # in word order, as the loop fills it
+    keys[n0:n0 + room] = key[:room]
+    fill[0] = n0 + room
+    if room < key.size:
+        cells, n = np.unique(key[room:], return_counts=True)
+        edge.reshape(-1)[cells] += n.astype(np.uint64)
 
 
-if numba is not None:
-    @numba.njit(cache=True, nogil=True)
-    def _self_bounded_kernel(words, pos0, n_tdc, phase, core_lo, core_hi, cand, d2nd, edge,
-                             class_counts):
-        pos = pos0
-        mask = np.uint32(MARKER_MASK)
-        marker = np.uint32(MARKER_VALUE)
-        for i in range(words.size):
-            w = words[i]
-            addr = (w >> 1) & 0xFF
-            if (w & mask) != marker or addr != pos:
-                cls = MALFORMED
+def _self_bounded_loop(words, pos0, n_tdc, phase, core_lo, core_hi, cand, d2nd, keys, fill,
+                       edge, class_counts):
+    pos = pos0
+    mask = np.uint32(MARKER_MASK)
+    marker = np.uint32(MARKER_VALUE)
+    nk = fill[0]
+    cap = keys.size
+    for i in range(words.size):
+        w = words[i]
+        addr = (w >> 1) & 0xFF
+        if w == marker | (pos << 1):  # the common case first: a no_hit word
+            cls = NO_HIT
+        elif (w & mask) != marker or addr != pos:
+            cls = MALFORMED
+        else:
+            p1 = phase[(w >> 12) & 0xF]
+            p2 = phase[(w >> 22) & 0xF]
+            if p1 < 0 or p2 < 0:
+                cls = INVALID_PHASE
+            elif (w & 0x7FFFF000) == 0:
+                cls = NO_HIT
             else:
-                p1 = phase[(w >> 12) & 0xF]
-                p2 = phase[(w >> 22) & 0xF]
-                if p1 < 0 or p2 < 0:
-                    cls = INVALID_PHASE
-                elif (w & 0x7FFFF000) == 0:
-                    cls = NO_HIT
-                else:
-                    cls = HIT
-                    d1 = ((w >> 16) & 0x3F) * 8 + p1
-                    d2 = ((w >> 26) & 0x1F) * 8 + p2
-                    cand[pos, d1] += 1
-                    d2nd[pos, d2] += 1
-                    if d2 < core_lo[pos] or d2 > core_hi[pos]:
+                cls = HIT
+                d1 = ((w >> 16) & 0x3F) * 8 + p1
+                d2 = ((w >> 26) & 0x1F) * 8 + p2
+                cand[pos, d1] += 1
+                d2nd[pos, d2] += 1
+                if d2 < core_lo[pos] or d2 > core_hi[pos]:
+                    if nk < cap:
+                        keys[nk] = (pos * 256 + d2) * 512 + d1
+                        nk += 1
+                    else:
                         edge[pos, d2, d1] += 1
-            class_counts[cls, pos] += 1
-            pos += 1
-            if pos == n_tdc:
-                pos = 0
+        class_counts[cls, pos] += 1
+        pos += 1
+        if pos == n_tdc:
+            pos = 0
+    fill[0] = nk
+
+
+# --- the numba engine: the loops above, compiled -----------------------------------------
+#
+# The same loop bodies run either as numba-dispatched functions (``_jitted``, numba's cache)
+# or as C callbacks loaded without numba (``_native``, stages.nativecode): arrays go in as
+# pointers and sizes and are rebuilt with ``numba.carray``.
+
+_P, _I = ctypes.c_void_p, ctypes.c_int64
+_ARGTYPES = {
+    # words, n, pos0, n_tdc, phase, inblock(u8), hits, n_bins, class_counts, d2mode,
+    # offset, arts, arts_rows, arts_cols, count_arts
+    "kernel": [_P, _I, _I, _I, _P, _P, _P, _I, _P, _I, _I, _P, _I, _I, _I],
+    # words, n, pos0, n_tdc, phase, core_lo, core_hi, cand, d2nd, keys, capacity, fill,
+    # edge, edge dims (3), class_counts
+    "self_bounded": [_P, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I, _P, _P, _I, _I, _I, _P],
+}
+_LOOPS = {"kernel": _kernel_loop, "self_bounded": _self_bounded_loop}
+_JITTED: dict = {}
+
+
+def _plain(a: np.ndarray, dtype) -> bool:
+    return a.dtype == dtype and a.flags.c_contiguous and a.flags.writeable
+
+
+def _jitted(name: str):
+    """The loop ``name`` through numba's dispatcher (and numba's on-disk cache)."""
+    fn = _JITTED.get(name)
+    if fn is None:
+        import numba
+
+        fn = _JITTED[name] = numba.njit(cache=True, nogil=True)(_LOOPS[name])
+    return fn
+
+
+def _native(name: str):
+    """The loop ``name`` as a C kernel loaded without numba, or None (then ``_jitted``)."""
+    from stages import nativecode
+
+    return nativecode.kernel(name, __file__, _ARGTYPES[name], lambda: _build(name))
+
+
+def _build(name: str):
+    import numba
+    from numba import carray, types
+
+    loop = numba.njit(nogil=True)(_LOOPS[name])
+    p = types.CPointer
+    u32, u64, i64, i8, u8 = types.uint32, types.uint64, types.int64, types.int8, types.uint8
+    if name == "kernel":
+        sig = types.void(p(u32), i64, i64, i64, p(i8), p(u8), p(u64), i64, p(u64), i64,
+                         i64, p(u64), i64, i64, i64)
+
+        def c_kernel(w, n, pos0, n_tdc, phase, inblock, hits, n_bins, cc, d2mode, offset,
+                     arts, arts_rows, arts_cols, count_arts):
+            loop(carray(w, (n,)), pos0, n_tdc, carray(phase, (16,)),
+                 carray(inblock, (n_tdc, N_CODES_2ND)), carray(hits, (n_tdc, n_bins)),
+                 carray(cc, (N_CLASSES, n_tdc)), d2mode != 0, offset,
+                 carray(arts, (arts_rows, arts_cols)), count_arts != 0)
+
+        return numba.cfunc(sig, nopython=True)(c_kernel)
+    sig = types.void(p(u32), i64, i64, i64, p(i8), p(i64), p(i64), p(u64), p(u64), p(u32),
+                     i64, p(i64), p(u64), i64, i64, i64, p(u64))
+
+    def c_self_bounded(w, n, pos0, n_tdc, phase, lo, hi, cand, d2nd, keys, capacity, fill,
+                       edge, e0, e1, e2, cc):
+        loop(carray(w, (n,)), pos0, n_tdc, carray(phase, (16,)), carray(lo, (n_tdc,)),
+             carray(hi, (n_tdc,)), carray(cand, (n_tdc, N_CODES)),
+             carray(d2nd, (n_tdc, N_CODES_2ND)), carray(keys, (capacity,)),
+             carray(fill, (1,)), carray(edge, (e0, e1, e2)), carray(cc, (N_CLASSES, n_tdc)))
+
+    return numba.cfunc(sig, nopython=True)(c_self_bounded)

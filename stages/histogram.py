@@ -14,7 +14,7 @@ import pyarrow as pa
 from schemas.outputs import HISTOGRAMS
 from schemas.words import ARTIFACT, HIT, N_CLASSES, N_CODES, N_CODES_2ND, WORD_CLASSES
 from stages.artifact import ArtifactBounds, estimate_bounds
-from stages.datapath import WordTables, accumulate, accumulate_self_bounded
+from stages.datapath import EDGE_KEYS, WordTables, accumulate, accumulate_self_bounded
 
 #: ``histograms.instrument`` of the thesis chip's D1st histograms
 CHIP = "tcspc-chip"
@@ -207,6 +207,13 @@ class HistogramAccumulator:
         return int(self._class_counts[HIT].sum())
 
 
+_NO_EDGE = np.zeros((1, 1, 1), np.uint64)  # the dense edge table where none can be needed
+
+
+def _full_edge(n_tdc: int) -> np.ndarray:
+    return np.zeros((n_tdc, N_CODES_2ND, N_CODES), np.uint64)  # (pages faulted if touched)
+
+
 class SelfBoundingHistogram:
     """The histograms of a capture with no calibration, in one pass: the artifact bounds
     come from the capture's own D2nd histogram at the end (:func:`estimate_bounds`).
@@ -237,9 +244,13 @@ class SelfBoundingHistogram:
         self.count_artifacts = count_artifacts
         self._cand = np.zeros((n_tdc, N_CODES), np.uint64)
         self._d2nd = np.zeros((n_tdc, N_CODES_2ND), np.uint64)
-        # (n_tdc, 256, 512) uint64: 134 MB of address space for 128 TDCs, pages touched only
-        # where edge words land
-        self._edge = np.zeros((n_tdc, N_CODES_2ND, N_CODES), np.uint64)
+        # edge words as keys (stages.datapath.edge_key), and the dense (n_tdc, 256, 512)
+        # table of those that find the buffer full, made only when that may happen
+        self._keys = np.empty(0, np.uint32)
+        self._fill = np.zeros(1, np.int64)
+        self._edge = _NO_EDGE
+        # with those of merged forks: (keys, dense) pairs, summed at finish where needed
+        self._parts: list = []
         self._class_counts = np.zeros((N_CLASSES, n_tdc), np.uint64)
         self._words = 0
         self._core: tuple[np.ndarray, np.ndarray] | None = None
@@ -252,18 +263,73 @@ class SelfBoundingHistogram:
         start = self._words if first_word is None else int(first_word)
         if self._core is None:
             self._core = self._provisional_core(words, start)
+        if self._keys.size == 0:  # (touched only as it fills)
+            self._keys = np.empty(EDGE_KEYS, np.uint32)
+        if self._fill[0] + words.size > self._keys.size and self._edge is _NO_EDGE:
+            self._edge = np.zeros((self.n_tdc, N_CODES_2ND, N_CODES), np.uint64)
         accumulate_self_bounded(words.ravel(), start, self.n_tdc, *self._core, self._cand,
-                                self._d2nd, self._edge, self._class_counts, self.engine)
+                                self._d2nd, self._keys, self._fill, self._edge,
+                                self._class_counts, self.engine)
         self._words += words.size
 
+    def fork(self) -> SelfBoundingHistogram:
+        """An empty accumulator with this one's provisional cores (set by its first
+        update), for other words of the same capture, e.g. in another thread (the
+        kernels release the GIL); fold it back with :meth:`merge`. Give ``first_word``
+        to every update of a fork."""
+        if self._core is None:
+            raise ValueError("fork() needs the provisional cores: update() first")
+        other = SelfBoundingHistogram(self.n_tdc, self.engine, self.margin,
+                                      self.count_artifacts)
+        other._core = self._core
+        return other
+
+    def merge(self, other: SelfBoundingHistogram) -> None:
+        """Fold a fork's counts into this accumulator (the sum of the parts of a split
+        stream; the edge counts are summed at :meth:`finish`, where they are needed)."""
+        if other._core is not self._core:
+            raise ValueError("merge() takes a fork of this accumulator")
+        self._cand += other._cand
+        self._d2nd += other._d2nd
+        self._class_counts += other._class_counts
+        self._parts += other._edge_parts()
+        self._words += other._words
+
+    def _edge_parts(self) -> list:
+        return [(self._keys[:self._fill[0]], self._edge), *self._parts]
+
     def _provisional_core(self, words, start):
-        probe = HistogramAccumulator(self.n_tdc, engine=self.engine, mode="d2nd")
-        probe.update(words, start)
-        b = estimate_bounds(probe.snapshot().hits)
+        # the candidates' D2nd histogram of this batch, from the same kernel with a core
+        # that spans every code (so no edge word is kept)
+        d2nd = np.zeros_like(self._d2nd)
+        accumulate_self_bounded(words.ravel(), start, self.n_tdc,
+                                np.zeros(self.n_tdc, np.int64),
+                                np.full(self.n_tdc, N_CODES_2ND - 1, np.int64),
+                                np.zeros_like(self._cand), d2nd, np.empty(0, np.uint32),
+                                np.zeros(1, np.int64), _full_edge(self.n_tdc),
+                                np.zeros_like(self._class_counts), self.engine)
+        b = estimate_bounds(d2nd)
         lo = b.n_min.astype(np.int64) + self.margin
         hi = b.n_max.astype(np.int64) - self.margin
         empty = b.uncertain | (lo > hi)
         return np.where(empty, 1, lo), np.where(empty, 0, hi)  # empty core: all edge words
+
+    def _edge_counts(self, outside: np.ndarray) -> np.ndarray:
+        """(n_tdc, 512) D1st counts of the edge words whose D2nd is ``outside``."""
+        n = self.n_tdc
+        arts = np.zeros(n * N_CODES, np.int64)
+        # dense rows are read only where they can hold a count: outside, and where some
+        # candidate had that D2nd (an untouched row is a page never faulted in)
+        rows = outside & (self._d2nd > 0)
+        for keys, dense in self._edge_parts():
+            k = keys.astype(np.int64)
+            sel = k[outside.ravel()[k >> 9]]  # (tdc * 256 + D2nd) selects, D1st is counted
+            arts += np.bincount((sel >> 17) * N_CODES + (sel & (N_CODES - 1)),
+                                minlength=arts.size)
+            if dense is not _NO_EDGE:
+                arts += np.stack([dense[t][rows[t]].sum(axis=0) for t in range(n)]) \
+                    .astype(np.int64).ravel()
+        return arts.reshape(n, N_CODES).astype(np.uint64)
 
     def finish(self) -> tuple[HistogramState | None, ArtifactBounds]:
         """The state and the bounds estimated from all the data; the state is None when a
@@ -276,10 +342,7 @@ class SelfBoundingHistogram:
         inside = core_empty | ((bounds.n_min <= lo) & (hi <= bounds.n_max))
         if not inside.all():
             return None, bounds
-        outside = ~bounds.in_block()
-        arts = np.stack([self._edge[t][outside[t]].sum(axis=0) for t in range(self.n_tdc)]) \
-            if self.n_tdc else np.zeros((0, N_CODES), np.uint64)
-        arts = arts.astype(np.uint64)
+        arts = self._edge_counts(~bounds.in_block())
         cc = self._class_counts.copy()
         per_tdc = arts.sum(axis=1)
         cc[HIT] -= per_tdc

@@ -84,15 +84,54 @@ def _warn_uncertain(bounds) -> None:
 
 
 def _open(path: str, calibration: str | None):
-    from pipeline.io.caldir import read_bounds
     from pipeline.io.capture import Capture
 
     cap = Capture(path)
-    bounds = read_bounds(calibration, cap.meta.n_tdc) if calibration else None
-    return cap, bounds
+    if not calibration:  # (caldir imports pyarrow.parquet and scipy: not needed here)
+        return cap, None
+    from pipeline.io.caldir import read_bounds
+
+    return cap, read_bounds(calibration, cap.meta.n_tdc)
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def _format_of(path: str, given: str | None) -> str:
+    """:func:`pipeline.cli.instruments.detect`, quick where it is a tcspc capture: it reads
+    8 bytes, not the whole file (0.1-0.3 s on a 0.4 GB capture), and does not import the
+    PTU reader (which imports numba, 0.2-0.3 s) to see that they are no PTU magic."""
+    from pathlib import Path
+
+    from pipeline.io.formats import resolve_format
+
+    if given is None and Path(path).is_file():
+        with open(path, "rb") as fh:
+            head = fh.read(8)
+        if head[:4] == b"PAR1":
+            return "histograms"
+        if head != b"PQTTTR\0\0":  # pipeline.io.ptu.MAGIC: detect_format's first test
+            from pipeline.io.capture import capture_paths
+
+            bin_path, json_path = capture_paths(path)
+            if json_path.is_file() and bin_path.is_file():
+                return "tcspc"  # detect_format's second test
+    return resolve_format(path, given)
+
+
+class _Root(click.Group):
+    """The root group: the entry points' commands are read on first need."""
+
+    entry_points_read = False
+
+    def get_command(self, ctx, name):
+        if name not in self.commands:
+            _register_entry_points()
+        return super().get_command(ctx, name)
+
+    def list_commands(self, ctx):
+        _register_entry_points()
+        return super().list_commands(ctx)
+
+
+@click.group(cls=_Root, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="tcspc-lidar")
 def cli() -> None:
     """tcspc-lidar: raw SPAD/TDC words to calibrated distances."""
@@ -165,10 +204,10 @@ def histogram(capture, out, measurement, calibration, engine, fmt, firmware, by,
     A tcspc capture: first-stage codes of its hit words. A PTU T3 file: dtime codes, a row
     per input channel. A LinoSPAD2 file: fine codes, a row per TDC or pixel (--by).
     """
-    from pipeline.cli import instruments
-
-    fmt = instruments.detect(capture, fmt)
+    fmt = _format_of(capture, fmt)
     if fmt != "tcspc":
+        from pipeline.cli import instruments
+
         _not_for_instruments(fmt, calibration=calibration)
         instruments.histogram(capture, fmt, out, measurement, firmware, by, quiet)
         return
@@ -409,8 +448,16 @@ _ENTRY_HELP = {"flow": "Run or serve the Prefect flows (calibration, sweeps, rep
 def _register() -> None:
     for name, (module, attr, short) in _LAZY.items():
         cli.add_command(_Lazy(name, _module_command(module, attr), short), name)
-    # Layers above the pipeline (the flows) add their commands through an entry point, so
-    # nothing here imports them (DESIGN.md: nothing imports ``flows``).
+
+
+def _register_entry_points() -> None:
+    """Layers above the pipeline (the flows) add their commands through an entry point, so
+    nothing here imports them (DESIGN.md: nothing imports ``flows``). Read when a name is
+    not a command of this module or the commands are listed: importlib.metadata and the
+    scan cost 50-90 ms, which `tcspc histogram` does not pay."""
+    if _Root.entry_points_read:
+        return
+    _Root.entry_points_read = True
     from importlib.metadata import entry_points
 
     for ep in entry_points(group="tcspc.commands"):

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import os
+import queue
+from collections import deque
+from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +18,7 @@ from pipeline.io.histograms import write_histogram_table
 from schemas.outputs import HISTOGRAMS
 from schemas.words import DECODED_EVENTS, N_CLASSES, WORD_CLASSES
 from stages.artifact import ArtifactBounds, estimate_bounds
+from stages.datapath import default_engine
 from stages.decode import decode_batch
 from stages.histogram import HistogramAccumulator, HistogramState, SelfBoundingHistogram
 
@@ -34,29 +39,106 @@ def estimate_capture_bounds(cap: Capture, engine: str | None = None,
     return estimate_bounds(acc.snapshot().hits)
 
 
+def default_threads() -> int:
+    """Threads for the histogram loop: ``TCSPC_THREADS`` if set, else the cores this
+    process may use, at most 4 (each thread's loop reads ~1 GB/s of words: a few
+    saturate a memory channel)."""
+    if os.environ.get("TCSPC_THREADS"):
+        return max(1, int(os.environ["TCSPC_THREADS"]))
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        n = os.cpu_count() or 1
+    return max(1, min(4, n))
+
+
+def _fan_out(chunks: Iterable[tuple[int, np.ndarray]], lanes: list, progress: Progress,
+             stable: int = 1) -> None:
+    """Feed the chunks to ``lanes`` (accumulators with ``update(words, first_word)``), one
+    thread each; each chunk goes to whichever lane is free. ``stable``: for how many
+    chunks a yielded view stays valid (a capture's ``chunk_ring``); the chunks of a
+    source that reuses its buffer sooner are copied before they are handed on."""
+    if len(lanes) == 1:
+        for first, words in chunks:
+            lanes[0].update(words, first)
+            progress(words.size)
+        return
+    free: queue.SimpleQueue = queue.SimpleQueue()
+    for lane in lanes:
+        free.put(lane)
+
+    def run(words, first):
+        lane = free.get()  # one never waits: at most len(lanes) tasks run at once
+        try:
+            lane.update(words, first)
+        finally:
+            free.put(lane)
+        return words.size
+
+    # chunks in flight when the next is read: a view must not be overwritten before its
+    # lane is done with it
+    copy = stable - 1 < len(lanes)
+    limit = len(lanes) + 1 if copy else stable - 1
+    pending: deque = deque()
+    with ThreadPoolExecutor(len(lanes), thread_name_prefix="histogram") as pool:
+        for first, words in chunks:
+            if copy:  # a source that reuses its buffer too soon: hand on a copy
+                words = words.copy()
+            pending.append(pool.submit(run, words, first))
+            while len(pending) > limit:
+                progress(pending.popleft().result())
+        while pending:
+            progress(pending.popleft().result())
+
+
 def histogram_capture(cap: Capture, bounds: ArtifactBounds | None = None,
                       engine: str | None = None, progress: Progress = _noop,
-                      log: Callable[[str], None] | None = None
-                      ) -> tuple[HistogramState, ArtifactBounds]:
+                      log: Callable[[str], None] | None = None,
+                      threads: int | None = None) -> tuple[HistogramState, ArtifactBounds]:
     """Histogram a whole capture. Without ``bounds`` they are estimated from the capture in
     the same pass (:class:`stages.histogram.SelfBoundingHistogram`); only when the
     capture's first chunk misled the provisional bounds is a second pass made (``log``
-    says so)."""
+    says so). ``threads`` (default :func:`default_threads`) share the words, each
+    summing its own counts: the result is the same for any number."""
+    if threads is None:  # the numpy engine holds the GIL too often to gain from threads
+        threads = default_threads() if (engine or default_engine()) == "numba" else 1
+    # a capture's chunks can go to the threads as they are read, from a ring of buffers
+    # (Capture.iter_chunks) long enough for the chunks in flight; other sources' are copied
+    ring = getattr(cap, "chunk_ring", None)
+    if ring is not None and threads > 1:
+        cap.chunk_ring = max(ring, threads + 2)
+    try:
+        return _histogram_capture(cap, bounds, engine, progress, log, threads,
+                                  getattr(cap, "chunk_ring", 1))
+    finally:
+        if ring is not None:
+            cap.chunk_ring = ring
+
+
+def _histogram_capture(cap, bounds, engine, progress, log, threads, stable):
     if bounds is None:
         one = SelfBoundingHistogram(cap.meta.n_tdc, engine=engine)
-        for first, words in cap.iter_chunks():
-            one.update(words, first)
-            progress(words.size)
+        chunks = iter(cap.iter_chunks())
+        head = next(chunks, None)
+        if head is not None:  # the first chunk sets the provisional cores the forks share
+            one.update(head[1], head[0])
+            progress(head[1].size)
+            forks = [one.fork() for _ in range(threads - 1)]
+            _fan_out(chunks, [one, *forks], progress, stable)
+            for f in forks:
+                one.merge(f)
         state, bounds = one.finish()
         if state is not None:
             return state, bounds
         if log:
             log("the first chunk's provisional artifact bounds did not hold: a second pass")
-    acc = HistogramAccumulator(cap.meta.n_tdc, bounds, engine=engine)
-    for first, words in cap.iter_chunks():
-        acc.update(words, first)
-        progress(words.size)
-    return acc.snapshot(), bounds
+    accs = [HistogramAccumulator(cap.meta.n_tdc, bounds, engine=engine)
+            for _ in range(threads)]
+    _fan_out(cap.iter_chunks(), accs, progress, stable)
+    state = accs[0].snapshot()
+    for acc in accs[1:]:
+        state = state + acc.snapshot()
+    return state, bounds
 
 
 def write_histograms(state: HistogramState, measurement: str, out: str | Path,
