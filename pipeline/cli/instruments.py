@@ -16,8 +16,10 @@ def detect(path: str, given: str | None) -> str:
     parquet file is a ``histograms`` dataset (``range`` takes those)."""
     from pipeline.io.formats import resolve_format
 
-    if given is None and Path(path).is_file() and Path(path).read_bytes()[:4] == b"PAR1":
-        return "histograms"
+    if given is None and Path(path).is_file():
+        with open(path, "rb") as fh:  # 4 bytes, not the file (a PTU file can be GBs)
+            if fh.read(4) == b"PAR1":
+                return "histograms"
     return resolve_format(path, given)
 
 
