@@ -221,7 +221,8 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
     cycles : (n_tdc,) cycles per TDC.
     window_s : the window length T.
     min_hits : below this a TDC is flagged as dead or dark (``ok = False``), and its
-        results are NaN; other TDCs are unaffected.
+        results are NaN; other TDCs are unaffected. So is a TDC whose histogram lacks a
+        phase (:func:`phase_depleted`: not uniform light).
     exclude : (n_tdc, 512) bool, optional
         Codes whose counts are not uniform light (a range capture's signal peaks): their
         hits still leave the at-risk count, their widths come from the phase means.
@@ -266,6 +267,38 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
                          out["err"])
 
 
+#: A phase (P1st, code mod 8) of a uniform-light histogram holding less than this share
+#: of the phases' mean count per code: words lost, not light (see :func:`phase_depleted`).
+PHASE_MIN_SHARE = 0.25
+
+
+def phase_depleted(hits: np.ndarray, codes=None) -> np.ndarray:
+    """(n_tdc,) True where a uniform-light histogram lacks a phase: some P1st (code mod 8)
+    holds under ``PHASE_MIN_SHARE`` of the phases' mean count per code over
+    ``codes`` (default: 8 to 8 codes below the reset peak). Uniform light fills every
+    phase in proportion to its width (the chips' per-phase DNL is well within a factor
+    of 2); an empty phase means words were dropped before the histogram, e.g. by artifact
+    bounds (n_min, n_max) a bright test's own second stage got wrong (chip zoo seed 119:
+    its brightest test, 0.84 detections a cycle, kept only P1st 4 and 5 on six of eight
+    TDCs). Such a histogram gives neither widths (combined into every other test's INL
+    with the tiny variances of its many counts) nor an LSB, nor its light level."""
+    h = np.atleast_2d(np.asarray(hits, np.float64))
+    out = np.zeros(h.shape[0], bool)
+    for t, row in enumerate(h):
+        if codes is None:
+            top = int(np.argmax(np.where(np.arange(N_CODES) > 16, row, -1)))
+            k = np.arange(8, max(top - EDGE_MARGIN - 4, 8))
+        else:
+            k = np.asarray(codes)
+        if k.size < 16:
+            continue
+        ph = np.array([row[k[k % 8 == p]].mean() if np.any(k % 8 == p) else np.nan
+                       for p in range(8)])
+        mean = np.nanmean(ph)
+        out[t] = bool(mean > 0 and np.nanmin(ph) < PHASE_MIN_SHARE * mean)
+    return out
+
+
 def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill=None,
              artifacts=None, combine=False):
     # the reset peak: the largest count in the upper part of the code range
@@ -285,6 +318,8 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill
         interior = interior[~exclude[interior]]
         if interior.size < 32 or any(np.sum(interior % 8 == p) == 0 for p in range(8)):
             return None
+    if phase_depleted(h[None], interior)[0]:
+        return None  # not uniform light: words of some phases were lost
     if np.any(~np.isfinite(rw[interior])) or np.any(h[interior] == 0):
         # missing codes: a zero-count code has an unknown (tiny) width; keep it at 0
         rw = np.where(np.isfinite(rw), rw, 0.0)
@@ -484,19 +519,34 @@ class LsbFit:
             return self.cubic_ps(n)
         order = np.argsort(lv)
         lv, y = lv[order], self.points_ps()[:, order]
-        good = np.all(np.isfinite(y), axis=1)
-        if not (good.any() and np.all(np.diff(lv) > 0)):  # two tests at one light
+        if not np.all(np.diff(lv) > 0):  # two tests at one light
             return self.cubic_ps(n)
-        from scipy.interpolate import CubicSpline
-
-        out = np.full(y.shape[0], np.nan)
-        spline = CubicSpline(np.sqrt(lv), y[good].T, axis=0)
-        out[good] = spline(np.sqrt(min(max(float(n), lv[0]), lv[-1])))
-        return out
+        return _spline_rows(lv, y, float(n))
 
     def in_range(self, n) -> bool:
         lo, hi = self.n_range
         return bool(lo - 1e-12 <= n <= hi + 1e-12)
+
+
+def _spline_rows(levels: np.ndarray, y: np.ndarray, n: float) -> np.ndarray:
+    """Each row of ``y`` (n_rows, n_levels) read at light ``n`` by a cubic spline in
+    sqrt(light) through its finite points (``levels`` ascending). A row lacking a level (a
+    TDC a density test flagged) uses the others: NaN (no time axis, flagged) where fewer
+    than 3 remain or ``n`` lies outside the row's own levels."""
+    from scipy.interpolate import CubicSpline
+
+    fin = np.isfinite(y)
+    out = np.full(y.shape[0], np.nan)
+    for pattern in np.unique(fin, axis=0):
+        rows = np.all(fin == pattern, axis=1)
+        lv = levels[pattern]
+        if lv.size < 3:
+            continue
+        if not (pattern.all() or lv[0] - 1e-12 <= n <= lv[-1] + 1e-12):
+            continue
+        x = min(max(n, lv[0]), lv[-1])  # (the campaign's range is the caller's check)
+        out[rows] = CubicSpline(np.sqrt(lv), y[rows][:, pattern].T, axis=0)(np.sqrt(x))
+    return out
 
 
 def fit_lsb(n: np.ndarray, lsb_ps: np.ndarray) -> LsbFit:
@@ -514,9 +564,19 @@ def fit_lsb(n: np.ndarray, lsb_ps: np.ndarray) -> LsbFit:
     x_scale = float(n.std()) or 1.0
     x = (n - x_mean) / x_scale
     v = np.vander(x, 4, increasing=True)              # (n_points, 4), scaled: well posed
-    good = np.all(np.isfinite(y), axis=1)
+    fin = np.isfinite(y)
     coef = np.full((y.shape[0], 4), np.nan)
-    coef[good] = np.linalg.lstsq(v, y[good].T, rcond=None)[0].T
+    # rows by which levels they have (a TDC a test flagged lacks that level): a cubic
+    # through 4 or more, a quadratic through 3, nothing through fewer
+    for pattern in np.unique(fin, axis=0):
+        rows = np.all(fin == pattern, axis=1)
+        m = int(pattern.sum())
+        if m < 3:
+            continue
+        deg = min(m, 4)
+        coef[rows] = 0.0
+        coef[np.ix_(rows, np.arange(deg))] = np.linalg.lstsq(
+            v[pattern][:, :deg], y[rows][:, pattern].T, rcond=None)[0].T
     resid = y - coef @ v.T
     return LsbFit(coef, x_mean, x_scale, (float(n.min()), float(n.max())), resid, n)
 
@@ -591,19 +651,11 @@ def scale_at_light(density: DensityResult, lsb_s, window_s: float,
     levels = None if fit is None or fit.levels is None else np.asarray(fit.levels, np.float64)
     if (levels is not None and light is not None and levels.size >= 3
             and fit.in_range(light) and np.unique(levels).size == levels.size):
-        from scipy.interpolate import CubicSpline
-
         order = np.argsort(levels)
         pts = fit.points_ps()[:, order] * 1e-12
         s_pts = np.column_stack([window_s / _bound_at(bounds, window_s / pts[:, j])
                                  for j in range(pts.shape[1])])
-        good = np.all(np.isfinite(s_pts), axis=1) & ok
-        scale = np.full(bounds.shape[0], np.nan)
-        if good.any():
-            spline = CubicSpline(np.sqrt(levels[order]), s_pts[good].T, axis=0)
-            scale[good] = spline(np.sqrt(min(max(light, levels[order][0]),
-                                             levels[order][-1])))
-        return scale
+        return np.where(ok, _spline_rows(levels[order], s_pts, float(light)), np.nan)
     x_t = window_s / np.asarray(lsb_s, np.float64)
     scale = window_s / _bound_at(bounds, x_t)
     return np.where(ok, scale, np.nan)  # a dead TDC has no axis

@@ -143,11 +143,19 @@ def lsb_from_states(tests: list, window_s: float, inl_rms_lsb: float = 0.5,
     for name, (state, _) in zip(names, tests, strict=True):
         res = cal.density_test(state.hits, state.cycles, window_s, artifacts=state.artifacts)
         results.append(res)
+        lost = np.flatnonzero(cal.phase_depleted(state.hits))
+        if log and lost.size:
+            log(f"{name}: TDCs {lost.tolist()} flagged: a phase (code mod 8) without its "
+                f"share of the light (words lost, e.g. by wrong artifact bounds)")
         if log:
             log(f"{name}: {over_finite(np.mean, res.detections_per_cycle):.3f} STARTs per "
                 f"pixel per cycle, LSB {over_finite(np.mean, res.lsb_s) * 1e12:.2f} ps (mean "
                 f"of {np.isfinite(res.lsb_s).sum()} TDCs)")
-    n = np.array([np.nanmean(r.detections_per_cycle) for r in results])
+    # the light over the TDCs the test calibrated (one with words lost is no measure of
+    # it); over all of them where it calibrated none (too dim: the fit still has a level)
+    n = np.array([over_finite(np.mean, np.where(r.ok, r.detections_per_cycle, np.nan))
+                  if r.ok.any() else over_finite(np.mean, r.detections_per_cycle)
+                  for r in results])
     lsbs = np.column_stack([r.lsb_s * 1e12 for r in results])
     fit = cal.fit_lsb(n, lsbs)
 
@@ -155,7 +163,10 @@ def lsb_from_states(tests: list, window_s: float, inl_rms_lsb: float = 0.5,
         e = r.inl_error_lsb[r.ok]
         return float(np.nanmax(e)) if np.isfinite(e).any() else float("inf")
 
-    i_best = min(range(len(results)), key=lambda i: worst_inl(results[i]))
+    # first the test that calibrated the most TDCs (one can flag TDCs the others
+    # calibrated: cal.phase_depleted), then the smallest error
+    i_best = min(range(len(results)), key=lambda i: (-int(results[i].ok.sum()),
+                                                     worst_inl(results[i])))
     best = results[i_best]
     others = [(tests[i][0], r) for i, r in enumerate(results) if i != i_best]
     if others:

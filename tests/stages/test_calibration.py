@@ -457,3 +457,28 @@ def test_lsb_levels_survive_the_calibration_directory(tmp_path):
     old = load_calibration(d).lsb_fit
     assert old.levels is None
     np.testing.assert_allclose(old.lsb_ps(0.1), fit.cubic_ps(0.1), rtol=1e-12)
+
+
+def test_a_histogram_missing_phases_is_flagged_and_its_level_left_out():
+    """Chip zoo seed 119: the brightest density test's own artifact bounds were wrong on
+    six TDCs, its histograms kept only P1st 4-5, and (not flagged) its widths entered every
+    code's combined width and its too low light level bent the LSB spline by ~1.5 ps."""
+    rng = np.random.default_rng(3)
+    hits = rng.poisson(1000.0, (N, 512)).astype(float)
+    hits[:, 380:] = 0.0
+    hits[:, 376] = 60000.0  # the reset peak
+    hits[2, np.arange(512) % 8 < 4] = 0.0  # TDC 2: only phases 4-7 kept
+    hits[5, np.arange(512) % 8 == 6] *= 0.6  # a narrow phase is still light
+    assert cal.phase_depleted(hits).tolist() == [t == 2 for t in range(N)]
+    r = cal.density_test(hits, np.full(N, 400_000.0), 80e-9)
+    assert r.ok.tolist() == [t != 2 for t in range(N)] and np.isnan(r.lsb_s[2])
+    # the LSB fit and its spline without that TDC's level: the others still read it
+    n = np.array([0.02, 0.15, 0.3, 0.5, 0.8])
+    true = 230 + 40 * (1 - np.exp(-n / 0.6))
+    y = np.vstack([true, true])
+    y[1, -1] = np.nan
+    fit = cal.fit_lsb(n, y)
+    assert np.all(np.isfinite(fit.coef))
+    got = fit.lsb_ps(0.25)
+    assert np.all(np.abs(got - (230 + 40 * (1 - np.exp(-0.25 / 0.6)))) < 0.3)
+    assert np.isnan(fit.lsb_ps(0.7)[1]) and np.isfinite(fit.lsb_ps(0.7)[0])
