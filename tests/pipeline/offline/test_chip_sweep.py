@@ -368,8 +368,6 @@ def test_a_fast_saturating_lsb_is_followed_or_flagged(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="issue 15 finding: the dimmest density test's "
-                   "bounds swallow a strong artifact, its LSB comes from the artifact's code")
 def test_a_strong_artifact_in_the_dimmest_density_test(tmp_path):
     """Seed 123 of the zoo with the artifact at 2.7e-3 a cycle (9x the thesis's) on one
     code (139): in the dimmest density test (0.02 detections a cycle) the artifact's D2nd
