@@ -211,13 +211,14 @@ def campaign_second_stage(joints: list, cycles: list) -> SecondStage:
         density[i] = (d2 * b.in_block()).sum(axis=1) / width / max(float(c), 1.0)
     pick = np.argmax(density, axis=0)
     rows = np.arange(n_tdc)
-    chosen = ArtifactBounds(np.array([per[i].n_min[t] for t, i in zip(rows, pick)]),
-                            np.array([per[i].n_max[t] for t, i in zip(rows, pick)]),
-                            source="density tests",
-                            uncertain=np.array([per[i].uncertain[t]
-                                                for t, i in zip(rows, pick)]),
-                            reasons=tuple(per[i].reasons[t] for t, i in zip(rows, pick)))
-    return second_stage_params(sum(joints[1:], joints[0].copy()), chosen)
+
+    def chosen(field):
+        return np.stack([getattr(b, field) for b in per])[pick, rows]
+
+    reasons = np.array([b.reasons for b in per], dtype=object)[pick, rows]
+    bounds = ArtifactBounds(chosen("n_min"), chosen("n_max"), source="density tests",
+                            uncertain=chosen("uncertain"), reasons=tuple(reasons.tolist()))
+    return second_stage_params(sum(joints[1:], joints[0].copy()), bounds)
 
 
 # ------------------------------------------------------------------------- density test

@@ -185,12 +185,12 @@ def lsb_from_states(tests: list, window_s: float, inl_rms_lsb: float = 0.5,
         mid[has] = np.nanmedian(others[has], axis=1)
         off = np.abs(lsbs[:, i] / mid - 1) > LSB_SPREAD  # NaN: False
         results[i] = r.flagged(off, [f"{names[i]}: LSB {a:.0f} ps, the other tests' "
-                                     f"{b:.0f} ps" for a, b in zip(lsbs[:, i], mid)])
+                                     f"{b:.0f} ps" for a, b in zip(lsbs[:, i], mid, strict=True)])
     n = np.array([np.nanmean(r.detections_per_cycle) for r in results])
     lsbs = np.column_stack([r.lsb_s * 1e12 for r in results])
     fit = cal.fit_lsb(n, lsbs)
     # a TDC flagged in any test has no LSB against light: flagged in the result kept
-    why = [next((f"{nm}: {r.reasons[t]}" for nm, r in zip(names, results)
+    why = [next((f"{nm}: {r.reasons[t]}" for nm, r in zip(names, results, strict=True)
                  if not r.ok[t]), "") for t in range(lsbs.shape[0])]
     no_fit = ~np.all(np.isfinite(fit.coef), axis=1)
 
