@@ -8,7 +8,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from pipeline.offline.calibrate import checked
+from pipeline.io.caldir import load_calibration
+from pipeline.offline.calibrate import checked, write_caldir
 from stages import calibration as cal
 from stages.artifact import estimate_bounds
 
@@ -58,7 +59,7 @@ def density_state(rng, spike_at=None):
     return SimpleNamespace(hits=hits, cycles=np.full(N_TDC, 1e6), artifacts=None)
 
 
-def test_uncertain_bounds_and_a_misplaced_reset_peak_are_flagged_with_a_reason():
+def test_uncertain_bounds_and_a_misplaced_reset_peak_are_flagged_with_a_reason(tmp_path):
     """TDC 1's block is too sparse in every test for its edges to be trusted: the campaign
     carries the estimate's reason and the density test flags the TDC with it. TDC 2's
     histogram holds an artifact's code (139) as hits, which the density test takes for
@@ -79,3 +80,6 @@ def test_uncertain_bounds_and_a_misplaced_reset_peak_are_flagged_with_a_reason()
         and "edges" in out.reasons[1]
     assert "light ends at code 365: not where the window ends" in out.reasons[2]
     assert np.isnan(out.lsb_s[1:]).all() and np.isfinite(out.lsb_s[0])
+    # the reasons are the calibration's: saved, loaded, and one per TDC
+    calib = load_calibration(write_caldir(tmp_path / "cal", out, second, []))
+    assert calib.ok.tolist() == [True, False, False] and calib.reasons == out.reasons
