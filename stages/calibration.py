@@ -595,7 +595,7 @@ class LsbFit:
             return self.cubic_ps(n)
         from scipy.interpolate import CubicSpline
 
-        out = np.full(y.shape[0], np.nan)
+        out = self.cubic_ps(n)  # a TDC with a level missing: its cubic
         spline = CubicSpline(np.sqrt(lv), y[good].T, axis=0)
         out[good] = spline(np.sqrt(min(max(float(n), lv[0]), lv[-1])))
         return out
@@ -620,9 +620,15 @@ def fit_lsb(n: np.ndarray, lsb_ps: np.ndarray) -> LsbFit:
     x_scale = float(n.std()) or 1.0
     x = (n - x_mean) / x_scale
     v = np.vander(x, 4, increasing=True)              # (n_points, 4), scaled: well posed
-    good = np.all(np.isfinite(y), axis=1)
+    # a TDC flagged in one test (dead there, or its reset peak not trusted) is fitted on
+    # the levels it has, where 4 or more remain; its missing points stay NaN
+    finite = np.isfinite(y)
     coef = np.full((y.shape[0], 4), np.nan)
-    coef[good] = np.linalg.lstsq(v, y[good].T, rcond=None)[0].T
+    for pattern in np.unique(finite, axis=0):
+        if pattern.sum() < 4:
+            continue
+        rows = np.all(finite == pattern, axis=1)
+        coef[rows] = np.linalg.lstsq(v[pattern], y[rows][:, pattern].T, rcond=None)[0].T
     resid = y - coef @ v.T
     return LsbFit(coef, x_mean, x_scale, (float(n.min()), float(n.max())), resid, n)
 
@@ -706,7 +712,9 @@ def scale_at_light(density: DensityResult, lsb_s, window_s: float,
         s_pts = np.column_stack([window_s / _bound_at(bounds, window_s / pts[:, j])
                                  for j in range(pts.shape[1])])
         good = np.all(np.isfinite(s_pts), axis=1) & ok
-        scale = np.full(bounds.shape[0], np.nan)
+        # a TDC with a level missing: the scale at its LSB (the cubic's, lsb_ps)
+        scale = np.where(ok, window_s / _bound_at(bounds, window_s / np.asarray(
+            lsb_s, np.float64)), np.nan)
         if good.any():
             spline = CubicSpline(np.sqrt(levels[order]), s_pts[good].T, axis=0)
             scale[good] = spline(np.sqrt(min(max(light, levels[order][0]),
