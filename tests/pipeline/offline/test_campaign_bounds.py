@@ -83,3 +83,18 @@ def test_uncertain_bounds_and_a_misplaced_reset_peak_are_flagged_with_a_reason(t
     # the reasons are the calibration's: saved, loaded, and one per TDC
     calib = load_calibration(write_caldir(tmp_path / "cal", out, second, []))
     assert calib.ok.tolist() == [True, False, False] and calib.reasons == out.reasons
+
+
+def test_a_tdc_flagged_in_one_test_keeps_an_lsb_fit_on_the_others():
+    """Five levels, TDC 0 flagged in the dimmest (NaN there): its cubic is fitted on the
+    four it has (exact for a cubic truth), and read where the spline is for the others."""
+    levels = np.array([0.02, 0.06, 0.15, 0.3, 0.6])
+    truth = 200 + 30 * levels - 10 * levels ** 2 + 5 * levels ** 3
+    y = np.vstack([truth, truth + 1.0])
+    y[0, 0] = np.nan
+    fit = cal.fit_lsb(levels, y)
+    assert np.isfinite(fit.coef).all()
+    np.testing.assert_allclose(fit.lsb_ps(0.1)[0], fit.cubic_ps(0.1)[0])
+    np.testing.assert_allclose(fit.cubic_ps(levels)[0], truth, atol=1e-9)
+    y[0, 1] = np.nan  # three levels left: no fit, the TDC is flagged by the campaign
+    assert np.isnan(cal.fit_lsb(levels, y).coef[0]).all()
