@@ -190,8 +190,8 @@ def campaign_second_stage(joints: list, cycles: list) -> SecondStage:
     fixed rate per cycle whatever the light (it stays when V_op is 0 V), while the valid
     block grows with the light. So the test whose block holds the most counts per code
     per cycle has the clearest block-to-artifact contrast; each TDC takes its bounds from
-    that test (and their ``uncertain`` reason, if any), and every test is filtered with
-    them. A dim test alone can be fooled: with the artifact at 2.7e-3 a cycle the
+    that test among those whose estimate is not ``uncertain`` (from the densest with its
+    reason where every one is), and every test is filtered with them. A dim test alone can be fooled: with the artifact at 2.7e-3 a cycle the
     artifact's D2nd codes at 0.02 detections a cycle were as dense as the block's, the
     block ran to 255 unflagged (issue 15). Nth and PDM (the smallest D2nd at P1st 0 and
     4 inside the bounds) come from all the tests summed: the most cycles seen.
@@ -209,7 +209,12 @@ def campaign_second_stage(joints: list, cycles: list) -> SecondStage:
         d2 = j.sum(axis=1).astype(np.float64)
         width = (b.n_max.astype(np.int64) - b.n_min + 1).clip(1)
         density[i] = (d2 * b.in_block()).sum(axis=1) / width / max(float(c), 1.0)
-    pick = np.argmax(density, axis=0)
+    # an estimate the data cannot vouch for loses to any it can (a very bright test's
+    # block can be cut where pile-up and its reset peak skew the D2nd codes: uncertain,
+    # and then its narrow block looks the densest)
+    certain = np.stack([~b.uncertain for b in per])
+    pick = np.argmax(np.where(certain, density, density - np.inf), axis=0)
+    pick = np.where(certain.any(axis=0), pick, np.argmax(density, axis=0))
     rows = np.arange(n_tdc)
 
     def chosen(field):
