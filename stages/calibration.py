@@ -147,16 +147,29 @@ class SecondStage:
     n_max: np.ndarray
     n_th: np.ndarray
     pdm: np.ndarray
+    #: per TDC, why its bounds cannot be trusted ("" where they can; () where none is
+    #: recorded): :attr:`stages.artifact.ArtifactBounds.reasons` of the estimate
+    reasons: tuple = ()
+
+    @property
+    def uncertain(self) -> np.ndarray:
+        n = np.asarray(self.n_min).size
+        return np.array([bool(r) for r in self.reasons], bool) if self.reasons else \
+            np.zeros(n, bool)
 
     @property
     def bounds(self) -> ArtifactBounds:
-        return ArtifactBounds(self.n_min, self.n_max, source="density test")
+        return ArtifactBounds(self.n_min, self.n_max, source="density test",
+                              uncertain=self.uncertain, reasons=self.reasons)
 
 
-def second_stage_params(joint: np.ndarray) -> SecondStage:
+def second_stage_params(joint: np.ndarray, bounds: ArtifactBounds | None = None
+                        ) -> SecondStage:
     """Nmin, Nmax (the valid block, artifact excluded), Nth (min D2nd with P1st = 0) and
-    PDM (min D2nd with P1st = 4), per TDC (section 3.2). -1 where a TDC saw nothing."""
-    b = estimate_bounds(joint.sum(axis=1))
+    PDM (min D2nd with P1st = 4), per TDC (section 3.2). -1 where a TDC saw nothing.
+    ``bounds``: Nmin/Nmax found elsewhere (:func:`campaign_second_stage`); by default
+    estimated from ``joint``. The estimate's ``uncertain`` reasons are kept."""
+    b = estimate_bounds(joint.sum(axis=1)) if bounds is None else bounds
     d2 = np.arange(N_CODES_2ND)
     inside = (d2 >= b.n_min[:, None]) & (d2 <= b.n_max[:, None])
 
@@ -167,7 +180,51 @@ def second_stage_params(joint: np.ndarray) -> SecondStage:
     empty = joint.sum(axis=(1, 2)) == 0
     n_min = np.where(empty, -1, b.n_min)
     n_max = np.where(empty, -1, b.n_max)
-    return SecondStage(n_min, n_max, first(0), first(4))
+    return SecondStage(n_min, n_max, first(0), first(4), tuple(b.reasons))
+
+
+def campaign_second_stage(joints: list, cycles: list) -> SecondStage:
+    """One set of second-stage parameters for a whole campaign of density tests.
+
+    The bounds are the chip's, not the light's (section 3.4): the artifact comes at a
+    fixed rate per cycle whatever the light (it stays when V_op is 0 V), while the valid
+    block grows with the light. So the test whose block holds the most counts per code
+    per cycle has the clearest block-to-artifact contrast; each TDC takes its bounds from
+    that test among those whose estimate is not ``uncertain`` (from the densest with its
+    reason where every one is), and every test is filtered with them. A dim test alone
+    can be fooled: with the artifact at 2.7e-3 a cycle the artifact's D2nd codes at 0.02
+    detections a cycle were as dense as the block's, the block ran to 255 unflagged
+    (issue 15). Nth and PDM (the smallest D2nd at P1st 0 and
+    4 inside the bounds) come from all the tests summed: the most cycles seen.
+
+    ``joints``: each test's ``SecondStageAccumulator.counts`` (n_tdc, 8, 256);
+    ``cycles``: each test's cycles.
+    """
+    joints = [np.asarray(j) for j in joints]
+    if not joints:
+        raise CalibrationError("campaign_second_stage: no density test")
+    per = [estimate_bounds(j.sum(axis=1)) for j in joints]
+    n_tdc = joints[0].shape[0]
+    density = np.zeros((len(joints), n_tdc))
+    for i, (j, b, c) in enumerate(zip(joints, per, cycles, strict=True)):
+        d2 = j.sum(axis=1).astype(np.float64)
+        width = (b.n_max.astype(np.int64) - b.n_min + 1).clip(1)
+        density[i] = (d2 * b.in_block()).sum(axis=1) / width / max(float(c), 1.0)
+    # an estimate the data cannot vouch for loses to any it can (a very bright test's
+    # block can be cut where pile-up and its reset peak skew the D2nd codes: uncertain,
+    # and then its narrow block looks the densest)
+    certain = np.stack([~b.uncertain for b in per])
+    pick = np.argmax(np.where(certain, density, density - np.inf), axis=0)
+    pick = np.where(certain.any(axis=0), pick, np.argmax(density, axis=0))
+    rows = np.arange(n_tdc)
+
+    def chosen(field):
+        return np.stack([getattr(b, field) for b in per])[pick, rows]
+
+    reasons = np.array([b.reasons for b in per], dtype=object)[pick, rows]
+    bounds = ArtifactBounds(chosen("n_min"), chosen("n_max"), source="density tests",
+                            uncertain=chosen("uncertain"), reasons=tuple(reasons.tolist()))
+    return second_stage_params(sum(joints[1:], joints[0].copy()), bounds)
 
 
 # ------------------------------------------------------------------------- density test
@@ -185,10 +242,36 @@ class DensityResult:
     detections_per_cycle: np.ndarray  #: STARTs per cycle, the light level of eq. 5.1
     ok: np.ndarray           #: False for a dead or dark TDC (flagged, excluded)
     inl_error_lsb: np.ndarray  #: expected statistical error of the mid-range INL
+    #: per TDC, why it is flagged ("" where ok or where no reason was recorded)
+    reasons: tuple = ()
+
+    def __post_init__(self):
+        n = int(np.asarray(self.lsb_s).size)
+        reasons = tuple(self.reasons) or ("",) * n
+        if len(reasons) != n:
+            raise ValueError(f"density test: {len(reasons)} reasons for {n} TDCs")
+        object.__setattr__(self, "reasons", tuple(str(r) for r in reasons))
 
     @property
     def n_tdc(self) -> int:
         return int(self.lsb_s.size)
+
+    def flagged(self, bad, why) -> DensityResult:
+        """This result with the TDCs ``bad`` flagged (``ok`` False, results NaN) for
+        ``why`` (one reason, or one per TDC); a TDC already flagged keeps its reason."""
+        bad = np.asarray(bad, bool) & np.asarray(self.ok, bool)
+        if not bad.any():
+            return self
+        why = [why] * self.n_tdc if isinstance(why, str) else list(why)
+        reasons = tuple(w if b else r for b, w, r in zip(bad, why, self.reasons,
+                                                        strict=True))
+        nan = {f: np.where(bad if np.ndim(getattr(self, f)) == 1 else bad[:, None],
+                           np.nan, getattr(self, f))
+               for f in ("lsb_s", "x_t", "width_lsb", "dnl_lsb", "inl_lsb", "inl_error_lsb")}
+        import dataclasses
+
+        return dataclasses.replace(self, ok=np.asarray(self.ok, bool) & ~bad,
+                                   reasons=reasons, **nan)
 
 
 #: RMS over the codes of sqrt(F (1 - F)) for F uniform on [0, 1]: sqrt(1/6).
@@ -252,6 +335,7 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
     inl = np.full((n_tdc, N_CODES), np.nan)
     total = hits.sum(axis=1)
     ok = total >= min_hits
+    reasons = np.where(ok, "", f"under {min_hits} hits (dead or dark)").astype(object)
     for t in np.flatnonzero(ok):  # a loop over TDCs, once per calibration
         res = _one_tdc(hits[t], cycles[t], window_s,
                        None if exclude is None else exclude[t],
@@ -260,11 +344,39 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
                        combine)
         if res is None:
             ok[t] = False
+            reasons[t] = "no reset peak, or under 32 codes below it"
             continue
         out["lsb"][t], out["x_t"][t], widths[t], inl[t], out["err"][t] = res
     dnl = widths - 1.0
     return DensityResult(out["lsb"], out["x_t"], widths, dnl, inl, total, total / cycles, ok,
-                         out["err"])
+                         out["err"], tuple(reasons.tolist()))
+
+
+#: Codes the reset peak (x_T) may sit from where a density test's light ends.
+RESET_PLAUSIBLE = 8
+
+
+def implausible_reset_peak(hits: np.ndarray, res: DensityResult) -> np.ndarray:
+    """Per TDC, why the density test's reset peak cannot be where the window ends ("" where
+    it can). Uniform light fills every code up to tau = T and nothing comes after it, so
+    x_T sits where the light ends (the last code holding a tenth of the median code's
+    count, a stray count above does not move it); a peak found ``RESET_PLAUSIBLE`` codes
+    or more away from there is something else (an artifact's code counted as hits: x_T
+    139 for ~364, LSB 573 ps for ~220, issue 15), and its LSB would be wrong."""
+    h = np.asarray(hits, np.float64)
+    why = np.full(h.shape[0], "", dtype=object)
+    for t in np.flatnonzero(np.asarray(res.ok, bool)):
+        row = h[t]
+        pos = row[row > 0]
+        if not pos.size:
+            continue
+        lit = np.flatnonzero(row >= 0.1 * np.median(pos))
+        end = int(lit[-1]) + 1
+        if abs(res.x_t[t] - end) >= RESET_PLAUSIBLE:
+            why[t] = (f"reset peak at code {res.x_t[t]:.0f}, but the light ends at code "
+                      f"{end}: not where the window ends (LSB {res.lsb_s[t] * 1e12:.0f} ps "
+                      "implausible)")
+    return why
 
 
 #: A phase (P1st, code mod 8) of a uniform-light histogram holding less than this share
@@ -604,8 +716,10 @@ def density_rows(density: DensityResult, rows) -> DensityResult:
     """The results of some TDCs (a worker's range)."""
     import dataclasses
 
+    idx = np.arange(density.n_tdc)[rows]
     return DensityResult(**{f.name: getattr(density, f.name)[rows]
-                            for f in dataclasses.fields(DensityResult)})
+                            for f in dataclasses.fields(DensityResult) if f.name != "reasons"},
+                         reasons=tuple(density.reasons[i] for i in np.atleast_1d(idx)))
 
 
 def code_bounds(density: DensityResult) -> np.ndarray:

@@ -68,6 +68,12 @@ class Calibration:
         return np.asarray(self.density.ok, bool)
 
     @property
+    def reasons(self) -> tuple:
+        """Per TDC, why the density test flagged it ("" where ok, or none recorded): its
+        artifact bounds uncertain, a misplaced reset peak, dead or dark, ..."""
+        return self.density.reasons
+
+    @property
     def bounds(self) -> ArtifactBounds:
         return ArtifactBounds(self.second.n_min, self.second.n_max,
                               source=f"calibration:{self.path}" if self.path else "calibration")
@@ -115,7 +121,8 @@ class Calibration:
         return dataclasses.replace(
             self, density=cal.density_rows(self.density, sl),
             second=cal.SecondStage(*(np.asarray(getattr(self.second, f))[sl]
-                                     for f in ("n_min", "n_max", "n_th", "pdm"))),
+                                     for f in ("n_min", "n_max", "n_th", "pdm")),
+                                   tuple(self.second.reasons[sl])),
             lsb_fit=fit, delay_s=self.delay_s[sl], delay_reasons=self.delay_reasons[sl])
 
     def with_delay(self, delay_s: np.ndarray, reasons, irf_sigma_s: float,

@@ -32,8 +32,11 @@ _inl = click.option("--inl-rms", default=0.5, show_default=True, type=float,
 def _report(res: cal.DensityResult, second: cal.SecondStage) -> None:
     ok = res.ok
     err.print(f"TDCs calibrated: {ok.sum()} of {ok.size}"
-              + (f"; flagged (dead or dark): {np.flatnonzero(~ok).tolist()}" if (~ok).any()
+              + (f"; flagged: {np.flatnonzero(~ok).tolist()}" if (~ok).any()
                  else ""))
+    for t in np.flatnonzero(~ok)[:16]:  # why, where the density test said
+        if res.reasons[t]:
+            err.print(f"  TDC {t}: {res.reasons[t]}")
     if ok.any():
         err.print(f"LSB {np.nanmin(res.lsb_s) * 1e12:.2f}..{np.nanmax(res.lsb_s) * 1e12:.2f} ps;"
                   f" worst |DNL| {np.nanmax(np.abs(res.dnl_lsb)):.2f} LSB, worst |INL| "

@@ -127,7 +127,8 @@ def load_calibration(caldir: str | os.PathLike) -> Calibration:
                                 np.full(n, np.nan),
                                 np.full(n, d.get("detections_per_pixel_per_cycle", np.nan)),
                                 ok, np.asarray(d.get("inl_error_lsb", np.full(n, np.nan)),
-                                               np.float64))
+                                               np.float64),
+                                tuple(d["reasons"]) if len(d.get("reasons", ())) == n else ())
     second = cal.SecondStage(*(col(c).astype(np.int64) for c in ("n_min", "n_max", "n_th",
                                                                   "pdm")))
     px = meta.get("lsb_poly_x")
@@ -189,7 +190,8 @@ def save_calibration(calibration: Calibration, out: str | os.PathLike,
                         np.nanmean(density.detections_per_cycle)),
                     "x_t": np.asarray(density.x_t).tolist(),
                     "inl_error_lsb": np.asarray(density.inl_error_lsb).tolist(),
-                    "flagged_tdcs": np.flatnonzero(~np.asarray(density.ok, bool)).tolist()},
+                    "flagged_tdcs": np.flatnonzero(~np.asarray(density.ok, bool)).tolist(),
+                    "reasons": list(density.reasons)},
         **({"lsb_poly_x": {"mean": fit.x_mean, "scale": fit.x_scale,
                            "n_range": list(fit.n_range),
                            **({"levels": np.asarray(fit.levels).tolist()}

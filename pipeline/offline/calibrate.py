@@ -26,22 +26,49 @@ def over_finite(stat, values) -> float:
     return float(stat(v)) if v.size else float("nan")
 
 
-def density_histograms(capture: Capture, progress=None):
-    """A uniform-light capture's D1st histograms (artifact words apart, by code) and
-    second-stage parameters: two passes, the second stage's bounds first."""
-    n_tdc = capture.meta.n_tdc
-    ss = cal.SecondStageAccumulator(n_tdc)
+def second_stage_counts(capture: Capture, progress=None) -> np.ndarray:
+    """A capture's joint counts of (TDC, P1st, D2nd) over hit candidates (one pass)."""
+    ss = cal.SecondStageAccumulator(capture.meta.n_tdc)
     for first, words in capture.iter_chunks():
         ss.update(words, first)
         if progress:
             progress(words.size)
-    second = cal.second_stage_params(ss.counts)
-    acc = HistogramAccumulator(n_tdc, second.bounds, count_artifacts=True)
+    return ss.counts
+
+
+def density_histograms(capture: Capture, progress=None,
+                       second: cal.SecondStage | None = None):
+    """A uniform-light capture's D1st histograms (artifact words apart, by code) and
+    second-stage parameters: two passes, the second stage's bounds first. ``second``:
+    the bounds to filter with (a campaign's, :func:`campaign_histograms`): one pass."""
+    if second is None:
+        second = cal.second_stage_params(second_stage_counts(capture, progress))
+    acc = HistogramAccumulator(capture.meta.n_tdc, second.bounds, count_artifacts=True)
     for first, words in capture.iter_chunks():
         acc.update(words, first)
         if progress:
             progress(words.size)
     return acc.snapshot(), second
+
+
+def campaign_histograms(captures: list, progress=None) -> list:
+    """:func:`density_histograms` of several density tests of one chip, all filtered with
+    one set of bounds (:func:`stages.calibration.campaign_second_stage`: the bounds are the
+    chip's, and the brightest test shows them most clearly). Returns ``(state, second)``
+    pairs, ``second`` the same for every test."""
+    joints = [second_stage_counts(c, progress) for c in captures]
+    second = cal.campaign_second_stage(joints, [getattr(c.meta, "cycles", 1)
+                                                for c in captures])
+    return [density_histograms(c, progress, second) for c in captures]
+
+
+def checked(state, res: cal.DensityResult, second: cal.SecondStage) -> cal.DensityResult:
+    """``res`` with the TDCs flagged whose artifact bounds cannot be trusted (their hits
+    may hold artifact words) or whose reset peak is not where the window ends."""
+    res = res.flagged(second.uncertain, [f"artifact bounds uncertain: {r}"
+                                         for r in second.reasons] or "")
+    why = cal.implausible_reset_peak(state.hits, res)
+    return res.flagged(why != "", why.tolist())
 
 
 def refilled(state, res: cal.DensityResult, others: list, window_s: float,
@@ -66,16 +93,17 @@ def density_from_capture(capture: Capture, inl_rms_lsb: float | None = 0.3,
     (see :func:`refilled`). Raises CalibrationError when the capture is too small for
     ``inl_rms_lsb`` (None: no check), saying how many cycles are needed.
     """
-    state, second = density_histograms(capture, progress)
+    # one set of bounds for this test and its fills (the chip's, campaign_second_stage)
+    (state, second), *rest = campaign_histograms([capture, *fill], progress)
     window_s = capture.meta.window_ns * 1e-9
-    res = cal.density_test(state.hits, state.cycles, window_s, artifacts=state.artifacts)
+    res = checked(state, cal.density_test(state.hits, state.cycles, window_s,
+                                          artifacts=state.artifacts), second)
     if fill:
-        others = []
-        for c in fill:
-            st, _ = density_histograms(c, progress)
-            others.append((st, cal.density_test(st.hits, st.cycles, window_s,
-                                                artifacts=st.artifacts)))
+        others = [(st, checked(st, cal.density_test(st.hits, st.cycles, window_s,
+                                                    artifacts=st.artifacts), second))
+                  for st, _ in rest]
         res = refilled(state, res, others, window_s)
+        res = checked(state, res, second)
     if inl_rms_lsb is not None:
         worst = np.nanmax(np.where(res.ok, res.inl_error_lsb, np.nan)) if res.ok.any() else np.inf
         if not np.isfinite(worst) or worst > inl_rms_lsb:
@@ -112,11 +140,10 @@ def lsb_campaign(captures: list, out: str | Path, inl_rms_lsb: float = 0.5,
     Returns the density test kept for the INL, the fit, the light levels and the per-test
     LSBs (ps, TDC x test). Raises CalibrationError when no test reaches ``inl_rms_lsb``.
     """
-    caps, tests = [], []
-    for path in captures:
-        cap = path if hasattr(path, "iter_chunks") else Capture(path)
-        caps.append(cap)
-        tests.append(density_histograms(cap))  # dim tests give an LSB, not an INL
+    caps = [path if hasattr(path, "iter_chunks") else Capture(path) for path in captures]
+    # one set of artifact bounds for all the tests (the chip's): a dim test alone can take
+    # a strong artifact for part of the block; dim tests give an LSB, not an INL
+    tests = campaign_histograms(caps)
     window_s = caps[0].meta.window_ns * 1e-9
     best, second, fit, n, lsbs, i_best = lsb_from_states(
         tests, window_s, inl_rms_lsb, names=[c.bin_path.name for c in caps], log=log)
@@ -140,8 +167,9 @@ def lsb_from_states(tests: list, window_s: float, inl_rms_lsb: float = 0.5,
     there)."""
     names = names or [f"test {i}" for i in range(len(tests))]
     results = []
-    for name, (state, _) in zip(names, tests, strict=True):
-        res = cal.density_test(state.hits, state.cycles, window_s, artifacts=state.artifacts)
+    for name, (state, second) in zip(names, tests, strict=True):
+        res = checked(state, cal.density_test(state.hits, state.cycles, window_s,
+                                              artifacts=state.artifacts), second)
         results.append(res)
         lost = np.flatnonzero(cal.phase_depleted(state.hits))
         if log and lost.size:
@@ -151,6 +179,17 @@ def lsb_from_states(tests: list, window_s: float, inl_rms_lsb: float = 0.5,
             log(f"{name}: {over_finite(np.mean, res.detections_per_cycle):.3f} STARTs per "
                 f"pixel per cycle, LSB {over_finite(np.mean, res.lsb_s) * 1e12:.2f} ps (mean "
                 f"of {np.isfinite(res.lsb_s).sum()} TDCs)")
+    # a test's LSB far from the other tests' (the LSB moves by tens of ps with light, not
+    # by half) is not the chip's: flagged, and then the TDC has no LSB fit
+    lsbs = np.column_stack([r.lsb_s * 1e12 for r in results])
+    for i, r in enumerate(results):
+        others = np.delete(lsbs, i, axis=1)
+        mid = np.full(r.n_tdc, np.nan)
+        has = np.isfinite(others).any(axis=1)
+        mid[has] = np.nanmedian(others[has], axis=1)
+        off = np.abs(lsbs[:, i] / mid - 1) > LSB_SPREAD  # NaN: False
+        results[i] = r.flagged(off, [f"{names[i]}: LSB {a:.0f} ps, the other tests' "
+                                     f"{b:.0f} ps" for a, b in zip(lsbs[:, i], mid, strict=True)])
     # the light over the TDCs the test calibrated (one with words lost is no measure of
     # it); over all of them where it calibrated none (too dim: the fit still has a level)
     n = np.array([over_finite(np.mean, np.where(r.ok, r.detections_per_cycle, np.nan))
@@ -158,6 +197,10 @@ def lsb_from_states(tests: list, window_s: float, inl_rms_lsb: float = 0.5,
                   for r in results])
     lsbs = np.column_stack([r.lsb_s * 1e12 for r in results])
     fit = cal.fit_lsb(n, lsbs)
+    # a TDC flagged in any test has no LSB against light: flagged in the result kept
+    why = [next((f"{nm}: {r.reasons[t]}" for nm, r in zip(names, results, strict=True)
+                 if not r.ok[t]), "") for t in range(lsbs.shape[0])]
+    no_fit = ~np.all(np.isfinite(fit.coef), axis=1)
 
     def worst_inl(r: cal.DensityResult) -> float:  # inf when no TDC was calibrated
         e = r.inl_error_lsb[r.ok]
@@ -171,15 +214,25 @@ def lsb_from_states(tests: list, window_s: float, inl_rms_lsb: float = 0.5,
     others = [(tests[i][0], r) for i, r in enumerate(results) if i != i_best]
     if others:
         best = refilled(tests[i_best][0], best, others, window_s, combine)
+        best = checked(tests[i_best][0], best, tests[i_best][1])
         if log:
             log(f"INL from {names[i_best]}; the codes under its reset peak also "
                 f"from the {len(others)} other test(s)")
+    best = best.flagged(no_fit, [w or "no LSB in some density test" for w in why])
+    if log and not best.ok.all():
+        log(f"{int((~best.ok).sum())} TDC(s) flagged: " + "; ".join(
+            f"{t}: {best.reasons[t]}" for t in np.flatnonzero(~best.ok)[:8]))
     worst = worst_inl(best)
     if not worst <= inl_rms_lsb:
         raise CalibrationError(f"the best density test ({names[i_best]}) gives an "
                                f"INL error of {worst:.2f} LSB RMS > {inl_rms_lsb}")
     return best, tests[i_best][1], fit, n, lsbs, i_best
 
+
+#: How far (relative) a density test's LSB may be from the median of the other tests'
+#: before it is taken for a misplaced reset peak: the LSB moves with light by up to ~50 ps
+#: on ~220 (the zoo's fastest saturating chips), +-12 % about the middle test.
+LSB_SPREAD = 0.3
 
 #: What a delay measurement needs: return counts, and codes between the return and the
 #: masked reset peak or window end, in instrument-response sigmas.
@@ -277,7 +330,9 @@ def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: 
                           f"({str(src).split(': ', 1)[-1]}): run `tcspc calibrate lsb` "
                           "over this light" for src in axis.source[guess]]
     reasons[state.hits.sum(axis=1) == 0] = "no hits in the capture"
-    reasons[~calib.ok] = "flagged by the density test"
+    bad = ~calib.ok
+    reasons[bad] = ["flagged by the density test" + (f": {r}" if r else "")
+                    for r in np.asarray(calib.density.reasons, dtype=object)[bad]]
     d = np.where(reasons == "", d, np.nan)
     if not np.isfinite(d).any():
         counts = {r: int(np.sum(reasons == r)) for r in sorted(set(reasons.tolist()))}

@@ -56,7 +56,7 @@ from stages.simulator.chip import random_chip
 N_TDC = 8
 #: The zoo's ranges the sweep draws from: all of ZOO_RANGES but an LSB(n) that saturates
 #: no faster than n_sat = 0.5 (test_a_fast_saturating_lsb_is_followed_or_flagged) and the
-#: artifact at most twice the thesis's rate (test_a_strong_artifact_in_the_dimmest_density_test)
+#: artifact at most twice the thesis's rate (9x: test_a_strong_artifact_in_the_dimmest_density_test)
 SWEEP_RANGES = {"n_sat": (0.5, 1.5), "artifact_rate": (0.0, 6e-4)}
 DENSITY_LUX = (100.0, 700.0, 2500.0, 7000.0)   # ~0.02 to ~0.75 detections a cycle
 DENSITY_CYCLES = 800_000
@@ -368,8 +368,6 @@ def test_a_fast_saturating_lsb_is_followed_or_flagged(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="issue 15 finding: the dimmest density test's "
-                   "bounds swallow a strong artifact, its LSB comes from the artifact's code")
 def test_a_strong_artifact_in_the_dimmest_density_test(tmp_path):
     """Seed 123 of the zoo with the artifact at 2.7e-3 a cycle (9x the thesis's) on one
     code (139): in the dimmest density test (0.02 detections a cycle) the artifact's D2nd
@@ -377,6 +375,7 @@ def test_a_strong_artifact_in_the_dimmest_density_test(tmp_path):
     run to 255, unflagged, the artifact's words count as hits, the density test takes
     code 139 for the reset peak: LSB 573 ps at 0.02 (truth ~220), and the cubic through
     it gives 128-406 ps between the levels. Every delay 12 ns short, unflagged, targets
-    1 ns off or missed. (The other three tests found the bounds exactly: bounds are the
-    chip's, not the light's, and one set could serve every test.)"""
+    1 ns off or missed. The other three tests found the bounds exactly: bounds are the
+    chip's, not the light's, and the campaign now takes one set for every test, from the
+    test with the densest block per cycle (``campaign_second_stage``)."""
     check(run_chip(123, tmp_path, ranges={**SWEEP_RANGES, "artifact_rate": (0.0027, 0.0027)}))
