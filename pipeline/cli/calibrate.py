@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import click
 import numpy as np
-from pipeline.cli.app import console
 
+from pipeline.cli.app import console
 from pipeline.io.capture import Capture
 from pipeline.offline.calibrate import (
     add_delay,

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import click
 import numpy as np
-from pipeline.cli.app import console
 from rich.table import Table
 
+from pipeline.cli.app import console
 from stages.models import atmosphere as atm
 from stages.models import noise, signal
 from stages.models.performance import TABLE_2_2, predict, table_2_2_rows

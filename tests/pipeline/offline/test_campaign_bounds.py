@@ -87,14 +87,25 @@ def test_uncertain_bounds_and_a_misplaced_reset_peak_are_flagged_with_a_reason(t
 
 def test_a_tdc_flagged_in_one_test_keeps_an_lsb_fit_on_the_others():
     """Five levels, TDC 0 flagged in the dimmest (NaN there): its cubic is fitted on the
-    four it has (exact for a cubic truth), and read where the spline is for the others."""
+    four it has (exact for a cubic truth), its spline reads the truth between them, and
+    below its own levels it has no LSB (flagged) rather than an extrapolation. Three
+    levels give a quadratic, two nothing."""
     levels = np.array([0.02, 0.06, 0.15, 0.3, 0.6])
-    truth = 200 + 30 * levels - 10 * levels ** 2 + 5 * levels ** 3
-    y = np.vstack([truth, truth + 1.0])
+
+    def truth(n):
+        return 200 + 30 * n - 10 * n ** 2 + 5 * n ** 3
+
+    y = np.vstack([truth(levels), truth(levels) + 1.0])
     y[0, 0] = np.nan
     fit = cal.fit_lsb(levels, y)
     assert np.isfinite(fit.coef).all()
-    np.testing.assert_allclose(fit.lsb_ps(0.1)[0], fit.cubic_ps(0.1)[0])
-    np.testing.assert_allclose(fit.cubic_ps(levels)[0], truth, atol=1e-9)
-    y[0, 1] = np.nan  # three levels left: no fit, the TDC is flagged by the campaign
+    np.testing.assert_allclose(fit.cubic_ps(levels)[0], truth(levels), atol=1e-9)
+    assert abs(fit.lsb_ps(0.1)[0] - truth(0.1)) < 0.01  # ps: the spline, between its levels
+    assert abs(fit.lsb_ps(0.1)[1] - truth(0.1) - 1.0) < 0.01
+    below = fit.lsb_ps(0.03)
+    assert np.isnan(below[0]) and np.isfinite(below[1])  # TDC 0 was never measured there
+    y[0, 1] = np.nan  # three levels left: a quadratic through them
+    coef = cal.fit_lsb(levels, y).coef[0]
+    assert np.isfinite(coef[:3]).all() and coef[3] == 0.0
+    y[0, 2] = np.nan  # two: no fit, the TDC is flagged by the campaign
     assert np.isnan(cal.fit_lsb(levels, y).coef[0]).all()
