@@ -17,6 +17,17 @@ from pipeline.io.capture import capture_paths
 from schemas.errors import TcspcError
 
 FORMATS = ("tcspc", "ptu", "linospad2")
+PTU_MAGIC = b"PQTTTR\0\0"  #: a PTU file's first 8 bytes
+
+
+def is_ptu(path: str | Path) -> bool:
+    """True when the file starts with the PTU magic (8 bytes read: telling a format costs
+    no import of a reader, and no read of the file)."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(8) == PTU_MAGIC
+    except OSError:
+        return False
 
 
 class FormatError(TcspcError, ValueError):
@@ -25,8 +36,6 @@ class FormatError(TcspcError, ValueError):
 
 def detect_format(path: str | Path) -> str:
     """The format of ``path`` (one of :data:`FORMATS`), from its content."""
-    from pipeline.io.ptu import is_ptu
-
     path = Path(path)
     if path.is_file() and is_ptu(path):
         return "ptu"

@@ -31,6 +31,7 @@ import numpy as np
 import pyarrow as pa
 
 from pipeline.io.atomic import atomic_path
+from pipeline.io.formats import PTU_MAGIC, is_ptu  # noqa: F401 (is_ptu: this module's API too)
 from schemas.errors import TcspcError
 from schemas.instruments import PTU_T2_EVENTS, PTU_T3_EVENTS
 from stages.instruments.ptu import (
@@ -45,7 +46,10 @@ from stages.instruments.ptu import (
     to_picoseconds,
 )
 
-MAGIC = b"PQTTTR\0\0"
+MAGIC = PTU_MAGIC
+#: A T2 file's timetag unit is its TDC's bin (1-80 ps in PicoQuant's instruments): a
+#: larger one is a corrupt header, and its times in ps would overflow int64.
+T2_MAX_RESOLUTION_S = 1e-6
 #: Records per read: 16 MiB, bounded memory and large enough to amortise per-call overhead.
 CHUNK_RECORDS = 1 << 22
 
@@ -144,15 +148,6 @@ class PtuHeader:
                if k.startswith("HWInpChan_") and k.endswith(")")}
         n = len(idx) or int(self.tags.get("HW_InpChannels", fmt.n_channels))
         return max(1, min(n, fmt.n_channels))
-
-
-def is_ptu(path: str | os.PathLike) -> bool:
-    """True when the file starts with the PTU magic ``PQTTTR\\0\\0``."""
-    try:
-        with open(path, "rb") as fh:
-            return fh.read(8) == MAGIC
-    except OSError:
-        return False
 
 
 def _tag_value(typ: int, raw: int, data: bytes, name: str, where: str):
@@ -277,6 +272,9 @@ def _header_from_tags(where: str, tags: dict, version: str, data_offset: int,
             raise PtuError(f"{where}: {name} must be a positive number of seconds, found "
                            f"{v!r}")
     if not fmt.is_t3:
+        if global_res > T2_MAX_RESOLUTION_S:  # a T2 unit is a TDC's bin: ps, not seconds
+            raise PtuError(f"{where}: MeasDesc_GlobalResolution {global_res!r} s is no T2 "
+                           f"time unit (at most {T2_MAX_RESOLUTION_S} s; a corrupt header?)")
         try:  # T2 times are written in whole ps: the timetag unit must be exact
             resolution_ps_fraction(global_res)
         except ValueError as exc:

@@ -357,6 +357,14 @@ def test_missing_mandatory_tags_and_bad_values(tmp_path):
     one_line_error(read_header, p, match="records of 64 bits")
 
 
+def test_a_t2_time_unit_of_seconds_is_a_corrupt_header(tmp_path):
+    """Found by the byte-flip test below: a T2 global resolution of 1e300 s made the
+    times' conversion to ps overflow (an OverflowError, not a PtuError)."""
+    words = some_records(0x01010204, 64, seed=2)
+    p = write_ptu(tmp_path / "r.ptu", 0x01010204, words, global_resolution_s=1e300)
+    one_line_error(read_header, p, match="is no T2 time unit")
+
+
 @settings(max_examples=150, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(flips=st.lists(st.tuples(st.integers(0, 10 ** 6), st.integers(0, 255)),

@@ -21,30 +21,6 @@ N = 16
 SCENE = (Path(__file__).parents[3] / "scenes" / "small16.toml").read_text()
 
 
-@pytest.fixture(scope="module")
-def caldir(tmp_path_factory):
-    """A calibration of the 16-pixel chip: LSB against light from four density tests (the
-    range's light differs from any one test's), and a delay."""
-    from pipeline.offline.calibrate import add_delay, lsb_campaign
-    from pipeline.offline.simulate import simulate_capture
-    from stages.models.scene import scene_from_dict
-
-    d = tmp_path_factory.mktemp("cal")
-    caps = []
-    for i, lux in enumerate((100.0, 400.0, 1200.0, 3000.0)):
-        dens = scene_from_dict({"name": f"d{i}", "sensor": {"n_pixels": N},
-                                "ambient": [{"kind": "lux", "lux": lux}]})
-        simulate_capture(dens, 300_000, d / f"d{i}", seed=3 + i)
-        caps.append(d / f"d{i}")
-    delay = scene_from_dict({"name": "z", "sensor": {"n_pixels": N},
-                             "targets": [{"pixels": [0, N - 1], "distance_m": 0.001,
-                                          "reflectivity": 0.0005, "surface": "mirror"}]})
-    simulate_capture(delay, 150_000, d / "delay", seed=9)
-    lsb_campaign(caps, d / "cal", inl_rms_lsb=1.0)
-    add_delay(d / "delay", d / "cal")
-    return d / "cal"
-
-
 def topology(tmp_path, caldir=None, cycles=60_000, rate=None, workers=2, **source):
     (tmp_path / "small.toml").write_text(SCENE)
     text = f"""
