@@ -222,6 +222,10 @@ def lsb_from_states(tests: list, window_s: float, inl_rms_lsb: float = 0.5,
     if log and not best.ok.all():
         log(f"{int((~best.ok).sum())} TDC(s) flagged: " + "; ".join(
             f"{t}: {best.reasons[t]}" for t in np.flatnonzero(~best.ok)[:8]))
+    if not best.ok.any():
+        raise CalibrationError(
+            f"no TDC calibrated (the best density test: {names[i_best]}): " + "; ".join(
+                f"{t}: {best.reasons[t] or 'no reason given'}" for t in range(min(4, best.n_tdc))))
     worst = worst_inl(best)
     if not worst <= inl_rms_lsb:
         raise CalibrationError(f"the best density test ({names[i_best]}) gives an "

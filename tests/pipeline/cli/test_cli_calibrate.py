@@ -249,3 +249,20 @@ def test_a_tdc_without_a_delay_is_flagged_with_its_reason(capture, lsb_cal, tmp_
     df = pl.read_parquet(tmp_path / "r.pq").sort("tdc")
     assert df["detected"].to_list() == [True] * 3 + [False] + [True] * 4
     assert df.filter(pl.col("detected"))["distance_m"].abs().max() < 0.05
+
+
+def test_a_campaign_with_no_calibrated_tdc_exits_non_zero_and_writes_nothing(tmp_path):
+    """Four dark captures (no light: every TDC under the density test's hits): the
+    campaign says why per TDC and exits non-zero; no calibration directory appears."""
+    from pipeline.offline.simulate import simulate_capture
+    from stages.models.scene import scene_from_dict
+
+    caps = []
+    for i in range(4):
+        scene = scene_from_dict({"name": f"dark{i}", "sensor": {"n_pixels": 4}})
+        simulate_capture(scene, 2000, tmp_path / f"dark{i}", seed=i)
+        caps.append(str(tmp_path / f"dark{i}.bin"))
+    r = run("calibrate", "lsb", *caps, "--out", str(tmp_path / "cal"), ok=False)
+    assert r.exit_code != 0
+    assert "no TDC calibrated" in r.output and "dead or dark" in r.output
+    assert not (tmp_path / "cal").exists()
