@@ -11,6 +11,9 @@ import pyarrow as pa
 
 from schemas.core import SchemaSpec, field
 
+#: A PicoQuant PTU file's first 8 bytes (its format's magic).
+PTU_MAGIC = b"PQTTTR\0\0"
+
 #: the values of ``kind`` in the PTU event datasets
 PHOTON, MARKER = 0, 1
 EVENT_KINDS = ("photon", "marker")

@@ -15,9 +15,9 @@ from pathlib import Path
 
 from pipeline.io.capture import capture_paths
 from schemas.errors import TcspcError
+from schemas.instruments import PTU_MAGIC
 
 FORMATS = ("tcspc", "ptu", "linospad2")
-PTU_MAGIC = b"PQTTTR\0\0"  #: a PTU file's first 8 bytes
 
 
 def is_ptu(path: str | Path) -> bool:

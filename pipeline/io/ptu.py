@@ -31,9 +31,8 @@ import numpy as np
 import pyarrow as pa
 
 from pipeline.io.atomic import atomic_path
-from pipeline.io.formats import PTU_MAGIC, is_ptu  # noqa: F401 (is_ptu: this module's API too)
 from schemas.errors import TcspcError
-from schemas.instruments import PTU_T2_EVENTS, PTU_T3_EVENTS
+from schemas.instruments import PTU_MAGIC, PTU_T2_EVENTS, PTU_T3_EVENTS
 from stages.instruments.ptu import (
     SYNC_CHANNEL,
     Decoded,

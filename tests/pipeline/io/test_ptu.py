@@ -11,12 +11,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from pipeline.io.formats import is_ptu
 from pipeline.io.ptu import (
     DecodeReport,
     PtuError,
     decode,
     histogram_t3,
-    is_ptu,
     iter_chunks,
     iter_decoded_batches,
     read_header,
