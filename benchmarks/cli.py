@@ -101,7 +101,7 @@ def calibration_bounds(tmp: Path) -> Path:
 # --- the breakdown: the command in a process that stamps its steps ---------------------
 
 STEPS = [  # (module, attribute, label): wrapped to stamp their start and end
-    ("pipeline.cli.app", "_format_of", "format"),
+    ("pipeline.cli.instruments", "detect", "format"),
     ("pipeline.cli.app", "_open", "open capture"),
     ("stages.nativecode", "kernel", "load C kernel"),
     ("stages.histogram", "SelfBoundingHistogram._provisional_core", "provisional core"),

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.io.buffers import aligned_empty
 from schemas.errors import CaptureError
 from stages.codec import MARKER_MASK, MARKER_VALUE, MAX_TDC
 
@@ -165,7 +166,7 @@ class Capture:
     def read_words(self, first: int, count: int) -> np.ndarray:
         """``count`` native uint32 words starting at word ``first`` (a fresh array)."""
         count = max(0, min(count, self.n_words - first))
-        out = np.empty(count, np.uint32)
+        out = aligned_empty(count)
         with self._open() as fh:
             if self.compressed:  # a stream: read up to ``first``
                 for _ in range(0, 4 * first, 1 << 24):
@@ -198,7 +199,7 @@ class Capture:
         """
         n_tdc = self.meta.n_tdc
         chunk_words = max(n_tdc, chunk_words // n_tdc * n_tdc)
-        ring = [np.empty(min(chunk_words, self.n_words), np.uint32)
+        ring = [aligned_empty(min(chunk_words, self.n_words))  # (pipeline.io.buffers: 4x)
                 for _ in range(min(max(1, self.chunk_ring), -(-self.n_words // chunk_words)))]
         with self._open() as fh:
             for i, first in enumerate(range(0, self.n_words, chunk_words)):
