@@ -104,7 +104,8 @@ STEPS = [  # (module, attribute, label): wrapped to stamp their start and end
     ("pipeline.cli.instruments", "detect", "format"),
     ("pipeline.cli.app", "_open", "open capture"),
     ("stages.nativecode", "kernel", "load C kernel"),
-    ("stages.histogram", "SelfBoundingHistogram._provisional_core", "provisional core"),
+    ("stages.histogram", "SelfBoundingHistogram._provisional_core",
+     "provisional core (pyarrow's import runs beside it)"),
     ("pipeline.offline.datapath", "_fan_out", "loop (threads)"),
     ("stages.histogram", "SelfBoundingHistogram.finish", "finish (bounds, hits)"),
     ("pipeline.offline.datapath", "write_histograms", "write parquet"),
@@ -123,8 +124,8 @@ def stamped(argv: list[str]) -> None:
 
     import pipeline.cli.app as app
     mark("imported: click, rich, the CLI")
-    import pipeline.io.capture  # noqa: F401  (numpy, pyarrow through the schemas)
-    mark("imported: numpy, pyarrow, capture")
+    import pipeline.io.capture  # noqa: F401  (numpy; no pyarrow: schemas.constants)
+    mark("imported: numpy, capture")
     import pipeline.offline.datapath  # noqa: F401
     mark("imported: the offline data path")
     seen = set()

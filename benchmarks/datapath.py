@@ -25,7 +25,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.io.capture import CaptureWriter  # noqa: E402
-from schemas.words import N_CLASSES  # noqa: E402
+from schemas.constants import N_CLASSES  # noqa: E402
 from stages.artifact import ArtifactBounds  # noqa: E402
 from stages.codec import classify_words, decode_fields  # noqa: E402
 from stages.datapath import WordTables, accumulate  # noqa: E402

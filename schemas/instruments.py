@@ -9,10 +9,8 @@ from __future__ import annotations
 
 import pyarrow as pa
 
+from schemas.constants import PTU_MAGIC  # noqa: F401  (re-exported)
 from schemas.core import SchemaSpec, field
-
-#: A PicoQuant PTU file's first 8 bytes (its format's magic).
-PTU_MAGIC = b"PQTTTR\0\0"
 
 #: the values of ``kind`` in the PTU event datasets
 PHOTON, MARKER = 0, 1

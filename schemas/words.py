@@ -4,18 +4,18 @@ from __future__ import annotations
 
 import pyarrow as pa
 
+from schemas.constants import (  # noqa: F401  (re-exported: the contract's numbers)
+    ARTIFACT,
+    HIT,
+    INVALID_PHASE,
+    MALFORMED,
+    N_CLASSES,
+    N_CODES,
+    N_CODES_2ND,
+    NO_HIT,
+    WORD_CLASSES,
+)
 from schemas.core import SchemaSpec, field
-
-#: Word classes, in the order of their integer codes. Classification precedence is
-#: ``malformed > invalid_phase > no_hit > artifact > hit`` (DESIGN.md, "Raw word").
-WORD_CLASSES: tuple[str, ...] = ("hit", "no_hit", "artifact", "invalid_phase", "malformed")
-HIT, NO_HIT, ARTIFACT, INVALID_PHASE, MALFORMED = range(5)
-N_CLASSES = len(WORD_CLASSES)
-
-#: Codes of the first-stage TDC: D1st = 8*C1st + P1st in 0..511 (eq. 3.2).
-N_CODES = 512
-#: Second-stage raw codes: D2nd = 8*C2nd + P2nd in 0..255 (eq. 3.3).
-N_CODES_2ND = 256
 
 RAW_WORDS = SchemaSpec("raw_words", "1.0", (
     field("word", pa.uint32(), "", "raw 32-bit TDC word as a native integer (Table 5.1); "

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from schemas.errors import CalibrationError
-from schemas.words import N_CODES_2ND
+from schemas.constants import N_CODES_2ND
 
 
 @dataclass(frozen=True)

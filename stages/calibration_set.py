@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas.words import N_CODES
+from schemas.constants import N_CODES
 from stages import calibration as cal
 from stages.artifact import ArtifactBounds
 

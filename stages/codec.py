@@ -16,7 +16,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from schemas.words import ARTIFACT, HIT, INVALID_PHASE, MALFORMED, N_CLASSES, NO_HIT
+from schemas.constants import ARTIFACT, HIT, INVALID_PHASE, MALFORMED, N_CLASSES, NO_HIT
 
 #: Johnson (circular thermometer) codes in decode order: JOHNSON[k] decodes to k.
 JOHNSON = (0b0000, 0b0001, 0b0011, 0b0111, 0b1111, 0b1110, 0b1100, 0b1000)

@@ -8,13 +8,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-import pyarrow as pa
+from typing import TYPE_CHECKING
 
-from schemas.outputs import HISTOGRAMS
-from schemas.words import ARTIFACT, HIT, N_CLASSES, N_CODES, N_CODES_2ND, WORD_CLASSES
+import numpy as np
+
+from schemas.constants import ARTIFACT, HIT, N_CLASSES, N_CODES, N_CODES_2ND, WORD_CLASSES
 from stages.artifact import ArtifactBounds, estimate_bounds
 from stages.datapath import EDGE_KEYS, WordTables, accumulate, accumulate_self_bounded
+
+if TYPE_CHECKING:  # pyarrow is imported where a table is made: not on the hot path
+    import pyarrow as pa
 
 #: ``histograms.instrument`` of the thesis chip's D1st histograms
 CHIP = "tcspc-chip"
@@ -71,6 +74,10 @@ class HistogramState:
 
     def to_table(self, measurement: str) -> pa.Table:
         """The ``histograms`` dataset of this state, one row per TDC."""
+        import pyarrow as pa
+
+        from schemas.outputs import HISTOGRAMS
+
         n = self.n_tdc
         cc = self.class_counts
         width = self.hits.shape[1]

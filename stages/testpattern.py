@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas.words import (
+from schemas.constants import (
     ARTIFACT,
     HIT,
     INVALID_PHASE,

@@ -26,7 +26,7 @@ from pipeline.io.atomic import atomic_path
 from schemas.core import validate
 from schemas.errors import CalibrationError, SchemaMismatch, SchemaVersionError
 from schemas.outputs import CALIBRATION_INL, CALIBRATION_TDC
-from schemas.words import N_CODES
+from schemas.constants import N_CODES
 from stages import calibration as cal
 from stages.artifact import ArtifactBounds
 from stages.calibration_set import Calibration

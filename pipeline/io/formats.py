@@ -15,7 +15,7 @@ from pathlib import Path
 
 from pipeline.io.capture import capture_paths
 from schemas.errors import TcspcError
-from schemas.instruments import PTU_MAGIC
+from schemas.constants import PTU_MAGIC
 
 FORMATS = ("tcspc", "ptu", "linospad2")
 

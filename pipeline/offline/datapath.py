@@ -10,16 +10,12 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
-import pyarrow.parquet as pq
 
 from pipeline.io.atomic import atomic_path
 from pipeline.io.capture import Capture
-from pipeline.io.histograms import write_histogram_table
-from schemas.outputs import HISTOGRAMS
-from schemas.words import DECODED_EVENTS, N_CLASSES, WORD_CLASSES
+from schemas.constants import N_CLASSES, WORD_CLASSES
 from stages.artifact import ArtifactBounds, estimate_bounds
 from stages.datapath import default_engine
-from stages.decode import decode_batch
 from stages.histogram import HistogramAccumulator, HistogramState, SelfBoundingHistogram
 
 Progress = Callable[[int], None]  #: called with the number of words just processed
@@ -144,6 +140,8 @@ def _histogram_capture(cap, bounds, engine, progress, log, threads, stable):
 def write_histograms(state: HistogramState, measurement: str, out: str | Path,
                      provenance: dict[str, str] | None = None) -> None:
     """Write a ``histograms`` parquet file atomically, with provenance in its metadata."""
+    from pipeline.io.histograms import write_histogram_table
+
     write_histogram_table(state.to_table(measurement), out, provenance)
 
 
@@ -151,6 +149,11 @@ def decode_capture(cap: Capture, out: str | Path, bounds: ArtifactBounds | None 
                    include_no_hit: bool = False, engine: str | None = None,
                    progress: Progress = _noop) -> tuple[np.ndarray, ArtifactBounds]:
     """Decode a capture into a ``decoded_events`` parquet file; returns the class counts."""
+    import pyarrow.parquet as pq
+
+    from schemas.words import DECODED_EVENTS
+    from stages.decode import decode_batch
+
     if bounds is None:
         bounds = estimate_capture_bounds(cap, engine, progress)
     counts = np.zeros(N_CLASSES, np.int64)
@@ -170,5 +173,5 @@ def class_summary(counts) -> dict[str, int]:
     return {name: int(counts[i]) for i, name in enumerate(WORD_CLASSES)}
 
 
-__all__ = ["HISTOGRAMS", "class_summary", "decode_capture", "estimate_capture_bounds",
+__all__ = ["class_summary", "decode_capture", "estimate_capture_bounds",
            "histogram_capture", "write_histograms"]

@@ -17,7 +17,7 @@ from rich.console import Console
 
 from pipeline.io.capture import Capture, CaptureWriter
 from pipeline.offline.datapath import decode_capture, histogram_capture, write_histograms
-from schemas.words import WORD_CLASSES
+from schemas.constants import WORD_CLASSES
 from stages.testpattern import pattern_words
 
 

@@ -168,7 +168,7 @@ def accounting(topo: Topology, metrics: dict[str, dict], reconciled: dict | None
     import polars as pl
 
     from pipeline.stream.journal import journaled_total, run_end
-    from schemas.words import WORD_CLASSES
+    from schemas.constants import WORD_CLASSES
 
     out = Path(topo.sink["out"])
     parts = sorted(_dataset_parts(out, "histograms", topo.run).values())

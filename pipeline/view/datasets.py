@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from schemas.words import WORD_CLASSES
+from schemas.constants import WORD_CLASSES
 
 PART = re.compile(r"part-(\d{6,})-t(\d{3,})\.parquet$")
 #: A full listing of a run's directory this often (a measurement backfilled at the end of

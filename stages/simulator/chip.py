@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas.words import N_CODES, N_CODES_2ND
+from schemas.constants import N_CODES, N_CODES_2ND
 from stages.models.tcspc import sigma_from_fwhm
 
 _PATTERN8 = np.array([0.25, -0.1, 0.2, -0.3, 0.15, -0.2, 0.1, -0.1])  # INL per phase, LSB

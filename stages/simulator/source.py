@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.constants import c as C_LIGHT
 
-from schemas.words import ARTIFACT, HIT, INVALID_PHASE, MALFORMED, N_CLASSES, NO_HIT
+from schemas.constants import ARTIFACT, HIT, INVALID_PHASE, MALFORMED, N_CLASSES, NO_HIT
 from stages.codec import BUBBLE_CODES, MARKER_BITS, encode_words
 from stages.models.scene import SceneModel
 from stages.models.tcspc import combined_sigma, first_photon_histogram, sigma_from_fwhm
@@ -196,7 +196,7 @@ class Simulator:
     def truth(self) -> dict:
         """The sidecar's ``truth``: what the processing stages should find."""
         sm, s, g = self.sm, self.sm.scene.sensor, self.sm.scene.gate
-        from schemas.words import WORD_CLASSES
+        from schemas.constants import WORD_CLASSES
 
         return {
             "generator": "tcspc-lidar simulator", "engine": self.engine_name,

@@ -133,7 +133,8 @@ def test_bad_arguments():
 @pytest.mark.parametrize("kernel", ["kernel", "self_bounded"])
 def test_the_numba_engine_loads_natively_and_both_ways_agree(kernel, rng, monkeypatch):
     """The numba engine's loops run as C kernels loaded without numba (stages.nativecode)
-    or through numba's dispatcher: the same results, the numpy twin's."""
+    or through numba's dispatcher, and as plain Python: the same results, the numpy
+    twin's (the words span several blocks of the loops' two passes, from position 5)."""
     import stages.datapath as dp
     from stages import nativecode
 
@@ -160,9 +161,12 @@ def test_the_numba_engine_loads_natively_and_both_ways_agree(kernel, rng, monkey
     native = once("numba")
     monkeypatch.setattr(dp, "_native", lambda name: None)
     dispatched = once("numba")
+    monkeypatch.setattr(dp, "_jitted", lambda name: dp._LOOPS[name])
+    plain = once("numba")
     twin = once("numpy")
-    for a, b, c in zip(native, dispatched, twin, strict=True):
-        assert np.array_equal(a, b) and np.array_equal(a, c)
+    assert words.size > 3 * dp.SIFT
+    for a, b, c, d in zip(native, dispatched, plain, twin, strict=True):
+        assert np.array_equal(a, b) and np.array_equal(a, c) and np.array_equal(a, d)
 
 
 def test_a_process_with_the_kernels_cached_runs_them_without_numba():

@@ -225,8 +225,33 @@ def test_the_command_line_starts_without_the_heavy_modules():
 
     code = ("import sys; from pipeline.cli.app import cli; from click.testing import CliRunner; "
             "r = CliRunner().invoke(cli, ['--help']); assert r.exit_code == 0, r.output; "
-            "heavy = ('numpy', 'pyarrow', 'numba', 'scipy', 'polars', 'prefect'); "
+            "heavy = ('numpy', 'pyarrow', 'numba', 'scipy', 'polars', 'prefect', "
+            "'rich.progress', 'rich.table'); "
             "print(sorted(m for m in heavy if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.strip()
+    assert out.splitlines()[-1] == "[]", out
+
+
+def test_the_histogram_command_reaches_its_loop_without_pyarrow(tmp_path):
+    """`tcspc histogram` imports pyarrow in a thread while its loop runs (60-90 ms off the
+    critical path): the modules of the hot path, and the whole histogramming of a capture,
+    import neither pyarrow nor scipy (schemas.constants holds the contract's numbers)."""
+    import subprocess
+    import sys
+
+    from pipeline.io.capture import CaptureWriter
+    from stages.testpattern import pattern_words
+
+    with CaptureWriter(tmp_path / "p", n_tdc=8) as w:
+        w.write(pattern_words(2000, 8, hit_prob=0.3, rng=1)[0])
+    code = ("import sys; from pipeline.cli.instruments import detect; "
+            "from pipeline.io.capture import Capture; "
+            "from pipeline.offline.datapath import histogram_capture; "
+            f"path = {str(w.bin_path)!r}; assert detect(path, None) == 'tcspc'; "
+            "state, bounds = histogram_capture(Capture(path)); "
+            "assert state.class_counts.sum() == 16000; "
+            "print(sorted(m for m in ('pyarrow', 'scipy', 'polars') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout.strip()
     assert out.splitlines()[-1] == "[]", out

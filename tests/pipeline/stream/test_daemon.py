@@ -224,7 +224,7 @@ def test_a_reset_peak_below_the_calibrated_window_is_not_a_target(caldir):
     target (it once was, 5 m before the window)."""
     from pipeline.io.caldir import load_calibration
     from pipeline.offline.ranging import range_state
-    from schemas.words import N_CLASSES
+    from schemas.constants import N_CLASSES
     from stages.histogram import HistogramState
 
     rng = np.random.default_rng(1)

@@ -19,7 +19,7 @@ from pipeline.view.status import (
     health_rows,
     read_status,
 )
-from schemas.words import WORD_CLASSES
+from schemas.constants import WORD_CLASSES
 
 # ---------------------------------------------------------------- status
 

@@ -6,7 +6,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from schemas.words import N_CODES
+from schemas.constants import N_CODES
 from stages.codec import PHASE_DECODE, classify_words
 from stages.models.scene import Ambient, Gate, Scene, Sensor, Target, evaluate
 from stages.simulator.chip import ZOO_RANGES, make_chip, random_chip, second_stage
