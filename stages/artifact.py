@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas.errors import CalibrationError
 from schemas.constants import N_CODES_2ND
+from schemas.errors import CalibrationError
 
 
 @dataclass(frozen=True)

@@ -27,8 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr
 
-from schemas.errors import CalibrationError
 from schemas.constants import N_CODES, N_CODES_2ND
+from schemas.errors import CalibrationError
 from stages.artifact import ArtifactBounds, estimate_bounds
 
 #: Codes excluded next to the reset peak and at the window's end (jitter is ~0.5 LSB rms).

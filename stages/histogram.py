@@ -7,7 +7,6 @@ batches in any split, read the totals, ``snapshot()`` / ``restore()`` for checkp
 from __future__ import annotations
 
 from dataclasses import dataclass
-
 from typing import TYPE_CHECKING
 
 import numpy as np

@@ -23,10 +23,10 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pipeline.io.atomic import atomic_path
+from schemas.constants import N_CODES
 from schemas.core import validate
 from schemas.errors import CalibrationError, SchemaMismatch, SchemaVersionError
 from schemas.outputs import CALIBRATION_INL, CALIBRATION_TDC
-from schemas.constants import N_CODES
 from stages import calibration as cal
 from stages.artifact import ArtifactBounds
 from stages.calibration_set import Calibration

@@ -14,8 +14,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from pipeline.io.capture import capture_paths
-from schemas.errors import TcspcError
 from schemas.constants import PTU_MAGIC
+from schemas.errors import TcspcError
 
 FORMATS = ("tcspc", "ptu", "linospad2")
 
