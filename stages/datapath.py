@@ -230,21 +230,41 @@ def _accumulate_numpy(words: np.ndarray, first_word: int, tables: WordTables,
 # empty payload: ~80 % of a capture), without a branch (:func:`_sift`); the second
 # classifies and counts those (:func:`_classify`). A single pass branched on every word
 # for an outcome that light makes random, and paid a mispredicted branch on most hits:
-# the two passes run 1.45x as fast (docs/performance.md). Every word is first counted as
-# a no_hit of its TDC (:func:`_count_positions`); a word of another class moves its count.
-# The helpers are plain Python here; ``_numba_loop`` inlines their compiled twins.
+# at 5-30 % hits the two passes run 1.5-3x as fast; at 50 % as fast; at 90 % (a density
+# test brighter than the thesis's) 0.8x (docs/performance.md: a block-by-block switch to
+# one pass won back ~10 % there, within the noise, and was not kept). The loops count the
+# words of the other classes only; each TDC's no_hit words are its words less those, at
+# the end of a call (:func:`_count_no_hits`). The helpers are plain Python here;
+# ``_numba_loop`` inlines their compiled twins.
 
 #: words per block of the two passes (their index buffer, 64 KiB, stays in L2)
 SIFT = 4096
 
 
-def _count_positions(class_counts, pos0, n, n_tdc):
-    """Count ``n`` words from position ``pos0`` on as no_hit words of their TDC."""
+def _others(class_counts, k):
+    """Words of TDC ``k`` counted in a class other than no_hit."""
+    total = np.uint64(0)
+    for c in range(N_CLASSES):
+        if c != NO_HIT:
+            total += class_counts[c, k]
+    return total
+
+
+def _mark_others(class_counts, n_tdc, scratch):
+    """Keep each TDC's :func:`_others` in ``scratch[2]`` (at the start of a call)."""
+    for k in range(n_tdc):
+        scratch[2, k] = np.int64(_others(class_counts, k))
+
+
+def _count_no_hits(class_counts, pos0, n, n_tdc, scratch):
+    """At the end of a call over ``n`` words from position ``pos0``: the no_hit words of
+    each TDC are its words less those the call counted in another class (the loops count
+    only those: a plain no_hit word is four fifths of a capture)."""
     full, rem = n // n_tdc, n % n_tdc
     for k in range(n_tdc):
-        class_counts[NO_HIT, k] += np.uint64(full)
-    for k in range(rem):
-        class_counts[NO_HIT, (pos0 + k) % n_tdc] += np.uint64(1)
+        mine = full + (1 if (k - pos0) % n_tdc < rem else 0)
+        class_counts[NO_HIT, k] += np.uint64(mine) - (_others(class_counts, k)
+                                                      - np.uint64(scratch[2, k]))
 
 
 def _sift(words, b0, b1, pos, n_tdc, offset, scratch):
@@ -279,7 +299,7 @@ def _classify(w, addr, phase):
 
 def _kernel_loop(words, pos0, n_tdc, phase, inblock, hits, class_counts, d2mode, offset,
                  arts, count_arts, scratch):
-    _count_positions(class_counts, pos0, words.size, n_tdc)
+    _mark_others(class_counts, n_tdc, scratch)
     for b0 in range(0, words.size, SIFT):
         m = _sift(words, b0, min(words.size, b0 + SIFT), (pos0 + b0) % n_tdc, n_tdc, offset,
                   scratch)
@@ -297,7 +317,7 @@ def _kernel_loop(words, pos0, n_tdc, phase, inblock, hits, class_counts, d2mode,
                         arts[pos, code] += np.uint64(1)
             if cls != NO_HIT:
                 class_counts[cls, pos] += np.uint64(1)
-                class_counts[NO_HIT, pos] -= np.uint64(1)
+    _count_no_hits(class_counts, pos0, words.size, n_tdc, scratch)
 
 
 def _accumulate_numba(words, first_word, tables, hits, class_counts, artifacts=None):
@@ -463,7 +483,7 @@ def _self_bounded_numpy(words, first_word, n_tdc, core_lo, core_hi, cand, d2nd, 
 
 def _self_bounded_loop(words, pos0, n_tdc, phase, core_lo, core_hi, cand, d2nd, keys, fill,
                        edge, class_counts, scratch):
-    _count_positions(class_counts, pos0, words.size, n_tdc)
+    _mark_others(class_counts, n_tdc, scratch)
     nk = fill[0]
     for b0 in range(0, words.size, SIFT):
         m = _sift(words, b0, min(words.size, b0 + SIFT), (pos0 + b0) % n_tdc, n_tdc, 0,
@@ -484,8 +504,8 @@ def _self_bounded_loop(words, pos0, n_tdc, phase, core_lo, core_hi, cand, d2nd, 
                         edge[pos, d2, d1] += 1
             if cls != NO_HIT:
                 class_counts[cls, pos] += np.uint64(1)
-                class_counts[NO_HIT, pos] -= np.uint64(1)
     fill[0] = nk
+    _count_no_hits(class_counts, pos0, words.size, n_tdc, scratch)
 
 
 # --- the numba engine: the loops above, compiled -----------------------------------------
@@ -499,36 +519,40 @@ def _self_bounded_loop(words, pos0, n_tdc, phase, core_lo, core_hi, cand, d2nd, 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _ARGTYPES = {
     # words, n, pos0, n_tdc, phase, inblock(u8), hits, n_bins, class_counts, d2mode,
-    # offset, arts, arts_rows, arts_cols, count_arts, scratch (int64 (2, SIFT))
+    # offset, arts, arts_rows, arts_cols, count_arts, scratch (int64 (3, SIFT))
     "kernel": [_P, _I, _I, _I, _P, _P, _P, _I, _P, _I, _I, _P, _I, _I, _I, _P],
     # words, n, pos0, n_tdc, phase, core_lo, core_hi, cand, d2nd, keys, capacity, fill,
     # edge, edge dims (3), class_counts, scratch
     "self_bounded": [_P, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I, _P, _P, _I, _I, _I, _P, _P],
 }
 _LOOPS = {"kernel": _kernel_loop, "self_bounded": _self_bounded_loop}
-_HELPERS = (_count_positions, _sift, _classify)
+_HELPERS = (_others, _mark_others, _count_no_hits, _sift, _classify)
 _JITTED: dict = {}
 
 
 def _scratch() -> np.ndarray:
-    """The index buffer of one call of a loop (64 KiB: a call per chunk of words)."""
-    return np.empty((2, SIFT), np.int64)
+    """The index buffer of one call of a loop, and room for a count per TDC (96 KiB: a
+    call per chunk of words)."""
+    return np.empty((3, SIFT), np.int64)
 
 
 def _numba_loop(name: str, **options):
     """The loop ``name`` compiled by numba with ``options``, its helpers inlined: the
-    loop's code object with globals where the helpers' names are their compiled twins
-    (the module's own globals keep the plain functions, so the loops also run in Python)."""
+    functions' code objects with globals where the helpers' names are their compiled
+    twins (the module's own globals keep the plain functions: the loops also run in
+    Python)."""
     import types
 
     import numba
 
-    loop = _LOOPS[name]
-    scope = {**loop.__globals__,
-             **{h.__name__: numba.njit(inline="always")(h) for h in _HELPERS}}
-    twin = types.FunctionType(loop.__code__, scope, loop.__name__, loop.__defaults__)
-    twin.__qualname__, twin.__module__ = loop.__qualname__, loop.__module__
-    return numba.njit(**options)(twin)
+    def twin(f, scope):
+        g = types.FunctionType(f.__code__, scope, f.__name__, f.__defaults__)
+        g.__qualname__, g.__module__ = f.__qualname__, f.__module__
+        return g
+
+    scope = dict(_LOOPS[name].__globals__)  # helpers are typed at the loop's first compile
+    scope.update({h.__name__: numba.njit(inline="always")(twin(h, scope)) for h in _HELPERS})
+    return numba.njit(**options)(twin(_LOOPS[name], scope))
 
 
 def _plain(a: np.ndarray, dtype) -> bool:
@@ -567,7 +591,7 @@ def _build(name: str):
                  carray(inblock, (n_tdc, N_CODES_2ND)), carray(hits, (n_tdc, n_bins)),
                  carray(cc, (N_CLASSES, n_tdc)), d2mode != 0, offset,
                  carray(arts, (arts_rows, arts_cols)), count_arts != 0,
-                 carray(scratch, (2, SIFT)))
+                 carray(scratch, (3, SIFT)))
 
         return numba.cfunc(sig, nopython=True)(c_kernel)
     sig = types.void(p(u32), i64, i64, i64, p(i8), p(i64), p(i64), p(u64), p(u64), p(u32),
@@ -579,6 +603,6 @@ def _build(name: str):
              carray(hi, (n_tdc,)), carray(cand, (n_tdc, N_CODES)),
              carray(d2nd, (n_tdc, N_CODES_2ND)), carray(keys, (capacity,)),
              carray(fill, (1,)), carray(edge, (e0, e1, e2)), carray(cc, (N_CLASSES, n_tdc)),
-             carray(scratch, (2, SIFT)))
+             carray(scratch, (3, SIFT)))
 
     return numba.cfunc(sig, nopython=True)(c_self_bounded)
