@@ -218,7 +218,9 @@ def read_header(path: str | os.PathLike) -> PtuHeader:
                                f"byte {size} inside the header (truncated, or not a "
                                "complete PTU file)")
             ident, idx, typ, value = _TAG.unpack(raw)
-            name = ident.split(b"\0", 1)[0].decode("ascii", "replace")
+            # (printable, escaped: a corrupt name must not split the one-line error)
+            name = ident.split(b"\0", 1)[0].decode("ascii", "backslashreplace")
+            name = "".join(c if c.isprintable() else f"\\x{ord(c):02x}" for c in name)
             key = f"{name}({idx})" if idx >= 0 else name
             data = b""
             if typ in _VARIABLE:

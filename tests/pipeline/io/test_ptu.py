@@ -365,6 +365,19 @@ def test_a_t2_time_unit_of_seconds_is_a_corrupt_header(tmp_path):
     one_line_error(read_header, p, match="is no T2 time unit")
 
 
+def test_a_tag_name_with_a_newline_is_named_on_one_line(tmp_path):
+    """Found by the byte-flip test below (a full run, 2026-11-25): a corrupt tag's name held a
+    newline byte, and the error that names the tag split in two lines."""
+    p = write_ptu(tmp_path / "r.ptu", 0x01010204, some_records(0x01010204, 8, seed=2))
+    blob = bytearray(p.read_bytes())
+    at = blob.index(b"TTResultFormat_TTTRRecType")
+    blob[at + 2] = ord("\n")
+    blob[at + 36:at + 40] = (0x553EA040).to_bytes(4, "little")  # an unknown type
+    p.write_bytes(bytes(blob))
+    msg = one_line_error(read_header, p, match="unknown type")
+    assert "TT\\x0aesultFormat" in msg
+
+
 @settings(max_examples=150, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(flips=st.lists(st.tuples(st.integers(0, 10 ** 6), st.integers(0, 255)),
