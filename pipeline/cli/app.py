@@ -8,7 +8,6 @@ import time
 from contextlib import contextmanager
 
 import click
-from rich.console import Console
 
 # Heavy modules (numpy, pyarrow, numba, scipy) are imported in the commands that use them:
 # `tcspc --help` and a command's own --help stay fast (tests/pipeline/cli/test_cli.py checks).
@@ -16,15 +15,34 @@ from rich.console import Console
 
 
 
-def console(stderr: bool = False) -> Console:
-    """A console that wraps lines only on a terminal: piped or captured, one message stays
-    one line (logs are grepped; a path longer than 80 columns must not split a sentence)."""
+def console(stderr: bool = False):
+    """A rich console that wraps lines only on a terminal: piped or captured, one message
+    stays one line (logs are grepped; a path longer than 80 columns must not split a
+    sentence)."""
+    from rich.console import Console
+
     stream = sys.stderr if stderr else sys.stdout
     return Console(stderr=stderr, soft_wrap=not stream.isatty())
 
 
-err = console(stderr=True)
-out = console()
+class _FirstUse:
+    """:func:`console`, made when first used: rich.console's import (25-30 ms) is paid by
+    the commands that print, not by a quiet `tcspc histogram` or `tcspc --help`."""
+
+    def __init__(self, stderr: bool = False) -> None:
+        self._stderr, self._console = stderr, None
+
+    def get(self):
+        if self._console is None:
+            self._console = console(self._stderr)
+        return self._console
+
+    def __getattr__(self, name):
+        return getattr(self.get(), name)
+
+
+err = _FirstUse(stderr=True)
+out = _FirstUse()
 
 
 @contextmanager
@@ -51,7 +69,7 @@ def _progress(total: int, passes: int, quiet: bool, label: str, unit: str = "wor
 
     cols = [TextColumn(f"[bold]{label}"), BarColumn(), MofNCompleteColumn(),
             TextColumn(unit), _RateColumn(), TimeRemainingColumn()]
-    with Progress(*cols, console=err, transient=False) as bar:
+    with Progress(*cols, console=err.get(), transient=False) as bar:
         task = bar.add_task(label, total=total * passes)
         yield lambda n: bar.advance(task, n)
 
@@ -84,23 +102,6 @@ def _warn_uncertain(bounds) -> None:
         err.print(f"[yellow]warning:[/yellow] artifact bounds uncertain on "
                   f"{int(bounds.uncertain.sum())} TDC(s): {bounds.describe()}; give "
                   "--calibration for exact bounds", highlight=False)
-
-
-def _import_meanwhile(module: str) -> None:
-    """Import ``module`` in a thread while this one works. The hot path imports no pyarrow
-    (schemas.constants), and its loop runs without the GIL, so pyarrow's 60-90 ms of
-    import leave the command's critical path. A later import of the module waits for this
-    one; one that failed here is imported, and fails with its message, there."""
-    import importlib
-    import threading
-
-    def run():
-        try:
-            importlib.import_module(module)
-        except Exception:  # noqa: BLE001  (raised again by the import that needs it)
-            pass
-
-    threading.Thread(target=run, name=f"import {module}").start()
 
 
 def _open(path: str, calibration: str | None):
@@ -212,7 +213,6 @@ def histogram(capture, out, measurement, calibration, engine, fmt, firmware, by,
     from pipeline.offline.datapath import histogram_capture, write_histograms
 
     cap, bounds = _open(capture, calibration)
-    _import_meanwhile("pipeline.io.histograms")  # pyarrow, for the writing at the end
     t0 = time.perf_counter()
     with _progress(cap.n_words, 1, quiet, "histogram") as step:
         state, bounds = histogram_capture(cap, bounds, engine, step,
