@@ -242,6 +242,12 @@ LSB_SPREAD = 0.3
 #: masked reset peak or window end, in instrument-response sigmas.
 DELAY_MIN_COUNTS, DELAY_CLEAR_SIGMAS = 20, 3.0
 RESET_MASK = 6  #: codes below x_T masked by the estimators (Histograms.from_codes margin)
+#: When the spread of the scale between the density tests' levels (cal.scale_spread, as ps
+#: of the delay at the return's tau) flags a delay: over this many of its statistical
+#: sigmas (INL x LSB and the peak's fit) plus the floor. Half the chip sweep's tolerance
+#: (4 sigmas + 20 ps); measured: <= 27 ps on its 35 healthy chips' captures (sigma ~50
+#: ps), 210-1000 ps where a fast-saturating LSB put the delay out of it.
+LSB_SPREAD_SIGMAS, LSB_SPREAD_FLOOR_PS = 2.0, 20.0
 
 
 def add_delay(capture, caldir: str | Path, log=None) -> Calibration:
@@ -333,6 +339,23 @@ def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: 
         reasons[guess] = [f"{axis.note}, and the capture's own reset peak not usable "
                           f"({str(src).split(': ', 1)[-1]}): run `tcspc calibrate lsb` "
                           "over this light" for src in axis.source[guess]]
+    # between the density tests' levels the scale is a spline through their points: where
+    # the LSB bends faster than the levels show (a fast-saturating chip) it can be off by
+    # more than the delay allows with nothing to see in four points (issue 15); two
+    # interpolations through the same points then part, and only the capture's own reset
+    # peak measures the scale there
+    spread, (lo, hi) = cal.scale_spread(res, calib.lsb_fit, window_s, light)
+    tau_s = window_s - np.asarray(est.t_s, np.float64)
+    spread_ps = spread * tau_s * 1e12
+    allowed_ps = (LSB_SPREAD_SIGMAS * np.hypot(res.inl_error_lsb * res.lsb_s,
+                                               np.asarray(est.sigma_s, np.float64)) * 1e12
+                  + LSB_SPREAD_FLOOR_PS)
+    unresolved = (axis.source != "reset peak") & (reasons == "") & (spread_ps > allowed_ps)
+    reasons[unresolved] = (
+        f"LSB against light not resolved between the density tests at {lo:.3g} and "
+        f"{hi:.3g} detections a cycle (two interpolations through them differ by more than "
+        f"the delay's error allows here): add a density test near {light:.2g} to `tcspc "
+        "calibrate lsb`, or give this capture ambient light brighter than the density tests")
     reasons[state.hits.sum(axis=1) == 0] = "no hits in the capture"
     bad = ~calib.ok
     reasons[bad] = ["flagged by the density test" + (f": {r}" if r else "")
@@ -353,6 +376,8 @@ def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: 
         "sigma_ps": np.round(est.sigma_s * 1e12, 3).tolist(),
         "scale_from": source.tolist(),
         "scale_from_reset_peak": int(np.sum(source == "reset peak")),
+        "lsb_spread_ps": [None if not np.isfinite(v) else round(float(v), 1)
+                          for v in np.where(source == "reset peak", np.nan, spread_ps)],
         "tdcs_with_delay": int(np.isfinite(d).sum())})
     return calib
 
