@@ -226,6 +226,17 @@ def lsb_from_states(tests: list, window_s: float, inl_rms_lsb: float = 0.5,
         raise CalibrationError(
             f"no TDC calibrated (the best density test: {names[i_best]}): " + "; ".join(
                 f"{t}: {best.reasons[t] or 'no reason given'}" for t in range(min(4, best.n_tdc))))
+    if log and fit.levels is not None:
+        # where the levels leave the LSB against light unresolved (cal.scale_spread): a
+        # delay or range at that light is flagged unless its own reset peak scales it
+        lv = np.sort(np.asarray(fit.levels, np.float64))
+        for a, b in zip(lv[:-1], lv[1:], strict=True):
+            mid = float(np.sqrt(a * b))
+            worst_ppm = over_finite(np.max, cal.scale_spread(best, fit, window_s, mid)[0]) * 1e6
+            log(f"LSB between the levels {a:.3g} and {b:.3g}: the sqrt(n) and n "
+                f"interpolations differ by up to {worst_ppm:.0f} ppm of the scale at "
+                f"{mid:.3g} ({worst_ppm * window_s * 1e6:.0f} ps at the window's beginning)"
+                + ("; add a density test there" if worst_ppm * window_s * 1e6 > 100 else ""))
     worst = worst_inl(best)
     if not worst <= inl_rms_lsb:
         raise CalibrationError(f"the best density test ({names[i_best]}) gives an "
