@@ -362,11 +362,12 @@ def test_a_fast_saturating_lsb_is_followed_or_flagged(tmp_path):
     by 51 ps, two thirds of it by 0.15 detections a cycle. The spline through the four
     density tests (0.02-0.75) is off by ~1.3 ps at 0.24 (the zero-distance capture, no
     ambient light, so no reset peak of its own), i.e. ~0.3-0.45 % of the scale: every
-    delay 160-280 ps short at tau = 68 ns, beyond the ~220 ps the calibration allows, and
-    nothing to see in four points (zero residuals). Was: unflagged. Now every TDC whose
-    delay is out of its tolerance is flagged: the spline in sqrt(n) and one in n through
-    the same points differ there by 370-600 ps of delay (``cal.scale_spread``), and the
-    reason names the levels and asks for a density test at the capture's light."""
+    delay 160-280 ps off (too long) at tau = 68 ns, five of eight beyond the ~220 ps the
+    calibration allows, and nothing to see in four points (zero residuals). Was:
+    unflagged. Now flagged: the spline in sqrt(n) and one in n through the same points
+    differ there by 370-600 ps of delay (``cal.scale_spread``), and the reason names the
+    levels and asks for a density test at the capture's light (all eight TDCs flagged,
+    so `calibrate delay` refuses, leaving the calibration as it was)."""
     out = run_chip(2, tmp_path, ranges={**SWEEP_RANGES, "n_sat": (0.146, 0.146)},
                    flags_expected=True)
     check(out)
