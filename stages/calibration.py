@@ -791,6 +791,13 @@ def scale_points(density: DensityResult, fit: LsbFit, window_s: float):
                                            for j in range(pts.shape[1])])
 
 
+#: When the spread of the scale (:func:`scale_spread`, as ps at a return's tau) flags a
+#: delay or a range: over this many of its statistical sigmas (INL x LSB, and for the
+#: delay the peak's fit) plus the floor; half the chip sweep's tolerance (4 sigmas + 20
+#: ps). Measured there: <= 27 ps on 35 healthy chips' zero-distance captures (sigma ~50
+#: ps), 210-1000 ps where a fast-saturating LSB put the delay out of its tolerance.
+LSB_SPREAD_SIGMAS, LSB_SPREAD_FLOOR_PS = 2.0, 20.0
+
 def scale_spread(density: DensityResult, fit: LsbFit | None, window_s: float,
                  light: float) -> tuple[np.ndarray, tuple[float, float]]:
     """How well the density tests' levels resolve the scale at ``light``: per TDC the

@@ -253,12 +253,6 @@ LSB_SPREAD = 0.3
 #: masked reset peak or window end, in instrument-response sigmas.
 DELAY_MIN_COUNTS, DELAY_CLEAR_SIGMAS = 20, 3.0
 RESET_MASK = 6  #: codes below x_T masked by the estimators (Histograms.from_codes margin)
-#: When the spread of the scale between the density tests' levels (cal.scale_spread, as ps
-#: of the delay at the return's tau) flags a delay: over this many of its statistical
-#: sigmas (INL x LSB and the peak's fit) plus the floor. Half the chip sweep's tolerance
-#: (4 sigmas + 20 ps); measured: <= 27 ps on its 35 healthy chips' captures (sigma ~50
-#: ps), 210-1000 ps where a fast-saturating LSB put the delay out of it.
-LSB_SPREAD_SIGMAS, LSB_SPREAD_FLOOR_PS = 2.0, 20.0
 
 
 def add_delay(capture, caldir: str | Path, log=None) -> Calibration:
@@ -358,9 +352,9 @@ def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: 
     spread, (lo, hi) = cal.scale_spread(res, calib.lsb_fit, window_s, light)
     tau_s = window_s - np.asarray(est.t_s, np.float64)
     spread_ps = spread * tau_s * 1e12
-    allowed_ps = (LSB_SPREAD_SIGMAS * np.hypot(res.inl_error_lsb * res.lsb_s,
+    allowed_ps = (cal.LSB_SPREAD_SIGMAS * np.hypot(res.inl_error_lsb * res.lsb_s,
                                                np.asarray(est.sigma_s, np.float64)) * 1e12
-                  + LSB_SPREAD_FLOOR_PS)
+                  + cal.LSB_SPREAD_FLOOR_PS)
     unresolved = (axis.source != "reset peak") & (reasons == "") & (spread_ps > allowed_ps)
     reasons[unresolved] = (
         f"LSB against light not resolved between the density tests at {lo:.3g} and "

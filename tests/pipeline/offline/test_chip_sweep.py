@@ -387,3 +387,44 @@ def test_a_strong_artifact_in_the_dimmest_density_test(tmp_path):
     chip's, not the light's, and the campaign now takes one set for every test, from the
     test with the densest block per cycle (``campaign_second_stage``)."""
     check(run_chip(123, tmp_path, ranges={**SWEEP_RANGES, "artifact_rate": (0.0027, 0.0027)}))
+
+
+@pytest.mark.parametrize("n_sat, unresolved", [(0.146, True), (1.0, False)])
+def test_an_unresolved_lsb_flags_the_delay_and_notes_the_range(n_sat, unresolved, tmp_path):
+    """The fast-saturating chip of the test above, and the same chip with a slow LSB
+    (n_sat 1.0), calibrated from four short density tests (2e5 cycles). A zero-distance
+    capture at 0.24 detections a cycle without ambient light (tau 68.5 ns): the fast chip's
+    TDCs are all flagged "LSB against light not resolved" and `calibrate delay` refuses
+    (was: delays 160-280 ps off, unflagged); the slow chip's get their delays. A range
+    capture at the same light (targets at 1.5 m, tau 58.5 ns), on the calibration with
+    the true delay (only this test reads it): the note says so on the fast chip, nothing
+    on the slow one."""
+    chip, _ = random_chip(2, N_TDC, {**SWEEP_RANGES, "n_sat": (n_sat, n_sat)})
+    paths = []
+    for i, lux in enumerate(DENSITY_LUX):
+        p = tmp_path / f"density{i}.bin"
+        simulate_capture(_scene(f"density{i}", chip, 140.0, 100.0, lux=lux), 200_000, p,
+                         chip=chip, seed=1000 * 2 + i)
+        paths.append(p)
+    caldir = tmp_path / "cal"
+    lsb_campaign(paths, caldir, inl_rms_lsb=1.0)
+    everywhere = ((0, chip.n_tdc - 1),)
+    zp = tmp_path / "zero.bin"
+    simulate_capture(_scene("zero", chip, 140.0, 71.5, [(*everywhere, 0.001, 0.24)]),
+                     ZERO_CYCLES, zp, chip=chip, seed=2010)
+    if unresolved:
+        with pytest.raises(CalibrationError, match="LSB against light not resolved"):
+            add_delay(zp, caldir)
+    else:
+        assert np.isfinite(add_delay(zp, caldir).delay_s).all()
+    from pipeline.io.caldir import save_calibration
+
+    calib = load_calibration(caldir)
+    calib = calib.with_delay(np.full(chip.n_tdc, 71.5e-9), [""] * chip.n_tdc, 200e-12, {})
+    save_calibration(calib, caldir)
+    rp = tmp_path / "range.bin"
+    simulate_capture(_scene("range", chip, 140.0, 71.5, [(*everywhere, 1.5, 0.24)]),
+                     ZERO_CYCLES, rp, chip=chip, seed=2020)
+    table, note = range_capture(rp, load_calibration(caldir), tmp_path / "ranges.parquet")
+    assert table.column("detected").to_numpy(zero_copy_only=False).all()
+    assert ("LSB against light not resolved" in note) == unresolved, note
