@@ -851,7 +851,7 @@ def light_end(hits: np.ndarray, min_per_code: float = 1.0):
 
 def scale_in_situ(hits: np.ndarray, cycles: np.ndarray, density: DensityResult,
                   window_s: float, returns: np.ndarray | None = None,
-                  min_counts: float = 100.0):
+                  min_counts: float = 100.0, beyond: np.ndarray | None = None):
     """Seconds per unit of :func:`code_bounds` measured on a capture itself: its reset
     peak (tau = T) fitted over the density test's boundaries (:func:`fit_reset_peak`).
 
@@ -867,7 +867,9 @@ def scale_in_situ(hits: np.ndarray, cycles: np.ndarray, density: DensityResult,
     return (``returns``: its code, NaN for none) lies within ``RESET_CLEARANCE`` codes of
     the reset peak (the fit would take the return for part of it), where the peak has
     fewer than ``min_counts`` counts, or where the density test did not measure those
-    codes.
+    codes. ``beyond`` (a mask of TDCs): there any code the campaign measured will do
+    (the table continued over the dimmer tests' codes, ``density_test(combine=True)``),
+    so a capture between the tests' levels has its reset peak on measured codes too.
 
     Returns ``(scale, ok, reason)``; ``reason`` is "" where ``ok``.
     """
@@ -877,6 +879,11 @@ def scale_in_situ(hits: np.ndarray, cycles: np.ndarray, density: DensityResult,
     at_risk = at_risk_by_code(h, cycles)
     x_den = np.nan_to_num(density.x_t, nan=0.0)
     measured_to = np.floor(x_den) - EDGE_MARGIN - 1  # the density test's last measured code
+    if beyond is not None:
+        fin = np.isfinite(np.asarray(density.width_lsb, np.float64))
+        last = np.where(fin.any(axis=1), N_CODES - 1 - np.argmax(fin[:, ::-1], axis=1), 0)
+        measured_to = np.where(np.asarray(beyond, bool), np.maximum(last, measured_to),
+                               measured_to)
     end, step = light_end(h)
     k = np.arange(N_CODES)[None, :]
     zone = (k >= end[:, None] - 1 - RESET_SEARCH) & (k < end[:, None])

@@ -285,6 +285,16 @@ def add_delay(capture, caldir: str | Path, log=None) -> Calibration:
     return calib
 
 
+def _unresolved_ps(spread, tau_s, density: cal.DensityResult, sigma_s) -> np.ndarray:
+    """Where the scale's spread (:func:`stages.calibration.scale_spread`) at a return's
+    tau is over what its delay allows (``LSB_SPREAD_SIGMAS`` of its statistics, INL x LSB
+    and the peak's fit, plus ``LSB_SPREAD_FLOOR_PS``)."""
+    allowed_ps = (cal.LSB_SPREAD_SIGMAS * np.hypot(density.inl_error_lsb * density.lsb_s,
+                                                   np.asarray(sigma_s, np.float64)) * 1e12
+                  + cal.LSB_SPREAD_FLOOR_PS)
+    return np.asarray(spread * np.asarray(tau_s, np.float64) * 1e12 > allowed_ps, bool)
+
+
 def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: float,
                      name: str = "capture", log=None) -> Calibration:
     """:func:`add_delay` on a zero-distance capture's histograms (``state``, a
@@ -315,7 +325,14 @@ def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: 
     axis = time_axis(calib, state.hits, state.cycles, window_s)
     first, _ = estimate(axis)
     returns = code_of(first.t_s, axis.tau_edges_s, first.detected)
-    axis = time_axis(calib, state.hits, state.cycles, window_s, in_situ=True, returns=returns)
+    # where the levels leave the scale at this light unresolved (below), the capture's own
+    # reset peak may sit on codes only the dimmer density tests measured: it follows
+    # the chip there instead of the spline
+    spread, (lo, hi) = cal.scale_spread(res, calib.lsb_fit, window_s, light)
+    weak = _unresolved_ps(spread, window_s - np.asarray(first.t_s, np.float64), res,
+                          first.sigma_s)
+    axis = time_axis(calib, state.hits, state.cycles, window_s, in_situ=True, returns=returns,
+                     beyond=weak if weak.any() else None)
     est, sigma = estimate(axis)
     d = cal.delay_s(t_laser_win_s, window_s - est.t_s)
     # where the return sits: a return partly under the reset peak's mask or at the window's
@@ -349,18 +366,16 @@ def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: 
     # more than the delay allows with nothing to see in four points (issue 15); two
     # interpolations through the same points then part, and only the capture's own reset
     # peak measures the scale there
-    spread, (lo, hi) = cal.scale_spread(res, calib.lsb_fit, window_s, light)
     tau_s = window_s - np.asarray(est.t_s, np.float64)
     spread_ps = spread * tau_s * 1e12
-    allowed_ps = (cal.LSB_SPREAD_SIGMAS * np.hypot(res.inl_error_lsb * res.lsb_s,
-                                               np.asarray(est.sigma_s, np.float64)) * 1e12
-                  + cal.LSB_SPREAD_FLOOR_PS)
-    unresolved = (axis.source != "reset peak") & (reasons == "") & (spread_ps > allowed_ps)
+    unresolved = ((axis.source != "reset peak") & (reasons == "")
+                  & _unresolved_ps(spread, tau_s, res, est.sigma_s))
     reasons[unresolved] = (
         f"LSB against light not resolved between the density tests at {lo:.3g} and "
         f"{hi:.3g} detections a cycle (two interpolations through them differ by more than "
         f"the delay's error allows here): add a density test near {light:.2g} to `tcspc "
-        "calibrate lsb`, or give this capture ambient light brighter than the density tests")
+        "calibrate lsb`, or give this capture ambient light (its own reset peak then "
+        "scales it)")
     reasons[state.hits.sum(axis=1) == 0] = "no hits in the capture"
     bad = ~calib.ok
     reasons[bad] = ["flagged by the density test" + (f": {r}" if r else "")

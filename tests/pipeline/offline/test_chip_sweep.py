@@ -389,16 +389,21 @@ def test_a_strong_artifact_in_the_dimmest_density_test(tmp_path):
     check(run_chip(123, tmp_path, ranges={**SWEEP_RANGES, "artifact_rate": (0.0027, 0.0027)}))
 
 
-@pytest.mark.parametrize("n_sat, unresolved", [(0.146, True), (1.0, False)])
-def test_an_unresolved_lsb_flags_the_delay_and_notes_the_range(n_sat, unresolved, tmp_path):
+@pytest.mark.parametrize("n_sat, zero_lux, expect", [(0.146, 0.0, "flagged"),
+                                                      (1.0, 0.0, "measured"),
+                                                      (0.146, 1200.0, "followed")])
+def test_an_unresolved_lsb_is_followed_or_flagged(n_sat, zero_lux, expect, tmp_path):
     """The fast-saturating chip of the test above, and the same chip with a slow LSB
     (n_sat 1.0), calibrated from four short density tests (2e5 cycles). A zero-distance
-    capture at 0.24 detections a cycle without ambient light (tau 68.5 ns): the fast chip's
-    TDCs are all flagged "LSB against light not resolved" and `calibrate delay` refuses
-    (was: delays 160-280 ps off, unflagged); the slow chip's get their delays. A range
-    capture at the same light (targets at 1.5 m, tau 58.5 ns), on the calibration with
-    the true delay (only this test reads it): the note says so on the fast chip, nothing
-    on the slow one."""
+    capture at 0.24 detections a cycle (tau 68.5 ns): without ambient light the fast
+    chip's TDCs are all flagged "LSB against light not resolved" and `calibrate delay`
+    refuses (was: delays 160-280 ps off, unflagged); the slow chip's get their delays.
+    With ambient light (0.24 again, the return dimmer) the capture's own reset peak,
+    on codes only the dimmer density tests measured, scales the fast chip's axis: every
+    delay within its tolerance (was: all flagged, or off without the flag). A range
+    capture at 0.24 without ambient light (targets at 1.5 m, tau 58.5 ns), on the
+    calibration with the true delay (only this test reads it): the note says so on the
+    fast chip, nothing on the slow one."""
     chip, _ = random_chip(2, N_TDC, {**SWEEP_RANGES, "n_sat": (n_sat, n_sat)})
     paths = []
     for i, lux in enumerate(DENSITY_LUX):
@@ -410,13 +415,19 @@ def test_an_unresolved_lsb_flags_the_delay_and_notes_the_range(n_sat, unresolved
     lsb_campaign(paths, caldir, inl_rms_lsb=1.0)
     everywhere = ((0, chip.n_tdc - 1),)
     zp = tmp_path / "zero.bin"
-    simulate_capture(_scene("zero", chip, 140.0, 71.5, [(*everywhere, 0.001, 0.24)]),
+    simulate_capture(_scene("zero", chip, 140.0, 71.5,
+                            [(*everywhere, 0.001, 0.05 if zero_lux else 0.24)], zero_lux),
                      ZERO_CYCLES, zp, chip=chip, seed=2010)
-    if unresolved:
+    if expect == "flagged":
         with pytest.raises(CalibrationError, match="LSB against light not resolved"):
             add_delay(zp, caldir)
     else:
-        assert np.isfinite(add_delay(zp, caldir).delay_s).all()
+        calib = add_delay(zp, caldir)
+        err = np.abs(calib.delay_s * 1e12 - 71.5e3)
+        assert np.all(err <= delay_tolerance_ps(calib)), (err, calib.delay_reasons)
+        if expect == "followed":
+            assert calib.meta["delay"]["scale_from_reset_peak"] == chip.n_tdc
+            return
     from pipeline.io.caldir import save_calibration
 
     calib = load_calibration(caldir)
@@ -427,4 +438,4 @@ def test_an_unresolved_lsb_flags_the_delay_and_notes_the_range(n_sat, unresolved
                      ZERO_CYCLES, rp, chip=chip, seed=2020)
     table, note = range_capture(rp, load_calibration(caldir), tmp_path / "ranges.parquet")
     assert table.column("detected").to_numpy(zero_copy_only=False).all()
-    assert ("LSB against light not resolved" in note) == unresolved, note
+    assert ("LSB against light not resolved" in note) == (expect == "flagged"), note
