@@ -640,11 +640,12 @@ class LsbFit:
         return bool(lo - 1e-12 <= n <= hi + 1e-12)
 
 
-def _spline_rows(levels: np.ndarray, y: np.ndarray, n: float) -> np.ndarray:
+def _spline_rows(levels: np.ndarray, y: np.ndarray, n: float, coord=np.sqrt) -> np.ndarray:
     """Each row of ``y`` (n_rows, n_levels) read at light ``n`` by a cubic spline in
-    sqrt(light) through its finite points (``levels`` ascending). A row lacking a level (a
-    TDC a density test flagged) uses the others: NaN (no time axis, flagged) where fewer
-    than 3 remain or ``n`` lies outside the row's own levels."""
+    ``coord(light)`` (sqrt: the time axis's) through its finite points (``levels``
+    ascending). A row lacking a level (a TDC a density test flagged) uses the others: NaN
+    (no time axis, flagged) where fewer than 3 remain or ``n`` lies outside the row's own
+    levels."""
     from scipy.interpolate import CubicSpline
 
     fin = np.isfinite(y)
@@ -657,7 +658,7 @@ def _spline_rows(levels: np.ndarray, y: np.ndarray, n: float) -> np.ndarray:
         if not (pattern.all() or lv[0] - 1e-12 <= n <= lv[-1] + 1e-12):
             continue
         x = min(max(n, lv[0]), lv[-1])  # (the campaign's range is the caller's check)
-        out[rows] = CubicSpline(np.sqrt(lv), y[rows][:, pattern].T, axis=0)(np.sqrt(x))
+        out[rows] = CubicSpline(coord(lv), y[rows][:, pattern].T, axis=0)(coord(x))
     return out
 
 
@@ -762,17 +763,67 @@ def scale_at_light(density: DensityResult, lsb_s, window_s: float,
     ~20 ps of range at mid-window."""
     bounds = code_bounds(density)
     ok = np.asarray(density.ok, bool)
-    levels = None if fit is None or fit.levels is None else np.asarray(fit.levels, np.float64)
-    if (levels is not None and light is not None and levels.size >= 3
-            and fit.in_range(light) and np.unique(levels).size == levels.size):
-        order = np.argsort(levels)
-        pts = fit.points_ps()[:, order] * 1e-12
-        s_pts = np.column_stack([window_s / _bound_at(bounds, window_s / pts[:, j])
-                                 for j in range(pts.shape[1])])
-        return np.where(ok, _spline_rows(levels[order], s_pts, float(light)), np.nan)
+    if _interpolates(fit, light):
+        levels, s_pts = scale_points(density, fit, window_s)
+        return np.where(ok, _spline_rows(levels, s_pts, float(light)), np.nan)
     x_t = window_s / np.asarray(lsb_s, np.float64)
     scale = window_s / _bound_at(bounds, x_t)
     return np.where(ok, scale, np.nan)  # a dead TDC has no axis
+
+
+
+def _interpolates(fit: LsbFit | None, light: float | None) -> bool:
+    """Whether :func:`scale_at_light` interpolates the tests' scales at ``light``."""
+    levels = None if fit is None or fit.levels is None else np.asarray(fit.levels, np.float64)
+    return bool(levels is not None and light is not None and levels.size >= 3
+                and fit.in_range(light) and np.unique(levels).size == levels.size)
+
+
+def scale_points(density: DensityResult, fit: LsbFit, window_s: float):
+    """The density tests' own scales: ``(levels, scales)``, the levels ascending and
+    ``scales`` (n_tdc, n_levels) ``T / B(T / LSB_i)`` in seconds per unit of
+    :func:`code_bounds` (NaN where a test flagged the TDC)."""
+    bounds = code_bounds(density)
+    levels = np.asarray(fit.levels, np.float64)
+    order = np.argsort(levels)
+    pts = fit.points_ps()[:, order] * 1e-12
+    return levels[order], np.column_stack([window_s / _bound_at(bounds, window_s / pts[:, j])
+                                           for j in range(pts.shape[1])])
+
+
+#: When the spread of the scale (:func:`scale_spread`, as ps at a return's tau) flags a
+#: delay or a range: over this many of its statistical sigmas (INL x LSB, and for the
+#: delay the peak's fit) plus the floor; half the chip sweep's tolerance (4 sigmas + 20
+#: ps). Measured there: <= 27 ps on 35 healthy chips' zero-distance captures (sigma ~50
+#: ps), 210-1000 ps where a fast-saturating LSB put the delay out of its tolerance.
+LSB_SPREAD_SIGMAS, LSB_SPREAD_FLOOR_PS = 2.0, 20.0
+
+def scale_spread(density: DensityResult, fit: LsbFit | None, window_s: float,
+                 light: float) -> tuple[np.ndarray, tuple[float, float]]:
+    """How well the density tests' levels resolve the scale at ``light``: per TDC the
+    relative difference between the scale :func:`scale_at_light` reads (a cubic spline in
+    sqrt(n) through the tests' scales) and a cubic spline in n through the same points,
+    and the two levels ``light`` lies between. NaN (and ``(nan, nan)``) where the scale
+    is not interpolated at ``light`` (outside the levels: the caller's note already says).
+
+    Both curves pass through every measured point; they part where the LSB bends
+    between two levels faster than the points show, and there neither is to be trusted
+    (issue 15: with four levels at 0.02-0.75 detections a cycle and an LSB that
+    saturates by 0.15, they differ by 0.5-0.9 % of the scale at 0.24, where the sqrt(n)
+    spline is off by 0.25-0.37 %: 170-250 ps of delay at tau = 68 ns). On chips the
+    levels resolve (the chip zoo's n_sat >= 0.5) they differ by <= 0.04 % at the
+    sweep's captures. The spread says where a curve is unresolved, not how far off
+    it is (0.4-0.5 of the spread where the LSB saturates fast, up to ~3x a tiny spread
+    elsewhere: the INL's noise in the points), so it flags, it does not correct.
+    """
+    n_tdc = density.n_tdc
+    if not _interpolates(fit, light):
+        return np.full(n_tdc, np.nan), (float("nan"), float("nan"))
+    levels, s_pts = scale_points(density, fit, window_s)
+    in_sqrt = _spline_rows(levels, s_pts, float(light))
+    in_n = _spline_rows(levels, s_pts, float(light), coord=lambda v: v)
+    i = int(np.clip(np.searchsorted(levels, light, side="right") - 1, 0, levels.size - 2))
+    return np.abs(in_n / in_sqrt - 1), (float(levels[i]), float(levels[i + 1]))
 
 
 #: Codes below where the light ends searched for the reset peak.
@@ -800,7 +851,7 @@ def light_end(hits: np.ndarray, min_per_code: float = 1.0):
 
 def scale_in_situ(hits: np.ndarray, cycles: np.ndarray, density: DensityResult,
                   window_s: float, returns: np.ndarray | None = None,
-                  min_counts: float = 100.0):
+                  min_counts: float = 100.0, beyond: np.ndarray | None = None):
     """Seconds per unit of :func:`code_bounds` measured on a capture itself: its reset
     peak (tau = T) fitted over the density test's boundaries (:func:`fit_reset_peak`).
 
@@ -816,7 +867,9 @@ def scale_in_situ(hits: np.ndarray, cycles: np.ndarray, density: DensityResult,
     return (``returns``: its code, NaN for none) lies within ``RESET_CLEARANCE`` codes of
     the reset peak (the fit would take the return for part of it), where the peak has
     fewer than ``min_counts`` counts, or where the density test did not measure those
-    codes.
+    codes. ``beyond`` (a mask of TDCs): there any code the campaign measured will do
+    (the table continued over the dimmer tests' codes, ``density_test(combine=True)``),
+    so a capture between the tests' levels has its reset peak on measured codes too.
 
     Returns ``(scale, ok, reason)``; ``reason`` is "" where ``ok``.
     """
@@ -826,6 +879,11 @@ def scale_in_situ(hits: np.ndarray, cycles: np.ndarray, density: DensityResult,
     at_risk = at_risk_by_code(h, cycles)
     x_den = np.nan_to_num(density.x_t, nan=0.0)
     measured_to = np.floor(x_den) - EDGE_MARGIN - 1  # the density test's last measured code
+    if beyond is not None:
+        fin = np.isfinite(np.asarray(density.width_lsb, np.float64))
+        last = np.where(fin.any(axis=1), N_CODES - 1 - np.argmax(fin[:, ::-1], axis=1), 0)
+        measured_to = np.where(np.asarray(beyond, bool), np.maximum(last, measured_to),
+                               measured_to)
     end, step = light_end(h)
     k = np.arange(N_CODES)[None, :]
     zone = (k >= end[:, None] - 1 - RESET_SEARCH) & (k < end[:, None])

@@ -148,7 +148,8 @@ class TimeAxis:
 
 def time_axis(calibration: Calibration, hits: np.ndarray, cycles: np.ndarray,
               window_s: float, in_situ: bool = False,
-              returns: np.ndarray | None = None) -> TimeAxis:
+              returns: np.ndarray | None = None,
+              beyond: np.ndarray | None = None) -> TimeAxis:
     """The calibrated time axis of a measurement's histograms (rows: the calibration's TDCs;
     take :meth:`Calibration.rows` first for a worker's range).
 
@@ -162,7 +163,8 @@ def time_axis(calibration: Calibration, hits: np.ndarray, cycles: np.ndarray,
     there (:func:`stages.calibration.light_end`): a calibration whose LSB is off for this
     light would otherwise leave the reset peak inside the searched codes, where it wins as
     a false target; without ambient light there is no step, the last populated code is a
-    return's tail, and bounding x_T there would mask the return itself.
+    return's tail, and bounding x_T there would mask the return itself. ``beyond``: TDCs
+    whose reset peak may sit on any code the campaign measured (``scale_in_situ``).
     """
     hits = np.asarray(hits)
     if hits.shape[0] != calibration.n_tdc:
@@ -175,7 +177,8 @@ def time_axis(calibration: Calibration, hits: np.ndarray, cycles: np.ndarray,
     scale = cal.scale_at_light(density, lsb, window_s, calibration.lsb_fit, light)
     source = np.full(hits.shape[0], "lsb polynomial", dtype=object)
     if in_situ:
-        own, ok, why = cal.scale_in_situ(hits, cycles, density, window_s, returns=returns)
+        own, ok, why = cal.scale_in_situ(hits, cycles, density, window_s, returns=returns,
+                                         beyond=beyond)
         scale = np.where(ok, own, scale)
         source = np.where(ok, "reset peak", "lsb polynomial: " + why.astype(str)).astype(
             object)

@@ -226,6 +226,17 @@ def lsb_from_states(tests: list, window_s: float, inl_rms_lsb: float = 0.5,
         raise CalibrationError(
             f"no TDC calibrated (the best density test: {names[i_best]}): " + "; ".join(
                 f"{t}: {best.reasons[t] or 'no reason given'}" for t in range(min(4, best.n_tdc))))
+    if log and fit.levels is not None:
+        # where the levels leave the LSB against light unresolved (cal.scale_spread): a
+        # delay or range at that light is flagged unless its own reset peak scales it
+        lv = np.sort(np.asarray(fit.levels, np.float64))
+        for a, b in zip(lv[:-1], lv[1:], strict=True):
+            mid = float(np.sqrt(a * b))
+            worst_ppm = over_finite(np.max, cal.scale_spread(best, fit, window_s, mid)[0]) * 1e6
+            log(f"LSB between the levels {a:.3g} and {b:.3g}: the sqrt(n) and n "
+                f"interpolations differ by up to {worst_ppm:.0f} ppm of the scale at "
+                f"{mid:.3g} ({worst_ppm * window_s * 1e6:.0f} ps at the window's beginning)"
+                + ("; add a density test there" if worst_ppm * window_s * 1e6 > 100 else ""))
     worst = worst_inl(best)
     if not worst <= inl_rms_lsb:
         raise CalibrationError(f"the best density test ({names[i_best]}) gives an "
@@ -274,6 +285,16 @@ def add_delay(capture, caldir: str | Path, log=None) -> Calibration:
     return calib
 
 
+def _unresolved_ps(spread, tau_s, density: cal.DensityResult, sigma_s) -> np.ndarray:
+    """Where the scale's spread (:func:`stages.calibration.scale_spread`) at a return's
+    tau is over what its delay allows (``LSB_SPREAD_SIGMAS`` of its statistics, INL x LSB
+    and the peak's fit, plus ``LSB_SPREAD_FLOOR_PS``)."""
+    allowed_ps = (cal.LSB_SPREAD_SIGMAS * np.hypot(density.inl_error_lsb * density.lsb_s,
+                                                   np.asarray(sigma_s, np.float64)) * 1e12
+                  + cal.LSB_SPREAD_FLOOR_PS)
+    return np.asarray(spread * np.asarray(tau_s, np.float64) * 1e12 > allowed_ps, bool)
+
+
 def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: float,
                      name: str = "capture", log=None) -> Calibration:
     """:func:`add_delay` on a zero-distance capture's histograms (``state``, a
@@ -304,7 +325,14 @@ def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: 
     axis = time_axis(calib, state.hits, state.cycles, window_s)
     first, _ = estimate(axis)
     returns = code_of(first.t_s, axis.tau_edges_s, first.detected)
-    axis = time_axis(calib, state.hits, state.cycles, window_s, in_situ=True, returns=returns)
+    # where the levels leave the scale at this light unresolved (below), the capture's own
+    # reset peak may sit on codes only the dimmer density tests measured: it follows
+    # the chip there instead of the spline
+    spread, (lo, hi) = cal.scale_spread(res, calib.lsb_fit, window_s, light)
+    weak = _unresolved_ps(spread, window_s - np.asarray(first.t_s, np.float64), res,
+                          first.sigma_s)
+    axis = time_axis(calib, state.hits, state.cycles, window_s, in_situ=True, returns=returns,
+                     beyond=weak if weak.any() else None)
     est, sigma = estimate(axis)
     d = cal.delay_s(t_laser_win_s, window_s - est.t_s)
     # where the return sits: a return partly under the reset peak's mask or at the window's
@@ -333,6 +361,21 @@ def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: 
         reasons[guess] = [f"{axis.note}, and the capture's own reset peak not usable "
                           f"({str(src).split(': ', 1)[-1]}): run `tcspc calibrate lsb` "
                           "over this light" for src in axis.source[guess]]
+    # between the density tests' levels the scale is a spline through their points: where
+    # the LSB bends faster than the levels show (a fast-saturating chip) it can be off by
+    # more than the delay allows with nothing to see in four points (issue 15); two
+    # interpolations through the same points then part, and only the capture's own reset
+    # peak measures the scale there
+    tau_s = window_s - np.asarray(est.t_s, np.float64)
+    spread_ps = spread * tau_s * 1e12
+    unresolved = ((axis.source != "reset peak") & (reasons == "")
+                  & _unresolved_ps(spread, tau_s, res, est.sigma_s))
+    reasons[unresolved] = (
+        f"LSB against light not resolved between the density tests at {lo:.3g} and "
+        f"{hi:.3g} detections a cycle (two interpolations through them differ by more than "
+        f"the delay's error allows here): add a density test near {light:.2g} to `tcspc "
+        "calibrate lsb`, or give this capture ambient light (its own reset peak then "
+        "scales it)")
     reasons[state.hits.sum(axis=1) == 0] = "no hits in the capture"
     bad = ~calib.ok
     reasons[bad] = ["flagged by the density test" + (f": {r}" if r else "")
@@ -353,6 +396,8 @@ def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: 
         "sigma_ps": np.round(est.sigma_s * 1e12, 3).tolist(),
         "scale_from": source.tolist(),
         "scale_from_reset_peak": int(np.sum(source == "reset peak")),
+        "lsb_spread_ps": [None if not np.isfinite(v) else round(float(v), 1)
+                          for v in np.where(source == "reset peak", np.nan, spread_ps)],
         "tdcs_with_delay": int(np.isfinite(d).sum())})
     return calib
 

@@ -64,7 +64,30 @@ def range_state(state: HistogramState, calibration: Calibration, window_s: float
     # distance: never a detection with a NaN or a guessed range
     est = dataclasses.replace(est, detected=np.asarray(est.detected, bool)
                               & np.isfinite(calib.delay_s))
-    return est, distance, est.sigma_s * C_LIGHT / 2, axis.note
+    note = "; ".join(n for n in (axis.note, _unresolved(calib, state, axis, est, window_s))
+                     if n)
+    return est, distance, est.sigma_s * C_LIGHT / 2, note
+
+
+def _unresolved(calib: Calibration, state: HistogramState, axis, est: Estimate,
+                window_s: float) -> str:
+    """The note for targets at a light the density tests' levels do not resolve (as
+    ``calibrate delay`` flags its TDCs: :func:`stages.calibration.scale_spread` as ps at
+    the target's tau over 2 sigmas of the INL's statistics + 20 ps), "" otherwise."""
+    light = float(state.hits.sum() / (state.n_tdc * max(np.max(state.cycles), 1)))
+    spread, (lo, hi) = cal.scale_spread(calib.density, calib.lsb_fit, window_s, light)
+    res = calib.density
+    tau_ps = (window_s - np.asarray(est.t_s, np.float64)) * 1e12
+    allowed = (cal.LSB_SPREAD_SIGMAS * res.inl_error_lsb * res.lsb_s * 1e12
+               + cal.LSB_SPREAD_FLOOR_PS)
+    bad = (np.asarray(est.detected, bool) & (axis.source != "reset peak")
+           & (spread * tau_ps > allowed))
+    if not bad.any():
+        return ""
+    return (f"LSB against light not resolved between the density tests at {lo:.3g} and "
+            f"{hi:.3g} detections a cycle (this capture: {light:.2g}): detected targets "
+            "may be off beyond their sigma; add a density test near "
+            f"{light:.2g} to `tcspc calibrate lsb`")
 
 
 def _codes_of(tau_s, tau_edges_s, keep) -> np.ndarray:
