@@ -4,9 +4,10 @@ the subprocess, file read from the page cache included).
 The capture is the street scene simulated for ``--cycles`` cycles and tiled ``--tile``
 times (as issue 15 did: 50 000 cycles x 16 = 102 M words), written under a temporary
 directory (never committed). The command runs with the bounds estimated from the capture
-(one pass) and with a calibration's bounds, each the best of ``--repeat`` runs; then with
-one thread on the loop (``TCSPC_THREADS=1``) and with numba's dispatcher in place of the
-kernels loaded without numba (``TCSPC_NATIVE=0``), to show what each part brings.
+(one pass) and with a calibration's bounds, each the best and the median of ``--repeat``
+runs; then with one thread on the loop (``TCSPC_THREADS=1``) and with numba's dispatcher
+in place of the kernels loaded without numba (``TCSPC_NATIVE=0``), to show what each part
+brings.
 ``--breakdown`` adds where the time of the one-pass command goes: the same command in
 a process that stamps its main steps (``--stamp``, below), the run of least total of
 ``--repeat``.
@@ -40,18 +41,20 @@ def child_env(extra: dict | None = None) -> dict:
     return {**env, **(extra or {})}
 
 
-def timed(cmd: list[str], repeat: int, env: dict | None = None) -> tuple[float, str]:
-    """Best wall time of ``repeat`` runs, after one untimed run (bytecode, kernels)."""
+def timed(cmd: list[str], repeat: int, env: dict | None = None) -> tuple[float, float]:
+    """Best and median wall time of ``repeat`` runs, after one untimed run (bytecode,
+    kernels)."""
+    import statistics
+
     subprocess.run(cmd, capture_output=True, env=child_env(env))
-    best, err = float("inf"), ""
+    times = []
     for _ in range(repeat):
         t0 = time.perf_counter()
         res = subprocess.run(cmd, capture_output=True, text=True, env=child_env(env))
-        dt = time.perf_counter() - t0
+        times.append(time.perf_counter() - t0)
         if res.returncode != 0:
             raise SystemExit(f"{' '.join(cmd)} failed:\n{res.stderr}")
-        best, err = min(best, dt), res.stderr
-    return best, err
+    return min(times), statistics.median(times)
 
 
 def make_capture(tmp: Path, cycles: int, tile: int) -> Path:
@@ -104,11 +107,10 @@ STEPS = [  # (module, attribute, label): wrapped to stamp their start and end
     ("pipeline.cli.instruments", "detect", "format"),
     ("pipeline.cli.app", "_open", "open capture"),
     ("stages.nativecode", "kernel", "load C kernel"),
-    ("stages.histogram", "SelfBoundingHistogram._provisional_core",
-     "provisional core (pyarrow's import runs beside it)"),
+    ("stages.histogram", "SelfBoundingHistogram._provisional_core", "provisional core"),
     ("pipeline.offline.datapath", "_fan_out", "loop (threads)"),
     ("stages.histogram", "SelfBoundingHistogram.finish", "finish (bounds, hits)"),
-    ("pipeline.offline.datapath", "write_histograms", "write parquet"),
+    ("pipeline.offline.datapath", "write_histograms", "write parquet (pyarrow imported)"),
 ]
 
 
@@ -123,7 +125,7 @@ def stamped(argv: list[str]) -> None:
         marks.append(((time.perf_counter() - t0) * 1e3, label))
 
     import pipeline.cli.app as app
-    mark("imported: click, rich, the CLI")
+    mark("imported: click, the CLI")
     import pipeline.io.capture  # noqa: F401  (numpy; no pyarrow: schemas.constants)
     mark("imported: numpy, capture")
     import pipeline.offline.datapath  # noqa: F401
@@ -214,8 +216,8 @@ def main() -> None:
 
         n_words = Capture(capture).n_words
         cal = calibration_bounds(tmp)
-        help_s, _ = timed([str(Path(sys.executable).parent / "tcspc"), "--help"],
-                          max(args.repeat, 5))
+        help_s = timed([str(Path(sys.executable).parent / "tcspc"), "--help"],
+                       max(args.repeat, 5))
         rows = [("`tcspc --help`", help_s, None)]
         one_pass = ["histogram", str(capture), "--out", str(tmp / "h.parquet"), "-q"]
         for label, extra, env in (
@@ -225,13 +227,15 @@ def main() -> None:
                 ("`tcspc histogram`, one thread on the loop", [], {"TCSPC_THREADS": "1"}),
                 ("`tcspc histogram`, numba's dispatcher (no C kernel)", [],
                  {"TCSPC_NATIVE": "0"})):
-            dt, err = timed([*TCSPC, *one_pass, *extra], args.repeat, env)
-            rows.append((label, dt, n_words / dt))
+            dt = timed([*TCSPC, *one_pass, *extra], args.repeat, env)
+            rows.append((label, dt, n_words))
         lines += [f"capture: {n_words / 1e6:.1f} M words ({n_words * 4 / 1e9:.2f} GB, street "
                   f"scene {args.cycles:,} cycles x {args.tile}, from the page cache)", "",
-                  "| command | wall s (best of runs) | M words/s |", "|---|---:|---:|"]
-        lines += [f"| {label} | {dt:.3f} | {'' if r is None else f'{r / 1e6:.0f}'} |"
-                  for label, dt, r in rows]
+                  f"| command | wall s, best of {args.repeat} | median | M words/s (best; "
+                  "median) |", "|---|---:|---:|---:|"]
+        lines += [f"| {label} | {best:.3f} | {med:.3f} | "
+                  f"{'' if n is None else f'{n / best / 1e6:.0f}; {n / med / 1e6:.0f}'} |"
+                  for label, (best, med), n in rows]
         if args.breakdown:
             lines += ["", f"where the one-pass command's time goes (least total of "
                           f"{args.repeat} runs; wall time in the process, after the "
