@@ -597,16 +597,29 @@ def width_variance(hits: np.ndarray, cycles: np.ndarray, density: DensityResult,
     """(n_tdc, 512) variance of each measured code width (LSB^2), NaN for the codes the
     test did not measure (under its reset peak, beyond the window, empty, dead TDCs).
 
-    The variance of Coates' ``r w`` (:func:`_coates_var`) scaled to the width.
+    The variance of Coates' ``r w`` (:func:`_coates_var`) scaled to the width. A dead code
+    (:func:`dead_codes`; its width 0) is measured too, to ``1 / R`` of ``r w`` (R cycles
+    at risk, no count): a test that fills from this one then knows it has no width (given
+    its phase mean instead, the codes under the reset peak and the table beyond the window
+    would hold one code too many).
     """
     h = np.asarray(hits, np.float64)
     r = at_risk_by_code(h, cycles, artifacts)
     with np.errstate(divide="ignore", invalid="ignore"):
-        var = _coates_var(h, r) * (density.width_lsb / -np.log1p(-h / r)) ** 2
+        per_rw = density.width_lsb / -np.log1p(-h / r)   # LSB per unit of r w
+        var = _coates_var(h, r) * per_rw ** 2
     k = np.arange(N_CODES)[None, :]
-    measured = ((k < np.floor(density.x_t)[:, None] - EDGE_MARGIN - 1) & (h > 0)
-                & density.ok[:, None])
-    return np.where(measured & np.isfinite(var) & (var > 0), var, np.nan)
+    inside = (k < np.floor(density.x_t)[:, None] - EDGE_MARGIN - 1) & density.ok[:, None]
+    measured = inside & (h > 0)
+    var = np.where(measured & np.isfinite(var) & (var > 0), var, np.nan)
+    for t in np.flatnonzero(np.asarray(density.ok, bool)):
+        top = int(np.argmax(np.where(np.arange(N_CODES) > 16, h[t], -1)))
+        dead = dead_codes(h[t], top) & inside[t]
+        if dead.any():
+            with np.errstate(invalid="ignore"):
+                unit = np.nanmedian(np.where(measured[t], per_rw[t], np.nan))
+            var[t, dead] = (unit / np.maximum(r[t, dead], 1.0)) ** 2
+    return var
 
 
 def fill_from(tests: list[tuple[DensityResult, np.ndarray]], target: DensityResult):
