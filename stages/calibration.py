@@ -445,8 +445,13 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill
     if np.any(~np.isfinite(rw[interior])) or np.any(h[interior] == 0):
         # missing codes: a zero-count code has an unknown (tiny) width; keep it at 0
         rw = np.where(np.isfinite(rw), rw, 0.0)
-    # dead (missing) codes: no count between lit codes, also under the reset peak
+    # dead (missing) codes: no count between lit codes, also under the reset peak; and
+    # beyond it, where a fill's test measured them (no width, to its 1 / R)
     dead = dead_codes(h, top)
+    if fill is not None and np.isfinite(fill[0]).any():
+        with np.errstate(invalid="ignore"):
+            dead |= ((h == 0) & np.isfinite(fill[0]) & np.isfinite(fill[1])
+                     & (fill[0] <= 0.1 * np.nanmedian(fill[0])))
     near = dead | np.roll(dead, 1) | np.roll(dead, -1)
     # per-phase mean widths fill the edge codes (the DNL pattern repeats every 8 codes),
     # over live codes whose neighbours are live (a dead code's time is in a neighbour)
@@ -462,7 +467,8 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill
     measured = ~edge
     if fill is not None:
         w = _refill(w, edge, interior, phase_mean / scale,
-                    _coates_var(h, at_risk) / scale ** 2, *fill, combine=combine)
+                    _coates_var(h, at_risk) / scale ** 2, *fill, combine=combine,
+                    loose=near & ~dead)
         measured |= edge & np.isfinite(fill[0]) & np.isfinite(fill[1]) & (fill[1] > 0)
     pm = phase_mean[np.arange(N_CODES) % 8] / scale
 
@@ -651,12 +657,15 @@ def _coates_var(h, r):
         return h / (r * (r - h))
 
 
-def _refill(w, edge, interior, phase_mean, stat_var, f_w, f_var, combine=False):
+def _refill(w, edge, interior, phase_mean, stat_var, f_w, f_var, combine=False,
+            loose=None):
     """The edge codes' widths (``w``, interior-LSB units, where ``phase_mean`` (8,) already
     stands) as the inverse-variance mean of that and ``f_w`` (another test's, any unit:
     brought to this one's by the codes both measured); ``stat_var``: the variance of each
     measured width of ``w``. With ``combine``, the measured codes too (their own width
-    against ``f_w``, each by its variance)."""
+    against ``f_w``, each by its variance). ``loose``: codes the phase mean does not
+    predict (a dead code's neighbours: one of them holds its time), which take ``f_w``
+    alone where it is known."""
     common = interior[np.isfinite(f_w[interior])]
     if common.size < 32:
         return w
@@ -672,6 +681,8 @@ def _refill(w, edge, interior, phase_mean, stat_var, f_w, f_var, combine=False):
     use = edge & np.isfinite(f) & np.isfinite(fv) & (fv > 0)
     out = w.copy()
     out[use] = (w[use] / v_pm + f[use] / fv[use]) / (1 / v_pm + 1 / fv[use])
+    if loose is not None:
+        out[use & loose] = f[use & loose]
     if combine:
         sv = np.full(w.size, np.nan)
         sv[interior] = stat_var[interior]

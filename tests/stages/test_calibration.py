@@ -597,3 +597,42 @@ def test_dead_codes_under_the_reset_peak_are_found_and_ambiguity_flagged():
     w2[349] = 2.0                 # measured, and it holds it
     got, _ = cal._dead_widths(w2, dead, measured, pm, peak)
     assert got[349:352].tolist() == [2.0, 0.0, 1.0]
+
+
+def test_a_dead_code_is_carried_by_the_fill_from_a_dimmer_test():
+    """A dead code the dimmer test measured (its window reaches ~10 codes further) but the
+    brighter one cannot (under or beyond its reset peak): the fill says it has no width,
+    so the brighter test's table goes on past it (the time axis at a dimmer light reads
+    x_T there) with the dead code at width 0, not its phase mean (one code too many)."""
+    from stages.artifact import ArtifactBounds
+    from stages.simulator.chip import place_dead_codes
+
+    chip = make_chip(N, 4, reset_jitter_ps=40.0)
+    scenes = [evaluate(scene_from_dict({"sensor": {"n_pixels": N, "hot_pixels": []},
+                                        "dark_counts": True,
+                                        "ambient": [{"kind": "lux", "lux": lux}]}))
+              for lux in (3000.0, 600.0)]
+    light = [Simulator(sm, chip, 1).light for sm in scenes]
+    k = np.floor(chip.window_truth(light[0], 80e-9)[1]).astype(int)
+    at = [(-1, 0), (0, 1), (1, 2), (2, 1), (3, 4), (4, 3), (5, 6), (6, 5)]
+    chip = place_dead_codes(chip, {t: [(k[t] + a, k[t] + b)] for t, (a, b) in enumerate(at)})
+    states = []
+    for i, sm in enumerate(scenes):
+        acc = HistogramAccumulator(N, ArtifactBounds(chip.n_min, chip.n_max),
+                                   count_artifacts=True)
+        for _, words in Simulator(sm, chip, 2 + i).batches(1_000_000):
+            acc.update(words)
+        states.append(acc.snapshot())
+    bright, dim = (cal.density_test(s.hits, s.cycles, 80e-9, artifacts=s.artifacts)
+                   for s in states)
+    var = cal.width_variance(states[1].hits, states[1].cycles, dim, states[1].artifacts)
+    res = cal.density_test(states[0].hits, states[0].cycles, 80e-9, artifacts=states[0].artifacts,
+                           fill=cal.fill_from([(dim, var)], bright), combine=True)
+    _, x_t, inl_t = chip.window_truth(light[0], 80e-9)
+    assert res.ok.all() and np.abs(res.x_t - x_t).max() < 0.05
+    for t, (a, _) in enumerate(at):
+        d = k[t] + a
+        assert abs(res.width_lsb[t, d]) < 0.05, (t, d, res.width_lsb[t, d - 1:d + 2])
+        # the table beyond the dead code: each boundary where the chip has it
+        err = (res.inl_lsb[t] - inl_t[t])[d - 3:d + 4]
+        assert np.all(np.isfinite(err)) and np.abs(err).max() < 0.3, (t, err)
