@@ -51,7 +51,8 @@ def at_risk_by_code(hits, cycles, artifacts=None) -> np.ndarray:
 
 # ----------------------------------------------------------------- the reset peak (tau = T)
 
-def fit_reset_peak(h, at_risk, bounds, top, u, sigma0: float = 0.5, iterations: int = 15):
+def fit_reset_peak(h, at_risk, bounds, top, u, sigma0: float = 0.5, iterations: int = 15,
+                   loglik: bool = False):
     """Where tau = T falls, in the units of ``bounds``: a binned Poisson fit of the reset
     peak over the codes' actual boundaries, for every row at once.
 
@@ -69,7 +70,9 @@ def fit_reset_peak(h, at_risk, bounds, top, u, sigma0: float = 0.5, iterations: 
     top : (n,) int, the code of the reset peak's highest count.
     u : (n,) the uniform light in detections per unit of ``bounds`` per cycle at risk.
 
-    Returns ``(P, s, A)``, each (n,); P is NaN where the peak holds no excess.
+    Returns ``(P, s, A)``, each (n,); P is NaN where the peak holds no excess. With
+    ``loglik``, also the Poisson log-likelihood of the fitted codes (up to a constant):
+    two sets of ``bounds`` for the same counts are compared by it.
     """
     h = np.asarray(h, np.float64)
     n = h.shape[0]
@@ -94,7 +97,7 @@ def fit_reset_peak(h, at_risk, bounds, top, u, sigma0: float = 0.5, iterations: 
     def phi(z):
         return np.exp(-0.5 * z * z) / np.sqrt(2 * np.pi)
 
-    for _ in range(iterations):
+    def model(P, s, A):
         sc = s[:, None]
         za, zb = (lo - P[:, None]) / sc, (hi - P[:, None]) / sc
         g = ndtr(zb) - ndtr(za)
@@ -103,7 +106,10 @@ def fit_reset_peak(h, at_risk, bounds, top, u, sigma0: float = 0.5, iterations: 
         share = sc * ((ya * ndtr(ya) + pa) - (yb * ndtr(yb) + pb))
         e = np.exp(-u * share)
         un = rk * (1 - e)
-        mu = np.maximum(A[:, None] * g + un, 1e-12)
+        return sc, za, zb, g, pa, pb, ya, yb, e, np.maximum(A[:, None] * g + un, 1e-12)
+
+    for _ in range(iterations):
+        sc, za, zb, g, pa, pb, ya, yb, e, mu = model(P, s, A)
         jac = np.stack([A[:, None] * -(pb - pa) / sc + rk * e * u * (ndtr(ya) - ndtr(yb)),
                         A[:, None] * -(zb * pb - za * pa) / sc + rk * e * u * (pa - pb),
                         g], axis=-1)
@@ -118,7 +124,11 @@ def fit_reset_peak(h, at_risk, bounds, top, u, sigma0: float = 0.5, iterations: 
         P = P + np.clip(step[:, 0], -0.5 * width, 0.5 * width)
         s = np.clip(s + np.clip(step[:, 1], -0.5 * s, 0.5 * s), 0.05 * width, 3 * width)
         A = np.maximum(A + step[:, 2], 1.0)
-    return np.where(tot > 0, P, np.nan), s, A
+    P = np.where(tot > 0, P, np.nan)
+    if loglik:
+        mu = model(np.nan_to_num(P), s, A)[-1]
+        return P, s, A, (hk * np.log(mu) - mu).sum(1)
+    return P, s, A
 
 
 # ---------------------------------------------------------------- second stage (eq. 3.4)
@@ -342,9 +352,9 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
                        None if fill is None else (fill[0][t], fill[1][t]),
                        None if artifacts is None else np.asarray(artifacts[t], np.float64),
                        combine)
-        if res is None:
+        if res is None or isinstance(res, str):
             ok[t] = False
-            reasons[t] = "no reset peak, or under 32 codes below it"
+            reasons[t] = res or "no reset peak, or under 32 codes below it"
             continue
         out["lsb"][t], out["x_t"][t], widths[t], inl[t], out["err"][t] = res
     dnl = widths - 1.0
@@ -435,21 +445,44 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill
     if np.any(~np.isfinite(rw[interior])) or np.any(h[interior] == 0):
         # missing codes: a zero-count code has an unknown (tiny) width; keep it at 0
         rw = np.where(np.isfinite(rw), rw, 0.0)
-    # per-phase mean widths fill the edge codes (the DNL pattern repeats every 8 codes)
-    phase_mean = np.array([rw[interior[interior % 8 == p]].mean() for p in range(8)])
+    # dead (missing) codes: no count between lit codes, also under the reset peak; and
+    # beyond it, where a fill's test measured them (no width, to its 1 / R)
+    dead = dead_codes(h, top)
+    if fill is not None and np.isfinite(fill[0]).any():
+        with np.errstate(invalid="ignore"):
+            dead |= ((h == 0) & np.isfinite(fill[0]) & np.isfinite(fill[1])
+                     & (fill[0] <= 0.1 * np.nanmedian(fill[0])))
+    near = dead | np.roll(dead, 1) | np.roll(dead, -1)
+    # per-phase mean widths fill the edge codes (the DNL pattern repeats every 8 codes),
+    # over live codes whose neighbours are live (a dead code's time is in a neighbour)
+    typical = interior[~near[interior]]
+    if any(np.sum(typical % 8 == p) == 0 for p in range(8)):
+        typical = interior
+    phase_mean = np.array([rw[typical[typical % 8 == p]].mean() for p in range(8)])
     scale = rw[interior].mean()             # r * LSB_interior
     w = rw / scale
     edge = np.ones(N_CODES, bool)
     edge[interior] = False
     w[edge] = phase_mean[np.arange(N_CODES)[edge] % 8] / scale
+    measured = ~edge
     if fill is not None:
         w = _refill(w, edge, interior, phase_mean / scale,
-                    _coates_var(h, at_risk) / scale ** 2, *fill, combine=combine)
-    bound = np.concatenate([[0.0], np.cumsum(w)])   # B_k in interior-LSB units
-    # x_T: the reset peak fitted over these boundaries, above the uniform part (the
-    # interior's density, at risk there) that ends at T
-    tau_t = float(fit_reset_peak(h[None], at_risk[None], bound[None], np.array([top]),
-                                 np.array([scale]))[0][0])  # in interior-LSB units
+                    _coates_var(h, at_risk) / scale ** 2, *fill, combine=combine,
+                    loose=near & ~dead)
+        measured |= edge & np.isfinite(fill[0]) & np.isfinite(fill[1]) & (fill[1] > 0)
+    pm = phase_mean[np.arange(N_CODES) % 8] / scale
+
+    def peak(w):  # x_T: the reset peak fitted over these boundaries, above the uniform
+        # part (the interior's density, at risk there) that ends at T
+        bound = np.concatenate([[0.0], np.cumsum(w)])   # B_k in interior-LSB units
+        P, _, _, ll = fit_reset_peak(h[None], at_risk[None], bound[None], np.array([top]),
+                                     np.array([scale]), loglik=True)
+        return bound, float(P[0]), float(ll[0])  # P in interior-LSB units
+
+    w, why = _dead_widths(w, dead, measured, pm, peak)
+    if why:
+        return why
+    bound, tau_t, _ = peak(w)
     if not np.isfinite(tau_t):
         return None
     k = int(np.searchsorted(bound, tau_t, side="right") - 1)
@@ -472,21 +505,127 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill
     return lsb, x_t, width, inl, err
 
 
+#: A run of zero-count codes between two codes of at least this many counts is dead
+#: (zero width): a live code there (width >= ~0.45 LSB) expects a third of the smaller
+#: neighbour's count or more (uniform light, or a log-concave reset peak), ~10 at 30.
+DEAD_LIT = 30
+#: Log-likelihood (nats) by which the reset peak must prefer one placement of a dead
+#: code's time (one neighbour or the other) when the two x_T differ by ``DEAD_XT_CODES``
+#: or more; below it the TDC is flagged.
+DEAD_LL, DEAD_XT_CODES = 3.0, 0.05
+
+
+def dead_codes(h: np.ndarray, top: int) -> np.ndarray:
+    """(512,) bool: the codes of ``h`` (one TDC's histogram) up to the reset peak's reach
+    (``top + RESET_HALF``) with no count between two codes of ``DEAD_LIT`` or more. A
+    dead (missing) code of the first stage has zero width, its time is in a neighbour;
+    under the reset peak its count is the only sign of it."""
+    h = np.asarray(h)
+    out = np.zeros(h.size, bool)
+    end = min(int(top) + RESET_HALF + 1, h.size - 1)
+    k = 1
+    while k < end:
+        if h[k] != 0:
+            k += 1
+            continue
+        j = k
+        while j < h.size and h[j] == 0:
+            j += 1
+        if j < h.size and h[k - 1] >= DEAD_LIT and h[j] >= DEAD_LIT:
+            out[k:j] = True
+        k = j
+    return out
+
+
+def _dead_widths(w, dead, measured, pm, peak):
+    """``w`` (interior-LSB units) with every dead code at zero width and its time given to
+    the neighbour that holds it. A measured neighbour (``measured``: by this test's light
+    or a fill) holds it where it is wider than its phase mean by half the dead code's
+    phase mean; an unmeasured one (under the reset peak, given its phase mean) takes
+    ``pm`` of the dead code when the other neighbour is measured and does not hold it.
+    Where neither neighbour is measured the reset peak decides (``peak(w)``: its
+    likelihood over each placement); where it cannot (within ``DEAD_LL`` nats, x_T
+    ``DEAD_XT_CODES`` apart) the reason is returned with ``w``, else "".
+
+    A dead code given its phase mean instead (as before) put one code too many under the
+    reset peak: x_T 1.06 codes high, LSB 0.78 ps low on chip zoo seed 5 (n_sat 0.4, dead
+    code 327, x_T 328.2), the delay 252 ps off."""
+    import itertools
+
+    w = w.copy()
+    ambiguous = []
+    for d in np.flatnonzero(dead):
+        w[d] = 0.0
+        nb = [j for j in (d - 1, d + 1) if 0 <= j < w.size and not dead[j]]
+        free = [j for j in nb if not measured[j]]
+        if not free:
+            continue  # the time is where it was measured
+        held = [j for j in nb if measured[j] and w[j] - pm[j] > 0.5 * pm[d]]
+        if held:
+            continue
+        if len(free) == 1:
+            w[free[0]] += pm[d]
+        else:
+            ambiguous.append((d, free))
+    if not ambiguous:
+        return w, ""
+    tries = []
+    for pick in itertools.product(*(f for _, f in ambiguous)):
+        c = w.copy()
+        for (d, _), j in zip(ambiguous, pick, strict=True):
+            c[j] += pm[d]
+        bound, tau_t, ll = peak(c)
+        tries.append((ll if np.isfinite(ll) and np.isfinite(tau_t) else -np.inf, tau_t, c,
+                      bound))
+    tries.sort(key=lambda x: -x[0])
+    best = tries[0]
+    x_t = [_x_of(b, t, c) for _, t, c, b in tries]
+    close = [i for i in range(1, len(tries)) if best[0] - tries[i][0] < DEAD_LL
+             and abs(x_t[i] - x_t[0]) >= DEAD_XT_CODES]
+    if close:
+        codes = ", ".join(str(d) for d, _ in ambiguous)
+        return best[2], (f"dead code {codes} under the reset peak: which neighbour holds its "
+                         f"time the data cannot tell (x_T {x_t[0]:.2f} or "
+                         f"{x_t[close[0]]:.2f})")
+    return best[2], ""
+
+
+def _x_of(bound, tau_t, w):
+    """The code axis' x at ``tau_t`` on ``bound`` (widths ``w``)."""
+    if not np.isfinite(tau_t):
+        return np.nan
+    k = int(np.clip(np.searchsorted(bound, tau_t, side="right") - 1, 0, w.size - 1))
+    return k + (tau_t - bound[k]) / w[k] if w[k] > 0 else float(k)
+
+
 def width_variance(hits: np.ndarray, cycles: np.ndarray, density: DensityResult,
                    artifacts: np.ndarray | None = None) -> np.ndarray:
     """(n_tdc, 512) variance of each measured code width (LSB^2), NaN for the codes the
     test did not measure (under its reset peak, beyond the window, empty, dead TDCs).
 
-    The variance of Coates' ``r w`` (:func:`_coates_var`) scaled to the width.
+    The variance of Coates' ``r w`` (:func:`_coates_var`) scaled to the width. A dead code
+    (:func:`dead_codes`; its width 0) is measured too, to ``1 / R`` of ``r w`` (R cycles
+    at risk, no count): a test that fills from this one then knows it has no width (given
+    its phase mean instead, the codes under the reset peak and the table beyond the window
+    would hold one code too many).
     """
     h = np.asarray(hits, np.float64)
     r = at_risk_by_code(h, cycles, artifacts)
     with np.errstate(divide="ignore", invalid="ignore"):
-        var = _coates_var(h, r) * (density.width_lsb / -np.log1p(-h / r)) ** 2
+        per_rw = density.width_lsb / -np.log1p(-h / r)   # LSB per unit of r w
+        var = _coates_var(h, r) * per_rw ** 2
     k = np.arange(N_CODES)[None, :]
-    measured = ((k < np.floor(density.x_t)[:, None] - EDGE_MARGIN - 1) & (h > 0)
-                & density.ok[:, None])
-    return np.where(measured & np.isfinite(var) & (var > 0), var, np.nan)
+    inside = (k < np.floor(density.x_t)[:, None] - EDGE_MARGIN - 1) & density.ok[:, None]
+    measured = inside & (h > 0)
+    var = np.where(measured & np.isfinite(var) & (var > 0), var, np.nan)
+    for t in np.flatnonzero(np.asarray(density.ok, bool)):
+        top = int(np.argmax(np.where(np.arange(N_CODES) > 16, h[t], -1)))
+        dead = dead_codes(h[t], top) & inside[t]
+        if dead.any():
+            with np.errstate(invalid="ignore"):
+                unit = np.nanmedian(np.where(measured[t], per_rw[t], np.nan))
+            var[t, dead] = (unit / np.maximum(r[t, dead], 1.0)) ** 2
+    return var
 
 
 def fill_from(tests: list[tuple[DensityResult, np.ndarray]], target: DensityResult):
@@ -518,12 +657,15 @@ def _coates_var(h, r):
         return h / (r * (r - h))
 
 
-def _refill(w, edge, interior, phase_mean, stat_var, f_w, f_var, combine=False):
+def _refill(w, edge, interior, phase_mean, stat_var, f_w, f_var, combine=False,
+            loose=None):
     """The edge codes' widths (``w``, interior-LSB units, where ``phase_mean`` (8,) already
     stands) as the inverse-variance mean of that and ``f_w`` (another test's, any unit:
     brought to this one's by the codes both measured); ``stat_var``: the variance of each
     measured width of ``w``. With ``combine``, the measured codes too (their own width
-    against ``f_w``, each by its variance)."""
+    against ``f_w``, each by its variance). ``loose``: codes the phase mean does not
+    predict (a dead code's neighbours: one of them holds its time), which take ``f_w``
+    alone where it is known."""
     common = interior[np.isfinite(f_w[interior])]
     if common.size < 32:
         return w
@@ -539,6 +681,8 @@ def _refill(w, edge, interior, phase_mean, stat_var, f_w, f_var, combine=False):
     use = edge & np.isfinite(f) & np.isfinite(fv) & (fv > 0)
     out = w.copy()
     out[use] = (w[use] / v_pm + f[use] / fv[use]) / (1 / v_pm + 1 / fv[use])
+    if loose is not None:
+        out[use & loose] = f[use & loose]
     if combine:
         sv = np.full(w.size, np.nan)
         sv[interior] = stat_var[interior]

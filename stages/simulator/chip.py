@@ -286,6 +286,33 @@ def _kill_codes(inl: np.ndarray, n_dead: int, rng: np.random.Generator):
     return inl, dead
 
 
+def place_dead_codes(chip: Chip, placements: dict) -> Chip:
+    """``chip`` with dead codes placed, not drawn: ``placements`` maps a TDC to its
+    ``(code, neighbour)`` pairs, each code given zero width and its width added to
+    ``neighbour`` (``code +- 1``), as ``make_chip(dead_codes=)`` does at random. For tests
+    that put a dead code where an estimator is weakest (next to the reset peak).
+
+    >>> chip = place_dead_codes(make_chip(2, 1), {1: [(300, 301)]})
+    >>> float(chip.dnl_lsb()[1, 300]), int(chip.dead_codes.sum())
+    (-1.0, 1)
+    """
+    import dataclasses
+
+    w = np.diff(chip.inl_lsb, axis=1) + 1.0
+    dead = (np.zeros((chip.n_tdc, N_CODES), bool) if chip.dead_codes is None
+            else chip.dead_codes.copy())
+    for t, pairs in placements.items():
+        for k, j in pairs:
+            if abs(j - k) != 1 or dead[t, k] or dead[t, j]:
+                raise ValueError(f"TDC {t}: dead code {k} into {j}: not a live neighbour")
+            w[t, j] += w[t, k]
+            w[t, k] = 0.0
+            dead[t, k] = True
+    k = np.arange(N_CODES + 1)
+    inl = np.concatenate([np.zeros((chip.n_tdc, 1)), np.cumsum(w, axis=1)], axis=1) - k
+    return dataclasses.replace(chip, inl_lsb=inl, dead_codes=dead)
+
+
 def _d2nd_edges(amplitude: float, n_th, n_max, width, rng: np.random.Generator):
     """(n_tdc, 257) cumulative fine-position edges of each TDC's D2nd codes in fine order
     (mod 0 at n_th): widths 1 + DNL, DNL = amplitude x (0.7 x a pattern of D2nd % 8 + 0.3
