@@ -25,7 +25,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import ndtr
 
 from schemas.constants import N_CODES, N_CODES_2ND
 from schemas.errors import CalibrationError
@@ -74,6 +73,8 @@ def fit_reset_peak(h, at_risk, bounds, top, u, sigma0: float = 0.5, iterations: 
     ``loglik``, also the Poisson log-likelihood of the fitted codes (up to a constant):
     two sets of ``bounds`` for the same counts are compared by it.
     """
+    from scipy.special import ndtr  # (where used: reading a calibration needs no scipy)
+
     h = np.asarray(h, np.float64)
     n = h.shape[0]
     rows = np.arange(n)[:, None]
