@@ -57,6 +57,22 @@ def timed(cmd: list[str], repeat: int, env: dict | None = None) -> tuple[float, 
     return min(times), statistics.median(times)
 
 
+def pace_ms() -> float:
+    """A fixed single-thread task (Python bytecode and a numpy sort), best of 5, in ms:
+    this VM has phases in which everything runs 1.3-1.5x longer, and runs of this
+    benchmark compare only at the same pace."""
+    import numpy as np
+
+    x = np.random.default_rng(0).random(1_000_000)
+    best = float("inf")
+    for _ in range(5):
+        t0 = time.perf_counter()
+        sum(i * i for i in range(300_000))
+        np.sort(x)
+        best = min(best, time.perf_counter() - t0)
+    return best * 1e3
+
+
 def make_capture(tmp: Path, cycles: int, tile: int) -> Path:
     import numpy as np
 
@@ -208,7 +224,8 @@ def main() -> None:
              f"command: `python benchmarks/cli.py --cycles {args.cycles} --tile {args.tile} "
              f"--repeat {args.repeat}{' --breakdown' if args.breakdown else ''}`",
              f"machine: {machine()}; load average before the runs: "
-             f"{os.getloadavg()[0]:.2f}", ""]
+             f"{os.getloadavg()[0]:.2f}; pace before the runs: {pace_ms():.1f} ms (a fixed "
+             "task: lower is a faster phase of the VM)", ""]
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         capture = make_capture(tmp, args.cycles, args.tile)
@@ -241,6 +258,7 @@ def main() -> None:
                           f"{args.repeat} runs; wall time in the process, after the "
                           "interpreter's own start):", ""]
             lines += breakdown(one_pass, args.repeat)
+    lines.append(f"\npace after the runs: {pace_ms():.1f} ms")
     emit(lines, args.out)
 
 
