@@ -133,7 +133,9 @@ def _peak_index(h: Histograms, lam, sigma_s):
     excess = np.where(valid, h.counts - h.at_risk * -np.expm1(-bg[:, None] * w), 0.0)
     score = np.where(valid, correlate1d(excess, kern, axis=1, mode="constant"), -np.inf)
     peak = np.argmax(score, axis=1)
-    d = np.where(valid, lam / w - bg[:, None], 0.0)
+    # (a dead code has zero width: no intensity density, not 0/0)
+    dens = np.divide(lam, w, out=np.zeros_like(lam), where=w > 0)
+    d = np.where(valid & (w > 0), dens - bg[:, None], 0.0)
     corr = np.where(valid, correlate1d(d, kern, axis=1, mode="constant"), -np.inf)
     return peak, corr, bg
 
@@ -177,16 +179,31 @@ def detection_threshold(b, p_fa: float, n_bins) -> np.ndarray:
     return np.where(b > 0, poisson.isf(q, np.where(b > 0, b, 1.0)), 0.0)
 
 
+def tested_bin(counts, valid, peak) -> np.ndarray:
+    """The bin the detection tests: of the peak's bin and its two neighbours, the valid
+    one with the most counts. An estimator's peak is the centre of its box, which can be
+    a dead code (zero width, no count) with the return's counts on both sides: tested
+    there, a return of 4 000 counts went undetected (chip zoo seed 326). Any bin's count
+    against its own background tail at ``p_fa / n_bins`` keeps the false-alarm rate at
+    ``p_fa`` whichever bin is chosen (the union bound over the valid bins)."""
+    counts, valid, peak = np.asarray(counts), np.asarray(valid, bool), np.asarray(peak)
+    rows = np.arange(peak.size)[:, None]
+    idx = np.clip(peak[:, None] + np.array([0, -1, 1])[None, :], 0, counts.shape[1] - 1)
+    score = np.where(valid[rows, idx], counts[rows, idx].astype(np.float64), -1.0)
+    return idx[rows[:, 0], np.argmax(score, axis=1)]  # ties: the peak's own bin first
+
+
 def _detect(h: Histograms, peak, bg_rate, p_fa):
     """eq. 2.44-2.48 at false-alarm probability p_fa with the exact Poisson tail: the peak
-    bin's count against what background alone (its expected count b in that bin, pile-up
-    included) exceeds in any of the valid bins with probability p_fa
+    bin's count (:func:`tested_bin`) against what background alone (its expected count b
+    in that bin, pile-up included) exceeds in any of the valid bins with probability p_fa
     (:func:`detection_threshold`)."""
     rows = np.arange(peak.size)
-    r = h.at_risk[rows, peak]
-    b = np.maximum(r, 0.0) * -np.expm1(-bg_rate * h.widths[rows, peak])
+    q = tested_bin(h.counts, h.valid, peak)
+    r = h.at_risk[rows, q]
+    b = np.maximum(r, 0.0) * -np.expm1(-bg_rate * h.widths[rows, q])
     n_bins = np.maximum(h.valid.sum(axis=1), 1)
-    return poisson_tail(h.counts[rows, peak], b) <= p_fa / n_bins
+    return poisson_tail(h.counts[rows, q], b) <= p_fa / n_bins
 
 
 def centroid(h: Histograms, sigma_s: float, p_fa: float = 1e-3, n_hw: int | None = None):
@@ -485,9 +502,10 @@ def _fast_numpy(counts, edges, valid, cycles, kb, kc, p_fa, kw, inv_s, steps, st
                  0.5 * (edges[rows, peak] + edges[rows, peak + 1]))
     t, m, sig = _score_steps_numpy(counts, edges, valid, r, C, peak, bg, t, kw, inv_s, steps,
                                    step_cap)
-    b = np.maximum(r[rows, peak], 0.0) * -np.expm1(-bg * widths[rows, peak])
+    q = tested_bin(counts, valid, peak)
+    b = np.maximum(r[rows, q], 0.0) * -np.expm1(-bg * widths[rows, q])
     nv = valid.sum(1)
-    det = poisson_tail(counts[rows, peak], b) <= p_fa / np.maximum(nv, 1)
+    det = poisson_tail(counts[rows, q], b) <= p_fa / np.maximum(nv, 1)
     return t, peak, m, bg, det, sig
 
 
@@ -805,8 +823,13 @@ if numba is not None:
                     break
             t_out[p] = t
             sig_out[p] = sig
-            b = max(r[peak], 0.0) * -np.expm1(-bg * (edges[p, peak + 1] - edges[p, peak]))
-            det_out[p] = _poisson_tail(counts[p, peak], b) <= p_fa / max(nv, 1)
+            q = peak  # tested_bin: the valid bin of most counts of peak - 1 .. peak + 1
+            for j in (peak - 1, peak + 1):
+                if 0 <= j < n and valid[p, j] and (not valid[p, q]
+                                                   or counts[p, j] > counts[p, q]):
+                    q = j
+            b = max(r[q], 0.0) * -np.expm1(-bg * (edges[p, q + 1] - edges[p, q]))
+            det_out[p] = _poisson_tail(counts[p, q], b) <= p_fa / max(nv, 1)
             tot_out[p] = m
             bg_out[p] = bg
             peak_out[p] = peak
