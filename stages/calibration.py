@@ -730,7 +730,7 @@ def track_lsb(hits: np.ndarray, cycles: np.ndarray, window_s: float,
     h = np.asarray(hits, np.float64)
     res = density_test(h, cycles, window_s, min_hits, exclude=signal_codes(h),
                        artifacts=artifacts)
-    light = float(h.sum() / (h.shape[0] * max(float(np.max(cycles)), 1.0)))
+    light = light_level(h, cycles)
     return Tracking(np.where(res.ok, res.lsb_s, np.nan), np.asarray(expected_lsb_s), light,
                     res.hits)
 
@@ -942,6 +942,25 @@ def scale_points(density: DensityResult, fit: LsbFit, window_s: float):
 #: ps). Measured there: <= 27 ps on 35 healthy chips' zero-distance captures (sigma ~50
 #: ps), 210-1000 ps where a fast-saturating LSB put the delay out of its tolerance.
 LSB_SPREAD_SIGMAS, LSB_SPREAD_FLOOR_PS = 2.0, 20.0
+
+def light_level(hits, cycles) -> float:
+    """A measurement's light, detections per pixel per cycle (eq. 5.1's n): all its hits
+    over its TDCs and its cycles."""
+    h = np.asarray(hits)
+    return float(h.sum() / (h.shape[0] * max(float(np.max(cycles)), 1.0)))
+
+
+def scale_unresolved(spread, tau_s, density: DensityResult, sigma_s) -> np.ndarray:
+    """Where the scale's spread (:func:`scale_spread`) at a return's ``tau_s`` is more
+    than its timing allows: ``LSB_SPREAD_SIGMAS`` of its statistics (INL x LSB and the
+    fit's ``sigma_s``) plus ``LSB_SPREAD_FLOOR_PS``. One rule for ``calibrate delay``'s
+    flag and ``range``'s note."""
+    allowed_ps = (LSB_SPREAD_SIGMAS * np.hypot(density.inl_error_lsb * density.lsb_s,
+                                               np.asarray(sigma_s, np.float64)) * 1e12
+                  + LSB_SPREAD_FLOOR_PS)
+    with np.errstate(invalid="ignore"):
+        return np.asarray(spread * np.asarray(tau_s, np.float64) * 1e12 > allowed_ps, bool)
+
 
 def scale_spread(density: DensityResult, fit: LsbFit | None, window_s: float,
                  light: float) -> tuple[np.ndarray, tuple[float, float]]:

@@ -171,7 +171,7 @@ def time_axis(calibration: Calibration, hits: np.ndarray, cycles: np.ndarray,
         raise ValueError(f"{calibration.path or 'calibration'}: calibrates "
                          f"{calibration.n_tdc} TDCs, the histograms have {hits.shape[0]}")
     density = calibration.density
-    light = float(hits.sum() / (hits.shape[0] * max(np.max(cycles), 1)))
+    light = cal.light_level(hits, cycles)
     bounds = cal.code_bounds(density)
     lsb, note = calibration.lsb_s(light)
     scale = cal.scale_at_light(density, lsb, window_s, calibration.lsb_fit, light)

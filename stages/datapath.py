@@ -340,7 +340,10 @@ def _accumulate_numba(words, first_word, tables, hits, class_counts, artifacts=N
 def accumulate(words: np.ndarray, first_word: int, tables: WordTables, hits: np.ndarray,
                class_counts: np.ndarray, engine: str | None = None,
                artifacts: np.ndarray | None = None) -> None:
-    """Fold native uint32 ``words`` into ``hits`` and ``class_counts`` in place.
+    """Fold native uint32 ``words`` into ``hits`` and ``class_counts`` in place. The
+    arrays are one caller's: two calls at once on the same ``class_counts`` are not
+    allowed (the numba engine derives a call's no_hit words from how much the other
+    classes grew during it; threads each fill their own state and merge them).
 
     Parameters
     ----------
@@ -402,7 +405,8 @@ def accumulate_self_bounded(words: np.ndarray, first_word: int, n_tdc: int,
                             d2nd: np.ndarray, keys: np.ndarray, fill: np.ndarray,
                             edge: np.ndarray, class_counts: np.ndarray,
                             engine: str | None = None) -> None:
-    """Fold ``words`` into the one-pass state in place (see the comment above).
+    """Fold ``words`` into the one-pass state in place (see the comment above); the state
+    is one caller's (see :func:`accumulate`).
 
     Parameters
     ----------

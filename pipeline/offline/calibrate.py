@@ -285,16 +285,6 @@ def add_delay(capture, caldir: str | Path, log=None) -> Calibration:
     return calib
 
 
-def _unresolved_ps(spread, tau_s, density: cal.DensityResult, sigma_s) -> np.ndarray:
-    """Where the scale's spread (:func:`stages.calibration.scale_spread`) at a return's
-    tau is over what its delay allows (``LSB_SPREAD_SIGMAS`` of its statistics, INL x LSB
-    and the peak's fit, plus ``LSB_SPREAD_FLOOR_PS``)."""
-    allowed_ps = (cal.LSB_SPREAD_SIGMAS * np.hypot(density.inl_error_lsb * density.lsb_s,
-                                                   np.asarray(sigma_s, np.float64)) * 1e12
-                  + cal.LSB_SPREAD_FLOOR_PS)
-    return np.asarray(spread * np.asarray(tau_s, np.float64) * 1e12 > allowed_ps, bool)
-
-
 def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: float,
                      name: str = "capture", log=None) -> Calibration:
     """:func:`add_delay` on a zero-distance capture's histograms (``state``, a
@@ -303,7 +293,7 @@ def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: 
     from stages.ranging import Histograms, ml
 
     res = calib.density
-    light = float(state.hits.sum() / (state.n_tdc * max(state.cycles.max(), 1)))  # eq. 5.1
+    light = cal.light_level(state.hits, state.cycles)  # eq. 5.1
 
     def estimate(axis):
         irf = cal.histogram_sigma_s(state.hits, res, axis.scale)
@@ -329,7 +319,7 @@ def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: 
     # reset peak may sit on codes only the dimmer density tests measured: it follows
     # the chip there instead of the spline
     spread, (lo, hi) = cal.scale_spread(res, calib.lsb_fit, window_s, light)
-    weak = _unresolved_ps(spread, window_s - np.asarray(first.t_s, np.float64), res,
+    weak = cal.scale_unresolved(spread, window_s - np.asarray(first.t_s, np.float64), res,
                           first.sigma_s)
     axis = time_axis(calib, state.hits, state.cycles, window_s, in_situ=True, returns=returns,
                      beyond=weak if weak.any() else None)
@@ -369,7 +359,7 @@ def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: 
     tau_s = window_s - np.asarray(est.t_s, np.float64)
     spread_ps = spread * tau_s * 1e12
     unresolved = ((axis.source != "reset peak") & (reasons == "")
-                  & _unresolved_ps(spread, tau_s, res, est.sigma_s))
+                  & cal.scale_unresolved(spread, tau_s, res, est.sigma_s))
     reasons[unresolved] = (
         f"LSB against light not resolved between the density tests at {lo:.3g} and "
         f"{hi:.3g} detections a cycle (two interpolations through them differ by more than "

@@ -71,23 +71,20 @@ def range_state(state: HistogramState, calibration: Calibration, window_s: float
 
 def _unresolved(calib: Calibration, state: HistogramState, axis, est: Estimate,
                 window_s: float) -> str:
-    """The note for targets at a light the density tests' levels do not resolve (as
-    ``calibrate delay`` flags its TDCs: :func:`stages.calibration.scale_spread` as ps at
-    the target's tau over 2 sigmas of the INL's statistics + 20 ps), "" otherwise."""
-    light = float(state.hits.sum() / (state.n_tdc * max(np.max(state.cycles), 1)))
+    """The note for detected targets at a light the density tests' levels do not resolve
+    (:func:`stages.calibration.scale_unresolved`, the rule of ``calibrate delay``'s flag,
+    with the range fit's sigma), "" otherwise."""
+    light = cal.light_level(state.hits, state.cycles)
     spread, (lo, hi) = cal.scale_spread(calib.density, calib.lsb_fit, window_s, light)
-    res = calib.density
-    tau_ps = (window_s - np.asarray(est.t_s, np.float64)) * 1e12
-    allowed = (cal.LSB_SPREAD_SIGMAS * res.inl_error_lsb * res.lsb_s * 1e12
-               + cal.LSB_SPREAD_FLOOR_PS)
+    tau_s = window_s - np.asarray(est.t_s, np.float64)
     bad = (np.asarray(est.detected, bool) & (axis.source != "reset peak")
-           & (spread * tau_ps > allowed))
+           & cal.scale_unresolved(spread, tau_s, calib.density, est.sigma_s))
     if not bad.any():
         return ""
     return (f"LSB against light not resolved between the density tests at {lo:.3g} and "
-            f"{hi:.3g} detections a cycle (this capture: {light:.2g}): detected targets "
-            "may be off beyond their sigma; add a density test near "
-            f"{light:.2g} to `tcspc calibrate lsb`")
+            f"{hi:.3g} detections a cycle (this capture: {light:.2g}) on {int(bad.sum())} "
+            "detected target(s): they may be off beyond their sigma; add a density test "
+            f"near {light:.2g} to `tcspc calibrate lsb`")
 
 
 def _codes_of(tau_s, tau_edges_s, keep) -> np.ndarray:
