@@ -193,17 +193,21 @@ def tested_bin(counts, valid, peak) -> np.ndarray:
     return idx[rows[:, 0], np.argmax(score, axis=1)]  # ties: the peak's own bin first
 
 
-def _detect(h: Histograms, peak, bg_rate, p_fa):
+def _detection(counts, valid, at_risk, widths, peak, bg_rate, p_fa):
     """eq. 2.44-2.48 at false-alarm probability p_fa with the exact Poisson tail: the peak
     bin's count (:func:`tested_bin`) against what background alone (its expected count b
     in that bin, pile-up included) exceeds in any of the valid bins with probability p_fa
-    (:func:`detection_threshold`)."""
+    (:func:`detection_threshold`). The compiled fast kernel has its twin inline."""
     rows = np.arange(peak.size)
-    q = tested_bin(h.counts, h.valid, peak)
-    r = h.at_risk[rows, q]
-    b = np.maximum(r, 0.0) * -np.expm1(-bg_rate * h.widths[rows, q])
-    n_bins = np.maximum(h.valid.sum(axis=1), 1)
-    return poisson_tail(h.counts[rows, q], b) <= p_fa / n_bins
+    q = tested_bin(counts, valid, peak)
+    b = np.maximum(at_risk[rows, q], 0.0) * -np.expm1(-bg_rate * widths[rows, q])
+    n_bins = np.maximum(np.asarray(valid).sum(axis=1), 1)
+    return poisson_tail(counts[rows, q], b) <= p_fa / n_bins
+
+
+def _detect(h: Histograms, peak, bg_rate, p_fa):
+    """:func:`_detection` of a :class:`Histograms`."""
+    return _detection(h.counts, h.valid, h.at_risk, h.widths, peak, bg_rate, p_fa)
 
 
 def centroid(h: Histograms, sigma_s: float, p_fa: float = 1e-3, n_hw: int | None = None):
@@ -502,10 +506,7 @@ def _fast_numpy(counts, edges, valid, cycles, kb, kc, p_fa, kw, inv_s, steps, st
                  0.5 * (edges[rows, peak] + edges[rows, peak + 1]))
     t, m, sig = _score_steps_numpy(counts, edges, valid, r, C, peak, bg, t, kw, inv_s, steps,
                                    step_cap)
-    q = tested_bin(counts, valid, peak)
-    b = np.maximum(r[rows, q], 0.0) * -np.expm1(-bg * widths[rows, q])
-    nv = valid.sum(1)
-    det = poisson_tail(counts[rows, q], b) <= p_fa / np.maximum(nv, 1)
+    det = _detection(counts, valid, r, widths, peak, bg, p_fa)
     return t, peak, m, bg, det, sig
 
 
