@@ -226,6 +226,9 @@ def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, n_tdc
 @click.option("--measurement-cycles", type=click.IntRange(1), default=None,
               help="Emit a histogram per this many cycles (default: one at the run's end).")
 @_calibration
+@click.option("--bounds", "bounds_path", type=click.Path(exists=True, dir_okay=False),
+              default=None, help="The run's artifact bounds estimated from its capture "
+                                 "(STATE/bounds/RUN.json, written by the daemon).")
 @click.option("--quarantine", type=click.Path(), default=None)
 @click.option("--checkpoint", type=click.Path(), default=None,
               help="Checkpoint file: restored at start, saved after every batch.")
@@ -243,9 +246,9 @@ def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, n_tdc
               help="With --instrument-file: its format (default: from the content).")
 @click.option("--firmware", type=click.Choice(["2212b", "2212s"]), default="2212b",
               show_default=True, help="With --instrument-file: LinoSPAD2 firmware.")
-def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibration, quarantine,
-                    checkpoint, journal, run_id, metrics, name, date, senders, instrument_file,
-                    fmt, firmware) -> None:
+def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibration,
+                    bounds_path, quarantine, checkpoint, journal, run_id, metrics, name, date,
+                    senders, instrument_file, fmt, firmware) -> None:
     """Per-TDC histograms of the word stream, per measurement or at the end of the run."""
     from pipeline.io.caldir import read_bounds
     from pipeline.stream.fanout import parse_range, worker_reader
@@ -254,7 +257,16 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
     from stages.stream import HistogramCore
 
     a, b = parse_range(tdc_range) if tdc_range else (0, n_tdc)
+    if calibration and bounds_path:
+        raise click.UsageError("--calibration or --bounds, not both")
     bounds = read_bounds(calibration, n_tdc) if calibration else None
+    if bounds_path:
+        from pipeline.stream.bounds import load_bounds
+
+        try:
+            bounds = load_bounds(bounds_path, n_tdc)
+        except ValueError as exc:
+            raise click.UsageError(str(exc)) from None
     if bounds is not None:
         bounds = bounds.rows(a, b)
     backfill = ended = None
@@ -279,7 +291,7 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
         from pipeline.io.formats import resolve_format
         from pipeline.offline.instruments import instrument_accumulator
 
-        if (a, b) != (0, n_tdc) or measurement_cycles or calibration:
+        if (a, b) != (0, n_tdc) or measurement_cycles or calibration or bounds_path:
             raise click.UsageError("--instrument-file: one worker over the whole stream, no "
                                    "--measurement-cycles or --calibration")
         acc = instrument_accumulator(instrument_file, resolve_format(instrument_file, fmt),

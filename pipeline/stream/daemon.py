@@ -89,6 +89,7 @@ from pathlib import Path
 import zmq
 
 from pipeline.io.atomic import atomic_path
+from pipeline.stream.bounds import bounds_file, ensure_bounds
 from pipeline.stream.reconcile import accounting, reconcile
 from pipeline.stream.sidecar import Sidecar, status_pub, view_args
 from pipeline.stream.topology import (
@@ -153,12 +154,14 @@ def build(topo: Topology) -> list[Proc]:
     src = topo.source
     mc = topo.histogram.get("measurement_cycles")
     cal = topo.histogram.get("calibration")
+    est = bounds_file(topo)  # no calibration, a capture: the capture's own (ensure_bounds)
     for i, (a, b) in enumerate(ranges):
         procs.append(Proc(f"histogram-{i}", _tcspc(
             "stage", "histogram", "--pull", hist_eps[i], "--push", after_hist,
             "--n-tdc", topo.n_tdc, "--tdc-range", f"{a}:{b}",
             *(("--measurement-cycles", mc) if mc else ()),
             *(("--calibration", cal) if cal else ()),
+            *(("--bounds", est) if est else ()),
             "--quarantine", quar / f"histogram-{i}", "--checkpoint", ckpt / f"histogram-{i}.npz",
             "--journal", journal, "--run", run, "--name", f"histogram-{i}",
             "--date", topo.date, *m, *accept("source", "ingest"),
@@ -252,6 +255,10 @@ def check_record(rec: dict, token: str | None) -> bool:
 class Supervisor:
     def __init__(self, topo: Topology, log=print, poll_s: float = 0.2):
         self.topo, self.log, self.poll_s = topo, log, poll_s
+        # what the run's words are classified with, said at start (the capture's own
+        # bounds are estimated here, before any stage starts)
+        self.bounds = ensure_bounds(topo, log)
+        log(f"artifact bounds: {self.bounds}")
         self.procs = build(topo)
         self.by_name = {p.name: p for p in self.procs}
         self.stop = threading.Event()
@@ -543,7 +550,7 @@ class Supervisor:
             try:
                 result["reconciled"] = reconcile(self.topo)
                 result["accounting"] = accounting(self.topo, self.metrics,
-                                                  result["reconciled"])
+                                                  result["reconciled"], self.bounds)
             except Exception as exc:  # the run must end with a state, never "running"
                 self.failed = f"reconciling the run failed: {type(exc).__name__}: {exc}"
                 result["failed"] = self.failed

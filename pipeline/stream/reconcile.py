@@ -24,10 +24,10 @@ def reconcile(topo: Topology) -> dict:
     """Recompute from the journal every (measurement, TDC range) the datasets lack; a
     measurement is words [k M N, (k + 1) M N) of the run whatever happened to the stream,
     so the recomputed one is the one an uninterrupted run would have written."""
+    from pipeline.stream.bounds import histogram_bounds
     from pipeline.stream.fanout import worker_reader
     from pipeline.stream.journal import pruned_words, read_range, run_end
     from pipeline.stream.stage import ParquetSink
-    from stages.artifact import ArtifactBounds
     from stages.stream import HistogramCore
 
     journal = topo.state / "journal"
@@ -41,11 +41,7 @@ def reconcile(topo: Topology) -> dict:
     out = Path(topo.sink["out"])
     have_h = _dataset_parts(out, "histograms", topo.run)
     have_r = _dataset_parts(out, "ranges", topo.run) if topo.range else None
-    bounds_all = None
-    if topo.histogram.get("calibration"):
-        from pipeline.io.caldir import read_bounds
-
-        bounds_all = read_bounds(topo.histogram["calibration"], n)
+    bounds_all = histogram_bounds(topo)  # the live workers' (calibration or estimated)
     ranger = None
     if topo.range:
         from pipeline.io.caldir import load_calibration
@@ -77,8 +73,7 @@ def reconcile(topo: Topology) -> dict:
                 if (k, a) not in have_h:  # (a histogram already written is classified)
                     withheld += (min((k + 1) * mc, cycles) - k * mc) * (b - a)
                 continue
-            bounds = (ArtifactBounds(bounds_all.n_min[a:b], bounds_all.n_max[a:b],
-                                     bounds_all.source) if bounds_all else None)
+            bounds = bounds_all.rows(a, b) if bounds_all else None
             core = HistogramCore(b - a, bounds, tdc_offset=a,
                                  measurement_cycles=topo.histogram.get("measurement_cycles"),
                                  accumulator=_instrument_accumulator(topo))
@@ -157,13 +152,14 @@ def _journal_gate_ns(journal: Path, run: str) -> float:
     return float(_journal_meta(journal, run).get("t_laser_win_ns", 140.0))
 
 
-def accounting(topo: Topology, metrics: dict[str, dict], reconciled: dict | None = None
-               ) -> dict:
+def accounting(topo: Topology, metrics: dict[str, dict], reconciled: dict | None = None,
+               bounds: str | None = None) -> dict:
     """Words in (journaled) = hit + no_hit + artifact + invalid_phase + malformed (from the
     histograms dataset, each measurement once) + words withheld (measurements that a
     corrupt journal chunk kept from being recomputed: ``corrupt_words`` of them in the
     corrupt chunks themselves); messages and datagrams rejected by reason (quarantined) per
-    stage; datagrams lost (sequence gaps), duplicated and late. Written to
+    stage; datagrams lost (sequence gaps), duplicated and late; ``bounds``: what the words
+    were classified with (``artifact_bounds``). Written to
     ``OUT/accounting/run=RUN.json``."""
     import polars as pl
 
@@ -200,6 +196,8 @@ def accounting(topo: Topology, metrics: dict[str, dict], reconciled: dict | None
                                         metrics.items() if m.get("checkpoints_discarded")},
               "words_in_gaps": span - journaled,
               "measurements_files": len(parts)}
+    if bounds is not None:
+        result["artifact_bounds"] = bounds
     path = out / "accounting" / f"run={topo.run}.json"
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(result, indent=1))
