@@ -34,6 +34,7 @@ from pipeline.io.atomic import atomic_path
 from pipeline.io.buffers import aligned_empty
 from schemas.errors import TcspcError
 from schemas.instruments import PTU_MAGIC, PTU_T2_EVENTS, PTU_T3_EVENTS
+from stages.instruments.accumulate import column
 from stages.instruments.ptu import (
     SYNC_CHANNEL,
     Decoded,
@@ -425,7 +426,8 @@ def iter_decoded_batches(path: str | os.PathLike, chunk_records: int = CHUNK_REC
             cols = [d.kind, d.channel, d.time, d.dtime]
         else:
             cols = [d.kind, d.channel, to_picoseconds(d.time, header.global_resolution_s)]
-        yield pa.RecordBatch.from_arrays([pa.array(c) for c in cols], schema=schema)
+        yield pa.RecordBatch.from_arrays(
+            [column(c, f.type) for c, f in zip(cols, schema, strict=True)], schema=schema)
 
 
 def decode(path: str | os.PathLike, chunk_records: int = CHUNK_RECORDS,

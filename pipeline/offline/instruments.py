@@ -14,11 +14,11 @@ import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
-from scipy.constants import c as C_LIGHT
 
 from pipeline.io.atomic import atomic_path
 from pipeline.io.formats import FormatError
@@ -29,7 +29,12 @@ from stages.instruments.accumulate import (
     PtuT3Accumulator,
     instrument_table,
 )
-from stages.ranging import Histograms, estimate
+
+if TYPE_CHECKING:  # (ranging imports scipy.special: 0.3-1 s a histogram or decode never needs)
+    from stages.ranging import Histograms
+
+#: m/s, exact (SI); scipy.constants' import costs 0.1-0.5 s on a command's start
+C_LIGHT = 299_792_458.0
 
 __all__ = ["LINOSPAD2", "PICOQUANT_T3", "FileSummary", "decode_instrument",
            "histogram_linospad2", "histogram_ptu", "instrument_accumulator",
@@ -207,6 +212,8 @@ def _uniform(table: pa.Table, gate_ns: tuple[float, float] | None) -> Histograms
         mid = 0.5 * (edges[:, 1:] + edges[:, :-1])
         valid &= (mid >= gate_ns[0] * 1e-9) & (mid <= gate_ns[1] * 1e-9)
     cycles = np.asarray(table.column("cycles").to_numpy(), np.float64)
+    from stages.ranging import Histograms
+
     return Histograms(counts, edges, cycles, valid)
 
 
@@ -214,6 +221,8 @@ def peak_times(table: pa.Table, sigma_s: float | None = None, estimator: str = "
                p_fa: float = 1e-3, gate_ns=None):
     """The return time after the sync, per row, with the instrument response ``sigma_s``
     (default: one bin)."""
+    from stages.ranging import estimate
+
     h = _uniform(table, gate_ns)
     sigma = float(h.bin_s) if sigma_s is None else float(sigma_s)
     return estimate(h, sigma, estimator, p_fa), sigma

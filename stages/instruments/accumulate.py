@@ -20,6 +20,14 @@ LINOSPAD2 = "linospad2"
 _CLASS_COLUMNS = ("n_no_hit", "n_artifact", "n_invalid_phase", "n_malformed")
 
 
+def column(values, type_: pa.DataType) -> pa.Array:
+    """A column without nulls over a numpy array's memory (converted to ``type_``'s dtype
+    where it differs, else no copy), without ``pa.array``'s check for a masked array,
+    which imports numpy.ma (30-90 ms of a command's start)."""
+    values = np.ascontiguousarray(values, type_.to_pandas_dtype())
+    return pa.Array.from_buffers(type_, values.size, [None, pa.py_buffer(values)])
+
+
 def instrument_table(measurement: str, counts: np.ndarray, cycles, instrument: str,
                      bin_width_ps: float | None, rows=None) -> pa.Table:
     """``histograms`` 2.0 rows of an instrument: ``counts`` (n_rows, n_codes) uint64,
@@ -31,12 +39,12 @@ def instrument_table(measurement: str, counts: np.ndarray, cycles, instrument: s
     rows = np.arange(n) if rows is None else np.asarray(rows)
     cols = {
         "measurement": pa.array([measurement] * n, pa.string()),
-        "tdc": pa.array(rows.astype(np.uint16)),
-        "cycles": pa.array(np.broadcast_to(np.asarray(cycles, np.uint64), (n,)).copy()),
-        "counts": pa.ListArray.from_arrays(pa.array(np.arange(n + 1, dtype=np.int32) * k),
-                                           pa.array(counts.ravel())),
-        "n_hit": pa.array(counts.sum(axis=1, dtype=np.uint64)),
-        **{c: pa.array(np.zeros(n, np.uint64)) for c in _CLASS_COLUMNS},
+        "tdc": column(rows, pa.uint16()),
+        "cycles": column(np.broadcast_to(np.asarray(cycles, np.uint64), (n,)), pa.uint64()),
+        "counts": pa.ListArray.from_arrays(column(np.arange(n + 1) * k, pa.int32()),
+                                           column(counts.ravel(), pa.uint64())),
+        "n_hit": column(counts.sum(axis=1, dtype=np.uint64), pa.uint64()),
+        **{c: column(np.zeros(n), pa.uint64()) for c in _CLASS_COLUMNS},
         "instrument": pa.array([instrument] * n, pa.string()),
         "bin_width_ps": pa.array([bin_width_ps] * n, pa.float64()),
     }

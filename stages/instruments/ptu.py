@@ -41,12 +41,15 @@ resolution. Decoding a stream chunk by chunk, passing each chunk's ``wraps`` int
 next, gives exactly what decoding it at once gives.
 
 Two engines compute the same thing and are tested to agree on every record type: numba
-(one compiled loop per layout and mode) and numpy (vectorised masks and a cumulative sum of
+(one compiled loop per layout and mode, loaded as a C kernel without numba where it can
+be, see ``_native``) and numpy (vectorised masks and a cumulative sum of
 the wraps), the fallback where numba is missing.
 """
 
 from __future__ import annotations
 
+import ctypes
+import importlib.util
 from dataclasses import dataclass
 from fractions import Fraction
 
@@ -54,10 +57,9 @@ import numpy as np
 
 from schemas.instruments import MARKER, PHOTON
 
-try:  # numba is a dependency, but the numpy path must work (and is tested) without it
-    import numba
-except ImportError:  # pragma: no cover - exercised only where numba is missing
-    numba = None
+# numba is a dependency, but the numpy path must work (and is tested) without it; it is
+# imported only where a kernel must be compiled (stages.nativecode loads them without it)
+HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 
 ENGINES = ("numba", "numpy")
 #: ``channel`` of a T2 sync event (``kind`` PHOTON): one past the 64 inputs of the
@@ -70,7 +72,7 @@ _PHOTON, _MARKER, _SYNC, _OVERFLOW, _INVALID = range(5)
 
 def default_engine() -> str:
     """numba where it is installed, else numpy."""
-    return "numba" if numba is not None else "numpy"
+    return "numba" if HAVE_NUMBA else "numpy"
 
 
 @dataclass(frozen=True)
@@ -309,250 +311,348 @@ def _histogram_numpy(words, fmt, counts, wraps):
 
 
 # --- numba engine: one loop per layout and mode ------------------------------------------
+#
+# The loops are plain functions here, compiled by numba in one of two ways (as the chip's
+# loops are, stages.datapath): as C kernels loaded without numba (``_native``,
+# stages.nativecode: a millisecond against numba's 0.5-2.5 s of import, typing and cache
+# loading at a process's first call, most of `tcspc histogram`'s wall time on a small
+# file), or through numba's dispatcher where that cannot be had (``_jitted``). A C kernel
+# returns nothing, so the counters come back in ``counts`` / ``tally``; one signature per
+# kind of loop (the picoharp loops take ``multi`` and ignore it).
+#
+# Counters live in locals (registers) and are stored once at the end: an increment of an
+# array element per record is a store the compiler cannot keep apart from the output's (or
+# the histogram's) stores.
 
-if numba is not None:
-    # Counters live in locals (registers) and are stored once at the end: an increment of
-    # an array element per record is a store the compiler cannot keep apart from the
-    # output's (or the histogram's) stores.
-    @numba.njit(cache=True, nogil=True)
-    def _decode_picoharp_t3(words, wrap, wraps, kind, channel, time, dtime, counts):
-        n = 0
-        base = wraps * wrap
-        n_photon = n_marker = n_sync = n_overflow = n_invalid = 0
-        for i in range(words.size):
-            w = np.int64(words[i])
-            c = w >> 28
-            d = (w >> 16) & 0xFFF
-            if c == 15:
-                if d == 0:
-                    n_overflow += 1
-                    wraps += 1
-                    base += wrap
-                    continue
-                if d > 15:
-                    n_invalid += 1
-                    continue
-                n_marker += 1
-                kind[n] = MARKER
-                channel[n] = d
-                dtime[n] = 0
-            elif 1 <= c <= 4:
-                n_photon += 1
-                kind[n] = PHOTON
-                channel[n] = c - 1
-                dtime[n] = d
-            else:
+#: ``counts`` of a decode loop: the five classes, then records out (5) and wraps (6, in
+#: and out); ``tally`` of a histogram loop: the classes, out of range (5), wraps (6, in and
+#: out), the largest dtime (7)
+_N_OUT, _WRAPS, _MAX_DTIME = 5, 6, 7
+
+
+def _decode_picoharp_t3(words, wrap, multi, kind, channel, time, dtime, counts):
+    n = 0
+    wraps = counts[_WRAPS]
+    base = wraps * wrap
+    n_photon = n_marker = n_sync = n_overflow = n_invalid = 0
+    for i in range(words.size):
+        w = np.int64(words[i])
+        c = w >> 28
+        d = (w >> 16) & 0xFFF
+        if c == 15:
+            if d == 0:
+                n_overflow += 1
+                wraps += 1
+                base += wrap
+                continue
+            if d > 15:
                 n_invalid += 1
                 continue
-            time[n] = base + (w & 0xFFFF)
-            n += 1
-        counts[_PHOTON] += n_photon
-        counts[_MARKER] += n_marker
-        counts[_SYNC] += n_sync
-        counts[_OVERFLOW] += n_overflow
-        counts[_INVALID] += n_invalid
-        return n, wraps
+            n_marker += 1
+            kind[n] = MARKER
+            channel[n] = d
+            dtime[n] = 0
+        elif 1 <= c <= 4:
+            n_photon += 1
+            kind[n] = PHOTON
+            channel[n] = c - 1
+            dtime[n] = d
+        else:
+            n_invalid += 1
+            continue
+        time[n] = base + (w & 0xFFFF)
+        n += 1
+    counts[_PHOTON] += n_photon
+    counts[_MARKER] += n_marker
+    counts[_SYNC] += n_sync
+    counts[_OVERFLOW] += n_overflow
+    counts[_INVALID] += n_invalid
+    counts[_N_OUT] = n
+    counts[_WRAPS] = wraps
 
-    @numba.njit(cache=True, nogil=True)
-    def _decode_picoharp_t2(words, wrap, wraps, kind, channel, time, counts):
-        n = 0
-        base = wraps * wrap
-        n_photon = n_marker = n_sync = n_overflow = n_invalid = 0
-        for i in range(words.size):
-            w = np.int64(words[i])
-            c = w >> 28
-            if c == 15:
-                m = w & 0xF
-                if m == 0:
-                    n_overflow += 1
-                    wraps += 1
-                    base += wrap
-                    continue
-                n_marker += 1
-                kind[n] = MARKER
-                channel[n] = m
-            elif c == 0:
+
+def _decode_picoharp_t2(words, wrap, multi, kind, channel, time, dtime, counts):
+    n = 0
+    wraps = counts[_WRAPS]
+    base = wraps * wrap
+    n_photon = n_marker = n_sync = n_overflow = n_invalid = 0
+    for i in range(words.size):
+        w = np.int64(words[i])
+        c = w >> 28
+        if c == 15:
+            m = w & 0xF
+            if m == 0:
+                n_overflow += 1
+                wraps += 1
+                base += wrap
+                continue
+            n_marker += 1
+            kind[n] = MARKER
+            channel[n] = m
+        elif c == 0:
+            n_sync += 1
+            kind[n] = PHOTON
+            channel[n] = SYNC_CHANNEL
+        elif c <= 4:
+            n_photon += 1
+            kind[n] = PHOTON
+            channel[n] = c - 1
+        else:
+            n_invalid += 1
+            continue
+        time[n] = base + (w & 0x0FFFFFFF)
+        n += 1
+    counts[_PHOTON] += n_photon
+    counts[_MARKER] += n_marker
+    counts[_SYNC] += n_sync
+    counts[_OVERFLOW] += n_overflow
+    counts[_INVALID] += n_invalid
+    counts[_N_OUT] = n
+    counts[_WRAPS] = wraps
+
+
+def _decode_hydraharp_t3(words, wrap, multi, kind, channel, time, dtime, counts):
+    n = 0
+    wraps = counts[_WRAPS]
+    base = wraps * wrap
+    n_photon = n_marker = n_sync = n_overflow = n_invalid = 0
+    for i in range(words.size):
+        w = np.int64(words[i])
+        c = (w >> 25) & 0x3F
+        f = w & 0x3FF
+        if w >> 31:
+            if c == 63:
+                k = max(f, 1) if multi else 1
+                n_overflow += 1
+                wraps += k
+                base += k * wrap
+                continue
+            if c < 1 or c > 15:
+                n_invalid += 1
+                continue
+            n_marker += 1
+            kind[n] = MARKER
+            dtime[n] = 0
+        else:
+            n_photon += 1
+            kind[n] = PHOTON
+            dtime[n] = (w >> 10) & 0x7FFF
+        channel[n] = c
+        time[n] = base + f
+        n += 1
+    counts[_PHOTON] += n_photon
+    counts[_MARKER] += n_marker
+    counts[_SYNC] += n_sync
+    counts[_OVERFLOW] += n_overflow
+    counts[_INVALID] += n_invalid
+    counts[_N_OUT] = n
+    counts[_WRAPS] = wraps
+
+
+def _decode_hydraharp_t2(words, wrap, multi, kind, channel, time, dtime, counts):
+    n = 0
+    wraps = counts[_WRAPS]
+    base = wraps * wrap
+    n_photon = n_marker = n_sync = n_overflow = n_invalid = 0
+    for i in range(words.size):
+        w = np.int64(words[i])
+        c = (w >> 25) & 0x3F
+        f = w & 0x1FFFFFF
+        if w >> 31:
+            if c == 63:
+                k = max(f, 1) if multi else 1
+                n_overflow += 1
+                wraps += k
+                base += k * wrap
+                continue
+            if c == 0:
                 n_sync += 1
                 kind[n] = PHOTON
                 channel[n] = SYNC_CHANNEL
-            elif c <= 4:
-                n_photon += 1
-                kind[n] = PHOTON
-                channel[n] = c - 1
+            elif c <= 15:
+                n_marker += 1
+                kind[n] = MARKER
+                channel[n] = c
             else:
                 n_invalid += 1
                 continue
-            time[n] = base + (w & 0x0FFFFFFF)
-            n += 1
-        counts[_PHOTON] += n_photon
-        counts[_MARKER] += n_marker
-        counts[_SYNC] += n_sync
-        counts[_OVERFLOW] += n_overflow
-        counts[_INVALID] += n_invalid
-        return n, wraps
-
-    @numba.njit(cache=True, nogil=True)
-    def _decode_hydraharp_t3(words, wrap, multi, wraps, kind, channel, time, dtime, counts):
-        n = 0
-        base = wraps * wrap
-        n_photon = n_marker = n_sync = n_overflow = n_invalid = 0
-        for i in range(words.size):
-            w = np.int64(words[i])
-            c = (w >> 25) & 0x3F
-            f = w & 0x3FF
-            if w >> 31:
-                if c == 63:
-                    k = max(f, 1) if multi else 1
-                    n_overflow += 1
-                    wraps += k
-                    base += k * wrap
-                    continue
-                if c < 1 or c > 15:
-                    n_invalid += 1
-                    continue
-                n_marker += 1
-                kind[n] = MARKER
-                dtime[n] = 0
-            else:
-                n_photon += 1
-                kind[n] = PHOTON
-                dtime[n] = (w >> 10) & 0x7FFF
+        else:
+            n_photon += 1
+            kind[n] = PHOTON
             channel[n] = c
-            time[n] = base + f
-            n += 1
-        counts[_PHOTON] += n_photon
-        counts[_MARKER] += n_marker
-        counts[_SYNC] += n_sync
-        counts[_OVERFLOW] += n_overflow
-        counts[_INVALID] += n_invalid
-        return n, wraps
+        time[n] = base + f
+        n += 1
+    counts[_PHOTON] += n_photon
+    counts[_MARKER] += n_marker
+    counts[_SYNC] += n_sync
+    counts[_OVERFLOW] += n_overflow
+    counts[_INVALID] += n_invalid
+    counts[_N_OUT] = n
+    counts[_WRAPS] = wraps
 
-    @numba.njit(cache=True, nogil=True)
-    def _decode_hydraharp_t2(words, wrap, multi, wraps, kind, channel, time, counts):
-        n = 0
-        base = wraps * wrap
-        n_photon = n_marker = n_sync = n_overflow = n_invalid = 0
-        for i in range(words.size):
-            w = np.int64(words[i])
-            c = (w >> 25) & 0x3F
-            f = w & 0x1FFFFFF
-            if w >> 31:
-                if c == 63:
-                    k = max(f, 1) if multi else 1
-                    n_overflow += 1
-                    wraps += k
-                    base += k * wrap
-                    continue
-                if c == 0:
-                    n_sync += 1
-                    kind[n] = PHOTON
-                    channel[n] = SYNC_CHANNEL
-                elif c <= 15:
-                    n_marker += 1
-                    kind[n] = MARKER
-                    channel[n] = c
-                else:
-                    n_invalid += 1
-                    continue
-            else:
-                n_photon += 1
-                kind[n] = PHOTON
-                channel[n] = c
-            time[n] = base + f
-            n += 1
-        counts[_PHOTON] += n_photon
-        counts[_MARKER] += n_marker
-        counts[_SYNC] += n_sync
-        counts[_OVERFLOW] += n_overflow
-        counts[_INVALID] += n_invalid
-        return n, wraps
 
-    @numba.njit(cache=True, nogil=True)
-    def _histogram_picoharp_t3(words, wraps, hist, tally):
-        n_channels, n_bins = hist.shape
-        max_dtime = np.int64(-1)
-        n_photon = n_marker = n_overflow = n_invalid = n_out = 0
-        for i in range(words.size):
-            w = np.int64(words[i])
-            c = w >> 28
-            d = (w >> 16) & 0xFFF
-            if c == 15:
-                if d == 0:
-                    n_overflow += 1
-                    wraps += 1
-                elif d <= 15:
-                    n_marker += 1
-                else:
-                    n_invalid += 1
-            elif 1 <= c <= 4:
-                n_photon += 1
-                max_dtime = max(max_dtime, d)
-                if c - 1 < n_channels and d < n_bins:
-                    hist[c - 1, d] += 1
-                else:
-                    n_out += 1
+def _histogram_picoharp_t3(words, multi, hist, tally):
+    n_channels, n_bins = hist.shape
+    wraps = tally[_WRAPS]
+    max_dtime = np.int64(-1)
+    n_photon = n_marker = n_overflow = n_invalid = n_out = 0
+    for i in range(words.size):
+        w = np.int64(words[i])
+        c = w >> 28
+        d = (w >> 16) & 0xFFF
+        if c == 15:
+            if d == 0:
+                n_overflow += 1
+                wraps += 1
+            elif d <= 15:
+                n_marker += 1
             else:
                 n_invalid += 1
-        tally[_PHOTON] += n_photon
-        tally[_MARKER] += n_marker
-        tally[_OVERFLOW] += n_overflow
-        tally[_INVALID] += n_invalid
-        tally[5] += n_out
-        return wraps, max_dtime
-
-    @numba.njit(cache=True, nogil=True)
-    def _histogram_hydraharp_t3(words, multi, wraps, hist, tally):
-        n_channels, n_bins = hist.shape
-        max_dtime = np.int64(-1)
-        n_photon = n_marker = n_overflow = n_invalid = n_out = 0
-        for i in range(words.size):
-            w = np.int64(words[i])
-            c = (w >> 25) & 0x3F
-            if w >> 31:
-                if c == 63:
-                    n_overflow += 1
-                    wraps += max(w & 0x3FF, 1) if multi else 1
-                elif 1 <= c <= 15:
-                    n_marker += 1
-                else:
-                    n_invalid += 1
+        elif 1 <= c <= 4:
+            n_photon += 1
+            max_dtime = max(max_dtime, d)
+            if c - 1 < n_channels and d < n_bins:
+                hist[c - 1, d] += 1
             else:
-                d = (w >> 10) & 0x7FFF
-                n_photon += 1
-                max_dtime = max(max_dtime, d)
-                if c < n_channels and d < n_bins:
-                    hist[c, d] += 1
-                else:
-                    n_out += 1
-        tally[_PHOTON] += n_photon
-        tally[_MARKER] += n_marker
-        tally[_OVERFLOW] += n_overflow
-        tally[_INVALID] += n_invalid
-        tally[5] += n_out
-        return wraps, max_dtime
+                n_out += 1
+        else:
+            n_invalid += 1
+    tally[_PHOTON] += n_photon
+    tally[_MARKER] += n_marker
+    tally[_OVERFLOW] += n_overflow
+    tally[_INVALID] += n_invalid
+    tally[_N_OUT] += n_out
+    tally[_WRAPS] = wraps
+    tally[_MAX_DTIME] = max_dtime
+
+
+def _histogram_hydraharp_t3(words, multi, hist, tally):
+    n_channels, n_bins = hist.shape
+    wraps = tally[_WRAPS]
+    max_dtime = np.int64(-1)
+    n_photon = n_marker = n_overflow = n_invalid = n_out = 0
+    for i in range(words.size):
+        w = np.int64(words[i])
+        c = (w >> 25) & 0x3F
+        if w >> 31:
+            if c == 63:
+                n_overflow += 1
+                wraps += max(w & 0x3FF, 1) if multi else 1
+            elif 1 <= c <= 15:
+                n_marker += 1
+            else:
+                n_invalid += 1
+        else:
+            d = (w >> 10) & 0x7FFF
+            n_photon += 1
+            max_dtime = max(max_dtime, d)
+            if c < n_channels and d < n_bins:
+                hist[c, d] += 1
+            else:
+                n_out += 1
+    tally[_PHOTON] += n_photon
+    tally[_MARKER] += n_marker
+    tally[_OVERFLOW] += n_overflow
+    tally[_INVALID] += n_invalid
+    tally[_N_OUT] += n_out
+    tally[_WRAPS] = wraps
+    tally[_MAX_DTIME] = max_dtime
+
+
+_LOOPS = {f.__name__[1:]: f for f in (
+    _decode_picoharp_t3, _decode_picoharp_t2, _decode_hydraharp_t3, _decode_hydraharp_t2,
+    _histogram_picoharp_t3, _histogram_hydraharp_t3)}
+_P, _I = ctypes.c_void_p, ctypes.c_int64
+#: decode: words, n, wrap, multi, kind, channel, time, dtime, n_dtime, counts;
+#: histogram: words, n, multi, hist, n_channels, n_bins, tally
+_ARGTYPES = {"decode": [_P, _I, _I, _I, _P, _P, _P, _P, _I, _P],
+             "histogram": [_P, _I, _I, _P, _I, _I, _P]}
+_JITTED: dict = {}
+
+
+def _jitted(name: str):
+    """The loop ``name`` through numba's dispatcher (and numba's on-disk cache)."""
+    fn = _JITTED.get(name)
+    if fn is None:
+        import numba
+
+        fn = _JITTED[name] = numba.njit(cache=True, nogil=True)(_LOOPS[name])
+    return fn
+
+
+def _native(name: str):
+    """The loop ``name`` as a C kernel loaded without numba, or None (then ``_jitted``)."""
+    from stages import nativecode
+
+    kind = name.split("_")[0]
+    return nativecode.kernel(name, __file__, _ARGTYPES[kind], lambda: _build(name, kind))
+
+
+def _build(name: str, kind: str):
+    import numba
+    from numba import carray, types
+
+    loop = numba.njit(nogil=True)(_LOOPS[name])
+    p = types.CPointer
+    u32, u64, i64, u8, u16 = types.uint32, types.uint64, types.int64, types.uint8, types.uint16
+    if kind == "decode":
+        sig = types.void(p(u32), i64, i64, i64, p(u8), p(u8), p(i64), p(u16), i64, p(i64))
+
+        def c_decode(w, n, wrap, multi, kind_, channel, time, dtime, n_dtime, counts):
+            loop(carray(w, (n,)), wrap, multi != 0, carray(kind_, (n,)),
+                 carray(channel, (n,)), carray(time, (n,)), carray(dtime, (n_dtime,)),
+                 carray(counts, (7,)))
+
+        return numba.cfunc(sig, nopython=True)(c_decode)
+    sig = types.void(p(u32), i64, i64, p(u64), i64, i64, p(i64))
+
+    def c_histogram(w, n, multi, hist, n_channels, n_bins, tally):
+        loop(carray(w, (n,)), multi != 0, carray(hist, (n_channels, n_bins)),
+             carray(tally, (8,)))
+
+    return numba.cfunc(sig, nopython=True)(c_histogram)
+
+
+def _loop_name(fmt: RecordFormat, kind: str) -> str:
+    return f"{kind}_{fmt.layout}_{fmt.mode.lower()}"
 
 
 def _decode_numba(words, fmt, wraps):
     n = words.size
     kind, channel = np.empty(n, np.uint8), np.empty(n, np.uint8)
-    time, counts = np.empty(n, np.int64), np.zeros(5, np.int64)
+    time = np.empty(n, np.int64)
     dtime = np.empty(n if fmt.is_t3 else 0, np.uint16)
-    wraps = np.int64(wraps)
-    if fmt.layout == PICOHARP and fmt.is_t3:
-        m, wraps = _decode_picoharp_t3(words, fmt.wrap, wraps, kind, channel, time, dtime,
-                                       counts)
-    elif fmt.layout == PICOHARP:
-        m, wraps = _decode_picoharp_t2(words, fmt.wrap, wraps, kind, channel, time, counts)
-    elif fmt.is_t3:
-        m, wraps = _decode_hydraharp_t3(words, fmt.wrap, fmt.multi_overflow, wraps, kind,
-                                        channel, time, dtime, counts)
+    counts = np.zeros(7, np.int64)
+    counts[_WRAPS] = wraps
+    name = _loop_name(fmt, "decode")
+    fn = _native(name)
+    if fn is not None:
+        fn(words.ctypes.data, n, fmt.wrap, int(fmt.multi_overflow), kind.ctypes.data,
+           channel.ctypes.data, time.ctypes.data, dtime.ctypes.data, dtime.size,
+           counts.ctypes.data)
     else:
-        m, wraps = _decode_hydraharp_t2(words, fmt.wrap, fmt.multi_overflow, wraps, kind,
-                                        channel, time, counts)
+        _jitted(name)(words, np.int64(fmt.wrap), fmt.multi_overflow, kind, channel, time,
+                      dtime, counts)
+    m, wraps = int(counts[_N_OUT]), int(counts[_WRAPS])
     if m < n // 2:  # a sparse chunk: copy, so the caller does not hold buffers twice as big
         kind, channel, time, dtime = kind[:m].copy(), channel[:m].copy(), time[:m].copy(), \
             dtime[:m].copy()
-    return kind[:m], channel[:m], time[:m], dtime[:m], counts, int(wraps)
+    return kind[:m], channel[:m], time[:m], dtime[:m], counts[:5], wraps
+
+
+def _histogram_numba(words, fmt, counts, wraps):
+    tally = np.zeros(8, np.int64)
+    tally[_WRAPS] = wraps
+    name = _loop_name(fmt, "histogram")
+    fn = _native(name)
+    if fn is not None:
+        fn(words.ctypes.data, words.size, int(fmt.multi_overflow), counts.ctypes.data,
+           counts.shape[0], counts.shape[1], tally.ctypes.data)
+    else:
+        _jitted(name)(words, fmt.multi_overflow, counts, tally)
+    return Tally(int(tally[_PHOTON]), int(tally[_MARKER]), int(tally[_OVERFLOW]),
+                 int(tally[_INVALID]), int(tally[_N_OUT]), int(tally[_WRAPS]),
+                 int(tally[_MAX_DTIME]))
 
 
 def _check(words, engine):
@@ -562,7 +662,7 @@ def _check(words, engine):
     engine = engine or default_engine()
     if engine not in ENGINES:
         raise ValueError(f"engine must be one of {ENGINES}, found {engine!r}")
-    if engine == "numba" and numba is None:
+    if engine == "numba" and not HAVE_NUMBA:
         raise RuntimeError("engine='numba' requested but numba is not installed")
     return np.ascontiguousarray(words), engine
 
@@ -639,14 +739,7 @@ def histogram_records(words: np.ndarray, fmt: RecordFormat, counts: np.ndarray,
     words, engine = _check(words, engine)
     if engine == "numpy":
         return _histogram_numpy(words, fmt, counts, int(wraps))
-    tally = np.zeros(6, np.int64)
-    if fmt.layout == PICOHARP:
-        wraps, max_dtime = _histogram_picoharp_t3(words, np.int64(wraps), counts, tally)
-    else:
-        wraps, max_dtime = _histogram_hydraharp_t3(words, fmt.multi_overflow,
-                                                   np.int64(wraps), counts, tally)
-    return Tally(int(tally[_PHOTON]), int(tally[_MARKER]), int(tally[_OVERFLOW]),
-                 int(tally[_INVALID]), int(tally[5]), int(wraps), int(max_dtime))
+    return _histogram_numba(words, fmt, counts, int(wraps))
 
 
 def resolution_ps_fraction(resolution_s: float) -> Fraction:
