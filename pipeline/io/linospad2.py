@@ -27,6 +27,7 @@ from schemas.core import validate
 from schemas.errors import TcspcError
 from schemas.instruments import LINOSPAD2_EVENTS
 from stages.instruments import linospad2 as lino
+from stages.instruments.accumulate import column
 
 #: cycles per read: 256 x 65 x 200 words = 13 MB at the sample's line length
 CHUNK_CYCLES = 256
@@ -185,7 +186,7 @@ def decode_file(path, firmware: str, words_per_line: int = lino.WORDS_PER_LINE,
             parts[name].append(col)
         tally = tally + chunk.tally
     schema = LINOSPAD2_EVENTS.schema
-    arrays = [pa.array(np.concatenate(parts[f.name]), type=f.type) for f in schema]
+    arrays = [column(np.concatenate(parts[f.name]), f.type) for f in schema]
     meta = {**(schema.metadata or {}), META_FIRMWARE: firmware.encode(),
             META_TALLY: json.dumps(tally.to_dict()).encode()}
     table = pa.Table.from_arrays(arrays, schema=schema.with_metadata(meta))

@@ -27,6 +27,7 @@ from stages.instruments.accumulate import (
     PICOQUANT_T3,
     Linospad2Accumulator,
     PtuT3Accumulator,
+    column,
     instrument_table,
 )
 
@@ -169,8 +170,8 @@ def decode_instrument(path: str | Path, fmt: str, out: str | Path,
                              ("line_65", d.tally.line65)):
                     tally[k] += v
                 cols = d.columns()
-                yield pa.RecordBatch.from_arrays([pa.array(cols[n]) for n in spec.names],
-                                                 schema=spec.schema)
+                yield pa.RecordBatch.from_arrays(
+                    [column(cols[f.name], f.type) for f in spec.schema], schema=spec.schema)
         batches = lino()
     else:
         raise FormatError(f"decode_instrument: {fmt!r} is not an instrument format")

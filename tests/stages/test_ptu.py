@@ -190,6 +190,59 @@ def test_engines_agree_on_every_record_type(code):
         assert ta == tb and np.array_equal(ha, hb)
 
 
+@pytest.mark.parametrize("code", ALL_CODES, ids=hex)
+def test_the_loops_load_natively_and_every_way_agrees(code, monkeypatch):
+    """The numba engine's loops run as C kernels loaded without numba (stages.nativecode),
+    through numba's dispatcher (the fallback) and as plain Python: the numpy engine's
+    events, counts and histograms each way."""
+    import stages.instruments.ptu as ptu
+    from stages import nativecode
+
+    fmt = record_format(code)
+    words = random_words(code, 3000, np.random.default_rng(code))
+    name = ptu._loop_name(fmt, "decode")
+    assert ptu._native(name) is not None, nativecode.failures.get(name)
+
+    def once(engine):
+        d = decode_records(words, fmt, wraps=3, engine=engine)
+        out = [d.kind, d.channel, d.time, d.dtime, d.wraps, d.n_records, d.n_invalid]
+        if fmt.is_t3:
+            h = np.zeros((fmt.n_channels, 2000), np.uint64)
+            out += [histogram_records(words, fmt, h, 3, engine), h]
+        return out
+
+    twin = once("numpy")
+    native = once("numba")
+    monkeypatch.setattr(ptu, "_native", lambda name: None)
+    dispatched = once("numba")
+    monkeypatch.setattr(ptu, "_jitted", lambda name: ptu._LOOPS[name])
+    plain = once("numba")
+    for got in (native, dispatched, plain):
+        for a, b in zip(got, twin, strict=True):
+            assert np.array_equal(a, b) if isinstance(a, np.ndarray) else a == b
+
+
+def test_a_process_with_the_ptu_kernels_cached_runs_them_without_numba():
+    """What `tcspc histogram` on a PTU file gains at start-up: once built, the C kernels
+    load without importing numba or scipy."""
+    import subprocess
+    import sys
+
+    import stages.instruments.ptu as ptu
+
+    fmt = record_format(0x01010304)
+    assert ptu._native(ptu._loop_name(fmt, "histogram")) is not None
+    assert ptu._native(ptu._loop_name(fmt, "decode")) is not None
+    code = ("import sys, numpy as np; from stages.instruments.ptu import *; "
+            "f = record_format(0x01010304); w = np.arange(1000, dtype=np.uint32) << 10; "
+            "h = np.zeros((64, 1 << 15), np.uint64); histogram_records(w, f, h); "
+            "decode_records(w, f); "
+            "print(sorted(m for m in ('numba', 'scipy') if m in sys.modules))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert res.stdout.strip() == "[]", res.stdout + res.stderr
+
+
 # --- an encoder written here: events at known absolute times -> records ----------------------
 
 def encode(code, times, channels, dtimes, rng):
