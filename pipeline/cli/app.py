@@ -144,6 +144,10 @@ _engine = click.option("--engine", type=click.Choice(["numba", "numpy"]), defaul
 _quiet = click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 _format = click.option("--format", "fmt", type=click.Choice(["tcspc", "ptu", "linospad2"]),
                        default=None, help="Input format (default: read from the content).")
+_allow_truncated = click.option(
+    "--allow-truncated", is_flag=True,
+    help="A PTU or LinoSPAD2 file cut short: exit 0 (default: the records before the damage "
+         "are written, flagged truncated, and the command exits 3).")
 _firmware = click.option("--firmware", type=click.Choice(["2212b", "2212s"]), default="2212b",
                          show_default=True, help="LinoSPAD2 firmware (pixel mapping).")
 
@@ -158,8 +162,10 @@ _firmware = click.option("--firmware", type=click.Choice(["2212b", "2212s"]), de
 @_engine
 @_format
 @_firmware
+@_allow_truncated
 @_quiet
-def decode(capture, out, include_no_hit, calibration, engine, fmt, firmware, quiet) -> None:
+def decode(capture, out, include_no_hit, calibration, engine, fmt, firmware, allow_truncated,
+           quiet) -> None:
     """Decode CAPTURE into an events parquet file.
 
     A tcspc capture (NAME.bin) gives decoded_events; a PTU file its photons and markers
@@ -171,7 +177,7 @@ def decode(capture, out, include_no_hit, calibration, engine, fmt, firmware, qui
     fmt = instruments.detect(capture, fmt)
     if fmt != "tcspc":
         _not_for_instruments(fmt, calibration=calibration, include_no_hit=include_no_hit)
-        instruments.decode(capture, fmt, out, firmware, quiet)
+        instruments.decode(capture, fmt, out, firmware, quiet, allow_truncated)
         return
     from pipeline.offline.datapath import decode_capture
 
@@ -195,9 +201,10 @@ def decode(capture, out, include_no_hit, calibration, engine, fmt, firmware, qui
 @_firmware
 @click.option("--by", type=click.Choice(["tdc", "pixel"]), default="tdc", show_default=True,
               help="LinoSPAD2: a row per TDC (64) or per pixel (256).")
+@_allow_truncated
 @_quiet
 def histogram(capture, out, measurement, calibration, engine, fmt, firmware, by,
-              quiet) -> None:
+              allow_truncated, quiet) -> None:
     """Histograms of CAPTURE, a row per TDC (histograms dataset).
 
     A tcspc capture: first-stage codes of its hit words. A PTU T3 file: dtime codes, a row
@@ -208,7 +215,8 @@ def histogram(capture, out, measurement, calibration, engine, fmt, firmware, by,
     fmt = instruments.detect(capture, fmt)
     if fmt != "tcspc":
         _not_for_instruments(fmt, calibration=calibration)
-        instruments.histogram(capture, fmt, out, measurement, firmware, by, quiet)
+        instruments.histogram(capture, fmt, out, measurement, firmware, by, quiet,
+                              allow_truncated)
         return
     from pipeline.offline.datapath import histogram_capture, write_histograms
 

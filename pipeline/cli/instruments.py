@@ -29,6 +29,22 @@ def _print_summary(summary, quiet: bool) -> None:
         err.print(line, highlight=False, markup=False)
 
 
+#: exit status of `tcspc histogram` / `decode` on an instrument file cut short (the output
+#: holds the records before the damage and is flagged truncated; --allow-truncated: 0)
+EXIT_TRUNCATED = 3
+
+
+class Truncated(click.ClickException):
+    exit_code = EXIT_TRUNCATED
+
+
+def _check_truncated(path: str, out: str, summary, allow: bool) -> None:
+    if summary.truncated and not allow:
+        raise Truncated(f"{path} is truncated: {out} holds its {summary.records:,} whole "
+                        "records before the damage, flagged truncated in its metadata; "
+                        "--allow-truncated accepts that (exit 0)")
+
+
 def _check_accounting(summary) -> None:
     if summary.accounted != summary.records:
         raise click.ClickException(f"accounting error: {summary.accounted:,} records "
@@ -51,7 +67,7 @@ def histograms_of(path: str, fmt: str, measurement: str | None, firmware: str, b
 
 
 def histogram(path: str, fmt: str, out: str, measurement, firmware: str, by: str,
-              quiet: bool) -> None:
+              quiet: bool, allow_truncated: bool = False) -> None:
     from pipeline.offline.instruments import write_instrument_histograms
 
     table, summary = histograms_of(path, fmt, measurement, firmware, by)
@@ -63,9 +79,11 @@ def histogram(path: str, fmt: str, out: str, measurement, firmware: str, by: str
                   highlight=False)
     if not quiet:
         err.print(f"wrote {out} ({table.num_rows} rows)")
+    _check_truncated(path, out, summary, allow_truncated)
 
 
-def decode(path: str, fmt: str, out: str, firmware: str, quiet: bool) -> None:
+def decode(path: str, fmt: str, out: str, firmware: str, quiet: bool,
+           allow_truncated: bool = False) -> None:
     from pipeline.offline.instruments import decode_instrument
 
     if Path(out).suffix.lower() in (".h5", ".hdf5"):
@@ -76,6 +94,7 @@ def decode(path: str, fmt: str, out: str, firmware: str, quiet: bool) -> None:
     _print_summary(summary, quiet)
     if not quiet:
         err.print(f"wrote {out}")
+    _check_truncated(path, out, summary, allow_truncated)
 
 
 def _photon_hdf5(path: str, fmt: str, out: str, quiet: bool) -> None:

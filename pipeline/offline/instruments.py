@@ -65,8 +65,8 @@ class FileSummary:
         out = [f"{self.path} ({self.format}): {self.records:,} records in {self.seconds:.2f} s "
                f"({rate:.1f} M records/s): " + ", ".join(parts)]
         if self.truncated:
-            out.append("warning: the records before the damage were kept (histograms "
-                       "flagged truncated=true in their metadata)")
+            out.append("warning: the records before the damage were kept (the output is "
+                       "flagged tcspc.truncated=True in its metadata)")
         return out + self.notes
 
 
@@ -175,9 +175,13 @@ def decode_instrument(path: str | Path, fmt: str, out: str | Path,
         batches = lino()
     else:
         raise FormatError(f"decode_instrument: {fmt!r} is not an instrument format")
-    with atomic_path(out) as tmp, pq.ParquetWriter(tmp, spec.schema) as writer:
+    schema = spec.schema
+    if damage:  # flagged as the histograms are (tcspc.truncated), with the account
+        schema = schema.with_metadata({**(schema.metadata or {}), b"tcspc.truncated": b"True",
+                                       b"tcspc.truncation": damage.encode()})
+    with atomic_path(out) as tmp, pq.ParquetWriter(tmp, schema) as writer:
         for batch in batches:
-            writer.write_batch(batch)
+            writer.write_batch(batch.replace_schema_metadata(schema.metadata))
     if fmt == "ptu":
         summary = FileSummary(str(path), fmt, report.n_records_read,
                               report.n_photons + report.n_sync,

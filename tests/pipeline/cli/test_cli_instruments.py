@@ -86,24 +86,68 @@ def test_linospad2_by_tdc_and_pixel(tmp_path):
     assert np.array_equal(a, b.reshape(64, 4, 140).sum(axis=1))  # 2212b: pixel = 4 TDC + k
 
 
-@pytest.mark.parametrize("damage", ["truncated", "magic", "empty"])
+@pytest.mark.parametrize("damage", ["magic", "empty"])
 def test_bad_files_give_one_line_and_a_nonzero_exit(tmp_path, damage):
     raw = T3.read_bytes()
     bad = tmp_path / "bad.ptu"
-    if damage == "truncated":  # mid-record: the records before the damage are kept
-        bad.write_bytes(raw[: len(raw) - 4 * 1000 - 2])
-        r = tcspc("histogram", bad, "--out", tmp_path / "h.parquet")
-        assert r.returncode == 0, r.stderr
-        assert "truncated" in r.stderr and "kept" in r.stderr
-        meta = pq.read_schema(tmp_path / "h.parquet").metadata
-        assert meta[b"tcspc.truncated"] == b"True"
-        return
     bad.write_bytes(b"NOTAPTU!" + raw[8:] if damage == "magic" else b"")
     r = tcspc("histogram", bad, "--out", tmp_path / "h.parquet")
     assert r.returncode == 2, r.stderr
     assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) <= 3
     r = tcspc("histogram", bad, "--format", "ptu", "--out", tmp_path / "h.parquet")
     assert r.returncode == 2 and "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("keep", [0, 50_000])
+def test_a_truncated_file_keeps_what_decodes_flags_it_and_exits_3(tmp_path, keep):
+    """The real file cut short (its header declares 106,349 records): none left after
+    the header (histograms all zero: once written with exit 0), or 50,000 and half a
+    record. The output holds the whole records, flagged; the exit is 3 (the documented
+    code) unless --allow-truncated."""
+    from pipeline.io.ptu import read_header
+
+    raw = T3.read_bytes()
+    start = read_header(T3).data_offset
+    cut = tmp_path / "cut.ptu"
+    cut.write_bytes(raw[:start + 4 * keep + (2 if keep else 0)])
+    # the records kept, histogrammed here from the bytes (hydraharp layout: a photon is a
+    # record with the special bit clear; channel 6 bits, dtime 15 bits)
+    w = np.frombuffer(raw[start:start + 4 * keep], "<u4").astype(np.int64)
+    photon = (w >> 31) == 0
+    want = [np.bincount(((w >> 10) & 0x7FFF)[photon & (((w >> 25) & 0x3F) == ch)],
+                        minlength=1) for ch in (0, 1)]
+    for cmd in ("histogram", "decode"):
+        out = tmp_path / f"{cmd}.parquet"
+        r = tcspc(cmd, cut, "--out", out, "-q")
+        assert r.returncode == 3, r.stderr
+        assert "truncated" in r.stderr and "--allow-truncated" in r.stderr
+        assert "Traceback" not in r.stderr
+        meta = pq.read_schema(out).metadata
+        assert meta[b"tcspc.truncated"] == b"True"
+        if cmd == "histogram":
+            counts = np.stack(pl.read_parquet(out).sort("tdc")["counts"].to_numpy())
+            for ch in (0, 1):
+                got = counts[ch]
+                n = max(got.size, want[ch].size)
+                assert np.array_equal(np.pad(got, (0, n - got.size)),
+                                      np.pad(want[ch], (0, n - want[ch].size)))
+        else:
+            assert pl.read_parquet(out).filter(pl.col("kind") == 0).height == photon.sum()
+        r = tcspc(cmd, cut, "--out", out, "-q", "--allow-truncated")
+        assert r.returncode == 0, r.stderr
+        assert "truncated" in r.stderr  # said all the same
+
+
+def test_a_truncated_linospad2_file_exits_3(tmp_path):
+    cut = tmp_path / "cut.dat"
+    cut.write_bytes(LINO.read_bytes()[:-100])
+    # (cut short, the content no longer says LinoSPAD2: the format is given)
+    r = tcspc("histogram", cut, "--format", "linospad2", "--out", tmp_path / "h.parquet", "-q")
+    assert r.returncode == 3 and "truncated" in r.stderr, r.stderr
+    assert pq.read_schema(tmp_path / "h.parquet").metadata[b"tcspc.truncated"] == b"True"
+    r = tcspc("histogram", cut, "--format", "linospad2", "--out", tmp_path / "h.parquet", "-q",
+              "--allow-truncated")
+    assert r.returncode == 0, r.stderr
 
 
 def test_chip_options_are_refused_on_an_instrument_file(tmp_path):
