@@ -113,12 +113,14 @@ def stage_source_capture(capture, pushes, run_id, rate, journal, journal_compres
     cap = Capture(capture)
     run_id = run_id or cap.name
     n = cap.meta.n_tdc
+    # the words as the file holds them (big-endian: journaled as they are, swapped into
+    # the messages) from a ring of 3 buffers: a batch stays valid while the journal,
+    # one batch behind, writes it
+    cap.chunk_ring = 3
 
     def replay():
         for k in range(repeat):
-            for first, w in cap.iter_chunks(max(1, (1 << 18) // n) * n):
-                # the chunk's buffer is reused: run_source journals and sends (copying)
-                # each batch before it asks for the next
+            for first, w in cap.iter_chunks(max(1, (1 << 18) // n) * n, native=False):
                 yield k * cap.n_words + first, w
 
     batches = _skip_journaled(replay(), journal, run_id)
@@ -127,7 +129,7 @@ def stage_source_capture(capture, pushes, run_id, rate, journal, journal_compres
     sent = run_source(batches, list(pushes), step_id="source", run=run_id,
                       n_tdc=n, t_laser_win_ns=cap.meta.t_laser_win_ns,
                       rate_words_s=rate, journal=jw, split=_ranges(split), metrics=metrics,
-                      window_ns=cap.meta.window_ns, date=date)
+                      window_ns=cap.meta.window_ns, date=date, stable=cap.chunk_ring - 1)
     err.print(f"source-capture: sent {sent:,} words")
 
 

@@ -176,7 +176,7 @@ class Capture:
             self._readinto(fh, out)
         return out
 
-    def _readinto(self, fh, out: np.ndarray) -> None:
+    def _readinto(self, fh, out: np.ndarray, native: bool = True) -> None:
         try:
             n = fh.readinto(memoryview(out).cast("B"))
         except Exception as exc:  # a corrupt zstd frame (pyarrow's error types)
@@ -186,16 +186,19 @@ class Capture:
         if n != out.nbytes:
             raise CaptureError(f"{self.bin_path}: file shrank while reading, or holds fewer "
                                f"words than its sidecar says (got {n} of {out.nbytes} bytes)")
-        if sys.byteorder == "little":  # a cast from big-endian in place: 2.4x byteswap()'s speed
+        if native and sys.byteorder == "little":  # from big-endian in place: 2.4x byteswap()
             np.copyto(out, out.view(">u4"))
 
-    def iter_chunks(self, chunk_words: int = CHUNK_WORDS) -> Iterator[tuple[int, np.ndarray]]:
+    def iter_chunks(self, chunk_words: int = CHUNK_WORDS, native: bool = True
+                    ) -> Iterator[tuple[int, np.ndarray]]:
         """Yield ``(first_word, words)`` over the whole capture in arrival order.
 
         ``words`` is a view of one of :attr:`chunk_ring` reused buffers (native uint32):
         it stays valid until ``chunk_ring - 1`` more chunks have been asked for (with one
         buffer: use it before asking for the next), then it is overwritten; copy it to
-        keep it. Chunks are whole cycles where the file allows.
+        keep it. Chunks are whole cycles where the file allows. ``native=False``: the
+        words as the file holds them (big-endian ``>u4``, not swapped: what a journal
+        writes as it is).
         """
         n_tdc = self.meta.n_tdc
         chunk_words = max(n_tdc, chunk_words // n_tdc * n_tdc)
@@ -205,8 +208,8 @@ class Capture:
             for i, first in enumerate(range(0, self.n_words, chunk_words)):
                 n = min(chunk_words, self.n_words - first)
                 view = ring[i % len(ring)][:n]
-                self._readinto(fh, view)
-                yield first, view
+                self._readinto(fh, view, native)
+                yield first, view if native else view.view(">u4")
 
 
 class CaptureWriter:

@@ -44,14 +44,17 @@ class TdcSplitter:
         self.n_tdc, self.ranges = n_tdc, ranges
 
     def split(self, first: int, words: np.ndarray) -> list[tuple[int, np.ndarray]]:
+        return [(f, np.ascontiguousarray(v).ravel()) for f, v in self.views(first, words)]
+
+    def views(self, first: int, words: np.ndarray) -> list[tuple[int, np.ndarray]]:
+        """Each range's (first word, (cycles, TDCs) view of ``words``), not copied."""
         n = self.n_tdc
         if first % n or words.size % n:
             raise FanoutError(f"fan-out by TDC range needs whole cycles: a batch of "
                               f"{words.size} words at word {first} with {n} TDCs per cycle")
         grid = words.reshape(-1, n)
         c0 = first // n
-        return [(c0 * (b - a), np.ascontiguousarray(grid[:, a:b]).ravel())
-                for a, b in self.ranges]
+        return [(c0 * (b - a), grid[:, a:b]) for a, b in self.ranges]
 
 
 def worker_reader(read_range, n_tdc: int, tdc_range: tuple[int, int]):

@@ -421,19 +421,24 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
                context: zmq.Context | None = None, journal=None,
                split: list[tuple[int, int]] | None = None, metrics: str | None = None,
                window_ns: float | None = None, date: str | None = None,
-               token: str | None = None) -> int:
+               token: str | None = None, stable: int = 0) -> int:
     """Send ``(first_word, words)`` batches as raw_words messages, then a stop. Returns the
     words sent. ``rate_words_s`` limits the rate (None: as fast as the consumer takes).
     With a ``journal`` (JournalWriter) every batch is journaled before it is sent. With
     ``split`` (TDC ranges, one per endpoint in ``push``) each batch of whole cycles is cut
-    into one sub-batch per range (a fan-out by TDC range)."""
+    into one sub-batch per range (a fan-out by TDC range). ``words`` are uint32 in either
+    byte order (a capture's big-endian words are journaled as they are and swapped into
+    the message: :mod:`pipeline.stream.rawwire`). ``stable``: for how many later batches a
+    batch's words stay valid (a reader's ring of buffers); from 2 the journal writes them
+    without a copy (it is one batch behind), else it takes a copy."""
     import numpy as np
-    import pyarrow as pa
 
     from pipeline.stream.fanout import TdcSplitter
+    from pipeline.stream.rawwire import RawWordsEncoder
     from schemas.words import RAW_WORDS
 
     pushes = [push] if isinstance(push, str) else list(push)
+    encoder = RawWordsEncoder()
     splitter = None
     if split is not None:
         if len(split) != len(pushes):
@@ -506,19 +511,23 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
         for first, words in batches:
             if halt.is_set():  # a signal: end the run cleanly after the last whole batch
                 break
-            words = np.asarray(words, np.uint32)
-            wrote = (writer.submit(append, first, words.astype(">u4"))
-                     if writer is not None else None)  # (a copy: the words may be reused)
-            parts = splitter.split(first, words) if splitter else [(first, words)]
+            words = np.asarray(words)
+            if words.dtype not in (np.dtype("<u4"), np.dtype(">u4")):
+                words = words.astype(np.uint32)
+            if writer is not None:  # (a copy unless the words outlive the write)
+                wrote = writer.submit(append, first, words if stable >= 2 else
+                                      words.astype(">u4"))
+            else:
+                wrote = None
+            parts = splitter.views(first, words) if splitter else [(first, words)]
             msgs = []
             for (f, w), rng in zip(parts, split or [(0, n_tdc)], strict=True):
-                batch = pa.record_batch([pa.array(w)], schema=RAW_WORDS.schema)
                 head = {"kind": "data", "schema": RAW_WORDS.name,
                         "version": RAW_WORDS.version, "run": run, "seq": seq, "step": step_id,
                         "first_word": int(f), "n_tdc": rng[1] - rng[0],
                         "n_tdc_total": n_tdc, "tdc_range": list(rng),
                         "t_laser_win_ns": t_laser_win_ns, **extra}
-                msgs.append(wire.encode(head, batch, token))  # a copy: the words may be reused
+                msgs.append(encoder.frames(head, w, token))  # the words' one copy
             if pending is not None:
                 send_pending()
             pending = (msgs, wrote)
