@@ -109,9 +109,10 @@ def stage_source_capture(capture, pushes, run_id, rate, journal, journal_compres
     from pipeline.io.capture import Capture
     from pipeline.stream.journal import JournalWriter
     from pipeline.stream.stage import run_source
+    from pipeline.stream.wire import run_id_from
 
     cap = Capture(capture)
-    run_id = run_id or cap.name
+    run_id = run_id or run_id_from(cap.name)
     n = cap.meta.n_tdc
 
     def replay():
@@ -159,9 +160,10 @@ def stage_source_file(path, pushes, run_id, rate, fmt, firmware, journal, journa
     )
     from pipeline.stream.journal import JournalWriter
     from pipeline.stream.stage import run_source
+    from pipeline.stream.wire import run_id_from
 
     fmt = resolve_format(path, fmt)
-    run_id = run_id or Path(path).stem
+    run_id = run_id or run_id_from(Path(path).stem)
     period = instrument_timing_ns(path, fmt)
     damage = instrument_truncation(path, fmt)
     if damage:
