@@ -18,7 +18,9 @@ hand across hosts. The supervisor
   killed range or sink stage is recomputed from the journaled words (the same code, the
   same numbers), then writes the run's accounting beside the datasets.
 
-The topology file (all keys but ``[source]`` optional)::
+The topology file (all keys but ``[source]`` optional; every key's type and range is
+declared in ``pipeline.stream.topology``, and the whole file is checked before anything
+starts, as are the state directory and the resources: ``pipeline.stream.state``)::
 
     [daemon]
     state = "data/daemon"        # journal/, checkpoints/, quarantine/, logs/, status.json
@@ -36,8 +38,8 @@ The topology file (all keys but ``[source]`` optional)::
     metrics = "ipc://..."        # default ipc://STATE/sock/metrics
     hwm = 4                      # ZeroMQ high-water mark, messages per socket
     curve = "auto"               # ZeroMQ CURVE (keys in STATE/curve): "auto" turns it on
-                                 # when any endpoint is tcp:// to a non-loopback address;
-                                 # true / false force it
+                                 # when any endpoint is tcp:// (loopback too: any local
+                                 # account reaches it); true / false force it
 
     [source]
     kind = "sim"                 # sim | capture | udp | file
