@@ -16,7 +16,7 @@ def _from_config(config: str | None) -> dict:
         return {}
     from pipeline.stream.topology import load_topology
 
-    topo = load_topology(config)
+    topo = load_topology(config, writable=False)  # (the page only reads)
     raw = tomllib.loads(Path(config).read_text())
     cal = (topo.range or {}).get("calibration") or topo.histogram.get("calibration")
     return {"state": str(topo.state), "out": str(topo.sink["out"]), "calibration": cal,

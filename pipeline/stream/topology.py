@@ -207,11 +207,12 @@ def _sections(raw: dict, where: str, problems: list[str]) -> dict[str, _Section 
 
 
 def load_topology(path: str | Path | None, run: str | None = None,
-                  overrides: dict | None = None) -> Topology:
+                  overrides: dict | None = None, writable: bool = True) -> Topology:
     """Read and check a topology file (None: the embedded default, the street scene).
 
     Every problem is found in one pass and raised as one :class:`TopologyError`, a line
-    per problem naming the file, the section and the key."""
+    per problem naming the file, the section and the key. ``writable``: also check that the
+    state and sink directories can be written (a reader such as `tcspc view` only reads)."""
     where = str(path) if path else "<default topology>"
     if path:
         try:
@@ -260,9 +261,9 @@ def load_topology(path: str | Path | None, run: str | None = None,
             problems.append(f"{where} [{sec}] calibration = {cal!r}: not a calibration "
                             "directory (run `tcspc flow run calibration_campaign` first)")
     state = Path(d.state)
-    if secs["daemon"] is not None or "daemon" not in raw:
+    if writable and (secs["daemon"] is not None or "daemon" not in raw):
         _check_writable(state, where, "[daemon] state", problems)
-    if secs["sink"] is not None or "sink" not in raw:
+    if writable and (secs["sink"] is not None or "sink" not in raw):
         _check_writable(Path(sink["out"]), where, "[sink] out", problems)
     from pipeline.stream.wire import ID_PATTERN, run_id_from
 

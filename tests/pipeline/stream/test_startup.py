@@ -198,3 +198,28 @@ def test_a_busy_view_port_an_unwritable_out_and_a_long_state_fail_at_start(tmp_p
     topo = load_topology(write_topology(tmp_path, state=deep))
     with pytest.raises(StateError, match=r"the ipc path is \d+ bytes, the kernel takes 107"):
         check_resources(topo)
+
+
+@pytest.mark.slow  # ~19 s on the loaded 2-core machine (the fast twin: the lock's pid above)
+def test_a_second_daemon_is_refused_and_leaves_the_first_ones_run_alone(tmp_path):
+    """Two `tcspc daemon` on one state: the second exits 2 naming the first's pid, starts no
+    stage and does not touch its status.json."""
+    path = write_topology(tmp_path, f'kind = "sim"\nscene = "{tmp_path / "small.toml"}"\n'
+                          'cycles = 2000000\nrate = 2e6')
+    first = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "daemon", "--config",
+                              path, "--run", "one"], stdout=subprocess.DEVNULL,
+                             stderr=subprocess.DEVNULL)
+    try:
+        status = tmp_path / "state" / "status.json"
+        deadline = time.time() + 60
+        while not status.exists():
+            assert first.poll() is None and time.time() < deadline
+            time.sleep(0.1)
+        r = subprocess.run([sys.executable, "-m", "pipeline.cli", "daemon", "--config", path,
+                            "--run", "two"], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 2 and f"in use by daemon pid {first.pid}" in r.stderr
+        assert '"run": "one"' in status.read_text()
+        assert not list((tmp_path / "state" / "checkpoints").glob("two"))
+    finally:
+        first.kill()  # (its stages die with it)
+        first.wait(timeout=60)
