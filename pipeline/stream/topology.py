@@ -234,9 +234,7 @@ def load_topology(path: str | Path | None, run: str | None = None,
     src = src_m.model_dump(exclude_unset=True) if src_m else None
     hist = hist_m.model_dump(exclude_unset=True) if hist_m else {}
     rng = rng_m.model_dump(exclude_unset=True) if rng_m else None
-    sink = secs["sink"].model_dump() if secs["sink"] else SinkSection().model_dump(
-        exclude_none=True)
-    sink = {k: v for k, v in sink.items() if v is not None}
+    sink = (secs["sink"] or SinkSection()).model_dump(exclude_none=True)
     n_tdc = None
     if src is not None:
         n_tdc = _check_source(src, hist, raw.get("range"), where, problems)
