@@ -176,8 +176,7 @@ def test_the_demo_story_runs_and_checks_itself(harness, tmp_path):
 
 
 def test_a_sweep_fans_out_over_a_dask_cluster(harness, tmp_path):
-    """`tcspc flow run --dask ADDRESS`: tasks on a Dask cluster (needs the [dask] extra)."""
-    pytest.importorskip("prefect_dask")
+    """`tcspc flow run --dask ADDRESS`: tasks on a Dask cluster."""
     from click.testing import CliRunner
     from distributed import LocalCluster
 
