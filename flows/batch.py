@@ -181,10 +181,13 @@ def process(path: str, fmt: str, op: str, dest: str, calibration: str | None = N
 
 
 @flow(name="batch")
-def batch(inputs: str, op: str = "histogram", out: str = "data/batch",
+def batch(inputs: str = "data/captures", op: str = "histogram", out: str = "data/batch",
           calibration: str | None = None, delay_ps: float | None = None) -> dict:
-    """``op`` (histogram, calibrate or range) on every capture and instrument file in
-    ``inputs``, one task per file (on a Dask cluster with ``--dask``)."""
+    """Histogram, calibrate or range (``op``) every capture and instrument file in a directory.
+
+    One task per file of ``inputs``, on a Dask cluster with ``--dask``; ``calibration``
+    (a chip capture's bounds, or its ranging) and ``delay_ps`` (an instrument's ranging)
+    as ``tcspc histogram`` and ``tcspc range`` take them."""
     if op not in OPS:
         raise ValueError(f"batch: op must be one of {', '.join(OPS)}, found {op!r}")
     files = discover(inputs)

@@ -89,3 +89,40 @@ def test_a_file_that_fails_is_named_and_fails_the_run_after_the_others(harness, 
     assert [p.name for p in (run / "histogram").iterdir()] == ["test_data_2212b.dat.parquet"]
     with pytest.raises(ValueError, match="op must be one of"):
         batch(str(d), op="fold", out=str(tmp_path / "out"))
+
+
+def test_calibrate_and_range_a_directory(harness, inputs, caldir, tmp_path):
+    """``op=calibrate``: a chip density capture's calibration directory, a LinoSPAD2 file's
+    code density, a PTU file refused (its maker's calibration); ``op=range``: a chip
+    capture with the calibration, the T3 file with its delay."""
+    from flows.batch import batch
+    from pipeline.io.caldir import load_calibration
+    from pipeline.offline.simulate import simulate_capture
+    from stages.models.scene import scene_from_dict
+
+    d = tmp_path / "bench"
+    d.mkdir()
+    simulate_capture(scene_from_dict({"name": "dens", "sensor": {"n_pixels": 16},
+                                      "ambient": [{"kind": "lux", "lux": 1200.0}]}),
+                     40_000, d / "dens", seed=2)
+    shutil.copy(inputs / "test_data_2212b.dat", d)
+    shutil.copy(inputs / "hydraharp_v20_t3.ptu", d)
+    with pytest.raises(RuntimeError, match=r"1 of 3 files failed.*hydraharp.*by its maker"):
+        batch(str(d), op="calibrate", out=str(tmp_path / "cal"))
+    run = next((tmp_path / "cal" / "runs").iterdir())
+    assert load_calibration(run / "calibrate" / "dens").n_tdc == 16
+    lino = pl.read_parquet(run / "calibrate" / "test_data_2212b.dat.code_density.parquet")
+    assert lino.height == 64 and lino["hits"].sum() > 0
+
+    r = tmp_path / "rng"
+    r.mkdir()
+    for name in ("chip0.bin", "chip0.json", "hydraharp_v20_t3.ptu"):
+        shutil.copy(inputs / name, r)
+    res = batch(str(r), op="range", out=str(tmp_path / "rng_out"), calibration=str(caldir),
+                delay_ps=0.0)
+    assert res["files"] == 2 and res["failed"] == 0
+    chip = pl.read_parquet(Path(res["run"]) / "range" / "chip0.parquet")
+    assert chip.height == 16 and chip["detected"].sum() >= 12
+    assert chip.filter(pl.col("detected"))["distance_m"].median() == pytest.approx(1.5, abs=0.1)
+    ptu = pl.read_parquet(Path(res["run"]) / "range" / "hydraharp_v20_t3.ptu.parquet")
+    assert ptu.height == 2

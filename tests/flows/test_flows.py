@@ -145,7 +145,7 @@ def test_flow_cli_lists_runs_and_checks_parameters():
     res = runner.invoke(cli, ["flow", "list"])
     assert res.exit_code == 0
     for name in ("calibration_campaign", "distance_sweep", "performance_prediction",
-                 "speed_vs_error"):
+                 "speed_vs_error", "batch"):
         assert f"{name}:" in res.output
     res = runner.invoke(cli, ["flow", "run", "speed_vs_error", "-p", "pixelz=3"])
     assert res.exit_code != 0 and "not a parameter" in res.output

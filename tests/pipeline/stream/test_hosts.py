@@ -4,7 +4,6 @@ systemd template (docs/systemd/tcspc-stage@.service), tcp:// endpoints on 127.0.
 CURVE on, no daemon; the datasets equal the single-host daemon's."""
 
 import os
-import shlex
 import socket
 import subprocess
 import sys
@@ -13,19 +12,6 @@ from pathlib import Path
 import polars as pl
 import pytest
 
-
-def _daemon_helpers():
-    # test_daemon.py's scene and helpers, loaded by path (tests/ is not a package)
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(
-        "_test_daemon_helpers", Path(__file__).with_name("test_daemon.py"))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-_h = _daemon_helpers()
 CYCLES = 60_000
 
 
@@ -56,19 +42,20 @@ def _env_file(path: Path) -> dict:
     return dict(line.split("=", 1) for line in path.read_text().splitlines() if line)
 
 
-def _frames(out: Path, run: str) -> tuple[pl.DataFrame, pl.DataFrame]:
-    h = _h.dataset(out, "histograms", run).drop("date", "run").sort("measurement", "tdc")
-    r = _h.dataset(out, "ranges", run).drop("date", "run").sort("measurement", "tdc")
+def _frames(dataset, out: Path, run: str) -> tuple[pl.DataFrame, pl.DataFrame]:
+    h = dataset(out, "histograms", run).drop("date", "run").sort("measurement", "tdc")
+    r = dataset(out, "ranges", run).drop("date", "run").sort("measurement", "tdc")
     return h, r
 
 
 @pytest.mark.slow
 def test_stages_started_one_by_one_over_tcp_with_curve_give_the_daemons_datasets(
-        tmp_path, caldir):
+        tmp_path, caldir, daemon_helpers):
+    _h = daemon_helpers
     (tmp_path / "one").mkdir()
     res, _ = _h.run_daemon(_h.topology(tmp_path / "one", caldir, cycles=CYCLES), "h")
     assert res["failed"] is None and res["accounting"]["balanced"]
-    ref_h, ref_r = _frames(tmp_path / "one" / "out", "h")
+    ref_h, ref_r = _frames(_h.dataset, tmp_path / "one" / "out", "h")
 
     d = tmp_path / "hosts"
     d.mkdir()
@@ -101,8 +88,7 @@ def test_stages_started_one_by_one_over_tcp_with_curve_give_the_daemons_datasets
                 p.kill()
     logs = {n: (d / f"{n}.log").read_text()[-2000:] for n in procs}
     assert codes == dict.fromkeys(names, 0), (codes, logs)
-    got_h, got_r = _frames(d / "out", "h")
+    got_h, got_r = _frames(_h.dataset, d / "out", "h")
     assert got_h.height == ref_h.height == CYCLES // 10_000 * _h.N
     assert got_h.equals(ref_h)
     assert got_r.height == ref_r.height and got_r.equals(ref_r)
-    print("stage commands:", {n: shlex.join(p.args[3:6]) for n, p in procs.items()})
