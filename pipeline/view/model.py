@@ -96,6 +96,10 @@ class ViewModel:
             consts = sensor.run_constants(self.state / "journal", tr.run)
             if consts != tr.consts:
                 tr.consts = consts
+                if tr.index.n_tdc is None:  # (and the array's size with it)
+                    from pipeline.stream.journal import run_meta
+
+                    tr.index.n_tdc = run_meta(self.state / "journal", tr.run).get("n_tdc")
                 for key in [key for key in self._meas if key[0] == tr.run]:
                     del self._meas[key]  # drawn without the gate: drawn again with it
         if tr.accounting is None:

@@ -301,6 +301,7 @@ def test_a_page_opened_before_the_run_marks_the_return_once_its_gate_appears(tmp
     m.refresh()
     got = m.measurement(vd.RUN, 0)
     assert got["note"] == "" and np.allclose(got["return_code"], 200.4, atol=1e-6)
+    assert m.tracks[vd.RUN].index.n_tdc == vd.N  # the array's size known from then on
 
 
 def test_untrusted_online_lsb_estimates_are_left_out_of_the_drift_and_named(vd, mirror16):
