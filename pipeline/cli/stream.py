@@ -354,6 +354,13 @@ def plan(config, run_id, out) -> None:
     from pipeline.stream.wire import TOKEN_ENV
 
     topo = load_topology(config, run_id)
+    stages = [(p.name, p.argv[p.argv.index("stage") + 1:])  # after `... pipeline.cli stage`
+              for p in build(topo)]
+    for name, args in stages:  # all checked before any file is written
+        if any(any(c.isspace() for c in a) for a in args):
+            raise click.ClickException(f"{name}: an argument holds white space, which "
+                                       "systemd's $TCSPC_STAGE_ARGS would split: "
+                                       + shlex.join(args))
     for d in ("logs", "journal", f"checkpoints/{topo.run}"):
         (topo.state / d).mkdir(parents=True, exist_ok=True)
     token, _ = run_token(topo.state, topo.run)
@@ -363,15 +370,10 @@ def plan(config, run_id, out) -> None:
 
         env[CURVE_ENV] = str(ensure_keys(topo.state).resolve())
     Path(out).mkdir(parents=True, exist_ok=True)
-    for p in build(topo):
-        args = p.argv[p.argv.index("stage") + 1:]  # after `python -m pipeline.cli stage`
-        if any(any(c.isspace() for c in a) for a in args):
-            raise click.ClickException(f"{p.name}: an argument holds white space, which "
-                                       "systemd's $TCSPC_STAGE_ARGS would split: "
-                                       + shlex.join(args))
+    for name, args in stages:
         lines = [f"TCSPC_STAGE_ARGS={' '.join(args)}", *(f"{k}={v}" for k, v in env.items())]
-        (Path(out) / f"{p.name}.env").write_text("\n".join(lines) + "\n")
-        click.echo(f"{p.name}: {Path(out) / f'{p.name}.env'}  (tcspc stage {args[0]})")
+        (Path(out) / f"{name}.env").write_text("\n".join(lines) + "\n")
+        click.echo(f"{name}: {Path(out) / f'{name}.env'}  (tcspc stage {args[0]})")
     err.print(f"CURVE {'on' if topo.curve_on else 'off'}; run {topo.run}; start each with "
               f"`systemctl start tcspc-stage@NAME` on its host, the source last", highlight=False)
 

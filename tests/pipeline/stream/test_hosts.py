@@ -92,3 +92,32 @@ def test_stages_started_one_by_one_over_tcp_with_curve_give_the_daemons_datasets
     assert got_h.height == ref_h.height == CYCLES // 10_000 * _h.N
     assert got_h.equals(ref_h)
     assert got_r.height == ref_r.height and got_r.equals(ref_r)
+
+
+def test_plan_writes_an_env_file_per_stage_and_refuses_what_systemd_would_split(
+        tmp_path, daemon_helpers):
+    """`tcspc stage plan`: a NAME.env per stage, sink first and source last, the token and
+    CURVE keys made private in the state directory; a path with a space is refused."""
+    from click.testing import CliRunner
+
+    from pipeline.cli.app import cli
+
+    topo = _on_tcp(daemon_helpers.topology(tmp_path, cycles=CYCLES))
+    res = CliRunner().invoke(cli, ["stage", "plan", "--config", str(topo), "--run", "p",
+                                   "--out", str(tmp_path / "units")])
+    assert res.exit_code == 0, res.output
+    envs = {p.stem: _env_file(p) for p in (tmp_path / "units").glob("*.env")}
+    assert sorted(envs) == ["histogram-0", "histogram-1", "sink", "source"]
+    assert envs["histogram-1"]["TCSPC_STAGE_ARGS"].startswith("histogram --pull tcp://")
+    assert envs["source"]["TCSPC_STAGE_ARGS"].startswith("source-sim ")
+    token = Path(envs["sink"]["TCSPC_TOKEN_FILE"])
+    keys = Path(envs["sink"]["TCSPC_CURVE_DIR"])
+    assert token.stat().st_mode & 0o777 == 0o600 and keys.stat().st_mode & 0o777 == 0o700
+    assert (keys / "server.key_secret").exists()
+    spaced = tmp_path / "a b"
+    spaced.mkdir()
+    topo.write_text(topo.read_text().replace(str(tmp_path / "out"), str(spaced / "out")))
+    res = CliRunner().invoke(cli, ["stage", "plan", "--config", str(topo), "--run", "p",
+                                   "--out", str(tmp_path / "units2")])
+    assert res.exit_code != 0 and "white space" in res.output
+    assert not (tmp_path / "units2").exists()  # nothing half written
