@@ -6,7 +6,8 @@ The files are found by content, as ``tcspc histogram`` finds them
 (:func:`pipeline.io.formats.detect_format`): a chip capture (``NAME.bin`` [.zst] with its
 ``NAME.json``), a PicoQuant PTU file, LinoSPAD2 raw words. Each task writes one output
 under ``OUT/runs/<run>/<op>/`` (atomically, named after its file) and returns a row of the
-run's ``files.parquet``; the outputs do not depend on where a task ran, so a run on a
+run's ``files.parquet`` (beside ``params.json``, the run's parameters and files, and
+``summary.json``); the outputs do not depend on where a task ran, so a run on a
 cluster gives the serial run's files (tested). A file that fails is a row with its error,
 and the run fails after every other file was done, naming it.
 
@@ -22,6 +23,7 @@ and the run fails after every other file was done, naming it.
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
@@ -194,6 +196,9 @@ def batch(inputs: str = "data/captures", op: str = "histogram", out: str = "data
     if not files:
         raise ValueError(f"batch: no capture or instrument file in {inputs}")
     run = new_run_dir(out, "batch")
+    params = {"inputs": str(inputs), "op": op, "out": str(out), "calibration": calibration,
+              "delay_ps": delay_ps, "files": [p for p, _ in files]}
+    (run / "params.json").write_text(json.dumps(params, indent=1))
     dest = run / op
     dest.mkdir()
     t0 = time.perf_counter()
@@ -208,6 +213,8 @@ def batch(inputs: str = "data/captures", op: str = "histogram", out: str = "data
     result = {"run": str(run), "op": op, "files": len(rows), "failed": len(failed),
               "wall_s": wall, "files_per_s": len(rows) / wall if wall > 0 else float("nan"),
               "task_s": sum(r["seconds"] for r in rows)}
+    (run / "summary.json").write_text(json.dumps({**result, "failed_files": failed},
+                                                 indent=1))
     if failed:
         raise RuntimeError(f"batch: {len(failed)} of {len(rows)} files failed (the rest are "
                            f"in {run}): " + "; ".join(failed))

@@ -1,6 +1,7 @@
 """The ``batch`` flow: one task per file of a directory of chip captures and instrument
 files, serially and on a local Dask cluster of two worker processes, with the same outputs."""
 
+import json
 import shutil
 from pathlib import Path
 
@@ -73,6 +74,8 @@ def test_a_dask_cluster_of_two_processes_gives_the_serial_runs_files(harness, in
     assert counts.shape == (16, 512) and counts.sum() > 0
     files = pl.read_parquet(next((tmp_path / "dask" / "runs").iterdir()) / "files.parquet")
     assert files["error"].to_list() == [""] * 4
+    params = json.loads((Path(serial["run"]) / "params.json").read_text())
+    assert params["op"] == "histogram" and len(params["files"]) == 4
 
 
 def test_a_file_that_fails_is_named_and_fails_the_run_after_the_others(harness, inputs,
