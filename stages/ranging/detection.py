@@ -92,12 +92,14 @@ def detection_threshold(b, p_fa: float, n_bins) -> np.ndarray:
 
 
 def tested_bin(counts, valid, peak) -> np.ndarray:
-    """The bin the detection tests: of the peak's bin and its two neighbours, the valid
-    one with the most counts. An estimator's peak is the centre of its box, which can be
-    a dead code (zero width, no count) with the return's counts on both sides: tested
-    there, a return of 4 000 counts went undetected (chip zoo seed 326). Any bin's count
-    against its own background tail at ``p_fa / n_bins`` keeps the false-alarm rate at
-    ``p_fa`` whichever bin is chosen (the union bound over the valid bins)."""
+    """The bin the detection tests: of the ``peak`` bin (the bin holding the estimate,
+    :func:`bin_of`) and its two neighbours, the valid one with the most counts. The
+    estimate can sit on a dead code (zero width, no count) with the return's counts on
+    both sides: tested there alone, a return of 4 000 counts went undetected (chip zoo
+    seed 326); the peak search's box centre can be bins away from a return in one bin
+    (5 000 counts in one bin went undetected by fast and ml). Any bin's count against its
+    own background tail at ``p_fa / n_bins`` keeps the false-alarm rate at ``p_fa``
+    whichever bin is chosen (the union bound over the valid bins)."""
     counts, valid, peak = np.asarray(counts), np.asarray(valid, bool), np.asarray(peak)
     rows = np.arange(peak.size)[:, None]
     idx = np.clip(peak[:, None] + np.array([0, -1, 1])[None, :], 0, counts.shape[1] - 1)
@@ -105,21 +107,44 @@ def tested_bin(counts, valid, peak) -> np.ndarray:
     return idx[rows[:, 0], np.argmax(score, axis=1)]  # ties: the peak's own bin first
 
 
-def _detection(counts, valid, at_risk, widths, peak, bg_rate, p_fa):
+def bin_of(edges_s, t_s, peak) -> np.ndarray:
+    """The bin holding each time ``t_s`` (the last bin whose lower edge is <= t, clipped
+    to the histogram), ``peak`` where t is not finite (the compiled fast kernel's
+    ``_window_at`` finds the same bin)."""
+    e = np.asarray(edges_s, np.float64)
+    t = np.asarray(t_s, np.float64)
+    n = e.shape[1] - 1
+    with np.errstate(invalid="ignore"):
+        cb = np.minimum((e[:, 1:n] <= t[:, None]).sum(axis=1), n - 1)
+    return np.where(np.isfinite(t), cb, np.asarray(peak))
+
+
+def _detection(counts, valid, at_risk, widths, peak, bg_rate, p_fa, exposure=None):
     """eq. 2.44-2.48 at false-alarm probability p_fa with the exact Poisson tail: the peak
     bin's count (:func:`tested_bin`) against what background alone (its expected count b
     in that bin, pile-up included) exceeds in any of the valid bins with probability p_fa
-    (:func:`detection_threshold`). The compiled fast kernel has its twin inline."""
+    (:func:`detection_threshold`). The background is taken no lower than one count over
+    the valid bins' ``exposure`` (cycle-seconds at risk): a histogram of one count has no
+    other to estimate it from, and a rate of 0 called that count a return (6 in 400
+    histograms of 0.001 counts a bin, at p_fa 0.05 when the tested bin was the estimate's).
+    The compiled fast kernel has its twin inline."""
     rows = np.arange(peak.size)
     q = tested_bin(counts, valid, peak)
-    b = np.maximum(at_risk[rows, q], 0.0) * -np.expm1(-bg_rate * widths[rows, q])
+    if exposure is None:
+        exposure = np.cumsum(np.where(valid, np.maximum(at_risk, 0.0) * widths, 0.0),
+                             axis=1)[:, -1]
+    rate = np.maximum(bg_rate, 1.0 / np.maximum(exposure, 1e-300))
+    b = np.maximum(at_risk[rows, q], 0.0) * -np.expm1(-rate * widths[rows, q])
     n_bins = np.maximum(np.asarray(valid).sum(axis=1), 1)
     return poisson_tail(counts[rows, q], b) <= p_fa / n_bins
 
 
-def _detect(h: Histograms, peak, bg_rate, p_fa):
-    """:func:`_detection` of a :class:`Histograms`."""
-    return _detection(h.counts, h.valid, h.at_risk, h.widths, peak, bg_rate, p_fa)
+def _detect(h: Histograms, peak, bg_rate, p_fa, t_s=None):
+    """:func:`_detection` of a :class:`Histograms` at the bin holding the estimate ``t_s``
+    (the ``peak`` where it is not finite, or not given: the least-squares fit's time can
+    be pulled sigmas off by an empty code, its box's peak is not)."""
+    at = peak if t_s is None else bin_of(h.edges_s, t_s, peak)
+    return _detection(h.counts, h.valid, h.at_risk, h.widths, at, bg_rate, p_fa)
 
 
 if numba is not None:

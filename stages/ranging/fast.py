@@ -9,9 +9,10 @@ import numpy as np
 
 from stages.models.tcspc import FWHM_PER_SIGMA
 from stages.ranging._numba import numba
-from stages.ranging.detection import _detection
+from stages.ranging.detection import _detection, bin_of
 from stages.ranging.gauss_table import _cdf_pdf_numpy
 from stages.ranging.histograms import Estimate, Histograms
+from stages.ranging.validation import validated
 
 if numba is not None:
     from stages.ranging.detection import _poisson_tail
@@ -110,7 +111,7 @@ def _fast_numpy(counts, edges, valid, cycles, kb, kc, p_fa, kw, inv_s, steps, st
                  0.5 * (edges[rows, peak] + edges[rows, peak + 1]))
     t, m, sig = _score_steps_numpy(counts, edges, valid, r, C, peak, bg, t, kw, inv_s, steps,
                                    step_cap)
-    det = _detection(counts, valid, r, widths, peak, bg, p_fa)
+    det = _detection(counts, valid, r, widths, bin_of(edges, t, peak), bg, p_fa, RW[:, -1])
     return t, peak, m, bg, det, sig
 
 
@@ -367,12 +368,15 @@ if numba is not None:
                     break
             t_out[p] = t
             sig_out[p] = sig
-            q = peak  # tested_bin: the valid bin of most counts of peak - 1 .. peak + 1
-            for j in (peak - 1, peak + 1):
+            # tested_bin: the valid bin of most counts of the estimate's bin (bin_of) and
+            # its neighbours
+            q = _window_at(edges[p], cb, t, kw)[0] if math.isfinite(t) else peak
+            for j in (q - 1, q + 1):
                 if 0 <= j < n and valid[p, j] and (not valid[p, q]
                                                    or counts[p, j] > counts[p, q]):
                     q = j
-            b = max(r[q], 0.0) * -np.expm1(-bg * (edges[p, q + 1] - edges[p, q]))
+            bgd = max(bg, 1.0 / max(RW[n], 1e-300))  # _detection's floor: one count
+            b = max(r[q], 0.0) * -np.expm1(-bgd * (edges[p, q + 1] - edges[p, q]))
             det_out[p] = _poisson_tail(counts[p, q], b) <= p_fa / max(nv, 1)
             tot_out[p] = m
             bg_out[p] = bg
@@ -381,6 +385,7 @@ if numba is not None:
 
 
 
+@validated
 def fast(h: Histograms, sigma_s: float, p_fa: float = 1e-3, compiled: bool | None = None):
     """The fastest estimator: two passes per histogram, then work only in the peak window.
 

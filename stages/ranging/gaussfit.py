@@ -7,8 +7,10 @@ import numpy as np
 from stages.models.tcspc import FWHM_PER_SIGMA
 from stages.ranging.detection import _detect, _peak_index
 from stages.ranging.histograms import Estimate, Histograms
+from stages.ranging.validation import validated
 
 
+@validated
 def gaussfit(h: Histograms, sigma_s: float, p_fa: float = 1e-3):
     """The thesis's baseline (section 5.2): a Gaussian plus constant fitted by least squares
     to the raw histogram around its peak, one pixel at a time (scipy's curve_fit)."""

@@ -80,3 +80,9 @@ class Estimate:
     background_per_bin: np.ndarray
     detected: np.ndarray
     estimator: str
+    #: per pixel, "" or why the result is flagged (:mod:`stages.ranging.validation`): an
+    #: input it could not use, an estimate outside the window, no uncertainty; a flagged
+    #: pixel is not detected unless the flag says it may be cut by the window's edge
+    flag: np.ndarray | None = None
+    #: per pixel, the index of the return (0 the strongest; :mod:`stages.ranging.multi`)
+    return_index: np.ndarray | None = None

@@ -7,8 +7,10 @@ import numpy as np
 from stages.models.tcspc import FWHM_PER_SIGMA
 from stages.ranging.detection import _detect, _peak_index
 from stages.ranging.histograms import Estimate, Histograms
+from stages.ranging.validation import validated
 
 
+@validated
 def matched(h: Histograms, sigma_s: float, p_fa: float = 1e-3):
     """Matched filter on the pile-up-corrected density, parabolic sub-bin interpolation."""
     lam, w = h.intensity(), h.widths
@@ -30,6 +32,6 @@ def matched(h: Histograms, sigma_s: float, p_fa: float = 1e-3):
     sig_counts = np.where(win & h.valid, lam - bg[:, None] * w, 0).sum(1) * h.cycles
     sig = sigma_s / np.sqrt(np.maximum(sig_counts, 1.0))
     return Estimate(t, sig, np.full(t.size, FWHM_PER_SIGMA * sigma_s), sig_counts,
-                    bg * h.bin_s * h.cycles, _detect(h, peak, bg, p_fa), "matched")
+                    bg * h.bin_s * h.cycles, _detect(h, peak, bg, p_fa, t), "matched")
 
 

@@ -13,6 +13,7 @@ from stages.ranging._numba import numba
 from stages.ranging.detection import _detect
 from stages.ranging.fast import _fast_args, _fast_numpy
 from stages.ranging.histograms import Estimate, Histograms
+from stages.ranging.validation import validated
 
 if numba is not None:
     from stages.ranging.fast import _fast_numba
@@ -25,10 +26,12 @@ def _ml_setup(h: Histograms, sigma_s: float, half_width_sigma: float, compiled: 
     counts, edges, valid, cycles = fargs[:4]
     args = (counts, np.ascontiguousarray(h.widths), np.ascontiguousarray(h.centres), valid,
             cycles, t_start, peak, bg)
-    k = max(3, int(np.ceil(half_width_sigma * sigma_s / h.bin_s)))
+    # (no wider than the histogram: a response far wider than the window made it unbounded)
+    k = min(max(3, int(np.ceil(half_width_sigma * sigma_s / h.bin_s))), h.counts.shape[1])
     return args, k
 
 
+@validated
 def ml(h: Histograms, sigma_s: float, p_fa: float = 1e-3, iterations: int = 30,
        half_width_sigma: float = 8.0, compiled: bool | None = None):
     """Poisson maximum likelihood of signal + background with pile-up (the exact binomial
@@ -47,7 +50,7 @@ def ml(h: Histograms, sigma_s: float, p_fa: float = 1e-3, iterations: int = 30,
     else:
         t0, sig, m, bg, peak = _ml_numpy(*args, k, sigma_s, iterations)
     return Estimate(t0, sig, np.full(t0.size, FWHM_PER_SIGMA * sigma_s), m * h.cycles,
-                    bg * h.bin_s * h.cycles, _detect(h, peak, bg, p_fa), "ml")
+                    bg * h.bin_s * h.cycles, _detect(h, peak, bg, p_fa, t0), "ml")
 
 
 def _ml_numpy(counts_all, widths, centres, valid_all, cycles, t_start, peak, bg, k, sigma_s,
