@@ -816,11 +816,16 @@ def fit_lsb(n: np.ndarray, lsb_ps: np.ndarray) -> LsbFit:
     """
     from stages.ranging.validation import check_levels
 
-    n = check_levels(n)  # finite, >= 4 distinct: [.1, .1, .3, .3] gave half the LSB
+    n = np.asarray(n, np.float64)
     y = np.asarray(lsb_ps, np.float64)
+    if n.size < 4:
+        raise CalibrationError(f"an LSB-against-light fit needs density tests at >= 4 light "
+                               f"levels (a cubic, eq. 5.1); found {n.size}")
     if y.ndim != 2 or y.shape[1] != n.size:
         raise CalibrationError(f"lsb_ps must be (TDCs, {n.size} light levels), found shape "
                                f"{y.shape}")
+    if np.isfinite(y).any():  # (no TDC measured at all: the caller says why)
+        n = check_levels(n)  # finite, >= 4 distinct: [.1, .1, .3, .3] gave half the LSB
     x_mean = float(n.mean())
     x_scale = float(n.std()) or 1.0
     x = (n - x_mean) / x_scale
