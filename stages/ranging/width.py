@@ -63,6 +63,9 @@ def response_from_data(h: Histograms, t_s=None) -> tuple[float, str]:
     each histogram's fullest bin), and how it was chosen. One bin when no return is that
     strong. (One bin was the default: a response 4 bins wide then gave sigmas 7-11x too
     small.)"""
+    from stages.ranging.validation import _safe, check_histograms
+
+    h = _safe(h, check_histograms(h))  # (what the estimators refuse, refused first)
     counts = np.asarray(h.counts, np.float64)
     if t_s is None:
         score = np.where(np.asarray(h.valid, bool), counts, -1.0)
