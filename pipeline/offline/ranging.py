@@ -18,7 +18,7 @@ from stages import calibration as cal
 from stages.calibration_set import Calibration, time_axis
 from stages.histogram import HistogramAccumulator, HistogramState
 from stages.ranging import Estimate, Histograms, estimate_returns, response_from_data
-from stages.ranging.multi import MAX_RETURNS
+from stages.ranging.multi import MAX_RETURNS, select_rows
 
 
 def range_state(state: HistogramState, calibration: Calibration, window_s: float,
@@ -87,7 +87,8 @@ BEHIND_ZERO = "before the zero (the delay is beyond the return)"
 
 def behind_zero(est: Estimate, distance_m):
     """A negative distance is no distance: the row is flagged, not detected, and its
-    distance NaN (a delay beyond the return gave -0.45 m with no warning)."""
+    distance NaN (a delay beyond the return gave -0.45 m with no warning); a further
+    return (``return_index`` > 0) so withdrawn is dropped (such rows are detections)."""
     d = np.asarray(distance_m, np.float64)
     with np.errstate(invalid="ignore"):
         neg = d < 0
@@ -95,8 +96,12 @@ def behind_zero(est: Estimate, distance_m):
         return est, d
     flag = np.array(est.flag if est.flag is not None else [""] * d.size, dtype=object)
     flag[neg] = BEHIND_ZERO
-    return (dataclasses.replace(est, detected=np.asarray(est.detected, bool) & ~neg,
-                                flag=flag), np.where(neg, np.nan, d))
+    est = dataclasses.replace(est, detected=np.asarray(est.detected, bool) & ~neg, flag=flag)
+    d = np.where(neg, np.nan, d)
+    if est.return_index is None:
+        return est, d
+    keep = (est.return_index == 0) | est.detected
+    return select_rows(est, keep), d[keep]
 
 
 def _unresolved(calib: Calibration, state: HistogramState, axis, est: Estimate,
@@ -151,9 +156,10 @@ def ranges_table(measurement: str, est: Estimate, distance_m: np.ndarray,
 
 def range_capture(capture: str | Path, calibration: Calibration, out: str | Path,
                   estimator: str = "ml", sigma_s: float | None = None,
-                  p_fa: float = 1e-3, max_returns: int = MAX_RETURNS) -> tuple[pa.Table, str]:
-    """Range a whole capture, up to ``max_returns`` returns a pixel; returns the ranges
-    table and the note of :func:`range_state`."""
+                  p_fa: float = 1e-3, max_returns: int = 1) -> tuple[pa.Table, str]:
+    """Range a whole capture, up to ``max_returns`` returns a pixel (``tcspc range``: 3 by
+    default; 1 here, a row a TDC, for the flows that aggregate per TDC); returns the
+    ranges table and the note of :func:`range_state`."""
     cap = Capture(capture)
     if calibration.n_tdc != cap.meta.n_tdc:
         raise CalibrationError(f"{calibration.path}: calibrates {calibration.n_tdc} TDCs, "

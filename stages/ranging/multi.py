@@ -153,3 +153,10 @@ def estimate_returns(h: Histograms, sigma_s: float, estimator: str = "ml",
                     detected=col("detected", bool), estimator=first.estimator,
                     flag=col("flag", object), return_index=index.astype(np.int64),
                     pixel=pixel.astype(np.int64))
+
+
+def select_rows(est: Estimate, keep) -> Estimate:
+    """The rows ``keep`` (a mask or indices) of a per-row estimate."""
+    return Estimate(**{f: (v[keep] if isinstance(v := getattr(est, f), np.ndarray) else v)
+                       for f in Estimate.__dataclass_fields__})
+
