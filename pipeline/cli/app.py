@@ -277,7 +277,8 @@ def schema(markdown) -> None:
 @click.option("--chip-seed", default=1, show_default=True, help="Seed of the chip's "
               "LSB, INL and second-stage parameters (the same chip across captures).")
 @click.option("--engine", type=click.Choice(["fast", "reference"]), default=None,
-              help="Default: fast, or reference when a target moves.")
+              help="Default: fast, or reference when a target moves or a pixel sees "
+                   "several surfaces.")
 @click.option("--malformed-rate", default=0.0, show_default=True,
               type=click.FloatRange(0, 1), help="Fraction of words to corrupt (markers).")
 @click.option("--invalid-rate", default=0.0, show_default=True,
