@@ -203,9 +203,13 @@ def finish(est: Estimate, h: Histograms, sigma_s: float, flags: np.ndarray) -> E
     ok = flags == ""
     valid = np.asarray(h.valid, bool)
     rows = np.arange(t.size)
-    first = valid.argmax(axis=1)                                  # the first valid bin
-    last = valid.shape[1] - 1 - valid[:, ::-1].argmax(axis=1)     # and the last
-    any_valid = valid[rows, first]
+    if numba is not None:
+        first, last = _valid_span(np.ascontiguousarray(valid))
+    else:
+        first = valid.argmax(axis=1)                              # the first valid bin
+        last = valid.shape[1] - 1 - valid[:, ::-1].argmax(axis=1)  # and the last
+    first, last = np.maximum(first, 0), np.maximum(last, 0)
+    any_valid = valid[rows, first]  # (a row without a valid bin: no edge to be near)
     with np.errstate(invalid="ignore"):
         not_finite = ~(np.isfinite(t) & np.isfinite(sig) & (sig > 0))
         outside = ~not_finite & ((t < e[:, 0]) | (t > e[:, -1]))
@@ -251,15 +255,31 @@ if numba is not None:
         numpy form: a sum and a minimum)."""
         n_pix, n = c.shape
         total = np.empty(n_pix)
-        ok = True
+        low = np.inf
         for p in range(n_pix):
             acc = 0.0
             for j in range(n):
-                x = c[p, j]
-                acc += x
-                ok &= x >= 0.0  # (False for NaN)
+                acc += c[p, j]                # NaN and inf carry into the total
+                low = min(low, c[p, j])
             total[p] = acc
-        return total, ok and np.isfinite(total).all()
+        return total, low >= 0.0 and np.isfinite(total).all()
+
+    @numba.njit(cache=True, nogil=True)
+    def _valid_span(valid):
+        """Each row's first and last valid bin (0 and -1 for a row with none)."""
+        n_pix, n = valid.shape
+        first = np.zeros(n_pix, np.int64)
+        last = np.full(n_pix, -1, np.int64)
+        for p in range(n_pix):
+            for j in range(n):
+                if valid[p, j]:
+                    first[p] = j
+                    break
+            for j in range(n - 1, -1, -1):
+                if valid[p, j]:
+                    last[p] = j
+                    break
+        return first, last
 
     @numba.njit(cache=True, nogil=True)
     def _edges_scan(e):

@@ -195,3 +195,29 @@ def test_never_a_crash_a_silent_nan_or_a_detection_from_inconsistent_input(estim
     est, d = behind_zero(r, 1.5e8 * (r.t_s - delay))
     assert not (np.asarray(est.detected) & ~(d >= 0)).any()
     assert (np.nan_to_num(d, nan=0.0) >= 0).all()
+
+
+def test_the_compiled_scans_and_their_numpy_forms_agree():
+    """The checks' one-pass scans (numba) against the numpy forms, on good and bad input."""
+    from stages.ranging import validation as v
+
+    if v.numba is None:
+        pytest.skip("numba not installed")
+    rng = np.random.default_rng(2)
+    for bad in (None, np.nan, -1.0, np.inf):
+        c = rng.poisson(3.0, (5, 30)).astype(float)
+        if bad is not None:
+            c[3, 7] = bad
+        total, ok = v._count_scan(c)
+        np.testing.assert_array_equal(total, c.sum(axis=1))
+        assert ok == bool(np.isfinite(c.sum(axis=1)).all() and c.min() >= 0)
+    for bad in (None, np.nan, -1.0, "flat"):
+        e = np.tile(np.arange(31) * B, (5, 1))
+        if bad == "flat":
+            e[2] = 0.0
+        elif bad is not None:
+            e[1, 4] = bad
+        ends = e[:, [0, -1]]
+        ref = bool(np.isfinite(ends).all() and (ends[:, 1] > ends[:, 0]).all()
+                   and (e[:, 1:] >= e[:, :-1]).all())
+        assert v._edges_scan(e) == ref
