@@ -186,11 +186,11 @@ def read_ranges(index: RunIndex, k: int):
     if not files:
         return None
     # (pyarrow reads a small file in ~1 ms; polars' reader costs ~50 ms a call here)
-    from pipeline.io.ranges import upgrade_ranges
-
-    tables = [upgrade_ranges(pq.read_table(p, use_threads=False), str(p)) for p in files]
-    return (pl.from_arrow(pa.concat_tables(tables)).filter(pl.col("return_index") == 0)
-            .sort("tdc"))
+    tables = [pq.read_table(p, use_threads=False) for p in files]
+    df = pl.from_arrow(pa.concat_tables(tables, promote_options="default"))
+    if "return_index" in df.columns:  # ranges 2.0: a row per return (1.0: none, all row 0)
+        df = df.filter(pl.col("return_index").fill_null(0) == 0)
+    return df.sort("tdc")
 
 
 # ---------------------------------------------------------------- the accounting identity
