@@ -152,7 +152,8 @@ def distance(histograms, truth, out, p_fa) -> None:
                   f"bin width {np.nanmin(w):.2f}..{np.nanmax(w):.2f} ps; delay "
                   f"{np.nanmin(fit['delay_ps']):.1f}..{np.nanmax(fit['delay_ps']):.1f} ps",
                   highlight=False)
-    none = [t for t, d in zip(cal.tdc, cal.fits["ml"]["delay_ps"]) if not np.isfinite(d)]
+    none = [t for t, d in zip(cal.tdc, cal.fits["ml"]["delay_ps"], strict=True)
+            if not np.isfinite(d)]
     if none:
         err.print(f"[yellow]warning:[/yellow] no delay (no detection) on rows {none}")
     err.print(f"wrote {out}")

@@ -35,9 +35,8 @@ def range_generic(path: str, out: str, calibration, delay_ps, zero, gate, estima
     import numpy as np
     import polars as pl
 
-    from pipeline.offline.generic import DistanceCalibration
+    from pipeline.offline.generic import DistanceCalibration, write_ranges
     from pipeline.offline.generic import range_generic as rng_generic
-    from pipeline.offline.generic import write_ranges
     from schemas.errors import CalibrationError
 
     if sum(x is not None for x in (calibration, delay_ps, zero)) != 1:

@@ -144,7 +144,8 @@ def measurement_times(m: Measurement, estimator: str = "ml", p_fa: float = 1e-3,
     if ref.size:
         r = ref[0]
         response = response_from_counts(m.counts[r], m.bin_width_s,
-                                        f"the reference channel (row {m.tdc[r]}) of each measurement",
+                                        f"the reference channel (row {m.tdc[r]}) of each "
+                                        "measurement",
                                         cyc[r] if cycles is not None else None)
     if estimator in IRF_ESTIMATORS and response is not None and sigma_s is None:
         est, used = fit_response(h, response, estimator, p_fa), response.source
@@ -305,7 +306,8 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
     if zero is not None:
         z = read_generic(zero)[0]
         zt = measurement_times(z, estimator, p_fa, response, sigma_s, cycles)
-        zero_delay = dict(zip(zt.tdc.tolist(), np.where(zt.est.detected, zt.t_s, np.nan)))
+        zero_delay = dict(zip(zt.tdc.tolist(), np.where(zt.est.detected, zt.t_s, np.nan),
+                              strict=True))
     tables, info = [], {}
     for m in read_generic(path):
         tm = measurement_times(m, estimator, p_fa, response, sigma_s, cycles)
