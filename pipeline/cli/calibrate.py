@@ -152,6 +152,10 @@ def distance(histograms, truth, out, p_fa) -> None:
                   f"bin width {np.nanmin(w):.2f}..{np.nanmax(w):.2f} ps; delay "
                   f"{np.nanmin(fit['delay_ps']):.1f}..{np.nanmax(fit['delay_ps']):.1f} ps",
                   highlight=False)
+    for name in ("matched", "ml"):
+        if name in cal.fits and cal.preferred(name) != name:
+            err.print(f"  {name}: the Gaussian of the response's FWHM fits better than the "
+                      "measured shape; range uses it", highlight=False)
     none = [t for t, d in zip(cal.tdc, cal.fits["ml"]["delay_ps"], strict=True)
             if not np.isfinite(d)]
     if none:

@@ -36,6 +36,9 @@ from stages.ranging import ESTIMATORS, Estimate, Histograms, estimate
 from stages.ranging.irf import IRF_ESTIMATORS, Response, fit_response, response_from_counts
 
 CALIBRATION_FILE = "distance_calibration.json"
+#: the key of a fit made with a Gaussian by an estimator that takes a measured response
+#: (its delay differs: each shape puts a return's time elsewhere on the peak)
+GAUSSIAN = "/gaussian"
 #: cycles of a histogram whose instrument does not report them: so many that the Coates
 #: correction is the identity
 _NO_PILEUP = 1e12
@@ -83,6 +86,18 @@ class DistanceCalibration:
         return cls(doc["tdc"], doc["nominal_bin_ps"], doc["fits"], resp, doc.get("cycles"),
                    doc.get("pileup", ""), doc.get("measurements", []),
                    doc.get("distances_m", []), str(path))
+
+    def preferred(self, estimator: str) -> str:
+        """The fit ``range`` uses for ``estimator`` when no response is asked for: for
+        matched and ml, the measured response or the Gaussian of its FWHM, whichever left
+        the smaller calibration residuals (a reference channel's far tail need not be a
+        zone's; the calibration, not the user, tells)."""
+        alt = self.fits.get(estimator + GAUSSIAN)
+        if alt is not None and estimator in self.fits and np.isfinite(alt["rms_mm"]) and (
+                not np.isfinite(self.fits[estimator]["rms_mm"])
+                or alt["rms_mm"] < self.fits[estimator]["rms_mm"]):
+            return estimator + GAUSSIAN
+        return estimator
 
     def row_fit(self, estimator: str, tdc) -> tuple[np.ndarray, np.ndarray]:
         """(delay_s, bin scale real/nominal) per requested row; NaN where not calibrated."""
@@ -249,11 +264,15 @@ def calibrate_distance(path: str | Path, truth_csv: str | Path,
     if all(not np.isfinite(m.cycles).any() for m in meas) and np.unique(
             cal.distances_m).size >= 3:
         cal.cycles, cal.pileup = _fit_cycles(meas, dist, cal.response, p_fa)
-    for name in estimators:
-        times = [measurement_times(m, name, p_fa, cal.response, cycles=cal.cycles)
+    runs = [(name, None) for name in estimators] + [
+        (name + GAUSSIAN, cal.response.sigma_s) for name in estimators
+        if name in IRF_ESTIMATORS]
+    for key, sigma in runs:
+        name = key.removesuffix(GAUSSIAN)
+        times = [measurement_times(m, name, p_fa, cal.response, sigma, cal.cycles)
                  for m in meas]
         delay, scale, res = _fit_rows(times, dist)
-        cal.fits[name] = {
+        cal.fits[key] = {
             "delay_ps": (delay * 1e12).tolist(), "bin_width_ps": (scale * nominal * 1e12)
             .tolist(), "residual_mm": (res * 1e3).tolist(), "rms_mm": _rms(res) * 1e3,
             "n_distances": int(np.unique(np.asarray(cal.distances_m)).size),
@@ -294,14 +313,25 @@ def _fit_cycles(meas, dist, response, p_fa) -> tuple[float | None, str]:
 def range_generic(path: str | Path, calibration: DistanceCalibration | None = None,
                   delay_s: float | None = None, zero: str | Path | None = None,
                   sigma_s: float | None = None, estimator: str = "ml",
-                  p_fa: float = 1e-3) -> tuple[pa.Table, dict[str, str]]:
+                  p_fa: float = 1e-3, shape: str = "auto") -> tuple[pa.Table, dict[str, str]]:
     """Ranges of every measurement of a generic histograms file: with a calibration, a
     given delay, or a delay measured on a zero-distance file. A row is not detected where
-    its distance would be negative or unknown (its distance_m is then 0, a placeholder)."""
+    its distance would be negative or unknown (its distance_m is then 0, a placeholder).
+    ``shape`` (matched and ml with a calibration): ``"auto"`` the calibration's
+    :meth:`~DistanceCalibration.preferred`, ``"measured"`` or ``"gaussian"``."""
     from pipeline.offline.ranging import ranges_table
 
     cycles = calibration.cycles if calibration is not None else None
     response = calibration.response if calibration is not None else None
+    key = estimator
+    if calibration is not None:
+        if shape not in ("auto", "measured", "gaussian"):
+            raise ValueError(f"shape must be auto, measured or gaussian, found {shape!r}")
+        key = calibration.preferred(estimator) if shape == "auto" else estimator
+        if estimator in IRF_ESTIMATORS and (sigma_s is not None or shape == "gaussian"):
+            key = estimator + GAUSSIAN
+        if key.endswith(GAUSSIAN) and sigma_s is None:
+            sigma_s = response.sigma_s
     zero_delay = None
     if zero is not None:
         z = read_generic(zero)[0]
@@ -313,7 +343,7 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
         tm = measurement_times(m, estimator, p_fa, response, sigma_s, cycles)
         scale = np.ones(tm.tdc.size)
         if calibration is not None:
-            delay, scale = calibration.row_fit(estimator, tm.tdc)
+            delay, scale = calibration.row_fit(key, tm.tdc)
         elif zero_delay is not None:
             delay = np.array([zero_delay.get(int(t), np.nan) for t in tm.tdc])
         else:
@@ -327,7 +357,10 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
         t = t.set_column(t.schema.get_field_index("tdc"), t.schema.field("tdc"),
                          pa.array(tm.tdc, t.schema.field("tdc").type))
         tables.append(t)
-        info = {"response": tm.response, "pileup": tm.pileup}
+        info = {"response": tm.response + (
+            " (the measured response's FWHM: its calibration residuals were smaller than "
+            "the measured shape's)" if key != estimator and key == calibration.preferred(
+                estimator) else ""), "pileup": tm.pileup}
         if tm.bright.any():
             info["bright"] = (f"{int(tm.bright.sum())} row(s) of {m.name} hold more counts "
                               "than the effective pulses: their own total used instead")
