@@ -94,8 +94,11 @@ def lsb(captures, out, plot, inl_rms) -> None:
 @click.argument("capture", type=click.Path())
 @click.option("--out", required=True, type=click.Path(exists=True, file_okay=False),
               help="calibration directory with a density test; the delay is added to it")
-def delay(capture, out) -> None:
-    """System delay per TDC from a zero-distance CAPTURE (eq. 5.3), into CALDIR.
+@click.option("--distance-m", default=0.0, show_default=True, type=float,
+              help="The target's distance in CAPTURE (eq. 5.3 with its round trip).")
+def delay(capture, out, distance_m) -> None:
+    """System delay per TDC from a zero-distance CAPTURE (eq. 5.3), into CALDIR; or from
+    a capture of a target at a known --distance-m.
 
     The peak is found as the range stage finds it (ML, pile-up exact), anywhere in the
     window. Give the capture ambient light brighter than the density test's (its reset
@@ -105,7 +108,12 @@ def delay(capture, out) -> None:
     and why the others did not; exits non-zero, leaving CALDIR as it was, when none did."""
     from collections import Counter
 
-    calib = add_delay(capture, out, log=lambda m: err.print(f"delay: {m}", highlight=False))
+    try:
+        calib = add_delay(capture, out, log=lambda m: err.print(f"delay: {m}",
+                                                                highlight=False),
+                          distance_m=distance_m)
+    except CalibrationError as exc:
+        raise click.ClickException(str(exc)) from None
     d, used = calib.delay_s, calib.meta["delay"]
     got = np.isfinite(d)
     err.print(f"delay on {int(got.sum())} of {d.size} TDCs: "
