@@ -88,6 +88,16 @@ def main() -> None:
         rows.append({"estimator": est + (" (default)" if shape == "auto" and est in
                                          g.IRF_ESTIMATORS else ""), "response": how,
             "hist/s": f"{table.num_rows / best:.3g}", **_errors(d, det, tr, tdc)})
+    plain = g.calibrate_distance(h, tmp / "cal.csv", estimators=("ml",), fit_pileup=False)
+    table, _ = g.range_generic(h, plain, estimator="ml", shape="gaussian")
+    names_col = np.array(table.column("measurement").to_pylist())
+    sel = np.isin(names_col, list(test_names))
+    rows.append({"estimator": "ml, no pile-up correction", "response": "Gaussian (the "
+                 "response's FWHM)", "hist/s": "", **_errors(
+                     table.column("distance_m").to_numpy()[sel],
+                     table.column("detected").to_numpy(zero_copy_only=False)[sel],
+                     np.array([truth[n] for n in names_col[sel]]),
+                     table.column("tdc").to_numpy()[sel])})
     # baselines: a log-parabola with the same kind of calibration, the sensor's firmware
     peak = {m.name: (_log_parabola(m.counts[~m.reference])
                      - _log_parabola(m.counts[m.reference])) * m.bin_width_s for m in meas}

@@ -108,12 +108,8 @@ def delay(capture, out, distance_m) -> None:
     and why the others did not; exits non-zero, leaving CALDIR as it was, when none did."""
     from collections import Counter
 
-    try:
-        calib = add_delay(capture, out, log=lambda m: err.print(f"delay: {m}",
-                                                                highlight=False),
-                          distance_m=distance_m)
-    except CalibrationError as exc:
-        raise click.ClickException(str(exc)) from None
+    calib = add_delay(capture, out, log=lambda m: err.print(f"delay: {m}", highlight=False),
+                      distance_m=distance_m)
     d, used = calib.delay_s, calib.meta["delay"]
     got = np.isfinite(d)
     err.print(f"delay on {int(got.sum())} of {d.size} TDCs: "

@@ -230,9 +230,11 @@ def _rms(res) -> float:
 
 
 def calibrate_distance(path: str | Path, truth_csv: str | Path,
-                       estimators=ESTIMATORS, p_fa: float = 1e-3) -> DistanceCalibration:
+                       estimators=ESTIMATORS, p_fa: float = 1e-3,
+                       fit_pileup: bool = True) -> DistanceCalibration:
     """Fit delay and bin width per row from the measurements of ``path`` that ``truth_csv``
-    names; see the module's docstring. Raises CalibrationError when nothing can be fitted."""
+    names; see the module's docstring (``fit_pileup=False``: no effective pulse count,
+    for comparison). Raises CalibrationError when nothing can be fitted."""
     truth = read_truth(truth_csv)
     names = {k[0] for k in truth}
     meas = [m for m in read_generic(path) if m.name in names]
@@ -261,7 +263,7 @@ def calibrate_distance(path: str | Path, truth_csv: str | Path,
         cal.response = response_from_counts(mid.counts[r], nominal,
                                             f"row {mid.tdc[r]} of {mid.name} at "
                                             f"{cal.distances_m[order[len(order) // 2]]:g} m")
-    if all(not np.isfinite(m.cycles).any() for m in meas) and np.unique(
+    if fit_pileup and all(not np.isfinite(m.cycles).any() for m in meas) and np.unique(
             cal.distances_m).size >= 3:
         cal.cycles, cal.pileup = _fit_cycles(meas, dist, cal.response, p_fa)
     runs = [(name, None) for name in estimators] + [
