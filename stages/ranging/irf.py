@@ -24,7 +24,7 @@ from scipy.interpolate import PchipInterpolator
 from stages.models.tcspc import FWHM_PER_SIGMA
 from stages.ranging.detection import _detection
 from stages.ranging.histograms import Estimate, Histograms
-from stages.ranging.validation import check_p_fa
+from stages.ranging.validation import _safe, check_histograms, check_p_fa, finish
 
 #: the estimators that take a measured response
 IRF_ESTIMATORS = ("matched", "ml")
@@ -148,6 +148,15 @@ def fit_response(h: Histograms, response: Response, estimator: str = "ml",
         raise ValueError(f"a measured response is used by {IRF_ESTIMATORS}, found "
                          f"{estimator!r}")
     p_fa = check_p_fa(p_fa)
+    flags = check_histograms(h)  # the estimators' own checks; a bad row flagged, not fitted
+    safe = _safe(h, flags)
+    if safe.counts.shape[0] == 0 or safe.counts.shape[1] < 3:
+        raise ValueError(f"histograms need >= 1 row of >= 3 bins, found shape "
+                         f"{safe.counts.shape}")
+    return finish(_fit(safe, response, estimator, p_fa), safe, response.sigma_s, flags)
+
+
+def _fit(h: Histograms, response: Response, estimator: str, p_fa: float) -> Estimate:
     bin_s = float(h.bin_s)
     if not np.allclose(h.widths[np.isfinite(h.widths)], bin_s, rtol=1e-6):
         raise ValueError("a measured response needs uniform bins (an instrument's own time "
