@@ -116,9 +116,15 @@ def read_generic(path: str | Path, table: pa.Table | None = None) -> list[Measur
 
 
 def is_generic(path: str | Path) -> bool:
-    """Whether a parquet file's rows say ``instrument = 'generic'`` (read cheaply: one
-    column of the first row group)."""
+    """Whether a parquet file is to be read as generic histograms: its rows say
+    ``instrument = 'generic'`` (read cheaply: one column of the first row group), or it
+    is not one of ours (no schema name in its metadata: :func:`read_generic` then says
+    which columns it lacks)."""
+    from schemas.core import META_NAME
+
     f = pq.ParquetFile(path)
+    if META_NAME not in (f.schema_arrow.metadata or {}):
+        return True
     if "instrument" not in f.schema_arrow.names or f.metadata.num_row_groups == 0:
         return False
     col = f.read_row_group(0, columns=["instrument"]).column(0)

@@ -126,6 +126,13 @@ def test_the_cli_refuses_a_malformed_file_in_one_line(tmp_path):
     assert len([x for x in r.stderr.splitlines() if x.strip()]) == 1, r.stderr
 
 
+def test_a_foreign_parquet_without_our_columns_says_which_are_missing(tmp_path):
+    f = tmp_path / "other.parquet"
+    pq.write_table(pa.table({"pixel": [0, 1], "hist": [[1, 2, 3], [4, 5, 6]]}), f)
+    with pytest.raises(SchemaMismatch, match=r"missing \['measurement', 'tdc', 'counts'"):
+        read_generic(f)
+
+
 def test_ragged_counts_name_the_row(tmp_path):
     f = _write(tmp_path / "bad.parquet", [[0, 5, 9, 1], [1, 4, 8, 2], [0, 1, 2]])
     with pytest.raises(SchemaMismatch, match="row 2: counts has 3 bins"):
