@@ -151,7 +151,7 @@ def _gate(gate: str | None):
 
 
 def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estimator,
-                     irf_ps, p_fa, firmware: str, quiet: bool) -> None:
+                     irf_ps, p_fa, firmware: str, quiet: bool, max_returns: int = 1) -> None:
     """Ranges of a T3 file's (or its histograms') channels on the instrument's own uniform
     time axis, with a given delay or one measured on a zero-distance file."""
     import numpy as np
@@ -182,7 +182,7 @@ def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estima
     else:
         delay = np.full(table.num_rows, delay_ps * 1e-12)
         how = f"given, {delay_ps:g} ps"
-    est, d, s, note = range_uniform(table, delay, sigma, estimator, p_fa, g)
+    est, d, s, note = range_uniform(table, delay, sigma, estimator, p_fa, g, max_returns)
     name = table.column("measurement")[0].as_py() if table.num_rows else Path(path).stem
     ranges = ranges_table(name, est, d, s)
     ranges = ranges.replace_schema_metadata({
@@ -196,8 +196,11 @@ def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estima
     if not quiet:
         df = pl.from_arrow(ranges)
         for r in df.iter_rows(named=True):
-            err.print(f"  channel {r['tdc']}: " + (
+            err.print(f"  channel {r['tdc']}"
+                      + (f" return {r['return_index']}" if r["return_index"] else "") + ": " + (
                 f"{r['distance_m']:.4f} m +- {r['sigma_m']:.4f} m, {r['signal_counts']:.0f} "
-                "signal counts" if r["detected"] else "not detected"), highlight=False)
-        err.print(f"{int(df['detected'].sum())} of {df.height} channels detected "
+                "signal counts" if r["detected"] else "not detected")
+                      + (f" [{r['flag']}]" if r["flag"] else ""), highlight=False)
+        first = df.filter(pl.col("return_index") == 0)
+        err.print(f"{int(first['detected'].sum())} of {first.height} channels detected "
                   f"({estimator}) in {time.perf_counter() - t0:.2f} s; wrote {out}")

@@ -300,18 +300,20 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
 @click.option("--push", required=True, help="Endpoint to send ranges and histograms to")
 @click.option("--calibration", required=True, type=click.Path(exists=True, file_okay=False))
 @click.option("--estimator", default="ml", show_default=True)
+@click.option("--max-returns", type=click.IntRange(min=1), default=3, show_default=True,
+              help="Returns (surfaces) a pixel may have.")
 @click.option("--workers", default=1, show_default=True, help="Histogram workers upstream.")
 @click.option("--quarantine", type=click.Path(), default=None)
 @_metrics
 @_accept
-def stage_range(pull, push, calibration, estimator, workers, quarantine, metrics,
+def stage_range(pull, push, calibration, estimator, max_returns, workers, quarantine, metrics,
                 senders) -> None:
     """Ranges of each measurement's histograms with a calibration (eq. 5.4)."""
     from pipeline.io.caldir import load_calibration
     from pipeline.offline.ranging import RangeCore
     from pipeline.stream.stage import run_stage
 
-    core = RangeCore(load_calibration(calibration), estimator)
+    core = RangeCore(load_calibration(calibration), estimator, max_returns=max_returns)
     stats = run_stage(core, pull, push, quarantine=quarantine, expect_stops=workers,
                       metrics=metrics, name="range", senders=list(senders) or None)
     err.print(f"range: {core.ranged} measurements ranged; rejected {dict(stats.rejected)}"

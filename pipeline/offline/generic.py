@@ -318,10 +318,10 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
                   p_fa: float = 1e-3, shape: str = "auto") -> tuple[pa.Table, dict[str, str]]:
     """Ranges of every measurement of a generic histograms file: with a calibration, a
     given delay, or a delay measured on a zero-distance file. A row is not detected where
-    its distance would be negative or unknown (its distance_m is then 0, a placeholder).
+    its distance would be negative (flagged, NaN) or unknown.
     ``shape`` (matched and ml with a calibration): ``"auto"`` the calibration's
     :meth:`~DistanceCalibration.preferred`, ``"measured"`` or ``"gaussian"``."""
-    from pipeline.offline.ranging import ranges_table
+    from pipeline.offline.ranging import behind_zero, ranges_table
 
     cycles = calibration.cycles if calibration is not None else None
     response = calibration.response if calibration is not None else None
@@ -352,10 +352,12 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
             delay = np.full(tm.tdc.size, float(delay_s))
         d = C_LIGHT / 2 * (tm.t_s * scale - delay)
         sig = np.asarray(tm.est.sigma_s, float) * scale * C_LIGHT / 2
-        ok = np.asarray(tm.est.detected, bool) & np.isfinite(d) & (d >= 0) & np.isfinite(sig)
-        est = dataclasses.replace(tm.est, detected=ok)
-        t = ranges_table(m.name, est, np.where(np.isfinite(d) & ok, d, np.where(
-            np.isfinite(d), np.maximum(d, 0.0), 0.0)), np.where(np.isfinite(sig), sig, np.inf))
+        # a row without a delay or a finite time is not detected (its flag says why); a
+        # return before the zero is flagged as the chip's is (NaN distance, not detected)
+        est = dataclasses.replace(tm.est, detected=np.asarray(tm.est.detected, bool)
+                                  & np.isfinite(d) & np.isfinite(sig))
+        est, d = behind_zero(est, d)
+        t = ranges_table(m.name, est, d, sig)
         t = t.set_column(t.schema.get_field_index("tdc"), t.schema.field("tdc"),
                          pa.array(tm.tdc, t.schema.field("tdc").type))
         tables.append(t)

@@ -77,7 +77,7 @@ _KNOWN = {
                "idle", "n_tdc", "repeat", "reorder_window", "max_jump_cycles", "file",
                "format", "firmware"},
     "histogram": {"workers", "measurement_cycles", "calibration", "n_tdc", "endpoints"},
-    "range": {"calibration", "estimator", "endpoint"},
+    "range": {"calibration", "estimator", "endpoint", "max_returns"},
     "sink": {"out", "endpoint"},
     "view": {"port", "bind", "layout"},
 }

@@ -176,8 +176,8 @@ def read_measurement(index: RunIndex, k: int) -> Measurement | None:
 
 
 def read_ranges(index: RunIndex, k: int):
-    """Measurement ``k``'s ranges as a Polars frame ordered by TDC (None when not written:
-    a run without a range stage, or not yet)."""
+    """Measurement ``k``'s ranges as a Polars frame ordered by TDC, each TDC's strongest
+    return (None when not written: a run without a range stage, or not yet)."""
     import polars as pl
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -186,8 +186,11 @@ def read_ranges(index: RunIndex, k: int):
     if not files:
         return None
     # (pyarrow reads a small file in ~1 ms; polars' reader costs ~50 ms a call here)
-    tables = [pq.read_table(p, use_threads=False) for p in files]
-    return pl.from_arrow(pa.concat_tables(tables)).sort("tdc")
+    from pipeline.io.ranges import upgrade_ranges
+
+    tables = [upgrade_ranges(pq.read_table(p, use_threads=False), str(p)) for p in files]
+    return (pl.from_arrow(pa.concat_tables(tables)).filter(pl.col("return_index") == 0)
+            .sort("tdc"))
 
 
 # ---------------------------------------------------------------- the accounting identity

@@ -40,6 +40,9 @@ from stages.ranging.gaussfit import gaussfit
 from stages.ranging.histograms import Estimate, Histograms
 from stages.ranging.matched import matched
 from stages.ranging.ml import _ml_numpy, _ml_setup, ml
+from stages.ranging.multi import MAX_RETURNS, estimate_returns
+from stages.ranging.registry import ESTIMATOR_FUNCS, ESTIMATORS, estimate
+from stages.ranging.width import response_from_data, return_fwhm
 
 if numba is not None:
     from stages.ranging.detection import _poisson_tail
@@ -52,22 +55,10 @@ if numba is not None:
 #: too where numba is installed
 __all__ = ["ESTIMATORS", "ESTIMATOR_FUNCS", "SCORING_STEPS", "TAIL_EXACT_MAX", "Estimate",
            "Histograms", "centroid", "detection_threshold", "estimate", "fast", "gaussfit",
-           "matched", "ml", "numba", "poisson_tail", "tested_bin",
+           "matched", "ml", "numba", "poisson_tail", "tested_bin", "MAX_RETURNS",
+           "estimate_returns", "response_from_data", "return_fwhm",
            "_CDF_PDF_TAB", "_background", "_cdf_pdf_numpy", "_coarse_to_fine_numpy",
            "_detect", "_detection", "_fast_args", "_fast_numpy", "_fast_params",
            "_ml_numpy", "_ml_setup", "_peak_index", "_score_steps_numpy"]
 if numba is not None:
     __all__ += ["_poisson_tail", "_cdf_pdf", "_fast_numba", "_ml_numba"]
-
-ESTIMATORS = ("fast", "centroid", "matched", "gaussfit", "ml")
-
-
-ESTIMATOR_FUNCS = {"centroid": centroid, "matched": matched, "gaussfit": gaussfit, "ml": ml,
-                   "fast": fast}
-
-
-def estimate(h: Histograms, sigma_s: float, estimator: str = "ml", p_fa: float = 1e-3):
-    """Run one estimator by name (see :data:`ESTIMATORS`)."""
-    if estimator not in ESTIMATOR_FUNCS:
-        raise ValueError(f"estimator must be one of {ESTIMATORS}, found {estimator!r}")
-    return ESTIMATOR_FUNCS[estimator](h, sigma_s, p_fa)

@@ -34,7 +34,7 @@ def gaussfit(h: Histograms, sigma_s: float, p_fa: float = 1e-3):
                         np.median(y)),
                     sigma=np.sqrt(np.maximum(y, 1.0)), maxfev=2000)
             out[i] = popt[1], np.sqrt(max(pcov[1, 1], 0.0)), abs(popt[2])
-        except (RuntimeError, ValueError, OptimizeWarning):
+        except (RuntimeError, ValueError, TypeError, OptimizeWarning):  # (TypeError: < 4 bins)
             out[i] = h.centres[i, p], sigma_s, sigma_s
     sig_counts = np.full(peak.size, np.nan)
     return Estimate(out[:, 0], out[:, 1], FWHM_PER_SIGMA * out[:, 2], sig_counts,

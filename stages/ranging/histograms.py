@@ -84,5 +84,7 @@ class Estimate:
     #: input it could not use, an estimate outside the window, no uncertainty; a flagged
     #: pixel is not detected unless the flag says it may be cut by the window's edge
     flag: np.ndarray | None = None
-    #: per pixel, the index of the return (0 the strongest; :mod:`stages.ranging.multi`)
+    #: per row, the index of the return (0 the strongest) and the pixel it belongs to, where
+    #: a pixel may have several rows (:func:`stages.ranging.multi.estimate_returns`)
     return_index: np.ndarray | None = None
+    pixel: np.ndarray | None = None

@@ -141,8 +141,8 @@ def check_levels(n, name: str = "light levels") -> np.ndarray:
         raise CalibrationError(f"{name} must be finite numbers, found {v.tolist()}")
     if np.unique(v).size < 4:
         raise CalibrationError(f"an LSB-against-light fit needs density tests at >= 4 "
-                               f"distinct {name} (a cubic, eq. 5.1); found "
-                               f"{np.unique(v).size} in {v.tolist()}")
+                               f"{name} (distinct: a cubic, eq. 5.1); found "
+                               f"{np.unique(v).size} distinct in {v.tolist()}")
     return v
 
 

@@ -184,10 +184,12 @@ def test_tmf8820_calibrated_on_three_captures_ranges_the_others(tmf):
     far = df.filter(pl.col("truth_m") >= 0.05)
     assert far["detected"].all()
     assert np.sqrt((far["err_mm"] ** 2).mean()) < 1.2
-    # closer than the crosstalk: detected or not, never a negative distance or a NaN
+    # closer than the crosstalk: detected, or not and flagged; never a negative distance
     close = df.filter(pl.col("truth_m") < 0.03)
-    assert (close["distance_m"] >= 0).all() and close["distance_m"].is_finite().all()
-    assert (close.filter(pl.col("detected"))["err_mm"].abs() < 15).all()
+    det = close.filter(pl.col("detected"))
+    assert det["distance_m"].is_finite().all() and (det["err_mm"].abs() < 15).all()
+    assert not (close["distance_m"] < 0).any()
+    assert (close.filter(~pl.col("distance_m").is_finite())["flag"] != "").all()
 
 
 @pytest.mark.slow
