@@ -161,7 +161,8 @@ def measurement_times(m: Measurement, estimator: str = "ml", p_fa: float = 1e-3,
         response = response_from_counts(m.counts[r], m.bin_width_s,
                                         f"the reference channel (row {m.tdc[r]}) of each "
                                         "measurement",
-                                        cyc[r] if cycles is not None else None)
+                                        cyc[r] if np.isfinite(m.cycles[r]) or cycles is not None
+                                        else None)
     if estimator in IRF_ESTIMATORS and response is not None and sigma_s is None:
         est, used = fit_response(h, response, estimator, p_fa), response.source
     else:
@@ -256,16 +257,21 @@ def calibrate_distance(path: str | Path, truth_csv: str | Path,
     mid = meas[order[len(order) // 2]]
     if mid.reference.any():
         r = int(np.flatnonzero(mid.reference)[0])
-        cal.response = response_from_counts(mid.counts[r], nominal,
-                                            f"reference channel of {mid.name}")
+        source = f"reference channel of {mid.name}"
     else:  # the brightest row at the middle known distance
         r = int(np.argmax(mid.counts.sum(axis=1)))
-        cal.response = response_from_counts(mid.counts[r], nominal,
-                                            f"row {mid.tdc[r]} of {mid.name} at "
-                                            f"{cal.distances_m[order[len(order) // 2]]:g} m")
+        source = (f"row {mid.tdc[r]} of {mid.name} at "
+                  f"{cal.distances_m[order[len(order) // 2]]:g} m")
+
+    def response(cycles):
+        c = mid.cycles[r] if np.isfinite(mid.cycles[r]) else cycles
+        return response_from_counts(mid.counts[r], nominal, source, c)
+
+    cal.response = response(None)
     if fit_pileup and all(not np.isfinite(m.cycles).any() for m in meas) and np.unique(
             cal.distances_m).size >= 3:
         cal.cycles, cal.pileup = _fit_cycles(meas, dist, cal.response, p_fa)
+        cal.response = response(cal.cycles)  # its shape without the pile-up
     runs = [(name, None) for name in estimators] + [
         (name + GAUSSIAN, cal.response.sigma_s) for name in estimators
         if name in IRF_ESTIMATORS]
