@@ -213,3 +213,21 @@ def test_tmf8820_converter_keeps_every_count():
     assert ms[0].counts[:9].sum() == np.sum(caps[0]["hists"])
     assert ms[0].counts[9].sum() == np.sum(caps[0]["reference_hist"])
     assert np.isnan(ms[0].cycles).all() and ms[0].bin_width_s == pytest.approx(91e-12)
+
+
+def test_one_distance_fits_the_delay_only_and_a_row_may_have_its_own(tmp_path):
+    """One known distance: the delay, the width from bin_width_ps, no pulse count; a
+    truth row with a ``tdc`` gives that row its own distance (an off-axis zone's)."""
+    rng = np.random.default_rng(2)
+    delay_ps = 1200.0
+    t = [delay_ps + 2 * d / C_LIGHT * 1e12 for d in (0.5, 0.8)]
+    f = _write(tmp_path / "h.parquet", [_returns(rng, x, 30_000) for x in t],
+               measurement=["cal", "cal"])
+    (tmp_path / "truth.csv").write_text("measurement,distance_m,tdc\ncal,0.5,\ncal,0.8,1\n")
+    cal = calibrate_distance(f, tmp_path / "truth.csv", estimators=("ml", "fast"))
+    assert cal.cycles is None and cal.pileup.startswith("none")
+    for fit in cal.fits.values():
+        assert fit["bin_width_ps"] == [BIN_PS, BIN_PS]
+        assert np.allclose(fit["residual_mm"], 0.0, atol=1e-9)
+    table, _ = range_generic(f, cal, estimator="fast")
+    assert np.allclose(table.column("distance_m").to_numpy(), [0.5, 0.8], atol=1e-9)
