@@ -212,7 +212,7 @@ def _fit(h: Histograms, response: Response, estimator: str, p_fa: float) -> Esti
     signal = amp * response.models(shift, n).sum(1)
     if estimator == "matched":  # the matched filter's own spread: the response's / sqrt(N)
         sigma_bins = response.sigma_s / bin_s / np.sqrt(np.maximum(signal, 1.0))
-    t_s = h.edges_s[rows, 0] + (shift + 0.0) * bin_s
+    t_s = h.edges_s[rows, 0] + shift * bin_s
     peak = np.clip(np.rint(shift).astype(np.int64), 0, n - 1)
     rate = bg / np.maximum(h.cycles * bin_s, 1e-300)
     detected = _detection(h.counts, h.valid, h.at_risk, h.widths, peak, rate, p_fa)
