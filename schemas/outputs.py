@@ -24,7 +24,10 @@ HISTOGRAMS = SchemaSpec("histograms", "2.0", (
     # 2.0: instruments other than the thesis chip (code count and bin width differ)
     field("instrument", pa.string(), "", "what made the counts: 'tcspc-chip' (Table 5.1 "
           "words; codes need the calibration's INL), 'picoquant-t3' (PTU T3 dtime codes), "
-          "'linospad2' (fine codes of a carry chain)"),
+          "'linospad2' (fine codes of a carry chain), 'generic' (any instrument's "
+          "histograms, written by any tool with only measurement, tdc, counts, instrument, "
+          "bin_width_ps and optionally cycles and reference: [instruments_generic.md]"
+          "(instruments_generic.md), with a Polars example)"),
     field("bin_width_ps", pa.float64(), "ps", "width of one code where the instrument "
           "states it (PTU resolution, LinoSPAD2 nominal 17.857 ps); null for the chip, "
           "whose code widths come from its calibration", nullable=True),

@@ -309,7 +309,8 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
 @cli.command("range", short_help="Distance per pixel (eq. 5.4) from a capture and a calibration.")
 @click.argument("capture", type=click.Path())
 @click.option("--calibration", default=None, type=click.Path(exists=True, file_okay=False),
-              help="Calibration directory (a tcspc capture needs one).")
+              help="Calibration directory (a tcspc capture needs one; generic histograms "
+                   "take one from `calibrate distance`).")
 @click.option("--out", required=True, type=click.Path(), help="ranges.parquet to write")
 @click.option("--estimator", type=click.Choice(["ml", "fast", "matched", "centroid", "gaussfit"]),
               default="ml", show_default=True)
@@ -333,6 +334,9 @@ def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero
     histograms (with --delay-ps or --zero): a PicoQuant board's dtime bins are calibrated
     by its maker, so no INL is applied; the output says so. A pixel may see up to
     --max-returns surfaces (a window, a fence): a row each, return_index 0 the strongest.
+    Generic histograms (any instrument's, docs/instruments_generic.md) take
+    --calibration from `calibrate distance`, --delay-ps or --zero; the output names the
+    instrument response and the pile-up correction used (one return a row).
     """
     try:
         _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
@@ -361,6 +365,10 @@ def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, g
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from exc
     fmt = instruments.detect(capture, fmt)
+    if fmt == "histograms" and instruments.is_generic(capture):
+        instruments.range_generic(capture, out, calibration, delay_ps, zero, gate, estimator,
+                                  irf_ps, p_fa, quiet)
+        return
     if fmt != "tcspc":
         if calibration:
             raise click.UsageError("--calibration is the thesis chip's; an instrument's "
