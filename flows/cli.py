@@ -22,6 +22,7 @@ FLOWS = {
     "distance_sweep": "flows.distance_sweep:distance_sweep",
     "performance_prediction": "flows.performance:performance_prediction",
     "speed_vs_error": "flows.speed_vs_error:speed_vs_error",
+    "batch": "flows.batch:batch",
 }
 
 
@@ -71,20 +72,18 @@ def list_cmd() -> None:
 @click.argument("name")
 @click.option("-p", "--param", "params", multiple=True, metavar="KEY=VALUE",
               help="A flow parameter (JSON value), e.g. -p cycles=100000 -p lux=[500,2000].")
-@click.option("--dask", "dask_address", metavar="ADDRESS",
-              help="Fan tasks out over the Dask cluster at ADDRESS (needs prefect-dask; "
-                   "`pip install -e '.[dask]'`).")
+@click.option("--dask", "dask_address", metavar="[ADDRESS]", is_flag=False, flag_value="local",
+              help="Fan tasks out over the Dask cluster at ADDRESS (tcp://HOST:8786), or "
+                   "over a local cluster of one worker process per core with no ADDRESS.")
 def run_cmd(name, params, dask_address) -> None:
     """Run flow NAME now and print its summary as JSON."""
     fl = load(name)
     kwargs = parse_params(params, fl.fn)
     if dask_address:
-        try:
-            from prefect_dask import DaskTaskRunner
-        except ImportError:
-            raise click.ClickException("--dask needs prefect-dask: pip install -e '.[dask]'"
-                                       ) from None
-        fl = fl.with_options(task_runner=DaskTaskRunner(address=dask_address))
+        from prefect_dask import DaskTaskRunner
+
+        fl = fl.with_options(task_runner=DaskTaskRunner() if dask_address == "local"
+                             else DaskTaskRunner(address=dask_address))
     api = os.environ.get("PREFECT_API_URL") or "Prefect's embedded ephemeral API"
     click.echo(f"running {name} on {api}", err=True)
     result = fl(**kwargs)

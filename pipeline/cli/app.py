@@ -285,7 +285,8 @@ def schema(markdown) -> None:
 @click.option("--chip-seed", default=1, show_default=True, help="Seed of the chip's "
               "LSB, INL and second-stage parameters (the same chip across captures).")
 @click.option("--engine", type=click.Choice(["fast", "reference"]), default=None,
-              help="Default: fast, or reference when a target moves.")
+              help="Default: fast, or reference when a target moves or a pixel sees "
+                   "several surfaces.")
 @click.option("--malformed-rate", default=0.0, show_default=True,
               type=click.FloatRange(0, 1), help="Fraction of words to corrupt (markers).")
 @click.option("--invalid-rate", default=0.0, show_default=True,
@@ -316,7 +317,8 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
 @cli.command("range", short_help="Distance per pixel (eq. 5.4) from a capture and a calibration.")
 @click.argument("capture", type=click.Path())
 @click.option("--calibration", default=None, type=click.Path(exists=True, file_okay=False),
-              help="Calibration directory (a tcspc capture needs one).")
+              help="Calibration directory (a tcspc capture needs one; generic histograms "
+                   "take one from `calibrate distance`).")
 @click.option("--out", required=True, type=click.Path(), help="ranges.parquet to write")
 @click.option("--estimator", type=click.Choice(["ml", "fast", "matched", "centroid", "gaussfit"]),
               default="ml", show_default=True)
@@ -328,25 +330,59 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
 @click.option("--zero", type=click.Path(exists=True), default=None,
               help="PTU T3: a zero-distance file (or its histograms) to measure the delay on.")
 @click.option("--gate", default=None, help="PTU T3: only returns in LO:HI ns after the sync.")
+@click.option("--max-returns", type=click.IntRange(min=1), default=3, show_default=True,
+              help="Returns (surfaces) a pixel may have, each with its own detection.")
 @_format
 @_quiet
-def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate, fmt,
-              quiet) -> None:
+def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
+              max_returns, fmt, quiet) -> None:
     """Distance per pixel (eq. 5.4) with uncertainty and a detection decision.
 
     CAPTURE is a tcspc capture (with --calibration), or a PicoQuant T3 file or its
     histograms (with --delay-ps or --zero): a PicoQuant board's dtime bins are calibrated
-    by its maker, so no INL is applied; the output says so.
+    by its maker, so no INL is applied; the output says so. A pixel may see up to
+    --max-returns surfaces (a window, a fence): a row each, return_index 0 the strongest.
+    Generic histograms (any instrument's, docs/instruments_generic.md) take
+    --calibration from `calibrate distance`, --delay-ps or --zero; the output names the
+    instrument response and the pile-up correction used (one return a row).
     """
-    from pipeline.cli import instruments
+    try:
+        _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
+               max_returns, fmt, quiet)
+    except ValueError as exc:  # an argument or a histogram the estimators refuse: one line
+        from schemas.errors import TcspcError
 
+        if isinstance(exc, TcspcError):  # (main prints ours)
+            raise
+        raise click.ClickException(str(exc)) from exc
+
+
+def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
+           max_returns, fmt, quiet) -> None:
+    from pipeline.cli import instruments
+    from stages.ranging.validation import check_delay, check_p_fa, check_sigma
+
+    try:
+        check_p_fa(p_fa)
+        if irf_ps is not None:
+            check_sigma(irf_ps, name="--irf-ps")
+        if delay_ps is not None:
+            if delay_ps != delay_ps:  # NaN: "no delay" inside, not a value to give
+                raise ValueError(f"--delay-ps must be finite, found {delay_ps}")
+            check_delay(delay_ps, "--delay-ps")
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from exc
     fmt = instruments.detect(capture, fmt)
+    if fmt == "histograms" and instruments.is_generic(capture):
+        instruments.range_generic(capture, out, calibration, delay_ps, zero, gate, estimator,
+                                  irf_ps, p_fa, quiet)
+        return
     if fmt != "tcspc":
         if calibration:
             raise click.UsageError("--calibration is the thesis chip's; an instrument's "
                                    "file takes --delay-ps or --zero")
         instruments.range_instrument(capture, fmt, out, delay_ps, zero, gate, estimator,
-                                     irf_ps, p_fa, "2212b", quiet)
+                                     irf_ps, p_fa, "2212b", quiet, max_returns)
         return
     if calibration is None:
         raise click.UsageError("a tcspc capture needs --calibration")
@@ -359,15 +395,19 @@ def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero
     t0 = time.perf_counter()
     calib = load_calibration(calibration)
     table, note = range_capture(capture, calib, out, estimator,
-                                None if irf_ps is None else irf_ps * 1e-12, p_fa)
+                                None if irf_ps is None else irf_ps * 1e-12, p_fa, max_returns)
     if note:
         err.print(f"[yellow]warning:[/yellow] {note}", highlight=False)
     if not quiet:
         import polars as pl
 
         df = pl.from_arrow(table)
+        more = df.filter(pl.col("detected") & (pl.col("return_index") > 0)).height
+        df = df.filter(pl.col("return_index") == 0)
         det = df.filter(pl.col("detected"))
-        err.print(f"{det.height} of {df.height} pixels detected ({estimator}, P_fa {p_fa:g}) in "
+        err.print(f"{det.height} of {df.height} pixels detected"
+                  + (f" (+{more} further returns)" if more else "")
+                  + f" ({estimator}, P_fa {p_fa:g}) in "
                   f"{time.perf_counter() - t0:.2f} s; distance "
                   f"{det['distance_m'].min() if det.height else float('nan'):.3f}.."
                   f"{det['distance_m'].max() if det.height else float('nan'):.3f} m, median "

@@ -22,7 +22,7 @@ err = console(stderr=True)
 
 @click.group()
 def calibrate() -> None:
-    """Density test, LSB against light, and zero-distance delay."""
+    """Density test, LSB against light, zero-distance delay; distance (any instrument)."""
 
 
 _inl = click.option("--inl-rms", default=0.5, show_default=True, type=float,
@@ -94,8 +94,11 @@ def lsb(captures, out, plot, inl_rms) -> None:
 @click.argument("capture", type=click.Path())
 @click.option("--out", required=True, type=click.Path(exists=True, file_okay=False),
               help="calibration directory with a density test; the delay is added to it")
-def delay(capture, out) -> None:
-    """System delay per TDC from a zero-distance CAPTURE (eq. 5.3), into CALDIR.
+@click.option("--distance-m", default=0.0, show_default=True, type=float,
+              help="The target's distance in CAPTURE (eq. 5.3 with its round trip).")
+def delay(capture, out, distance_m) -> None:
+    """System delay per TDC from a zero-distance CAPTURE (eq. 5.3), into CALDIR; or from
+    a capture of a target at a known --distance-m.
 
     The peak is found as the range stage finds it (ML, pile-up exact), anywhere in the
     window. Give the capture ambient light brighter than the density test's (its reset
@@ -105,7 +108,8 @@ def delay(capture, out) -> None:
     and why the others did not; exits non-zero, leaving CALDIR as it was, when none did."""
     from collections import Counter
 
-    calib = add_delay(capture, out, log=lambda m: err.print(f"delay: {m}", highlight=False))
+    calib = add_delay(capture, out, log=lambda m: err.print(f"delay: {m}", highlight=False),
+                      distance_m=distance_m)
     d, used = calib.delay_s, calib.meta["delay"]
     got = np.isfinite(d)
     err.print(f"delay on {int(got.sum())} of {d.size} TDCs: "
@@ -117,6 +121,50 @@ def delay(capture, out) -> None:
         err.print(f"[yellow]warning:[/yellow] no delay on {int((~got).sum())} TDC(s) "
                   f"{np.flatnonzero(~got)[:12].tolist()}: "
                   + "; ".join(f"{n} {r}" for r, n in why.most_common()), highlight=False)
+
+
+@calibrate.command()
+@click.argument("histograms", type=click.Path(exists=True, dir_okay=False))
+@click.option("--truth", required=True, type=click.Path(exists=True, dir_okay=False),
+              help="CSV: measurement,distance_m (and optionally tdc, a row's own distance).")
+@click.option("--out", required=True, type=click.Path(), help="calibration directory")
+@click.option("--p-fa", default=1e-3, show_default=True, help="False-alarm probability.")
+def distance(histograms, truth, out, p_fa) -> None:
+    """Delay and bin width per row of generic HISTOGRAMS from targets at known distances.
+
+    For every estimator and row: the delay (eq. 5.3 at the target's distance) and, from
+    two or more distances, the real bin width (one distance: the file's bin_width_ps);
+    the instrument response measured on the reference channel (or the brightest row at
+    the middle distance); from three or more distances, the effective laser pulses of an
+    instrument that does not report them (pile-up). Prints the fit's residuals and RMS."""
+    from pipeline.offline.generic import calibrate_distance
+
+    try:
+        cal = calibrate_distance(histograms, truth, p_fa=p_fa)
+    except (CalibrationError, ValueError) as exc:
+        raise click.ClickException(str(exc)) from None
+    cal.save(out)
+    err.print(f"{len(cal.measurements)} measurement(s) at "
+              f"{', '.join(f'{d:.4g}' for d in sorted(set(cal.distances_m)))} m; "
+              f"{len(cal.tdc)} rows; response: {cal.response.source}; pile-up: {cal.pileup}",
+              highlight=False)
+    for name, fit in cal.fits.items():
+        w = np.asarray(fit["bin_width_ps"], float)
+        res = np.asarray(fit["residual_mm"], float)
+        worst = np.nanmax(np.abs(res)) if np.isfinite(res).any() else np.nan
+        err.print(f"  {name:9s} residual RMS {fit['rms_mm']:.3f} mm (worst {worst:.3f} mm); "
+                  f"bin width {np.nanmin(w):.2f}..{np.nanmax(w):.2f} ps; delay "
+                  f"{np.nanmin(fit['delay_ps']):.1f}..{np.nanmax(fit['delay_ps']):.1f} ps",
+                  highlight=False)
+    for name in ("matched", "ml"):
+        if name in cal.fits and cal.preferred(name) != name:
+            err.print(f"  {name}: the Gaussian of the response's FWHM fits better than the "
+                      "measured shape; range uses it", highlight=False)
+    none = [t for t, d in zip(cal.tdc, cal.fits["ml"]["delay_ps"], strict=True)
+            if not np.isfinite(d)]
+    if none:
+        err.print(f"[yellow]warning:[/yellow] no delay (no detection) on rows {none}")
+    err.print(f"wrote {out}")
 
 
 @calibrate.command()
@@ -150,6 +198,8 @@ def track(capture, calibration, out, tolerance_ps) -> None:
     err.print(f"light {tr.light:.3f} STARTs/pixel/cycle; LSB measured on {ok.sum()} of "
               f"{ok.size} TDCs; drift mean {np.nanmean(d):+.3f} ps, max |drift| "
               f"{np.nanmax(np.abs(d)):.3f} ps")
+    for t in np.flatnonzero(tr.flagged):
+        err.print(f"[yellow]TDC {t}: estimate left out:[/yellow] {tr.why[t]}", highlight=False)
     moved = np.flatnonzero(ok & (np.abs(d) > tolerance_ps))
     if moved.size:
         err.print(f"TDCs beyond {tolerance_ps} ps: {moved.tolist()} (recalibrate)")
@@ -161,7 +211,8 @@ def track(capture, calibration, out, tolerance_ps) -> None:
         with atomic_path(out) as tmp:
             pl.DataFrame({"tdc": np.arange(d.size, dtype=np.uint16),
                           "lsb_ps": tr.lsb_s * 1e12, "expected_ps": tr.expected_s * 1e12,
-                          "drift_ps": d, "hits": tr.hits}).write_parquet(tmp)
+                          "drift_ps": d, "hits": tr.hits,
+                          "untrusted": list(tr.why)}).write_parquet(tmp)
         err.print(f"wrote {out}")
 
 

@@ -23,6 +23,51 @@ def detect(path: str, given: str | None) -> str:
     return resolve_format(path, given)
 
 
+def is_generic(path: str) -> bool:
+    from pipeline.io.generic import is_generic as generic
+
+    return generic(path)
+
+
+def range_generic(path: str, out: str, calibration, delay_ps, zero, gate, estimator, irf_ps,
+                  p_fa, quiet: bool) -> None:
+    """Ranges of a generic histograms file (any instrument's) on its own uniform bins."""
+    import numpy as np
+    import polars as pl
+
+    from pipeline.offline.generic import DistanceCalibration, write_ranges
+    from pipeline.offline.generic import range_generic as rng_generic
+    from schemas.errors import CalibrationError
+
+    if sum(x is not None for x in (calibration, delay_ps, zero)) != 1:
+        raise click.UsageError("generic histograms need one of --calibration (from "
+                               "`tcspc calibrate distance`), --delay-ps or --zero")
+    if gate is not None:
+        raise click.UsageError("--gate is for a PicoQuant T3 file")
+    t0 = time.perf_counter()
+    try:
+        cal = DistanceCalibration.load(calibration) if calibration else None
+        table, info = rng_generic(path, cal, None if delay_ps is None else delay_ps * 1e-12,
+                                  zero, None if irf_ps is None else irf_ps * 1e-12,
+                                  estimator, p_fa)
+    except (CalibrationError, ValueError) as exc:
+        raise click.ClickException(str(exc)) from None
+    write_ranges(table, out)
+    err.print(f"instrument response: {info['response']}; pile-up: {info['pileup']}",
+              highlight=False)
+    if "bright" in info:
+        err.print(f"[yellow]warning:[/yellow] {info['bright']}", highlight=False)
+    df = pl.from_arrow(table)
+    det = df.filter(pl.col("detected"))
+    if not quiet:
+        err.print(f"{det.height} of {df.height} rows detected ({estimator}, P_fa {p_fa:g}) in "
+                  f"{df['measurement'].n_unique()} measurement(s), "
+                  f"{time.perf_counter() - t0:.2f} s; distance "
+                  f"{det['distance_m'].min() if det.height else np.nan:.4f}.."
+                  f"{det['distance_m'].max() if det.height else np.nan:.4f} m; wrote {out}",
+                  highlight=False)
+
+
 def _print_summary(summary, quiet: bool) -> None:
     lines = summary.lines()
     for line in lines if not quiet else [ln for ln in lines if ln.startswith("warning")]:
@@ -125,7 +170,7 @@ def _gate(gate: str | None):
 
 
 def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estimator,
-                     irf_ps, p_fa, firmware: str, quiet: bool) -> None:
+                     irf_ps, p_fa, firmware: str, quiet: bool, max_returns: int = 1) -> None:
     """Ranges of a T3 file's (or its histograms') channels on the instrument's own uniform
     time axis, with a given delay or one measured on a zero-distance file."""
     import numpy as np
@@ -156,7 +201,7 @@ def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estima
     else:
         delay = np.full(table.num_rows, delay_ps * 1e-12)
         how = f"given, {delay_ps:g} ps"
-    est, d, s, note = range_uniform(table, delay, sigma, estimator, p_fa, g)
+    est, d, s, note = range_uniform(table, delay, sigma, estimator, p_fa, g, max_returns)
     name = table.column("measurement")[0].as_py() if table.num_rows else Path(path).stem
     ranges = ranges_table(name, est, d, s)
     ranges = ranges.replace_schema_metadata({
@@ -170,8 +215,11 @@ def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estima
     if not quiet:
         df = pl.from_arrow(ranges)
         for r in df.iter_rows(named=True):
-            err.print(f"  channel {r['tdc']}: " + (
+            err.print(f"  channel {r['tdc']}"
+                      + (f" return {r['return_index']}" if r["return_index"] else "") + ": " + (
                 f"{r['distance_m']:.4f} m +- {r['sigma_m']:.4f} m, {r['signal_counts']:.0f} "
-                "signal counts" if r["detected"] else "not detected"), highlight=False)
-        err.print(f"{int(df['detected'].sum())} of {df.height} channels detected "
+                "signal counts" if r["detected"] else "not detected")
+                      + (f" [{r['flag']}]" if r["flag"] else ""), highlight=False)
+        first = df.filter(pl.col("return_index") == 0)
+        err.print(f"{int(first['detected'].sum())} of {first.height} channels detected "
                   f"({estimator}) in {time.perf_counter() - t0:.2f} s; wrote {out}")

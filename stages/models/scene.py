@@ -95,6 +95,9 @@ class Target:
     roughness_um: float | None = None  # RMS height; decides the regime when given
     incidence_deg: float = 0.0
     velocity_m_s: float = 0.0          # range rate, positive receding
+    # the fraction of the light that passes through to the targets behind it in the same
+    # pixels (a window, a fence), each way; 0 = opaque. What is reflected is reflectivity.
+    transmittance: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -132,6 +135,12 @@ class SceneModel:
     sigma_s: float             #: total jitter (eq. 2.18)
     bg_rate_hz: np.ndarray     #: ambient + dark detections per second
     report: tuple[Effect, ...]
+    #: every surface a pixel sees, nearest first (n_pixels, K): signal detections per
+    #: cycle, arrival time after the window opened and distance (0, NaN, NaN past the
+    #: last); column 0 is ``m_signal``, ``tof_in_window_s``, ``distance_m``
+    returns_m: np.ndarray | None = None
+    returns_tof_s: np.ndarray | None = None
+    returns_distance_m: np.ndarray | None = None
 
     @property
     def window_s(self) -> float:
@@ -193,6 +202,8 @@ def _validate(scene: Scene, where: str) -> None:
             raise SceneError(f"{where}: target #{i + 1} distance_m must be > 0")
         if not 0 <= t.reflectivity <= 1:
             raise SceneError(f"{where}: target #{i + 1} reflectivity must be in [0, 1]")
+        if not 0 <= t.transmittance <= 1:
+            raise SceneError(f"{where}: target #{i + 1} transmittance must be in [0, 1]")
         if t.surface not in ("diffuse", "mirror", "specular"):
             raise SceneError(f"{where}: target #{i + 1} surface {t.surface!r}: use diffuse, "
                              "mirror or specular")
@@ -224,6 +235,7 @@ def evaluate(scene: Scene, cycles: int = 40_000) -> SceneModel:
     energy = las.energy_pj * 1e-12
     capture_s = cycles * s.readout_us * 1e-6
     atm_sizes, motion_sizes = [], []
+    surfaces = []  # (slice, m, tof, distance, transmittance) of each target
     for t in scene.targets:
         sl = slice(t.pixels[0], t.pixels[1] + 1)
         surface = t.surface
@@ -252,10 +264,13 @@ def evaluate(scene: Scene, cycles: int = 40_000) -> SceneModel:
             atm_sizes.append(1 - float(tr))
             if 1 - float(tr) >= tol:
                 trans = float(tr)
-        m[sl] = signal.signal_detections_per_cycle(n_ph, s.pdp, s.fill_factor, trans)
-        dist[sl] = t.distance_m
-        tof[sl] = g.delay_ns * 1e-9 + 2 * t.distance_m / C_LIGHT - window_open_s
+        surfaces.append((sl, float(signal.signal_detections_per_cycle(n_ph, s.pdp,
+                                                                       s.fill_factor, trans)),
+                         g.delay_ns * 1e-9 + 2 * t.distance_m / C_LIGHT - window_open_s,
+                         t.distance_m, t.transmittance))
         motion_sizes.append(2 * abs(t.velocity_m_s) * capture_s / C_LIGHT / sigma)
+    r_m, r_tof, r_dist = _returns(n, surfaces)
+    m, tof, dist = r_m[:, 0].copy(), r_tof[:, 0].copy(), r_dist[:, 0].copy()
     if scene.atmosphere is None:
         report.append(Effect("atmosphere", "not declared", 0.0, "no attenuation",
                              "Rayleigh only (atmosphere.py)"))
@@ -304,4 +319,24 @@ def evaluate(scene: Scene, cycles: int = 40_000) -> SceneModel:
                          if np.any(~np.isnan(dist)) else 0.0,
                          "fraction of target pixels whose return is outside the window",
                          "returns outside the window are not seen"))
-    return SceneModel(scene, m, tof, dist, sigma, bg, tuple(report))
+    return SceneModel(scene, m, tof, dist, sigma, bg, tuple(report), r_m, r_tof, r_dist)
+
+
+def _returns(n: int, surfaces) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pixel, the surfaces it sees nearest first (n, K): a surface's signal is scaled by
+    the squared transmittance of every surface before it (the light passes each way), and
+    an opaque one hides what is behind it. K is the most any pixel sees (at least 1)."""
+    per = [[] for _ in range(n)]
+    for sl, m, tof, d, tr in surfaces:
+        for p in range(n)[sl]:
+            per[p].append((d, m, tof, tr))
+    k = max([1] + [len(v) for v in per])
+    r_m, r_tof, r_d = np.zeros((n, k)), np.full((n, k), np.nan), np.full((n, k), np.nan)
+    for p, v in enumerate(per):
+        through = 1.0
+        for j, (d, m, tof, tr) in enumerate(sorted(v)):
+            if through <= 0:
+                break
+            r_m[p, j], r_tof[p, j], r_d[p, j] = m * through, tof, d
+            through *= tr * tr
+    return r_m, r_tof, r_d

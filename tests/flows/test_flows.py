@@ -145,7 +145,7 @@ def test_flow_cli_lists_runs_and_checks_parameters():
     res = runner.invoke(cli, ["flow", "list"])
     assert res.exit_code == 0
     for name in ("calibration_campaign", "distance_sweep", "performance_prediction",
-                 "speed_vs_error"):
+                 "speed_vs_error", "batch"):
         assert f"{name}:" in res.output
     res = runner.invoke(cli, ["flow", "run", "speed_vs_error", "-p", "pixelz=3"])
     assert res.exit_code != 0 and "not a parameter" in res.output
@@ -176,8 +176,7 @@ def test_the_demo_story_runs_and_checks_itself(harness, tmp_path):
 
 
 def test_a_sweep_fans_out_over_a_dask_cluster(harness, tmp_path):
-    """`tcspc flow run --dask ADDRESS`: tasks on a Dask cluster (needs the [dask] extra)."""
-    pytest.importorskip("prefect_dask")
+    """`tcspc flow run --dask ADDRESS`: tasks on a Dask cluster."""
     from click.testing import CliRunner
     from distributed import LocalCluster
 

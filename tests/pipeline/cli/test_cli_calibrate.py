@@ -142,6 +142,40 @@ surface = "mirror"
     assert df.filter(pl.col("tdc") >= 4)["detected"].sum() <= 1
 
 
+@pytest.mark.slow
+def test_delay_from_a_target_at_a_known_distance(capture, lsb_cal):
+    """`calibrate delay --distance-m 1.2` on a capture of a target at 1.2 m: range then
+    puts a target at 2 m at 2 m (eq. 5.3 with the target's round trip)."""
+    d = capture
+    for name, dist, seed in (("known8", 1.2, 3), ("far8", 2.0, 7)):
+        (d / f"{name}.toml").write_text(SCENE.replace('name = "density8"', f'name = "{name}"')
+                                        .split("[[ambient]]")[0] + f"""
+[gate]
+t_laser_win_ns = 140.0
+delay_ns = 100.0
+[[targets]]
+pixels = [0, 3]
+distance_m = {dist}
+reflectivity = 0.002
+surface = "mirror"
+""")
+        run("simulate", str(d / f"{name}.toml"), "--cycles", "100000", "--out",
+            str(d / f"{name}.bin"), "-q", "--seed", str(seed))
+    cal = d / "caldir_known"
+    shutil.copytree(lsb_cal, cal)
+    run("calibrate", "delay", str(d / "known8.bin"), "--out", str(cal), "--distance-m", "1.2")
+    run("range", str(d / "far8.bin"), "--calibration", str(cal), "--out",
+        str(d / "far.parquet"))
+    import polars as pl
+
+    target = pl.read_parquet(d / "far.parquet").filter(pl.col("tdc") < 4)
+    assert target["detected"].all()
+    assert (target["distance_m"] - 2.0).abs().max() < 0.05
+    res = run("calibrate", "delay", str(d / "known8.bin"), "--out", str(cal),
+              "--distance-m", "-1", ok=False)
+    assert "--distance-m must be >= 0" in str(res.exception)
+
+
 def zero_distance(d, name, delay_ns, reflectivity, lux=None, gate_ns=140.0,
                   cycles=50_000):
     """A zero-distance capture of the 8-TDC chip: the return at tau = gate - delay."""
