@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from pipeline.cli.app import err
+from pipeline.cli.console import err
 
 
 def detect(path: str, given: str | None) -> str:

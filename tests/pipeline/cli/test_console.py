@@ -1,0 +1,58 @@
+"""The command line's printer: user text is printed as given, and no import circle."""
+
+import ast
+import io
+from pathlib import Path
+
+from pipeline.cli.console import console, error, warn
+
+CLI = Path(__file__).parents[3] / "pipeline" / "cli"
+
+
+def _buffered():
+    con = console(stderr=True)
+    con.file = io.StringIO()
+    return con
+
+
+def test_bracketed_names_survive():
+    con = _buffered()
+    error("typo.toml [histogram]: unknown keys ['bins']", con)
+    warn("journal words [0, 4096) skipped: [red]x[/red]", con)
+    con.print("daemon: stage [sink] restarted")
+    assert con.file.getvalue().splitlines() == [
+        "error: typo.toml [histogram]: unknown keys ['bins']",
+        "warning: journal words [0, 4096) skipped: [red]x[/red]",
+        "daemon: stage [sink] restarted"]
+
+
+def _imports(path: Path) -> set[str]:
+    """pipeline.cli modules imported anywhere in ``path`` (module level or in a function)."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module == "pipeline.cli":
+            names |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("pipeline.cli."):
+            names.add(node.module.split(".")[2])
+        elif isinstance(node, ast.Import):
+            names |= {a.name.split(".")[2] for a in node.names
+                      if a.name.startswith("pipeline.cli.")}
+    return names
+
+
+def test_no_import_circle_in_the_cli():
+    graph = {p.stem: _imports(p) - {p.stem} for p in CLI.glob("*.py")}
+    graph.pop("__init__", None)  # the package re-exports app; app does not import it
+    graph.pop("__main__", None)
+
+    def reach(start):
+        seen, todo = set(), [start]
+        while todo:
+            for nxt in graph.get(todo.pop(), ()):
+                if nxt not in seen:
+                    seen.add(nxt)
+                    todo.append(nxt)
+        return seen
+
+    circles = sorted(m for m in graph if m in reach(m))
+    assert not circles, f"modules of pipeline/cli in an import circle: {circles}"
