@@ -1,4 +1,4 @@
-"""The ``tcspc`` command line (DESIGN.md "Command line")."""
+"""The ``tcspc`` command line (docs/design.md "Command line")."""
 
 from __future__ import annotations
 
@@ -260,10 +260,12 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
              ideal_tdc, quiet) -> None:
     """Simulate SCENE_PATH: a raw capture whose sidecar holds the truth."""
     from pipeline.offline.simulate import simulate_capture
+    from stages.models.scene import load_scene
 
+    scene = load_scene(scene_path)  # every problem of the file, before anything starts
     t0 = time.perf_counter()
     with _progress(cycles, 1, quiet, "simulate", "cycles") as step:
-        meta, sim = simulate_capture(scene_path, cycles, out, seed=seed, chip_seed=chip_seed,
+        meta, sim = simulate_capture(scene, cycles, out, seed=seed, chip_seed=chip_seed,
                                      engine=engine, malformed_rate=malformed_rate,
                                      invalid_rate=invalid_rate, ideal_tdc=ideal_tdc,
                                      progress=step)
@@ -422,7 +424,7 @@ def _register() -> None:
 
 def _register_entry_points() -> None:
     """Layers above the pipeline (the flows) add their commands through an entry point, so
-    nothing here imports them (DESIGN.md: nothing imports ``flows``). Read when a name is
+    nothing here imports them (docs/design.md: nothing imports ``flows``). Read when a name is
     not a command of this module or the commands are listed: importlib.metadata and the
     scan cost 50-90 ms, which `tcspc histogram` does not pay."""
     if _Root.entry_points_read:

@@ -1,4 +1,4 @@
-"""``tcspc calibrate density|lsb|delay`` (DESIGN.md "Command line")."""
+"""``tcspc calibrate density|lsb|delay`` (docs/design.md "Command line")."""
 
 from __future__ import annotations
 

@@ -59,5 +59,7 @@ def note(message: str, con=err) -> None:
 
 
 def error(message: str, con=err) -> None:
-    """``error: MESSAGE`` on stderr in one line, the label in red, the message as given."""
-    _labelled("error:", "red", message, con)
+    """``error: MESSAGE`` on stderr, the label in red, the message as given; a message of
+    several lines (a config's problems, one a line) gets the label on each line."""
+    for line in str(message).splitlines() or [""]:
+        _labelled("error:", "red", line, con)

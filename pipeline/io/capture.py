@@ -30,7 +30,7 @@ CHUNK_WORDS = 1 << 20
 
 @dataclass(frozen=True)
 class CaptureMeta:
-    """The sidecar of a capture (DESIGN.md "Capture files")."""
+    """The sidecar of a capture (docs/design.md "Capture files")."""
 
     n_tdc: int
     window_ns: float

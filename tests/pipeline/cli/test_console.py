@@ -2,6 +2,8 @@
 
 import ast
 import io
+import subprocess
+import sys
 from pathlib import Path
 
 from pipeline.cli.console import console, error, warn
@@ -56,3 +58,41 @@ def test_no_import_circle_in_the_cli():
 
     circles = sorted(m for m in graph if m in reach(m))
     assert not circles, f"modules of pipeline/cli in an import circle: {circles}"
+
+
+TYPO = """name = "typo"
+[gate]
+t_laser_win_ns = "abc"
+[histogram]
+bins = 3
+[[targets]]
+pixels = [0, 300]
+distance_m = 5.0
+colour = "red"
+"""
+
+
+def test_a_bad_scene_is_every_problem_and_exit_2(tmp_path):
+    """The CLI prints each problem on its own line with the section's brackets, exits 2
+    and writes nothing."""
+    (tmp_path / "typo.toml").write_text(TYPO)
+    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "simulate", "typo.toml",
+                           "--cycles", "10", "--out", "x.bin"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.splitlines() == [
+        "error: typo.toml [histogram]: unknown section (known: laser, sensor, gate, "
+        "atmosphere, [[targets]], [[ambient]])",
+        "error: typo.toml [gate] t_laser_win_ns: expected a finite number, found text 'abc'",
+        "error: typo.toml [[targets]] #1 colour: unknown key (known: "
+        + ", ".join(_target_keys()) + ")",
+        "error: typo.toml [[targets]] #1 pixels: [0, 300] outside 0..127 (first <= last)"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["typo.toml"]
+
+
+def _target_keys():
+    import dataclasses
+
+    from stages.models.scene import Target
+
+    return [f.name for f in dataclasses.fields(Target)]
