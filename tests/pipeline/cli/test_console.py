@@ -96,3 +96,26 @@ def _target_keys():
     from stages.models.scene import Target
 
     return [f.name for f in dataclasses.fields(Target)]
+
+
+def test_a_chip_capture_given_as_linospad2_is_refused(tmp_path):
+    """--format linospad2 on this project's capture: exit 2, the likely format named,
+    nothing written; a real LinoSPAD2 file with the same option passes the check."""
+    from pipeline.cli.instruments import refuse_if_not
+    from pipeline.io.capture import CaptureWriter
+    from stages.testpattern import pattern_words
+
+    words, _ = pattern_words(2000, 128, hit_prob=0.05, peak_code=300.0, rng=1)
+    with CaptureWriter(tmp_path / "chip", 128, kind="pattern") as w:
+        w.write(words)
+    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "histogram", "chip.bin",
+                           "--format", "linospad2", "--out", "h.parquet"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.splitlines() == [
+        "error: chip.bin: not a LinoSPAD2 file: 1235 of its first 1235 lines have invalid "
+        "words before valid ones, which that format never has; its content reads as a "
+        "tcspc file: give --format tcspc or leave --format out; nothing written"]
+    assert not (tmp_path / "h.parquet").exists()
+    real = Path(__file__).parents[2] / "data" / "linospad2" / "test_data_2212b.dat"
+    refuse_if_not(str(real), "linospad2")  # no error
