@@ -26,14 +26,15 @@ def test_wheel_installs_and_runs_the_demo(tmp_path):
 
     venv.create(tmp_path / "env", with_pip=True)
     bin_ = tmp_path / "env" / "bin"
-    subprocess.run([str(bin_ / "python"), "-m", "pip", "install", "-q", str(wheel)],
-                   check=True, timeout=1200)
-    run = tmp_path / "run"  # not the checkout: only the installed files are seen
-    run.mkdir()
+    # a clean environment: no PYTHONPATH, so neither pip nor the demo sees the checkout
     env = {"PATH": f"{bin_}:/usr/bin:/bin", "HOME": str(tmp_path),
            "PREFECT_HOME": str(tmp_path / ".prefect"),
            "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
            "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "180"}
+    subprocess.run([str(bin_ / "python"), "-m", "pip", "install", "-q", str(wheel)],
+                   check=True, timeout=1200, env=env, cwd=tmp_path)
+    run = tmp_path / "run"  # not the checkout: only the installed files are seen
+    run.mkdir()
     proc = subprocess.run([str(bin_ / "tcspc"), "demo", "--out", "data"], cwd=run, env=env,
                           capture_output=True, text=True, timeout=1200)
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -60,6 +60,14 @@ def test_no_import_circle_in_the_cli():
     assert not circles, f"modules of pipeline/cli in an import circle: {circles}"
 
 
+def _refused(cwd, *args) -> list[str]:
+    """The stderr lines of ``tcspc ARGS`` run in ``cwd``, which must exit 2."""
+    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", *args], cwd=cwd,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    return proc.stderr.splitlines()
+
+
 TYPO = """name = "typo"
 [gate]
 t_laser_win_ns = "abc"
@@ -76,11 +84,7 @@ def test_a_bad_scene_is_every_problem_and_exit_2(tmp_path):
     """The CLI prints each problem on its own line with the section's brackets, exits 2
     and writes nothing."""
     (tmp_path / "typo.toml").write_text(TYPO)
-    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "simulate", "typo.toml",
-                           "--cycles", "10", "--out", "x.bin"], cwd=tmp_path,
-                          capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 2, proc.stderr
-    assert proc.stderr.splitlines() == [
+    assert _refused(tmp_path, "simulate", "typo.toml", "--cycles", "10", "--out", "x.bin") == [
         "error: typo.toml [histogram]: unknown section (known: laser, sensor, gate, "
         "atmosphere, [[targets]], [[ambient]])",
         "error: typo.toml [gate] t_laser_win_ns: expected a finite number, found text 'abc'",
@@ -108,11 +112,8 @@ def test_a_chip_capture_given_as_linospad2_is_refused(tmp_path):
     words, _ = pattern_words(2000, 128, hit_prob=0.05, peak_code=300.0, rng=1)
     with CaptureWriter(tmp_path / "chip", 128, kind="pattern") as w:
         w.write(words)
-    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "histogram", "chip.bin",
-                           "--format", "linospad2", "--out", "h.parquet"], cwd=tmp_path,
-                          capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 2, proc.stderr
-    assert proc.stderr.splitlines() == [
+    assert _refused(tmp_path, "histogram", "chip.bin", "--format", "linospad2", "--out",
+                    "h.parquet") == [
         "error: chip.bin: not a LinoSPAD2 file: 1235 of its first 1235 lines have invalid "
         "words before valid ones, which that format never has; its content reads as a "
         "tcspc file: give --format tcspc or leave --format out; nothing written"]
