@@ -114,6 +114,9 @@ def test_readme_commands_run_in_order(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     import polars as pl
 
+    # every pixel of the street's targets is detected, and no other
+    targets = tomllib.loads((ROOT / "scenes" / "street.toml").read_text())["targets"]
+    lit = sorted(p for t in targets for p in range(t["pixels"][0], t["pixels"][1] + 1))
     ranges = pl.read_parquet(tmp_path / "out" / "ranges.parquet")
-    assert ranges["detected"].sum() > 100
+    assert sorted(ranges.filter(pl.col("detected"))["tdc"].to_list()) == lit
     assert list((tmp_path / "out" / "stream" / "ranges").rglob("*.parquet"))
