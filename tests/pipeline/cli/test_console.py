@@ -2,6 +2,7 @@
 
 import ast
 import io
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -120,3 +121,14 @@ def test_a_chip_capture_given_as_linospad2_is_refused(tmp_path):
     assert not (tmp_path / "h.parquet").exists()
     real = Path(__file__).parents[2] / "data" / "linospad2" / "test_data_2212b.dat"
     refuse_if_not(str(real), "linospad2")  # no error
+
+
+def test_no_markup_tags_in_printed_text():
+    """The consoles print with markup off, so a rich tag in a message would be printed
+    as it is ("[yellow]warning:[/yellow]"): colour goes through warn, note and error."""
+    tag = re.compile(r"\[/?(bold|italic|yellow|red|green|blue|cyan|magenta|dim)( [a-z]+)?\]")
+    root = CLI.parents[1]
+    found = [f"{p.relative_to(root)}:{n}" for d in ("pipeline", "flows")
+             for p in sorted((root / d).rglob("*.py"))
+             for n, line in enumerate(p.read_text().splitlines(), 1) if tag.search(line)]
+    assert not found, f"rich markup in printed text (use pipeline.cli.console): {found}"
