@@ -162,7 +162,7 @@ def distance(histograms, truth, out, p_fa) -> None:
     none = [t for t, d in zip(cal.tdc, cal.fits["ml"]["delay_ps"], strict=True)
             if not np.isfinite(d)]
     if none:
-        err.print(f"[yellow]warning:[/yellow] no delay (no detection) on rows {none}")
+        warn(f"no delay (no detection) on rows {none}")
     err.print(f"wrote {out}")
 
 
@@ -198,7 +198,7 @@ def track(capture, calibration, out, tolerance_ps) -> None:
               f"{ok.size} TDCs; drift mean {np.nanmean(d):+.3f} ps, max |drift| "
               f"{np.nanmax(np.abs(d)):.3f} ps")
     for t in np.flatnonzero(tr.flagged):
-        err.print(f"[yellow]TDC {t}: estimate left out:[/yellow] {tr.why[t]}", highlight=False)
+        warn(f"TDC {t}: estimate left out: {tr.why[t]}")
     moved = np.flatnonzero(ok & (np.abs(d) > tolerance_ps))
     if moved.size:
         err.print(f"TDCs beyond {tolerance_ps} ps: {moved.tolist()} (recalibrate)")

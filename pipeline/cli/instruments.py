@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from pipeline.cli.console import err
+from pipeline.cli.console import err, warn
 
 
 def detect(path: str, given: str | None) -> str:
@@ -56,7 +56,7 @@ def range_generic(path: str, out: str, calibration, delay_ps, zero, gate, estima
     err.print(f"instrument response: {info['response']}; pile-up: {info['pileup']}",
               highlight=False)
     if "bright" in info:
-        err.print(f"[yellow]warning:[/yellow] {info['bright']}", highlight=False)
+        warn(info["bright"])
     df = pl.from_arrow(table)
     det = df.filter(pl.col("detected"))
     if not quiet:
