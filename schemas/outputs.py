@@ -1,4 +1,5 @@
-"""Contracts of the products: histograms, calibration tables and ranges (DESIGN.md "Outputs")."""
+"""Contracts of the products: histograms, calibration tables and ranges (docs/design.md
+"Outputs")."""
 
 from __future__ import annotations
 

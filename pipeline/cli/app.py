@@ -1,4 +1,4 @@
-"""The ``tcspc`` command line (DESIGN.md "Command line")."""
+"""The ``tcspc`` command line (docs/design.md "Command line")."""
 
 from __future__ import annotations
 
@@ -9,40 +9,11 @@ from contextlib import contextmanager
 
 import click
 
+from pipeline.cli.console import console, err, error, out, warn  # noqa: F401 (re-exported)
+
 # Heavy modules (numpy, pyarrow, numba, scipy) are imported in the commands that use them:
 # `tcspc --help` and a command's own --help stay fast (tests/pipeline/cli/test_cli.py checks).
 # So are rich's progress bar and table (20 ms): a quiet command does not draw them.
-
-
-
-def console(stderr: bool = False):
-    """A rich console that wraps lines only on a terminal: piped or captured, one message
-    stays one line (logs are grepped; a path longer than 80 columns must not split a
-    sentence)."""
-    from rich.console import Console
-
-    stream = sys.stderr if stderr else sys.stdout
-    return Console(stderr=stderr, soft_wrap=not stream.isatty())
-
-
-class _FirstUse:
-    """:func:`console`, made when first used: rich.console's import (25-30 ms) is paid by
-    the commands that print, not by a quiet `tcspc histogram` or `tcspc --help`."""
-
-    def __init__(self, stderr: bool = False) -> None:
-        self._stderr, self._console = stderr, None
-
-    def get(self):
-        if self._console is None:
-            self._console = console(self._stderr)
-        return self._console
-
-    def __getattr__(self, name):
-        return getattr(self.get(), name)
-
-
-err = _FirstUse(stderr=True)
-out = _FirstUse()
 
 
 @contextmanager
@@ -67,7 +38,7 @@ def _progress(total: int, passes: int, quiet: bool, label: str, unit: str = "wor
             speed = task.finished_speed or task.speed
             return TextColumn("").render(task) if speed is None else f"{speed / 1e6:.1f} M/s"
 
-    cols = [TextColumn(f"[bold]{label}"), BarColumn(), MofNCompleteColumn(),
+    cols = [TextColumn(label, style="bold", markup=False), BarColumn(), MofNCompleteColumn(),
             TextColumn(unit), _RateColumn(), TimeRemainingColumn()]
     with Progress(*cols, console=err.get(), transient=False) as bar:
         task = bar.add_task(label, total=total * passes)
@@ -99,9 +70,8 @@ def _summary(counts, n_words: int, seconds: float, bounds_source: str,
 def _warn_uncertain(bounds) -> None:
     """Estimated bounds the data cannot vouch for are said, even with --quiet."""
     if bounds.uncertain.any():
-        err.print(f"[yellow]warning:[/yellow] artifact bounds uncertain on "
-                  f"{int(bounds.uncertain.sum())} TDC(s): {bounds.describe()}; give "
-                  "--calibration for exact bounds", highlight=False)
+        warn(f"artifact bounds uncertain on {int(bounds.uncertain.sum())} TDC(s): "
+             f"{bounds.describe()}; give --calibration for exact bounds")
 
 
 def _open(path: str, calibration: str | None):
@@ -273,7 +243,9 @@ def schema(markdown) -> None:
         click.echo(docs_markdown(), nl=False)
         return
     for spec in ALL_SPECS:
-        out.print(f"[bold]{spec.name}[/bold] {spec.version}")
+        from rich.text import Text
+
+        out.print(Text.assemble((spec.name, "bold"), f" {spec.version}"), highlight=False)
         out.print(str(spec.schema), markup=False, highlight=False)
 
 
@@ -297,10 +269,12 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
              ideal_tdc, quiet) -> None:
     """Simulate SCENE_PATH: a raw capture whose sidecar holds the truth."""
     from pipeline.offline.simulate import simulate_capture
+    from stages.models.scene import load_scene
 
+    scene = load_scene(scene_path)  # every problem of the file, before anything starts
     t0 = time.perf_counter()
     with _progress(cycles, 1, quiet, "simulate", "cycles") as step:
-        meta, sim = simulate_capture(scene_path, cycles, out, seed=seed, chip_seed=chip_seed,
+        meta, sim = simulate_capture(scene, cycles, out, seed=seed, chip_seed=chip_seed,
                                      engine=engine, malformed_rate=malformed_rate,
                                      invalid_rate=invalid_rate, ideal_tdc=ideal_tdc,
                                      progress=step)
@@ -397,7 +371,7 @@ def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, g
     table, note = range_capture(capture, calib, out, estimator,
                                 None if irf_ps is None else irf_ps * 1e-12, p_fa, max_returns)
     if note:
-        err.print(f"[yellow]warning:[/yellow] {note}", highlight=False)
+        warn(note)
     if not quiet:
         import polars as pl
 
@@ -429,9 +403,8 @@ def _warn_no_delay(calib) -> None:
 
     why = Counter(r for r in calib.delay_reasons if r)
     if why:
-        err.print(f"[yellow]warning:[/yellow] {sum(why.values())} TDC(s) not ranged, no delay "
-                  "in the calibration: " + "; ".join(f"{n} {r}" for r, n in why.most_common()),
-                  highlight=False)
+        warn(f"{sum(why.values())} TDC(s) not ranged, no delay in the calibration: "
+             + "; ".join(f"{n} {r}" for r, n in why.most_common()))
 
 
 class _Lazy(click.Group):
@@ -499,7 +472,7 @@ def _register() -> None:
 
 def _register_entry_points() -> None:
     """Layers above the pipeline (the flows) add their commands through an entry point, so
-    nothing here imports them (DESIGN.md: nothing imports ``flows``). Read when a name is
+    nothing here imports them (docs/design.md: nothing imports ``flows``). Read when a name is
     not a command of this module or the commands are listed: importlib.metadata and the
     scan cost 50-90 ms, which `tcspc histogram` does not pay."""
     if _Root.entry_points_read:
@@ -541,7 +514,7 @@ def _main() -> None:
 
         if not isinstance(exc, TcspcError | OSError):
             raise
-        err.print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)  # one line
+        error(str(exc))  # one line, the text as it is (markup off)
         sys.exit(2)
 
 

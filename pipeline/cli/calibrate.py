@@ -1,11 +1,11 @@
-"""``tcspc calibrate density|lsb|delay`` (DESIGN.md "Command line")."""
+"""``tcspc calibrate density|lsb|delay`` (docs/design.md "Command line")."""
 
 from __future__ import annotations
 
 import click
 import numpy as np
 
-from pipeline.cli.app import console
+from pipeline.cli.console import console, note, warn
 from pipeline.io.capture import Capture
 from pipeline.offline.calibrate import (
     add_delay,
@@ -118,9 +118,8 @@ def delay(capture, out, distance_m) -> None:
               f"wrote {out}", highlight=False)
     if not got.all():
         why = Counter(r for r in calib.delay_reasons if r)
-        err.print(f"[yellow]warning:[/yellow] no delay on {int((~got).sum())} TDC(s) "
-                  f"{np.flatnonzero(~got)[:12].tolist()}: "
-                  + "; ".join(f"{n} {r}" for r, n in why.most_common()), highlight=False)
+        warn(f"no delay on {int((~got).sum())} TDC(s) {np.flatnonzero(~got)[:12].tolist()}: "
+             + "; ".join(f"{n} {r}" for r, n in why.most_common()), err)
 
 
 @calibrate.command()
@@ -163,7 +162,7 @@ def distance(histograms, truth, out, p_fa) -> None:
     none = [t for t, d in zip(cal.tdc, cal.fits["ml"]["delay_ps"], strict=True)
             if not np.isfinite(d)]
     if none:
-        err.print(f"[yellow]warning:[/yellow] no delay (no detection) on rows {none}")
+        warn(f"no delay (no detection) on rows {none}")
     err.print(f"wrote {out}")
 
 
@@ -188,9 +187,9 @@ def track(capture, calibration, out, tolerance_ps) -> None:
         acc.update(words, first)
     st = acc.snapshot()
     light = float(st.hits.sum() / (st.n_tdc * max(st.cycles.max(), 1)))
-    expected, note = calib.lsb_s(light)
-    if note:
-        err.print(f"[yellow]note:[/yellow] {note}", highlight=False)
+    expected, why = calib.lsb_s(light)
+    if why:
+        note(why, err)
     tr = cal.track_lsb(st.hits, st.cycles, cap.meta.window_ns * 1e-9, expected,
                        artifacts=st.artifacts)
     d = tr.drift_ps
@@ -199,7 +198,7 @@ def track(capture, calibration, out, tolerance_ps) -> None:
               f"{ok.size} TDCs; drift mean {np.nanmean(d):+.3f} ps, max |drift| "
               f"{np.nanmax(np.abs(d)):.3f} ps")
     for t in np.flatnonzero(tr.flagged):
-        err.print(f"[yellow]TDC {t}: estimate left out:[/yellow] {tr.why[t]}", highlight=False)
+        warn(f"TDC {t}: estimate left out: {tr.why[t]}")
     moved = np.flatnonzero(ok & (np.abs(d) > tolerance_ps))
     if moved.size:
         err.print(f"TDCs beyond {tolerance_ps} ps: {moved.tolist()} (recalibrate)")

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from pipeline.cli.app import err
+from pipeline.cli.console import err, warn
 
 
 def detect(path: str, given: str | None) -> str:
@@ -56,7 +56,7 @@ def range_generic(path: str, out: str, calibration, delay_ps, zero, gate, estima
     err.print(f"instrument response: {info['response']}; pile-up: {info['pileup']}",
               highlight=False)
     if "bright" in info:
-        err.print(f"[yellow]warning:[/yellow] {info['bright']}", highlight=False)
+        warn(info["bright"])
     df = pl.from_arrow(table)
     det = df.filter(pl.col("detected"))
     if not quiet:
@@ -111,10 +111,33 @@ def histograms_of(path: str, fmt: str, measurement: str | None, firmware: str, b
     raise click.ClickException(f"{path}: {fmt} is not an instrument format")
 
 
+def refuse_if_not(path: str, fmt: str) -> None:
+    """A file given ``--format linospad2`` whose lines mostly break that format's structure
+    is refused before anything is written, naming the format its content reads as (a tcspc
+    capture read as LinoSPAD2 gave a parquet of millions of invalid records, exit 0)."""
+    if fmt != "linospad2" or not Path(path).is_file():
+        return
+    from pipeline.io.formats import FormatError, detect_format
+    from pipeline.io.linospad2 import broken_lines
+
+    broken, lines = broken_lines(path)
+    if lines and broken * 2 > lines:
+        try:
+            likely = detect_format(path)
+        except FormatError:
+            likely = None
+        hint = (f"; its content reads as a {likely} file: give --format {likely} or leave "
+                "--format out" if likely and likely != fmt else "")
+        raise FormatError(f"{path}: not a LinoSPAD2 file: {broken} of its first {lines} "
+                          "lines have invalid words before valid ones, which that format "
+                          f"never has{hint}; nothing written")
+
+
 def histogram(path: str, fmt: str, out: str, measurement, firmware: str, by: str,
               quiet: bool, allow_truncated: bool = False) -> None:
     from pipeline.offline.instruments import write_instrument_histograms
 
+    refuse_if_not(path, fmt)
     table, summary = histograms_of(path, fmt, measurement, firmware, by)
     _check_accounting(summary)
     write_instrument_histograms(table, out, path, summary)
@@ -131,6 +154,7 @@ def decode(path: str, fmt: str, out: str, firmware: str, quiet: bool,
            allow_truncated: bool = False) -> None:
     from pipeline.offline.instruments import decode_instrument
 
+    refuse_if_not(path, fmt)
     if Path(out).suffix.lower() in (".h5", ".hdf5"):
         return _photon_hdf5(path, fmt, out, quiet)
 

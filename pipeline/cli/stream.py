@@ -11,7 +11,8 @@ import click
 from rich.console import Console
 from rich.table import Table
 
-from pipeline.cli.app import _calibration, err
+from pipeline.cli.app import _calibration
+from pipeline.cli.console import err
 
 
 @click.group()
@@ -437,7 +438,8 @@ def status(state, watch, as_json) -> None:
     if as_json:
         click.echo(path.read_text())
         return
-    con = Console(width=None if sys.stdout.isatty() else 160)  # piped: no wrapped columns
+    # piped: no wrapped columns; markup off: stage names and reasons are printed as they are
+    con = Console(width=None if sys.stdout.isatty() else 160, markup=False)
     if watch is None:
         con.print(_status_table(json.loads(path.read_text())))
         return

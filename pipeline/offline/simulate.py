@@ -32,7 +32,7 @@ def make_simulator(scene_path, cycles: int, seed: int = 0, chip_seed: int = 1,
 
 
 def capture_kind(scene) -> str:
-    """The sidecar's ``kind`` (DESIGN.md): density without a target, delay when every target
+    """The sidecar's ``kind`` (docs/design.md): density without a target, delay when every target
     sits at zero distance (under 5 cm), else range."""
     if not scene.targets:
         return "density"

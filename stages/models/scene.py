@@ -22,6 +22,7 @@ from scipy.constants import c as C_LIGHT
 from schemas.errors import TcspcError
 from stages.models import atmosphere as atm
 from stages.models import noise, signal
+from stages.models.scene_check import check_table
 from stages.models.tcspc import combined_sigma, sigma_from_fwhm
 
 
@@ -158,19 +159,78 @@ def _build(cls, data: dict, where: str):
         raise SceneError(f"{where}: {exc}") from exc
 
 
+#: First bytes of files people give by mistake, named in the error.
+_NOT_TOML = {b"\x89PNG": "a PNG image", b"\xff\xd8\xff": "a JPEG image", b"%PDF": "a PDF",
+             b"PK\x03\x04": "a zip archive", b"PQTTTR": "a PicoQuant PTU file",
+             b"\x7fELF": "a program"}
+
+
 def load_scene(path: str | Path) -> Scene:
-    """Read and validate a scene TOML file."""
+    """Read and validate a scene TOML file (every problem at once: :func:`scene_from_dict`)."""
     path = Path(path)
     try:
-        raw = tomllib.loads(path.read_text())
+        data = path.read_bytes()
     except FileNotFoundError:
         raise SceneError(f"{path}: scene file not found") from None
+    except IsADirectoryError:
+        raise SceneError(f"{path}: a directory; a scene is a TOML file") from None
+    try:
+        raw = tomllib.loads(data.decode("utf-8"))
+    except UnicodeDecodeError:
+        what = next((v for k, v in _NOT_TOML.items() if data.startswith(k)), "binary data")
+        raise SceneError(f"{path}: not a scene: the file is {what}, a scene is a TOML text "
+                         "file (see scenes/street.toml)") from None
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{path}: not valid TOML: {exc}") from exc
     return scene_from_dict(raw, str(path))
 
 
+_SECTIONS = {"laser": Laser, "sensor": Sensor, "gate": Gate, "atmosphere": Atmosphere}
+_LISTS = {"targets": Target, "ambient": Ambient}
+
+
+def check_scene(raw: dict, where: str = "scene") -> list[str]:
+    """Every problem of a scene's TOML table, one line each naming ``where`` (the file),
+    the section and the key; empty when the scene is valid."""
+    if not isinstance(raw, dict):
+        return [f"{where}: a scene is a TOML table, found {type(raw).__name__}"]
+    tables = [k for k, v in raw.items() if isinstance(v, dict | list) and k not in _SECTIONS
+              and k not in _LISTS]
+    problems = [f"{where} [{k}]: unknown section (known: {', '.join(_SECTIONS)}, "
+                f"{', '.join(f'[[{x}]]' for x in _LISTS)})" for k in tables]
+    problems += check_table(Scene, raw, where, skip=("name", *_SECTIONS, *_LISTS, *tables))
+    if "name" in raw and not isinstance(raw["name"], str):
+        problems.append(f"{where} name: expected text in quotes, found {raw['name']!r}")
+    for key, cls in _SECTIONS.items():
+        if key in raw:
+            problems += check_table(cls, raw[key], f"{where} [{key}]")
+    sensor = raw.get("sensor")
+    n_pixels = sensor.get("n_pixels") if isinstance(sensor, dict) else None
+    n_pixels = n_pixels if isinstance(n_pixels, int) and n_pixels >= 1 else Sensor.n_pixels
+    for key, cls in _LISTS.items():
+        items = raw.get(key, [])
+        if not isinstance(items, list):
+            problems.append(f"{where} {key}: expected [[{key}]] tables, found {items!r}")
+            continue
+        for i, item in enumerate(items):
+            here = f"{where} [[{key}]] #{i + 1}"
+            found = check_table(cls, item, here)
+            problems += found
+            px = item.get("pixels") if isinstance(item, dict) else None
+            if key == "targets" and px is not None and \
+                    not any(p.startswith(f"{here} pixels:") for p in found) and \
+                    not 0 <= px[0] <= px[1] < n_pixels:
+                problems.append(f"{here} pixels: {list(px)} outside 0..{n_pixels - 1} "
+                                "(first <= last)")
+    return problems
+
+
 def scene_from_dict(raw: dict, where: str = "scene") -> Scene:
+    """A :class:`Scene` from a scene's TOML table; :class:`SceneError` lists every problem,
+    one line each, before anything is built."""
+    problems = check_scene(raw, where)
+    if problems:
+        raise SceneError("\n".join(problems))
     raw = dict(raw)
     kw = {"name": str(raw.pop("name", Path(where).stem))}
     for key, cls in (("laser", Laser), ("sensor", Sensor), ("gate", Gate)):

@@ -25,7 +25,7 @@ def test_every_field_has_unit_and_description(spec):
 
 
 def test_design_columns_are_present():
-    # DESIGN.md "Outputs": the contract's columns, in order, with their types.
+    # docs/design.md "Outputs": the contract's columns, in order, with their types.
     assert HISTOGRAMS.names[:4] == ["measurement", "tdc", "cycles", "counts"]
     # histograms 2.0: counts a variable list (512 for the chip, other code counts for the
     # instruments of pipeline/io/ptu.py and linospad2.py); 1.x files are upgraded on read
