@@ -414,7 +414,10 @@ def _status_table(st: dict):
     age = _time.time() - st["updated"]
     state = st["state"] if st["state"] != "running" or age < 5 else \
         f"not updated for {age:.0f} s (daemon gone?)"
-    t = Table(title=f"run {st['run']}: {state}")
+    from rich.text import Text
+
+    t = Table(title=f"run {st['run']}: {state}",
+              caption=Text("; ".join(st.get("problems") or [])) or None)
     for col in ("stage", "health", "pid", "restarts", "received", "sent", "M words/s",
                 "queue", "blocked s", "rejected"):
         t.add_column(col)

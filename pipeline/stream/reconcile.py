@@ -168,9 +168,10 @@ def _part_problem(path: Path, n_tdc: int, cycles: int) -> tuple[Path, str] | Non
     got = np.asarray(t.column("cycles"), np.int64)
     words = int(sum(np.asarray(t.column(c), np.int64).sum() for c in cols))
     if t.num_rows != n_tdc or (got != cycles).any() or words != cycles * n_tdc:
-        return path, (f"{t.num_rows} TDCs, {int(got.min(initial=0))}..{int(got.max(initial=0))}"
-                      f" cycles and {words:,} words; the journal holds {cycles:,} cycles, "
-                      f"{cycles * n_tdc:,} words for its {n_tdc} TDCs")
+        span = f"{int(got.min())}..{int(got.max())}" if got.size else "no"
+        return path, (f"{t.num_rows} TDCs, {span} cycles and {words:,} words; the journal "
+                      f"holds {cycles:,} cycles, {cycles * n_tdc:,} words for its {n_tdc} "
+                      "TDCs")
     return None
 
 

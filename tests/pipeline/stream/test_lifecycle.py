@@ -239,32 +239,41 @@ def test_a_run_that_does_not_balance_is_never_finished():
 def test_a_damaged_or_short_part_is_rebuilt_from_the_journal(tmp_path):
     """Issue 26.7 and 26.2: reconciliation compares every part with the journal (cycles,
     words), not only missing ones: a part cut short on disk ("parquet: File out of
-    specification") and one that holds a measurement's first words only are rebuilt and
-    named; the datasets then equal the journal's."""
-    from pipeline.stream.reconcile import reconcile
-    from pipeline.stream.topology import load_topology
-
-    res, _ = _d.run_daemon(_d.topology(tmp_path, cycles=40_000), "p")
-    assert res["state"] == "finished" and res["problems"] == []
-    parts = sorted((tmp_path / "out").glob("histograms/date=*/run=p/*.parquet"))
-    damaged, short = parts[1], parts[4]  # (measurement 0, TDCs 8-15), (2, TDCs 0-7)
-    damaged.write_bytes(damaged.read_bytes()[:200])
+    specification") and one that holds a measurement's first 7,000 of 10,000 cycles are
+    rebuilt and named; the good ones are left alone; the datasets then equal histograms
+    computed straight from the journal."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
+    from pipeline.stream.journal import JournalWriter
+    from pipeline.stream.reconcile import reconcile
+    from pipeline.stream.topology import load_topology
+
+    cycles = 40_000
+    topo = load_topology(_d.topology(tmp_path, cycles=cycles), "p")
+    words, _ = pattern_words(cycles, N, hit_prob=0.2, rng=6)
+    jw = JournalWriter(topo.state / "journal", "p", N, 140.0)
+    for i in range(0, words.size, 1 << 16):  # as a source journals: chunk after chunk
+        jw.append(i, words[i:i + (1 << 16)])
+    jw.close()
+    first = reconcile(topo)  # no dataset yet: every part is computed from the journal
+    assert len(first["recomputed"]) == 8 and first["rebuilt"] == []
+    parts = sorted((tmp_path / "out").glob("histograms/date=*/run=p/*.parquet"))
+    damaged, short = parts[1], parts[4]  # (measurement 0, TDCs 8-15), (2, TDCs 0-7)
+    damaged.write_bytes(damaged.read_bytes()[:200])
     t = pq.read_table(short)  # its first 7,000 cycles only: 3,000 no-hit words fewer
     t = t.set_column(t.schema.get_field_index("cycles"), "cycles",
                      pa.array(np.full(t.num_rows, 7_000, np.uint64)))
-    nh = t.schema.get_field_index("n_no_hit")
-    t = t.set_column(nh, "n_no_hit", pa.array(
+    t = t.set_column(t.schema.get_field_index("n_no_hit"), "n_no_hit", pa.array(
         t.column("n_no_hit").to_numpy() - np.uint64(3_000)))
     pq.write_table(t, short)
-    rec = reconcile(load_topology(tmp_path / "topo.toml", "p"))
+    rec = reconcile(topo)
     named = {r["file"]: r["why"] for r in rec["rebuilt"]}
     assert str(damaged) in named and "unreadable" in named[str(damaged)]
-    assert str(short) in named and "journal holds 10,000 cycles" in named[str(short)]
-    assert len(rec["rebuilt"]) == 2  # the good ones are left alone
-    _d.check_histograms(tmp_path, "p", 40_000)
+    assert str(short) in named and "7000..7000 cycles" in named[str(short)]
+    assert "journal holds 10,000 cycles" in named[str(short)]
+    assert len(rec["rebuilt"]) == 2 and len(rec["recomputed"]) == 2  # the rest left alone
+    _d.check_histograms(tmp_path, "p", cycles)
 
 
 # ------------------------------------------------------------------ stop, then resume
