@@ -350,7 +350,10 @@ def stage_sink(pull, out, quarantine, workers, metrics, senders) -> None:
 @click.option("--run", "run_id", default=None, help="Run id (default: from the config).")
 def daemon(config, run_id) -> None:
     """Start the stream graph under a supervisor that restarts crashed stages; on exit,
-    reconcile the datasets with the journal and write the run's accounting."""
+    reconcile the datasets with the journal and write the run's accounting. Exit 0: the run
+    finished, every word in; 1: failed; 3: incomplete (unbalanced, a measurement withheld,
+    no reconciliation, input lost: the problems are printed); 130 (Ctrl-C) or 143
+    (SIGTERM): interrupted, resumable with the same --run."""
     import signal
 
     from pipeline.stream.daemon import Supervisor, exit_code
