@@ -281,17 +281,6 @@ def sim_scenarios(tmp: Path, lines: list[str], only=None) -> None:
              post=lambda d, topo, res: {**res, "end": f"{first_end['end']} then "
                                         f"{end(res)}"})
 
-    def freeze(s):
-        wait_words(s, 1.4e6)
-        w = s.by_name["histogram-1"]
-        os.kill(w.popen.pid, signal.SIGSTOP)
-        while not (s.by_name["source"].finished and w.terminated):
-            time.sleep(0.2)
-        os.kill(w.popen.pid, signal.SIGCONT)
-
-    scenario("worker stopped across the end", "SIGSTOP histogram-1 at 1.4 M words until "
-             "the source has ended (60 s) and the supervisor has SIGTERMed it", freeze)
-
     def damaged_part(d, topo, res):
         from pipeline.stream import daemon
         from pipeline.stream.topology import load_topology
@@ -345,7 +334,7 @@ def udp_scenarios(tmp: Path, lines: list[str], only=None) -> None:
     dgs = [datagram.encode(words[i * cyc * N:(i + 1) * cyc * N], i, i * cyc, N, 140_000,
                            last=(i == n - 1)) for i in range(n)]
 
-    def feed(schedule, rate, stall=None, kill_at=None):
+    def feed(schedule, rate, stall=None, kill_at=None, freeze_at=None):
         def during(sup):
             while "source" not in sup.metrics:
                 time.sleep(0.05)
@@ -355,6 +344,8 @@ def udp_scenarios(tmp: Path, lines: list[str], only=None) -> None:
             for i, data in enumerate(schedule):
                 if kill_at is not None and i == kill_at:
                     kill(sup, "source")  # the FPGA goes on while the ingest is down
+                if freeze_at is not None and i == freeze_at:
+                    os.kill(sup.by_name["histogram-1"].popen.pid, signal.SIGSTOP)
                 if stall and i == 100:
                     os.kill(sup.by_name[stall].popen.pid, signal.SIGSTOP)
                 if stall and i == 100 + int(3 * rate):
@@ -364,16 +355,21 @@ def udp_scenarios(tmp: Path, lines: list[str], only=None) -> None:
                 if ahead > 0:
                     time.sleep(ahead)
             out.close()
+            if freeze_at is not None:  # stopped across the end, until the supervisor ends it
+                w = sup.by_name["histogram-1"]
+                while not (sup.by_name["source"].finished and w.terminated):
+                    time.sleep(0.2)
+                os.kill(w.popen.pid, signal.SIGCONT)
         return during
 
-    def run(name, schedule, rate, stall=None, kill_at=None, src_extra=""):
+    def run(name, schedule, rate, stall=None, kill_at=None, src_extra="", freeze_at=None):
         d = tmp / f"udp_{name.replace(' ', '_')}"
         d.mkdir()
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
         res, sup, dt = run_daemon(topology(d, udp_port=port, src_extra=src_extra), "u",
-                                  feed(schedule, rate, stall, kill_at))
+                                  feed(schedule, rate, stall, kill_at, freeze_at))
         res["taken"] = _journaled_datagrams(d / "state" / "journal", "u")
         return res, sup, dt, histograms(d / "out", "u")
 
@@ -435,6 +431,12 @@ def udp_scenarios(tmp: Path, lines: list[str], only=None) -> None:
         lines.append(line("UDP, strays before the stream", "another gate, sequence 2^31, a "
                           "cycle 1,000,000 ahead, before datagram 0", res, sup, dt, got,
                           n + 3))
+        print(lines[-1], flush=True)
+    if want("UDP, a worker stopped across the end"):
+        res, sup, dt, got = run("frozen", dgs, 1000, freeze_at=800)
+        lines.append(line("UDP, a worker stopped across the end", "SIGSTOP histogram-1 at "
+                          "datagram 800 until the ingest gave up its stop (60 s) and the "
+                          "supervisor SIGTERMed it", res, sup, dt, got, n))
         print(lines[-1], flush=True)
     if want("UDP ingest restarted"):
         res, sup, dt, got = run("restart", dgs, 200, kill_at=300,

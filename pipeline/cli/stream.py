@@ -281,7 +281,15 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
 
         def ended():
             total = run_end(journal, run_id)
-            return None if total is None else total // n_tdc * (b - a)
+            if total is None:
+                return None
+            # a worker that heard no message (started before the journal existed, then
+            # stopped across the run's end) labels what it fetches with the run's gate
+            meta = run_meta(journal, run_id)
+            for k in ("t_laser_win_ns", "window_ns"):
+                if k in meta:
+                    core.context.setdefault(k, meta[k])
+            return total // n_tdc * (b - a)
     acc = None
     if instrument_file:
         from pipeline.io.formats import resolve_format

@@ -625,9 +625,13 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             "datagrams": stats.datagrams, "lost_datagrams": stats.lost_datagrams,
             "duplicates": stats.duplicates, "late": stats.late,
             "gap_cycles": stats.gap_cycles, "rejected": dict(stats.rejected)}
-        sendq.put([wire.encode(stop_head, None, token) for _ in txs])
-        sendq.put(None)
-        tx_thread.join(timeout=60)  # a downstream that never takes it: the daemon ends it
+        try:  # a stage downstream that takes nothing for a minute is given up on: the
+            # daemon ends it, and it fetches the words it lacks from the journal
+            sendq.put([wire.encode(stop_head, None, token) for _ in txs], timeout=60)
+            sendq.put(None, timeout=60)
+        except queue.Full:
+            pass
+        tx_thread.join(timeout=60)
         beat.beat(force=True, state="finished", **stats.fields())
     finally:
         halt_rx.set()
