@@ -392,7 +392,7 @@ def udp_scenarios(tmp: Path, lines: list[str], only=None) -> None:
         return (f"| {name} | {injected} | {n_sent:,} datagrams | {acc.get('words_in', 0):,}"
                 f" words ({taken:,} datagrams; {acc.get('lost_datagrams', 0):,} counted "
                 f"lost) | {lost_silent} | {wrong} | {missing} (gaps {gaps:,} words"
-                f"{f', {-(-len(short) // N)} measurements short by them' if short else ''}) | "
+                f"{f', {-(-len(short) // N)} measurement(s) short by them' if short else ''}) | "
                 f"{sum(res.get('restarts', {}).values())} | {end(res)} | {dt - ref_dt:+.1f} |")
 
     lines.append(line("UDP clean", "nothing", res, sup, ref_dt, ref, n))
@@ -435,8 +435,8 @@ def udp_scenarios(tmp: Path, lines: list[str], only=None) -> None:
     if want("UDP, a worker stopped across the end"):
         res, sup, dt, got = run("frozen", dgs, 1000, freeze_at=800)
         lines.append(line("UDP, a worker stopped across the end", "SIGSTOP histogram-1 at "
-                          "datagram 800 until the ingest gave up its stop (60 s) and the "
-                          "supervisor SIGTERMed it", res, sup, dt, got, n))
+                          "datagram 800, until the ingest has ended and the supervisor has "
+                          "SIGTERMed it", res, sup, dt, got, n))
         print(lines[-1], flush=True)
     if want("UDP ingest restarted"):
         res, sup, dt, got = run("restart", dgs, 200, kill_at=300,
