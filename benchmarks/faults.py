@@ -245,8 +245,10 @@ def sim_scenarios(tmp: Path, lines: list[str], only=None) -> None:
 
         topo_ = load_topology(topo, "r")
         rec = daemon.reconcile(topo_)
-        return {**res, "reconciled": rec,
-                "accounting": daemon.accounting(topo_, {}, rec)}
+        res = {**res, "reconciled": rec, "accounting": daemon.accounting(topo_, {}, rec)}
+        res["problems"] = daemon.problems(res)
+        res["state"] = daemon.run_state(res)
+        return res
 
     scenario("corrupt journal frame", "a bit flipped in a frame the repair reads",
              post=corrupt_repair)
@@ -273,10 +275,10 @@ def sim_scenarios(tmp: Path, lines: list[str], only=None) -> None:
     first_end = {}
 
     def graceful(d, topo):  # Ctrl-C; the scenario's daemon then resumes the run
-        first, _ = daemon_proc(d, topo, "r", stop_at=1.4e6)
+        first, _ = daemon_proc(d, topo, "r", stop_at=0.6e6)
         first_end["end"] = f"{first.get('state')} ({first['exit']})"
 
-    scenario("Ctrl-C and resume", "SIGINT the daemon at 1.4 M words, start it again "
+    scenario("Ctrl-C and resume", "SIGINT the daemon at 0.6 M words, start it again "
              "(delay: the second daemon's run only)", pre=graceful,
              post=lambda d, topo, res: {**res, "end": f"{first_end['end']} then "
                                         f"{end(res)}"})

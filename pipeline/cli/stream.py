@@ -373,6 +373,8 @@ def daemon(config, run_id) -> None:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda signum, _: sup.interrupt(signum))
     result = sup.run()
+    for sig in (signal.SIGTERM, signal.SIGINT):  # the run is over: its exit status stands
+        signal.signal(sig, signal.SIG_IGN)
     click.echo(json.dumps(result, indent=1))
     words = (result.get("accounting") or {}).get("words_in", 0)
     state = result["state"]

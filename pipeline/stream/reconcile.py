@@ -244,7 +244,10 @@ def accounting(topo: Topology, metrics: dict[str, dict], reconciled: dict | None
         sums = pl.scan_parquet(parts).select([pl.col(c).sum() for c in cols]).collect()
         classes = {c: int(sums[f"n_{c}"][0]) for c in WORD_CLASSES}
     journaled = journaled_total(topo.state / "journal", topo.run)
-    span = run_end(topo.state / "journal", topo.run) or 0
+    span = run_end(topo.state / "journal", topo.run)
+    if span is None:  # a run without its end line (the reconciliation says so): the words
+        span = max((b for _, b in _journal_spans(topo.state / "journal", topo.run)),
+                   default=0)  # journaled so far, so a gap is never negative
     rejected = {name: m.get("rejected", {}) for name, m in metrics.items() if m.get("rejected")}
     rec = reconciled or {}
     withheld = int(rec.get("withheld_words", 0))
