@@ -324,7 +324,11 @@ class Supervisor:
                     heard = m.get("pid") == p.popen.pid
                     got = (m.get("received"), m.get("words_total")) if heard else None
                     starting = not heard and now - p.started_at < STARTUP_S
-                    if p.upstream_done_at is None or got != p.last_received or starting:
+                    # a stage paused on a full disk is waiting, not stuck: ended now, what
+                    # it holds would be written by the reconciliation onto the same disk
+                    paused = heard and m.get("state") == "paused"
+                    if p.upstream_done_at is None or got != p.last_received or starting \
+                            or paused:
                         p.upstream_done_at = now  # still working: not stuck
                         p.last_received = got
                     if now - p.upstream_done_at > GRACE_S and not p.terminated:
