@@ -312,7 +312,8 @@ def sim_scenarios(tmp: Path, lines: list[str], only=None) -> None:
                                 fh.write(b"\0" * size)
                         except OSError:
                             continue
-                while stage not in s.status()["paused"]:
+                deadline = time.time() + 120  # (a run that never pauses must not hang)
+                while stage not in s.status()["paused"] and time.time() < deadline:
                     time.sleep(0.05)
                 time.sleep(2.0)
                 filler.unlink()
