@@ -512,6 +512,8 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
         for first, words in batches:
             if halt.is_set():  # a signal: end the run cleanly after the last whole batch
                 break
+            if seq == 0:  # the rate's clock starts with the first batch (a simulator's
+                t0 = time.perf_counter()  # first one can take seconds: compiling)
             words = np.asarray(words, np.uint32)
             wrote = (writer.submit(append, first, words.astype(">u4"))
                      if writer is not None else None)  # (a copy: the words may be reused)
