@@ -127,11 +127,11 @@ class HistogramCore:
                 "class_counts": state.totals(),
                 **{k2: v for k2, v in self.context.items() if k2 != "run"}}
         self._out += [(head, batch) for batch in table.to_batches()]
+        self.emitted += 1
         if keep:
             return
         self.acc.reset()
         self.measurement += 1
-        self.emitted += 1
 
     def _take(self) -> list:
         out, self._out = self._out, []

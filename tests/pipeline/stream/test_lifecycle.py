@@ -200,6 +200,28 @@ def test_a_restarted_udp_ingest_takes_the_run_up_from_the_journal(tmp_path):
     assert stop["rejected"] == {}
 
 
+def test_an_earlier_stops_end_line_is_not_the_runs_end(tmp_path):
+    """Issue 26.2: after a graceful stop the index ends with `{end}`; a daemon resuming the
+    run marks it reopened before any stage starts (and so does a writer), so a restarted
+    worker sees no end until the resumed source closes the run again."""
+    from pipeline.stream.journal import JournalWriter, journaled_total, reopen
+
+    w = JournalWriter(tmp_path, "r", 4, 140.0)
+    w.append(0, np.arange(400, dtype=np.uint32))
+    w.close()
+    assert run_end(tmp_path, "r") == 400
+    assert reopen(tmp_path, "r") and run_end(tmp_path, "r") is None
+    assert not reopen(tmp_path, "r")  # once
+    w = JournalWriter(tmp_path, "r", 4, 140.0)  # the resumed source
+    assert run_end(tmp_path, "r") is None
+    w.append(400, np.arange(400, dtype=np.uint32))
+    assert run_end(tmp_path, "r") is None  # an end line followed by chunks is not the end
+    w.close()
+    assert run_end(tmp_path, "r") == 800 and journaled_total(tmp_path, "r") == 800
+    got = np.concatenate([x for _, x in read_range(tmp_path, "r", 0, 10**9)])
+    assert np.array_equal(got, np.tile(np.arange(400, dtype=np.uint32), 2))
+
+
 # ------------------------------------------------------------------ the daemon's verdict
 
 def test_a_run_that_does_not_balance_is_never_finished():
