@@ -563,6 +563,8 @@ class Supervisor:
         if not self.failed:
             try:
                 result["reconciled"] = reconcile(self.topo)
+                for part in result["reconciled"].get("rebuilt", []):
+                    self.log(f"rebuilt from the journal: {part['file']} ({part['why']})")
                 result["accounting"] = accounting(self.topo, self.metrics,
                                                   result["reconciled"])
             except Exception as exc:  # the run must end with a state, never "running"
