@@ -75,7 +75,7 @@ _KNOWN = {
                "restart_backoff_max_s", "curve"},
     "source": {"kind", "scene", "cycles", "seed", "chip_seed", "rate", "capture", "bind",
                "idle", "n_tdc", "repeat", "reorder_window", "max_jump_cycles", "file",
-               "format", "firmware", "gate_ps", "first_seq"},
+               "format", "firmware"},
     "histogram": {"workers", "measurement_cycles", "calibration", "n_tdc", "endpoints"},
     "range": {"calibration", "estimator", "endpoint"},
     "sink": {"out", "endpoint"},
