@@ -108,7 +108,10 @@ class HistogramCore:
                 self.backfilled += w.size
 
     # ------------------------------------------------------------------ output
-    def _emit(self, partial: bool) -> None:
+    def _emit(self, partial: bool, keep: bool = False) -> None:
+        """Send the measurement being filled; ``keep``: and go on filling it (the stream's
+        end or a stop: the checkpoint keeps it, so a run resumed later completes it and its
+        complete histogram replaces the partial one, the same file)."""
         state = self.acc.snapshot()
         run = str(self.context.get("run", "run"))
         k = self.measurement
@@ -124,9 +127,11 @@ class HistogramCore:
                 "class_counts": state.totals(),
                 **{k2: v for k2, v in self.context.items() if k2 != "run"}}
         self._out += [(head, batch) for batch in table.to_batches()]
+        self.emitted += 1
+        if keep:
+            return
         self.acc.reset()
         self.measurement += 1
-        self.emitted += 1
 
     def _take(self) -> list:
         out, self._out = self._out, []
@@ -144,7 +149,7 @@ class HistogramCore:
     def finish(self, header: dict) -> list:
         self.context.setdefault("run", header.get("run", "run"))
         if self.acc.snapshot().words or self.m_words is None:
-            self._emit(partial=self.m_words is not None)
+            self._emit(partial=self.m_words is not None, keep=True)
         return self._take()
 
     # ------------------------------------------------------------------ checkpoints

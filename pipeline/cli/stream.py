@@ -196,14 +196,21 @@ def stage_source_file(path, pushes, run_id, rate, fmt, firmware, journal, journa
               help="Datagrams held to undo UDP reordering (default 64).")
 @click.option("--max-jump-cycles", type=click.IntRange(1), default=None,
               help="A datagram further past the newest cycle is refused (default 2^20).")
+@click.option("--gate-ps", type=click.IntRange(1_000, 10_000_000), default=None,
+              help="The run's gate (t_laser_win) in ps: a datagram with another is refused "
+                   "(default: from a quorum of datagrams).")
+@click.option("--first-seq", type=click.IntRange(0, 2**32 - 1), default=None,
+              help="The sequence number of the run's first datagram, at cycle 0 (default: "
+                   "from a quorum of datagrams).")
 @_journal_compression
 @_split
 @_metrics
 @_date
 def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, n_tdc,
-                     reorder_window, max_jump_cycles, journal_compression, split, metrics,
-                     date) -> None:
-    """The FPGA's UDP datagrams (docs/streaming.md) in, journaled raw-word batches out."""
+                     reorder_window, max_jump_cycles, gate_ps, first_seq, journal_compression,
+                     split, metrics, date) -> None:
+    """The FPGA's UDP datagrams (docs/streaming.md) in, journaled raw-word batches out.
+    Restarted on a run its journal holds, it takes the run up where the journal has it."""
     import signal
     import threading
 
@@ -217,7 +224,8 @@ def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, n_tdc
                            metrics=metrics, date=date, stop=halt,
                            compression=_compression(journal_compression), n_tdc=n_tdc,
                            reorder_window=reorder_window or REORDER_WINDOW,
-                           max_jump_cycles=max_jump_cycles or MAX_JUMP_CYCLES)
+                           max_jump_cycles=max_jump_cycles or MAX_JUMP_CYCLES,
+                           gate_ps=gate_ps, first_seq=first_seq)
     err.print(f"ingest: {stats.datagrams} datagrams, {stats.words:,} words, "
               f"{stats.lost_datagrams} lost, {stats.duplicates} duplicates, {stats.late} "
               f"late, {stats.gap_cycles} cycles in gaps, rejected {dict(stats.rejected)}")
@@ -290,7 +298,15 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
 
         def ended():
             total = run_end(journal, run_id)
-            return None if total is None else total // n_tdc * (b - a)
+            if total is None:
+                return None
+            # a worker that heard no message (started before the journal existed, then
+            # stopped across the run's end) labels what it fetches with the run's gate
+            meta = run_meta(journal, run_id)
+            for k in ("t_laser_win_ns", "window_ns"):
+                if k in meta:
+                    core.context.setdefault(k, meta[k])
+            return total // n_tdc * (b - a)
     acc = None
     if instrument_file:
         from pipeline.io.formats import resolve_format
@@ -404,20 +420,38 @@ def plan(config, run_id, out) -> None:
 @click.option("--run", "run_id", default=None, help="Run id (default: from the config).")
 def daemon(config, run_id) -> None:
     """Start the stream graph under a supervisor that restarts crashed stages; on exit,
-    reconcile the datasets with the journal and write the run's accounting."""
+    reconcile the datasets with the journal and write the run's accounting. Exit 0: the run
+    finished, every word in; 1: failed; 3: incomplete (unbalanced, a measurement withheld,
+    no reconciliation, input lost: the problems are printed); 130 (Ctrl-C) or 143
+    (SIGTERM): interrupted, resumable with the same --run."""
     import signal
 
-    from pipeline.stream.daemon import Supervisor
+    from pipeline.stream.daemon import Supervisor, exit_code
     from pipeline.stream.topology import load_topology
 
     topo = load_topology(config, run_id)
-    sup = Supervisor(topo, log=lambda m: err.print(f"daemon: {m}", highlight=False))
+    sup = Supervisor(topo, log=lambda m: err.print(f"daemon: {m}", highlight=False,
+                                                   markup=False))
     for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: sup.stop.set())
+        signal.signal(sig, lambda signum, _: sup.interrupt(signum))
     result = sup.run()
+    for sig in (signal.SIGTERM, signal.SIGINT):  # the run is over: its exit status stands
+        signal.signal(sig, signal.SIG_IGN)
     click.echo(json.dumps(result, indent=1))
-    if result["failed"]:
-        sys.exit(1)
+    words = (result.get("accounting") or {}).get("words_in", 0)
+    state = result["state"]
+    if state == "interrupted":
+        err.print(f"daemon: run {topo.run} interrupted ({result['interrupted']}) after "
+                  f"{words:,} words; resume it with `tcspc daemon"
+                  f"{' --config ' + str(config) if config else ''} --run {topo.run}`",
+                  highlight=False, markup=False)
+    elif state == "incomplete":
+        err.print(f"daemon: run {topo.run} incomplete: " + "; ".join(result["problems"]),
+                  highlight=False, markup=False)
+    elif state == "finished":
+        err.print(f"daemon: run {topo.run} finished: {words:,} words, balanced",
+                  highlight=False, markup=False)
+    sys.exit(exit_code(result))
 
 
 @click.command()
@@ -456,7 +490,10 @@ def _status_table(st: dict):
     age = _time.time() - st["updated"]
     state = st["state"] if st["state"] != "running" or age < 5 else \
         f"not updated for {age:.0f} s (daemon gone?)"
-    t = Table(title=f"run {st['run']}: {state}")
+    from rich.text import Text
+
+    t = Table(title=f"run {st['run']}: {state}",
+              caption=Text("; ".join(st.get("problems") or [])) or None)
     for col in ("stage", "health", "pid", "restarts", "received", "sent", "M words/s",
                 "queue", "blocked s", "rejected"):
         t.add_column(col)

@@ -83,21 +83,39 @@ def range_state(state: HistogramState, calibration: Calibration, window_s: float
 
 #: the flag of a return before the zero
 BEHIND_ZERO = "before the zero (the delay is beyond the return)"
+#: how many of its own sigmas an estimate may fall before the zero and still be a target
+#: at the zero (the delay's own capture ranges to 0 +- sigma: half of it lands below 0)
+AT_ZERO_SIGMAS = 3.0
+#: ... and never more than this: a poorly measured return (tens of counts beside the
+#: TMF8820's crosstalk, sigma 3-4 mm) 6-10 mm before the zero is not placed at it
+AT_ZERO_MAX_M = 2e-3
 
 
 def behind_zero(est: Estimate, distance_m):
-    """A negative distance is no distance: the row is flagged, not detected, and its
-    distance NaN (a delay beyond the return gave -0.45 m with no warning); a further
-    return (``return_index`` > 0) so withdrawn is dropped (such rows are detections)."""
+    """No negative distance leaves here.
+
+    An estimate before the zero by no more than ``AT_ZERO_SIGMAS`` of its own sigma (and
+    ``AT_ZERO_MAX_M``) is a target at the zero: its distance is 0, it stays detected, and
+    (beyond a nanometre of rounding) its flag says how far before the zero it fell.
+    Further before the zero the row is flagged, not detected, and its distance NaN (a
+    delay beyond the return gave -0.45 m with no warning); a further return
+    (``return_index`` > 0) so withdrawn is dropped (such rows are detections)."""
     d = np.asarray(distance_m, np.float64)
+    sigma_m = np.asarray(est.sigma_s, np.float64) * C_LIGHT / 2
     with np.errstate(invalid="ignore"):
         neg = d < 0
+        tol = np.minimum(AT_ZERO_SIGMAS * np.where(np.isfinite(sigma_m), sigma_m, 0.0),
+                         AT_ZERO_MAX_M)
+        near = neg & (-d <= tol)
     if not neg.any():
         return est, d
+    far = neg & ~near
     flag = np.array(est.flag if est.flag is not None else [""] * d.size, dtype=object)
-    flag[neg] = BEHIND_ZERO
-    est = dataclasses.replace(est, detected=np.asarray(est.detected, bool) & ~neg, flag=flag)
-    d = np.where(neg, np.nan, d)
+    for i in np.flatnonzero(near & (d < -1e-9) & (flag == "")):
+        flag[i] = f"at the zero: {-d[i] * 1e3:.3g} mm before it, within its noise (distance 0)"
+    flag[far] = BEHIND_ZERO
+    est = dataclasses.replace(est, detected=np.asarray(est.detected, bool) & ~far, flag=flag)
+    d = np.where(far, np.nan, np.where(near, 0.0, d))
     if est.return_index is None:
         return est, d
     keep = (est.return_index == 0) | est.detected

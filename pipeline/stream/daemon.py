@@ -45,7 +45,9 @@ starts, as are the state directory and the resources: ``pipeline.stream.state``)
     kind = "sim"                 # sim | capture | udp | file
     scene = "scenes/street.toml" # sim: scene, cycles, seed, chip_seed, rate (words/s)
     capture = "data/raw/street"  # capture: the capture to replay, rate, repeat (times)
-    bind = "127.0.0.1:9000"      # udp: where to listen, idle (s) to end the run
+    bind = "127.0.0.1:9000"      # udp: where to listen, idle (s) to end the run;
+    gate_ps = 140000             # udp: the run's gate and its first datagram's sequence
+    first_seq = 0                # number (else a quorum of agreeing datagrams sets them)
     file = "run.ptu"             # file: a PTU T3 or LinoSPAD2 file, rate (records/s),
                                  # format (default: from the content), firmware; one
                                  # histogram worker, one measurement, no [range]
@@ -191,7 +193,8 @@ def build(topo: Topology) -> list[Proc]:
         argv = _tcspc("stage", "ingest-udp", "--bind", src["bind"], *common, "--quarantine",
                       quar / "ingest", *(("--idle", src["idle"]) if src.get("idle") else ()),
                       "--n-tdc", topo.n_tdc,
-                      *(x for k in ("reorder_window", "max_jump_cycles") if k in src
+                      *(x for k in ("reorder_window", "max_jump_cycles", "gate_ps",
+                                      "first_seq") if k in src
                         for x in (f"--{k.replace('_', '-')}", src[k])))
     procs.append(Proc("source", argv, []))
     return procs
@@ -278,6 +281,7 @@ class Supervisor:
         self.procs = build(topo)
         self.by_name = {p.name: p for p in self.procs}
         self.stop = threading.Event()
+        self.interrupted: str | None = None  #: the signal that stopped the run (SIGINT, ..)
         self.metrics: dict[str, dict] = {}
         self.started = time.time()
         self.failed: str | None = None
@@ -299,6 +303,12 @@ class Supervisor:
 
             self.curve_dir = ensure_keys(topo.state)
 
+    def interrupt(self, signum: int) -> None:
+        """A signal to the daemon: stop the run in order (it stays resumable)."""
+        if not self.by_name["source"].finished:  # (after the source's end: nothing to stop)
+            self.interrupted = self.interrupted or signal.Signals(signum).name
+        self.stop.set()
+
     # -------------------------------------------------------------- processes
     def _start(self, p: Proc) -> None:
         from pipeline.stream.state import open_nofollow
@@ -318,8 +328,10 @@ class Supervisor:
 
             env[CURVE_ENV] = str(self.curve_dir)
         p.started_at = time.time()
+        # its own process group: a Ctrl-C at the terminal reaches the daemon only, which
+        # stops the graph in order (the source first, the rest drain)
         p.popen = subprocess.Popen(p.argv, stdout=log, stderr=subprocess.STDOUT, env=env,
-                                   preexec_fn=_die_with_parent)
+                                   preexec_fn=_die_with_parent, process_group=0)
         log.close()
 
     def _check(self) -> bool:
@@ -338,7 +350,11 @@ class Supervisor:
                     heard = m.get("pid") == p.popen.pid
                     got = (m.get("received"), m.get("words_total")) if heard else None
                     starting = not heard and now - p.started_at < STARTUP_S
-                    if p.upstream_done_at is None or got != p.last_received or starting:
+                    # a stage paused on a full disk is waiting, not stuck: ended now, what
+                    # it holds would be written by the reconciliation onto the same disk
+                    paused = heard and m.get("state") == "paused"
+                    if p.upstream_done_at is None or got != p.last_received or starting \
+                            or paused:
                         p.upstream_done_at = now  # still working: not stuck
                         p.last_received = got
                     if now - p.upstream_done_at > GRACE_S and not p.terminated:
@@ -536,6 +552,10 @@ class Supervisor:
 
     # -------------------------------------------------------------- run
     def run(self) -> dict:
+        from pipeline.stream.journal import reopen
+
+        if reopen(self.topo.state / "journal", self.topo.run):  # before any stage starts
+            self.log(f"run {self.topo.run}: resuming after an earlier stop")
         collector = threading.Thread(target=self._collect, daemon=True)
         collector.start()
         time.sleep(0.2)
@@ -563,25 +583,77 @@ class Supervisor:
             self.stop.set()
             collector.join(timeout=2)
         result = {"run": self.topo.run, "failed": self.failed,
+                  "interrupted": self.interrupted,
                   "restarts": {p.name: p.restarts for p in self.procs if p.restarts},
                   "journal_segments_pruned": self.pruned}
         if not self.failed:
             try:
                 result["reconciled"] = reconcile(self.topo)
+                for part in result["reconciled"].get("rebuilt", []):
+                    self.log(f"rebuilt from the journal: {part['file']} ({part['why']})")
                 result["accounting"] = accounting(self.topo, self.metrics,
                                                   result["reconciled"], self.bounds)
             except Exception as exc:  # the run must end with a state, never "running"
                 self.failed = f"reconciling the run failed: {type(exc).__name__}: {exc}"
                 result["failed"] = self.failed
                 self.log(self.failed)
+        result["problems"] = [] if self.failed else problems(result)
+        result["state"] = run_state(result)
+        for line in result["problems"]:
+            self.log(f"run {self.topo.run}: {line}")
         corrupt = (result.get("reconciled") or {}).get("corrupt_words", 0)
-        self._write_status({"state": "failed" if self.failed else "finished",
-                            "result": result,
+        self._write_status({"state": result["state"], "result": result,
+                            "problems": result["problems"],
                             **({"journal_corrupt_words": corrupt} if corrupt else {})})
         if self.view is not None:
             self.view.end()
         self.lock.release()
         return result
+
+
+# ------------------------------------------------------------------ the run's verdict
+
+#: The daemon's exit status per end state (``interrupted``: 128 + the signal).
+EXIT_CODES = {"finished": 0, "failed": 1, "incomplete": 3}
+
+
+def problems(result: dict) -> list[str]:
+    """What keeps a run's datasets from being the whole run: one line per problem, naming
+    the numbers that disagree (empty: the datasets are the journal, every word in)."""
+    out = []
+    rec, acc = result.get("reconciled") or {}, result.get("accounting") or {}
+    if not rec.get("checked", False):
+        out.append(f"reconciliation skipped: {rec.get('why', 'not run')}")
+    if acc and not acc.get("balanced", False):
+        out.append(f"unbalanced: words journaled {acc['words_in']:,} != classified "
+                   f"{acc['classified']:,} + withheld {acc['withheld']:,} (difference "
+                   f"{acc['words_in'] - acc['classified'] - acc['withheld']:+,})")
+    for key, what in (("unrecoverable", "unrecoverable (their journal words were pruned)"),
+                      ("corrupt", "withheld (a corrupt journal chunk)")):
+        if rec.get(key):
+            out.append(f"{len(rec[key])} measurement(s) {what}: [measurement, first TDC] "
+                       f"{rec[key][:8]}")
+    if acc.get("words_in_gaps", 0) or acc.get("lost_datagrams", 0):
+        out.append(f"input lost before the journal: {acc.get('lost_datagrams', 0):,} "
+                   f"datagrams, {acc.get('words_in_gaps', 0):,} words in gaps")
+    return out
+
+
+def run_state(result: dict) -> str:
+    """``failed``, ``interrupted`` (a signal stopped it: resume with the same --run),
+    ``incomplete`` (it ended, but with :func:`problems`) or ``finished``."""
+    if result.get("failed"):
+        return "failed"
+    if result.get("interrupted"):
+        return "interrupted"
+    return "incomplete" if result.get("problems") else "finished"
+
+
+def exit_code(result: dict) -> int:
+    state = result.get("state") or run_state(result)
+    if state == "interrupted":
+        return 128 + int(getattr(signal, result["interrupted"], signal.SIGINT))
+    return EXIT_CODES[state]
 
 
 # ------------------------------------------------------------------ reconcile, accounting

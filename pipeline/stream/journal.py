@@ -117,6 +117,7 @@ class JournalWriter:
         self.index = open(index, "ab", buffering=0)
         if index.read_bytes()[-1:] not in (b"", b"\n"):
             _write_all(self.index.fileno(), b"\n")  # end a line a crash cut short
+        _reopen_index(self.index.fileno(), index)  # an earlier stop's end is not the run's
         meta = self.dir / f"{run}.meta.json"
         if not meta.exists():  # the run's constants, for a stage that starts after its end
             from pipeline.io.atomic import atomic_path
@@ -138,10 +139,12 @@ class JournalWriter:
         self.words = 0
         self.segments.append(path)
 
-    def append(self, first_word: int, words: np.ndarray) -> None:
+    def append(self, first_word: int, words: np.ndarray, extra: dict | None = None) -> None:
         """Journal one chunk: its bytes, then its index line. All or nothing: if the disk
         refuses either (full, read-only), both files are cut back to where they were and
-        the OSError is raised, so the caller may wait and append the same chunk again."""
+        the OSError is raised, so the caller may wait and append the same chunk again.
+        ``extra``: more keys for the chunk's index line (the UDP ingest's datagram
+        sequence number, from which a restarted ingest resumes)."""
         if self.fh is None or self.words + words.size > self.segment_words:
             self._rotate()
         n = words.size
@@ -153,7 +156,7 @@ class JournalWriter:
             np.copyto(self._be[:n], words, casting="unsafe")  # one byte-swap, reused buffer
             data = self._be[:n]
         entry = {"first_word": int(first_word), "segment": self.segment,
-                 "offset": self.offset, "words": int(n)}
+                 "offset": self.offset, "words": int(n), **(extra or {})}
         if self._codec is not None:  # one frame per chunk (releases the GIL)
             blob = self._codec.compress(memoryview(data).cast("B"))
             entry.update(bytes=len(blob), enc=self.enc, check="xxh64")
@@ -243,7 +246,7 @@ def read_range(directory: str | Path, run: str, start: int, stop: int,
     if not index.exists():
         return
     for e in _entries(index):
-        if e.get("end"):
+        if "first_word" not in e:  # (end and reopen lines)
             continue
         lo, hi = e["first_word"], e["first_word"] + e["words"]
         a, b = max(lo, start), min(hi, stop)
@@ -312,7 +315,7 @@ def verify(directory: str | Path, run: str) -> dict:
     out = {"chunks": 0, "words": 0, "corrupt": [], "corrupt_words": 0,
            "unchecked_chunks": 0, "pruned_chunks": 0}
     for e in _entries(d / f"{run}.index.jsonl"):
-        if e.get("end"):
+        if "first_word" not in e:  # (end and reopen lines)
             continue
         out["chunks"] += 1
         out["words"] += e["words"]
@@ -341,14 +344,41 @@ def run_meta(directory: str | Path, run: str) -> dict:
 
 
 def run_end(directory: str | Path, run: str) -> int | None:
-    """Total words of ``run`` once its source has closed the journal, else None."""
+    """Total words of ``run`` once its source has closed the journal, else None. Only the
+    index's last record counts: an end line followed by a ``reopen`` line or by more
+    chunks is an earlier stop's (a graceful stop, then the run resumed), not the run's."""
     index = Path(directory) / f"{run}.index.jsonl"
     if not index.exists():
         return None
-    for e in reversed(_entries(index)):
-        if e.get("end"):
-            return int(e["words"])
+    entries = _entries(index)
+    if entries and entries[-1].get("end"):
+        return int(entries[-1]["words"])
     return None
+
+
+def _reopen_index(fd: int, index: Path) -> None:
+    """After an end line, a ``{"reopen": true}`` line: the run goes on."""
+    entries = _entries(index)
+    if entries and entries[-1].get("end"):
+        _write_all(fd, (json.dumps({"reopen": True}) + "\n").encode())
+
+
+def reopen(directory: str | Path, run: str) -> bool:
+    """Mark ``run`` as going on again (a daemon resuming a run that an earlier stop closed),
+    before any stage starts: no worker may take the earlier stop's end line for the run's
+    end. Under the run's writer lock; True when there was an end to reopen."""
+    d = Path(directory)
+    index = d / f"{run}.index.jsonl"
+    entries = _entries(index)
+    if not (entries and entries[-1].get("end")):
+        return False
+    lock = _lock_run(d, run)
+    try:
+        with open(index, "ab", buffering=0) as fh:
+            _reopen_index(fh.fileno(), index)
+    finally:
+        lock.close()
+    return True
 
 
 def journaled_words(directory: str | Path, run: str) -> int:
@@ -359,7 +389,7 @@ def journaled_words(directory: str | Path, run: str) -> int:
         return 0
     done = 0
     for e in _entries(index):
-        if e.get("end"):
+        if "first_word" not in e:  # (end and reopen lines)
             continue
         if e["first_word"] <= done:
             done = max(done, e["first_word"] + e["words"])
@@ -383,14 +413,14 @@ def _entries(index: Path) -> list[dict]:
 def journaled_total(directory: str | Path, run: str) -> int:
     """Words of ``run`` in the journal (a gap, such as a lost datagram, is not counted)."""
     return sum(e["words"] for e in _entries(Path(directory) / f"{run}.index.jsonl")
-               if not e.get("end"))
+               if "first_word" in e)
 
 
 def segment_spans(directory: str | Path, run: str) -> dict[int, tuple[int, int]]:
     """Per segment number, the stream span [first, end) of the words it holds."""
     spans: dict[int, tuple[int, int]] = {}
     for e in _entries(Path(directory) / f"{run}.index.jsonl"):
-        if e.get("end"):
+        if "first_word" not in e:  # (end and reopen lines)
             continue
         lo, hi = e["first_word"], e["first_word"] + e["words"]
         a, b = spans.get(e["segment"], (lo, hi))
@@ -428,7 +458,7 @@ def pruned_words(directory: str | Path, run: str, start: int, stop: int) -> int:
     d = Path(directory)
     n = 0
     for e in _entries(d / f"{run}.index.jsonl"):
-        if e.get("end"):
+        if "first_word" not in e:  # (end and reopen lines)
             continue
         a = max(e["first_word"], start)
         b = min(e["first_word"] + e["words"], stop)

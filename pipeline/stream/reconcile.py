@@ -51,14 +51,23 @@ def reconcile(topo: Topology) -> dict:
                            topo.range.get("estimator", "ml"),
                            max_returns=topo.range.get("max_returns", 3))
     sink = ParquetSink(out)
-    redone, unrecoverable, corrupt_meas = [], [], []
+    redone, unrecoverable, corrupt_meas, rebuilt = [], [], [], []
     corrupt_chunks: dict[int, list] = {}  # first word -> [first, words, reason]
     withheld = 0
     window_ns = None
+    spans = _journal_spans(journal, topo.run)
+    check = topo.source.get("kind") != "file"  # (an instrument's records are not words)
     for (a, b) in tdc_ranges(topo):
         for k in range(n_meas):
             if (k, a) in have_h and (have_r is None or (k, a) in have_r):
-                continue
+                # every part is compared with the journal, not only the missing ones
+                cyc = _words_in(spans, k * mc * n, min((k + 1) * mc, cycles) * n) // n
+                why = _part_problem(have_h[(k, a)], b - a, cyc) if check else None
+                why = why or (_unreadable(have_r[(k, a)]) if have_r is not None else None)
+                if why is None:
+                    continue
+                rebuilt.append({"measurement": k, "tdc": a, "file": str(why[0]),
+                                "why": why[1]})
             if pruned_words(journal, topo.run, k * mc * n, min((k + 1) * mc, cycles) * n):
                 unrecoverable.append([k, a])  # its words were pruned (journal_keep_gb)
                 continue
@@ -101,10 +110,65 @@ def reconcile(topo: Topology) -> dict:
                         sink.process(h2, b2)
             redone.append([k, a])
     return {"checked": True, "measurements": n_meas, "tdc_ranges": len(tdc_ranges(topo)),
-            "recomputed": redone, "unrecoverable": unrecoverable, "corrupt": corrupt_meas,
+            "recomputed": redone, "rebuilt": rebuilt, "unrecoverable": unrecoverable,
+            "corrupt": corrupt_meas,
             "corrupt_chunks": sorted(corrupt_chunks.values()),
             "corrupt_words": sum(c[1] for c in corrupt_chunks.values()),
             "withheld_words": withheld}
+
+
+def _journal_spans(journal: Path, run: str) -> list[tuple[int, int]]:
+    from pipeline.stream.journal import _entries
+
+    return sorted((e["first_word"], e["first_word"] + e["words"])
+                  for e in _entries(journal / f"{run}.index.jsonl") if "first_word" in e)
+
+
+def _words_in(spans: list[tuple[int, int]], lo: int, hi: int) -> int:
+    """Journaled words of the run's [lo, hi) (a gap, such as lost datagrams, is none)."""
+    import bisect
+
+    i = max(0, bisect.bisect_right(spans, (lo, lo)) - 1)
+    n = 0
+    for a, b in spans[i:]:
+        if a >= hi:
+            break
+        n += max(0, min(b, hi) - max(a, lo))
+    return n
+
+
+def _unreadable(path: Path) -> tuple[Path, str] | None:
+    import pyarrow.parquet as pq
+
+    try:
+        pq.read_metadata(path)
+    except Exception as exc:  # noqa: BLE001 (pyarrow raises OSError, ArrowInvalid, ...)
+        return path, f"unreadable: {type(exc).__name__}: {exc}"
+    return None
+
+
+def _part_problem(path: Path, n_tdc: int, cycles: int) -> tuple[Path, str] | None:
+    """Why a histograms part does not match the journal (None: it does): unreadable, or
+    not every TDC of its range with the cycles (and so the words) the journal holds for
+    its measurement (a measurement written partial by a stop, or short)."""
+    import numpy as np
+    import pyarrow.parquet as pq
+
+    from schemas.constants import WORD_CLASSES
+
+    cols = [f"n_{c}" for c in WORD_CLASSES]
+    try:
+        t = pq.read_table(path, columns=["cycles", *cols])
+    except Exception as exc:  # noqa: BLE001
+        return path, f"unreadable: {type(exc).__name__}: {exc}"
+    got = np.asarray(t.column("cycles"), np.int64)
+    words = int(sum(np.asarray(t.column(c), np.int64).sum() for c in cols))
+    if t.num_rows != n_tdc or (got != cycles).any() or words != cycles * n_tdc:
+        span = f"{int(got.min())}..{int(got.max())}" if got.size else "no"
+        return path, (f"{t.num_rows} TDCs, {span} cycles and {words:,} words; the journal "
+                      f"holds {cycles:,} cycles, {cycles * n_tdc:,} words for its {n_tdc} "
+                      "TDCs")
+    return None
 
 
 def _instrument_accumulator(topo: Topology):
@@ -177,7 +241,10 @@ def accounting(topo: Topology, metrics: dict[str, dict], reconciled: dict | None
         sums = pl.scan_parquet(parts).select([pl.col(c).sum() for c in cols]).collect()
         classes = {c: int(sums[f"n_{c}"][0]) for c in WORD_CLASSES}
     journaled = journaled_total(topo.state / "journal", topo.run)
-    span = run_end(topo.state / "journal", topo.run) or 0
+    span = run_end(topo.state / "journal", topo.run)
+    if span is None:  # a run without its end line (the reconciliation says so): the words
+        span = max((b for _, b in _journal_spans(topo.state / "journal", topo.run)),
+                   default=0)  # journaled so far, so a gap is never negative
     rejected = {name: m.get("rejected", {}) for name, m in metrics.items() if m.get("rejected")}
     rec = reconciled or {}
     withheld = int(rec.get("withheld_words", 0))

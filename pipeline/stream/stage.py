@@ -360,7 +360,13 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
         while True:
             beat.beat(state="running", **stats.fields(core))
             if stop.is_set() and not rx.poll(drain_ms):
-                break  # a signal: take what is in flight, then finish
+                # a signal: take what is in flight, then finish; when the run has ended
+                # (its journal closed) the words this stage never got (it was stopped
+                # across the stream's end, its stop undelivered) come from the journal
+                total = run_ended() if run_ended is not None else None
+                if total is not None and hasattr(core, "catch_up"):
+                    core.catch_up(total)
+                break
             if not rx.poll(poll_ms):
                 idle += poll_ms / 1000
                 if run_ended is not None and idle >= idle_after_s:
@@ -519,6 +525,8 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
         for first, words in batches:
             if halt.is_set():  # a signal: end the run cleanly after the last whole batch
                 break
+            if seq == 0:  # the rate's clock starts with the first batch (a simulator's
+                t0 = time.perf_counter()  # first one can take seconds: compiling)
             words = np.asarray(words)
             if words.dtype not in (np.dtype("<u4"), np.dtype(">u4")):
                 words = words.astype(np.uint32)
@@ -616,12 +624,16 @@ class ParquetSink:
 
         path = self.path(header)
         table = pa.Table.from_batches([batch])
+        meta = {}
         if isinstance(header.get("class_counts"), dict):  # the run's accounting reads it back
-            import json
-
-            table = table.replace_schema_metadata({
-                **(table.schema.metadata or {}),
-                b"tcspc.class_counts": json.dumps(header["class_counts"]).encode()})
+            meta[b"tcspc.class_counts"] = json.dumps(header["class_counts"]).encode()
+        if header.get("schema") == HISTOGRAMS.name and "measurement_index" in header:
+            # what the reconciliation checks against the journal: a measurement partial
+            # (the stream stopped inside it) is replaced when the rest arrives
+            meta[b"tcspc.measurement"] = json.dumps(
+                {k: header[k] for k in ("partial", "cycles", "words") if k in header}).encode()
+        if meta:
+            table = table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
         with atomic_path(path) as tmp:
             pq.write_table(table, tmp)
         self.files += 1

@@ -125,6 +125,10 @@ class SourceSection(_Section):
                                     "reordering, >= 1")
     max_jump_cycles: int | None = Field(None, ge=1, description="the furthest a first cycle "
                                      "may jump past the newest, >= 1")
+    gate_ps: int | None = Field(None, ge=1_000, le=10_000_000, description="the run's gate "
+                                "in ps, 1e3..1e7 (leave out: from a quorum of datagrams)")
+    first_seq: int | None = Field(None, ge=0, le=2**32 - 1, description="the run's first "
+                                  "datagram sequence, 0..2^32-1 (leave out: from a quorum)")
     file: str | None = None
     format: str | None = None
     firmware: Literal["2212b", "2212s"] | None = None
@@ -133,7 +137,8 @@ class SourceSection(_Section):
 #: the [source] keys each kind takes (besides kind)
 SOURCE_KEYS = {"sim": ("scene", "cycles", "seed", "chip_seed", "rate"),
                "capture": ("capture", "rate", "repeat"),
-               "udp": ("bind", "idle", "n_tdc", "reorder_window", "max_jump_cycles"),
+               "udp": ("bind", "idle", "n_tdc", "reorder_window", "max_jump_cycles", "gate_ps",
+                       "first_seq"),
                "file": ("file", "format", "firmware", "rate")}
 
 

@@ -37,6 +37,118 @@ MAX_JUMP_DATAGRAMS = 1 << 16   #: ... and this far in sequence number
 GATE_PS = (1_000, 10_000_000)  #: a gate outside 1 ns .. 10 us is not a gate
 RING_DATAGRAMS = 4096          #: received, not yet journaled (<= 256 MiB of datagrams)
 SEND_QUEUE = 64                #: journaled messages waiting for a slow stage downstream
+QUORUM = 3                     #: datagrams that must agree before they set the reference
+QUORUM_HOLD = 256              #: candidates held while no quorum is reached
+
+
+def _signed32(d: int) -> int:
+    d &= 0xFFFFFFFF
+    return d - (1 << 32) if d >= 1 << 31 else d
+
+
+def max_cycles(n_tdc: int) -> int:
+    """The most cycles one datagram of ``n_tdc`` TDCs can hold (a UDP payload)."""
+    return max(1, (datagram.MAX_PAYLOAD - datagram.HEADER.size) // (4 * n_tdc))
+
+
+def consistent(ds: int, dc: int, n_tdc: int) -> bool:
+    """Can two datagrams of one stream be ``ds`` sequence numbers and ``dc`` cycles apart?
+    Every datagram holds at least one cycle and at most a UDP payload's, so the cycles
+    between them are within [|ds|, |ds| max_cycles], on the same side."""
+    if ds == 0:
+        return dc == 0
+    if ds < 0:
+        ds, dc = -ds, -dc
+    return ds <= dc <= ds * max_cycles(n_tdc)
+
+
+class Reference:
+    """The run's reference (its gate, TDC count, and where sequence numbers and cycles
+    stand), never taken from whichever datagram comes first: from the configuration
+    (``gate_ps``, ``n_tdc``, ``first_seq``: the run's first datagram is ``first_seq`` at
+    cycle 0), from the journal of the run a restarted ingest resumes (``anchor``: the newest
+    journaled datagram's sequence number and first cycle), or from a quorum: ``quorum``
+    datagrams with the same gate and TDC count whose sequence numbers and cycles could
+    belong to one stream (:func:`consistent`), and that agree with the configuration and the
+    anchor. Until then datagrams are held (at most QUORUM_HOLD: beyond, the oldest is a
+    stray); when the quorum forms, the held datagrams that agree with it are taken in their
+    arrival order, the others are strays (counted, quarantined)."""
+
+    def __init__(self, quorum: int = QUORUM, n_tdc: int | None = None,
+                 gate_ps: int | None = None, anchor: tuple[int, int] | None = None):
+        self.quorum, self.n_tdc, self.gate_ps, self.anchor = quorum, n_tdc, gate_ps, anchor
+        self.held: list[tuple[datagram.Datagram, bytes]] = []
+
+    def _fits(self, d: datagram.Datagram) -> bool:
+        if (self.n_tdc is not None and d.n_tdc != self.n_tdc) or (
+                self.gate_ps is not None and d.t_laser_win_ps != self.gate_ps):
+            return False
+        if self.anchor is None:
+            return True
+        seq, cycle = self.anchor
+        return consistent(_signed32(d.seq - seq), d.first_cycle - cycle, d.n_tdc)
+
+    @staticmethod
+    def agree(a: datagram.Datagram, b: datagram.Datagram) -> bool:
+        return (a.n_tdc == b.n_tdc and a.t_laser_win_ps == b.t_laser_win_ps
+                and consistent(_signed32(b.seq - a.seq), b.first_cycle - a.first_cycle,
+                               a.n_tdc))
+
+    def offer(self, d: datagram.Datagram, data: bytes) -> tuple[list | None, list]:
+        """Hold ``d``: ``(taken, strays)``, ``taken`` None while no quorum has formed, else
+        the held datagrams (``(d, data)``) that agree with it, in arrival order."""
+        strays = []
+        if not self._fits(d):
+            return None, [(d, data)]
+        self.held.append((d, data))
+        # distinct datagrams: a stray sent three times is not a quorum
+        group = {c[0].seq for c in self.held if self.agree(d, c[0])}
+        if len(group) >= self.quorum:
+            return self._fix(d)
+        if len(self.held) > QUORUM_HOLD:
+            strays.append(self.held.pop(0))
+        return None, strays
+
+    def settle(self) -> tuple[list, list]:
+        """The stream's end without a quorum: the largest group that agrees (the earliest of
+        equals) is the run's; the rest are strays."""
+        if not self.held:
+            return [], []
+        best = max(self.held, key=lambda c: len({o[0].seq for o in self.held
+                                                  if self.agree(c[0], o[0])}))
+        return self._fix(best[0])
+
+    def _fix(self, d: datagram.Datagram) -> tuple[list, list]:
+        taken = [c for c in self.held if self.agree(d, c[0])]
+        strays = [c for c in self.held if not self.agree(d, c[0])]
+        self.held = []
+        self.n_tdc, self.gate_ps = d.n_tdc, d.t_laser_win_ps
+        return taken, strays
+
+
+def resume_state(journal: str | Path, run: str) -> dict | None:
+    """Where a restarted ingest takes the run up (from the journal's index: each datagram's
+    chunk records its unwrapped sequence number), or None for a run not yet journaled by a
+    UDP ingest: ``next_cycle`` (the end of the journaled stream), ``seq_lo``/``seq_hi``,
+    ``taken`` (datagrams journaled), ``late`` (datagrams that came too late, counted by the
+    ingest that journaled the last chunk), ``anchor`` (the newest datagram's sequence number
+    and first cycle), ``gap_cycles``, ``n_tdc`` and ``gate_ps`` (the run's meta)."""
+    from pipeline.stream.journal import _entries, run_meta
+
+    entries = [e for e in _entries(Path(journal) / f"{run}.index.jsonl")
+               if "first_word" in e]
+    meta = run_meta(journal, run)
+    seqs = [e for e in entries if "seq" in e]
+    if not seqs or "n_tdc" not in meta:
+        return None
+    n = int(meta["n_tdc"])
+    top = max(seqs, key=lambda e: e["seq"])
+    end = max(e["first_word"] + e["words"] for e in entries)
+    return {"next_cycle": end // n, "seq_lo": min(e["seq"] for e in seqs),
+            "seq_hi": top["seq"], "taken": len(seqs), "late": int(seqs[-1].get("late", 0)),
+            "anchor": (top["seq"], top["first_word"] // n),
+            "gap_cycles": end // n - sum(e["words"] for e in entries) // n, "n_tdc": n,
+            "gate_ps": round(float(meta["t_laser_win_ns"]) * 1000)}
 
 
 @dataclass
@@ -102,6 +214,26 @@ class Reassembler:
         self.recent: deque = deque(maxlen=4 * window)  # (seq, first cycle) released
         self.recent_set: set = set()
         self.gap_cycles = 0
+        self.newest: tuple[int, int] | None = None  #: (seq, first cycle) of the newest taken
+
+    def resume(self, state: dict) -> None:
+        """Take the run up where the journal has it (:func:`resume_state`)."""
+        self.next_cycle = self.newest_cycle = state["next_cycle"]
+        self.seq_lo, self.seq_hi = state["seq_lo"], state["seq_hi"]
+        self.seqs_seen = state["taken"] + state["late"]
+        self.gap_cycles = state["gap_cycles"]
+        self.newest = state["anchor"]
+
+    def rejoin(self, seq: int, first_cycle: int) -> None:
+        """The stream went on while this ingest was down: a quorum of datagrams consistent
+        with the journal's newest says where it is now. The cycles in between are a gap and
+        their datagrams lost (the sequence span counts them), however long the outage."""
+        seq = self._unwrap(seq)
+        if first_cycle > self.next_cycle:
+            self.gap_cycles += first_cycle - self.next_cycle
+            self.next_cycle = self.newest_cycle = first_cycle
+        if self.seq_hi is not None and seq - 1 > self.seq_hi:
+            self.seq_hi = seq - 1  # (their sequence numbers are a span never received)
 
     def _unwrap(self, seq: int) -> int:
         if self.seq_hi is None:
@@ -110,7 +242,9 @@ class Reassembler:
         return self.seq_hi + (d - (1 << 32) if d >= 1 << 31 else d)
 
     def lost(self) -> int:
-        return 0 if self.seq_hi is None else self.seq_hi - self.seq_lo + 1 - self.seqs_seen
+        if self.seq_hi is None:
+            return 0
+        return max(0, self.seq_hi - self.seq_lo + 1 - self.seqs_seen)
 
     def offer(self, d: datagram.Datagram) -> tuple[str, list]:
         """Take one checked datagram: ``("taken" | "duplicate" | "late", released)``,
@@ -124,6 +258,11 @@ class Reassembler:
             raise datagram.DatagramError("cycle_out_of_window", f"first cycle {d.first_cycle}"
                                          f" is beyond the run's newest {self.newest_cycle} "
                                          f"+ {self.max_jump_cycles}")
+        if self.newest is not None and not consistent(seq - self.newest[0], d.first_cycle
+                                                      - self.newest[1], d.n_tdc):
+            raise datagram.DatagramError("inconsistent", f"sequence {d.seq} at first cycle "
+                                         f"{d.first_cycle} cannot follow the run's newest, "
+                                         f"{self.newest[0]} at {self.newest[1]}")
         key = (seq, d.first_cycle)
         if key in self.recent_set or (d.first_cycle in self.held
                                       and self.held[d.first_cycle][0] == seq):
@@ -140,6 +279,8 @@ class Reassembler:
         self.seq_lo = seq if self.seq_lo is None else min(self.seq_lo, seq)
         self.seq_hi = seq if self.seq_hi is None else max(self.seq_hi, seq)
         self.newest_cycle = max(self.newest_cycle, d.first_cycle + d.n_cycles)
+        if self.newest is None or seq > self.newest[0]:
+            self.newest = (seq, d.first_cycle)
         out = self._release()
         while len(self.held) > self.window:  # the window is full: give up the hole
             out += self._skip()
@@ -149,7 +290,7 @@ class Reassembler:
         out = []
         while self.next_cycle in self.held:
             seq, d = self.held.pop(self.next_cycle)
-            out.append(d)
+            out.append((seq, d))
             if len(self.recent) == self.recent.maxlen:
                 self.recent_set.discard(self.recent[0])
             self.recent.append((seq, d.first_cycle))
@@ -181,8 +322,9 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                    max_jump_cycles: int = MAX_JUMP_CYCLES,
                    max_jump_datagrams: int = MAX_JUMP_DATAGRAMS,
                    linger_s: float = REORDER_LINGER_S, token: str | None = None,
-                   ring_datagrams: int = RING_DATAGRAMS, send_queue: int = SEND_QUEUE
-                   ) -> IngestStats:
+                   ring_datagrams: int = RING_DATAGRAMS, send_queue: int = SEND_QUEUE,
+                   gate_ps: int | None = None, first_seq: int | None = None,
+                   quorum: int = QUORUM) -> IngestStats:
     """Receive until a datagram flagged last (and the reorder window is settled), ``stop``,
     or ``idle_s`` without data.
 
@@ -191,7 +333,14 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     (None: the first datagram's). ``reorder_window``: datagrams held to undo reordering.
     ``max_jump_cycles`` / ``max_jump_datagrams``: how far past the newest a first cycle or
     sequence number may jump before the datagram is refused. ``token``: the run's token
-    (default: $TCSPC_TOKEN_FILE).
+    (default: $TCSPC_TOKEN_FILE). ``gate_ps``, ``first_seq``: the run's gate and first
+    sequence number, when the configuration knows them; otherwise the reference comes from
+    a ``quorum`` of datagrams that agree (:class:`Reference`), never from the first one.
+
+    With a journal that already holds the run (a restarted ingest), the run is taken up
+    where the journal has it (:func:`resume_state`): its sequence numbers, cycles, gate and
+    TDC count; the datagrams that came while the ingest was down are counted as lost and
+    their cycles as a gap, exactly, however long it was down.
 
     Three threads, so receiving never waits for downstream: a receiver puts datagrams into
     a ring of ``ring_datagrams`` (when full, because the journal cannot keep up, a datagram
@@ -221,6 +370,20 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     stop = stop or threading.Event()
     stats = IngestStats()
     reasm = Reassembler(reorder_window, max_jump_cycles, max_jump_datagrams)
+    resumed = resume_state(journal, run) if journal is not None else None
+    ref = Reference(quorum, n_tdc, gate_ps)
+    if resumed is not None:  # a restarted ingest: the journal is the truth
+        reasm.resume(resumed)
+        stats.late = resumed["late"]
+        n_tdc, gate_ps = resumed["n_tdc"], resumed["gate_ps"]
+        ref = Reference(quorum, n_tdc, gate_ps, anchor=resumed["anchor"])
+    elif first_seq is not None and n_tdc is not None and gate_ps is not None:
+        # the configuration fixes the reference: the run's first datagram, at cycle 0
+        reasm.seq_lo, reasm.seq_hi = first_seq, first_seq - 1
+        reasm.newest = (first_seq, 0)
+        ref = None
+    elif first_seq is not None:
+        ref.anchor = (first_seq, 0)
     quar = Quarantine(quarantine)
     sock.settimeout(0.2)
     ring: queue.Queue = queue.Queue(maxsize=ring_datagrams)
@@ -258,7 +421,6 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     pending: list[np.ndarray] = []
     pending_first = None
     next_word = None
-    gate_ps = None
     writer: JournalWriter | None = None
     idle = 0.0
     last_end = None   # the cycle after the datagram flagged last, once it came
@@ -292,13 +454,15 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         stats.messages += 1
         pending, pending_first = [], None
 
-    def take(d: datagram.Datagram):
+    def take(released):
         # released in stream order: journal (once per cycle), then batch for sending
         nonlocal pending_first, next_word
+        seq, d = released
         first = d.first_cycle * n_tdc
         if next_word is not None and first != next_word:
             flush()  # a gap: the next batch starts where the words do
-        if journal is not None and not journal_words(first, d.words):
+        if journal is not None and not journal_words(first, d.words, {"seq": seq,
+                                                                      "late": stats.late}):
             stats.unjournaled_words += int(d.words.size)  # a stop came while the disk was
             return                                        # full: counted, never sent
         if pending_first is None:
@@ -310,7 +474,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         if sum(p.size for p in pending) >= BATCH_WORDS:
             flush()
 
-    def journal_words(first: int, words: np.ndarray) -> bool:
+    def journal_words(first: int, words: np.ndarray, extra: dict) -> bool:
         # a full disk pauses intake here (the receive thread goes on into the ring, whose
         # overflow is counted): retried until there is room, or False at a stop
         from pipeline.stream.journal import is_disk_full
@@ -323,7 +487,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                     writer = JournalWriter(journal, run, n_tdc, gate_ps / 1000,
                                            segment_words=segment_words,
                                            compression=compression)
-                writer.append(first, words)
+                writer.append(first, words, extra)  # (a restarted ingest resumes there)
                 return True
             except OSError as exc:
                 if not is_disk_full(exc):
@@ -344,11 +508,57 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             quar.dropped += 1  # a full disk: counted, not kept
         stats.quarantine_dropped = quar.dropped
 
+    def offer(d: datagram.Datagram, data: bytes) -> None:
+        nonlocal last_end
+        try:
+            verdict, released = reasm.offer(d)
+        except datagram.DatagramError as exc:
+            reject(exc.reason, str(exc), data)
+            return
+        if verdict == "duplicate":
+            stats.duplicates += 1
+            return
+        if verdict == "late":
+            stats.late += 1
+            reject("late", f"cycles {d.first_cycle}.. came after their window closed "
+                           f"(the stream is at {reasm.next_cycle})", data)
+            return
+        for r in released:
+            take(r)
+        if d.last:
+            last_end = d.first_cycle + d.n_cycles
+
+    def stray(d: datagram.Datagram, data: bytes) -> None:
+        reject("stray", f"sequence {d.seq}, first cycle {d.first_cycle}, {d.n_tdc} TDCs, "
+                        f"gate {d.t_laser_win_ps} ps: not the run's stream", data)
+
+    def fix(group: list) -> None:
+        # the reference is fixed: the held datagrams that agree go in, in arrival order
+        nonlocal ref, n_tdc, gate_ps, last_end
+        if not group:
+            return
+        n_tdc, gate_ps = group[0][0].n_tdc, group[0][0].t_laser_win_ps
+        if resumed is not None:
+            first = min(group, key=lambda c: c[0].first_cycle)[0]
+            reasm.rejoin(first.seq, first.first_cycle)
+        ref = None
+        if last_end == -1:
+            last_end = None
+        for gd, gdata in group:
+            offer(gd, gdata)
+
     try:
         while not stop.is_set():
             stats.gap_cycles, stats.lost_datagrams = reasm.gap_cycles, reasm.lost()
             beat.beat(state="running", **stats.fields())
-            if last_end is not None and reasm.next_cycle >= last_end and not reasm.held:
+            if last_end == -1 and idle >= linger_s and ref is not None:
+                group, strays = ref.settle()  # a run of fewer datagrams than the quorum
+                for sd, sdata in strays:
+                    stray(sd, sdata)
+                last_end = None
+                fix(group)
+            if last_end is not None and last_end >= 0 and reasm.next_cycle >= last_end \
+                    and not reasm.held:
                 break  # the last datagram and everything before it are in
             try:
                 data = ring.get(timeout=0.2)
@@ -358,7 +568,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                     for r in reasm.drain():         # the holes; hold no words back
                         take(r)
                     flush()
-                if last_end is not None and idle >= linger_s:
+                if last_end is not None and last_end >= 0 and idle >= linger_s:
                     break  # stragglers of the run's end did not come: gaps
                 if idle_s is not None and idle >= idle_s:
                     break
@@ -376,23 +586,25 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                                                  f"(run: {gate_ps}, bounds {GATE_PS})")
                 if d.n_cycles == 0:
                     raise datagram.DatagramError("empty", "no cycles")
-                verdict, released = reasm.offer(d)
             except datagram.DatagramError as exc:
                 reject(exc.reason, str(exc), data)
                 continue
-            if verdict == "duplicate":
-                stats.duplicates += 1
+            if ref is not None:  # no reference yet: held until a quorum agrees
+                group, strays = ref.offer(d, data)
+                for sd, sdata in strays:
+                    stray(sd, sdata)
+                if group is None:
+                    if d.last and ref.held:
+                        last_end = -1  # settle after the linger (below)
+                    continue
+                fix(group)
                 continue
-            if verdict == "late":
-                stats.late += 1
-                reject("late", f"cycles {d.first_cycle}.. came after their window closed "
-                               f"(the stream is at {reasm.next_cycle})", data)
-                continue
-            n_tdc, gate_ps = d.n_tdc, d.t_laser_win_ps
-            for r in released:
-                take(r)
-            if d.last:
-                last_end = d.first_cycle + d.n_cycles
+            offer(d, data)
+        if ref is not None:  # the run's end without a quorum: the largest group agreeing
+            group, strays = ref.settle()
+            for sd, sdata in strays:
+                stray(sd, sdata)
+            fix(group)
         for r in reasm.drain():
             take(r)
         flush()
@@ -413,9 +625,13 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             "datagrams": stats.datagrams, "lost_datagrams": stats.lost_datagrams,
             "duplicates": stats.duplicates, "late": stats.late,
             "gap_cycles": stats.gap_cycles, "rejected": dict(stats.rejected)}
-        sendq.put([wire.encode(stop_head, None, token) for _ in txs])
-        sendq.put(None)
-        tx_thread.join(timeout=60)  # a downstream that never takes it: the daemon ends it
+        try:  # a stage downstream that takes nothing for a minute is given up on: the
+            # daemon ends it, and it fetches the words it lacks from the journal
+            sendq.put([wire.encode(stop_head, None, token) for _ in txs], timeout=60)
+            sendq.put(None, timeout=60)
+        except queue.Full:
+            pass
+        tx_thread.join(timeout=60)
         beat.beat(force=True, state="finished", **stats.fields())
     finally:
         halt_rx.set()

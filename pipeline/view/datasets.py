@@ -249,6 +249,8 @@ class Tally:
                 continue
             if e.get("end"):
                 self.journal_end = int(e.get("words", 0))
+            elif e.get("reopen"):  # an earlier stop's end: the run went on
+                self.journal_end = None
             else:
                 self.journaled += int(e.get("words", 0))
         self._offset += end

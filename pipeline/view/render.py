@@ -7,7 +7,8 @@ from __future__ import annotations
 from html import escape
 
 COLOURS = {"running": "#1a7f37", "finished": "#0969da", "failed": "#cf222e",
-           "lost": "#cf222e", "absent": "#6e7781"}
+           "lost": "#cf222e", "absent": "#6e7781", "interrupted": "#bf8700",
+           "incomplete": "#cf222e"}
 HEALTH_COLOURS = {"ok": "#1a7f37", "finished": "#0969da", "silent": "#bf8700",
                   "unknown": "#6e7781",
                   "paused": "#bf8700", "restarting": "#bf8700", "down": "#cf222e"}

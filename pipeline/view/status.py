@@ -101,7 +101,8 @@ class StatusFeed:
 
 @dataclass(frozen=True)
 class DaemonState:
-    kind: str   #: "absent", "running", "lost", "finished", "failed"
+    kind: str   #: "absent", "running", "lost", "finished", "failed", "interrupted",
+    #: "incomplete"
     text: str   #: one plain sentence for the banner
 
 
@@ -127,6 +128,13 @@ def daemon_state(status: dict | None, now: float, state_dir: str | Path = "") ->
     if state == "failed":
         why = (status.get("result") or {}).get("failed") or "see the daemon's log"
         return DaemonState("failed", f"Run {run} failed: {why}")
+    if state == "interrupted":  # (the daemon's own words: pipeline.stream.daemon.run_state)
+        sig = (status.get("result") or {}).get("interrupted") or "a signal"
+        return DaemonState("interrupted", f"Run {run} interrupted ({sig}) {_span(age)} ago: "
+                           "start the daemon again with the same --run to resume it.")
+    if state == "incomplete":
+        return DaemonState("incomplete", f"Run {run} ended incomplete {_span(age)} ago: "
+                           + "; ".join(status.get("problems") or ["see the daemon's log"]))
     return DaemonState("finished", f"Run {run} finished "
                        f"{_span(age)} ago.")
 

@@ -197,6 +197,32 @@ def test_never_a_crash_a_silent_nan_or_a_detection_from_inconsistent_input(estim
     assert (np.nan_to_num(d, nan=0.0) >= 0).all()
 
 
+def test_a_target_at_the_zero_is_at_the_zero_and_one_before_it_is_not():
+    """The delay's own capture ranges to 0 +- sigma, so half its estimates fall below 0:
+    within 3 sigma (and 2 mm) they are targets at distance 0 (detected; flagged with how far before
+    the zero beyond rounding); further before the zero the row is withdrawn and NaN.
+    (Found on the merged branches: -1e-16 m on one TDC of the delay capture was withdrawn.)"""
+    import dataclasses
+
+    from pipeline.offline.ranging import BEHIND_ZERO, behind_zero
+    from stages.ranging import Estimate
+
+    sigma_s = np.full(5, 2 / 3e8 * 1e-3)  # 1 mm of range
+    one = np.ones(5)
+    est = Estimate(t_s=one, sigma_s=sigma_s, fwhm_s=one, signal_counts=one * 500,
+                   background_per_bin=one, detected=np.ones(5, bool), estimator="ml")
+    got, d = behind_zero(est, np.array([0.01, -1e-16, -1.5e-3, -3.5e-3, np.nan]))
+    np.testing.assert_array_equal(d[:3], [0.01, 0.0, 0.0])
+    assert np.isnan(d[3]) and np.isnan(d[4])
+    assert got.detected.tolist() == [True, True, True, False, True]
+    # a poorly measured return (sigma 3 mm) 2.5 mm before the zero: not placed at it
+    wide = dataclasses.replace(est, sigma_s=sigma_s * 3)
+    w, dw = behind_zero(wide, np.array([-2.5e-3, -1.5e-3, 0.0, 0.0, 0.0]))
+    assert np.isnan(dw[0]) and dw[1] == 0.0 and w.flag[0] == BEHIND_ZERO
+    assert got.flag[:2].tolist() == ["", ""] and got.flag[2].startswith("at the zero")
+    assert got.flag[3] == BEHIND_ZERO
+
+
 def test_the_compiled_scans_and_their_numpy_forms_agree():
     """The checks' one-pass scans (numba) against the numpy forms, on good and bad input."""
     from stages.ranging import validation as v

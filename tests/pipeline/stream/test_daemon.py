@@ -272,7 +272,8 @@ def test_journal_retention_prunes_only_what_every_worker_is_past(tmp_path, enc, 
 
 def test_sigterm_to_the_daemon_ends_the_run_cleanly(tmp_path):
     """`tcspc daemon` under SIGTERM: the source ends the run after its batch in hand, the
-    stages drain, and the words that entered are all accounted for."""
+    stages drain, and the words that entered are all accounted for; the run is
+    interrupted (exit 128 + SIGTERM), not finished: it is resumable."""
     import subprocess
     import sys
 
@@ -291,8 +292,9 @@ def test_sigterm_to_the_daemon_ends_the_run_cleanly(tmp_path):
         time.sleep(0.2)
     p.send_signal(signal.SIGTERM)
     out, err = p.communicate(timeout=120)
-    assert p.returncode == 0, err
+    assert p.returncode == 128 + signal.SIGTERM, err
     res = json.loads(out)
+    assert res["state"] == "interrupted" and res["interrupted"] == "SIGTERM"
     acc = res["accounting"]
     assert acc["balanced"] and 2e6 < acc["words_in"] < 2_000_000 * N
     assert res["restarts"] == {}

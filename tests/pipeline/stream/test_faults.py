@@ -125,7 +125,8 @@ def test_a_corrupt_journal_met_by_the_repair_path_is_reported_never_used(
     """Measurements lost in flight (their dataset files removed, as with a killed sink)
     are recomputed from the journal at the end; one frame there has a flipped bit and the
     last is cut short. Those measurements are withheld and counted, the rest equal the
-    uninterrupted run, and the run ends "finished", never left "running"."""
+    uninterrupted run, and the run ends "incomplete" (a counted, named loss: exit 3), never
+    left "running" nor "finished"."""
     import pipeline.stream.daemon as daemon
 
     real = daemon.reconcile
@@ -173,7 +174,9 @@ def test_a_corrupt_journal_met_by_the_repair_path_is_reported_never_used(
     assert acc["withheld"] == len(withheld) * MC * (N // 2)
     assert acc["balanced"] and acc["words_in"] == CYCLES * N
     st = json.loads((tmp_path / "state" / "status.json").read_text())
-    assert st["state"] == "finished" and st["journal_corrupt_words"] == rec["corrupt_words"]
+    assert st["state"] == "incomplete" and st["journal_corrupt_words"] == rec["corrupt_words"]
+    assert st["problems"] == res["problems"] and len(res["problems"]) == 1
+    assert f"{len(withheld)} measurement(s) withheld" in res["problems"][0]
 
 
 @pytest.mark.parametrize("enc", ["zstd", None])
