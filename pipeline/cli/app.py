@@ -304,8 +304,10 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
 @click.option("--zero", type=click.Path(exists=True), default=None,
               help="PTU T3: a zero-distance file (or its histograms) to measure the delay on.")
 @click.option("--gate", default=None, help="PTU T3: only returns in LO:HI ns after the sync.")
-@click.option("--max-returns", type=click.IntRange(min=1), default=3, show_default=True,
-              help="Returns (surfaces) a pixel may have, each with its own detection.")
+@click.option("--max-returns", type=click.IntRange(min=1), default=None,
+              help="Returns (surfaces) a pixel may have, each with its own detection "
+                   "[default: 3 on a tcspc capture, 1 on an instrument's file: their "
+                   "responses' tails are not Gaussian and were found as further returns].")
 @_format
 @_quiet
 def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
@@ -347,16 +349,24 @@ def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, g
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from exc
     fmt = instruments.detect(capture, fmt)
+    several = max_returns is not None and max_returns > 1
     if fmt == "histograms" and instruments.is_generic(capture):
+        if several:
+            raise click.UsageError("generic histograms are ranged one return a row "
+                                   "(--max-returns 1)")
         instruments.range_generic(capture, out, calibration, delay_ps, zero, gate, estimator,
                                   irf_ps, p_fa, quiet)
         return
     if fmt != "tcspc":
+        if several:  # the search for further returns models a return's tails as Gaussian;
+            # a real response's diffusion tail is not, and was found as surfaces
+            warn(f"--max-returns {max_returns} on an instrument's file: a further return "
+                 "may be the response's own tail (the search models tails as Gaussian)")
         if calibration:
             raise click.UsageError("--calibration is the thesis chip's; an instrument's "
                                    "file takes --delay-ps or --zero")
         instruments.range_instrument(capture, fmt, out, delay_ps, zero, gate, estimator,
-                                     irf_ps, p_fa, "2212b", quiet, max_returns)
+                                     irf_ps, p_fa, "2212b", quiet, max_returns or 1)
         return
     if calibration is None:
         raise click.UsageError("a tcspc capture needs --calibration")
@@ -369,7 +379,8 @@ def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, g
     t0 = time.perf_counter()
     calib = load_calibration(calibration)
     table, note = range_capture(capture, calib, out, estimator,
-                                None if irf_ps is None else irf_ps * 1e-12, p_fa, max_returns)
+                                None if irf_ps is None else irf_ps * 1e-12, p_fa,
+                                max_returns or 3)
     if note:
         warn(note)
     if not quiet:

@@ -81,3 +81,22 @@ def test_a_delay_beyond_the_return_is_flagged_never_a_negative_distance(tmp_path
     row = r.filter(pl.col("return_index") == 0)
     assert not row["detected"][0] and "before the zero" in row["flag"][0]
     assert not (r["distance_m"] < 0).any()
+
+
+def test_an_instruments_file_is_ranged_one_return_a_pixel_unless_asked(tmp_path):
+    """The real HydraHarp sample (a decay with a long tail): with three returns asked, the
+    tail is found as surfaces 1 and 2 m further (the search models tails as Gaussian), so
+    an instrument's file defaults to one return, and asking for more warns."""
+    from pathlib import Path
+
+    ptu = Path(__file__).parents[2] / "data" / "picoquant" / "hydraharp_v20_t3.ptu"
+    runner = CliRunner()
+    out = tmp_path / "one.parquet"
+    res = runner.invoke(cli, ["range", str(ptu), "--delay-ps", "0", "--out", str(out), "-q"])
+    assert res.exit_code == 0, res.output
+    assert pl.read_parquet(out)["return_index"].max() == 0
+    out3 = tmp_path / "three.parquet"
+    res = runner.invoke(cli, ["range", str(ptu), "--delay-ps", "0", "--out", str(out3), "-q",
+                              "--max-returns", "3"])
+    assert res.exit_code == 0 and "the response's own tail" in res.output
+    assert pl.read_parquet(out3)["return_index"].max() > 0  # the tail, found as surfaces
