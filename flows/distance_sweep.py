@@ -17,7 +17,7 @@ import polars as pl
 from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 
-from flows.common import new_run_dir, report, scene_dict, simulate
+from flows.common import new_run_dir, report, scene_dict, simulate, simulated
 from pipeline.io.caldir import load_calibration
 from pipeline.io.capture import Capture
 from pipeline.offline.ranging import range_capture
@@ -42,7 +42,7 @@ def gate_ns(distance_m: float, delay_ns: float = 100.0, short_gate_ns: float = 1
     return float(10 * math.ceil((arrival + WINDOW_BEFORE_CLOSE_NS) / 10))
 
 
-@task(cache_policy=NO_CACHE, task_run_name="range {capture}")
+@task(cache_policy=NO_CACHE, task_run_name="range at {distance_m} m")
 def range_point(capture: str, calibration: str, out: str, estimator: str,
                 distance_m: float) -> list[dict]:
     """Range one capture; a row per TDC with the error against ``distance_m``."""
@@ -156,12 +156,13 @@ def distance_sweep(out: str = "data/sweeps", calibration: str | None = None,
             raise ValueError(f"{captures}: no range captures with a true distance")
     else:
         distances = default_distances() if distances is None else distances
-        futures = []
+        args = []
         for i, d in enumerate(distances):
             base = "short_range" if d <= 3.0 else "long_range"
             sc = scene_dict(base, distance_m=d, t_laser_win_ns=gate_ns(d), n_pixels=n_pixels)
-            futures.append((simulate.submit(sc, cycles, cache, seed + i, chip_seed), d))
-        jobs = [(f.result(), d) for f, d in futures]
+            args.append((sc, cycles, cache, seed + i, chip_seed))
+        caps = simulated([simulate.submit(*a) for a in args], args)
+        jobs = list(zip(caps, distances, strict=True))
     ranged = [range_point.submit(c, calibration, str(run / "ranges" / f"{i:03d}.parquet"),
                                  estimator, d) for i, (c, d) in enumerate(jobs)]
     points = pl.DataFrame([r for f in ranged for r in f.result()])

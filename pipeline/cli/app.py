@@ -493,7 +493,10 @@ def _main() -> None:
 
         if not isinstance(exc, TcspcError | OSError):
             raise
-        err.print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)  # one line
+        from rich.markup import escape
+
+        # escaped: a message's own brackets ("[0, 3]", "[range]") are text, not markup
+        err.print(f"[red]error:[/red] {escape(str(exc))}", highlight=False, soft_wrap=True)
         sys.exit(2)
 
 
