@@ -162,7 +162,7 @@ def verdict(candidate: str, current: str) -> list[str]:
         if not (cur / "meta.json").is_file():
             raise CalibrationError(f"{cur}: no meta.json")
         theirs = quality(cur)
-    except (CalibrationError, OSError) as exc:
+    except (CalibrationError, OSError, ValueError) as exc:  # (pyarrow's: ValueError)
         return [f"the current calibration cannot be read ({exc}); not replaced "
                 "automatically (force=true publishes after a look)"]
     return quality(candidate).worse_than(theirs)
@@ -274,7 +274,7 @@ def comparison(candidate: str, current: str) -> list[dict]:
     mine = figures_of(candidate)
     try:
         theirs = figures_of(current)
-    except (CalibrationError, OSError):
+    except (CalibrationError, OSError, ValueError):  # none, or unreadable: the verdict says
         theirs = {}
     return [{"figure": k, "candidate": _num(v), "current": _num(theirs.get(k))}
             for k, v in mine.items()]
