@@ -21,7 +21,6 @@ place, whole. The run ends in a state named for its outcome, ``Published`` or ``
 
 from __future__ import annotations
 
-import datetime as dt
 import json
 import shutil
 from pathlib import Path
@@ -50,6 +49,7 @@ from flows.common import (
     prune_cache,
     remade_if_gone,
     report,
+    run_namer,
     scene_dict,
     simulate,
     simulated,
@@ -317,18 +317,9 @@ def _announce(outcome: str, out: str, summary: dict) -> None:
                         "quality": summary["quality"]})
 
 
-def _run_name() -> str:
-    """``campaign 2026-11-27 128px`` (or ``... on captures``/``on journal``)."""
-    from prefect.runtime import flow_run
-
-    p = flow_run.parameters
-    day = dt.datetime.now(dt.UTC).strftime("%Y-%m-%d")
-    src = ("on journal" if p.get("journal") else "on captures" if p.get("captures")
-           else f"{p.get('n_pixels', 128)}px")
-    return f"campaign {day} {src}"
-
-
-@flow(name="calibration_campaign", flow_run_name=_run_name, timeout_seconds=CAMPAIGN_TIMEOUT_S)
+@flow(name="calibration_campaign", timeout_seconds=CAMPAIGN_TIMEOUT_S,
+      flow_run_name=run_namer("campaign", {"journal": "on journal",
+                                           "captures": "on captures"}))
 def calibration_campaign(out: str = "data/calibration", lux: LuxLevels | None = None,
                          cycles: PositiveInt = 400_000, delay_cycles: PositiveInt = 200_000,
                          n_pixels: PositiveInt = 128, chip_seed: NonNegativeInt = 1,

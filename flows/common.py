@@ -202,6 +202,22 @@ def new_run_dir(out: str | Path, flow: str) -> Path:
     return run
 
 
+def run_namer(kind: str, sources: dict[str, str]) -> Callable[[], str]:
+    """A ``flow_run_name`` for Prefect: ``<kind> <UTC date> <what it ran on>``, the source
+    named by the first parameter of ``sources`` (name -> label) that is set, else the
+    pixel count (``campaign 2026-11-27 128px``, ``sweep 2026-11-27 on captures``)."""
+
+    def name() -> str:
+        from prefect.runtime import flow_run
+
+        p = flow_run.parameters
+        src = next((label for key, label in sources.items() if p.get(key)),
+                   f"{p.get('n_pixels', 128)}px")
+        return f"{kind} {dt.datetime.now(dt.UTC):%Y-%m-%d} {src}"
+
+    return name
+
+
 def flow_run_info() -> dict:
     """The Prefect flow run this code runs in: id, name and where the UI shows it."""
     from prefect.runtime import flow_run
@@ -294,6 +310,8 @@ def clean_leftovers(*dirs: str | Path, log=None) -> list[str]:
     """Remove what killed runs left in ``dirs``: atomic writes' temporaries
     (``.NAME.tmp-PID``, ``.NAME.old-PID``) whose process is gone, and stray links. Returns
     what was removed."""
+    from pipeline.view.status import pid_alive
+
     gone = []
     for d in dirs:
         d = Path(d)
@@ -301,7 +319,7 @@ def clean_leftovers(*dirs: str | Path, log=None) -> list[str]:
             continue
         for p in d.iterdir():
             m = _LEFTOVER.match(p.name)
-            if not m or (m.group(2) and _alive(int(m.group(2)))):
+            if not m or (m.group(2) and pid_alive(int(m.group(2)))):
                 continue
             if p.is_dir() and not p.is_symlink():
                 shutil.rmtree(p, ignore_errors=True)
@@ -311,18 +329,6 @@ def clean_leftovers(*dirs: str | Path, log=None) -> list[str]:
     if log and gone:
         log.info("removed %d leftover(s) of killed runs: %s", len(gone), ", ".join(gone))
     return gone
-
-
-def _alive(pid: int) -> bool:
-    if pid == os.getpid():
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def prune_cache(cache_dir: str | Path, max_gb: float, max_age_days: float,

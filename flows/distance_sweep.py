@@ -17,7 +17,7 @@ import polars as pl
 from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 
-from flows.common import new_run_dir, report, scene_dict, simulate, simulated
+from flows.common import new_run_dir, report, run_namer, scene_dict, simulate, simulated
 from pipeline.io.caldir import load_calibration
 from pipeline.io.capture import Capture
 from pipeline.offline.ranging import range_capture
@@ -123,7 +123,12 @@ def figures(points: pl.DataFrame, summary: pl.DataFrame, run: str) -> list[str]:
     return paths
 
 
-@flow(name="distance_sweep")
+#: a sweep that runs longer than this is failed by Prefect (the default sweep: ~70 points)
+SWEEP_TIMEOUT_S = 12 * 3600
+
+
+@flow(name="distance_sweep", timeout_seconds=SWEEP_TIMEOUT_S,
+      flow_run_name=run_namer("sweep", {"stream": "on stream", "captures": "on captures"}))
 def distance_sweep(out: str = "data/sweeps", calibration: str | None = None,
                    distances: list[float] | None = None, cycles: int = 20_000,
                    estimator: str = "ml", n_pixels: int = 128, chip_seed: int = 1,
