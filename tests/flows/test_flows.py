@@ -328,15 +328,20 @@ def test_a_refused_candidate_ends_in_its_own_state(campaign):
 
 
 def test_a_current_that_cannot_be_read_is_not_replaced_unexamined(captured, tmp_path):
+    from click.testing import CliRunner
+
     from flows.calibration import calibration_campaign
+    from pipeline.cli.app import cli
 
     out = tmp_path / "cal"
     (out / "current").mkdir(parents=True)
     (out / "current" / "tdc.parquet").write_bytes(b"left by hand")  # no meta.json
-    state = calibration_campaign(out=str(out), captures=str(captured), inl_rms=1.0,
-                                 return_state=True)
-    assert state.name == "Refused"
-    assert "cannot be read" in state.result()["refused_because"][0]
+    # through the command line: a refusal is its own exit status, for scripts
+    res = CliRunner().invoke(cli, ["flow", "run", "calibration_campaign", "-p", f"out={out}",
+                                   "-p", f"captures={captured}", "-p", "inl_rms=1.0"])
+    assert res.exit_code == 3, res.output
+    assert "calibration_campaign: Refused" in res.output
+    assert "cannot be read" in json.loads(res.stdout)["refused_because"][0]
     assert (out / "current" / "tdc.parquet").read_bytes() == b"left by hand"
     forced = calibration_campaign(out=str(out), captures=str(captured), inl_rms=1.0,
                                   force=True, return_state=True)
