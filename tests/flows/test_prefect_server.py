@@ -10,6 +10,7 @@ import socket
 import subprocess
 import sys
 import time
+import urllib.error
 import urllib.request
 from pathlib import Path
 
@@ -80,6 +81,20 @@ def _task_states(env, run_id: str) -> dict:
     return {t["name"]: t["state"]["name"] for t in trs}
 
 
+def _events(env, out: str, wait_s: float = 30) -> list[dict]:
+    """The tcspc.calibration.* events about campaigns on ``out`` (the server stores events
+    a moment after it receives them: polled)."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        ev = _api(env, "POST", "/events/filter", {"filter": {
+            "event": {"prefix": ["tcspc.calibration."]},
+            "occurred": {"since": "2020-01-01T00:00:00Z"}}, "limit": 50})
+        mine = [e for e in ev["events"] if e["payload"]["run"].startswith(out)]
+        if mine or time.monotonic() > deadline:
+            return mine
+        time.sleep(0.5)
+
+
 def _campaign(env, out, *extra):
     return subprocess.Popen([*TCSPC, "flow", "run", "calibration_campaign", "-p",
                              f"out={out}", *SMALL, *extra], env=env, cwd=ROOT,
@@ -113,6 +128,10 @@ def test_a_killed_run_is_marked_crashed_and_the_rerun_resumes(server, tmp_path_f
     assert len(sims) == 6 and set(sims) == {"Cached"}, states  # resumed, not redone
     assert not list((out / "cache").glob(".*.tmp-*"))  # the killed run's leftovers
     assert (out / "current" / "meta.json").is_file()
+    # the event an automation triggers on, about this calibration
+    (pub,) = _events(server, str(out))
+    assert pub["event"] == "tcspc.calibration.published"
+    assert pub["resource"]["prefect.resource.name"] == str(out.resolve())
 
 
 def test_two_campaigns_started_at_once_take_turns(server, tmp_path_factory):
@@ -151,6 +170,11 @@ def test_the_served_schedule_runs_and_ctrl_c_stops_it(server, tmp_path_factory):
                 done = next((r for r in runs if r["state"]["name"] == "Published"), None)
             time.sleep(2)
         assert "bench-test" in mine[0]["tags"] and "calibration" in mine[0]["tags"]
+        # a run with a broken parameter is refused at creation, naming it
+        with pytest.raises(urllib.error.HTTPError) as bad:
+            _api(server, "POST", f"/deployments/{mine[0]['id']}/create_flow_run",
+                 {"parameters": {"cycles": -5}})
+        assert "cycles" in bad.value.read().decode()
         assert done["name"].startswith("campaign ") and done["name"].endswith(" 4px")
         assert (tmp / "data" / "calibration" / "current" / "meta.json").is_file()
         serve.send_signal(signal.SIGINT)
