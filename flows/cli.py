@@ -110,14 +110,21 @@ REFUSED_EXIT = 3
 def check_params(fl, params: dict, where: str) -> None:
     """The flow's typed signature against ``params`` now, before a run exists: one line
     per problem, naming the parameter (and ``where`` it came from)."""
+    import logging
+
     from prefect.exceptions import ParameterTypeError
 
+    quiet = logging.getLogger("prefect.flows")  # it logs pydantic's raw dump first
+    level = quiet.level
+    quiet.setLevel(logging.CRITICAL)
     try:
         fl.validate_parameters(params)
     except ParameterTypeError as exc:
         lines = [ln.strip(" -") for ln in str(exc).splitlines()[1:]] or [str(exc)]
         raise click.UsageError(f"{where}: invalid parameters for {fl.name}: "
                                + "; ".join(lines)) from None
+    finally:
+        quiet.setLevel(level)
 
 
 #: ``tcspc flow serve`` without ``--config``: the nightly campaign at 02:00 UTC
