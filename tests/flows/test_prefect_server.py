@@ -105,11 +105,13 @@ def test_a_killed_run_is_marked_crashed_and_the_rerun_resumes(server, tmp_path_f
     out = tmp_path_factory.mktemp("killed") / "cal"
     proc = _campaign(server, out)
     deadline = time.monotonic() + 300
-    # kill -9 once the six captures are made (the fit under way)
-    while len(list((out / "cache").glob("*/*.json"))) < 6:
+    # kill -9 once the fit is under way: it starts when all six captures are made and
+    # their results recorded (a capture killed before its record is reused from disk by
+    # the rerun, without the Cached state)
+    while not list((out / "cache").glob("*fit-*")):
         assert proc.poll() is None, proc.communicate()
-        assert time.monotonic() < deadline, "the captures never appeared"
-        time.sleep(0.2)
+        assert time.monotonic() < deadline, "the fit never started"
+        time.sleep(0.02)
     proc.kill()
     proc.wait()
     (dead,) = _runs(server)
