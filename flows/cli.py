@@ -18,6 +18,7 @@ import os
 import signal
 import sys
 import tomllib
+import zoneinfo
 from pathlib import Path
 
 import click
@@ -28,6 +29,7 @@ FLOWS = {
     "distance_sweep": "flows.distance_sweep:distance_sweep",
     "performance_prediction": "flows.performance:performance_prediction",
     "speed_vs_error": "flows.speed_vs_error:speed_vs_error",
+    "batch": "flows.batch:batch",
 }
 
 
@@ -77,20 +79,18 @@ def list_cmd() -> None:
 @click.argument("name")
 @click.option("-p", "--param", "params", multiple=True, metavar="KEY=VALUE",
               help="A flow parameter (JSON value), e.g. -p cycles=100000 -p lux=[500,2000].")
-@click.option("--dask", "dask_address", metavar="ADDRESS",
-              help="Fan tasks out over the Dask cluster at ADDRESS (needs prefect-dask; "
-                   "`pip install -e '.[dask]'`).")
+@click.option("--dask", "dask_address", metavar="[ADDRESS]", is_flag=False, flag_value="local",
+              help="Fan tasks out over the Dask cluster at ADDRESS (tcp://HOST:8786), or "
+                   "over a local cluster of one worker process per core with no ADDRESS.")
 def run_cmd(name, params, dask_address) -> None:
     """Run flow NAME now and print its summary as JSON."""
     fl = load(name)
     kwargs = parse_params(params, fl.fn)
     if dask_address:
-        try:
-            from prefect_dask import DaskTaskRunner
-        except ImportError:
-            raise click.ClickException("--dask needs prefect-dask: pip install -e '.[dask]'"
-                                       ) from None
-        fl = fl.with_options(task_runner=DaskTaskRunner(address=dask_address))
+        from prefect_dask import DaskTaskRunner
+
+        fl = fl.with_options(task_runner=DaskTaskRunner() if dask_address == "local"
+                             else DaskTaskRunner(address=dask_address))
     check_params(fl, kwargs, "-p")
     api = os.environ.get("PREFECT_API_URL") or "Prefect's embedded ephemeral API"
     click.echo(f"running {name} on {api}", err=True)
@@ -140,6 +140,7 @@ def read_serve_config(path: str | None, **cli) -> dict:
         out = "data"                   # where the runs write (OUT/calibration, OUT/sweeps..)
         [calibration]                  # the campaign; a section per flow served on a cron:
         cron = "0 2 * * *"             # calibration, sweep, performance, speed
+        timezone = "Europe/Berlin"     # the cron's (default UTC)
         tags = ["bench-1"]
         name = "bench-1 nightly"       # default: what it is ("128px daily at 02:00")
         [calibration.parameters]       # the flow's own parameters, checked now
@@ -184,6 +185,12 @@ def read_serve_config(path: str | None, **cli) -> dict:
         if "cron" not in body:
             raise click.BadParameter(f"{where}: [{sec}] needs a cron")
         _check_cron(body["cron"], f"{where}: [{sec}] cron")
+        tz = body.get("timezone", "UTC")
+        try:
+            zoneinfo.ZoneInfo(tz)
+        except (zoneinfo.ZoneInfoNotFoundError, ValueError, TypeError):
+            raise click.BadParameter(f"{where}: [{sec}] timezone {tz!r} is not a time zone "
+                                     "(e.g. UTC, Europe/Berlin)") from None
         tags = body.get("tags", [])
         if not (isinstance(tags, list) and all(isinstance(t, str) for t in tags)):
             raise click.BadParameter(f"{where}: [{sec}] tags must be a list of strings")
@@ -251,8 +258,11 @@ def deployments(config: dict) -> list:
                 else "")
         name = body.get("name") or f"{what}{describe_cron(body['cron'])}"
         kw = {"concurrency_limit": 1} if flow_name == "calibration_campaign" else {}
+        from prefect.schedules import Cron
+
         deps.append(fl.to_deployment(
-            name, cron=body["cron"], parameters=params, tags=[sec, *body.get("tags", [])],
+            name, schedules=[Cron(body["cron"], timezone=body.get("timezone", "UTC"))],
+            parameters=params, tags=[sec, *body.get("tags", [])],
             description=(inspect.getdoc(fl.fn) or "").split("\n\n")[0], **kw))
     return deps
 

@@ -367,6 +367,16 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
 RESET_PLAUSIBLE = 8
 
 
+def light_stop(row: np.ndarray) -> int | None:
+    """One past the last code of one TDC's histogram holding a tenth of the median
+    populated code's count: where uniform light ends (tau = T), which a stray count above
+    does not move; None for an empty histogram."""
+    pos = row[row > 0]
+    if not pos.size:
+        return None
+    return int(np.flatnonzero(row >= 0.1 * np.median(pos))[-1]) + 1
+
+
 def implausible_reset_peak(hits: np.ndarray, res: DensityResult) -> np.ndarray:
     """Per TDC, why the density test's reset peak cannot be where the window ends ("" where
     it can). Uniform light fills every code up to tau = T and nothing comes after it, so
@@ -377,12 +387,9 @@ def implausible_reset_peak(hits: np.ndarray, res: DensityResult) -> np.ndarray:
     h = np.asarray(hits, np.float64)
     why = np.full(h.shape[0], "", dtype=object)
     for t in np.flatnonzero(np.asarray(res.ok, bool)):
-        row = h[t]
-        pos = row[row > 0]
-        if not pos.size:
+        end = light_stop(h[t])
+        if end is None:
             continue
-        lit = np.flatnonzero(row >= 0.1 * np.median(pos))
-        end = int(lit[-1]) + 1
         if abs(res.x_t[t] - end) >= RESET_PLAUSIBLE:
             why[t] = (f"reset peak at code {res.x_t[t]:.0f}, but the light ends at code "
                       f"{end}: not where the window ends (LSB {res.lsb_s[t] * 1e12:.0f} ps "
@@ -424,8 +431,16 @@ def phase_depleted(hits: np.ndarray, codes=None) -> np.ndarray:
 
 def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill=None,
              artifacts=None, combine=False):
-    # the reset peak: the largest count in the upper part of the code range
-    top = int(np.argmax(np.where(np.arange(N_CODES) > 16, h, -1)))
+    # the reset peak: the largest count in the upper part of the code range; with returns
+    # in the histogram (``exclude``) the largest count near where the light ends, since a
+    # return can count more than the reset peak (an LSB of ~590 ps for ~220 from a return
+    # at code ~136 taken for tau = T: issue 26.8)
+    k = np.arange(N_CODES)
+    zone = k > 16
+    end = light_stop(h) if exclude is not None else None
+    if end is not None:
+        zone &= np.abs(k - end) < RESET_PLAUSIBLE
+    top = int(np.argmax(np.where(zone, h, -1)))
     # The low edge is usable: for uniform light, code 0 (which also collects every START the
     # jitter pushes below tau = 0) holds density * B_1 * (1 + ~0.004) at sigma = 0.5 LSB
     # (integral of Phi), and code 1 loses ~1 %: measured directly they beat any fill.
@@ -707,6 +722,15 @@ def signal_codes(hits: np.ndarray, dilate: int = 8, z: float = 6.0) -> np.ndarra
     return maximum_filter1d(peak, size=2 * dilate + 1, axis=1)
 
 
+#: The online LSB estimate of a TDC is not trusted when its own statistical error (the
+#: reset peak's place over the background's widths: LSB x sqrt(1/6) / sqrt(hits)) exceeds
+#: this, or when it lies further than ``TRACK_MAX_REL`` from the calibration's LSB at the
+#: light (the density tests' LSBs span a few per cent over their light levels: a quarter
+#: is a misplaced reset peak, never a drift).
+TRACK_MAX_SIGMA_PS = 10.0
+TRACK_MAX_REL = 0.25
+
+
 @dataclass(frozen=True)
 class Tracking:
     """The LSB measured from a range capture's background, against a calibration."""
@@ -715,10 +739,21 @@ class Tracking:
     expected_s: np.ndarray     #: the calibration's LSB at this capture's light (eq. 5.1)
     light: float               #: detections per pixel per cycle of this capture
     hits: np.ndarray
+    #: the estimate's own statistical error (NaN where not measured)
+    sigma_s: np.ndarray | None = None
+    #: per TDC why its estimate cannot be trusted ("" where it can, or was not measured)
+    why: tuple = ()
+
+    @property
+    def flagged(self) -> np.ndarray:
+        """TDCs whose estimate was measured but cannot be trusted (``why`` says why)."""
+        n = int(np.asarray(self.lsb_s).size)
+        return np.array([bool(w) for w in self.why] if self.why else [False] * n, bool)
 
     @property
     def drift_ps(self) -> np.ndarray:
-        return (self.lsb_s - self.expected_s) * 1e12
+        """Measured minus expected; NaN where not measured or not trusted (``flagged``)."""
+        return np.where(self.flagged, np.nan, (self.lsb_s - self.expected_s) * 1e12)
 
 
 def track_lsb(hits: np.ndarray, cycles: np.ndarray, window_s: float,
@@ -726,13 +761,28 @@ def track_lsb(hits: np.ndarray, cycles: np.ndarray, window_s: float,
               artifacts: np.ndarray | None = None) -> Tracking:
     """Measure each TDC's LSB from the uniform background of an ordinary range capture
     (its signal peaks masked) and compare it with what the calibration expects.
-    ``artifacts``: the artifact words by code, where counted (see :func:`density_test`)."""
+    ``artifacts``: the artifact words by code, where counted (see :func:`density_test`).
+    A TDC's estimate is flagged (``why``, left out of ``drift_ps``) when its reset peak is
+    not where the light ends (:func:`implausible_reset_peak`), its own error exceeds
+    ``TRACK_MAX_SIGMA_PS``, or it is ``TRACK_MAX_REL`` or more from the expected LSB."""
     h = np.asarray(hits, np.float64)
     res = density_test(h, cycles, window_s, min_hits, exclude=signal_codes(h),
                        artifacts=artifacts)
     light = light_level(h, cycles)
-    return Tracking(np.where(res.ok, res.lsb_s, np.nan), np.asarray(expected_lsb_s), light,
-                    res.hits)
+    lsb = np.where(res.ok, res.lsb_s, np.nan)
+    expected = np.broadcast_to(np.asarray(expected_lsb_s, np.float64), lsb.shape)
+    sigma = lsb * INL_RMS_FACTOR / np.sqrt(np.maximum(res.hits, 1.0))
+    why = implausible_reset_peak(h, res)
+    for t in np.flatnonzero(np.isfinite(lsb) & (why == "")):
+        ps, exp_ps = lsb[t] * 1e12, expected[t] * 1e12
+        if sigma[t] * 1e12 > TRACK_MAX_SIGMA_PS:
+            why[t] = (f"LSB {ps:.0f} +- {sigma[t] * 1e12:.0f} ps: uncertain beyond "
+                      f"{TRACK_MAX_SIGMA_PS:g} ps")
+        elif np.isfinite(exp_ps) and abs(ps / exp_ps - 1) >= TRACK_MAX_REL:
+            why[t] = (f"LSB {ps:.0f} ps against {exp_ps:.0f} ps expected: implausible, not "
+                      "a drift")
+    return Tracking(lsb, np.asarray(expected_lsb_s), light, res.hits, sigma,
+                    tuple(why.tolist()))
 
 
 # ------------------------------------------------------------------- LSB against light

@@ -44,3 +44,30 @@ def caldir(tmp_path_factory):
     lsb_campaign(caps, d / "cal", inl_rms_lsb=1.0)
     add_delay(d / "delay", d / "cal")
     return d / "cal"
+
+
+@pytest.fixture(scope="session")
+def mirror16():
+    """A simulated measurement (20,000 cycles) of scenes/small16.toml's chip and mirror at
+    1.5 m, brighter (reflectivity 0.004): the return counts more than the reset peak on
+    most TDCs. ``(HistogramState, the chip's true LSB at its light, window_s)``."""
+    from stages import calibration as cal
+    from stages.histogram import HistogramAccumulator
+    from stages.models.scene import evaluate, scene_from_dict
+    from stages.simulator.chip import make_chip
+    from stages.simulator.source import Simulator
+
+    n = 16
+    raw = {"sensor": {"n_pixels": n}, "gate": {"t_laser_win_ns": 140.0, "delay_ns": 100.0},
+           "targets": [{"pixels": [0, n - 1], "distance_m": 1.5, "surface": "mirror",
+                        "reflectivity": 0.004}],
+           "ambient": [{"kind": "lux", "lux": 800.0}]}
+    sm = evaluate(scene_from_dict(raw))
+    chip = make_chip(n, 1)
+    sim = Simulator(sm, chip, 0)
+    acc = HistogramAccumulator(n, cal.SecondStage(chip.n_min, chip.n_max, chip.n_th,
+                                                  chip.pdm).bounds)
+    for _, w in sim.batches(20_000):
+        acc.update(w)
+    st = acc.snapshot()
+    return st, chip.window_truth(sim.light, sm.window_s)[0], sm.window_s

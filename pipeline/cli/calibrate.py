@@ -150,6 +150,8 @@ def track(capture, calibration, out, tolerance_ps) -> None:
     err.print(f"light {tr.light:.3f} STARTs/pixel/cycle; LSB measured on {ok.sum()} of "
               f"{ok.size} TDCs; drift mean {np.nanmean(d):+.3f} ps, max |drift| "
               f"{np.nanmax(np.abs(d)):.3f} ps")
+    for t in np.flatnonzero(tr.flagged):
+        err.print(f"[yellow]TDC {t}: estimate left out:[/yellow] {tr.why[t]}", highlight=False)
     moved = np.flatnonzero(ok & (np.abs(d) > tolerance_ps))
     if moved.size:
         err.print(f"TDCs beyond {tolerance_ps} ps: {moved.tolist()} (recalibrate)")
@@ -161,7 +163,8 @@ def track(capture, calibration, out, tolerance_ps) -> None:
         with atomic_path(out) as tmp:
             pl.DataFrame({"tdc": np.arange(d.size, dtype=np.uint16),
                           "lsb_ps": tr.lsb_s * 1e12, "expected_ps": tr.expected_s * 1e12,
-                          "drift_ps": d, "hits": tr.hits}).write_parquet(tmp)
+                          "drift_ps": d, "hits": tr.hits,
+                          "untrusted": list(tr.why)}).write_parquet(tmp)
         err.print(f"wrote {out}")
 
 

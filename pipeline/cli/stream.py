@@ -109,9 +109,10 @@ def stage_source_capture(capture, pushes, run_id, rate, journal, journal_compres
     from pipeline.io.capture import Capture
     from pipeline.stream.journal import JournalWriter
     from pipeline.stream.stage import run_source
+    from pipeline.stream.wire import run_id_from
 
     cap = Capture(capture)
-    run_id = run_id or cap.name
+    run_id = run_id or run_id_from(cap.name)
     n = cap.meta.n_tdc
 
     def replay():
@@ -159,9 +160,10 @@ def stage_source_file(path, pushes, run_id, rate, fmt, firmware, journal, journa
     )
     from pipeline.stream.journal import JournalWriter
     from pipeline.stream.stage import run_source
+    from pipeline.stream.wire import run_id_from
 
     fmt = resolve_format(path, fmt)
-    run_id = run_id or Path(path).stem
+    run_id = run_id or run_id_from(Path(path).stem)
     period = instrument_timing_ns(path, fmt)
     damage = instrument_truncation(path, fmt)
     if damage:
@@ -333,6 +335,49 @@ def stage_sink(pull, out, quarantine, workers, metrics, senders) -> None:
     stats = run_stage(sink, pull, None, quarantine=quarantine, expect_stops=workers,
                       metrics=metrics, name="sink", senders=list(senders) or None)
     err.print(f"sink: wrote {sink.files} files; rejected {dict(stats.rejected)}")
+
+
+@stage.command("plan", short_help="Each stage as a service on its host: one NAME.env per "
+                                  "stage (systemd).")
+@click.option("--config", required=True, type=click.Path(exists=True, dir_okay=False),
+              help="The topology TOML (tcp:// endpoints for stages on other hosts).")
+@click.option("--run", "run_id", default=None, help="Run id (default: from the config).")
+@click.option("--out", required=True, type=click.Path(file_okay=False),
+              help="Directory for one NAME.env per stage (systemd's EnvironmentFile).")
+def plan(config, run_id, out) -> None:
+    """Each stage of the graph as a service: writes OUT/NAME.env for the systemd template
+    tcspc-stage@.service (docs/systemd/, docs/operations.md): the stage's arguments,
+    the run's token file and, with CURVE on, the key directory (both made in the state
+    directory now; copy them to the stage's host at the same path)."""
+    import shlex
+
+    from pipeline.stream.daemon import build, run_token
+    from pipeline.stream.topology import load_topology
+    from pipeline.stream.wire import TOKEN_ENV
+
+    topo = load_topology(config, run_id)
+    stages = [(p.name, p.argv[p.argv.index("stage") + 1:])  # after `... pipeline.cli stage`
+              for p in build(topo)]
+    for name, args in stages:  # all checked before any file is written
+        if any(any(c.isspace() for c in a) for a in args):
+            raise click.ClickException(f"{name}: an argument holds white space, which "
+                                       "systemd's $TCSPC_STAGE_ARGS would split: "
+                                       + shlex.join(args))
+    for d in ("logs", "journal", f"checkpoints/{topo.run}"):
+        (topo.state / d).mkdir(parents=True, exist_ok=True)
+    token, _ = run_token(topo.state, topo.run)
+    env = {TOKEN_ENV: str(token.resolve())}
+    if topo.curve_on:
+        from pipeline.stream.curve import CURVE_ENV, ensure_keys
+
+        env[CURVE_ENV] = str(ensure_keys(topo.state).resolve())
+    Path(out).mkdir(parents=True, exist_ok=True)
+    for name, args in stages:
+        lines = [f"TCSPC_STAGE_ARGS={' '.join(args)}", *(f"{k}={v}" for k, v in env.items())]
+        (Path(out) / f"{name}.env").write_text("\n".join(lines) + "\n")
+        click.echo(f"{name}: {Path(out) / f'{name}.env'}  (tcspc stage {args[0]})")
+    err.print(f"CURVE {'on' if topo.curve_on else 'off'}; run {topo.run}; start each with "
+              f"`systemctl start tcspc-stage@NAME` on its host, the source last", highlight=False)
 
 
 @click.command()

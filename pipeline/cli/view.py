@@ -16,7 +16,7 @@ def _from_config(config: str | None) -> dict:
         return {}
     from pipeline.stream.topology import load_topology
 
-    topo = load_topology(config)
+    topo = load_topology(config, writable=False)  # (the page only reads)
     raw = tomllib.loads(Path(config).read_text())
     cal = (topo.range or {}).get("calibration") or topo.histogram.get("calibration")
     return {"state": str(topo.state), "out": str(topo.sink["out"]), "calibration": cal,
@@ -86,15 +86,21 @@ def view(config, state, out, calibration, run_id, port, bind, layout, open_brows
         raise click.ClickException(f"cannot listen on {bind}:{port}: {exc.strerror or exc} "
                                    "(another `tcspc view`? use --port)") from None
     where = write_url(state, url) if state.exists() else None
-    click.echo(url, nl=True)
-    err.print(f"tcspc view: open {url} (state {state}, datasets {out}, calibration "
+    # the token is a secret: printed (to a log, under the daemon) only when no 0600 file
+    # could hold it
+    shown = url.split("?token=")[0] + "?token=(in " + str(where) + ")" \
+        if where and "?token=" in url else url
+    click.echo(shown, nl=True)
+    err.print(f"tcspc view: open {shown} (state {state}, datasets {out}, calibration "
               f"{calibration or 'none'}){f'; URL in {where}' if where else ''}; Ctrl-C stops",
               highlight=False, soft_wrap=True)
     loop = server.io_loop
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: loop.add_callback_from_signal(loop.stop))
     if open_browser:
-        loop.add_callback(lambda: server.show("/"))
+        import webbrowser
+
+        loop.add_callback(lambda: webbrowser.open(url))  # (with its token, if any)
     try:
         loop.start()
     finally:

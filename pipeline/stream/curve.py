@@ -6,13 +6,13 @@ socket serves with them) and ``client.key`` / ``client.key_secret`` (every conne
 presents them); ``authorized/`` holds the public client keys a bound socket accepts (the
 ZAP authenticator of each process reads it). Secret files are mode 0600. A stage turns
 CURVE on when ``$TCSPC_CURVE_DIR`` names that directory (the daemon sets it; for stages
-started by hand on another host, copy the directory there). Off by default on loopback; the
-daemon turns it on when any endpoint is tcp:// to a non-loopback address, or by config.
+started by hand on another host, copy the directory there). The daemon turns it on when any
+endpoint is tcp:// (loopback too: any local account reaches it), or by config; ipc://
+endpoints are private to the state directory's owner.
 """
 
 from __future__ import annotations
 
-import ipaddress
 import os
 import shutil
 import threading
@@ -51,21 +51,11 @@ def key_dir() -> Path | None:
 
 
 def needs_curve(endpoints: list[str]) -> bool:
-    """True when any endpoint is tcp:// to an address that is not loopback."""
-    for ep in endpoints:
-        if not ep.startswith("tcp://"):
-            continue
-        host = ep[len("tcp://"):].rsplit(":", 1)[0].strip("[]")
-        if host in ("localhost", "*"):
-            if host == "*":
-                return True  # every interface: reachable from the network
-            continue
-        try:
-            if not ipaddress.ip_address(host).is_loopback:
-                return True
-        except ValueError:
-            return True  # a host name: assume it is another host
-    return False
+    """True when any endpoint is tcp://, loopback included: every local account can
+    connect to a loopback port, and ZeroMQ assembles a message's frames (each at most
+    ZMQ_MAXMSGSIZE, however many) before a stage sees it, so only an authenticated peer may
+    deliver one. (ipc:// sockets live in the daemon's 0700 state directory.)"""
+    return any(ep.startswith("tcp://") for ep in endpoints)
 
 
 def serve(sock: zmq.Socket, keys: Path | None = None) -> None:

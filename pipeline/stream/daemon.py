@@ -18,7 +18,9 @@ hand across hosts. The supervisor
   killed range or sink stage is recomputed from the journaled words (the same code, the
   same numbers), then writes the run's accounting beside the datasets.
 
-The topology file (all keys but ``[source]`` optional)::
+The topology file (all keys but ``[source]`` optional; every key's type and range is
+declared in ``pipeline.stream.topology``, and the whole file is checked before anything
+starts, as are the state directory and the resources: ``pipeline.stream.state``)::
 
     [daemon]
     state = "data/daemon"        # journal/, checkpoints/, quarantine/, logs/, status.json
@@ -36,8 +38,8 @@ The topology file (all keys but ``[source]`` optional)::
     metrics = "ipc://..."        # default ipc://STATE/sock/metrics
     hwm = 4                      # ZeroMQ high-water mark, messages per socket
     curve = "auto"               # ZeroMQ CURVE (keys in STATE/curve): "auto" turns it on
-                                 # when any endpoint is tcp:// to a non-loopback address;
-                                 # true / false force it
+                                 # when any endpoint is tcp:// (loopback too: any local
+                                 # account reaches it); true / false force it
 
     [source]
     kind = "sim"                 # sim | capture | udp | file
@@ -225,14 +227,17 @@ def run_token(state: Path, run: str) -> tuple[Path, str]:
     d.mkdir(parents=True, exist_ok=True)
     os.chmod(d, 0o700)
     path = d / f"{run}.token"
+    from pipeline.stream.state import open_nofollow
+
     try:
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     except FileExistsError:
-        os.chmod(path, 0o600)
-        token = path.read_text().strip()
+        with os.fdopen(open_nofollow(path, os.O_RDONLY), "r") as fh:
+            os.fchmod(fh.fileno(), 0o600)
+            token = fh.read().strip()
         if len(token) >= 32:
             return path, token
-        fd = os.open(path, os.O_WRONLY | os.O_TRUNC, 0o600)  # empty or cut short: anew
+        fd = open_nofollow(path, os.O_WRONLY | os.O_TRUNC)  # empty or cut short: anew
     token = secrets.token_hex(32)
     with os.fdopen(fd, "w") as fh:
         fh.write(token + "\n")
@@ -252,6 +257,16 @@ def check_record(rec: dict, token: str | None) -> bool:
 class Supervisor:
     def __init__(self, topo: Topology, log=print, poll_s: float = 0.2):
         self.topo, self.log, self.poll_s = topo, log, poll_s
+        # the state is taken first (private, locked, no links), then every resource a stage
+        # needs is probed: either fails here, with the reason, before anything is started
+        from pipeline.stream.state import check_resources, open_state
+
+        self.lock = open_state(topo.state)
+        try:
+            check_resources(topo)
+        except Exception:
+            self.lock.release()
+            raise
         self.procs = build(topo)
         self.by_name = {p.name: p for p in self.procs}
         self.stop = threading.Event()
@@ -278,7 +293,10 @@ class Supervisor:
 
     # -------------------------------------------------------------- processes
     def _start(self, p: Proc) -> None:
-        log = open(self.topo.state / "logs" / f"{p.name}.log", "ab")
+        from pipeline.stream.state import open_nofollow
+
+        log = os.fdopen(open_nofollow(self.topo.state / "logs" / f"{p.name}.log",
+                                      os.O_WRONLY | os.O_APPEND | os.O_CREAT), "ab")
         try:
             log.write(f"--- {dt.datetime.now(dt.UTC).isoformat()} start "
                       f"(restart {p.restarts}): {' '.join(p.argv)}\n".encode())
@@ -554,6 +572,7 @@ class Supervisor:
                             **({"journal_corrupt_words": corrupt} if corrupt else {})})
         if self.view is not None:
             self.view.end()
+        self.lock.release()
         return result
 
 

@@ -168,8 +168,16 @@ class Quarantine:
 
 
 def _quarantine(q: Quarantine, reason: str, frames) -> None:
-    raw = b"".join(bytes(f.buffer if hasattr(f, "buffer") else f) for f in frames)
-    q.put(reason, raw, frames=len(frames))
+    """Keep the first QUARANTINE_KEEP_BYTES of a rejected message: only those bytes are
+    copied (a message of many large frames is not joined into one more copy of itself)."""
+    views = [memoryview(f.buffer if hasattr(f, "buffer") else f) for f in frames]
+    head, left = [], QUARANTINE_KEEP_BYTES
+    for v in views:
+        if left <= 0:
+            break
+        head.append(bytes(v[:left]))
+        left -= len(head[-1])
+    q.put(reason, b"".join(head), frames=len(frames), bytes=sum(v.nbytes for v in views))
 
 
 def _digest(state: dict) -> bytes:

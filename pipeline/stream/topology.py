@@ -4,12 +4,16 @@ docstring), validated into a :class:`Topology`, and the TDC ranges of its worker
 from __future__ import annotations
 
 import datetime as dt
-import re
+import os
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from schemas.errors import TcspcError
+from stages.codec import MAX_TDC
 
 SOURCE_KINDS = ("sim", "capture", "udp", "file")
 GRACE_S = 3.0  # after its upstream finished, a stage gets this long to stop by itself
@@ -69,131 +73,292 @@ class Topology:
         return f"ipc://{self.state.resolve()}/sock/{name}"
 
 
-_KNOWN = {
-    "daemon": {"state", "run", "restarts", "metrics", "hwm", "journal_keep_gb",
-               "journal_compression", "restart_window_s", "restart_backoff_s",
-               "restart_backoff_max_s", "curve"},
-    "source": {"kind", "scene", "cycles", "seed", "chip_seed", "rate", "capture", "bind",
-               "idle", "n_tdc", "repeat", "reorder_window", "max_jump_cycles", "file",
-               "format", "firmware"},
-    "histogram": {"workers", "measurement_cycles", "calibration", "n_tdc", "endpoints"},
-    "range": {"calibration", "estimator", "endpoint"},
-    "sink": {"out", "endpoint"},
-    "view": {"port", "bind", "layout"},
-}
+# ------------------------------------------------------------------ the file's schema
+# One typed model per section (pydantic v2, strict: "20000" is not a count, true is not a
+# number); each field declares its type, its range and what 0 or a negative would mean.
+# Unknown keys are refused; every problem of the file is reported in one pass.
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+
+class DaemonSection(_Section):
+    state: str = Field("data/daemon", min_length=1, description="the state directory (the "
+                    "daemon's own: created 0700)")
+    run: str | None = Field(None, description="run id: 1..64 of [A-Za-z0-9._-] (default: the "
+                         "source's name and the UTC time)")
+    restarts: int = Field(10, ge=0, description="deaths of one stage restarted per "
+                       "restart_window_s (0: the first death fails the run)")
+    metrics: str | None = Field(None, description="heartbeat endpoint (default "
+                             "ipc://STATE/sock/metrics)")
+    hwm: int = Field(4, ge=1, le=1_000_000, description="messages queued per socket, >= 1 (0 "
+                  "would mean unbounded in ZeroMQ: refused)")
+    journal_keep_gb: float | None = Field(None, gt=0, description="journal kept, GB, > 0 "
+                                       "(leave out: keep all)")
+    journal_compression: Literal["zstd", "none"] = "zstd"
+    restart_window_s: float = Field(600.0, gt=0, description="the restart budget's window, "
+                                 "s, > 0")
+    restart_backoff_s: float = Field(0.5, ge=0, description="wait before a restart, s (0: "
+                                  "at once)")
+    restart_backoff_max_s: float = Field(30.0, ge=0, description="the longest backoff, s")
+    curve: Literal["auto"] | bool = Field("auto", description='"auto", true or false')
+
+
+class SourceSection(_Section):
+    kind: Literal["sim", "capture", "udp", "file"] = Field(..., description="sim | capture | udp "
+                                                        "| file")
+    scene: str | None = None
+    cycles: int | None = Field(None, ge=1, description="laser cycles simulated, >= 1")
+    seed: int | None = Field(None, ge=0)
+    chip_seed: int | None = Field(None, ge=0)
+    rate: float | None = Field(None, gt=0, description="words (records) per s, > 0 (leave "
+                            "out: as fast as the graph takes them)")
+    capture: str | None = None
+    repeat: int | None = Field(None, ge=1, description="times the capture is replayed, >= 1")
+    bind: str | None = Field(None, description="HOST:PORT to listen on, port 1..65535")
+    idle: float | None = Field(None, gt=0, description="seconds without a datagram that end "
+                            "the run, > 0 (leave out: listen until stopped)")
+    n_tdc: int | None = Field(None, ge=1, le=MAX_TDC, description=f"the chip's TDCs, "
+                           f"1..{MAX_TDC}")
+    reorder_window: int | None = Field(None, ge=1, description="datagrams held to undo "
+                                    "reordering, >= 1")
+    max_jump_cycles: int | None = Field(None, ge=1, description="the furthest a first cycle "
+                                     "may jump past the newest, >= 1")
+    file: str | None = None
+    format: str | None = None
+    firmware: Literal["2212b", "2212s"] | None = None
+
+
+#: the [source] keys each kind takes (besides kind)
+SOURCE_KEYS = {"sim": ("scene", "cycles", "seed", "chip_seed", "rate"),
+               "capture": ("capture", "rate", "repeat"),
+               "udp": ("bind", "idle", "n_tdc", "reorder_window", "max_jump_cycles"),
+               "file": ("file", "format", "firmware", "rate")}
+
+
+class HistogramSection(_Section):
+    workers: int = Field(1, ge=1, description="histogram workers, 1..n_tdc")
+    measurement_cycles: int | None = Field(None, ge=1, description="cycles per measurement, "
+                                        ">= 1 (leave out: one measurement, the whole run)")
+    calibration: str | None = None
+    n_tdc: int | None = Field(None, ge=1, le=MAX_TDC, description=f"1..{MAX_TDC}")
+    endpoints: list[str] | None = None
+
+
+class RangeSection(_Section):
+    calibration: str = Field(..., description="a calibration directory")
+    estimator: str = "ml"
+    endpoint: str | None = None
+
+
+class SinkSection(_Section):
+    out: str = Field("data/stream", min_length=1, description="the datasets' directory")
+    endpoint: str | None = None
+
+
+class ViewSection(_Section):
+    port: int = Field(5006, ge=0, le=65535, description="0..65535 (0: any free port, in "
+                   "STATE/view.url)")
+    bind: str = Field("127.0.0.1", min_length=1, description="an address, e.g. 127.0.0.1")
+    layout: str | None = Field(None, pattern=r"^\d+x\d+$", description='COLUMNSxROWS, e.g. '
+                            '"16x8"')
+
+
+SECTIONS: dict[str, type[_Section]] = {
+    "daemon": DaemonSection, "source": SourceSection, "histogram": HistogramSection,
+    "range": RangeSection, "sink": SinkSection, "view": ViewSection}
+
+
+def _problem(where: str, sec: str, err: dict, model: type[_Section]) -> str:
+    """One line for one pydantic error: the file, the section, the key, what came and what
+    the key takes."""
+    loc = list(err["loc"])
+    key = "".join(f"[{x}]" if isinstance(x, int) else ("." if i else "") + str(x)
+                  for i, x in enumerate(loc)) or "(section)"
+    if err["type"] == "extra_forbidden":
+        return (f"{where} [{sec}] {key}: unknown keys are refused; known: "
+                f"{sorted(model.model_fields)}")
+    if err["type"] == "missing":
+        return f"{where} [{sec}] {key}: missing (needed)"
+    if err["type"] == "model_type":
+        return f"{where} [{sec}]: a section (a table), found {err['input']!r:.60}"
+    if err["type"] == "literal_error":
+        return f"{where} [{sec}] {key} = {err['input']!r:.60}: use one of {err['ctx']['expected']}"
+    info = model.model_fields.get(str(loc[0]))
+    hint = f"; {info.description}" if info is not None and info.description else ""
+    return f"{where} [{sec}] {key} = {err['input']!r:.60}: {err['msg']}{hint}"
+
+
+def _sections(raw: dict, where: str, problems: list[str]) -> dict[str, _Section | None]:
+    out: dict[str, _Section | None] = {}
+    for sec in sorted(set(raw) - set(SECTIONS)):
+        problems.append(f"{where} [{sec}]: unknown section; known: {sorted(SECTIONS)}")
+    for sec, model in SECTIONS.items():
+        if sec not in raw:
+            out[sec] = None
+            continue
+        try:
+            out[sec] = model.model_validate(raw[sec])
+        except ValidationError as exc:
+            problems.extend(_problem(where, sec, e, model) for e in exc.errors())
+            out[sec] = None
+    return out
 
 
 def load_topology(path: str | Path | None, run: str | None = None,
-                  overrides: dict | None = None) -> Topology:
-    """Read and check a topology file (None: the embedded default, the street scene)."""
+                  overrides: dict | None = None, writable: bool = True) -> Topology:
+    """Read and check a topology file (None: the embedded default, the street scene).
+
+    Every problem is found in one pass and raised as one :class:`TopologyError`, a line
+    per problem naming the file, the section and the key. ``writable``: also check that the
+    state and sink directories can be written (a reader such as `tcspc view` only reads)."""
     where = str(path) if path else "<default topology>"
     if path:
         try:
             raw = tomllib.loads(Path(path).read_text())
         except FileNotFoundError:
             raise TopologyError(f"{path}: topology file not found") from None
-        except tomllib.TOMLDecodeError as exc:
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise TopologyError(f"{path}: not valid TOML: {exc}") from None
     else:
         raw = default_topology()
     for key, sub in (overrides or {}).items():
         raw.setdefault(key, {}).update(sub)
-    unknown = sorted(set(raw) - set(_KNOWN))
-    if unknown:
-        raise TopologyError(f"{where}: unknown sections {unknown}; known: {sorted(_KNOWN)}")
-    for sec, keys in _KNOWN.items():
-        extra = sorted(set(raw.get(sec, {})) - keys)
-        if extra:
-            raise TopologyError(f"{where} [{sec}]: unknown keys {extra}; known: {sorted(keys)}")
-    d, src = raw.get("daemon", {}), raw.get("source")
-    if not src:
-        raise TopologyError(f"{where}: a [source] section is needed")
-    kind = src.get("kind")
-    if kind not in SOURCE_KINDS:
-        raise TopologyError(f"{where} [source] kind {kind!r}: use one of {SOURCE_KINDS}")
-    need = {"sim": "scene", "capture": "capture", "udp": "bind", "file": "file"}[kind]
-    if need not in src:
-        raise TopologyError(f"{where} [source]: kind {kind!r} needs {need!r}")
-    hist = dict(raw.get("histogram", {}))
-    if kind == "file":
-        _check_file_source(src, hist, raw.get("range"), where)
-    n_tdc = _source_n_tdc(src, hist, where)
-    workers = int(hist.get("workers", 1))
-    if not 1 <= workers <= n_tdc:
-        raise TopologyError(f"{where} [histogram] workers = {workers}: use 1..{n_tdc}")
-    if "endpoints" in hist and len(hist["endpoints"]) != workers:
-        raise TopologyError(f"{where} [histogram]: {len(hist['endpoints'])} endpoints for "
-                            f"{workers} workers")
-    rng = raw.get("range")
-    if rng is not None and "calibration" not in rng:
-        raise TopologyError(f"{where} [range]: needs a calibration directory")
-    for sec in (hist, rng or {}):
-        cal = sec.get("calibration")
+    problems: list[str] = []
+    secs = _sections(raw, where, problems)
+    if "source" not in raw:
+        problems.append(f"{where}: a [source] section is needed")
+    d = secs["daemon"] or DaemonSection()
+    src_m, hist_m, rng_m = secs["source"], secs["histogram"], secs["range"]
+    src = src_m.model_dump(exclude_unset=True) if src_m else None
+    hist = hist_m.model_dump(exclude_unset=True) if hist_m else {}
+    rng = rng_m.model_dump(exclude_unset=True) if rng_m else None
+    sink = (secs["sink"] or SinkSection()).model_dump(exclude_none=True)
+    n_tdc = None
+    if src is not None:
+        n_tdc = _check_source(src, hist, raw.get("range"), where, problems)
+    elif isinstance(raw.get("source"), dict) and raw["source"].get("kind") in SOURCE_KEYS:
+        _check_source_keys(raw["source"], where, problems)  # the rest of [source]'s problems
+    workers = hist.get("workers", 1)
+    if n_tdc is not None and hist_m is not None and workers > n_tdc:
+        problems.append(f"{where} [histogram] workers = {workers}: use 1..{n_tdc} (one TDC "
+                        "range per worker)")
+    if hist.get("endpoints") is not None and len(hist["endpoints"]) != workers:
+        problems.append(f"{where} [histogram] endpoints: {len(hist['endpoints'])} endpoints "
+                        f"for {workers} workers")
+    if rng_m is not None:
+        from stages.ranging import ESTIMATORS
+
+        if rng.get("estimator", "ml") not in ESTIMATORS:
+            problems.append(f"{where} [range] estimator = {rng['estimator']!r}: use one of "
+                            f"{ESTIMATORS}")
+    for sec, body in (("histogram", hist), ("range", rng or {})):
+        cal = body.get("calibration")
         if cal and not (Path(cal) / "tdc.parquet").exists():
-            raise TopologyError(f"{where}: calibration {cal!r} is not a calibration directory "
-                                "(run `tcspc flow run calibration_campaign` first)")
-    state = Path(d.get("state", "data/daemon"))
-    run = run or d.get("run") or (
-        f"{Path(src.get('scene') or src.get('capture') or src.get('file') or 'udp').stem}-"
-        f"{dt.datetime.now(dt.UTC).strftime('%Y%m%dT%H%M%SZ')}")
-    metrics = d.get("metrics") or f"ipc://{state.resolve()}/sock/metrics"
-    for ep in [metrics, *(hist.get("endpoints") or [])]:
-        _check_endpoint(ep, where)
-    from pipeline.stream.wire import ID_PATTERN
+            problems.append(f"{where} [{sec}] calibration = {cal!r}: not a calibration "
+                            "directory (run `tcspc flow run calibration_campaign` first)")
+    state = Path(d.state)
+    if writable and (secs["daemon"] is not None or "daemon" not in raw):
+        _check_writable(state, where, "[daemon] state", problems)
+    if writable and (secs["sink"] is not None or "sink" not in raw):
+        _check_writable(Path(sink["out"]), where, "[sink] out", problems)
+    from pipeline.stream.wire import ID_PATTERN, run_id_from
 
-    if not ID_PATTERN.fullmatch(run):
-        raise TopologyError(f"{where}: run id {run!r}: use 1..64 of [A-Za-z0-9._-] (it "
-                            "becomes a directory name)")
-    budget = {k: float(d.get(k, default)) for k, default in (
-        ("restart_window_s", 600.0), ("restart_backoff_s", 0.5),
-        ("restart_backoff_max_s", 30.0))}
-    if any(v < 0 for v in budget.values()) or int(d.get("restarts", 10)) < 0:
-        raise TopologyError(f"{where} [daemon]: restarts and restart times must be >= 0")
-    return Topology(where, state, run, int(d.get("restarts", 10)), metrics,
-                    int(d.get("hwm", 4)), src, hist, rng,
-                    raw.get("sink", {"out": "data/stream"}), n_tdc,
-                    float(d["journal_keep_gb"]) if "journal_keep_gb" in d else None,
-                    _journal_compression(d.get("journal_compression", "zstd"), where),
-                    **budget, curve=_curve(d.get("curve", "auto"), where),
-                    view=_view(raw.get("view"), where))
+    run = run or d.run
+    if run is not None and not ID_PATTERN.fullmatch(run):
+        problems.append(f"{where} [daemon] run = {run!r}: use 1..64 of [A-Za-z0-9._-], not "
+                        f"'.' or '..' (it becomes a directory name), e.g. "
+                        f"{run_id_from(run)!r}")
+    if run is None:
+        name = Path((src or {}).get("scene") or (src or {}).get("capture")
+                    or (src or {}).get("file") or "udp").stem
+        run = run_id_from(name, f"-{dt.datetime.now(dt.UTC).strftime('%Y%m%dT%H%M%SZ')}")
+    metrics = d.metrics or f"ipc://{state.resolve()}/sock/metrics"
+    for label, ep in (("[daemon] metrics", metrics),
+                      *((f"[histogram] endpoints[{i}]", e)
+                        for i, e in enumerate(hist.get("endpoints") or [])),
+                      ("[range] endpoint", (rng or {}).get("endpoint")),
+                      ("[sink] endpoint", sink.get("endpoint"))):
+        if ep is not None:
+            _check_endpoint(ep, where, label, problems)
+    if problems:
+        raise TopologyError("\n".join(dict.fromkeys(problems)))
+    view = secs["view"]
+    return Topology(where, state, run, d.restarts, metrics, d.hwm, src, hist, rng, sink,
+                    n_tdc, d.journal_keep_gb, d.journal_compression,
+                    d.restart_window_s, d.restart_backoff_s, d.restart_backoff_max_s,
+                    curve=d.curve,
+                    view=None if view is None else view.model_dump(exclude_none=True))
 
 
-def _view(sec: dict | None, where: str) -> dict | None:
-    """The [view] section: ``port`` (0..65535, 0 any free one), ``bind`` (an address; a
-    non-loopback one puts a token in the page's URL), ``layout`` ("16x8")."""
-    if sec is None:
+def _check_source(src: dict, hist: dict, rng, where: str, problems: list[str]) -> int | None:
+    """The [source] keys that depend on its kind; the chip's TDC count (None when it cannot
+    be known)."""
+    kind = src["kind"]
+    need = SOURCE_KEYS[kind][0]
+    if not _check_source_keys(src, where, problems):
         return None
-    port = sec.get("port", 5006)
-    if not isinstance(port, int) or isinstance(port, bool) or not 0 <= port <= 65535:
-        raise TopologyError(f"{where} [view] port = {port!r}: use 0..65535")
-    bind = sec.get("bind", "127.0.0.1")
-    if not isinstance(bind, str) or not bind:
-        raise TopologyError(f"{where} [view] bind = {bind!r}: use an address, e.g. 127.0.0.1")
-    layout = sec.get("layout")
-    if layout is not None and not (isinstance(layout, str)
-                                   and re.fullmatch(r"\d+x\d+", layout)):
-        raise TopologyError(f"{where} [view] layout = {layout!r}: use COLUMNSxROWS, e.g. "
-                            "\"16x8\"")
-    return {"port": port, "bind": bind, **({"layout": layout} if layout else {})}
+    if kind == "file":
+        before = len(problems)
+        try:
+            _check_file_source(src, hist, rng, where)
+        except TopologyError as exc:
+            problems.append(str(exc))
+        return 1 if len(problems) == before else None
+    try:
+        return _source_n_tdc(src, hist, where)
+    except TopologyError as exc:
+        problems.append(str(exc))
+    except Exception as exc:  # noqa: BLE001 - a scene or capture that cannot be read
+        problems.append(f"{where} [source] {need} = {src[need]!r}: {exc}")
+    return None
 
 
-def _curve(value, where: str) -> str | bool:
-    if value not in ("auto", True, False):
-        raise TopologyError(f"{where}: [daemon] curve must be \"auto\", true or false, "
-                            f"found {value!r}")
-    return value
+def _check_source_keys(src: dict, where: str, problems: list[str]) -> bool:
+    """The [source] keys its kind needs and takes; False when the key it needs is missing."""
+    kind = src["kind"]
+    need = SOURCE_KEYS[kind][0]
+    for key in sorted(set(src) - {"kind", *SOURCE_KEYS[kind]} & set(SourceSection.model_fields)):
+        problems.append(f"{where} [source] {key}: not a key of kind {kind!r} (it takes "
+                        f"{', '.join(SOURCE_KEYS[kind])})")
+    if need not in src:
+        problems.append(f"{where} [source] {need}: missing; kind {kind!r} needs {need!r}")
+        return False
+    bind = src.get("bind") if kind == "udp" else None
+    if isinstance(bind, str):
+        host, _, port = bind.rpartition(":")
+        if not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+            problems.append(f"{where} [source] bind = {bind!r}: use HOST:PORT, port "
+                            "1..65535 (e.g. 127.0.0.1:9000)")
+    return True
 
 
-def _journal_compression(name, where: str) -> str:
-    if name not in ("zstd", "none"):
-        raise TopologyError(f"{where}: [daemon] journal_compression must be \"zstd\" or "
-                            f"\"none\", found {name!r}")
-    return name
+def _check_writable(path: Path, where: str, label: str, problems: list[str]) -> None:
+    """A directory the daemon will write: it, or its nearest existing ancestor, must be a
+    directory this user can create files in (probed with a temporary directory, removed)."""
+    import tempfile
+
+    p = path.absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    if not p.is_dir():
+        problems.append(f"{where} {label} = {str(path)!r}: {str(p)!r} is not a directory")
+        return
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".tcspc-probe-", dir=p))
+    except OSError as exc:
+        problems.append(f"{where} {label} = {str(path)!r}: cannot write in {str(p)!r} "
+                        f"({exc.strerror or exc})")
 
 
-def _check_endpoint(ep: str, where: str) -> None:
+def _check_endpoint(ep: str, where: str, label: str, problems: list[str]) -> None:
     if not ep.startswith(("ipc://", "tcp://", "inproc://")):
-        raise TopologyError(f"{where}: endpoint {ep!r}: use ipc://PATH or tcp://HOST:PORT")
+        problems.append(f"{where} {label} = {ep!r}: use ipc://PATH or tcp://HOST:PORT")
+    elif ep.startswith("tcp://"):
+        port = ep.rpartition(":")[2]
+        if not port.isdigit() or not 1 <= int(port) <= 65535:
+            problems.append(f"{where} {label} = {ep!r}: the port must be 1..65535")
 
 
 def _check_file_source(src: dict, hist: dict, rng, where: str) -> None:

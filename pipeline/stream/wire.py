@@ -26,6 +26,16 @@ class WireError(Rejected):
 # step id of 1..64 of [A-Za-z0-9._-] (not "." or ".."), a date YYYY-MM-DD that is a date.
 ID_PATTERN = re.compile(r"(?!\.{1,2}$)[A-Za-z0-9._-]{1,64}")
 DATE_PATTERN = re.compile(r"\d{4}-\d{2}-\d{2}")
+
+
+def run_id_from(name: str, suffix: str = "") -> str:
+    """A run id made from a file's name (a capture "my street.bin" gives "my_street"): each
+    run of characters outside [A-Za-z0-9._-] becomes one "_", and the name is cut so that
+    the id with ``suffix`` holds at most 64 characters. Every default run id is made here,
+    so a name the daemon derives is one it accepts (an id given explicitly is checked
+    against :data:`ID_PATTERN`, never changed)."""
+    stem = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "run"
+    return stem[:64 - len(suffix)] + suffix
 MAX_INDEX = 1 << 62  # word and measurement indices: far beyond any run, far below int64
 
 

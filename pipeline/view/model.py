@@ -92,6 +92,16 @@ class ViewModel:
 
     def _refresh_track(self, tr: RunTrack, now: float) -> None:
         tr.index.refresh(now)
+        if tr.consts.t_laser_win_s is None:  # a page opened before the run's journal
+            consts = sensor.run_constants(self.state / "journal", tr.run)
+            if consts != tr.consts:
+                tr.consts = consts
+                if tr.index.n_tdc is None:  # (and the array's size with it)
+                    from pipeline.stream.journal import run_meta
+
+                    tr.index.n_tdc = run_meta(self.state / "journal", tr.run).get("n_tdc")
+                for key in [key for key in self._meas if key[0] == tr.run]:
+                    del self._meas[key]  # drawn without the gate: drawn again with it
         if tr.accounting is None:
             tr.accounting = datasets.read_accounting(self.out, tr.run)
             if tr.accounting is not None:
@@ -235,8 +245,13 @@ class ViewModel:
         tr = self.tracks.get(run)
         done = tuple(tr.drift.values()) if tr else ()  # (one C call: the worker may add)
         rows = sorted((d for d in done if d.get("n")), key=lambda d: d["k"])
-        return {k: np.array([d[k] for d in rows], np.float64)
-                for k in ("k", "median_ps", "p10_ps", "p90_ps", "light")}
+        out = {k: np.array([d[k] for d in rows], np.float64)
+               for k in ("k", "median_ps", "p10_ps", "p90_ps", "light")}
+        flagged: dict[int, str] = {}  # TDC -> why, over every sampled measurement
+        for d in sorted(done, key=lambda d: d["k"]):
+            flagged.update(d.get("flagged") or {})
+        out["flagged"] = flagged
+        return out
 
     def close(self) -> None:
         if self.feed is not None:

@@ -197,8 +197,7 @@ class Page:
         q.line("code", "inl", source=self.inl_src, color="#8250df")
         self.inl_fig = q
         self.drift_src = ColumnDataSource({"k": [], "median_ps": [], "p10_ps": [], "p90_ps": []})
-        d = figure(title="Online LSB estimate minus the calibration's, over the run (median "
-                         "over TDCs; band: 10-90 %)", width=WIDTH, height=240,
+        d = figure(title=DRIFT_TITLE, width=WIDTH, height=240,
                    x_axis_label="measurement", y_axis_label="drift (ps)", tools="hover,reset")
         d.varea("k", "p10_ps", "p90_ps", source=self.drift_src, color="#0969da", alpha=0.2)
         d.line("k", "median_ps", source=self.drift_src, color="#0969da", line_width=2)
@@ -425,10 +424,24 @@ class Page:
 
     def _draw_drift(self):
         s = self.m.drift_series(self.run)
-        key = (self.run, s["k"].size)
+        key = (self.run, s["k"].size, len(s["flagged"]))
         if self.shown.get("drift") != key:
             self.shown["drift"] = key
             self.drift_src.data = {k: s[k] for k in ("k", "median_ps", "p10_ps", "p90_ps")}
+            self.drift_fig.title.text = DRIFT_TITLE + drift_flag_note(s["flagged"])
+
+
+DRIFT_TITLE = ("Online LSB estimate minus the calibration's, over the run (median over "
+               "TDCs; band: 10-90 %)")
+
+
+def drift_flag_note(flagged: dict[int, str]) -> str:
+    """What the drift plot's title adds for the TDCs it leaves out (estimate untrusted)."""
+    if not flagged:
+        return ""
+    tdcs = sorted(flagged)
+    shown = ", ".join(map(str, tdcs[:8])) + (", ..." if len(tdcs) > 8 else "")
+    return (f"; left out, estimate untrusted: TDC {shown} ({flagged[tdcs[0]]})")
 
 
 def make_document(model, token: str | None):

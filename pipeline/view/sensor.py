@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -77,16 +78,28 @@ class RunConstants:
 
     window_s: float
     t_laser_win_s: float | None
+    #: why the gate is unknown ("" when it is known)
+    why: str = ""
 
 
 def run_constants(journal_dir, run: str) -> RunConstants:
-    """From the run's journal (``RUN.meta.json``); an 80 ns window and no gate without it."""
+    """From the run's journal (``RUN.meta.json``); an 80 ns window and no gate without it,
+    ``why`` saying what is missing (the view reads it again until it appears)."""
     from pipeline.stream.journal import run_meta
 
     meta = run_meta(journal_dir, run) if journal_dir else {}
     gate = meta.get("t_laser_win_ns")
+    why = ""
+    if gate is None:
+        path = Path(journal_dir or "") / f"{run}.meta.json"
+        if not journal_dir or not Path(journal_dir).is_dir():
+            why = f"no journal at {journal_dir} (yet)"
+        elif not path.exists():
+            why = f"{path} not written (yet): the run has not reached the journal"
+        else:
+            why = f"{path} holds no gate (t_laser_win_ns)"
     return RunConstants(float(meta.get("window_ns", 80.0)) * 1e-9,
-                        None if gate is None else float(gate) * 1e-9)
+                        None if gate is None else float(gate) * 1e-9, why)
 
 
 def return_codes(meas, ranges, calibration, consts: RunConstants) -> tuple[np.ndarray, str]:
@@ -108,7 +121,7 @@ def return_codes(meas, ranges, calibration, consts: RunConstants) -> tuple[np.nd
     if calibration is None:
         return out, "return not marked: no calibration given (--calibration)"
     if consts.t_laser_win_s is None:
-        return out, "return not marked: the run's gate is unknown (no journal in --state)"
+        return out, f"return not marked: the run's gate is unknown: {consts.why or 'no journal'}"
     if calibration.n_tdc < int(meas.tdc.max()) + 1:
         return out, (f"return not marked: the calibration has {calibration.n_tdc} TDCs, "
                      f"the run {int(meas.tdc.max()) + 1}")
@@ -160,17 +173,20 @@ def lsb_drift(meas, calibration, window_s: float, min_hits: int = 1000) -> dict:
     """The online LSB estimate of one measurement (each TDC's uniform background taken as a
     density test, its returns masked: :func:`stages.calibration.track_lsb`) against the
     calibration's LSB at the measurement's light: median and 10 / 90 % of the per-TDC drift
-    in ps over the TDCs that had ``min_hits``."""
+    in ps over the TDCs that had ``min_hits`` and whose estimate can be trusted; those left
+    out are ``flagged`` (TDC -> why: :func:`stages.calibration.track_lsb`)."""
     if calibration is None or calibration.n_tdc < int(meas.tdc.max()) + 1:
         return {"k": meas.k, "n": 0}
     light = light_of(meas)
     expected, _ = calibration.lsb_s(light)
     tr = cal.track_lsb(meas.counts, meas.cycles, window_s, expected[meas.tdc],
                        min_hits=min_hits)
+    flagged = {int(meas.tdc[i]): tr.why[i] for i in np.flatnonzero(tr.flagged)}
     d = tr.drift_ps[np.isfinite(tr.drift_ps)]
     if d.size == 0:
-        return {"k": meas.k, "n": 0, "light": light}
+        return {"k": meas.k, "n": 0, "light": light, "flagged": flagged}
     lo, med, hi = np.percentile(d, [10, 50, 90])
+    with np.errstate(invalid="ignore"):
+        lsb_ps = float(np.nanmedian(np.where(tr.flagged, np.nan, tr.lsb_s)) * 1e12)
     return {"k": meas.k, "n": int(d.size), "light": light, "median_ps": float(med),
-            "p10_ps": float(lo), "p90_ps": float(hi),
-            "lsb_ps": float(np.nanmedian(tr.lsb_s) * 1e12)}
+            "p10_ps": float(lo), "p90_ps": float(hi), "lsb_ps": lsb_ps, "flagged": flagged}

@@ -2,8 +2,13 @@
 bokeh wheel itself (no CDN, no internet), the model refreshed once a second on its event
 loop, and ``/alive`` for the page to notice the server is gone.
 
-Loopback by default; bound to any other address, every page and ``/alive`` need the
-``token`` of the printed URL (also written to ``STATE/view.url``, mode 0600).
+Loopback by default; bound to any other address, every route needs the ``token`` of the
+URL in ``STATE/view.url`` (mode 0600): the page, ``/alive``, Bokeh's ``/ws``, ``/metadata``
+and ``/autoload.js`` (an auth provider: the token in the query, or the HttpOnly, SameSite
+cookie the page's first load sets, which the browser sends on the websocket too), so a Bokeh
+session id seen in a page does not join its session without the token; the websocket's
+Origin must name this host (its names and addresses, or ``$BOKEH_ALLOW_WS_ORIGIN``). Only
+Bokeh's own static JavaScript is served without it.
 """
 
 from __future__ import annotations
@@ -37,10 +42,11 @@ def write_url(state: Path, url: str) -> Path | None:
     try:
         state.mkdir(parents=True, exist_ok=True)
         path = state / "view.url"
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        # (never through a link: one planted there would choose the file truncated)
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o600)
         with os.fdopen(fd, "w") as fh:
+            os.fchmod(fh.fileno(), 0o600)
             fh.write(url + "\n")
-        os.chmod(path, 0o600)
         return path
     except OSError:
         return None
@@ -50,7 +56,6 @@ def make_server(model, port: int = 5006, bind: str = "127.0.0.1", token: str | N
                 refresh_ms: int = 1000):
     """A started (not yet looping) Bokeh server for ``model``; ``token`` None on loopback
     (one is made for any other address). Returns ``(server, url)``."""
-    import hmac
 
     from bokeh.application import Application
     from bokeh.application.handlers.function import FunctionHandler
@@ -62,29 +67,104 @@ def make_server(model, port: int = 5006, bind: str = "127.0.0.1", token: str | N
 
     if token is None and not is_loopback(bind):
         token = secrets.token_urlsafe(24)
+    auth = None if token is None else TokenAuth(token)
 
     class Alive(RequestHandler):
         def get(self):
-            got = self.get_argument("token", "")
-            if token is not None and not hmac.compare_digest(got.encode(), token.encode()):
+            if auth is not None and auth.user(self) is None:
                 self.set_status(403)
                 return
             self.set_header("Cache-Control", "no-store")
             self.write(json.dumps({"ok": True, "updated": model.updated}))
 
     port = port or _free_port(bind)
-    # the browser's Origin: the loopback names on loopback; any with a token (it guards)
-    origins = [f"{h}:{port}" for h in ("localhost", "127.0.0.1", bind)] if token is None \
-        else ["*"]
     server = Server({"/": Application(FunctionHandler(make_document(model, token)))},
-                    port=port, address=bind, allow_websocket_origin=origins,
+                    port=port, address=bind, allow_websocket_origin=ws_origins(bind, port),
                     extra_patterns=[("/alive", Alive)], check_unused_sessions_milliseconds=5000,
-                    unused_session_lifetime_milliseconds=15000)
+                    unused_session_lifetime_milliseconds=15000,
+                    **({"auth_provider": auth} if auth is not None else {}))
     server.start()
     model.warm()
     model.refresh()
     PeriodicCallback(_safe(model.refresh), refresh_ms).start()
     return server, page_url(bind, server.port, token)
+
+
+COOKIE = "tcspc_view_token"
+
+
+def _token_auth_class():
+    from bokeh.server.auth_provider import AuthProvider
+    from tornado.web import RequestHandler
+    from tornado.websocket import WebSocketHandler
+
+    class Forbidden(RequestHandler):
+        def get(self):
+            self.set_status(403)
+            self.set_header("Cache-Control", "no-store")
+            self.write("<h1>Forbidden</h1><p>This page needs the token of its URL "
+                       "(STATE/view.url).</p>")
+
+    class _TokenAuth(AuthProvider):
+        """Bokeh's hook on every session route (page, /ws, /metadata, /autoload.js): the
+        user is known when the request carries the token, in the query or the cookie."""
+
+        def __init__(self, token: str):
+            self.token = token
+            super().__init__()
+
+        @property
+        def get_user(self):
+            return self.user
+
+        @property
+        def login_url(self):
+            return "/forbidden"
+
+        @property
+        def login_handler(self):
+            return Forbidden
+
+        def user(self, handler):
+            import hmac
+
+            query = handler.get_argument("token", None)
+            for got in (query, handler.get_cookie(COOKIE)):
+                if got and hmac.compare_digest(got.encode(), self.token.encode()):
+                    if got is query and not isinstance(handler, WebSocketHandler):
+                        # the websocket carries no query: the browser sends this instead
+                        handler.set_cookie(COOKIE, got, httponly=True, samesite="Strict",
+                                           path="/")
+                    return "operator"
+            return None
+
+    return _TokenAuth
+
+
+def TokenAuth(token: str):  # noqa: N802 - a class made on first use (bokeh is heavy)
+    """The auth provider that asks every session route for ``token``."""
+    return _token_auth_class()(token)
+
+
+def ws_origins(bind: str, port: int) -> list[str]:
+    """The websocket Origins allowed (``host:port``): the loopback names, the address bound,
+    and on a non-loopback address this host's names and addresses (a page from any other
+    origin cannot open the websocket)."""
+    import socket
+
+    # (IPv6 literals are left out: Bokeh's allowlist parses HOST:PORT on the first colon)
+    hosts = {"localhost", "127.0.0.1"}
+    if bind not in ("", "0.0.0.0") and ":" not in bind:
+        hosts.add(bind)
+    if not is_loopback(bind):
+        names = {socket.gethostname(), socket.getfqdn()}
+        hosts |= names
+        for name in names:
+            try:
+                hosts |= {a[0] for *_, a in socket.getaddrinfo(name, None, socket.AF_INET)}
+            except OSError:
+                pass
+    return sorted(f"{h}:{port}" for h in hosts)
 
 
 def _free_port(bind: str) -> int:

@@ -155,7 +155,7 @@ def test_flow_cli_lists_runs_and_checks_parameters():
     res = runner.invoke(cli, ["flow", "list"])
     assert res.exit_code == 0
     for name in ("calibration_campaign", "distance_sweep", "performance_prediction",
-                 "speed_vs_error"):
+                 "speed_vs_error", "batch"):
         assert f"{name}:" in res.output
     res = runner.invoke(cli, ["flow", "run", "speed_vs_error", "-p", "pixelz=3"])
     assert res.exit_code != 0 and "not a parameter" in res.output
@@ -185,8 +185,7 @@ def test_the_demo_story_runs_and_checks_itself(harness, tmp_path):
 
 
 def test_a_sweep_fans_out_over_a_dask_cluster(harness, tmp_path):
-    """`tcspc flow run --dask ADDRESS`: tasks on a Dask cluster (needs the [dask] extra)."""
-    pytest.importorskip("prefect_dask")
+    """`tcspc flow run --dask ADDRESS`: tasks on a Dask cluster."""
     from click.testing import CliRunner
     from distributed import LocalCluster
 
@@ -496,6 +495,7 @@ def test_serve_reads_its_config(tmp_path):
 
     cfg = tmp_path / "serve.toml"
     cfg.write_text('out = "lab"\n[calibration]\ncron = "30 1 * * *"\ntags = ["bench-1"]\n'
+                   'timezone = "Europe/Berlin"\n'
                    '[calibration.parameters]\nlux = [50, 200, 900, 2000, 4000]\n'
                    'cycles = 250000\nn_pixels = 64\n[sweep]\ncron = "0 4 * * 0"\n')
     deps = {d.flow_name: d for d in deployments(read_serve_config(str(cfg)))}
@@ -504,6 +504,7 @@ def test_serve_reads_its_config(tmp_path):
     assert cal.parameters == {"out": "lab/calibration", "lux": [50, 200, 900, 2000, 4000],
                               "cycles": 250000, "n_pixels": 64}
     assert cal.schedules[0].schedule.cron == "30 1 * * *"
+    assert cal.schedules[0].schedule.timezone == "Europe/Berlin"
     assert cal.concurrency_limit == 1
     assert deps["distance_sweep"].name == "128px Sundays at 04:00"
     assert deps["speed_vs_error"].name == "on demand" and not deps["speed_vs_error"].schedules
@@ -514,6 +515,8 @@ def test_serve_reads_its_config(tmp_path):
     for text, says in [('[calibration]\ncron = "0 2 * *"\n', "not a cron expression"),
                        ('[calibration]\ncron = "0 2 * * *"\ncolour = 1\n', "colour"),
                        ('[calibrate]\ncron = "0 2 * * *"\n', "calibrate"),
+                       ('[sweep]\ncron = "0 2 * * *"\ntimezone = "Mars/Olympus"\n',
+                        "not a time zone"),
                        ('[calibration]\ncron = "0 2 * * *"\n[calibration.parameters]\n'
                         'cycles = 0\n', "cycles: Input should be greater than 0")]:
         cfg.write_text(text)

@@ -143,6 +143,24 @@ def test_online_tracking_measures_lsb_from_a_range_capture_and_reports_drift():
     assert tr.light == pytest.approx(sim.light, rel=0.02)
 
 
+def test_the_online_lsb_finds_the_reset_peak_behind_a_brighter_return(mirror16, monkeypatch):
+    """Issue 26.8: a return counting more than the reset peak was taken for tau = T (LSB
+    ~590 ps for ~220, +360 ps of "drift" on 15 of 16 TDCs). The reset peak is looked for
+    where the light ends: every TDC's LSB is the chip's; an estimate less certain than
+    TRACK_MAX_SIGMA_PS is flagged and left out of the drift."""
+    st, lsb_t, window_s = mirror16
+    ends = np.array([cal.light_stop(r) for r in st.hits])
+    reset = np.array([st.hits[t, e - cal.RESET_PLAUSIBLE:e].max() for t, e in enumerate(ends)])
+    assert (st.hits.max(axis=1) > reset).sum() >= 12  # the return is the highest count
+    tr = cal.track_lsb(st.hits, st.cycles, window_s, lsb_t)
+    assert np.abs(tr.lsb_s - lsb_t).max() < 0.5e-12 and not tr.flagged.any()
+    assert np.all((tr.sigma_s > 0.5e-12) & (tr.sigma_s < 3e-12))  # ~1.4 ps at 1,700 hits
+    monkeypatch.setattr(cal, "TRACK_MAX_SIGMA_PS", 1.0)
+    tr = cal.track_lsb(st.hits, st.cycles, window_s, lsb_t)
+    assert tr.flagged.all() and np.isnan(tr.drift_ps).all()
+    assert all("uncertain beyond 1 ps" in w for w in tr.why)
+
+
 def test_reset_peak_fit_is_unbiased_where_a_centroid_is_not():
     """tau = T blurred by the TDC's jitter (0.5 LSB) over codes with the chip's DNL: the
     fitted position within 0.01 code of the truth on every TDC; the centroid of the code

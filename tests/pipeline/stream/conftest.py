@@ -41,3 +41,17 @@ def run_stages(request):
 
     run.mode = request.param
     return run
+
+
+@pytest.fixture(scope="session")
+def daemon_helpers():
+    """test_daemon.py's scene and helpers (``topology``, ``run_daemon``, ``dataset``, ``N``),
+    loaded by path (tests/ is not a package)."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(
+        "_test_daemon_helpers", Path(__file__).with_name("test_daemon.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod

@@ -262,6 +262,73 @@ def test_the_return_is_marked_where_its_distance_puts_it(tmp_path, vd):
     assert "gate is unknown" in note
 
 
+def test_a_page_opened_before_the_run_marks_the_return_once_its_gate_appears(tmp_path, vd):
+    """Issue 26.8: the view started before the daemon follows the run; the return is not
+    marked while the run's journal meta is missing (the note says what is missing) and is
+    marked from the refresh after it appears."""
+    import pyarrow as pa
+    from scipy.constants import c
+
+    from pipeline.io.caldir import save_calibration
+    from pipeline.view.model import ViewModel
+    from stages.calibration_set import time_axis
+
+    out, state = tmp_path / "out", tmp_path / "state"
+    calib = _calibration(vd.N)
+    save_calibration(calib, tmp_path / "cal", [])
+    vd.write_part(out, vd.RUN, 0, 0, vd.hits_for(vd.N))
+    idx = datasets.RunIndex(out, vd.RUN)
+    idx.refresh()
+    meas = datasets.read_measurement(idx, 0)
+    axis = time_axis(calib.rows(0, vd.N), meas.counts, meas.cycles, 80e-9)
+    tau = np.array([np.interp(200.4, np.arange(513), e) for e in axis.tau_edges_s])
+    dist = c / 2 * (200e-9 - 3e-9 - tau)
+    d = out / "ranges" / "date=2026-01-02" / f"run={vd.RUN}"
+    d.mkdir(parents=True)
+    pq.write_table(pa.table({"tdc": np.arange(vd.N), "distance_m": dist,
+                             "detected": np.ones(vd.N, bool)}), d / "part-000000-t000.parquet")
+    m = ViewModel(state, out, tmp_path / "cal", vd.RUN, feed=False)
+    m.asked = time.time()
+    m.refresh()
+    got = m.measurement(vd.RUN, 0)
+    assert np.isnan(got["return_code"]).all()
+    assert "gate is unknown" in got["note"] and "no journal at" in got["note"]
+    (state / "journal").mkdir(parents=True)
+    m.refresh()
+    assert f"{vd.RUN}.meta.json not written" in m.measurement(vd.RUN, 0)["note"]
+    (state / "journal" / f"{vd.RUN}.meta.json").write_text(json.dumps(
+        {"n_tdc": vd.N, "window_ns": 80.0, "t_laser_win_ns": 200.0}))
+    m.refresh()
+    got = m.measurement(vd.RUN, 0)
+    assert got["note"] == "" and np.allclose(got["return_code"], 200.4, atol=1e-6)
+    assert m.tracks[vd.RUN].index.n_tdc == vd.N  # the array's size known from then on
+
+
+def test_untrusted_online_lsb_estimates_are_left_out_of_the_drift_and_named(vd, mirror16):
+    """Issue 26.8: on the small scene the online LSB estimate took a return higher than the
+    reset peak for tau = T (+370 ps). Now each TDC's estimate is the chip's LSB, and one
+    that cannot be trusted (here: two TDCs whose calibration says 0.6 of it) is left out of
+    the drift's median and band, named with why; the page's drift plot says so."""
+    from pipeline.view.model import RunTrack, ViewModel
+    from pipeline.view.page import drift_flag_note
+
+    st, lsb_t, window_s = mirror16
+    expected = lsb_t.copy()
+    expected[[3, 11]] *= 0.6
+    meas = datasets.Measurement(vd.RUN, 0, "m", np.arange(vd.N), st.cycles, st.hits,
+                                {c: np.zeros(vd.N) for c in WORD_CLASSES}, ((0, vd.N),))
+    d = sensor.lsb_drift(meas, _calibration(vd.N, expected, window_s), window_s)
+    assert sorted(d["flagged"]) == [3, 11] and "not a drift" in d["flagged"][3]
+    assert d["n"] == vd.N - 2 and max(abs(d["p10_ps"]), abs(d["p90_ps"])) < 0.5
+    m = ViewModel("/nonexistent", "/nonexistent", None, feed=False)
+    m.tracks[vd.RUN] = tr = RunTrack(vd.RUN, None, sensor.RunConstants(80e-9, None))
+    tr.drift[0] = d
+    s = m.drift_series(vd.RUN)
+    assert s["k"].tolist() == [0] and sorted(s["flagged"]) == [3, 11]
+    note = drift_flag_note(s["flagged"])
+    assert "left out" in note and "TDC 3, 11" in note and drift_flag_note({}) == ""
+
+
 def test_calibration_frames_and_the_lsb_drift_without_a_calibration(tmp_path, vd):
     calib = _calibration(vd.N)
     f = sensor.calibration_frames(calib, 0.2)
@@ -274,25 +341,15 @@ def test_calibration_frames_and_the_lsb_drift_without_a_calibration(tmp_path, vd
     assert sensor.lsb_drift(meas, None, 80e-9)["n"] == 0
 
 
-def test_an_online_lsb_that_matches_the_calibration_drifts_by_nothing(vd):
-    """The calibration made from a uniform-light measurement's own density test: the online
-    estimate on that same measurement is the calibration's LSB."""
-    from stages import calibration as cal
-
-    rng = np.random.default_rng(3)
-    cycles = np.full(vd.N, 200_000)
-    # uniform light: each cycle a START at a uniform code below 390 with probability 0.2
-    hits = np.stack([np.bincount(rng.integers(0, 390, rng.binomial(200_000, 0.2)),
-                                 minlength=512) for _ in range(vd.N)])
-    calib = _calibration(vd.N)
-    dens = cal.density_test(hits, cycles, 80e-9)
-    import dataclasses
-
-    calib = dataclasses.replace(calib, density=dens)
-    meas = datasets.Measurement(vd.RUN, 0, "m", np.arange(vd.N), cycles, hits,
+def test_an_online_lsb_that_matches_the_calibration_drifts_by_nothing(vd, mirror16):
+    """A calibration holding the chip's true LSB: the online estimate on a simulated range
+    measurement (its return masked) drifts by nothing on every TDC. (Was a uniform
+    histogram with no reset peak, whose own density test is not a calibration.)"""
+    st, lsb_t, window_s = mirror16
+    meas = datasets.Measurement(vd.RUN, 0, "m", np.arange(vd.N), st.cycles, st.hits,
                                 {c: np.zeros(vd.N) for c in WORD_CLASSES}, ((0, vd.N),))
-    d = sensor.lsb_drift(meas, calib, 80e-9)
-    assert d["n"] >= vd.N - 2 and abs(d["median_ps"]) < 0.5
+    d = sensor.lsb_drift(meas, _calibration(vd.N, lsb_t, window_s), window_s)
+    assert d["n"] == vd.N and abs(d["median_ps"]) < 0.5 and d["flagged"] == {}
 
 
 def test_a_measurement_lost_in_flight_is_stepped_over_and_found_at_the_end(tmp_path, vd):

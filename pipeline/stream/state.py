@@ -1,0 +1,216 @@
+"""The daemon's state directory, taken at start: the daemon's own, private, locked.
+
+``open_state`` runs before anything is started or written:
+
+- the directory is created mode 0700, or an existing one is taken only when this user owns
+  it and neither group nor others may write it (then made 0700: sockets, logs, tokens,
+  keys and status are private whatever the umask);
+- a lock (``STATE/daemon.lock``, ``fcntl`` record lock, released by the kernel when the
+  process dies however it dies) refuses a second daemon on the same state, naming the
+  first one's pid;
+- a symbolic link anywhere in it, or an entry another user owns, is refused by name
+  (planted before the start, it would let that user choose what the daemon truncates,
+  writes or chmods); after the check nobody else can add one (0700).
+
+``check_resources`` then probes what the stages will need (the UDP port, the page's port,
+the tcp:// endpoints, the ipc:// path lengths, the output directory), so a resource a stage
+cannot get fails the daemon at start with its reason instead of a restart loop.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import socket
+import stat
+from pathlib import Path
+
+from schemas.errors import TcspcError
+
+LOCK_NAME = "daemon.lock"
+#: the longest ipc:// path the kernel takes (sun_path is 108 bytes with its NUL on Linux)
+IPC_PATH_MAX = 107
+
+
+class StateError(TcspcError, RuntimeError):
+    """A state directory or a resource the daemon cannot take (names it and why)."""
+
+
+class StateLock:
+    """The held lock of a state directory (``release`` or the process's death frees it)."""
+
+    def __init__(self, path: Path, fd: int):
+        self.path, self.fd = path, fd
+
+    def release(self) -> None:
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+
+    def __del__(self):
+        self.release()
+
+
+def open_nofollow(path: Path, flags: int, mode: int = 0o600) -> int:
+    """``os.open`` that refuses a symbolic link at ``path`` (StateError naming it)."""
+    try:
+        return os.open(path, flags | os.O_NOFOLLOW | os.O_CLOEXEC, mode)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise StateError(f"{path}: a symbolic link where the daemon writes a file; "
+                             "refused (remove it)") from None
+        raise
+
+
+def _make_private(state: Path) -> None:
+    uid = os.geteuid()
+    if state.is_symlink() and os.lstat(state).st_uid != uid:
+        raise StateError(f"{state}: a symbolic link owned by uid {os.lstat(state).st_uid}, "
+                         "not by this user; refused as a state directory")
+    try:
+        st = os.stat(state)
+    except FileNotFoundError:
+        state.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.mkdir(state, 0o700)
+        except FileExistsError:
+            pass
+        st = os.stat(state)
+    if not stat.S_ISDIR(st.st_mode):
+        raise StateError(f"{state}: not a directory; refused as a state directory")
+    if st.st_uid != uid:
+        raise StateError(f"{state}: owned by uid {st.st_uid}, not by this user (uid {uid}); "
+                         "refused as a state directory")
+    if st.st_mode & 0o022:
+        raise StateError(f"{state}: group- or world-writable (mode "
+                         f"{stat.S_IMODE(st.st_mode):o}); refused as a state directory "
+                         "(`chmod 700` it if it is yours)")
+    os.chmod(state, 0o700)
+
+
+def _refuse_links(state: Path) -> None:
+    """Every symbolic link, or entry of another user, in the state tree (one error)."""
+    uid, bad = os.geteuid(), []
+    for root, dirs, files in os.walk(state):
+        for name in dirs + files:
+            p = Path(root) / name
+            st = os.lstat(p)
+            if stat.S_ISLNK(st.st_mode):
+                bad.append(f"{p}: a symbolic link")
+            elif st.st_uid != uid:
+                bad.append(f"{p}: owned by uid {st.st_uid}")
+        dirs[:] = [d for d in dirs if not os.path.islink(os.path.join(root, d))]
+    if bad:
+        raise StateError(f"{state}: refused as a state directory (the daemon writes only "
+                         "its own files, never through a link):\n" + "\n".join(bad[:20])
+                         + (f"\n... and {len(bad) - 20} more" if len(bad) > 20 else ""))
+
+
+def open_state(state: str | Path) -> StateLock:
+    """Take ``state`` for this daemon: private, locked, free of links (module docstring)."""
+    import fcntl
+
+    state = Path(state)
+    _make_private(state)
+    path = state / LOCK_NAME
+    fd = open_nofollow(path, os.O_RDWR | os.O_CREAT, 0o600)
+    try:
+        fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
+        os.close(fd)
+        raise StateError(f"{state}: in use by daemon pid {holder} (it holds {path}); one "
+                         "daemon per state directory: stop it, or give another "
+                         "[daemon] state") from None
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    lock = StateLock(path, fd)
+    try:
+        _refuse_links(state)
+    except StateError:
+        lock.release()
+        raise
+    return lock
+
+
+# ------------------------------------------------------------------------ resources
+def _probe(family: int, kind: int, host: str, port: int) -> str | None:
+    """Why (host, port) cannot be bound, or None when it can (the probe is closed)."""
+    try:
+        infos = socket.getaddrinfo(host, port, family, kind)
+    except socket.gaierror as exc:
+        return f"cannot resolve {host!r}: {exc.strerror}"
+    fam, _, _, _, addr = infos[0]
+    with socket.socket(fam, kind) as s:
+        if kind == socket.SOCK_STREAM:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as a server does
+        try:
+            s.bind(addr)
+        except OSError as exc:
+            return exc.strerror or str(exc)
+    return None
+
+
+def _host_port(text: str) -> tuple[str, int]:
+    host, _, port = text.rpartition(":")
+    return host.strip("[]"), int(port)
+
+
+def bound_endpoints(topo) -> list[tuple[str, str]]:
+    """(who, endpoint) of every endpoint a stage of ``topo`` binds (its input)."""
+    out = [("the daemon's metrics", topo.metrics), ("sink", topo.endpoint(topo.sink, "sink"))]
+    out += [(f"histogram-{i}", topo.endpoint(topo.histogram, f"histogram-{i}", i))
+            for i in range(topo.workers)]
+    if topo.range:
+        out.append(("range", topo.endpoint(topo.range, "range")))
+    from pipeline.stream.sidecar import status_endpoint
+
+    out.append(("the status publisher", status_endpoint(topo.state)))
+    return out
+
+
+def check_resources(topo) -> None:
+    """Every resource a stage will need, probed now; one StateError listing each one that
+    cannot be had (nothing has been started)."""
+    problems = []
+    for who, ep in bound_endpoints(topo):
+        if ep.startswith("ipc://"):
+            path = ep[len("ipc://"):]
+            if len(path.encode()) > IPC_PATH_MAX:
+                problems.append(f"{who}: {ep}: the ipc path is {len(path.encode())} bytes, "
+                                f"the kernel takes {IPC_PATH_MAX} (the state directory "
+                                f"{str(topo.state.resolve())!r} is "
+                                f"{len(str(topo.state.resolve()))} characters: use a "
+                                "shorter [daemon] state, or tcp:// endpoints)")
+        elif ep.startswith("tcp://"):
+            host, port = _host_port(ep[len("tcp://"):])
+            why = _probe(socket.AF_UNSPEC, socket.SOCK_STREAM,
+                         "0.0.0.0" if host == "*" else host, port)
+            if why:
+                problems.append(f"{who}: cannot bind {ep}: {why}")
+    src = topo.source
+    if src["kind"] == "udp":
+        host, port = _host_port(src["bind"])
+        why = _probe(socket.AF_INET, socket.SOCK_DGRAM, host, port)
+        if why:
+            problems.append(f"source: cannot listen for datagrams on {src['bind']} "
+                            f"([source] bind): {why}")
+    if topo.view is not None and topo.view.get("port", 5006):
+        bind, port = topo.view.get("bind", "127.0.0.1"), topo.view.get("port", 5006)
+        why = _probe(socket.AF_UNSPEC, socket.SOCK_STREAM, bind, port)
+        if why:
+            problems.append(f"view: cannot listen on {bind}:{port} ([view] port): {why} "
+                            "(another `tcspc view`? another port, or port = 0 for any)")
+    out = Path(topo.sink["out"])
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        fd = os.open(out / f".tcspc-probe-{os.getpid()}", os.O_WRONLY | os.O_CREAT
+                     | os.O_EXCL | os.O_NOFOLLOW, 0o600)
+        os.close(fd)
+        os.unlink(out / f".tcspc-probe-{os.getpid()}")
+    except OSError as exc:
+        problems.append(f"sink: cannot write the datasets in {str(out)!r} ([sink] out): "
+                        f"{exc.strerror or exc}")
+    if problems:
+        raise StateError(f"{topo.path}: the daemon cannot start; nothing was started:\n"
+                         + "\n".join(problems))
