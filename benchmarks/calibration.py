@@ -14,7 +14,7 @@ measures the codes under the first one's reset peak, and the INL takes their wid
 it (as ``lsb_campaign`` does with its tests; the INL columns are then the filled table's).
 
     python benchmarks/calibration.py [--cycles 1e6 4e6 1.6e7 6.4e7] [--tdcs 8]
-        [--density-lux 1800] [--fill-lux 900]
+        [--density-lux 2411.097] [--fill-lux 1205.548]
 """
 
 from __future__ import annotations
@@ -109,8 +109,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cycles", type=float, nargs="+", default=[1e6, 4e6, 1.6e7, 6.4e7])
     ap.add_argument("--tdcs", type=int, default=8)
-    ap.add_argument("--density-lux", type=float, default=1800.0)
-    ap.add_argument("--delay-lux", type=float, default=10_000.0)
+    ap.add_argument("--density-lux", type=float, default=2411.097)
+    ap.add_argument("--delay-lux", type=float, default=13_394.983)
     ap.add_argument("--no-artifacts", action="store_true",
                     help="leave the artifact STARTs out of the at-risk counts (as before)")
     ap.add_argument("--fill-lux", type=float, default=None,

@@ -21,7 +21,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.datapath import emit, machine  # noqa: E402
 from pipeline.offline import linospad2_cal as cal  # noqa: E402
 
-DATA = ROOT / "tests" / "data" / "linospad2"  # copies of ../shared/data/linospad2
+DATA = ROOT / "tests" / "data" / "linospad2"  # the public files of tests/data/README.md
 DAT = DATA / "test_data_2212b.dat"
 CSV = DATA / "TDC_A5_#36_2212b.csv"
 FIRMWARE = "2212b"

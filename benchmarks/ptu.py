@@ -29,7 +29,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.datapath import emit, machine  # noqa: E402
 from pipeline.io.ptu import histogram_t3, read_header, write_ptu  # noqa: E402
 
-DATA = ROOT / "tests" / "data" / "picoquant"  # copies of ../shared/data/picoquant
+DATA = ROOT / "tests" / "data" / "picoquant"  # the public files of tests/data/README.md
 SHARED = [DATA / "hydraharp_v20_t3.ptu", DATA / "picoharp_v30_t2.ptu"]
 #: reader -> (label, applies to T2 files too)
 READERS = {

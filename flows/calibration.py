@@ -63,8 +63,9 @@ from pipeline.report.report import markdown_table
 from schemas.errors import CalibrationError
 
 #: five levels (a cubic through four would have no residual to judge it by), from below the
-#: delay capture's light (~0.02 STARTs per pixel per cycle) to ~0.45
-DEFAULT_LUX = [100.0, 300.0, 800.0, 1800.0, 3500.0]
+#: delay capture's light (~0.02 STARTs per pixel per cycle) to ~0.45 (100..3500 lux of the
+#: older lux conversion, 1.3395 times brighter per lux: the same light, docs/decisions.md)
+DEFAULT_LUX = [133.950, 401.849, 1071.599, 2411.097, 4688.244]
 #: the LSB-against-light fit needs density tests at this many levels at least
 MIN_LEVELS = 4
 #: published calibrations kept under versions/ (the current one always)

@@ -41,7 +41,7 @@ def run_story(out: str | Path = "data", cycles: int = 100_000,
     from pipeline.stream.daemon import Supervisor
     from pipeline.stream.topology import load_topology
 
-    con = console or Console(stderr=True)
+    con = console or Console(stderr=True, markup=False)  # paths are printed as they are
     out = Path(out)
     checks = run_demo(out, cycles, console=con)
 

@@ -8,7 +8,7 @@ imports no pyarrow (50-90 ms): the command imports it when it writes its file.
 from __future__ import annotations
 
 #: Word classes, in the order of their integer codes. Classification precedence is
-#: ``malformed > invalid_phase > no_hit > artifact > hit`` (DESIGN.md, "Raw word").
+#: ``malformed > invalid_phase > no_hit > artifact > hit`` (docs/design.md, "Raw word").
 WORD_CLASSES: tuple[str, ...] = ("hit", "no_hit", "artifact", "invalid_phase", "malformed")
 HIT, NO_HIT, ARTIFACT, INVALID_PHASE, MALFORMED = range(5)
 N_CLASSES = len(WORD_CLASSES)

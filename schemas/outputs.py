@@ -1,4 +1,5 @@
-"""Contracts of the products: histograms, calibration tables and ranges (DESIGN.md "Outputs")."""
+"""Contracts of the products: histograms, calibration tables and ranges (docs/design.md
+"Outputs")."""
 
 from __future__ import annotations
 
@@ -24,7 +25,10 @@ HISTOGRAMS = SchemaSpec("histograms", "2.0", (
     # 2.0: instruments other than the thesis chip (code count and bin width differ)
     field("instrument", pa.string(), "", "what made the counts: 'tcspc-chip' (Table 5.1 "
           "words; codes need the calibration's INL), 'picoquant-t3' (PTU T3 dtime codes), "
-          "'linospad2' (fine codes of a carry chain)"),
+          "'linospad2' (fine codes of a carry chain), 'generic' (any instrument's "
+          "histograms, written by any tool with only measurement, tdc, counts, instrument, "
+          "bin_width_ps and optionally cycles and reference: [instruments_generic.md]"
+          "(instruments_generic.md), with a Polars example)"),
     field("bin_width_ps", pa.float64(), "ps", "width of one code where the instrument "
           "states it (PTU resolution, LinoSPAD2 nominal 17.857 ps); null for the chip, "
           "whose code widths come from its calibration", nullable=True),
@@ -57,14 +61,26 @@ CALIBRATION_INL = SchemaSpec("calibration_inl", "1.0", (
     field("inl_lsb", pa.float64(), "LSB", "integral non-linearity"),
 ))
 
-RANGES = SchemaSpec("ranges", "1.0", (
+RANGES = SchemaSpec("ranges", "2.0", (
     field("measurement", pa.string(), "", "name of the measurement"),
     field("tdc", pa.uint16(), "", "TDC address (0-based)"),
     field("distance_m", pa.float64(), "m", "estimated distance (eq. 5.4)"),
     field("sigma_m", pa.float64(), "m", "one-sigma uncertainty of distance_m"),
-    field("fwhm_m", pa.float64(), "m", "FWHM of the return"),
+    field("fwhm_m", pa.float64(), "m", "measured FWHM of the return: the second moment of "
+          "its pile-up-corrected counts above the background (NaN: none above it); 1.0 "
+          "files carry the instrument response's FWHM here"),
     field("signal_counts", pa.float64(), "count", "estimated signal detections"),
     field("background_per_bin", pa.float64(), "count", "estimated background per code"),
     field("detected", pa.bool_(), "", "detection decision at the stated false-alarm rate"),
     field("estimator", pa.string(), "", "name of the estimator"),
+    # 2.0: more than one surface a pixel, and why a row is flagged
+    field("return_index", pa.uint8(), "", "the return's rank in its pixel by signal counts "
+          "(0 the strongest; every TDC has a row 0, detected or not, and a row k > 0 only "
+          "for a detected return)"),
+    field("flag", pa.string(), "", "empty, or why the row is flagged: an input it could not "
+          "use, an estimate outside the window or before the zero, the window's edge"),
 ))
+
+#: The major versions of ``ranges`` this software reads: 1.x (one row a TDC, no
+#: return_index or flag) is upgraded on read by :func:`pipeline.io.ranges.read_ranges`.
+RANGES_READS = (1, 2)

@@ -860,14 +860,22 @@ def _spline_rows(levels: np.ndarray, y: np.ndarray, n: float, coord=np.sqrt) -> 
 def fit_lsb(n: np.ndarray, lsb_ps: np.ndarray) -> LsbFit:
     """Per-TDC cubic fit of LSB against light, on scaled x (well conditioned).
 
-    ``n`` (n_points,) light levels, ``lsb_ps`` (n_tdc, n_points). Needs 4 levels or more;
-    with exactly 4 the cubic interpolates (residuals are zero and say nothing).
+    ``n`` (n_points,) light levels, ``lsb_ps`` (n_tdc, n_points). Needs 4 distinct finite
+    levels or more (:func:`stages.ranging.validation.check_levels`); with exactly 4 the
+    cubic interpolates (residuals are zero and say nothing).
     """
+    from stages.ranging.validation import check_levels
+
     n = np.asarray(n, np.float64)
     y = np.asarray(lsb_ps, np.float64)
     if n.size < 4:
         raise CalibrationError(f"an LSB-against-light fit needs density tests at >= 4 light "
                                f"levels (a cubic, eq. 5.1); found {n.size}")
+    if y.ndim != 2 or y.shape[1] != n.size:
+        raise CalibrationError(f"lsb_ps must be (TDCs, {n.size} light levels), found shape "
+                               f"{y.shape}")
+    if np.isfinite(y).any():  # (no TDC measured at all: the caller says why)
+        n = check_levels(n)  # finite, >= 4 distinct: [.1, .1, .3, .3] gave half the LSB
     x_mean = float(n.mean())
     x_scale = float(n.std()) or 1.0
     x = (n - x_mean) / x_scale
@@ -878,7 +886,7 @@ def fit_lsb(n: np.ndarray, lsb_ps: np.ndarray) -> LsbFit:
     # through 4 or more, a quadratic through 3, nothing through fewer
     for pattern in np.unique(fin, axis=0):
         rows = np.all(fin == pattern, axis=1)
-        m = int(pattern.sum())
+        m = int(np.unique(n[pattern]).size)  # distinct levels: a repeat adds no degree
         if m < 3:
             continue
         deg = min(m, 4)

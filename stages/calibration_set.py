@@ -1,6 +1,6 @@
 """One calibration as one immutable object, and the time axis it gives a measurement.
 
-A :class:`Calibration` holds everything a calibration directory holds (DESIGN.md
+A :class:`Calibration` holds everything a calibration directory holds (docs/design.md
 "Outputs"): the second stage's bounds, the density test (code widths, DNL, INL, the LSB at
 its light), the LSB against light (eq. 5.1's cubic with its scaling), the delay (eq. 5.3)
 with a reason for every TDC without one, the instrument response, and the provenance

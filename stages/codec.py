@@ -1,4 +1,4 @@
-"""The 32-bit TDC word (DESIGN.md "Raw word", thesis Table 5.1): encode, decode, classify.
+"""The 32-bit TDC word (docs/design.md "Raw word", thesis Table 5.1): encode, decode, classify.
 
 As a big-endian uint32, bit 31 first::
 

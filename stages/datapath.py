@@ -78,7 +78,7 @@ def default_engine() -> str:
 
 
 def _state_classes() -> np.ndarray:
-    """Class code of each (hi_state, lo_state) pair, with DESIGN.md's precedence."""
+    """Class code of each (hi_state, lo_state) pair, with docs/design.md's precedence."""
     cls = np.full((_N_HI, _N_LO), HIT, np.int64)
     for hs in range(_N_HI):
         for ls in range(_N_LO):
@@ -284,7 +284,7 @@ def _sift(words, b0, b1, pos, n_tdc, offset, scratch):
 
 
 def _classify(w, addr, phase):
-    """(class, phase 1, phase 2) of a word expected at address ``addr`` (DESIGN.md's
+    """(class, phase 1, phase 2) of a word expected at address ``addr`` (docs/design.md's
     precedence; a hit's phases index its codes, others' are 0)."""
     if (w & np.uint32(MARKER_MASK)) != np.uint32(MARKER_VALUE) or ((w >> 1) & 0xFF) != addr:
         return MALFORMED, 0, 0

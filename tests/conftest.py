@@ -32,7 +32,7 @@ def caldir(tmp_path_factory):
     n = 16
     d = tmp_path_factory.mktemp("cal")
     caps = []
-    for i, lux in enumerate((100.0, 400.0, 1200.0, 3000.0)):
+    for i, lux in enumerate((133.950, 535.799, 1607.398, 4018.495)):
         dens = scene_from_dict({"name": f"d{i}", "sensor": {"n_pixels": n},
                                 "ambient": [{"kind": "lux", "lux": lux}]})
         simulate_capture(dens, 300_000, d / f"d{i}", seed=3 + i)

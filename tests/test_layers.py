@@ -1,4 +1,4 @@
-"""The dependency rule of DESIGN.md: schemas <- stages <- pipeline <- flows."""
+"""The dependency rule of docs/design.md: schemas <- stages <- pipeline <- flows."""
 
 import ast
 from pathlib import Path

@@ -1,4 +1,4 @@
-"""The ``tcspc`` command line (DESIGN.md "Command line")."""
+"""The ``tcspc`` command line (docs/design.md "Command line")."""
 
 from __future__ import annotations
 
@@ -9,40 +9,11 @@ from contextlib import contextmanager
 
 import click
 
+from pipeline.cli.console import console, err, error, out, warn  # noqa: F401 (re-exported)
+
 # Heavy modules (numpy, pyarrow, numba, scipy) are imported in the commands that use them:
 # `tcspc --help` and a command's own --help stay fast (tests/pipeline/cli/test_cli.py checks).
 # So are rich's progress bar and table (20 ms): a quiet command does not draw them.
-
-
-
-def console(stderr: bool = False):
-    """A rich console that wraps lines only on a terminal: piped or captured, one message
-    stays one line (logs are grepped; a path longer than 80 columns must not split a
-    sentence)."""
-    from rich.console import Console
-
-    stream = sys.stderr if stderr else sys.stdout
-    return Console(stderr=stderr, soft_wrap=not stream.isatty())
-
-
-class _FirstUse:
-    """:func:`console`, made when first used: rich.console's import (25-30 ms) is paid by
-    the commands that print, not by a quiet `tcspc histogram` or `tcspc --help`."""
-
-    def __init__(self, stderr: bool = False) -> None:
-        self._stderr, self._console = stderr, None
-
-    def get(self):
-        if self._console is None:
-            self._console = console(self._stderr)
-        return self._console
-
-    def __getattr__(self, name):
-        return getattr(self.get(), name)
-
-
-err = _FirstUse(stderr=True)
-out = _FirstUse()
 
 
 @contextmanager
@@ -67,7 +38,7 @@ def _progress(total: int, passes: int, quiet: bool, label: str, unit: str = "wor
             speed = task.finished_speed or task.speed
             return TextColumn("").render(task) if speed is None else f"{speed / 1e6:.1f} M/s"
 
-    cols = [TextColumn(f"[bold]{label}"), BarColumn(), MofNCompleteColumn(),
+    cols = [TextColumn(label, style="bold", markup=False), BarColumn(), MofNCompleteColumn(),
             TextColumn(unit), _RateColumn(), TimeRemainingColumn()]
     with Progress(*cols, console=err.get(), transient=False) as bar:
         task = bar.add_task(label, total=total * passes)
@@ -99,9 +70,8 @@ def _summary(counts, n_words: int, seconds: float, bounds_source: str,
 def _warn_uncertain(bounds) -> None:
     """Estimated bounds the data cannot vouch for are said, even with --quiet."""
     if bounds.uncertain.any():
-        err.print(f"[yellow]warning:[/yellow] artifact bounds uncertain on "
-                  f"{int(bounds.uncertain.sum())} TDC(s): {bounds.describe()}; give "
-                  "--calibration for exact bounds", highlight=False)
+        warn(f"artifact bounds uncertain on {int(bounds.uncertain.sum())} TDC(s): "
+             f"{bounds.describe()}; give --calibration for exact bounds")
 
 
 def _open(path: str, calibration: str | None):
@@ -265,7 +235,9 @@ def schema(markdown) -> None:
         click.echo(docs_markdown(), nl=False)
         return
     for spec in ALL_SPECS:
-        out.print(f"[bold]{spec.name}[/bold] {spec.version}")
+        from rich.text import Text
+
+        out.print(Text.assemble((spec.name, "bold"), f" {spec.version}"), highlight=False)
         out.print(str(spec.schema), markup=False, highlight=False)
 
 
@@ -277,7 +249,8 @@ def schema(markdown) -> None:
 @click.option("--chip-seed", default=1, show_default=True, help="Seed of the chip's "
               "LSB, INL and second-stage parameters (the same chip across captures).")
 @click.option("--engine", type=click.Choice(["fast", "reference"]), default=None,
-              help="Default: fast, or reference when a target moves.")
+              help="Default: fast, or reference when a target moves or a pixel sees "
+                   "several surfaces.")
 @click.option("--malformed-rate", default=0.0, show_default=True,
               type=click.FloatRange(0, 1), help="Fraction of words to corrupt (markers).")
 @click.option("--invalid-rate", default=0.0, show_default=True,
@@ -288,10 +261,12 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
              ideal_tdc, quiet) -> None:
     """Simulate SCENE_PATH: a raw capture whose sidecar holds the truth."""
     from pipeline.offline.simulate import simulate_capture
+    from stages.models.scene import load_scene
 
+    scene = load_scene(scene_path)  # every problem of the file, before anything starts
     t0 = time.perf_counter()
     with _progress(cycles, 1, quiet, "simulate", "cycles") as step:
-        meta, sim = simulate_capture(scene_path, cycles, out, seed=seed, chip_seed=chip_seed,
+        meta, sim = simulate_capture(scene, cycles, out, seed=seed, chip_seed=chip_seed,
                                      engine=engine, malformed_rate=malformed_rate,
                                      invalid_rate=invalid_rate, ideal_tdc=ideal_tdc,
                                      progress=step)
@@ -308,7 +283,8 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
 @cli.command("range", short_help="Distance per pixel (eq. 5.4) from a capture and a calibration.")
 @click.argument("capture", type=click.Path())
 @click.option("--calibration", default=None, type=click.Path(exists=True, file_okay=False),
-              help="Calibration directory (a tcspc capture needs one).")
+              help="Calibration directory (a tcspc capture needs one; generic histograms "
+                   "take one from `calibrate distance`).")
 @click.option("--out", required=True, type=click.Path(), help="ranges.parquet to write")
 @click.option("--estimator", type=click.Choice(["ml", "fast", "matched", "centroid", "gaussfit"]),
               default="ml", show_default=True)
@@ -320,25 +296,59 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
 @click.option("--zero", type=click.Path(exists=True), default=None,
               help="PTU T3: a zero-distance file (or its histograms) to measure the delay on.")
 @click.option("--gate", default=None, help="PTU T3: only returns in LO:HI ns after the sync.")
+@click.option("--max-returns", type=click.IntRange(min=1), default=3, show_default=True,
+              help="Returns (surfaces) a pixel may have, each with its own detection.")
 @_format
 @_quiet
-def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate, fmt,
-              quiet) -> None:
+def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
+              max_returns, fmt, quiet) -> None:
     """Distance per pixel (eq. 5.4) with uncertainty and a detection decision.
 
     CAPTURE is a tcspc capture (with --calibration), or a PicoQuant T3 file or its
     histograms (with --delay-ps or --zero): a PicoQuant board's dtime bins are calibrated
-    by its maker, so no INL is applied; the output says so.
+    by its maker, so no INL is applied; the output says so. A pixel may see up to
+    --max-returns surfaces (a window, a fence): a row each, return_index 0 the strongest.
+    Generic histograms (any instrument's, docs/instruments_generic.md) take
+    --calibration from `calibrate distance`, --delay-ps or --zero; the output names the
+    instrument response and the pile-up correction used (one return a row).
     """
-    from pipeline.cli import instruments
+    try:
+        _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
+               max_returns, fmt, quiet)
+    except ValueError as exc:  # an argument or a histogram the estimators refuse: one line
+        from schemas.errors import TcspcError
 
+        if isinstance(exc, TcspcError):  # (main prints ours)
+            raise
+        raise click.ClickException(str(exc)) from exc
+
+
+def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
+           max_returns, fmt, quiet) -> None:
+    from pipeline.cli import instruments
+    from stages.ranging.validation import check_delay, check_p_fa, check_sigma
+
+    try:
+        check_p_fa(p_fa)
+        if irf_ps is not None:
+            check_sigma(irf_ps, name="--irf-ps")
+        if delay_ps is not None:
+            if delay_ps != delay_ps:  # NaN: "no delay" inside, not a value to give
+                raise ValueError(f"--delay-ps must be finite, found {delay_ps}")
+            check_delay(delay_ps, "--delay-ps")
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from exc
     fmt = instruments.detect(capture, fmt)
+    if fmt == "histograms" and instruments.is_generic(capture):
+        instruments.range_generic(capture, out, calibration, delay_ps, zero, gate, estimator,
+                                  irf_ps, p_fa, quiet)
+        return
     if fmt != "tcspc":
         if calibration:
             raise click.UsageError("--calibration is the thesis chip's; an instrument's "
                                    "file takes --delay-ps or --zero")
         instruments.range_instrument(capture, fmt, out, delay_ps, zero, gate, estimator,
-                                     irf_ps, p_fa, "2212b", quiet)
+                                     irf_ps, p_fa, "2212b", quiet, max_returns)
         return
     if calibration is None:
         raise click.UsageError("a tcspc capture needs --calibration")
@@ -351,15 +361,19 @@ def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero
     t0 = time.perf_counter()
     calib = load_calibration(calibration)
     table, note = range_capture(capture, calib, out, estimator,
-                                None if irf_ps is None else irf_ps * 1e-12, p_fa)
+                                None if irf_ps is None else irf_ps * 1e-12, p_fa, max_returns)
     if note:
-        err.print(f"[yellow]warning:[/yellow] {note}", highlight=False)
+        warn(note)
     if not quiet:
         import polars as pl
 
         df = pl.from_arrow(table)
+        more = df.filter(pl.col("detected") & (pl.col("return_index") > 0)).height
+        df = df.filter(pl.col("return_index") == 0)
         det = df.filter(pl.col("detected"))
-        err.print(f"{det.height} of {df.height} pixels detected ({estimator}, P_fa {p_fa:g}) in "
+        err.print(f"{det.height} of {df.height} pixels detected"
+                  + (f" (+{more} further returns)" if more else "")
+                  + f" ({estimator}, P_fa {p_fa:g}) in "
                   f"{time.perf_counter() - t0:.2f} s; distance "
                   f"{det['distance_m'].min() if det.height else float('nan'):.3f}.."
                   f"{det['distance_m'].max() if det.height else float('nan'):.3f} m, median "
@@ -381,9 +395,8 @@ def _warn_no_delay(calib) -> None:
 
     why = Counter(r for r in calib.delay_reasons if r)
     if why:
-        err.print(f"[yellow]warning:[/yellow] {sum(why.values())} TDC(s) not ranged, no delay "
-                  "in the calibration: " + "; ".join(f"{n} {r}" for r, n in why.most_common()),
-                  highlight=False)
+        warn(f"{sum(why.values())} TDC(s) not ranged, no delay in the calibration: "
+             + "; ".join(f"{n} {r}" for r, n in why.most_common()))
 
 
 class _Lazy(click.Group):
@@ -451,7 +464,7 @@ def _register() -> None:
 
 def _register_entry_points() -> None:
     """Layers above the pipeline (the flows) add their commands through an entry point, so
-    nothing here imports them (DESIGN.md: nothing imports ``flows``). Read when a name is
+    nothing here imports them (docs/design.md: nothing imports ``flows``). Read when a name is
     not a command of this module or the commands are listed: importlib.metadata and the
     scan cost 50-90 ms, which `tcspc histogram` does not pay."""
     if _Root.entry_points_read:
@@ -493,10 +506,7 @@ def _main() -> None:
 
         if not isinstance(exc, TcspcError | OSError):
             raise
-        from rich.markup import escape
-
-        # escaped: a message's own brackets ("[0, 3]", "[range]") are text, not markup
-        err.print(f"[red]error:[/red] {escape(str(exc))}", highlight=False, soft_wrap=True)
+        error(str(exc))  # one line, the text as it is (markup off)
         sys.exit(2)
 
 

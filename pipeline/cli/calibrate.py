@@ -1,11 +1,11 @@
-"""``tcspc calibrate density|lsb|delay`` (DESIGN.md "Command line")."""
+"""``tcspc calibrate density|lsb|delay`` (docs/design.md "Command line")."""
 
 from __future__ import annotations
 
 import click
 import numpy as np
 
-from pipeline.cli.app import console
+from pipeline.cli.console import console, note, warn
 from pipeline.io.capture import Capture
 from pipeline.offline.calibrate import (
     add_delay,
@@ -22,7 +22,7 @@ err = console(stderr=True)
 
 @click.group()
 def calibrate() -> None:
-    """Density test, LSB against light, and zero-distance delay."""
+    """Density test, LSB against light, zero-distance delay; distance (any instrument)."""
 
 
 _inl = click.option("--inl-rms", default=0.5, show_default=True, type=float,
@@ -94,8 +94,11 @@ def lsb(captures, out, plot, inl_rms) -> None:
 @click.argument("capture", type=click.Path())
 @click.option("--out", required=True, type=click.Path(exists=True, file_okay=False),
               help="calibration directory with a density test; the delay is added to it")
-def delay(capture, out) -> None:
-    """System delay per TDC from a zero-distance CAPTURE (eq. 5.3), into CALDIR.
+@click.option("--distance-m", default=0.0, show_default=True, type=float,
+              help="The target's distance in CAPTURE (eq. 5.3 with its round trip).")
+def delay(capture, out, distance_m) -> None:
+    """System delay per TDC from a zero-distance CAPTURE (eq. 5.3), into CALDIR; or from
+    a capture of a target at a known --distance-m.
 
     The peak is found as the range stage finds it (ML, pile-up exact), anywhere in the
     window. Give the capture ambient light brighter than the density test's (its reset
@@ -105,7 +108,8 @@ def delay(capture, out) -> None:
     and why the others did not; exits non-zero, leaving CALDIR as it was, when none did."""
     from collections import Counter
 
-    calib = add_delay(capture, out, log=lambda m: err.print(f"delay: {m}", highlight=False))
+    calib = add_delay(capture, out, log=lambda m: err.print(f"delay: {m}", highlight=False),
+                      distance_m=distance_m)
     d, used = calib.delay_s, calib.meta["delay"]
     got = np.isfinite(d)
     err.print(f"delay on {int(got.sum())} of {d.size} TDCs: "
@@ -114,9 +118,52 @@ def delay(capture, out) -> None:
               f"wrote {out}", highlight=False)
     if not got.all():
         why = Counter(r for r in calib.delay_reasons if r)
-        err.print(f"[yellow]warning:[/yellow] no delay on {int((~got).sum())} TDC(s) "
-                  f"{np.flatnonzero(~got)[:12].tolist()}: "
-                  + "; ".join(f"{n} {r}" for r, n in why.most_common()), highlight=False)
+        warn(f"no delay on {int((~got).sum())} TDC(s) {np.flatnonzero(~got)[:12].tolist()}: "
+             + "; ".join(f"{n} {r}" for r, n in why.most_common()), err)
+
+
+@calibrate.command()
+@click.argument("histograms", type=click.Path(exists=True, dir_okay=False))
+@click.option("--truth", required=True, type=click.Path(exists=True, dir_okay=False),
+              help="CSV: measurement,distance_m (and optionally tdc, a row's own distance).")
+@click.option("--out", required=True, type=click.Path(), help="calibration directory")
+@click.option("--p-fa", default=1e-3, show_default=True, help="False-alarm probability.")
+def distance(histograms, truth, out, p_fa) -> None:
+    """Delay and bin width per row of generic HISTOGRAMS from targets at known distances.
+
+    For every estimator and row: the delay (eq. 5.3 at the target's distance) and, from
+    two or more distances, the real bin width (one distance: the file's bin_width_ps);
+    the instrument response measured on the reference channel (or the brightest row at
+    the middle distance); from three or more distances, the effective laser pulses of an
+    instrument that does not report them (pile-up). Prints the fit's residuals and RMS."""
+    from pipeline.offline.generic import calibrate_distance
+
+    try:
+        cal = calibrate_distance(histograms, truth, p_fa=p_fa)
+    except (CalibrationError, ValueError) as exc:
+        raise click.ClickException(str(exc)) from None
+    cal.save(out)
+    err.print(f"{len(cal.measurements)} measurement(s) at "
+              f"{', '.join(f'{d:.4g}' for d in sorted(set(cal.distances_m)))} m; "
+              f"{len(cal.tdc)} rows; response: {cal.response.source}; pile-up: {cal.pileup}",
+              highlight=False)
+    for name, fit in cal.fits.items():
+        w = np.asarray(fit["bin_width_ps"], float)
+        res = np.asarray(fit["residual_mm"], float)
+        worst = np.nanmax(np.abs(res)) if np.isfinite(res).any() else np.nan
+        err.print(f"  {name:9s} residual RMS {fit['rms_mm']:.3f} mm (worst {worst:.3f} mm); "
+                  f"bin width {np.nanmin(w):.2f}..{np.nanmax(w):.2f} ps; delay "
+                  f"{np.nanmin(fit['delay_ps']):.1f}..{np.nanmax(fit['delay_ps']):.1f} ps",
+                  highlight=False)
+    for name in ("matched", "ml"):
+        if name in cal.fits and cal.preferred(name) != name:
+            err.print(f"  {name}: the Gaussian of the response's FWHM fits better than the "
+                      "measured shape; range uses it", highlight=False)
+    none = [t for t, d in zip(cal.tdc, cal.fits["ml"]["delay_ps"], strict=True)
+            if not np.isfinite(d)]
+    if none:
+        warn(f"no delay (no detection) on rows {none}")
+    err.print(f"wrote {out}")
 
 
 @calibrate.command()
@@ -140,9 +187,9 @@ def track(capture, calibration, out, tolerance_ps) -> None:
         acc.update(words, first)
     st = acc.snapshot()
     light = float(st.hits.sum() / (st.n_tdc * max(st.cycles.max(), 1)))
-    expected, note = calib.lsb_s(light)
-    if note:
-        err.print(f"[yellow]note:[/yellow] {note}", highlight=False)
+    expected, why = calib.lsb_s(light)
+    if why:
+        note(why, err)
     tr = cal.track_lsb(st.hits, st.cycles, cap.meta.window_ns * 1e-9, expected,
                        artifacts=st.artifacts)
     d = tr.drift_ps
@@ -151,7 +198,7 @@ def track(capture, calibration, out, tolerance_ps) -> None:
               f"{ok.size} TDCs; drift mean {np.nanmean(d):+.3f} ps, max |drift| "
               f"{np.nanmax(np.abs(d)):.3f} ps")
     for t in np.flatnonzero(tr.flagged):
-        err.print(f"[yellow]TDC {t}: estimate left out:[/yellow] {tr.why[t]}", highlight=False)
+        warn(f"TDC {t}: estimate left out: {tr.why[t]}")
     moved = np.flatnonzero(ok & (np.abs(d) > tolerance_ps))
     if moved.size:
         err.print(f"TDCs beyond {tolerance_ps} ps: {moved.tolist()} (recalibrate)")

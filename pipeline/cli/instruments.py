@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from pipeline.cli.app import err
+from pipeline.cli.console import err, warn
 
 
 def detect(path: str, given: str | None) -> str:
@@ -21,6 +21,51 @@ def detect(path: str, given: str | None) -> str:
             if fh.read(4) == b"PAR1":
                 return "histograms"
     return resolve_format(path, given)
+
+
+def is_generic(path: str) -> bool:
+    from pipeline.io.generic import is_generic as generic
+
+    return generic(path)
+
+
+def range_generic(path: str, out: str, calibration, delay_ps, zero, gate, estimator, irf_ps,
+                  p_fa, quiet: bool) -> None:
+    """Ranges of a generic histograms file (any instrument's) on its own uniform bins."""
+    import numpy as np
+    import polars as pl
+
+    from pipeline.offline.generic import DistanceCalibration, write_ranges
+    from pipeline.offline.generic import range_generic as rng_generic
+    from schemas.errors import CalibrationError
+
+    if sum(x is not None for x in (calibration, delay_ps, zero)) != 1:
+        raise click.UsageError("generic histograms need one of --calibration (from "
+                               "`tcspc calibrate distance`), --delay-ps or --zero")
+    if gate is not None:
+        raise click.UsageError("--gate is for a PicoQuant T3 file")
+    t0 = time.perf_counter()
+    try:
+        cal = DistanceCalibration.load(calibration) if calibration else None
+        table, info = rng_generic(path, cal, None if delay_ps is None else delay_ps * 1e-12,
+                                  zero, None if irf_ps is None else irf_ps * 1e-12,
+                                  estimator, p_fa)
+    except (CalibrationError, ValueError) as exc:
+        raise click.ClickException(str(exc)) from None
+    write_ranges(table, out)
+    err.print(f"instrument response: {info['response']}; pile-up: {info['pileup']}",
+              highlight=False)
+    if "bright" in info:
+        warn(info["bright"])
+    df = pl.from_arrow(table)
+    det = df.filter(pl.col("detected"))
+    if not quiet:
+        err.print(f"{det.height} of {df.height} rows detected ({estimator}, P_fa {p_fa:g}) in "
+                  f"{df['measurement'].n_unique()} measurement(s), "
+                  f"{time.perf_counter() - t0:.2f} s; distance "
+                  f"{det['distance_m'].min() if det.height else np.nan:.4f}.."
+                  f"{det['distance_m'].max() if det.height else np.nan:.4f} m; wrote {out}",
+                  highlight=False)
 
 
 def _print_summary(summary, quiet: bool) -> None:
@@ -50,10 +95,33 @@ def histograms_of(path: str, fmt: str, measurement: str | None, firmware: str, b
     raise click.ClickException(f"{path}: {fmt} is not an instrument format")
 
 
+def refuse_if_not(path: str, fmt: str) -> None:
+    """A file given ``--format linospad2`` whose lines mostly break that format's structure
+    is refused before anything is written, naming the format its content reads as (a tcspc
+    capture read as LinoSPAD2 gave a parquet of millions of invalid records, exit 0)."""
+    if fmt != "linospad2" or not Path(path).is_file():
+        return
+    from pipeline.io.formats import FormatError, detect_format
+    from pipeline.io.linospad2 import broken_lines
+
+    broken, lines = broken_lines(path)
+    if lines and broken * 2 > lines:
+        try:
+            likely = detect_format(path)
+        except FormatError:
+            likely = None
+        hint = (f"; its content reads as a {likely} file: give --format {likely} or leave "
+                "--format out" if likely and likely != fmt else "")
+        raise FormatError(f"{path}: not a LinoSPAD2 file: {broken} of its first {lines} "
+                          "lines have invalid words before valid ones, which that format "
+                          f"never has{hint}; nothing written")
+
+
 def histogram(path: str, fmt: str, out: str, measurement, firmware: str, by: str,
               quiet: bool) -> None:
     from pipeline.offline.instruments import write_instrument_histograms
 
+    refuse_if_not(path, fmt)
     table, summary = histograms_of(path, fmt, measurement, firmware, by)
     _check_accounting(summary)
     write_instrument_histograms(table, out, path, summary)
@@ -68,6 +136,7 @@ def histogram(path: str, fmt: str, out: str, measurement, firmware: str, by: str
 def decode(path: str, fmt: str, out: str, firmware: str, quiet: bool) -> None:
     from pipeline.offline.instruments import decode_instrument
 
+    refuse_if_not(path, fmt)
     if Path(out).suffix.lower() in (".h5", ".hdf5"):
         return _photon_hdf5(path, fmt, out, quiet)
 
@@ -106,7 +175,7 @@ def _gate(gate: str | None):
 
 
 def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estimator,
-                     irf_ps, p_fa, firmware: str, quiet: bool) -> None:
+                     irf_ps, p_fa, firmware: str, quiet: bool, max_returns: int = 1) -> None:
     """Ranges of a T3 file's (or its histograms') channels on the instrument's own uniform
     time axis, with a given delay or one measured on a zero-distance file."""
     import numpy as np
@@ -137,7 +206,7 @@ def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estima
     else:
         delay = np.full(table.num_rows, delay_ps * 1e-12)
         how = f"given, {delay_ps:g} ps"
-    est, d, s, note = range_uniform(table, delay, sigma, estimator, p_fa, g)
+    est, d, s, note = range_uniform(table, delay, sigma, estimator, p_fa, g, max_returns)
     name = table.column("measurement")[0].as_py() if table.num_rows else Path(path).stem
     ranges = ranges_table(name, est, d, s)
     ranges = ranges.replace_schema_metadata({
@@ -151,8 +220,11 @@ def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estima
     if not quiet:
         df = pl.from_arrow(ranges)
         for r in df.iter_rows(named=True):
-            err.print(f"  channel {r['tdc']}: " + (
+            err.print(f"  channel {r['tdc']}"
+                      + (f" return {r['return_index']}" if r["return_index"] else "") + ": " + (
                 f"{r['distance_m']:.4f} m +- {r['sigma_m']:.4f} m, {r['signal_counts']:.0f} "
-                "signal counts" if r["detected"] else "not detected"), highlight=False)
-        err.print(f"{int(df['detected'].sum())} of {df.height} channels detected "
+                "signal counts" if r["detected"] else "not detected")
+                      + (f" [{r['flag']}]" if r["flag"] else ""), highlight=False)
+        first = df.filter(pl.col("return_index") == 0)
+        err.print(f"{int(first['detected'].sum())} of {first.height} channels detected "
                   f"({estimator}) in {time.perf_counter() - t0:.2f} s; wrote {out}")

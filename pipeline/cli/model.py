@@ -11,7 +11,7 @@ import click
 import numpy as np
 from rich.table import Table
 
-from pipeline.cli.app import console
+from pipeline.cli.console import console
 from stages.models import atmosphere as atm
 from stages.models import noise, signal
 from stages.models.performance import TABLE_2_2, predict, table_2_2_rows

@@ -11,7 +11,8 @@ import click
 from rich.console import Console
 from rich.table import Table
 
-from pipeline.cli.app import _calibration, err
+from pipeline.cli.app import _calibration
+from pipeline.cli.console import err
 
 
 @click.group()
@@ -302,18 +303,20 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
 @click.option("--push", required=True, help="Endpoint to send ranges and histograms to")
 @click.option("--calibration", required=True, type=click.Path(exists=True, file_okay=False))
 @click.option("--estimator", default="ml", show_default=True)
+@click.option("--max-returns", type=click.IntRange(min=1), default=3, show_default=True,
+              help="Returns (surfaces) a pixel may have.")
 @click.option("--workers", default=1, show_default=True, help="Histogram workers upstream.")
 @click.option("--quarantine", type=click.Path(), default=None)
 @_metrics
 @_accept
-def stage_range(pull, push, calibration, estimator, workers, quarantine, metrics,
+def stage_range(pull, push, calibration, estimator, max_returns, workers, quarantine, metrics,
                 senders) -> None:
     """Ranges of each measurement's histograms with a calibration (eq. 5.4)."""
     from pipeline.io.caldir import load_calibration
     from pipeline.offline.ranging import RangeCore
     from pipeline.stream.stage import run_stage
 
-    core = RangeCore(load_calibration(calibration), estimator)
+    core = RangeCore(load_calibration(calibration), estimator, max_returns=max_returns)
     stats = run_stage(core, pull, push, quarantine=quarantine, expect_stops=workers,
                       metrics=metrics, name="range", senders=list(senders) or None)
     err.print(f"range: {core.ranged} measurements ranged; rejected {dict(stats.rejected)}"
@@ -421,7 +424,8 @@ def status(state, watch, as_json) -> None:
     if as_json:
         click.echo(path.read_text())
         return
-    con = Console(width=None if sys.stdout.isatty() else 160)  # piped: no wrapped columns
+    # piped: no wrapped columns; markup off: stage names and reasons are printed as they are
+    con = Console(width=None if sys.stdout.isatty() else 160, markup=False)
     if watch is None:
         con.print(_status_table(json.loads(path.read_text())))
         return

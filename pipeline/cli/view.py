@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from pipeline.cli.app import err
+from pipeline.cli.console import err
 
 
 def _from_config(config: str | None) -> dict:

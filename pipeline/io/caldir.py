@@ -1,4 +1,4 @@
-"""Calibration directories (DESIGN.md "Outputs"), loaded and saved in one place.
+"""Calibration directories (docs/design.md "Outputs"), loaded and saved in one place.
 
 A directory holds ``tdc.parquet`` (calibration_tdc), ``inl.parquet`` (calibration_inl) and
 ``meta.json``: schema version, software version, date, the SHA-256 of every capture it came

@@ -30,7 +30,7 @@ CHUNK_WORDS = 1 << 20
 
 @dataclass(frozen=True)
 class CaptureMeta:
-    """The sidecar of a capture (DESIGN.md "Capture files")."""
+    """The sidecar of a capture (docs/design.md "Capture files")."""
 
     n_tdc: int
     window_ns: float
@@ -84,6 +84,16 @@ def capture_paths(path: str | os.PathLike) -> tuple[Path, Path]:
     return p.with_name(p.name + ".bin"), p.with_name(p.name + ".json")
 
 
+def _not_a_capture(given: Path, bin_path: Path) -> str:
+    """What was given and what a capture is, when ``bin_path`` is not there."""
+    what = "a capture is NAME.bin (raw 32-bit words) with NAME.json beside it"
+    if given.is_dir():
+        return f"{given}: a directory, not a capture; {what}"
+    if given.is_file() and given != bin_path and given.suffix not in (".json", ".zst"):
+        return f"{given}: not a capture ({bin_path.name} not found); {what}"
+    return f"{given}: capture not found ({bin_path} does not exist); {what}"
+
+
 class Capture:
     """An open raw capture, validated on open.
 
@@ -110,7 +120,7 @@ class Capture:
         if self.compressed:
             self.bin_path = zst
         if not self.bin_path.is_file():
-            raise CaptureError(f"{self.bin_path}: capture file not found")
+            raise CaptureError(_not_a_capture(Path(path), self.bin_path))
         if not self.json_path.is_file():
             raise CaptureError(f"{self.json_path}: sidecar not found (every NAME.bin needs "
                                "a NAME.json beside it)")

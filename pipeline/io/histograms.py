@@ -9,8 +9,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pipeline.io.atomic import atomic_path
-from schemas.core import META_NAME, META_VERSION, validate
-from schemas.errors import SchemaMismatch, SchemaVersionError
+from pipeline.io.versions import read_upgraded, readable
+from schemas.core import META_VERSION, validate
 from schemas.outputs import HISTOGRAMS, HISTOGRAMS_READS
 
 CHIP = "tcspc-chip"
@@ -36,19 +36,7 @@ def upgrade_histograms(table: pa.Table, where: str = "") -> pa.Table:
     the list becomes variable, ``instrument`` is ``'tcspc-chip'`` and ``bin_width_ps``
     null (the chip's widths come from its calibration).
     """
-    meta = dict(table.schema.metadata or {})
-    found = meta.get(META_VERSION, b"").decode() or None
-    name = meta.get(META_NAME, HISTOGRAMS.name.encode()).decode()
-    if name != HISTOGRAMS.name:
-        raise SchemaMismatch(f"{where or 'histograms'}: expected a 'histograms' dataset, "
-                             f"found {name!r}")
-    if found is None:
-        raise SchemaVersionError(f"{where or 'histograms'}: no schema version recorded")
-    major = int(found.split(".")[0])
-    if major not in HISTOGRAMS_READS:
-        raise SchemaVersionError(
-            f"{where or 'histograms'}: histograms schema version {found} is not readable by "
-            f"this software, which reads majors {list(HISTOGRAMS_READS)}")
+    meta, found, major = readable(table, HISTOGRAMS, HISTOGRAMS_READS, where)
     if major == 1:
         n = table.num_rows
         counts = table.column("counts").cast(pa.list_(pa.uint64()))
@@ -70,13 +58,4 @@ def read_histograms(path: str | Path) -> pa.Table:
     Raises ``SchemaVersionError`` / ``SchemaMismatch`` naming the file for an unknown major
     version or another dataset; FileNotFoundError for a missing path.
     """
-    path = Path(path)
-    files = sorted(path.rglob("*.parquet")) if path.is_dir() else [path]
-    if not files:
-        raise FileNotFoundError(f"{path}: no histograms parquet files")
-    parts = [upgrade_histograms(pq.read_table(f), str(f)) for f in files]
-    if len(parts) == 1:
-        return parts[0]
-    meta = parts[0].schema.metadata
-    return pa.concat_tables([p.replace_schema_metadata(meta) for p in parts],
-                            promote_options="default")
+    return read_upgraded(path, upgrade_histograms, "histograms")

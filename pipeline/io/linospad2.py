@@ -272,3 +272,19 @@ def published_name(path) -> dict:
     if len(parts) == 4 and parts[0] == "TDC":
         return dict(zip(("daughterboard", "motherboard", "firmware"), parts[1:], strict=True))
     return {}
+
+
+def broken_lines(path, words_per_line: int = lino.WORDS_PER_LINE,
+                 cycles: int = 64) -> tuple[int, int]:
+    """``(broken, lines)`` over the first ``cycles`` whole cycles of ``path``: the lines
+    whose valid words do not come first (an invalid word before a valid one), which a
+    LinoSPAD2 file never has and another file read as one has in nearly every line. What
+    ``--format linospad2`` on a file that is not one is refused by."""
+    n_cycles, _ = file_cycles(path, words_per_line)
+    n = min(n_cycles, cycles)
+    if n == 0:
+        return 0, 0
+    with open(path, "rb") as f:
+        w = _native(np.fromfile(f, dtype=_LE_U32, count=n * lino.LINES * words_per_line))
+    valid = (w.reshape(n * lino.LINES, words_per_line) & lino.VALID_BIT) != 0
+    return int(np.count_nonzero((~valid[:, :-1] & valid[:, 1:]).any(axis=1))), n * lino.LINES

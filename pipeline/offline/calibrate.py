@@ -255,9 +255,10 @@ DELAY_MIN_COUNTS, DELAY_CLEAR_SIGMAS = 20, 3.0
 RESET_MASK = 6  #: codes below x_T masked by the estimators (Histograms.from_codes margin)
 
 
-def add_delay(capture, caldir: str | Path, log=None) -> Calibration:
-    """Measure the system delay per TDC on a zero-distance capture (eq. 5.3) and rewrite
-    ``caldir`` with it (atomically). Returns the calibration as written (its ``delay_s``
+def add_delay(capture, caldir: str | Path, log=None, distance_m: float = 0.0) -> Calibration:
+    """Measure the system delay per TDC on a zero-distance capture (eq. 5.3), or on one of
+    a target at a known ``distance_m`` (its round trip taken off), and rewrite ``caldir``
+    with it (atomically). Returns the calibration as written (its ``delay_s``
     in seconds, NaN where there is none, and ``delay_reasons``).
 
     The peak's tau is the range stage's: the pile-up-exact ML on the calibrated time axis
@@ -279,17 +280,21 @@ def add_delay(capture, caldir: str | Path, log=None) -> Calibration:
     for first, words in cap.iter_chunks():
         acc.update(words, first)
     calib = delay_from_state(calib, acc.snapshot(), cap.meta.window_ns * 1e-9,
-                             cap.meta.t_laser_win_ns * 1e-9, str(cap.bin_path), log)
+                             cap.meta.t_laser_win_ns * 1e-9, str(cap.bin_path), log,
+                             distance_m)
     sources = [Path(s["path"]) for s in calib.meta.get("sources", []) if Path(s["path"]).exists()]
     save_calibration(calib, caldir, sources + getattr(cap, "paths", [cap.bin_path]))
     return calib
 
 
 def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: float,
-                     name: str = "capture", log=None) -> Calibration:
-    """:func:`add_delay` on a zero-distance capture's histograms (``state``, a
-    :class:`stages.histogram.HistogramState`): the calibration with the delay, not saved.
-    Raises CalibrationError when no TDC got a delay."""
+                     name: str = "capture", log=None, distance_m: float = 0.0
+                     ) -> Calibration:
+    """:func:`add_delay` on a zero-distance (or ``distance_m``) capture's histograms
+    (``state``, a :class:`stages.histogram.HistogramState`): the calibration with the
+    delay, not saved. Raises CalibrationError when no TDC got a delay."""
+    from scipy.constants import c as c_light
+
     from stages.ranging import Histograms, ml
 
     res = calib.density
@@ -324,7 +329,10 @@ def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: 
     axis = time_axis(calib, state.hits, state.cycles, window_s, in_situ=True, returns=returns,
                      beyond=weak if weak.any() else None)
     est, sigma = estimate(axis)
-    d = cal.delay_s(t_laser_win_s, window_s - est.t_s)
+    if not (np.isfinite(distance_m) and distance_m >= 0):
+        raise CalibrationError(f"--distance-m must be >= 0, found {distance_m}")
+    # eq. 5.3 with the target at distance_m: eq. 5.4 then ranges this capture to it
+    d = cal.delay_s(t_laser_win_s, window_s - est.t_s) - 2 * distance_m / c_light
     # where the return sits: a return partly under the reset peak's mask or at the window's
     # end is biased (fit on one flank), one with a handful of counts is no measurement
     widths = np.diff(axis.tau_edges_s, axis=1)
@@ -381,7 +389,7 @@ def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: 
             f"{state.n_tdc} TDCs; time axis from the capture's reset peak on "
             f"{int(np.sum(source == 'reset peak'))}")
     calib = calib.with_delay(d, reasons.tolist(), sigma, {
-        "capture": name, "light": light,
+        "capture": name, "light": light, "distance_m": distance_m,
         "counts_used": np.round(est.signal_counts).tolist(),
         "sigma_ps": np.round(est.sigma_s * 1e12, 3).tolist(),
         "scale_from": source.tolist(),

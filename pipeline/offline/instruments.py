@@ -29,7 +29,7 @@ from stages.instruments.accumulate import (
     PtuT3Accumulator,
     instrument_table,
 )
-from stages.ranging import Histograms, estimate
+from stages.ranging import Histograms, estimate_returns, response_from_data
 
 __all__ = ["LINOSPAD2", "PICOQUANT_T3", "FileSummary", "decode_instrument",
            "histogram_linospad2", "histogram_ptu", "instrument_accumulator",
@@ -211,35 +211,43 @@ def _uniform(table: pa.Table, gate_ns: tuple[float, float] | None) -> Histograms
 
 
 def peak_times(table: pa.Table, sigma_s: float | None = None, estimator: str = "ml",
-               p_fa: float = 1e-3, gate_ns=None):
-    """The return time after the sync, per row, with the instrument response ``sigma_s``
-    (default: one bin)."""
+               p_fa: float = 1e-3, gate_ns=None, max_returns: int = 1):
+    """The return times after the sync, per row (up to ``max_returns`` each), with the
+    instrument response ``sigma_s`` (default: measured on the returns,
+    :func:`stages.ranging.width.response_from_data`)."""
     h = _uniform(table, gate_ns)
-    sigma = float(h.bin_s) if sigma_s is None else float(sigma_s)
-    return estimate(h, sigma, estimator, p_fa), sigma
+    sigma = response_from_data(h)[0] if sigma_s is None else float(sigma_s)
+    return estimate_returns(h, sigma, estimator, p_fa, max_returns), sigma
 
 
 def measured_delay(zero: pa.Table, sigma_s: float | None = None, estimator: str = "ml",
                    p_fa: float = 1e-3, gate_ns=None) -> tuple[np.ndarray, np.ndarray]:
     """Delay per row from a zero-distance measurement (eq. 5.3 with d = 0): the return
-    time there; NaN where nothing was detected. Also the peak's sigma (from its FWHM)."""
+    time there; NaN where nothing was detected. Also the peak's sigma (from its measured
+    FWHM)."""
     est, _ = peak_times(zero, sigma_s, estimator, p_fa, gate_ns)
     delay = np.where(est.detected, est.t_s, np.nan)
     return delay, np.asarray(est.fwhm_s, np.float64) / (2 * np.sqrt(2 * np.log(2)))
 
 
 def range_uniform(table: pa.Table, delay_s, sigma_s: float | None = None,
-                  estimator: str = "ml", p_fa: float = 1e-3, gate_ns=None):
-    """Distances of an instrument's T3 histograms: d = c (t - delay) / 2, per row.
+                  estimator: str = "ml", p_fa: float = 1e-3, gate_ns=None,
+                  max_returns: int = 1):
+    """Distances of an instrument's T3 histograms: d = c (t - delay) / 2, per row and
+    return (``est.pixel``, ``est.return_index``).
 
     Returns (estimate, distance_m, sigma_m, note); a row without a delay (NaN) is not
-    detected.
+    detected, a return before the zero is flagged and not detected.
     """
-    est, sigma = peak_times(table, sigma_s, estimator, p_fa, gate_ns)
-    delay = np.broadcast_to(np.asarray(delay_s, np.float64), est.t_s.shape)
+    from pipeline.offline.ranging import behind_zero
+    from stages.ranging.validation import check_delay
+
+    est, sigma = peak_times(table, sigma_s, estimator, p_fa, gate_ns, max_returns)
+    delay = np.broadcast_to(check_delay(delay_s, "the delay"), (table.num_rows,))[est.pixel]
     est = dataclasses.replace(est, detected=np.asarray(est.detected, bool) & np.isfinite(delay))
-    distance = C_LIGHT / 2 * (est.t_s - delay)
+    est, distance = behind_zero(est, C_LIGHT / 2 * (est.t_s - delay))
     width = float(np.nanmedian(table.column("bin_width_ps").to_numpy()))
     note = (f"uniform time axis of {width:g} ps bins (the instrument's own calibration; no "
-            f"INL applied), instrument response sigma {sigma * 1e12:.1f} ps")
+            f"INL applied), instrument response sigma {sigma * 1e12:.1f} ps"
+            + (" (measured on the returns)" if sigma_s is None else ""))
     return est, distance, est.sigma_s * C_LIGHT / 2, note

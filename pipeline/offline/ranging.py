@@ -17,12 +17,13 @@ from schemas.outputs import HISTOGRAMS, RANGES
 from stages import calibration as cal
 from stages.calibration_set import Calibration, time_axis
 from stages.histogram import HistogramAccumulator, HistogramState
-from stages.ranging import Estimate, Histograms, estimate
+from stages.ranging import Estimate, Histograms, estimate_returns, response_from_data
+from stages.ranging.multi import MAX_RETURNS, select_rows
 
 
 def range_state(state: HistogramState, calibration: Calibration, window_s: float,
                 t_laser_win_s: float, estimator: str = "ml", sigma_s: float | None = None,
-                p_fa: float = 1e-3, in_situ: bool = False
+                p_fa: float = 1e-3, in_situ: bool = False, max_returns: int = 1
                 ) -> tuple[Estimate, np.ndarray, np.ndarray, str]:
     """Ranges of every pixel of a histogram state with a calibration.
 
@@ -32,9 +33,14 @@ def range_state(state: HistogramState, calibration: Calibration, window_s: float
     peak where that is trustworthy, as ``calibrate delay`` does (the returns located first
     on the polynomial's axis, so that the reset peak's fit keeps clear of them), else
     from the polynomial. ``sigma_s``, the instrument response, defaults to the one
-    measured at zero distance (stored with the delay), else 1 LSB. A pixel without a
-    delay is not detected. Returns the estimate, distances and sigmas in metres, and a
-    note for the user ("" when the calibration covers this measurement's light).
+    measured at zero distance (stored with the delay), else the one measured on this
+    state's returns (:func:`stages.ranging.width.response_from_data`; one LSB made sigmas
+    7-11x too small on a response 4 LSB wide). Up to ``max_returns`` returns a pixel
+    (:func:`stages.ranging.multi.estimate_returns`: ``est.pixel`` and
+    ``est.return_index`` say whose each row is). A pixel without a delay is not detected,
+    a return before the zero (the delay beyond it) is flagged and not detected. Returns
+    the estimate, distances and sigmas in metres, and a note for the user ("" when the
+    calibration covers this measurement's light).
     """
     if not calibration.has_delay:
         raise CalibrationError(f"{calibration.path}: no delay (run `tcspc calibrate delay` "
@@ -44,29 +50,58 @@ def range_state(state: HistogramState, calibration: Calibration, window_s: float
     except ValueError as exc:
         raise CalibrationError(str(exc)) from exc
     axis = time_axis(calib, state.hits, state.cycles, window_s)
-    if sigma_s is None:
-        sigma_s = calib.irf_sigma_s or float(np.nanmedian(np.diff(axis.tau_edges_s, axis=1)))
+    notes = []
 
-    def run(axis):
+    def run(axis, sigma_s):
         h = Histograms.from_codes(state.hits, axis.tau_edges_s, state.cycles, window_s,
                                   x_t=axis.x_t)
-        return estimate(h, sigma_s, estimator, p_fa)
+        if sigma_s is None:
+            sigma_s = calib.irf_sigma_s
+        if not sigma_s:
+            sigma_s, how = response_from_data(h)
+            notes.append(f"instrument response sigma {sigma_s * 1e12:.1f} ps {how}")
+        return estimate_returns(h, sigma_s, estimator, p_fa, max_returns), sigma_s
 
-    est = run(axis)
+    est, sigma_s = run(axis, sigma_s)
     if in_situ:
-        returns = _codes_of(window_s - est.t_s, axis.tau_edges_s, est.detected)
+        first = est.return_index == 0
+        returns = _codes_of(window_s - est.t_s[first], axis.tau_edges_s, est.detected[first])
         situ = time_axis(calib, state.hits, state.cycles, window_s, in_situ=True,
                          returns=returns)
         if np.any(situ.source == "reset peak"):
-            axis, est = situ, run(situ)
-    distance = cal.distance_m(t_laser_win_s, calib.delay_s, window_s - est.t_s)
+            axis, (est, _) = situ, run(situ, sigma_s)
+    delay = np.asarray(calib.delay_s, np.float64)[est.pixel]
+    distance = cal.distance_m(t_laser_win_s, delay, window_s - est.t_s)
     # a pixel without a delay (flagged by `calibrate delay`, reason in meta.json) has no
     # distance: never a detection with a NaN or a guessed range
-    est = dataclasses.replace(est, detected=np.asarray(est.detected, bool)
-                              & np.isfinite(calib.delay_s))
-    note = "; ".join(n for n in (axis.note, _unresolved(calib, state, axis, est, window_s))
-                     if n)
+    est = dataclasses.replace(est, detected=np.asarray(est.detected, bool) & np.isfinite(delay))
+    est, distance = behind_zero(est, distance)
+    note = "; ".join(n for n in (axis.note, *notes,
+                                 _unresolved(calib, state, axis, est, window_s)) if n)
     return est, distance, est.sigma_s * C_LIGHT / 2, note
+
+
+#: the flag of a return before the zero
+BEHIND_ZERO = "before the zero (the delay is beyond the return)"
+
+
+def behind_zero(est: Estimate, distance_m):
+    """A negative distance is no distance: the row is flagged, not detected, and its
+    distance NaN (a delay beyond the return gave -0.45 m with no warning); a further
+    return (``return_index`` > 0) so withdrawn is dropped (such rows are detections)."""
+    d = np.asarray(distance_m, np.float64)
+    with np.errstate(invalid="ignore"):
+        neg = d < 0
+    if not neg.any():
+        return est, d
+    flag = np.array(est.flag if est.flag is not None else [""] * d.size, dtype=object)
+    flag[neg] = BEHIND_ZERO
+    est = dataclasses.replace(est, detected=np.asarray(est.detected, bool) & ~neg, flag=flag)
+    d = np.where(neg, np.nan, d)
+    if est.return_index is None:
+        return est, d
+    keep = (est.return_index == 0) | est.detected
+    return select_rows(est, keep), d[keep]
 
 
 def _unresolved(calib: Calibration, state: HistogramState, axis, est: Estimate,
@@ -75,10 +110,12 @@ def _unresolved(calib: Calibration, state: HistogramState, axis, est: Estimate,
     (:func:`stages.calibration.scale_unresolved`, the rule of ``calibrate delay``'s flag,
     with the range fit's sigma), "" otherwise."""
     light = cal.light_level(state.hits, state.cycles)
+    px = est.pixel if est.pixel is not None else np.arange(state.n_tdc)
     spread, (lo, hi) = cal.scale_spread(calib.density, calib.lsb_fit, window_s, light)
     tau_s = window_s - np.asarray(est.t_s, np.float64)
-    bad = (np.asarray(est.detected, bool) & (axis.source != "reset peak")
-           & cal.scale_unresolved(spread, tau_s, calib.density, est.sigma_s))
+    bad = (np.asarray(est.detected, bool) & (np.asarray(axis.source)[px] != "reset peak")
+           & cal.scale_unresolved(spread[px], tau_s,
+                                  cal.density_rows(calib.density, px), est.sigma_s))
     if not bad.any():
         return ""
     return (f"LSB against light not resolved between the density tests at {lo:.3g} and "
@@ -96,25 +133,33 @@ def _codes_of(tau_s, tau_edges_s, keep) -> np.ndarray:
 
 def ranges_table(measurement: str, est: Estimate, distance_m: np.ndarray,
                  sigma_m: np.ndarray, tdc_offset: int = 0) -> pa.Table:
+    """The ``ranges`` rows of an estimate: one a pixel, or one a pixel and return where the
+    estimate has several (``est.pixel``, ``est.return_index``)."""
     n = distance_m.size
+    pixel = np.arange(n) if est.pixel is None else np.asarray(est.pixel)
+    index = np.zeros(n, np.int64) if est.return_index is None else est.return_index
+    flag = [""] * n if est.flag is None else [str(f) for f in est.flag]
     return pa.table({
         "measurement": pa.array([measurement] * n, pa.string()),
-        "tdc": pa.array(np.arange(n) + tdc_offset, pa.uint16()),
+        "tdc": pa.array(pixel + tdc_offset, pa.uint16()),
         "distance_m": pa.array(distance_m),
         "sigma_m": pa.array(sigma_m),
-        "fwhm_m": pa.array(est.fwhm_s * C_LIGHT / 2),
+        "fwhm_m": pa.array(np.asarray(est.fwhm_s, np.float64) * C_LIGHT / 2),
         "signal_counts": pa.array(np.asarray(est.signal_counts, np.float64)),
         "background_per_bin": pa.array(np.asarray(est.background_per_bin, np.float64)),
         "detected": pa.array(np.asarray(est.detected, bool)),
         "estimator": pa.array([est.estimator] * n, pa.string()),
+        "return_index": pa.array(index, pa.uint8()),
+        "flag": pa.array(flag, pa.string()),
     }, schema=RANGES.schema)
 
 
 def range_capture(capture: str | Path, calibration: Calibration, out: str | Path,
                   estimator: str = "ml", sigma_s: float | None = None,
-                  p_fa: float = 1e-3) -> tuple[pa.Table, str]:
-    """Range a whole capture; returns the ranges table and the note of
-    :func:`range_state`."""
+                  p_fa: float = 1e-3, max_returns: int = 1) -> tuple[pa.Table, str]:
+    """Range a whole capture, up to ``max_returns`` returns a pixel (``tcspc range``: 3 by
+    default; 1 here, a row a TDC, for the flows that aggregate per TDC); returns the
+    ranges table and the note of :func:`range_state`."""
     cap = Capture(capture)
     if calibration.n_tdc != cap.meta.n_tdc:
         raise CalibrationError(f"{calibration.path}: calibrates {calibration.n_tdc} TDCs, "
@@ -123,7 +168,8 @@ def range_capture(capture: str | Path, calibration: Calibration, out: str | Path
     for first, words in cap.iter_chunks():
         acc.update(words, first)
     est, d, s, note = range_state(acc.snapshot(), calibration, cap.meta.window_ns * 1e-9,
-                                  cap.meta.t_laser_win_ns * 1e-9, estimator, sigma_s, p_fa)
+                                  cap.meta.t_laser_win_ns * 1e-9, estimator, sigma_s, p_fa,
+                                  max_returns=max_returns)
     table = ranges_table(cap.name, est, d, s)
     table = table.replace_schema_metadata({**table.schema.metadata,
                                            b"tcspc.calibration": calibration.path.encode(),
@@ -143,11 +189,12 @@ class RangeCore:
 
     def __init__(self, calibration: Calibration, estimator: str = "ml",
                  window_ns: float = 80.0, step_id: str = "range",
-                 forward_histograms: bool = True):
+                 forward_histograms: bool = True, max_returns: int = MAX_RETURNS):
         if not calibration.has_delay:  # fail at start, not on the first message
             raise CalibrationError(f"{calibration.path}: no delay (run `tcspc calibrate "
                                    "delay` on a zero-distance capture first)")
         self.calibration, self.estimator, self.window_ns = calibration, estimator, window_ns
+        self.max_returns = max_returns
         self.step_id, self.forward = step_id, forward_histograms
         self.ranged = 0
         self.notes: dict[str, int] = {}  #: what the calibration said, and how often
@@ -157,13 +204,14 @@ class RangeCore:
         window_s = float(header.get("window_ns", self.window_ns)) * 1e-9
         gate_s = float(header["t_laser_win_ns"]) * 1e-9
         est, d, s, note = range_state(state, self.calibration, window_s, gate_s,
-                                      self.estimator)
+                                      self.estimator, max_returns=self.max_returns)
         if note:  # light outside the LSB fit: counted, and in the ranges' header
             self.notes[note] = self.notes.get(note, 0) + 1
         name = str(header.get("measurement", header["run"]))
         table = ranges_table(name, est, d, s, state.tdc_offset)
         head = {**header, "schema": RANGES.name, "version": RANGES.version,
-                "step": self.step_id, "detected": int(np.sum(est.detected)),
+                "step": self.step_id,
+                "detected": int(np.sum(est.detected & (est.return_index == 0))),
                 **({"calibration_note": note} if note else {})}
         self.ranged += 1
         out = [(head, b) for b in table.to_batches()]

@@ -16,13 +16,15 @@ def make_simulator(scene_path, cycles: int, seed: int = 0, chip_seed: int = 1,
                    invalid_rate: float = 0.0, ideal_tdc: bool = False,
                    chip: Chip | None = None) -> Simulator:
     """A simulator for a scene file (or a :class:`Scene`); the engine defaults to the
-    reference one only for scenes that need it (a moving target). ``chip``: a chip of
+    reference one only for scenes that need it (a moving target, a surface behind a
+    partially transparent one). ``chip``: a chip of
     one's own (the zoo's, :func:`stages.simulator.chip.random_chip`) instead of
     ``make_chip(n_pixels, chip_seed)``."""
     scene = scene_path if isinstance(scene_path, Scene) else load_scene(scene_path)
     sm = evaluate(scene, cycles)
     moving = any(t.velocity_m_s for t in sm.scene.targets)
-    engine = engine or ("reference" if moving else "fast")
+    layered = sm.returns_m is not None and bool((sm.returns_m[:, 1:] > 0).any())
+    engine = engine or ("reference" if moving or layered else "fast")
     if chip is None:
         chip = make_chip(sm.scene.sensor.n_pixels, chip_seed,
                          **({"inl_scale": 0.0, "artifact_rate": 0.0} if ideal_tdc else {}))
@@ -30,7 +32,7 @@ def make_simulator(scene_path, cycles: int, seed: int = 0, chip_seed: int = 1,
 
 
 def capture_kind(scene) -> str:
-    """The sidecar's ``kind`` (DESIGN.md): density without a target, delay when every target
+    """The sidecar's ``kind`` (docs/design.md): density without a target, delay when every target
     sits at zero distance (under 5 cm), else range."""
     if not scene.targets:
         return "density"

@@ -24,7 +24,7 @@ from stages.testpattern import pattern_words
 def run_demo(out: str | Path = "data", cycles: int = 100_000, seed: int = 0,
              console: Console | None = None) -> dict:
     """Run the demo; returns the paths written and the checks made."""
-    con = console or Console(stderr=True)
+    con = console or Console(stderr=True, markup=False)  # paths are printed as they are
     out = Path(out)
     raw = out / "raw" / "pattern"
     con.rule("1. a capture with a known class mix (128 TDCs, peak at code 300)")

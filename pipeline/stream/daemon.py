@@ -149,6 +149,7 @@ def build(topo: Topology) -> list[Proc]:
         procs.append(Proc("range", _tcspc(
             "stage", "range", "--pull", after_hist, "--push", sink_ep, "--calibration",
             topo.range["calibration"], "--estimator", topo.range.get("estimator", "ml"),
+            "--max-returns", topo.range.get("max_returns", 3),
             "--workers", len(ranges), "--quarantine", quar / "range", *m,
             *accept(*hist_names)),
             [f"histogram-{i}" for i in range(len(ranges))]))

@@ -9,7 +9,7 @@ By default (``compression="zstd"``) a segment is ``RUN-000000.bin.zst``: each ap
 chunk one zstd frame (level 1), its index entry ``{first_word, segment, offset, bytes,
 words, enc: "zstd"}`` with the frame's byte offset, so a word range is read back frame by
 frame. Concatenated frames are one zstd stream: ``zstd -d RUN-000000.bin.zst`` gives the
-raw capture ``RUN-000000.bin`` of DESIGN.md byte for byte, and :class:`pipeline.io.capture.
+raw capture ``RUN-000000.bin`` of docs/design.md byte for byte, and :class:`pipeline.io.capture.
 Capture` reads the compressed segment directly. Photon-starving words (mostly no-hit words,
 the same 128 per cycle) shrink to ~6 %, a 30 %-hit density test to ~33 %: the journal then
 costs the disk a fraction of the stream's rate (50 M words/s raw is 200 MB/s, what this

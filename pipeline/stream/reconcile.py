@@ -52,7 +52,8 @@ def reconcile(topo: Topology) -> dict:
         from pipeline.offline.ranging import RangeCore
 
         ranger = RangeCore(load_calibration(topo.range["calibration"]),
-                           topo.range.get("estimator", "ml"))
+                           topo.range.get("estimator", "ml"),
+                           max_returns=topo.range.get("max_returns", 3))
     sink = ParquetSink(out)
     redone, unrecoverable, corrupt_meas = [], [], []
     corrupt_chunks: dict[int, list] = {}  # first word -> [first, words, reason]

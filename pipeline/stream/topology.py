@@ -149,6 +149,8 @@ class HistogramSection(_Section):
 class RangeSection(_Section):
     calibration: str = Field(..., description="a calibration directory")
     estimator: str = "ml"
+    max_returns: int = Field(3, ge=1, le=16, description="1..16 returns a pixel (0 is not "
+                             "'none': leave the section out to range nothing)")
     endpoint: str | None = None
 
 

@@ -176,8 +176,8 @@ def read_measurement(index: RunIndex, k: int) -> Measurement | None:
 
 
 def read_ranges(index: RunIndex, k: int):
-    """Measurement ``k``'s ranges as a Polars frame ordered by TDC (None when not written:
-    a run without a range stage, or not yet)."""
+    """Measurement ``k``'s ranges as a Polars frame ordered by TDC, each TDC's strongest
+    return (None when not written: a run without a range stage, or not yet)."""
     import polars as pl
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -187,7 +187,10 @@ def read_ranges(index: RunIndex, k: int):
         return None
     # (pyarrow reads a small file in ~1 ms; polars' reader costs ~50 ms a call here)
     tables = [pq.read_table(p, use_threads=False) for p in files]
-    return pl.from_arrow(pa.concat_tables(tables)).sort("tdc")
+    df = pl.from_arrow(pa.concat_tables(tables, promote_options="default"))
+    if "return_index" in df.columns:  # ranges 2.0: a row per return (1.0: none, all row 0)
+        df = df.filter(pl.col("return_index").fill_null(0) == 0)
+    return df.sort("tdc")
 
 
 # ---------------------------------------------------------------- the accounting identity

@@ -11,7 +11,6 @@ import numpy as np
 from scipy.constants import c as C_LIGHT
 from scipy.constants import h as H_PLANCK
 from scipy.constants import k as K_BOLTZMANN
-from scipy.integrate import quad
 
 from stages.models.atmosphere import column_transmission
 from stages.models.signal import LASER_WAVELENGTH_M, PIXEL_PITCH_M, photon_energy_j
@@ -20,8 +19,6 @@ from stages.models.signal import LASER_WAVELENGTH_M, PIXEL_PITCH_M, photon_energ
 #: W/m^2 (section 2.4.1), which gives the thesis's 1711.4 W/m^2/um at 405 nm.
 I_TOP_W_M2 = 1361.5
 SUN_TEMPERATURE_K = 6000.0
-#: Maximum luminous efficacy, lm/W.
-KM_LM_PER_W = 683.0
 #: Hot pixels of the thesis's chip (1-based 67, 98, 106, 119; section 3.4), 0-based here.
 HOT_PIXELS = (66, 97, 105, 118)
 
@@ -68,29 +65,24 @@ def photon_rate_hz(spectral_irradiance_w_m2_nm, bandwidth_nm=10.0,
     return power / photon_energy_j(wavelength_m)
 
 
-def photopic_v(wavelength_m):
-    """CIE photopic luminosity V(lambda), Gaussian approximation (error < 2 % near 555 nm,
-    larger in the far wings where V < 1e-3)."""
-    lam_um = np.asarray(wavelength_m, np.float64) * 1e6
-    return 1.019 * np.exp(-285.4 * (lam_um - 0.559) ** 2)
+#: Section 2.2.2: daylight of 100 klx is 1.2 W/m^2/nm at 405 nm outside the atmosphere and
+#: ~1.0 W/m^2/nm after it; the one lux conversion of the project (scenes, `tcspc model
+#: ambient` and the prediction model), per lux at 405 nm.
+W_M2_NM_PER_LUX_405 = 1.0 / 1e5
 
 
-def luminous_efficacy_blackbody(temperature_k=SUN_TEMPERATURE_K) -> float:
-    """Lumens per radiant watt of a blackbody spectrum (683 * integral of V * spectrum)."""
-    val, _ = quad(lambda lam: photopic_v(lam) * planck_normalized_per_m(lam, temperature_k),
-                  300e-9, 900e-9, limit=200)
-    return KM_LM_PER_W * val
+def lux_to_spectral_irradiance(lux, wavelength_m=LASER_WAVELENGTH_M):
+    """W/m^2/nm of daylight of ``lux`` at ``wavelength_m``: the thesis's 1.0 W/m^2/nm per
+    100 klx at 405 nm (section 2.2.2), carried to another wavelength by the solar spectrum's
+    shape (the 6000 K blackbody of eq. 2.37), so that 405 nm gives the thesis's number.
 
-
-def lux_to_spectral_irradiance(lux, wavelength_m=LASER_WAVELENGTH_M,
-                               temperature_k=SUN_TEMPERATURE_K):
-    """W/m^2/nm at ``wavelength_m`` of light of ``lux`` with a blackbody spectrum shape.
-
-    The spectrum is scaled so that its illuminance is ``lux``. For daylight at the thesis's
-    100 klx this gives ~1.3 W/m^2/nm at 405 nm, near the 1.0-1.2 W/m^2/nm of section 2.2.2.
+    >>> float(lux_to_spectral_irradiance(1e5))  # W/m^2/nm at 405 nm
+    1.0
+    >>> f"{float(photon_rate_hz(lux_to_spectral_irradiance(1e5))):.3g}"  # section 2.2.2
+    '1.17e+10'
     """
-    total_w_m2 = np.asarray(lux, np.float64) / luminous_efficacy_blackbody(temperature_k)
-    return total_w_m2 * planck_normalized_per_m(wavelength_m, temperature_k) * 1e-9
+    shape = planck_normalized_per_m(wavelength_m) / planck_normalized_per_m(LASER_WAVELENGTH_M)
+    return np.asarray(lux, np.float64) * W_M2_NM_PER_LUX_405 * shape
 
 
 def lamp_illuminance_lux(luminous_flux_lm, distance_m, half_angle_deg):

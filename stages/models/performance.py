@@ -20,7 +20,7 @@ import numpy as np
 from scipy.constants import c as C_LIGHT
 from scipy.special import ndtri
 
-from stages.models.noise import photon_rate_hz
+from stages.models.noise import lux_to_spectral_irradiance, photon_rate_hz
 from stages.models.signal import (
     LASER_WAVELENGTH_M,
     PIXEL_PITCH_M,
@@ -32,9 +32,9 @@ from stages.models.tcspc import (
     histogram_from_intensities,
 )
 
-#: Section 2.2.2: 100 klx of sunlight is ~1.0 W/m^2/nm at 405 nm; per lux, photons/s on a
-#: 24 um pixel through a 10 nm filter.
-AMBIENT_PHOTONS_PER_LUX = float(photon_rate_hz(1.0)) / 1e5
+#: Photons/s per lux on a 24 um pixel through a 10 nm filter at 405 nm: the one lux
+#: conversion (:func:`stages.models.noise.lux_to_spectral_irradiance`, section 2.2.2).
+AMBIENT_PHOTONS_PER_LUX = float(photon_rate_hz(lux_to_spectral_irradiance(1.0)))
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,7 @@ from scipy.constants import c as C_LIGHT
 from schemas.errors import TcspcError
 from stages.models import atmosphere as atm
 from stages.models import noise, signal
+from stages.models.scene_check import check_table
 from stages.models.tcspc import combined_sigma, sigma_from_fwhm
 
 
@@ -95,6 +96,9 @@ class Target:
     roughness_um: float | None = None  # RMS height; decides the regime when given
     incidence_deg: float = 0.0
     velocity_m_s: float = 0.0          # range rate, positive receding
+    # the fraction of the light that passes through to the targets behind it in the same
+    # pixels (a window, a fence), each way; 0 = opaque. What is reflected is reflectivity.
+    transmittance: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -132,6 +136,12 @@ class SceneModel:
     sigma_s: float             #: total jitter (eq. 2.18)
     bg_rate_hz: np.ndarray     #: ambient + dark detections per second
     report: tuple[Effect, ...]
+    #: every surface a pixel sees, nearest first (n_pixels, K): signal detections per
+    #: cycle, arrival time after the window opened and distance (0, NaN, NaN past the
+    #: last); column 0 is ``m_signal``, ``tof_in_window_s``, ``distance_m``
+    returns_m: np.ndarray | None = None
+    returns_tof_s: np.ndarray | None = None
+    returns_distance_m: np.ndarray | None = None
 
     @property
     def window_s(self) -> float:
@@ -149,19 +159,78 @@ def _build(cls, data: dict, where: str):
         raise SceneError(f"{where}: {exc}") from exc
 
 
+#: First bytes of files people give by mistake, named in the error.
+_NOT_TOML = {b"\x89PNG": "a PNG image", b"\xff\xd8\xff": "a JPEG image", b"%PDF": "a PDF",
+             b"PK\x03\x04": "a zip archive", b"PQTTTR": "a PicoQuant PTU file",
+             b"\x7fELF": "a program"}
+
+
 def load_scene(path: str | Path) -> Scene:
-    """Read and validate a scene TOML file."""
+    """Read and validate a scene TOML file (every problem at once: :func:`scene_from_dict`)."""
     path = Path(path)
     try:
-        raw = tomllib.loads(path.read_text())
+        data = path.read_bytes()
     except FileNotFoundError:
         raise SceneError(f"{path}: scene file not found") from None
+    except IsADirectoryError:
+        raise SceneError(f"{path}: a directory; a scene is a TOML file") from None
+    try:
+        raw = tomllib.loads(data.decode("utf-8"))
+    except UnicodeDecodeError:
+        what = next((v for k, v in _NOT_TOML.items() if data.startswith(k)), "binary data")
+        raise SceneError(f"{path}: not a scene: the file is {what}, a scene is a TOML text "
+                         "file (see scenes/street.toml)") from None
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{path}: not valid TOML: {exc}") from exc
     return scene_from_dict(raw, str(path))
 
 
+_SECTIONS = {"laser": Laser, "sensor": Sensor, "gate": Gate, "atmosphere": Atmosphere}
+_LISTS = {"targets": Target, "ambient": Ambient}
+
+
+def check_scene(raw: dict, where: str = "scene") -> list[str]:
+    """Every problem of a scene's TOML table, one line each naming ``where`` (the file),
+    the section and the key; empty when the scene is valid."""
+    if not isinstance(raw, dict):
+        return [f"{where}: a scene is a TOML table, found {type(raw).__name__}"]
+    tables = [k for k, v in raw.items() if isinstance(v, dict | list) and k not in _SECTIONS
+              and k not in _LISTS]
+    problems = [f"{where} [{k}]: unknown section (known: {', '.join(_SECTIONS)}, "
+                f"{', '.join(f'[[{x}]]' for x in _LISTS)})" for k in tables]
+    problems += check_table(Scene, raw, where, skip=("name", *_SECTIONS, *_LISTS, *tables))
+    if "name" in raw and not isinstance(raw["name"], str):
+        problems.append(f"{where} name: expected text in quotes, found {raw['name']!r}")
+    for key, cls in _SECTIONS.items():
+        if key in raw:
+            problems += check_table(cls, raw[key], f"{where} [{key}]")
+    sensor = raw.get("sensor")
+    n_pixels = sensor.get("n_pixels") if isinstance(sensor, dict) else None
+    n_pixels = n_pixels if isinstance(n_pixels, int) and n_pixels >= 1 else Sensor.n_pixels
+    for key, cls in _LISTS.items():
+        items = raw.get(key, [])
+        if not isinstance(items, list):
+            problems.append(f"{where} {key}: expected [[{key}]] tables, found {items!r}")
+            continue
+        for i, item in enumerate(items):
+            here = f"{where} [[{key}]] #{i + 1}"
+            found = check_table(cls, item, here)
+            problems += found
+            px = item.get("pixels") if isinstance(item, dict) else None
+            if key == "targets" and px is not None and \
+                    not any(p.startswith(f"{here} pixels:") for p in found) and \
+                    not 0 <= px[0] <= px[1] < n_pixels:
+                problems.append(f"{here} pixels: {list(px)} outside 0..{n_pixels - 1} "
+                                "(first <= last)")
+    return problems
+
+
 def scene_from_dict(raw: dict, where: str = "scene") -> Scene:
+    """A :class:`Scene` from a scene's TOML table; :class:`SceneError` lists every problem,
+    one line each, before anything is built."""
+    problems = check_scene(raw, where)
+    if problems:
+        raise SceneError("\n".join(problems))
     raw = dict(raw)
     kw = {"name": str(raw.pop("name", Path(where).stem))}
     for key, cls in (("laser", Laser), ("sensor", Sensor), ("gate", Gate)):
@@ -193,6 +262,8 @@ def _validate(scene: Scene, where: str) -> None:
             raise SceneError(f"{where}: target #{i + 1} distance_m must be > 0")
         if not 0 <= t.reflectivity <= 1:
             raise SceneError(f"{where}: target #{i + 1} reflectivity must be in [0, 1]")
+        if not 0 <= t.transmittance <= 1:
+            raise SceneError(f"{where}: target #{i + 1} transmittance must be in [0, 1]")
         if t.surface not in ("diffuse", "mirror", "specular"):
             raise SceneError(f"{where}: target #{i + 1} surface {t.surface!r}: use diffuse, "
                              "mirror or specular")
@@ -224,6 +295,7 @@ def evaluate(scene: Scene, cycles: int = 40_000) -> SceneModel:
     energy = las.energy_pj * 1e-12
     capture_s = cycles * s.readout_us * 1e-6
     atm_sizes, motion_sizes = [], []
+    surfaces = []  # (slice, m, tof, distance, transmittance) of each target
     for t in scene.targets:
         sl = slice(t.pixels[0], t.pixels[1] + 1)
         surface = t.surface
@@ -252,10 +324,13 @@ def evaluate(scene: Scene, cycles: int = 40_000) -> SceneModel:
             atm_sizes.append(1 - float(tr))
             if 1 - float(tr) >= tol:
                 trans = float(tr)
-        m[sl] = signal.signal_detections_per_cycle(n_ph, s.pdp, s.fill_factor, trans)
-        dist[sl] = t.distance_m
-        tof[sl] = g.delay_ns * 1e-9 + 2 * t.distance_m / C_LIGHT - window_open_s
+        surfaces.append((sl, float(signal.signal_detections_per_cycle(n_ph, s.pdp,
+                                                                       s.fill_factor, trans)),
+                         g.delay_ns * 1e-9 + 2 * t.distance_m / C_LIGHT - window_open_s,
+                         t.distance_m, t.transmittance))
         motion_sizes.append(2 * abs(t.velocity_m_s) * capture_s / C_LIGHT / sigma)
+    r_m, r_tof, r_dist = _returns(n, surfaces)
+    m, tof, dist = r_m[:, 0].copy(), r_tof[:, 0].copy(), r_dist[:, 0].copy()
     if scene.atmosphere is None:
         report.append(Effect("atmosphere", "not declared", 0.0, "no attenuation",
                              "Rayleigh only (atmosphere.py)"))
@@ -304,4 +379,24 @@ def evaluate(scene: Scene, cycles: int = 40_000) -> SceneModel:
                          if np.any(~np.isnan(dist)) else 0.0,
                          "fraction of target pixels whose return is outside the window",
                          "returns outside the window are not seen"))
-    return SceneModel(scene, m, tof, dist, sigma, bg, tuple(report))
+    return SceneModel(scene, m, tof, dist, sigma, bg, tuple(report), r_m, r_tof, r_dist)
+
+
+def _returns(n: int, surfaces) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pixel, the surfaces it sees nearest first (n, K): a surface's signal is scaled by
+    the squared transmittance of every surface before it (the light passes each way), and
+    an opaque one hides what is behind it. K is the most any pixel sees (at least 1)."""
+    per = [[] for _ in range(n)]
+    for sl, m, tof, d, tr in surfaces:
+        for p in range(n)[sl]:
+            per[p].append((d, m, tof, tr))
+    k = max([1] + [len(v) for v in per])
+    r_m, r_tof, r_d = np.zeros((n, k)), np.full((n, k), np.nan), np.full((n, k), np.nan)
+    for p, v in enumerate(per):
+        through = 1.0
+        for j, (d, m, tof, tr) in enumerate(sorted(v)):
+            if through <= 0:
+                break
+            r_m[p, j], r_tof[p, j], r_d[p, j] = m * through, tof, d
+            through *= tr * tr
+    return r_m, r_tof, r_d

@@ -56,10 +56,19 @@ class Optics:
     window_s: float
     reset_s: float
     tof_drift_s_per_cycle: np.ndarray | None = None  #: motion (reference engine only)
+    #: the surfaces behind the first (n_tdc, K - 1): signal per cycle and arrival time, a
+    #: partially transparent target's (reference engine only)
+    extra_m: np.ndarray | None = None
+    extra_tof_s: np.ndarray | None = None
 
     @property
     def n_tdc(self) -> int:
         return int(self.m_signal.size)
+
+    @property
+    def layered(self) -> bool:
+        """More than one surface in some pixel."""
+        return self.extra_m is not None and bool(np.any(self.extra_m > 0))
 
     @property
     def moving(self) -> bool:
@@ -122,6 +131,10 @@ class FastEngine:
         if optics.moving:
             raise ValueError("the fast engine draws static scenes only; a moving target "
                              "needs engine='reference'")
+        if optics.layered:
+            raise ValueError("the fast engine draws one surface a pixel; a scene with a "
+                             "partially transparent target (transmittance > 0 in front of "
+                             "another) needs engine='reference'")
         self.o = optics
         s, T = -optics.reset_s, optics.window_s
         self.start, self.end = s, T
@@ -296,6 +309,14 @@ class ReferenceEngine:
         ts = ts + rng.normal(0.0, self.spad_sigma, ts.size)
         keep = ts >= self.start
         np.minimum.at(first, cell[keep], ts[keep])
+        for j in range(o.extra_m.shape[1] if o.layered else 0):  # surfaces behind the first
+            k = rng.poisson(np.tile(o.extra_m[:, j], n_cycles))
+            cell = np.repeat(np.arange(cells), k)
+            ts = rng.normal(o.extra_tof_s[cell % n_tdc, j],
+                            self.pulse_sigma if self.pulse_sigma > 0 else 1e-300)
+            ts = ts + rng.normal(0.0, self.spad_sigma, ts.size)
+            keep = ts >= self.start
+            np.minimum.at(first, cell[keep], ts[keep])
         # background and dark-count detections over the sensitive period
         kb = rng.poisson(np.tile(o.bg_hz * span, n_cycles))
         cell_b = np.repeat(np.arange(cells), kb)

@@ -47,8 +47,12 @@ def optics_from_scene(sm: SceneModel) -> tuple[Optics, float]:
     drift = np.zeros(s.n_pixels)
     for t in sm.scene.targets:
         drift[t.pixels[0]:t.pixels[1] + 1] = 2 * t.velocity_m_s * s.readout_us * 1e-6 / C_LIGHT
+    extra_m = extra_tof = None
+    if sm.returns_m is not None and sm.returns_m.shape[1] > 1 and np.any(sm.returns_m[:, 1:]):
+        extra_m = sm.returns_m[:, 1:].copy()
+        extra_tof = np.nan_to_num(sm.returns_tof_s[:, 1:], nan=0.0)
     return Optics(sm.m_signal, tof, sigma, sm.bg_rate_hz, sm.window_s, s.reset_ns * 1e-9,
-                  drift if np.any(drift) else None), spad
+                  drift if np.any(drift) else None, extra_m, extra_tof), spad
 
 
 def detections_per_pixel_per_cycle(optics: Optics) -> float:

@@ -18,7 +18,7 @@ from pipeline.offline.calibrate import quality
 
 N_PIX = 4
 SMALL_CAL = dict(n_pixels=N_PIX, cycles=150_000, delay_cycles=100_000,
-                 lux=[100.0, 400.0, 1200.0, 2500.0, 3500.0], inl_rms=1.0)
+                 lux=[133.950, 535.799, 1607.398, 3348.746, 4688.244], inl_rms=1.0)
 
 
 @pytest.fixture(scope="module")

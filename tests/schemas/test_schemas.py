@@ -25,13 +25,16 @@ def test_every_field_has_unit_and_description(spec):
 
 
 def test_design_columns_are_present():
-    # DESIGN.md "Outputs": the contract's columns, in order, with their types.
+    # docs/design.md "Outputs": the contract's columns, in order, with their types.
     assert HISTOGRAMS.names[:4] == ["measurement", "tdc", "cycles", "counts"]
     # histograms 2.0: counts a variable list (512 for the chip, other code counts for the
     # instruments of pipeline/io/ptu.py and linospad2.py); 1.x files are upgraded on read
     assert HISTOGRAMS.schema.field("counts").type == pa.list_(pa.uint64())
+    # ranges 2.0: a row per return (return_index, 0 the strongest) and a flag; 1.x files
+    # are upgraded on read (pipeline/io/ranges.py)
     assert RANGES.names == ["measurement", "tdc", "distance_m", "sigma_m", "fwhm_m",
-                            "signal_counts", "background_per_bin", "detected", "estimator"]
+                            "signal_counts", "background_per_bin", "detected", "estimator",
+                            "return_index", "flag"]
 
 
 def test_validator_names_column_expected_and_found():

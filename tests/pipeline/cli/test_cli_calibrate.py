@@ -16,7 +16,7 @@ n_pixels = 8
 hot_pixels = []
 [[ambient]]
 kind = "lux"
-lux = 1500.0
+lux = 2009.247
 """
 
 
@@ -59,7 +59,7 @@ def test_density_calibration_directory(capture):
 def test_density_filled_from_a_dimmer_test(capture):
     """``--fill``: a density test at half the light measures the codes under the first
     one's reset peak (accuracy: tests/stages/test_calibration.py); both are sources."""
-    (capture / "dim8.toml").write_text(SCENE.replace("lux = 1500.0", "lux = 750.0"))
+    (capture / "dim8.toml").write_text(SCENE.replace("lux = 2009.247", "lux = 1004.624"))
     run("simulate", str(capture / "dim8.toml"), "--cycles", "600000", "--out",
         str(capture / "dim.bin"), "-q", "--seed", "3")
     out, plain = capture / "caldir_fill", capture / "caldir_plain"
@@ -95,11 +95,12 @@ def lsb_cal(capture):
     captures), 4 density tests of 6e5 cycles on the 8-TDC chip."""
     d = capture
     levels = []
-    for lux in (100, 600, 2000, 6000):
-        (d / f"d{lux}.toml").write_text(SCENE.replace("lux = 1500.0", f"lux = {lux}.0"))
-        run("simulate", str(d / f"d{lux}.toml"), "--cycles", "600000", "--out",
-            str(d / f"d{lux}.bin"), "-q")
-        levels.append(str(d / f"d{lux}.bin"))
+    for lux in (133.950, 803.699, 2678.997, 8036.990):
+        name = f"d{round(lux)}"
+        (d / f"{name}.toml").write_text(SCENE.replace("lux = 2009.247", f"lux = {lux}"))
+        run("simulate", str(d / f"{name}.toml"), "--cycles", "600000", "--out",
+            str(d / f"{name}.bin"), "-q")
+        levels.append(str(d / f"{name}.bin"))
     run("calibrate", "lsb", *levels, "--out", str(d / "lsb_cal"), "--inl-rms", "1.0")
     return d / "lsb_cal"
 
@@ -109,7 +110,7 @@ def test_range_end_to_end_against_the_truth(capture, lsb_cal):
     d = capture
     def mirror_scene(name, pixels, distance_m, reflectivity, ambient):
         base = SCENE.replace('name = "density8"', f'name = "{name}"')
-        base = base.replace("lux = 1500.0", f"lux = {ambient}") if ambient else \
+        base = base.replace("lux = 2009.247", f"lux = {ambient}") if ambient else \
             base.split("[[ambient]]")[0]
         (d / f"{name}.toml").write_text(base + f"""
 [gate]
@@ -123,7 +124,7 @@ surface = "mirror"
 """)
 
     mirror_scene("delay8", [0, 7], 0.001, 0.0005, None)
-    mirror_scene("range8", [0, 3], 2.0, 0.002, 300.0)
+    mirror_scene("range8", [0, 3], 2.0, 0.002, 401.849)
     run("simulate", str(d / "delay8.toml"), "--cycles", "200000", "--out", str(d / "z.bin"),
         "-q")
     run("simulate", str(d / "range8.toml"), "--cycles", "100000", "--out", str(d / "r.bin"),
@@ -142,11 +143,45 @@ surface = "mirror"
     assert df.filter(pl.col("tdc") >= 4)["detected"].sum() <= 1
 
 
+@pytest.mark.slow
+def test_delay_from_a_target_at_a_known_distance(capture, lsb_cal):
+    """`calibrate delay --distance-m 1.2` on a capture of a target at 1.2 m: range then
+    puts a target at 2 m at 2 m (eq. 5.3 with the target's round trip)."""
+    d = capture
+    for name, dist, seed in (("known8", 1.2, 3), ("far8", 2.0, 7)):
+        (d / f"{name}.toml").write_text(SCENE.replace('name = "density8"', f'name = "{name}"')
+                                        .split("[[ambient]]")[0] + f"""
+[gate]
+t_laser_win_ns = 140.0
+delay_ns = 100.0
+[[targets]]
+pixels = [0, 3]
+distance_m = {dist}
+reflectivity = 0.002
+surface = "mirror"
+""")
+        run("simulate", str(d / f"{name}.toml"), "--cycles", "100000", "--out",
+            str(d / f"{name}.bin"), "-q", "--seed", str(seed))
+    cal = d / "caldir_known"
+    shutil.copytree(lsb_cal, cal)
+    run("calibrate", "delay", str(d / "known8.bin"), "--out", str(cal), "--distance-m", "1.2")
+    run("range", str(d / "far8.bin"), "--calibration", str(cal), "--out",
+        str(d / "far.parquet"))
+    import polars as pl
+
+    target = pl.read_parquet(d / "far.parquet").filter(pl.col("tdc") < 4)
+    assert target["detected"].all()
+    assert (target["distance_m"] - 2.0).abs().max() < 0.05
+    res = run("calibrate", "delay", str(d / "known8.bin"), "--out", str(cal),
+              "--distance-m", "-1", ok=False)
+    assert "--distance-m must be >= 0" in str(res.exception)
+
+
 def zero_distance(d, name, delay_ns, reflectivity, lux=None, gate_ns=140.0,
                   cycles=50_000):
     """A zero-distance capture of the 8-TDC chip: the return at tau = gate - delay."""
     scene = SCENE.replace('name = "density8"', f'name = "{name}"')
-    scene = scene.replace("lux = 1500.0", f"lux = {lux}") if lux else \
+    scene = scene.replace("lux = 2009.247", f"lux = {lux}") if lux else \
         scene.split("[[ambient]]")[0]
     (d / f"{name}.toml").write_text(scene + f"""
 [gate]
@@ -179,8 +214,8 @@ def delay_tolerance_ps(caldir):
     (63.0, None),   # 12 codes from the capture's own reset peak
     (100.0, None),  # mid-window
     (139.0, None),  # 5 codes from the window's end
-    (71.5, 50.0),   # a little ambient light: a reset peak, dimmer than the density tests
-    (135.0, 3000.0),  # brighter, near the window's end
+    (71.5, 66.975),   # a little ambient light: a reset peak, dimmer than the density tests
+    (135.0, 4018.495),  # brighter, near the window's end
 ])
 def test_the_delay_is_found_wherever_the_return_is(capture, lsb_cal, tmp_path, delay_ns,
                                                     lux):
@@ -204,7 +239,7 @@ def test_the_delay_is_found_wherever_the_return_is(capture, lsb_cal, tmp_path, d
 @pytest.mark.parametrize("delay_ns, lux, why", [
     (60.6, None, "reset peak"),       # the return 2-3 codes from the reset peak
     (139.7, None, "window's end"),    # the return 1.5 codes from the window's end
-    (71.5, 8000.0, "outside the LSB fit's range"),  # 0.8 a cycle, the fit ends at 0.69
+    (71.5, 10715.987, "outside the LSB fit's range"),  # 0.8 a cycle, the fit ends at 0.69
     (100.0, None, "no return detected"),  # gate 300 ns: the return is before the window
 ])
 def test_no_delay_anywhere_exits_non_zero_and_keeps_the_calibration(

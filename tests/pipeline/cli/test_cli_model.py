@@ -2,6 +2,7 @@ import json
 from pathlib import Path
 
 import polars as pl
+import pytest
 from click.testing import CliRunner
 
 from pipeline.cli.app import cli
@@ -25,6 +26,21 @@ def test_ambient_transmission_and_table_2_2():
     rows = json.loads(run("transmission", "-d", "200", "--temperature", "273", "--json"))
     assert abs(rows[0]["transmission"] - 0.9914) < 1e-4
     assert len(json.loads(run("table", "--json"))) == 8
+
+
+def test_ambient_daylight_is_the_thesis_number():
+    """Section 2.2.2: 100 klx through a 10 nm filter on a 24 um pixel is 1.0 W/m^2/nm and
+    1.17e10 photons/s; a scene's `kind = "lux"` ambient uses the same conversion."""
+    from stages.models.scene import evaluate, scene_from_dict
+
+    rows = json.loads(run("ambient", "--lux", "100000", "--json"))
+    day = next(r for r in rows if "daylight" in r["source"])
+    assert day["w_m2_nm"] == 1.0
+    assert round(day["photons_hz"] / 1e10, 2) == 1.17
+    scene = scene_from_dict({"ambient": [{"kind": "lux", "lux": 1e5, "filter_nm": 10.0}],
+                             "dark_counts": False}, "day.toml")
+    pde = scene.sensor.pde
+    assert evaluate(scene).bg_rate_hz[0] / pde == pytest.approx(day["photons_hz"], rel=1e-12)
 
 
 def test_predict_writes_parquet_and_plot(tmp_path):

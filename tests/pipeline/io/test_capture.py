@@ -49,8 +49,21 @@ def test_missing_and_invalid_sidecar(tmp_path):
     (tmp_path / "c.json").write_text("{not json")
     with pytest.raises(CaptureError, match=r"c.json: sidecar is not valid JSON"):
         Capture(tmp_path / "c")
-    with pytest.raises(CaptureError, match="capture file not found"):
+    with pytest.raises(CaptureError, match=r"nothing.bin: capture not found \(.*nothing.bin "
+                                           r"does not exist\); a capture is NAME.bin"):
         Capture(tmp_path / "nothing.bin")
+
+
+def test_a_file_that_is_not_a_capture_is_named(tmp_path):
+    """`tcspc calibrate lsb notes.txt` names notes.txt and says what a capture is."""
+    (tmp_path / "notes.txt").write_text("a note")
+    with pytest.raises(CaptureError) as info:
+        Capture(tmp_path / "notes.txt")
+    assert str(info.value) == (f"{tmp_path / 'notes.txt'}: not a capture (notes.txt.bin not "
+                               "found); a capture is NAME.bin (raw 32-bit words) with "
+                               "NAME.json beside it")
+    with pytest.raises(CaptureError, match="a directory, not a capture"):
+        Capture(tmp_path)
 
 
 @pytest.mark.parametrize("overrides, message", [

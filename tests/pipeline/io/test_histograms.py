@@ -10,7 +10,7 @@ from schemas import HISTOGRAMS, SchemaMismatch, SchemaVersionError
 from schemas.core import SchemaSpec, field
 from stages.histogram import HistogramState
 
-# The 1.0 contract as it was shipped (DESIGN.md "Outputs"), written here from the old
+# The 1.0 contract as it was shipped (docs/design.md "Outputs"), written here from the old
 # docs/schemas.md rather than taken from the code under test.
 V1 = SchemaSpec("histograms", "1.0", tuple(
     field(n, t, "", n) for n, t in [

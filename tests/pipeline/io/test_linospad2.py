@@ -15,7 +15,7 @@ from schemas.errors import TcspcError
 from schemas.instruments import LINOSPAD2_EVENTS
 from stages.instruments import linospad2 as lino
 
-DATA = Path(__file__).parents[2] / "data" / "linospad2"  # copies of ../shared/data
+DATA = Path(__file__).parents[2] / "data" / "linospad2"  # public files, see tests/data/README.md
 DAT = DATA / "test_data_2212b.dat"
 CSV = DATA / "TDC_A5_#36_2212b.csv"
 PTU = sorted((Path(__file__).parents[2] / "data" / "picoquant").glob("*.ptu"))

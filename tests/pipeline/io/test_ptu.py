@@ -31,7 +31,7 @@ from stages.instruments.ptu import (
     record_format,
 )
 
-DATA = Path(__file__).parents[2] / "data" / "picoquant"  # copies of ../shared/data
+DATA = Path(__file__).parents[2] / "data" / "picoquant"  # public files, see tests/data/README.md
 HH_T3 = DATA / "hydraharp_v20_t3.ptu"
 PH_T2 = DATA / "picoharp_v30_t2.ptu"
 needs_data = pytest.mark.skipif(not (HH_T3.is_file() and PH_T2.is_file()),

@@ -58,7 +58,7 @@ N_TDC = 8
 #: no faster than n_sat = 0.5 (test_a_fast_saturating_lsb_is_followed_or_flagged) and the
 #: artifact at most twice the thesis's rate (9x: test_a_strong_artifact_in_the_dimmest_density_test)
 SWEEP_RANGES = {"n_sat": (0.5, 1.5), "artifact_rate": (0.0, 6e-4)}
-DENSITY_LUX = (100.0, 700.0, 2500.0, 7000.0)   # ~0.02 to ~0.75 detections a cycle
+DENSITY_LUX = (133.950, 937.649, 3348.746, 9376.488)   # ~0.02 to ~0.75 detections a cycle
 DENSITY_CYCLES = 800_000
 ZERO_CYCLES = 50_000
 RANGE_CYCLES = 50_000
@@ -118,7 +118,7 @@ def draw_captures(seed: int, chip) -> Captures:
     tau = rng.uniform(1.0, 79.0)                  # anywhere in the 80 ns window
     delay = gate - tau
     # dimmer than every density test (no ambient) or anywhere up to brighter than all
-    lux = 0.0 if rng.random() < 0.4 else log_uniform(rng, 30.0, 9000.0)
+    lux = 0.0 if rng.random() < 0.4 else log_uniform(rng, 40.185, 12055.485)
     m0 = log_uniform(rng, 0.025, 0.3)  # a dimmer one is under the LSB fit: flagged
     rg = None
     targets = []
@@ -359,7 +359,7 @@ def test_artifact_bounds_stay_exact_as_the_data_grow(seed):
 
     chip, _ = random_chip(seed, N_TDC, {"d2nd_dnl": (0.5, 0.5),
                                         "artifact_rate": (3e-3, 3e-3)})
-    sim = Simulator(evaluate(_scene("density", chip, 140.0, 100.0, lux=2500.0), 10),
+    sim = Simulator(evaluate(_scene("density", chip, 140.0, 100.0, lux=3348.746), 10),
                     chip, seed)
     acc = SecondStageAccumulator(chip.n_tdc)
     checks = [30_000, 200_000, 1_000_000]

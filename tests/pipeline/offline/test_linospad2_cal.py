@@ -9,7 +9,7 @@ from pipeline.io import linospad2 as lio
 from pipeline.offline import linospad2_cal as cal
 from stages.instruments import linospad2 as lino
 
-DATA = Path(__file__).parents[2] / "data" / "linospad2"  # copies of ../shared/data
+DATA = Path(__file__).parents[2] / "data" / "linospad2"  # public files, see tests/data/README.md
 DAT = DATA / "test_data_2212b.dat"
 CSV = DATA / "TDC_A5_#36_2212b.csv"
 needs_data = pytest.mark.skipif(not DAT.exists() or not CSV.exists(),

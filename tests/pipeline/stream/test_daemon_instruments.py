@@ -15,7 +15,7 @@ from click.testing import CliRunner
 from pipeline.cli.app import cli
 from pipeline.stream.topology import TopologyError, load_topology
 
-DATA = Path(__file__).parents[2] / "data"  # tests/data: copies of ../shared/data
+DATA = Path(__file__).parents[2] / "data"  # tests/data: public files, see its README.md
 T3 = DATA / "picoquant" / "hydraharp_v20_t3.ptu"
 T2 = DATA / "picoquant" / "picoharp_v30_t2.ptu"
 LINO = DATA / "linospad2" / "test_data_2212b.dat"

@@ -1,6 +1,6 @@
 """The journal's segments, compressed (zstd frames, the default) and raw: every word range
 reads back exactly, a closed compressed segment is a capture, and `zstd -d` turns it into
-the raw capture of DESIGN.md byte for byte."""
+the raw capture of docs/design.md byte for byte."""
 
 import shutil
 import subprocess

@@ -39,7 +39,7 @@ reflectivity = 0.004
 surface = "mirror"
 [[ambient]]
 kind = "lux"
-lux = 800.0
+lux = 1071.599
 """
 
 

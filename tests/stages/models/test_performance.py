@@ -80,3 +80,18 @@ def test_rows_table():
     rows = table_2_2_rows(np.array([1.0, 10.0]))
     assert len(rows) == 8 * 2 * 2
     assert {"config", "gated", "distance_m", "p_detect", "spec_pde"} <= set(rows[0])
+
+
+def test_configuration_8_edge_is_the_threshold_not_the_peak_search():
+    """docs/models.md: configuration 8's P falls from 0.80 to 0 between 0.2 and 0.3 m
+    while the highest bin stays on the signal; the signal in the peak bin falls below
+    eq. 2.44's background term."""
+    x = np.array([0.2, 0.25, 0.3, 0.5, 1.0, 5.0])
+    r = predict(TABLE_2_2[7], x, gated=False)
+    assert r["on_signal"].all()
+    assert r["p_detect"][:3].round(2).tolist() == [0.80, 0.39, 0.0]
+    assert (r["p_detect"][3:] == 0).all()
+    signal = r["peak_count"] - r["noise_count"]
+    assert signal[:3].round(1).tolist() == [8.4, 5.4, 3.7]
+    threshold = alpha_b(0.5, 2500) * np.sqrt(r["noise_count"][2])
+    assert signal[2] < threshold < signal[0]

@@ -43,15 +43,65 @@ def test_hot_pixels_and_motion_are_reported():
 
 
 @pytest.mark.parametrize("raw, message", [
-    ({"targets": [{"pixels": [0, 200], "distance_m": 1.0}]}, "outside 0..127"),
-    ({"targets": [{"pixels": [0, 2], "distance_m": -1.0}]}, "distance_m must be > 0"),
-    ({"targets": [{"pixels": [0, 2], "distance_m": 1.0, "surface": "glass"}]}, "surface"),
-    ({"laser": {"colour": "blue"}}, r"\[laser\]: unknown keys \['colour'\]"),
-    ({"wind": 3}, "unknown top-level keys"),
+    ({"targets": [{"pixels": [0, 200], "distance_m": 1.0}]},
+     r"^x.toml \[\[targets\]\] #1 pixels: \[0, 200\] outside 0..127"),
+    ({"targets": [{"pixels": [0, 2], "distance_m": -1.0}]},
+     r"^x.toml \[\[targets\]\] #1 distance_m: must be > 0, found -1.0$"),
+    ({"targets": [{"pixels": [0, 2], "distance_m": 1.0, "surface": "glass"}]},
+     r"^x.toml \[\[targets\]\] #1 surface: 'glass' is not one of diffuse, mirror, specular$"),
+    ({"laser": {"colour": "blue"}}, r"^x.toml \[laser\] colour: unknown key \(known: "),
+    ({"gate": {"t_laser_win_ns": "abc"}},
+     r"^x.toml \[gate\] t_laser_win_ns: expected a finite number, found text 'abc'$"),
+    ({"sensor": {"n_pixels": 12.5}},
+     r"^x.toml \[sensor\] n_pixels: expected an integer, found a number 12.5$"),
+    ({"histogram": {"bins": 3}}, r"^x.toml \[histogram\]: unknown section"),
+    ({"wind": 3}, r"^x.toml wind: unknown key"),
+    ({"targets": [{"pixels": [0, 2]}]}, r"^x.toml \[\[targets\]\] #1 distance_m: missing"),
 ])
 def test_bad_scenes_are_clear_errors(raw, message):
     with pytest.raises(SceneError, match=message):
         scene_from_dict(raw, "x.toml")
+
+
+def test_every_problem_in_one_pass():
+    raw = {"gate": {"t_laser_win_ns": "abc", "delay_ns": -1},
+           "laser": {"colour": "blue", "beam_mm": [1.0]},
+           "targets": [{"pixels": [0, 2], "distance_m": 1.0, "reflectivity": 2},
+                       {"pixels": [5, 1], "distance_m": 3.0}],
+           "ambient": [{"kind": "moon"}], "atmosphere": {"relative_humidity": "60%"},
+           "tolerance": -1}
+    with pytest.raises(SceneError) as info:
+        scene_from_dict(raw, "x.toml")
+    lines = str(info.value).splitlines()
+    keys = [line.split(":")[0] for line in lines]
+    assert keys == ["x.toml tolerance", "x.toml [laser] colour", "x.toml [laser] beam_mm",
+                    "x.toml [gate] t_laser_win_ns", "x.toml [gate] delay_ns",
+                    "x.toml [atmosphere] relative_humidity",
+                    "x.toml [[targets]] #1 reflectivity", "x.toml [[targets]] #2 pixels",
+                    "x.toml [[ambient]] #1 kind"]
+
+
+def test_transmittance_is_a_fraction():
+    from stages.models.scene import Target, check_scene
+
+    if "transmittance" not in Target.__dataclass_fields__:
+        pytest.skip("targets have no transmittance in this version of the simulator")
+    ok = {"targets": [{"pixels": [0, 2], "distance_m": 1.0, "transmittance": t}
+                      for t in (0, 0.3, 1.0)]}
+    assert check_scene(ok, "x.toml") == []
+    bad = {"targets": [{"pixels": [0, 2], "distance_m": 1.0, "transmittance": t}
+                       for t in (-0.1, 1.5)]}
+    assert [p.split(": ", 1)[1] for p in check_scene(bad, "x.toml")] == [
+        "must be >= 0 and <= 1, found -0.1", "must be >= 0 and <= 1, found 1.5"]
+
+
+def test_files_that_are_not_scenes(tmp_path):
+    png = tmp_path / "street.png"
+    png.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(256)))
+    with pytest.raises(SceneError, match=r"street.png: not a scene: the file is a PNG image"):
+        load_scene(png)
+    with pytest.raises(SceneError, match="a directory"):
+        load_scene(tmp_path)
 
 
 def test_missing_or_broken_file(tmp_path):

@@ -16,7 +16,7 @@ from stages.simulator.source import Simulator
 N = 8
 
 
-def scene(lux=1500.0, target=False, reset_ns=20.0):
+def scene(lux=2009.247, target=False, reset_ns=20.0):
     """A uniform-light scene of N pixels (a density test), or a zero-distance return."""
     targets = (Target((0, N - 1), 0.001, 0.0015, "mirror"),) if target else ()
     return Scene("zoo", sensor=Sensor(n_pixels=N, hot_pixels=(), reset_ns=reset_ns),
@@ -54,7 +54,7 @@ def test_default_knobs_are_the_thesis_chip():
 @pytest.mark.parametrize("seed", [0, 1])
 def test_zoo_chips_compiled_and_numpy_write_the_same_bytes(seed):
     chip, knobs = random_chip(seed, N, {"dead_codes": (3, 3), "reset_offset_ps": (-80., 80.)})
-    for sc in (scene(), scene(lux=50.0, target=True)):
+    for sc in (scene(), scene(lux=66.975, target=True)):
         a, _ = words_of(chip, sc, 3000, compiled=True)
         b, _ = words_of(chip, sc, 3000, compiled=False)
         assert np.array_equal(a, b), knobs
@@ -146,7 +146,7 @@ def test_reset_peak_height_position_and_spread():
     base = make_chip(N, 4, artifact_rate=0.0)
 
     def peak(chip):
-        words, sim = words_of(chip, scene(lux=300.0), 20_000, compiled=False)
+        words, sim = words_of(chip, scene(lux=401.849), 20_000, compiled=False)
         tdc, d1, _ = hits_of(chip, words)
         x_t = 80e-9 / (chip.lsb_ps(sim.light) * 1e-12)
         rel = d1 - x_t[tdc]
@@ -173,7 +173,7 @@ def test_second_stage_in_time_is_flat_under_uniform_light():
     spreads = []
     for in_time in (False, True):
         chip = make_chip(N, 3, inl_scale=1.3, d2nd_in_time=in_time, artifact_rate=0.0)
-        words, sim = words_of(chip, scene(lux=300.0), 40_000)
+        words, sim = words_of(chip, scene(lux=401.849), 40_000)
         tdc, d1, d2 = hits_of(chip, words)
         x_t = chip.window_truth(sim.light, 80e-9)[1]
         keep = d1 < x_t[tdc] - 10  # away from the reset peak

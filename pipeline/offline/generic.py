@@ -1,0 +1,387 @@
+"""Ranging and distance calibration of generic histograms (any instrument's, see
+:mod:`pipeline.io.generic`) on the instrument's own uniform bins.
+
+The time of a return is taken on the file's nominal bins, relative to the measurement's
+reference channel where it has one (an internal zero-distance path: it removes the laser's
+drift between captures). ``tcspc calibrate distance`` fits, per row and per estimator, the
+line ``t = (delay + 2 d / c) * nominal / real`` over captures at known distances: the delay
+(eq. 5.3 at the target's distance) and, from two or more distances, the real bin width.
+Off-axis zones see a flat target along a longer, slanted path, a fixed factor that the
+per-row scale takes up.
+
+Pile-up: an instrument that does not report its laser pulses gives no Coates correction.
+From three or more distances the calibration fits one effective number of pulses per
+histogram (the sensor's, the same for every row and capture: the one whose correction
+leaves the smallest calibration residuals) and records it; ranging uses it where the file
+has no cycles, and says so.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+from scipy.constants import c as C_LIGHT
+
+from pipeline.io.atomic import atomic_path
+from pipeline.io.generic import Measurement, read_generic
+from schemas.errors import CalibrationError
+from stages.ranging import ESTIMATORS, Estimate, Histograms, estimate
+from stages.ranging.irf import IRF_ESTIMATORS, Response, fit_response, response_from_counts
+
+CALIBRATION_FILE = "distance_calibration.json"
+#: the key of a fit made with a Gaussian by an estimator that takes a measured response
+#: (its delay differs: each shape puts a return's time elsewhere on the peak)
+GAUSSIAN = "/gaussian"
+#: cycles of a histogram whose instrument does not report them: so many that the Coates
+#: correction is the identity
+_NO_PILEUP = 1e12
+#: the effective-pulse grid of the pile-up fit, in multiples of the brightest histogram
+_CYCLE_GRID = np.geomspace(1.02, 30.0, 24)
+
+
+@dataclass
+class DistanceCalibration:
+    """What ``calibrate distance`` fitted: per estimator and row (``tdc``) the delay and the
+    real bin width, the residuals; the measured response; the effective pulses."""
+
+    tdc: list[int]
+    nominal_bin_ps: float
+    fits: dict[str, dict] = field(default_factory=dict)
+    response: Response | None = None
+    cycles: float | None = None
+    pileup: str = "none (the file gives no cycles)"
+    measurements: list[str] = field(default_factory=list)
+    distances_m: list[float] = field(default_factory=list)
+    path: str = ""
+
+    def save(self, out: str | Path) -> Path:
+        doc = {"kind": "distance", "tdc": self.tdc, "nominal_bin_ps": self.nominal_bin_ps,
+               "fits": self.fits, "cycles": self.cycles, "pileup": self.pileup,
+               "measurements": self.measurements, "distances_m": self.distances_m,
+               "response": None if self.response is None else {
+                   "source": self.response.source, "bin_ps": self.response.bin_s * 1e12,
+                   "density": self.response.density.tolist()}}
+        with atomic_path(out) as tmp:
+            tmp.mkdir()
+            (tmp / CALIBRATION_FILE).write_text(json.dumps(doc, indent=1, allow_nan=True))
+        return Path(out)
+
+    @classmethod
+    def load(cls, path: str | Path) -> DistanceCalibration:
+        f = Path(path) / CALIBRATION_FILE
+        if not f.is_file():
+            raise CalibrationError(f"{path}: no {CALIBRATION_FILE} (made by `tcspc calibrate "
+                                   "distance`)")
+        doc = json.loads(f.read_text())
+        r = doc.get("response")
+        resp = None if r is None else Response(np.asarray(r["density"]), r["bin_ps"] * 1e-12,
+                                               r["source"])
+        return cls(doc["tdc"], doc["nominal_bin_ps"], doc["fits"], resp, doc.get("cycles"),
+                   doc.get("pileup", ""), doc.get("measurements", []),
+                   doc.get("distances_m", []), str(path))
+
+    def preferred(self, estimator: str) -> str:
+        """The fit ``range`` uses for ``estimator`` when no response is asked for: for
+        matched and ml, the measured response or the Gaussian of its FWHM, whichever left
+        the smaller calibration residuals (a reference channel's far tail need not be a
+        zone's; the calibration, not the user, tells)."""
+        alt = self.fits.get(estimator + GAUSSIAN)
+        if alt is not None and estimator in self.fits and np.isfinite(alt["rms_mm"]) and (
+                not np.isfinite(self.fits[estimator]["rms_mm"])
+                or alt["rms_mm"] < self.fits[estimator]["rms_mm"]):
+            return estimator + GAUSSIAN
+        return estimator
+
+    def row_fit(self, estimator: str, tdc) -> tuple[np.ndarray, np.ndarray]:
+        """(delay_s, bin scale real/nominal) per requested row; NaN where not calibrated."""
+        if estimator not in self.fits:
+            raise CalibrationError(f"{self.path}: no fit for estimator {estimator!r} "
+                                   f"(has {sorted(self.fits)})")
+        fit = self.fits[estimator]
+        where = {t: i for i, t in enumerate(self.tdc)}
+        idx = [where.get(int(t), -1) for t in tdc]
+        delay = np.array([fit["delay_ps"][i] if i >= 0 else np.nan for i in idx], float)
+        width = np.array([fit["bin_width_ps"][i] if i >= 0 else np.nan for i in idx], float)
+        return np.asarray(delay, float) * 1e-12, np.asarray(width, float) / self.nominal_bin_ps
+
+
+@dataclass(frozen=True)
+class Times:
+    """Return times of a measurement's ranged rows (not its reference)."""
+
+    tdc: np.ndarray
+    est: Estimate
+    t_s: np.ndarray          #: after the reference channel's return, or after bin 0
+    response: str            #: which instrument response was used
+    pileup: str              #: how pile-up was handled
+    bright: np.ndarray       #: rows with more counts than the effective pulses (raised)
+
+
+def _cycles(m: Measurement, cycles: float | None) -> tuple[np.ndarray, str, np.ndarray]:
+    total = m.counts.sum(axis=1)
+    given = np.isfinite(m.cycles)
+    bright = np.zeros(total.size, bool)
+    if given.all():
+        return m.cycles, "Coates, with the file's cycles", bright
+    if cycles is not None:
+        # a histogram holds no more first photons than pulses: a brighter one than the
+        # fitted count raises its own to its total (and is counted in the note)
+        bright = ~given & (total >= cycles)
+        cyc = np.where(given, m.cycles, np.maximum(cycles, total * 1.001))
+        return cyc, (f"Coates, with {cycles:.4g} effective pulses fitted by calibrate "
+                     "distance"), bright
+    return (np.where(given, m.cycles, np.maximum(total, 1.0) * _NO_PILEUP),
+            "none: the file gives no cycles", bright)
+
+
+def measurement_times(m: Measurement, estimator: str = "ml", p_fa: float = 1e-3,
+                      response: Response | None = None, sigma_s: float | None = None,
+                      cycles: float | None = None) -> Times:
+    """The return time of every non-reference row of ``m``.
+
+    ``matched`` and ``ml`` use a measured response (the measurement's own reference
+    channel, else ``response``) unless ``sigma_s`` asks for a Gaussian; the other
+    estimators use a Gaussian of ``sigma_s`` (default: the response's sigma, else one bin).
+    """
+    cyc, pileup, bright = _cycles(m, cycles)
+    n = m.counts.shape[1]
+    edges = m.bin_width_s * np.arange(n + 1, dtype=np.float64)
+    h = Histograms(m.counts, np.broadcast_to(edges, (m.counts.shape[0], n + 1)).copy(), cyc,
+                   np.ones(m.counts.shape, bool))
+    ref = np.flatnonzero(m.reference)
+    if ref.size:
+        r = ref[0]
+        response = response_from_counts(m.counts[r], m.bin_width_s,
+                                        f"the reference channel (row {m.tdc[r]}) of each "
+                                        "measurement",
+                                        cyc[r] if np.isfinite(m.cycles[r]) or cycles is not None
+                                        else None)
+    if estimator in IRF_ESTIMATORS and response is not None and sigma_s is None:
+        est, used = fit_response(h, response, estimator, p_fa), response.source
+    else:
+        sigma = sigma_s or (response.sigma_s if response is not None else m.bin_width_s)
+        est = estimate(h, sigma, estimator, p_fa)
+        used = f"Gaussian, sigma {sigma * 1e12:.1f} ps"
+    origin = 0.0
+    if ref.size:
+        origin = est.t_s[ref[0]] if est.detected[ref[0]] else np.nan
+    keep = ~m.reference
+    sub = dataclasses.replace(est, **{f.name: np.asarray(getattr(est, f.name))[keep]
+                                      for f in dataclasses.fields(est)
+                                      if isinstance(getattr(est, f.name), np.ndarray)})
+    return Times(m.tdc[keep], sub, sub.t_s - origin, used, pileup, bright[keep])
+
+
+def read_truth(path: str | Path) -> dict[tuple[str, int | None], float]:
+    """truth.csv: ``measurement,distance_m`` and optionally ``tdc`` (a row's own distance)."""
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    if not rows or not {"measurement", "distance_m"} <= set(rows[0]):
+        raise CalibrationError(f"{path}: needs the columns measurement,distance_m")
+    out = {}
+    for i, r in enumerate(rows, start=2):
+        try:
+            d = float(r["distance_m"])
+        except ValueError:
+            raise CalibrationError(f"{path}: line {i}: distance_m {r['distance_m']!r} is not "
+                                   "a number") from None
+        if not np.isfinite(d) or d < 0:
+            raise CalibrationError(f"{path}: line {i}: distance_m must be >= 0, found {d}")
+        tdc = r.get("tdc")
+        out[(r["measurement"], int(tdc) if tdc not in (None, "") else None)] = d
+    return out
+
+
+def _fit_line(x, t):
+    """t = a + b x over the finite points: (a, b, residuals in t units); b = 1 when the
+    points hold one distance."""
+    ok = np.isfinite(t) & np.isfinite(x)
+    if ok.sum() == 0:
+        return np.nan, np.nan, np.full(t.shape, np.nan)
+    if np.unique(x[ok]).size >= 2:
+        b, a = np.polyfit(x[ok], t[ok], 1)
+    else:
+        a, b = float(np.mean(t[ok] - x[ok])), 1.0
+    return a, b, np.where(ok, t - a - b * x, np.nan)
+
+
+def _fit_rows(times: list[Times], dist: np.ndarray):
+    """Per row: delay (s), scale (real/nominal), residuals (m) over the measurements."""
+    t = np.stack([np.where(tm.est.detected, tm.t_s, np.nan) for tm in times])
+    x = 2 * dist / C_LIGHT
+    delay, scale, res = [], [], []
+    for j in range(t.shape[1]):
+        a, b, r = _fit_line(x[:, j], t[:, j])
+        delay.append(a / b)
+        scale.append(1.0 / b)
+        res.append(r / b * C_LIGHT / 2)
+    return np.array(delay), np.array(scale), np.array(res).T
+
+
+def _rms(res) -> float:
+    r = np.asarray(res, float)
+    return float(np.sqrt(np.nanmean(r ** 2))) if np.isfinite(r).any() else float("nan")
+
+
+def calibrate_distance(path: str | Path, truth_csv: str | Path,
+                       estimators=ESTIMATORS, p_fa: float = 1e-3,
+                       fit_pileup: bool = True) -> DistanceCalibration:
+    """Fit delay and bin width per row from the measurements of ``path`` that ``truth_csv``
+    names; see the module's docstring (``fit_pileup=False``: no effective pulse count,
+    for comparison). Raises CalibrationError when nothing can be fitted."""
+    truth = read_truth(truth_csv)
+    names = {k[0] for k in truth}
+    meas = [m for m in read_generic(path) if m.name in names]
+    if not meas:
+        raise CalibrationError(f"{truth_csv}: names no measurement of {path}")
+    tdc = meas[0].tdc[~meas[0].reference]
+    for m in meas:
+        if not np.array_equal(m.tdc[~m.reference], tdc):
+            raise CalibrationError(f"{path}: measurement {m.name} has rows "
+                                   f"{m.tdc[~m.reference].tolist()}, {meas[0].name} "
+                                   f"{tdc.tolist()}")
+    dist = np.array([[truth.get((m.name, int(t)), truth.get((m.name, None), np.nan))
+                      for t in tdc] for m in meas])
+    nominal = meas[0].bin_width_s
+    cal = DistanceCalibration([int(t) for t in tdc], nominal * 1e12,
+                              measurements=[m.name for m in meas],
+                              distances_m=np.nanmedian(dist, axis=1).tolist())
+    order = np.argsort(cal.distances_m)
+    mid = meas[order[len(order) // 2]]
+    if mid.reference.any():
+        r = int(np.flatnonzero(mid.reference)[0])
+        source = f"reference channel of {mid.name}"
+    else:  # the brightest row at the middle known distance
+        r = int(np.argmax(mid.counts.sum(axis=1)))
+        source = (f"row {mid.tdc[r]} of {mid.name} at "
+                  f"{cal.distances_m[order[len(order) // 2]]:g} m")
+
+    def response(cycles):
+        c = mid.cycles[r] if np.isfinite(mid.cycles[r]) else cycles
+        return response_from_counts(mid.counts[r], nominal, source, c)
+
+    cal.response = response(None)
+    if fit_pileup and all(not np.isfinite(m.cycles).any() for m in meas) and np.unique(
+            cal.distances_m).size >= 3:
+        cal.cycles, cal.pileup = _fit_cycles(meas, dist, cal.response, p_fa)
+        cal.response = response(cal.cycles)  # its shape without the pile-up
+    runs = [(name, None) for name in estimators] + [
+        (name + GAUSSIAN, cal.response.sigma_s) for name in estimators
+        if name in IRF_ESTIMATORS]
+    for key, sigma in runs:
+        name = key.removesuffix(GAUSSIAN)
+        times = [measurement_times(m, name, p_fa, cal.response, sigma, cal.cycles)
+                 for m in meas]
+        delay, scale, res = _fit_rows(times, dist)
+        cal.fits[key] = {
+            "delay_ps": (delay * 1e12).tolist(), "bin_width_ps": (scale * nominal * 1e12)
+            .tolist(), "residual_mm": (res * 1e3).tolist(), "rms_mm": _rms(res) * 1e3,
+            "n_distances": int(np.unique(np.asarray(cal.distances_m)).size),
+            "response": times[0].response}
+    if not any(np.isfinite(f["delay_ps"]).any() for f in cal.fits.values()):
+        raise CalibrationError(f"{path}: no return detected in the calibration measurements")
+    return cal
+
+
+def _fit_cycles(meas, dist, response, p_fa) -> tuple[float | None, str]:
+    """The effective pulses per histogram whose Coates correction leaves the smallest
+    residuals of ml's calibration lines (None: no correction does best)."""
+    from scipy.optimize import minimize_scalar
+
+    top = max(float(m.counts.sum(axis=1).max()) for m in meas)
+
+    def rms(log_k):
+        c = None if log_k is None else float(np.exp(log_k)) * top
+        return _rms(_fit_rows([measurement_times(m, "ml", p_fa, response, cycles=c)
+                               for m in meas], dist)[2])
+
+    grid = np.log(_CYCLE_GRID)
+    scores = np.array([rms(x) for x in grid])
+    best, best_rms = None, rms(None)
+    i = int(np.nanargmin(scores))
+    if scores[i] < best_rms:  # refined between the grid's neighbours (a smooth minimum)
+        lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+        r = minimize_scalar(rms, bounds=(lo, hi), method="bounded",
+                            options={"xatol": 0.005})
+        x, v = (r.x, r.fun) if r.fun < scores[i] else (grid[i], scores[i])
+        best, best_rms = float(np.exp(x)) * top, v
+    if best is None:
+        return None, "none (no effective pulse count improved the fit)"
+    return best, (f"Coates with {best:.4g} effective pulses per histogram, fitted on the "
+                  f"calibration (residual RMS {best_rms * 1e3:.3f} mm)")
+
+
+def range_generic(path: str | Path, calibration: DistanceCalibration | None = None,
+                  delay_s: float | None = None, zero: str | Path | None = None,
+                  sigma_s: float | None = None, estimator: str = "ml",
+                  p_fa: float = 1e-3, shape: str = "auto") -> tuple[pa.Table, dict[str, str]]:
+    """Ranges of every measurement of a generic histograms file: with a calibration, a
+    given delay, or a delay measured on a zero-distance file. A row is not detected where
+    its distance would be negative (flagged, NaN) or unknown.
+    ``shape`` (matched and ml with a calibration): ``"auto"`` the calibration's
+    :meth:`~DistanceCalibration.preferred`, ``"measured"`` or ``"gaussian"``."""
+    from pipeline.offline.ranging import behind_zero, ranges_table
+
+    cycles = calibration.cycles if calibration is not None else None
+    response = calibration.response if calibration is not None else None
+    key = estimator
+    if calibration is not None:
+        if shape not in ("auto", "measured", "gaussian"):
+            raise ValueError(f"shape must be auto, measured or gaussian, found {shape!r}")
+        key = calibration.preferred(estimator) if shape == "auto" else estimator
+        if estimator in IRF_ESTIMATORS and (sigma_s is not None or shape == "gaussian"):
+            key = estimator + GAUSSIAN
+        if key.endswith(GAUSSIAN) and sigma_s is None:
+            sigma_s = response.sigma_s
+    zero_delay = None
+    if zero is not None:
+        z = read_generic(zero)[0]
+        zt = measurement_times(z, estimator, p_fa, response, sigma_s, cycles)
+        zero_delay = dict(zip(zt.tdc.tolist(), np.where(zt.est.detected, zt.t_s, np.nan),
+                              strict=True))
+    tables, info = [], {}
+    for m in read_generic(path):
+        tm = measurement_times(m, estimator, p_fa, response, sigma_s, cycles)
+        scale = np.ones(tm.tdc.size)
+        if calibration is not None:
+            delay, scale = calibration.row_fit(key, tm.tdc)
+        elif zero_delay is not None:
+            delay = np.array([zero_delay.get(int(t), np.nan) for t in tm.tdc])
+        else:
+            delay = np.full(tm.tdc.size, float(delay_s))
+        d = C_LIGHT / 2 * (tm.t_s * scale - delay)
+        sig = np.asarray(tm.est.sigma_s, float) * scale * C_LIGHT / 2
+        # a row without a delay or a finite time is not detected (its flag says why); a
+        # return before the zero is flagged as the chip's is (NaN distance, not detected)
+        est = dataclasses.replace(tm.est, detected=np.asarray(tm.est.detected, bool)
+                                  & np.isfinite(d) & np.isfinite(sig))
+        est, d = behind_zero(est, d)
+        t = ranges_table(m.name, est, d, sig)
+        t = t.set_column(t.schema.get_field_index("tdc"), t.schema.field("tdc"),
+                         pa.array(tm.tdc, t.schema.field("tdc").type))
+        tables.append(t)
+        info = {"response": tm.response + (
+            " (the measured response's FWHM: its calibration residuals were smaller than "
+            "the measured shape's)" if key != estimator and key == calibration.preferred(
+                estimator) else ""), "pileup": tm.pileup}
+        if tm.bright.any():
+            info["bright"] = (f"{int(tm.bright.sum())} row(s) of {m.name} hold more counts "
+                              "than the effective pulses: their own total used instead")
+    table = pa.concat_tables(tables)
+    meta = {**(table.schema.metadata or {}), b"tcspc.response": info["response"].encode(),
+            b"tcspc.pileup": info["pileup"].encode()}
+    if calibration is not None:
+        meta[b"tcspc.calibration"] = calibration.path.encode()
+    return table.replace_schema_metadata(meta), info
+
+
+def write_ranges(table: pa.Table, out: str | Path) -> None:
+    with atomic_path(out) as tmp:
+        pq.write_table(table, tmp)

@@ -1,0 +1,239 @@
+"""A measured instrument response, and the matched filter and maximum likelihood that use it.
+
+A real SPAD's return is not a Gaussian: it rises in a bin or two and decays over tens of
+bins (carrier diffusion), and the Gaussian estimators' centre of such a peak moves with its
+width and with the background. A response measured on the same instrument (a capture at a
+known distance, or a reference channel such as the ams TMF8820's internal optical path, a
+zero-distance return in every capture) is the model instead: the return is that response,
+shifted and scaled, on a flat background.
+
+The response is kept bin-integrated (the fraction of a return's photons in each bin) and
+shifted by a fraction of a bin through its cumulative sum (a monotone PCHIP interpolation),
+so a shifted model is again bin-integrated and sums to the same total. Fits run on the
+pile-up corrected counts (:meth:`~stages.ranging.histograms.Histograms.intensity` times the
+cycles; with unknown cycles no correction, which the caller says).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.interpolate import PchipInterpolator
+
+from stages.models.tcspc import FWHM_PER_SIGMA
+from stages.ranging.detection import _detection
+from stages.ranging.histograms import Estimate, Histograms
+from stages.ranging.validation import _safe, check_histograms, check_p_fa, finish
+
+#: the estimators that take a measured response
+IRF_ESTIMATORS = ("matched", "ml")
+#: fine shift step (bins) of the search, refined by a parabola
+_STEP = 0.1
+
+
+@dataclass(frozen=True)
+class Response:
+    """A measured instrument response on a uniform time axis.
+
+    ``density`` (n,) the fraction of a return's photons in each bin (sums to 1, background
+    removed); ``bin_s`` the bin width it was measured with; ``source`` what it was measured
+    on (named in every output that uses it). Time zero of the response is the leading edge
+    of its mode bin: a return fitted with shift ``s`` bins arrives at ``(mode + s) * bin_s``.
+    """
+
+    density: np.ndarray
+    bin_s: float
+    source: str
+
+    def __post_init__(self):
+        d = np.asarray(self.density, np.float64)
+        if d.ndim != 1 or d.size < 3 or not np.all(np.isfinite(d)) or np.any(d < 0) \
+                or d.sum() <= 0:
+            raise ValueError(f"response {self.source!r}: needs >= 3 finite, non-negative "
+                             "bins with a positive sum")
+        if not (np.isfinite(self.bin_s) and self.bin_s > 0):
+            raise ValueError(f"response {self.source!r}: bin width must be > 0 s, found "
+                             f"{self.bin_s!r}")
+        object.__setattr__(self, "density", d / d.sum())
+
+    @property
+    def mode(self) -> int:
+        return int(np.argmax(self.density))
+
+    @property
+    def span(self) -> tuple[int, int]:
+        """Bins before and after the mode that the fits use: 1 % to 90 % of the response
+        (the far tail, where one channel's diffusion differs from another's, left out)."""
+        cum = np.cumsum(self.density)
+        lo = int(np.searchsorted(cum, 0.01))
+        hi = int(np.searchsorted(cum, 0.9))
+        return max(self.mode - lo, 1) + 1, max(hi - self.mode, 2) + 1
+
+    @property
+    def sigma_s(self) -> float:
+        """The Gaussian of the same FWHM (for the estimators that take a Gaussian): the
+        long tail left out, as it is by the Gaussian's own width."""
+        return _fwhm_bins(self) * self.bin_s / FWHM_PER_SIGMA
+
+    def models(self, shifts: np.ndarray, n_bins: int) -> np.ndarray:
+        """Bin-integrated models (len(shifts), n_bins): the response with its mode bin
+        moved to bin ``shift`` (``mode + s`` with s = shift - mode), each summing to the
+        part of the response inside the window."""
+        cum = np.concatenate([[0.0], np.cumsum(self.density)])
+        f = PchipInterpolator(np.arange(cum.size, dtype=np.float64), cum, extrapolate=False)
+        e = np.arange(n_bins + 1)[None, :] - (np.asarray(shifts, np.float64)[:, None]
+                                               - self.mode)
+        v = np.where(e <= 0, 0.0, np.where(e >= cum.size - 1, 1.0,
+                                           f(np.clip(e, 0, cum.size - 1))))
+        return np.diff(v, axis=1)
+
+
+def response_from_counts(counts, bin_s: float, source: str, cycles=None) -> Response:
+    """The response of a histogram of a single return (a reference channel, or a capture
+    at a known distance with nothing else in view): pile-up corrected when ``cycles`` is
+    known, the background (the median of the bins before the rise, else of the last
+    quarter) removed, nothing kept before 4 bins ahead of the mode.
+
+    >>> r = response_from_counts([1, 1, 1, 1, 1, 1, 51, 31, 11, 6, 1, 1], 1e-10, "demo")
+    >>> r.mode, round(float(r.density[6]), 2)
+    (6, 0.53)
+    """
+    c = np.asarray(counts, np.float64)
+    if c.ndim != 1 or c.size < 3 or not np.all(np.isfinite(c)) or np.any(c < 0):
+        raise ValueError(f"response {source!r}: counts must be >= 3 finite, non-negative "
+                         "values")
+    if cycles is not None and np.isfinite(cycles) and cycles > c.sum():
+        before = np.cumsum(c) - c
+        c = -np.log1p(-c / (cycles - before)) * cycles
+    k = int(np.argmax(c))
+    pre = c[: max(k - 4, 0)]
+    bg = float(np.median(pre)) if pre.size >= 4 else float(np.median(c[-max(c.size // 4, 1):]))
+    d = np.clip(c - bg, 0.0, None)
+    d[: max(k - 4, 0)] = 0.0
+    return Response(d, float(bin_s), source)
+
+
+def _solve(models, y, wts):
+    """Weighted least squares of y ~ a * model + b for every (pixel, shift): a, b."""
+    # models (S, n) or (P, S, n); y, wts (P, 1, n)
+    sw, sy = wts.sum(-1), (wts * y).sum(-1)
+    sm, smm = (wts * models).sum(-1), (wts * models * models).sum(-1)
+    smy = (wts * models * y).sum(-1)
+    det = sw * smm - sm * sm
+    ok = det > 0
+    det = np.where(ok, det, 1.0)
+    a = np.where(ok, (sw * smy - sm * sy) / det, 0.0)
+    b = np.where(ok, (smm * sy - sm * smy) / det, sy / np.maximum(sw, 1e-300))
+    return a, b
+
+
+def _deviance(y, m, sel):
+    """Poisson deviance of counts y against model m over the bins ``sel``."""
+    m = np.maximum(m, 1e-9)
+    yy = np.maximum(y, 0.0)
+    term = m - yy + np.where(yy > 0, yy * np.log(np.where(yy > 0, yy, 1.0) / m), 0.0)
+    return 2 * np.where(sel, term, 0.0).sum(-1)
+
+
+def fit_response(h: Histograms, response: Response, estimator: str = "ml",
+                 p_fa: float = 1e-3) -> Estimate:
+    """Arrival time of each row's return with a measured ``response`` on the histograms'
+    uniform bins: ``matched`` (the largest correlation of the corrected counts with the
+    response over fine shifts) or ``ml`` (Poisson maximum likelihood of shift, amplitude
+    and background, its sigma from the likelihood's curvature). Detection as every
+    estimator's (:func:`~stages.ranging.detection._detection` at ``p_fa``).
+    """
+    if estimator not in IRF_ESTIMATORS:
+        raise ValueError(f"a measured response is used by {IRF_ESTIMATORS}, found "
+                         f"{estimator!r}")
+    p_fa = check_p_fa(p_fa)
+    flags = check_histograms(h)  # the estimators' own checks; a bad row flagged, not fitted
+    safe = _safe(h, flags)
+    if safe.counts.shape[0] == 0 or safe.counts.shape[1] < 3:
+        raise ValueError(f"histograms need >= 1 row of >= 3 bins, found shape "
+                         f"{safe.counts.shape}")
+    return finish(_fit(safe, response, estimator, p_fa), safe, response.sigma_s, flags)
+
+
+def _fit(h: Histograms, response: Response, estimator: str, p_fa: float) -> Estimate:
+    bin_s = float(h.bin_s)
+    if not np.allclose(h.widths[np.isfinite(h.widths)], bin_s, rtol=1e-6):
+        raise ValueError("a measured response needs uniform bins (an instrument's own time "
+                         "axis)")
+    if abs(response.bin_s / bin_s - 1) > 0.01:
+        raise ValueError(f"response {response.source!r} was measured with "
+                         f"{response.bin_s * 1e12:.4g} ps bins, these histograms have "
+                         f"{bin_s * 1e12:.4g} ps")
+    n_pix, n = h.counts.shape
+    rows = np.arange(n_pix)
+    y = h.intensity() * h.cycles[:, None]               # pile-up corrected counts
+    y = np.where(h.valid, y, 0.0)
+    lo, hi = response.span
+    # coarse: the whole-bin shift of the largest correlation (background-free response)
+    whole = response.models(np.arange(n, dtype=np.float64), n)            # (n, n)
+    base = np.median(np.where(h.valid, y, np.nan), axis=1)
+    base = np.where(np.isfinite(base), base, 0.0)
+    corr = (y - base[:, None]) @ whole.T                                   # (P, n)
+    corr = np.where(h.valid, corr, -np.inf)
+    k0 = np.argmax(corr, axis=1)
+    # fine: shifts within 1.2 bins of it, each pixel its own grid
+    off = np.arange(-1.2, 1.2 + 1e-9, _STEP)
+    shifts = k0[:, None] + off[None, :]                                    # (P, S)
+    models = response.models(shifts.ravel(), n).reshape(n_pix, off.size, n)
+    kk = np.arange(n)[None, :]
+    sel = (h.valid & (kk >= k0[:, None] - lo) & (kk <= k0[:, None] + hi))[:, None, :]
+    yy = y[:, None, :]
+    if estimator == "matched":
+        zm = models - np.where(sel, models, 0).sum(-1, keepdims=True) / np.maximum(
+            sel.sum(-1, keepdims=True), 1)
+        score = -(np.where(sel, zm * yy, 0).sum(-1) / np.sqrt(np.maximum(
+            np.where(sel, zm * zm, 0).sum(-1), 1e-300)))
+    wts = np.where(sel, 1.0 / np.maximum(yy, 1.0), 0.0)
+    a, b = _solve(models, yy, wts)
+    for _ in range(2):  # reweighted to the model: Pearson, close to Poisson ML
+        m = a[..., None] * models + b[..., None]
+        wts = np.where(sel, 1.0 / np.maximum(m, 1.0), 0.0)
+        a, b = _solve(models, yy, wts)
+    m = np.maximum(a, 0)[..., None] * models + np.maximum(b, 0)[..., None]
+    dev = _deviance(yy, m, sel)
+    if estimator == "ml":
+        score = dev
+    j = np.clip(np.argmin(score, axis=1), 1, off.size - 2)
+    s_m, s_0, s_p = score[rows, j - 1], score[rows, j], score[rows, j + 1]
+    curv = s_m - 2 * s_0 + s_p
+    frac = np.where(curv > 0, 0.5 * (s_m - s_p) / np.where(curv > 0, curv, 1.0), 0.0)
+    frac = np.clip(frac, -1.0, 1.0)
+    shift = shifts[rows, j] + frac * _STEP
+    amp, bg = np.maximum(a[rows, j], 0.0), np.maximum(b[rows, j], 0.0)
+    # sigma: the deviance's curvature (deviance = -2 log L + const) in bins^2
+    dcurv = (dev[rows, j - 1] - 2 * dev[rows, j] + dev[rows, j + 1]) / _STEP ** 2
+    sigma_bins = np.where(dcurv > 0, np.sqrt(2.0 / np.where(dcurv > 0, dcurv, 1.0)), np.inf)
+    signal = amp * response.models(shift, n).sum(1)
+    if estimator == "matched":  # the matched filter's own spread: the response's / sqrt(N)
+        sigma_bins = response.sigma_s / bin_s / np.sqrt(np.maximum(signal, 1.0))
+    t_s = h.edges_s[rows, 0] + shift * bin_s
+    peak = np.clip(np.rint(shift).astype(np.int64), 0, n - 1)
+    rate = bg / np.maximum(h.cycles * bin_s, 1e-300)
+    detected = _detection(h.counts, h.valid, h.at_risk, h.widths, peak, rate, p_fa)
+    sane = np.isfinite(t_s) & np.isfinite(sigma_bins) & (amp > 0)
+    fwhm = _fwhm_bins(response) * bin_s
+    return Estimate(t_s, np.where(sane, sigma_bins * bin_s, np.inf), np.full(n_pix, fwhm),
+                    signal, bg, detected & sane, estimator + "+irf")
+
+
+def _fwhm_bins(response: Response) -> float:
+    """Full width at half maximum in bins, the crossings interpolated linearly."""
+    d, k = response.density, response.mode
+    half = d[k] / 2
+    below = np.flatnonzero(d[:k] < half)
+    left = float(k)
+    if below.size:
+        i = below[-1]
+        left = i + (half - d[i]) / (d[i + 1] - d[i])
+    below = np.flatnonzero(d[k:] < half)
+    right = float(d.size - 1)
+    if below.size:
+        i = k + below[0]
+        right = i - 1 + (d[i - 1] - half) / (d[i - 1] - d[i])
+    return max(right - left, 1.0)

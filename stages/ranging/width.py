@@ -1,0 +1,80 @@
+"""The width of a return, measured: the second moment of its pile-up-corrected counts
+above the background, in a window that grows with what it measures (a response wider
+than the window first assumed is not cut to it). What the ranges' ``fwhm_m`` reports, and
+the instrument response taken from the data when none is given."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from stages.models.tcspc import FWHM_PER_SIGMA
+from stages.ranging.detection import _background
+from stages.ranging.histograms import Histograms
+
+#: half-width of the measuring window in the width it measures (a Gaussian's moments within
+#: +-4 sigma are its own to 0.3 %)
+WINDOW_WIDTHS = 4.0
+#: times the window is re-centred and re-sized on what it measured (from 1 bin, a response
+#: 4 bins wide is measured within 2 % by the fifth)
+ROUNDS = 5
+#: a return needs this many counts above the background for its width to enter the
+#: instrument response taken from the data
+MIN_COUNTS = 100.0
+
+
+def return_sigma(h: Histograms, t_s, sigma0_s: float, rounds: int = ROUNDS):
+    """Per pixel: the return's measured sigma (s) around ``t_s`` and its counts above the
+    background. The quantisation of the bins (width^2 / 12) is taken out; NaN where no
+    count stands above the background or ``t_s`` is not finite."""
+    lam = h.intensity()
+    w, valid = h.widths, np.asarray(h.valid, bool)
+    bg = _background(lam, w, valid, h.at_risk)
+    excess = np.where(valid, np.maximum(lam - bg[:, None] * w, 0.0), 0.0) * h.cycles[:, None]
+    cen = h.centres
+    t = np.asarray(t_s, np.float64).copy()
+    sig = np.full(t.shape, max(float(sigma0_s), h.bin_s))
+    tot = np.zeros(t.shape)
+    for _ in range(rounds):
+        half = WINDOW_WIDTHS * np.maximum(sig, h.bin_s)
+        with np.errstate(invalid="ignore"):
+            win = np.abs(cen - t[:, None]) <= half[:, None]
+        e = np.where(win, excess, 0.0)
+        tot = e.sum(axis=1)
+        ok = tot > 0
+        d = np.where(ok, tot, 1.0)
+        mu = (e * cen).sum(axis=1) / d
+        var = (e * (cen - mu[:, None]) ** 2).sum(axis=1) / d
+        q = (e * w ** 2).sum(axis=1) / d / 12.0
+        new = np.sqrt(np.maximum(var - q, 0.0))
+        sig = np.where(ok & (new > 0), new, sig)
+        t = np.where(ok, mu, t)
+    bad = ~np.isfinite(np.asarray(t_s, np.float64)) | ~(tot > 0)
+    return np.where(bad, np.nan, sig), np.where(bad, 0.0, tot)
+
+
+def return_fwhm(h: Histograms, t_s, sigma_s: float) -> np.ndarray:
+    """The measured FWHM (s) of each pixel's return around ``t_s`` (NaN: none)."""
+    return FWHM_PER_SIGMA * return_sigma(h, t_s, sigma_s)[0]
+
+
+def response_from_data(h: Histograms, t_s=None) -> tuple[float, str]:
+    """The instrument response's sigma (s) when none is given: the median measured sigma
+    of the returns with >= :data:`MIN_COUNTS` counts above the background (at ``t_s``, or
+    each histogram's fullest bin), and how it was chosen. One bin when no return is that
+    strong. (One bin was the default: a response 4 bins wide then gave sigmas 7-11x too
+    small.)"""
+    from stages.ranging.validation import _safe, check_histograms
+
+    h = _safe(h, check_histograms(h))  # (what the estimators refuse, refused first)
+    counts = np.asarray(h.counts, np.float64)
+    if t_s is None:
+        score = np.where(np.asarray(h.valid, bool), counts, -1.0)
+        j = np.argmax(score, axis=1)
+        t_s = h.centres[np.arange(j.size), j]
+    sig, tot = return_sigma(h, t_s, h.bin_s)
+    strong = np.isfinite(sig) & (tot >= MIN_COUNTS)
+    if not strong.any():
+        return float(h.bin_s), "one bin (no return of >= 100 counts to measure it on)"
+    s = float(np.median(sig[strong]))
+    return max(s, float(h.bin_s) / np.sqrt(12.0)), (
+        f"measured on {int(strong.sum())} return(s) of >= {MIN_COUNTS:g} counts")

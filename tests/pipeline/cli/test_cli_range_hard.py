@@ -1,0 +1,83 @@
+"""`tcspc range` on hand-made bad histograms (issue 24.6): a one-line error or a flagged
+row, never a traceback, never a negative distance."""
+
+import numpy as np
+import polars as pl
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+from click.testing import CliRunner
+
+from pipeline.cli import cli
+from schemas.outputs import HISTOGRAMS
+
+
+def write(path, counts, width_ps=16.0, cycles=1_000_000):
+    """A histograms 2.0 file as another tool would write it (plain pyarrow)."""
+    rows = len(counts)
+    widths = width_ps if isinstance(width_ps, list) else [width_ps] * rows
+    cyc = cycles if isinstance(cycles, list) else [cycles] * rows
+    t = pa.table({
+        "measurement": ["hand"] * rows, "tdc": pa.array(range(rows), pa.uint16()),
+        "cycles": pa.array(cyc, pa.uint64()),
+        "counts": pa.array([list(map(int, c)) for c in counts], pa.list_(pa.uint64())),
+        "n_hit": pa.array([int(sum(c)) for c in counts], pa.uint64()),
+        **{k: pa.array([0] * rows, pa.uint64()) for k in ("n_no_hit", "n_artifact",
+                                                          "n_invalid_phase", "n_malformed")},
+        "instrument": ["picoquant-t3"] * rows,
+        "bin_width_ps": pa.array(widths, pa.float64()),
+    }, schema=HISTOGRAMS.schema)
+    pq.write_table(t, path)
+    return path
+
+
+def a_return(n=2000, at=1200, size=400):
+    c = np.random.default_rng(0).poisson(1.0, n)
+    c[at - 2:at + 2] += size
+    return c
+
+
+def run(tmp_path, hist, *args):
+    out = tmp_path / "r.parquet"
+    res = CliRunner().invoke(cli, ["range", str(hist), "--out", str(out), *args])
+    # never a traceback: an exit through click (SystemExit) or none
+    assert res.exception is None or isinstance(res.exception, SystemExit), res.exc_info
+    return res, (pl.read_parquet(out) if out.exists() and res.exit_code == 0 else None)
+
+
+@pytest.mark.parametrize("case, counts, width, args, words", [
+    ("zero bin width", [a_return()], 0.0, [], "bin widths"),
+    ("negative bin width", [a_return()], -16.0, [], "bin widths"),
+    ("no bins", [[]], 16.0, [], "at least one bin"),
+    ("NaN p_fa", [a_return()], 16.0, ["--p-fa", "nan"], "p_fa"),
+    ("zero IRF", [a_return()], 16.0, ["--irf-ps", "0"], "--irf-ps"),
+    ("IRF wider than the window", [a_return()], 16.0, ["--irf-ps", "1e9"], "no wider"),
+])
+def test_a_bad_histogram_or_argument_is_a_one_line_error(tmp_path, case, counts, width,
+                                                         args, words):
+    hist = write(tmp_path / "h.parquet", counts, width)
+    res, _ = run(tmp_path, hist, "--delay-ps", "1000", *args)
+    assert res.exit_code != 0 and words in res.output, res.output
+    assert "Traceback" not in res.output
+
+
+def test_inconsistent_rows_are_flagged_not_detected(tmp_path):
+    """Row 0: fewer cycles than counts (0 was a detection with sigma = inf, 0.7476 m);
+    row 1: a NaN bin width (no time axis); row 2: fine."""
+    hist = write(tmp_path / "h.parquet", [a_return()] * 3, [16.0, float("nan"), 16.0],
+                 [0, 1_000_000, 1_000_000])
+    res, r = run(tmp_path, hist, "--delay-ps", "1000", "--max-returns", "1")
+    assert res.exit_code == 0, res.output
+    assert r["detected"].to_list() == [False, False, True]
+    assert r["flag"][0] == "fewer cycles than counts" and r["flag"][1] == "no finite time axis"
+    assert r["flag"][2] == "" and 0 < r["distance_m"][2]
+
+
+def test_a_delay_beyond_the_return_is_flagged_never_a_negative_distance(tmp_path):
+    """The return at 1200 x 16 ps = 19.2 ns, the delay 25 ns: was -0.45 m, no warning."""
+    hist = write(tmp_path / "h.parquet", [a_return()])
+    res, r = run(tmp_path, hist, "--delay-ps", "25000")
+    assert res.exit_code == 0, res.output
+    row = r.filter(pl.col("return_index") == 0)
+    assert not row["detected"][0] and "before the zero" in row["flag"][0]
+    assert not (r["distance_m"] < 0).any()

@@ -1,0 +1,233 @@
+"""Histograms from any instrument (a parquet written with plain pyarrow), ``tcspc calibrate
+distance`` and ``tcspc range`` on them, and the real TMF8820 captures end to end."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+from scipy.constants import c as C_LIGHT
+
+from pipeline.io.generic import read_generic
+from pipeline.io.tmf8820 import tmf8820_table
+from pipeline.offline.generic import DistanceCalibration, calibrate_distance, range_generic
+from schemas.errors import SchemaMismatch
+
+ROOT = Path(__file__).parents[3]
+TMF = ROOT / "tests" / "data" / "tmf8820" / "distance_data_even.json"
+BIN_PS = 100.0
+
+
+def tcspc(*args):
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.run([sys.executable, "-m", "pipeline.cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=300, env=env)
+
+
+def _returns(rng, t0_ps, n_signal, n_bins=200, bg=5.0):
+    """A histogram made photon by photon: a SPAD-like return (a Gaussian of 60 ps and an
+    exponential diffusion tail of 400 ps for 40 % of the photons) at ``t0_ps`` on a flat
+    background, binned in BIN_PS bins (independent of the estimators' model)."""
+    n_tail = rng.binomial(n_signal, 0.4)
+    t = t0_ps + rng.normal(0, 60, n_signal)
+    t[:n_tail] += rng.exponential(400, n_tail)
+    h, _ = np.histogram(t, bins=np.arange(n_bins + 1) * BIN_PS)
+    return h + rng.poisson(bg, n_bins)
+
+
+def _write(path, rows, **cols):
+    """A generic histograms file written with plain pyarrow: nothing of ours in it."""
+    n = len(rows)
+    data = {"measurement": cols.get("measurement", ["m"] * n),
+            "tdc": cols.get("tdc", list(range(n))),
+            "counts": [list(map(int, r)) for r in rows],
+            "instrument": cols.get("instrument", ["generic"] * n),
+            "bin_width_ps": cols.get("bin_width_ps", [BIN_PS] * n)}
+    data.update({k: v for k, v in cols.items() if k not in data})
+    pq.write_table(pa.table(data), path)
+    return path
+
+
+def test_generic_parquet_ranges_with_a_given_delay_and_with_a_zero_file(tmp_path):
+    rng = np.random.default_rng(7)
+    d_m = np.array([0.30, 0.75, 1.20])
+    delay_ps = 2000.0
+    t0 = delay_ps + 2 * d_m / C_LIGHT * 1e12
+    f = _write(tmp_path / "h.parquet", [_returns(rng, t, 20_000) for t in t0])
+    table, info = range_generic(f, delay_s=delay_ps * 1e-12)
+    assert info["pileup"] == "none: the file gives no cycles"
+    df = pl.from_arrow(table)
+    assert df["detected"].all()
+    # no measured response: a Gaussian of one bin, biased by the tail, but within 2 bins
+    assert np.all(np.abs(df["distance_m"].to_numpy() - d_m) < 2 * BIN_PS * 1e-12 * C_LIGHT)
+    zero = _write(tmp_path / "z.parquet", [_returns(rng, delay_ps, 200_000)] * 3)
+    table, _ = range_generic(f, zero=zero)
+    # the same response at zero distance: the tail's bias cancels
+    err = table.column("distance_m").to_numpy() - d_m
+    assert np.all(np.abs(err) < 0.01), err
+
+
+def test_a_measured_response_beats_the_gaussian_on_an_asymmetric_return(tmp_path):
+    """calibrate distance on two known distances measures the response on a row at the
+    middle distance; ml with it is closer to the truth than ml with a Gaussian."""
+    rng = np.random.default_rng(11)
+    delay_ps, cal_d = 1500.0, [0.4, 1.2, 2.0]
+    rows, names, truth = [], [], ["measurement,distance_m"]
+    for d in cal_d + [0.9, 1.6]:
+        name = f"at_{d:g}"
+        t = delay_ps + 2 * d / C_LIGHT * 1e12
+        rows += [_returns(rng, t, 30_000) for _ in range(2)]
+        names += [name, name]
+        if d in cal_d:
+            truth.append(f"{name},{d}")
+    f = _write(tmp_path / "h.parquet", rows, measurement=names, tdc=[0, 1] * (len(rows) // 2))
+    (tmp_path / "truth.csv").write_text("\n".join(truth) + "\n")
+    cal = calibrate_distance(f, tmp_path / "truth.csv", estimators=("ml",))
+    assert np.allclose(cal.fits["ml"]["bin_width_ps"], BIN_PS, rtol=0.01)
+    cal.save(tmp_path / "cal")
+    cal = DistanceCalibration.load(tmp_path / "cal")
+    errs = {}
+    for how, sigma in (("irf", None), ("gauss", 60e-12)):
+        table, info = range_generic(f, cal, sigma_s=sigma)
+        df = pl.from_arrow(table).filter(pl.col("measurement").is_in(["at_0.9", "at_1.6"]))
+        want = np.where(df["measurement"] == "at_0.9", 0.9, 1.6)
+        errs[how] = np.abs(df["distance_m"].to_numpy() - want)
+        assert df["detected"].all()
+        assert ("Gaussian" if sigma else "row") in table.schema.metadata[
+            b"tcspc.response"].decode()
+    assert errs["irf"].max() < 0.002, errs
+    assert errs["irf"].max() < errs["gauss"].max()
+
+
+@pytest.mark.parametrize("cols, where", [
+    ({"bin_width_ps": [BIN_PS, -5.0]}, "row 1: bin_width_ps"),
+    ({"bin_width_ps": [BIN_PS, float("nan")]}, "row 1: bin_width_ps"),
+    ({"instrument": ["generic", "tmf-x"]}, "row 1: instrument 'tmf-x'"),
+    ({"cycles": [100, 3]}, "row 1: cycles 3 is fewer"),
+])
+def test_malformed_generic_rows_are_one_line_errors_naming_the_row(tmp_path, cols, where):
+    f = _write(tmp_path / "bad.parquet", [[0, 5, 9, 1], [1, 4, 8, 2]], **cols)
+    with pytest.raises(SchemaMismatch, match=where):
+        read_generic(f)
+
+
+def test_the_cli_refuses_a_malformed_file_in_one_line(tmp_path):
+    f = _write(tmp_path / "bad.parquet", [[0, 5, 9, 1], [1, 4, 8, 2]],
+               bin_width_ps=[BIN_PS, -5.0])
+    r = tcspc("range", f, "--delay-ps", 0, "--out", tmp_path / "r.parquet")
+    assert r.returncode != 0 and "row 1: bin_width_ps" in r.stderr
+    assert "Traceback" not in r.stderr and not (tmp_path / "r.parquet").exists()
+    assert len([x for x in r.stderr.splitlines() if x.strip()]) == 1, r.stderr
+
+
+def test_a_foreign_parquet_without_our_columns_says_which_are_missing(tmp_path):
+    f = tmp_path / "other.parquet"
+    pq.write_table(pa.table({"pixel": [0, 1], "hist": [[1, 2, 3], [4, 5, 6]]}), f)
+    with pytest.raises(SchemaMismatch, match=r"missing \['measurement', 'tdc', 'counts'"):
+        read_generic(f)
+
+
+def test_ragged_counts_name_the_row(tmp_path):
+    f = _write(tmp_path / "bad.parquet", [[0, 5, 9, 1], [1, 4, 8, 2], [0, 1, 2]])
+    with pytest.raises(SchemaMismatch, match="row 2: counts has 3 bins"):
+        read_generic(f)
+
+
+@pytest.fixture(scope="module")
+def tmf(tmp_path_factory):
+    """The TMF8820 captures as generic histograms, calibrated (by the CLI) on the three
+    captures nearest 0.10, 0.20 and 0.30 m."""
+    d = tmp_path_factory.mktemp("tmf8820")
+    r = subprocess.run([sys.executable, "-m", "pipeline.io.tmf8820", TMF, "--out",
+                        d / "h.parquet", "--truth", d / "truth.csv"], capture_output=True,
+                       text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=120)
+    assert r.returncode == 0, r.stderr
+    truth = pl.read_csv(d / "truth.csv")
+    cal = [truth.sort((pl.col("distance_m") - x).abs())["measurement"][0]
+           for x in (0.10, 0.20, 0.30)]
+    truth.filter(pl.col("measurement").is_in(cal)).write_csv(d / "cal.csv")
+    r = tcspc("calibrate", "distance", d / "h.parquet", "--truth", d / "cal.csv", "--out",
+              d / "cal")
+    assert r.returncode == 0, r.stderr
+    return d, truth, cal, r.stderr
+
+
+def _ranged(tmf, subset=None, estimator="ml"):
+    d, truth, cal, _ = tmf
+    src = d / "h.parquet"
+    if subset is not None:  # a few captures, written with plain pyarrow
+        t = pq.read_table(src)
+        keep = pl.from_arrow(t)["measurement"].is_in(subset).to_numpy()
+        src = d / f"subset-{len(subset)}.parquet"
+        pq.write_table(t.filter(pa.array(keep)), src)
+    out = d / f"r-{estimator}-{len(subset or [])}.parquet"
+    r = tcspc("range", src, "--calibration", d / "cal", "--out", out, "--estimator", estimator)
+    assert r.returncode == 0, r.stderr
+    df = pl.read_parquet(out).join(truth.rename({"distance_m": "truth_m"}), on="measurement")
+    return df.with_columns(((pl.col("distance_m") - pl.col("truth_m")) * 1e3).alias("err_mm"))
+
+
+def test_tmf8820_calibrated_on_three_captures_ranges_the_others(tmf):
+    d, truth, cal, report = tmf
+    assert "effective pulses" in report and "residual RMS" in report
+    fit = json.loads((d / "cal" / "distance_calibration.json").read_text())["fits"]["ml"]
+    assert fit["rms_mm"] < 0.5 and 85 < min(fit["bin_width_ps"]) < max(fit["bin_width_ps"]) < 100
+    near = truth.filter(pl.col("distance_m") < 0.03)["measurement"].to_list()
+    some = truth.filter((pl.col("distance_m") >= 0.05) & ~pl.col("measurement").is_in(cal))
+    df = _ranged(tmf, near + some["measurement"].to_list()[::6])
+    far = df.filter(pl.col("truth_m") >= 0.05)
+    assert far["detected"].all()
+    assert np.sqrt((far["err_mm"] ** 2).mean()) < 1.2
+    # closer than the crosstalk: detected, or not and flagged; never a negative distance
+    close = df.filter(pl.col("truth_m") < 0.03)
+    det = close.filter(pl.col("detected"))
+    assert det["distance_m"].is_finite().all() and (det["err_mm"].abs() < 15).all()
+    assert not (close["distance_m"] < 0).any()
+    assert (close.filter(~pl.col("distance_m").is_finite())["flag"] != "").all()
+
+
+@pytest.mark.slow
+def test_tmf8820_goal_every_capture(tmf):
+    """The issue's goal on every capture at >= 5 cm but the three calibration ones."""
+    _, _, cal, _ = tmf
+    df = _ranged(tmf).filter((pl.col("truth_m") >= 0.05) & ~pl.col("measurement").is_in(cal))
+    assert df["detected"].all()  # every row here holds >= 100 000 counts
+    per = df.group_by("tdc").agg((pl.col("err_mm") ** 2).mean().sqrt().alias("rms"))
+    assert np.sqrt((df["err_mm"] ** 2).mean()) <= 1.2
+    assert per["rms"].max() <= 2.0
+    assert abs(df["err_mm"].median()) <= 0.5
+
+
+def test_tmf8820_converter_keeps_every_count():
+    caps = json.loads(TMF.read_text())[:3]
+    table, truth = tmf8820_table(caps)
+    assert table.num_rows == 30 and len(truth) == 3
+    ms = read_generic("mem", table)
+    assert [m.reference.sum() for m in ms] == [1, 1, 1]
+    assert ms[0].counts[:9].sum() == np.sum(caps[0]["hists"])
+    assert ms[0].counts[9].sum() == np.sum(caps[0]["reference_hist"])
+    assert np.isnan(ms[0].cycles).all() and ms[0].bin_width_s == pytest.approx(91e-12)
+
+
+def test_one_distance_fits_the_delay_only_and_a_row_may_have_its_own(tmp_path):
+    """One known distance: the delay, the width from bin_width_ps, no pulse count; a
+    truth row with a ``tdc`` gives that row its own distance (an off-axis zone's)."""
+    rng = np.random.default_rng(2)
+    delay_ps = 1200.0
+    t = [delay_ps + 2 * d / C_LIGHT * 1e12 for d in (0.5, 0.8)]
+    f = _write(tmp_path / "h.parquet", [_returns(rng, x, 30_000) for x in t],
+               measurement=["cal", "cal"])
+    (tmp_path / "truth.csv").write_text("measurement,distance_m,tdc\ncal,0.5,\ncal,0.8,1\n")
+    cal = calibrate_distance(f, tmp_path / "truth.csv", estimators=("ml", "fast"))
+    assert cal.cycles is None and cal.pileup.startswith("none")
+    for fit in cal.fits.values():
+        assert fit["bin_width_ps"] == [BIN_PS, BIN_PS]
+        assert np.allclose(fit["residual_mm"], 0.0, atol=1e-9)
+    table, _ = range_generic(f, cal, estimator="fast")
+    assert np.allclose(table.column("distance_m").to_numpy(), [0.5, 0.8], atol=1e-9)
