@@ -2,9 +2,11 @@
 entry point, so the pipeline layer never imports this one).
 
 ``run`` executes a flow now: on Prefect's embedded ephemeral API by default (no server,
-works offline), or on the server ``PREFECT_API_URL`` names. ``serve`` publishes the flows
-as deployments with schedules and runs them when due; schedules need a Prefect server
-(``prefect server start`` and ``PREFECT_API_URL``), which the command checks first.
+works offline), or on the server ``PREFECT_API_URL`` names; its parameters are checked
+against the flow's typed signature before the run is created. ``serve`` publishes the flows
+as deployments with schedules (from a TOML file: :func:`read_serve_config`) and runs them
+when due; schedules need a Prefect server (``prefect server start`` and
+``PREFECT_API_URL``), which the command checks first. Ctrl-C stops it as SIGTERM does.
 """
 
 from __future__ import annotations
@@ -13,6 +15,11 @@ import importlib
 import inspect
 import json
 import os
+import signal
+import sys
+import tomllib
+import zoneinfo
+from pathlib import Path
 
 import click
 
@@ -84,34 +91,197 @@ def run_cmd(name, params, dask_address) -> None:
 
         fl = fl.with_options(task_runner=DaskTaskRunner() if dask_address == "local"
                              else DaskTaskRunner(address=dask_address))
+    check_params(fl, kwargs, "-p")
     api = os.environ.get("PREFECT_API_URL") or "Prefect's embedded ephemeral API"
     click.echo(f"running {name} on {api}", err=True)
-    result = fl(**kwargs)
+    state = fl(**kwargs, return_state=True)
+    result = state.result()  # a failed run raises its error here
     click.echo(json.dumps(result, indent=1, default=str))
+    click.echo(f"{name}: {state.name}" + (f" ({state.message})" if state.message else ""),
+               err=True)
+    if state.name == "Refused":  # completed, but nothing published: say so to scripts
+        sys.exit(REFUSED_EXIT)
 
 
-def deployments(calibration_cron: str, sweep_cron: str | None, out: str) -> list:
-    """The deployments ``serve`` publishes: the nightly calibration campaign, a distance
-    sweep (scheduled when ``sweep_cron`` is given), and the rest on demand."""
-    cal = load("calibration_campaign").to_deployment(
-        "nightly", cron=calibration_cron, parameters={"out": f"{out}/calibration"},
-        description="Nightly calibration campaign; publishes only a calibration that is not "
-                    "worse than the current one.")
-    sweep = load("distance_sweep").to_deployment(
-        "sweep", cron=sweep_cron, parameters={"out": f"{out}/sweeps",
-                                              "calibration": f"{out}/calibration/current"})
-    rest = [load(n).to_deployment("on-demand", parameters={"out": f"{out}/{n}"})
-            for n in ("performance_prediction", "speed_vs_error")]
-    return [cal, sweep, *rest]
+#: `tcspc flow run`'s exit status when a campaign refused its candidate
+REFUSED_EXIT = 3
+
+
+def check_params(fl, params: dict, where: str) -> None:
+    """The flow's typed signature against ``params`` now, before a run exists: one line
+    per problem, naming the parameter (and ``where`` it came from)."""
+    import logging
+
+    from prefect.exceptions import ParameterTypeError
+
+    quiet = logging.getLogger("prefect.flows")  # it logs pydantic's raw dump first
+    level = quiet.level
+    quiet.setLevel(logging.CRITICAL)
+    try:
+        fl.validate_parameters(params)
+    except ParameterTypeError as exc:
+        lines = [ln.strip(" -") for ln in str(exc).splitlines()[1:]] or [str(exc)]
+        raise click.UsageError(f"{where}: invalid parameters for {fl.name}: "
+                               + "; ".join(lines)) from None
+    finally:
+        quiet.setLevel(level)
+
+
+#: ``tcspc flow serve`` without ``--config``: the nightly campaign at 02:00 UTC
+DEFAULT_SERVE = {"out": "data", "calibration": {"cron": "0 2 * * *"}}
+_SECTIONS = {"calibration": "calibration_campaign", "sweep": "distance_sweep",
+             "performance": "performance_prediction", "speed": "speed_vs_error"}
+_SECTION_KEYS = {"cron", "name", "tags", "parameters", "timezone"}
+
+
+def read_serve_config(path: str | None, **cli) -> dict:
+    """The deployments ``serve`` publishes, from a TOML file (None: :data:`DEFAULT_SERVE`)::
+
+        out = "data"                   # where the runs write (OUT/calibration, OUT/sweeps..)
+        [calibration]                  # the campaign; a section per flow served on a cron:
+        cron = "0 2 * * *"             # calibration, sweep, performance, speed
+        timezone = "Europe/Berlin"     # the cron's (default UTC)
+        tags = ["bench-1"]
+        name = "bench-1 nightly"       # default: what it is ("128px daily at 02:00")
+        [calibration.parameters]       # the flow's own parameters, checked now
+        lux = [100, 300, 800, 1800, 3500]
+        cycles = 400000
+        n_pixels = 128
+
+    A flow without a section is published on demand (no schedule). ``cli`` (from the
+    command's options, None where not given) overrides the file: ``out``,
+    ``calibration_cron``, ``sweep_cron``. Every problem is an error naming the file and
+    key."""
+    where = path or "<default serve config>"
+    if path:
+        try:
+            raw = tomllib.loads(Path(path).read_text())
+        except FileNotFoundError:
+            raise click.BadParameter(f"{path}: serve config not found") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise click.BadParameter(f"{path}: not valid TOML: {exc}") from None
+    else:
+        raw = json.loads(json.dumps(DEFAULT_SERVE))
+    if cli.get("out"):
+        raw["out"] = cli["out"]
+    for sec, key in (("calibration", "calibration_cron"), ("sweep", "sweep_cron")):
+        if cli.get(key):
+            raw.setdefault(sec, {})["cron"] = cli[key]
+    unknown = sorted(set(raw) - set(_SECTIONS) - {"out"})
+    if unknown:
+        raise click.BadParameter(f"{where}: unknown keys {unknown}; known: out, "
+                                 f"{', '.join(_SECTIONS)}")
+    if not isinstance(raw.get("out", "data"), str):
+        raise click.BadParameter(f"{where}: out must be a directory name")
+    for sec, body in raw.items():
+        if sec == "out":
+            continue
+        if not isinstance(body, dict):
+            raise click.BadParameter(f"{where}: [{sec}] must be a table")
+        extra = sorted(set(body) - _SECTION_KEYS)
+        if extra:
+            raise click.BadParameter(f"{where}: [{sec}] unknown keys {extra}; known: "
+                                     f"{', '.join(sorted(_SECTION_KEYS))}")
+        if "cron" not in body:
+            raise click.BadParameter(f"{where}: [{sec}] needs a cron")
+        _check_cron(body["cron"], f"{where}: [{sec}] cron")
+        tz = body.get("timezone", "UTC")
+        try:
+            zoneinfo.ZoneInfo(tz)
+        except (zoneinfo.ZoneInfoNotFoundError, ValueError, TypeError):
+            raise click.BadParameter(f"{where}: [{sec}] timezone {tz!r} is not a time zone "
+                                     "(e.g. UTC, Europe/Berlin)") from None
+        tags = body.get("tags", [])
+        if not (isinstance(tags, list) and all(isinstance(t, str) for t in tags)):
+            raise click.BadParameter(f"{where}: [{sec}] tags must be a list of strings")
+    return raw
+
+
+def _check_cron(cron, where: str) -> None:
+    from prefect.client.schemas.schedules import CronSchedule
+
+    try:
+        CronSchedule(cron=cron)
+    except (ValueError, TypeError):
+        raise click.BadParameter(f"{where}: {cron!r} is not a cron expression") from None
+
+
+_DAYS = ["Sundays", "Mondays", "Tuesdays", "Wednesdays", "Thursdays", "Fridays",
+         "Saturdays", "Sundays"]
+
+
+def describe_cron(cron: str) -> str:
+    """A schedule in words for a deployment's name: "daily at 02:00", "every minute",
+    "hourly at :15", "Mondays at 03:30"; else "cron <expression>"."""
+    f = cron.split()
+    if len(f) != 5:
+        return f"cron {cron}"
+    mi, hr, dom, mon, dow = f
+    if f == ["*"] * 5:
+        return "every minute"
+    if mi.startswith("*/") and f[1:] == ["*"] * 4:
+        return f"every {mi[2:]} minutes"
+    if mi.isdigit() and hr == "*" and (dom, mon, dow) == ("*", "*", "*"):
+        return f"hourly at :{int(mi):02d}"
+    if mi.isdigit() and hr.isdigit() and (dom, mon) == ("*", "*"):
+        at = f"at {int(hr):02d}:{int(mi):02d}"
+        if dow == "*":
+            return f"daily {at}"
+        if dow.isdigit() and int(dow) < 8:
+            return f"{_DAYS[int(dow)]} {at}"
+    return f"cron {cron}"
+
+
+def deployments(config: dict) -> list:
+    """The deployments ``serve`` publishes for a :func:`read_serve_config` config, named
+    for what they are: the campaign on a cron ("128px daily at 02:00"), one campaign at a
+    time (a deployment concurrency limit of 1: a run due while one is running waits its
+    turn); flows without a cron "on demand". Parameters are checked now."""
+    out = config.get("out", "data")
+    defaults = {"calibration_campaign": {"out": f"{out}/calibration"},
+                "distance_sweep": {"out": f"{out}/sweeps",
+                                   "calibration": f"{out}/calibration/current"},
+                "performance_prediction": {"out": f"{out}/performance_prediction"},
+                "speed_vs_error": {"out": f"{out}/speed_vs_error"}}
+    deps = []
+    for sec, flow_name in _SECTIONS.items():
+        fl = load(flow_name)
+        body = config.get(sec)
+        params = {**defaults[flow_name], **((body or {}).get("parameters") or {})}
+        check_params(fl, params, f"serve config [{sec}.parameters]")
+        if body is None:
+            deps.append(fl.to_deployment("on demand", parameters=params,
+                                         tags=[sec, "on-demand"]))
+            continue
+        what = (f"{params.get('n_pixels', 128)}px " if flow_name in
+                ("calibration_campaign", "distance_sweep") and not params.get("captures")
+                else "")
+        name = body.get("name") or f"{what}{describe_cron(body['cron'])}"
+        kw = {"concurrency_limit": 1} if flow_name == "calibration_campaign" else {}
+        from prefect.schedules import Cron
+
+        deps.append(fl.to_deployment(
+            name, schedules=[Cron(body["cron"], timezone=body.get("timezone", "UTC"))],
+            parameters=params, tags=[sec, *body.get("tags", [])],
+            description=(inspect.getdoc(fl.fn) or "").split("\n\n")[0], **kw))
+    return deps
 
 
 @flow.command("serve")
-@click.option("--calibration-cron", default="0 2 * * *", show_default=True,
-              help="When the calibration campaign runs (cron, server time zone).")
+@click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
+              help="A TOML file of what to serve: crons, tags, each flow's parameters "
+                   "(lux levels, cycles, pixels, out); see docs/flows.md.")
+@click.option("--calibration-cron", default=None,
+              help="When the calibration campaign runs (cron, UTC); overrides the file. "
+                   "Default without a file: 0 2 * * *.")
 @click.option("--sweep-cron", default=None, help="Schedule the distance sweep too (cron).")
-@click.option("--out", default="data", show_default=True, help="Where the runs write.")
-def serve_cmd(calibration_cron, sweep_cron, out) -> None:
-    """Serve the flows as deployments with schedules until interrupted."""
+@click.option("--out", default=None, help="Where the runs write (default: data).")
+def serve_cmd(config_path, calibration_cron, sweep_cron, out) -> None:
+    """Serve the flows as deployments with schedules until Ctrl-C or SIGTERM (either stops
+    scheduling and cancels a run in flight, which leaves the published calibration
+    as it was)."""
+    config = read_serve_config(config_path, out=out, calibration_cron=calibration_cron,
+                               sweep_cron=sweep_cron)
     if not os.environ.get("PREFECT_API_URL"):
         from prefect.settings import PREFECT_API_URL
 
@@ -119,6 +289,18 @@ def serve_cmd(calibration_cron, sweep_cron, out) -> None:
             raise click.ClickException(
                 "schedules need a Prefect server: start one with `prefect server start` and "
                 "set PREFECT_API_URL=http://127.0.0.1:4200/api (`tcspc flow run` needs none)")
-    from prefect import serve
+    deps = deployments(config)
+    from prefect.runner import Runner
 
-    serve(*deployments(calibration_cron, sweep_cron, out))
+    runner = Runner(pause_on_shutdown=False)
+    for d in deps:
+        runner.add_deployment(d)
+        click.echo(f"serving {d.flow_name}/{d.name}" + (
+            f" on {d.schedules[0].schedule.cron}" if d.schedules else " (on demand)"),
+                   err=True)
+    # Ctrl-C as SIGTERM: Prefect's graceful stop (asyncio leaves a handler set here alone)
+    signal.signal(signal.SIGINT, lambda *_: runner.handle_sigterm())
+    import asyncio
+
+    asyncio.run(runner.start())
+    click.echo("serve stopped", err=True)

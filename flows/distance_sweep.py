@@ -11,13 +11,28 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import polars as pl
 from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
+from pydantic import Field
 
-from flows.common import new_run_dir, report, scene_dict, simulate
+from flows.common import (
+    NonNegativeInt,
+    PositiveFloat,
+    PositiveInt,
+    clean_leftovers,
+    new_run_dir,
+    prune_cache,
+    report,
+    run_namer,
+    scene_dict,
+    simulate,
+    simulated,
+    touch,
+)
 from pipeline.io.caldir import load_calibration
 from pipeline.io.capture import Capture
 from pipeline.offline.ranging import range_capture
@@ -42,7 +57,7 @@ def gate_ns(distance_m: float, delay_ns: float = 100.0, short_gate_ns: float = 1
     return float(10 * math.ceil((arrival + WINDOW_BEFORE_CLOSE_NS) / 10))
 
 
-@task(cache_policy=NO_CACHE, task_run_name="range {capture}")
+@task(cache_policy=NO_CACHE, task_run_name="range at {distance_m} m")
 def range_point(capture: str, calibration: str, out: str, estimator: str,
                 distance_m: float) -> list[dict]:
     """Range one capture; a row per TDC with the error against ``distance_m``."""
@@ -123,16 +138,25 @@ def figures(points: pl.DataFrame, summary: pl.DataFrame, run: str) -> list[str]:
     return paths
 
 
-@flow(name="distance_sweep")
+#: a sweep that runs longer than this is failed by Prefect (the default sweep: ~70 points)
+SWEEP_TIMEOUT_S = 12 * 3600
+
+
+@flow(name="distance_sweep", timeout_seconds=SWEEP_TIMEOUT_S,
+      flow_run_name=run_namer("sweep", {"stream": "on stream", "captures": "on captures"}))
 def distance_sweep(out: str = "data/sweeps", calibration: str | None = None,
-                   distances: list[float] | None = None, cycles: int = 20_000,
-                   estimator: str = "ml", n_pixels: int = 128, chip_seed: int = 1,
-                   seed: int = 100, captures: str | None = None, stream: str | None = None,
-                   runs: dict[str, float] | None = None) -> dict:
+                   distances: Annotated[list[PositiveFloat], Field(min_length=1)] | None = None,
+                   cycles: PositiveInt = 20_000, estimator: str = "ml",
+                   n_pixels: PositiveInt = 128, chip_seed: NonNegativeInt = 1,
+                   seed: NonNegativeInt = 100, captures: str | None = None,
+                   stream: str | None = None, runs: dict[str, float] | None = None,
+                   cache_max_gb: PositiveFloat = 20.0,
+                   cache_max_age_days: PositiveFloat = 30.0) -> dict:
     """Range against truth over distance, on the simulator (a calibration campaign first
     when no ``calibration`` is given), on ``captures`` (a directory of range captures
     whose sidecar truth holds the distance), or on a running daemon's datasets: ``stream``
-    (its sink's ``out``) with ``runs`` mapping each run id to the distance it measured."""
+    (its sink's ``out``) with ``runs`` mapping each run id to the distance it measured.
+    The capture cache is bounded as the campaign's (``cache_max_gb``, ``_age_days``)."""
     log = get_run_logger()
     run = new_run_dir(out, "distance_sweep")
     if stream is not None:
@@ -144,6 +168,7 @@ def distance_sweep(out: str = "data/sweeps", calibration: str | None = None,
                                    chip_seed=chip_seed)
         calibration = cal["current"]
     cache = str(Path(out) / "cache")
+    clean_leftovers(cache, log=log)
     jobs = []  # (capture, true distance)
     if captures:
         for side in sorted(Path(captures).glob("*.json")):
@@ -156,12 +181,17 @@ def distance_sweep(out: str = "data/sweeps", calibration: str | None = None,
             raise ValueError(f"{captures}: no range captures with a true distance")
     else:
         distances = default_distances() if distances is None else distances
-        futures = []
+        args = []
         for i, d in enumerate(distances):
             base = "short_range" if d <= 3.0 else "long_range"
             sc = scene_dict(base, distance_m=d, t_laser_win_ns=gate_ns(d), n_pixels=n_pixels)
-            futures.append((simulate.submit(sc, cycles, cache, seed + i, chip_seed), d))
-        jobs = [(f.result(), d) for f, d in futures]
+            args.append((sc, cycles, cache, seed + i, chip_seed))
+        caps = simulated([simulate.submit(*a) for a in args], args)
+        jobs = list(zip(caps, distances, strict=True))
+        used = {Path(c).parent.name for c in caps}
+        for name in used:
+            touch(Path(cache) / name)
+        prune_cache(cache, cache_max_gb, cache_max_age_days, keep=used, log=log)
     ranged = [range_point.submit(c, calibration, str(run / "ranges" / f"{i:03d}.parquet"),
                                  estimator, d) for i, (c, d) in enumerate(jobs)]
     points = pl.DataFrame([r for f in ranged for r in f.result()])

@@ -1,6 +1,13 @@
-"""Each flow with small parameters through Prefect's test harness (offline, no server)."""
+"""Each flow with small parameters through Prefect's test harness (offline, no server);
+then the campaign as a scheduler sees it (issue 28): named outcomes, artifacts and run ids,
+one campaign at a time, a publish that never leaves `current` missing, what a killed run
+leaves behind, Prefect's cache, typed parameters and the serve config (the real-server
+versions are in test_prefect_server.py)."""
 
 import json
+import os
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -70,10 +77,13 @@ def test_a_failed_task_leaves_no_half_written_calibration(campaign, monkeypatch)
         raise OSError("disk went away during the delay step")
 
     monkeypatch.setattr(fc, "add_delay", broken)
-    state = fc.calibration_campaign(out=str(out), **SMALL_CAL, return_state=True)
+    # another delay capture: the first run's delay step is cached, and would not run
+    state = fc.calibration_campaign(out=str(out), **{**SMALL_CAL, "delay_cycles": 90_000},
+                                    return_state=True)
     assert state.is_failed()
     assert _snapshot(out / "current") == before
-    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporaries left
+    # no temporaries left (.lock: the campaigns' lock file)
+    assert not [p for p in out.iterdir() if p.name.startswith(".") and p.name != ".lock"]
 
 
 def test_calibration_campaign_on_a_capture_directory(campaign, tmp_path):
@@ -154,12 +164,11 @@ def test_flow_cli_lists_runs_and_checks_parameters():
 
 
 def test_serve_publishes_scheduled_deployments():
-    from flows.cli import deployments
+    from flows.cli import deployments, read_serve_config
 
-    deps = deployments("0 2 * * *", None, "data")
-    names = {(d.flow_name, d.name) for d in deps}
-    assert ("calibration_campaign", "nightly") in names
-    nightly = next(d for d in deps if d.name == "nightly")
+    deps = deployments(read_serve_config(None))
+    nightly = next(d for d in deps if d.flow_name == "calibration_campaign")
+    assert nightly.name == "128px daily at 02:00"
     assert nightly.schedules and nightly.schedules[0].schedule.cron == "0 2 * * *"
     assert nightly.parameters["out"] == "data/calibration"
 
@@ -256,3 +265,260 @@ def _toml(d: dict, prefix: str = "") -> str:
 
 def _val(v) -> str:
     return json.dumps(v) if not isinstance(v, bool) else str(v).lower()
+
+
+@pytest.fixture(scope="module")
+def captured(campaign, tmp_path_factory):
+    """The module campaign's captures as a capture directory (links): a campaign on it
+    reuses the cached fit and delay, so it costs seconds."""
+    _, r = campaign
+    caps = tmp_path_factory.mktemp("caps")
+    for i, c in enumerate(r["captures"]["density"] + [r["captures"]["delay"]]):
+        for ext in (".bin", ".json"):
+            (caps / f"c{i}{ext}").symlink_to(Path(c).with_suffix(ext))
+    return caps
+
+
+def _client():
+    from prefect import get_client
+
+    return get_client(sync_client=True)
+
+
+def test_the_outcome_is_a_named_state_with_its_run_linked_everywhere(campaign):
+    from prefect.client.schemas.filters import ArtifactFilter, FlowRunFilter
+
+    out, r = campaign
+    fr_id = r["flow_run"]["id"]
+    with _client() as c:
+        fr = c.read_flow_run(fr_id)
+        arts = c.read_artifacts(flow_run_filter=FlowRunFilter(id={"any_": [fr.id]}),
+                                artifact_filter=ArtifactFilter())
+    assert fr.state.name == "Published" and fr.state.is_completed()
+    assert fr.name.startswith("campaign 20") and fr.name.endswith(f" {SMALL_CAL['n_pixels']}px")
+    # the run id in the published calibration's meta.json and in summary.json
+    meta = json.loads((out / "versions" / Path(r["run"]).name / "meta.json").read_text())
+    assert meta["flow_run"]["id"] == fr_id
+    assert json.loads((Path(r["run"]) / "summary.json").read_text())["flow_run"]["id"] == fr_id
+    kinds = {a.key.rsplit("-", 1)[1]: a for a in arts}
+    assert set(kinds) == {"report", "figures", "flagged"}
+    assert kinds["report"].type == "markdown" and "Published" in kinds["report"].description
+    rows = {row["figure"]: row for row in json.loads(kinds["figures"].data)}
+    assert rows["TDCs calibrated"]["candidate"] == SMALL_CAL["n_pixels"]
+    for fig in ("INL RMS, median TDC (LSB)", "DNL RMS, median TDC (LSB)",
+                "LSB fit residual (ps RMS)", "delay spread max-min (ns)"):
+        assert rows[fig]["candidate"] >= 0
+    assert rows["TDCs calibrated"]["current"] is None  # the first: nothing to replace
+
+
+def test_a_refused_candidate_ends_in_its_own_state(campaign):
+    from flows.calibration import calibration_campaign
+
+    out, _ = campaign
+    state = calibration_campaign(out=str(out), **{**SMALL_CAL, "cycles": 40_000,
+                                                  "inl_rms": 5.0, "seed": 7},
+                                 return_state=True)
+    assert state.name == "Refused" and state.is_completed()
+    r = state.result()
+    assert not r["published"] and r["refused_because"]
+    assert "Not published" in state.message
+    # the comparison now has the calibration it would have replaced
+    assert r["figures"]["TDCs calibrated"] == SMALL_CAL["n_pixels"]
+
+
+def test_a_current_that_cannot_be_read_is_not_replaced_unexamined(captured, tmp_path):
+    from click.testing import CliRunner
+
+    from flows.calibration import calibration_campaign
+    from pipeline.cli.app import cli
+
+    out = tmp_path / "cal"
+    (out / "current").mkdir(parents=True)
+    (out / "current" / "tdc.parquet").write_bytes(b"left by hand")  # no meta.json
+    # through the command line: a refusal is its own exit status, for scripts
+    res = CliRunner().invoke(cli, ["flow", "run", "calibration_campaign", "-p", f"out={out}",
+                                   "-p", f"captures={captured}", "-p", "inl_rms=1.0"])
+    assert res.exit_code == 3, res.output
+    assert "calibration_campaign: Refused" in res.output
+    assert "cannot be read" in json.loads(res.stdout)["refused_because"][0]
+    assert (out / "current" / "tdc.parquet").read_bytes() == b"left by hand"
+    forced = calibration_campaign(out=str(out), captures=str(captured), inl_rms=1.0,
+                                  force=True, return_state=True)
+    assert forced.name == "Published" and forced.result()["forced"]
+    # the old directory was exchanged for a link in one step, and kept as a version
+    assert (out / "current").is_symlink() and (out / "current" / "meta.json").is_file()
+    assert any(p.name.startswith("before-") for p in (out / "versions").iterdir())
+
+
+def test_two_campaigns_at_once_take_turns(captured, tmp_path, monkeypatch):
+    import flows.calibration as fc
+
+    out = tmp_path / "cal"
+    inside, most, real = [0], [0], fc._campaign
+
+    def counted(*a, **k):
+        inside[0] += 1
+        most[0] = max(most[0], inside[0])
+        time.sleep(1.0)  # widen the window the two would overlap in
+        try:
+            return real(*a, **k)
+        finally:
+            inside[0] -= 1
+
+    monkeypatch.setattr(fc, "_campaign", counted)
+    states = []
+    runs = [threading.Thread(target=lambda: states.append(fc.calibration_campaign(
+        out=str(out), captures=str(captured), inl_rms=1.0, return_state=True)))
+        for _ in range(2)]
+    for t in runs:
+        t.start()
+    for t in runs:
+        t.join(120)
+    assert len(states) == 2 and all(s.is_completed() for s in states)
+    assert most[0] == 1  # never both inside
+    assert (out / "current" / "meta.json").is_file()
+    assert len(list((out / "versions").iterdir())) == 2  # both published, in turn
+    assert not [p for p in out.iterdir() if p.name.startswith(".") and p.name != ".lock"]
+
+
+def test_a_busy_calibration_fails_naming_the_holder(tmp_path):
+    from flows.calibration import calibration_campaign
+    from flows.common import FlowBusy, exclusive
+
+    with exclusive(tmp_path, 0):
+        state = calibration_campaign(out=str(tmp_path), wait_s=0.3, return_state=True)
+    assert state.is_failed()
+    with pytest.raises(FlowBusy, match=f"pid {os.getpid()}"):
+        state.result()
+
+
+def test_a_run_that_died_holding_the_lock_is_marked_crashed(captured, tmp_path):
+    from prefect import flow
+    from prefect.states import Running
+
+    from flows.calibration import calibration_campaign
+
+    @flow(name="calibration_campaign")
+    def stand_in():
+        pass
+
+    out = tmp_path / "cal"
+    out.mkdir()
+    with _client() as c:
+        dead = c.create_flow_run(stand_in, name="killed", state=Running())
+    # what a killed campaign leaves: its record in the lock file (the kernel dropped the
+    # lock itself), a half-written capture in the cache
+    (out / ".lock").write_text(json.dumps({"id": str(dead.id), "name": "killed",
+                                           "pid": 999_999_999}))
+    half = out / "cache" / ".abc.tmp-999999999"
+    half.mkdir(parents=True)
+    state = calibration_campaign(out=str(out), captures=str(captured), inl_rms=1.0,
+                                 return_state=True)
+    assert state.name == "Published"
+    with _client() as c:
+        after = c.read_flow_run(dead.id)
+    assert after.state.type.value == "CRASHED" and "died holding" in after.state.message
+    assert not half.exists()
+
+
+def test_leftovers_of_dead_processes_go_and_the_cache_stays_bounded(tmp_path):
+    from flows.common import clean_leftovers, prune_cache
+
+    dead = tmp_path / ".k1.tmp-999999999"
+    mine = tmp_path / f".k2.tmp-{os.getpid()}"  # a live process's: left alone
+    for p in (dead, mine):
+        p.mkdir()
+        (p / "x.bin").write_bytes(b"0" * 100)
+    (tmp_path / ".current.link-0a1b").symlink_to("nowhere")
+    assert sorted(Path(p).name for p in clean_leftovers(tmp_path)) == [
+        ".current.link-0a1b", ".k1.tmp-999999999"]
+    assert mine.exists()
+
+    now = time.time()
+    for i, (age_days, size) in enumerate([(40, 10), (3, 600), (2, 600), (1, 600)]):
+        e = tmp_path / f"e{i}"
+        e.mkdir()
+        (e / "words.bin").write_bytes(b"0" * size)
+        os.utime(e, (now - age_days * 86400,) * 2)
+    # e0 too old; then the least recently used until <= 1300 bytes remain; e1 is in use
+    dropped = prune_cache(tmp_path, max_gb=1300e-9, max_age_days=30, keep={"e1"})
+    assert dropped == ["e0", "e2"]
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith(".")) == [
+        "e1", "e3"]
+
+
+def test_a_pruned_cache_entry_is_remade_not_returned(campaign, tmp_path):
+    """Prefect's record of a cached capture outlives the capture when the cache is pruned:
+    the flow notices and simulates it again."""
+    import shutil
+
+    from flows.calibration import calibration_campaign
+
+    out, r = campaign
+    first = Path(r["captures"]["density"][0])
+    shutil.rmtree(first.parent)
+    state = calibration_campaign(out=str(out), **SMALL_CAL, return_state=True)
+    assert state.is_completed() and first.with_suffix(".json").exists()
+
+
+def test_parameters_are_checked_before_a_run_and_printed_intact():
+    from click.testing import CliRunner
+
+    from pipeline.cli.app import cli
+
+    res = CliRunner().invoke(cli, ["flow", "run", "calibration_campaign", "-p", "cycles=-5",
+                                   "-p", "lux=[100]", "-p", "inl_rms=0"])
+    assert res.exit_code == 2
+    msg = " ".join(res.output.split())
+    assert "cycles: Input should be greater than 0" in msg
+    assert "lux: List should have at least 4 items" in msg and "inl_rms" in msg
+
+
+def test_a_project_error_keeps_its_brackets(monkeypatch, capsys):
+    from pipeline.cli import app
+    from schemas.errors import CalibrationError
+
+    def boom(**_):
+        raise CalibrationError("invalid [0, 3] for TDCs [range]")
+
+    monkeypatch.setattr(app.cli, "main", boom)
+    with pytest.raises(SystemExit) as exc:
+        app._main()
+    assert exc.value.code == 2
+    assert "invalid [0, 3] for TDCs [range]" in capsys.readouterr().err
+
+
+def test_serve_reads_its_config(tmp_path):
+    import click
+
+    from flows.cli import deployments, read_serve_config
+
+    cfg = tmp_path / "serve.toml"
+    cfg.write_text('out = "lab"\n[calibration]\ncron = "30 1 * * *"\ntags = ["bench-1"]\n'
+                   'timezone = "Europe/Berlin"\n'
+                   '[calibration.parameters]\nlux = [50, 200, 900, 2000, 4000]\n'
+                   'cycles = 250000\nn_pixels = 64\n[sweep]\ncron = "0 4 * * 0"\n')
+    deps = {d.flow_name: d for d in deployments(read_serve_config(str(cfg)))}
+    cal = deps["calibration_campaign"]
+    assert cal.name == "64px daily at 01:30" and cal.tags == ["calibration", "bench-1"]
+    assert cal.parameters == {"out": "lab/calibration", "lux": [50, 200, 900, 2000, 4000],
+                              "cycles": 250000, "n_pixels": 64}
+    assert cal.schedules[0].schedule.cron == "30 1 * * *"
+    assert cal.schedules[0].schedule.timezone == "Europe/Berlin"
+    assert cal.concurrency_limit == 1
+    assert deps["distance_sweep"].name == "128px Sundays at 04:00"
+    assert deps["speed_vs_error"].name == "on demand" and not deps["speed_vs_error"].schedules
+    # the command line overrides the file
+    over = read_serve_config(str(cfg), calibration_cron="* * * * *", out="elsewhere")
+    assert over["calibration"]["cron"] == "* * * * *" and over["out"] == "elsewhere"
+
+    for text, says in [('[calibration]\ncron = "0 2 * *"\n', "not a cron expression"),
+                       ('[calibration]\ncron = "0 2 * * *"\ncolour = 1\n', "colour"),
+                       ('[calibrate]\ncron = "0 2 * * *"\n', "calibrate"),
+                       ('[sweep]\ncron = "0 2 * * *"\ntimezone = "Mars/Olympus"\n',
+                        "not a time zone"),
+                       ('[calibration]\ncron = "0 2 * * *"\n[calibration.parameters]\n'
+                        'cycles = 0\n', "cycles: Input should be greater than 0")]:
+        cfg.write_text(text)
+        with pytest.raises(click.UsageError, match=says):
+            deployments(read_serve_config(str(cfg)))

@@ -1,0 +1,193 @@
+"""The campaign against a real local Prefect server (`prefect server start` on 127.0.0.1,
+a free port), as a lab runs it unattended: a kill -9 mid-run and the rerun that resumes
+from Prefect's cache and marks the dead run Crashed; two campaigns started at once; the
+served schedule, stopped by Ctrl-C (SIGINT). Slow: a server start and real processes."""
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.slow
+
+ROOT = Path(__file__).resolve().parents[2]
+TCSPC = [sys.executable, "-c", "from pipeline.cli.app import main; main()"]
+SMALL = ["-p", "n_pixels=4", "-p", "cycles=150000", "-p", "delay_cycles=100000",
+         "-p", "lux=[100,400,1200,2500,3500]", "-p", "inl_rms=1.0"]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    home = tmp_path_factory.mktemp("prefect-home")
+    port = _free_port()
+    url = f"http://127.0.0.1:{port}/api"
+    env = {**os.environ, "PREFECT_HOME": str(home), "PREFECT_API_URL": url,
+           "PREFECT_LOCAL_STORAGE_PATH": str(home / "results"),
+           "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-m", "prefect", "server", "start", "--host",
+                             "127.0.0.1", "--port", str(port)], env=env, cwd=home,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 180
+        while True:
+            try:
+                with urllib.request.urlopen(f"{url}/health", timeout=2) as r:
+                    if r.status == 200:
+                        break
+            except OSError:
+                pass
+            if proc.poll() is not None or time.monotonic() > deadline:
+                pytest.fail(f"prefect server did not start on {url}")
+            time.sleep(0.5)
+        yield env
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
+def _api(env, method: str, path: str, body: dict | None = None):
+    req = urllib.request.Request(env["PREFECT_API_URL"] + path, method=method,
+                                 data=json.dumps(body or {}).encode(),
+                                 headers={"Content-Type": "application/json"})
+    with urllib.request.urlopen(req, timeout=30) as r:
+        return json.loads(r.read() or b"null")
+
+
+def _runs(env, flow_name="calibration_campaign") -> list[dict]:
+    return _api(env, "POST", "/flow_runs/filter",
+                {"flows": {"name": {"any_": [flow_name]}}, "limit": 200})
+
+
+def _task_states(env, run_id: str) -> dict:
+    trs = _api(env, "POST", "/task_runs/filter",
+               {"flow_runs": {"id": {"any_": [run_id]}}, "limit": 200})
+    return {t["name"]: t["state"]["name"] for t in trs}
+
+
+def _events(env, out: str, wait_s: float = 30) -> list[dict]:
+    """The tcspc.calibration.* events about campaigns on ``out`` (the server stores events
+    a moment after it receives them: polled)."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        ev = _api(env, "POST", "/events/filter", {"filter": {
+            "event": {"prefix": ["tcspc.calibration."]},
+            "occurred": {"since": "2020-01-01T00:00:00Z"}}, "limit": 50})
+        mine = [e for e in ev["events"] if e["payload"]["run"].startswith(out)]
+        if mine or time.monotonic() > deadline:
+            return mine
+        time.sleep(0.5)
+
+
+def _campaign(env, out, *extra):
+    return subprocess.Popen([*TCSPC, "flow", "run", "calibration_campaign", "-p",
+                             f"out={out}", *SMALL, *extra], env=env, cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def test_a_killed_run_is_marked_crashed_and_the_rerun_resumes(server, tmp_path_factory):
+    out = tmp_path_factory.mktemp("killed") / "cal"
+    proc = _campaign(server, out)
+    deadline = time.monotonic() + 300
+    # kill -9 once the fit is under way: it starts when all six captures are made and
+    # their results recorded (a capture killed before its record is reused from disk by
+    # the rerun, without the Cached state)
+    while not list((out / "cache").glob("*fit-*")):
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline, "the fit never started"
+        time.sleep(0.02)
+    proc.kill()
+    proc.wait()
+    (dead,) = _runs(server)
+    assert dead["state"]["type"] == "RUNNING"  # nobody told the API
+    rerun = _campaign(server, out)
+    _, err = rerun.communicate(timeout=600)
+    assert rerun.returncode == 0, err
+    runs = {r["id"]: r for r in _runs(server)}
+    assert runs[dead["id"]]["state"]["type"] == "CRASHED"
+    assert not [t for t in _task_states(server, dead["id"]).values()
+                if t in ("Running", "Pending")]
+    (new,) = [r for r in runs.values() if r["id"] != dead["id"]]
+    assert new["state"]["name"] == "Published"
+    states = _task_states(server, new["id"])
+    sims = [s for name, s in states.items() if name.startswith("simulate ")]
+    assert len(sims) == 6 and set(sims) == {"Cached"}, states  # resumed, not redone
+    assert not list((out / "cache").glob(".*.tmp-*"))  # the killed run's leftovers
+    assert (out / "current" / "meta.json").is_file()
+    # the event an automation triggers on, about this calibration
+    (pub,) = _events(server, str(out))
+    assert pub["event"] == "tcspc.calibration.published"
+    assert pub["resource"]["prefect.resource.name"] == str(out.resolve())
+
+
+def test_two_campaigns_started_at_once_take_turns(server, tmp_path_factory):
+    out = tmp_path_factory.mktemp("overlap") / "cal"
+    a, b = _campaign(server, out), _campaign(server, out)
+    results = [p.communicate(timeout=900) for p in (a, b)]
+    assert a.returncode == 0 and b.returncode == 0, results
+    assert sum("waiting for run" in err for _, err in results) == 1
+    outs = [json.loads(o) for o, _ in results]
+    assert all(o["published"] for o in outs)
+    assert len(list((out / "versions").iterdir())) == 2
+    assert (out / "current").is_symlink() and (out / "current" / "meta.json").is_file()
+
+
+def test_the_served_schedule_runs_and_ctrl_c_stops_it(server, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("served")
+    cfg = tmp / "serve.toml"
+    cfg.write_text(f'out = "{tmp / "data"}"\n[calibration]\ncron = "* * * * *"\n'
+                   'tags = ["bench-test"]\n[calibration.parameters]\nn_pixels = 4\n'
+                   'cycles = 150000\ndelay_cycles = 100000\ninl_rms = 1.0\n'
+                   'lux = [100, 400, 1200, 2500, 3500]\n')
+    serve = subprocess.Popen([*TCSPC, "flow", "serve", "--config", str(cfg)], env=server,
+                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True)
+    try:
+        deadline = time.monotonic() + 300
+        done = None
+        while done is None:
+            assert serve.poll() is None, serve.communicate()
+            assert time.monotonic() < deadline, "no scheduled run completed"
+            deps = _api(server, "POST", "/deployments/filter", {})
+            mine = [d for d in deps if d["name"] == "4px every minute"]
+            if mine:
+                runs = _api(server, "POST", "/flow_runs/filter", {
+                    "deployments": {"id": {"any_": [mine[0]["id"]]}}})
+                done = next((r for r in runs if r["state"]["name"] == "Published"), None)
+            time.sleep(2)
+        assert "bench-test" in mine[0]["tags"] and "calibration" in mine[0]["tags"]
+        # a run with a broken parameter is refused at creation, naming it
+        with pytest.raises(urllib.error.HTTPError) as bad:
+            _api(server, "POST", f"/deployments/{mine[0]['id']}/create_flow_run",
+                 {"parameters": {"cycles": -5}})
+        assert "cycles" in bad.value.read().decode()
+        assert done["name"].startswith("campaign ") and done["name"].endswith(" 4px")
+        assert (tmp / "data" / "calibration" / "current" / "meta.json").is_file()
+        serve.send_signal(signal.SIGINT)
+        _, err = serve.communicate(timeout=60)
+    finally:
+        if serve.poll() is None:
+            serve.kill()
+            serve.wait()
+    assert serve.returncode == 0, err
+    assert "serve stopped" in err
+    # nothing of ours is left running
+    runs = _api(server, "POST", "/flow_runs/filter", {
+        "deployments": {"id": {"any_": [mine[0]["id"]]}}})
+    assert not [r for r in runs if r["state"]["type"] in ("RUNNING", "PENDING")]
