@@ -323,7 +323,7 @@ def sim_scenarios(tmp: Path, lines: list[str], only=None) -> None:
 
             def mount(d, topo, which=which):
                 (d / which).mkdir()
-                subprocess.run(["mount", "-t", "tmpfs", "-o", "size=48m", "tmpfs",
+                subprocess.run(["mount", "-t", "tmpfs", "-o", "size=48m,mode=700", "tmpfs",
                                 str(d / which)], check=True)
 
             scenario(f"full {which} disk", f"{which} tmpfs filled for 2 s", full,

@@ -422,8 +422,9 @@ def tmpfs(tmp_path):
     def mount(name, size):
         d = tmp_path / name
         d.mkdir()
-        r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(d)],
-                           capture_output=True)
+        # mode 700: a tmpfs mounts 1777, which the daemon refuses as its state directory
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size},mode=700", "tmpfs",
+                            str(d)], capture_output=True)
         if r.returncode:
             pytest.skip(f"cannot mount a tmpfs here: {r.stderr.decode().strip()}")
         made.append(d)
