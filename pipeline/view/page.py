@@ -450,11 +450,16 @@ def make_document(model, token: str | None):
     def build(doc):
         doc.title = "tcspc view"
         doc.template = TEMPLATE
-        if token is not None:
-            args = doc.session_context.request.arguments if doc.session_context else {}
-            got = (args.get("token") or [b""])[0]
+        if token is not None:  # (the server's auth provider checked it too)
+            req = doc.session_context.request if doc.session_context else None
+            got = ((req.arguments if req is not None else {}).get("token") or [b""])[0]
             got = got.decode() if isinstance(got, bytes) else str(got)
-            if not hmac.compare_digest(got.encode(), token.encode()):
+            # a reload without the query carries the cookie the token's first load set
+            from pipeline.view.server import COOKIE
+
+            cookie = (getattr(req, "cookies", None) or {}).get(COOKIE, "")
+            if not any(hmac.compare_digest(g.encode(), token.encode())
+                       for g in (got, cookie) if g):
                 doc.add_root(Div(text="<h1>Forbidden</h1><p>This page needs the token of its "
                                       "URL (printed by `tcspc view`, and in STATE/view.url)."
                                       "</p>"))

@@ -90,7 +90,7 @@ def make_server(model, port: int = 5006, bind: str = "127.0.0.1", token: str | N
     return server, page_url(bind, server.port, token)
 
 
-COOKIE = "tcspc_view_token"
+COOKIE = "tcspc_view_token"  # (the page checks it too)
 
 
 def _token_auth_class():

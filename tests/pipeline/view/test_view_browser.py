@@ -248,3 +248,35 @@ def test_the_page_says_the_daemon_died_and_recovers_when_it_is_back(tmp_path, br
         for p in (view, daemon):
             if p is not None and p.poll() is None:
                 p.kill()
+
+
+def test_with_a_token_the_page_opens_with_it_and_only_with_it(tmp_path, browser):
+    """Token mode (any address but loopback; here forced on loopback): a real browser opens
+    the page from its URL with the token, and its websocket joins with the cookie that URL
+    set (the page comes alive); a fresh browser without the token gets the refusal, and
+    neither the page nor its websocket works."""
+    script = ("import sys; from pathlib import Path\n"
+              "from pipeline.view.model import ViewModel\n"
+              "from pipeline.view.server import make_server\n"
+              "s, url = make_server(ViewModel(Path(sys.argv[1]), Path(sys.argv[2]), None, "
+              "None, None), 0, '127.0.0.1', token='tok-' + 'x' * 20)\n"
+              "print(url, flush=True); s.io_loop.start()\n")
+    view = subprocess.Popen([sys.executable, "-c", script, tmp_path / "state",
+                             tmp_path / "out"], stdout=subprocess.PIPE, text=True)
+    try:
+        url = view.stdout.readline().strip()
+        assert "?token=tok-" in url
+        bare = url.split("?")[0]
+        stranger = browser.new_context().new_page()
+        resp = stranger.goto(bare)
+        assert resp.status == 403 and "needs the token" in stranger.content()
+        owner = browser.new_context(viewport={"width": 1240, "height": 900}).new_page()
+        owner.goto(url)
+        # the page is alive: the server's first update over the websocket arrives
+        wait_for("the page's state over its websocket", lambda: kind(owner) == "absent", 60)
+        owner.goto(bare)  # the cookie the token set carries a reload without it
+        wait_for("the page again, by its cookie", lambda: kind(owner) == "absent", 60)
+        assert stranger.goto(bare).status == 403
+    finally:
+        view.kill()
+        view.wait()
