@@ -444,6 +444,10 @@ def drift_flag_note(flagged: dict[int, str]) -> str:
     return (f"; left out, estimate untrusted: TDC {shown} ({flagged[tdcs[0]]})")
 
 
+#: the cookie a page's first load with its token sets (pipeline.view.server's auth)
+COOKIE = "tcspc_view_token"
+
+
 def make_document(model, token: str | None):
     """The Bokeh application's function: a page per session (the token checked first)."""
 
@@ -455,8 +459,6 @@ def make_document(model, token: str | None):
             got = ((req.arguments if req is not None else {}).get("token") or [b""])[0]
             got = got.decode() if isinstance(got, bytes) else str(got)
             # a reload without the query carries the cookie the token's first load set
-            from pipeline.view.server import COOKIE
-
             cookie = (getattr(req, "cookies", None) or {}).get(COOKIE, "")
             if not any(hmac.compare_digest(g.encode(), token.encode())
                        for g in (got, cookie) if g):

@@ -90,13 +90,12 @@ def make_server(model, port: int = 5006, bind: str = "127.0.0.1", token: str | N
     return server, page_url(bind, server.port, token)
 
 
-COOKIE = "tcspc_view_token"  # (the page checks it too)
-
-
 def _token_auth_class():
     from bokeh.server.auth_provider import AuthProvider
     from tornado.web import RequestHandler
     from tornado.websocket import WebSocketHandler
+
+    from pipeline.view.page import COOKIE
 
     class Forbidden(RequestHandler):
         def get(self):
