@@ -12,6 +12,7 @@ Layout under ``out`` (default ``data/calibration``)::
     cache/                     simulated captures, fits and delays, keyed on their inputs
                                and the code version (bounded: cache_max_gb, _age_days)
     .lock                      held by the campaign running (one at a time)
+    .lock.wait-PID             a campaign waiting for it
 
 A run that fails at any step (or refuses its candidate) leaves the old calibration in
 place, whole. The run ends in a state named for its outcome, ``Published`` or ``Refused``
@@ -340,10 +341,12 @@ def calibration_campaign(out: str = "data/calibration", lux: LuxLevels | None = 
     ``cache_max_age_days`` dropped."""
     log = get_run_logger()
     cache = Path(out) / "cache"
-    with exclusive(out, wait_s, log) as before:
-        if before and mark_crashed(before["id"], f"its process (pid {before.get('pid')} on "
-                                   f"{before.get('host')}) died holding {out}"):
-            log.warning("run %s died without ending; marked Crashed", before.get("name"))
+    with exclusive(out, wait_s, log) as dead:
+        for rec in dead:
+            how = "waiting for" if rec.get("waiting") else "holding"
+            if mark_crashed(rec["id"], f"its process (pid {rec.get('pid')} on "
+                            f"{rec.get('host')}) died {how} {out}"):
+                log.warning("run %s died without ending; marked Crashed", rec.get("name"))
         clean_leftovers(out, cache, Path(out) / "versions", log=log)
         summary, used = _campaign(out, str(cache), lux, cycles, delay_cycles, n_pixels,
                                   chip_seed, seed, inl_rms, captures, journal, density_runs,

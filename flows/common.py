@@ -229,14 +229,18 @@ def flow_run_info() -> dict:
 # ---- one campaign at a time; what a killed run leaves behind ------------------------------
 
 @contextlib.contextmanager
-def exclusive(out: str | Path, wait_s: float, log=None) -> Iterator[dict | None]:
+def exclusive(out: str | Path, wait_s: float, log=None) -> Iterator[list[dict]]:
     """Hold ``OUT/.lock`` (an advisory file lock, which the kernel releases when its holder
     dies, even by ``kill -9``), waiting up to ``wait_s`` for another run to finish. Yields
-    the previous holder's record (its flow run id, pid, host), for the caller to mark a run
-    that died holding it; raises :class:`FlowBusy` naming the holder on timeout."""
+    the records (flow run id, name, pid, host) of the runs that died here without ending,
+    for the caller to mark Crashed: the previous holder when it died holding the lock, and
+    runs killed while they waited for it (a waiter says so in ``OUT/.lock.wait-PID`` while
+    it waits). Raises :class:`FlowBusy` naming the holder on timeout."""
     path = Path(out) / ".lock"
     path.parent.mkdir(parents=True, exist_ok=True)
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    me = {**flow_run_info(), "pid": os.getpid(), "host": socket.gethostname()}
+    waiting = path.with_name(f".lock.wait-{os.getpid()}")
     try:
         deadline, said = time.monotonic() + wait_s, False
         while True:
@@ -249,22 +253,44 @@ def exclusive(out: str | Path, wait_s: float, log=None) -> Iterator[dict | None]
                     raise FlowBusy(f"{out} is busy: run {holder.get('name', '?')} (pid "
                                    f"{holder.get('pid', '?')} on {holder.get('host', '?')}) "
                                    f"still holds it after {wait_s:g} s") from None
-                if log and not said:
-                    log.info("waiting for run %s (pid %s) to release %s",
-                             holder.get("name", "?"), holder.get("pid", "?"), out)
+                if not said:
+                    waiting.write_text(json.dumps(me))
+                    if log:
+                        log.info("waiting for run %s (pid %s) to release %s",
+                                 holder.get("name", "?"), holder.get("pid", "?"), out)
                     said = True
                 time.sleep(0.2)
+        waiting.unlink(missing_ok=True)
         before = _read_holder(fd)
-        me = {**flow_run_info(), "pid": os.getpid(), "host": socket.gethostname(),
-              "since": dt.datetime.now(dt.UTC).isoformat(timespec="seconds")}
+        dead = ([before] if before.get("id") else []) + _dead_waiters(path, me["host"])
         os.ftruncate(fd, 0)
-        os.pwrite(fd, json.dumps(me).encode(), 0)
+        os.pwrite(fd, json.dumps({**me, "since": dt.datetime.now(dt.UTC).isoformat(
+            timespec="seconds")}).encode(), 0)
         try:
-            yield before if before.get("id") else None
+            yield dead
         finally:
             os.ftruncate(fd, 0)  # released cleanly: nobody to mark crashed
     finally:
+        waiting.unlink(missing_ok=True)
         os.close(fd)  # releases the lock
+
+
+def _dead_waiters(lock: Path, host: str) -> list[dict]:
+    """The records of runs on this host that were killed while waiting for ``lock``
+    (their ``.lock.wait-PID`` left behind, their process gone), removed as they are read."""
+    from pipeline.view.status import pid_alive
+
+    dead = []
+    for p in lock.parent.glob(".lock.wait-*"):
+        try:
+            rec = json.loads(p.read_text())
+        except (OSError, ValueError):
+            rec = {}
+        if rec.get("host", host) == host and pid_alive(rec.get("pid")) is False:
+            p.unlink(missing_ok=True)
+            if rec.get("id"):
+                dead.append({**rec, "waiting": True})
+    return dead
 
 
 def _read_holder(fd: int) -> dict:

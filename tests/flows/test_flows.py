@@ -421,6 +421,55 @@ def test_a_run_that_died_holding_the_lock_is_marked_crashed(captured, tmp_path):
     assert not half.exists()
 
 
+def test_a_run_killed_while_waiting_for_the_lock_is_marked_crashed(captured, tmp_path):
+    import socket
+    import threading
+
+    from prefect import flow
+    from prefect.states import Running
+
+    from flows.calibration import calibration_campaign
+    from flows.common import exclusive
+
+    @flow(name="calibration_campaign")
+    def stand_in():
+        pass
+
+    out = tmp_path / "cal"
+    out.mkdir()
+    # a waiter says so while it waits, and takes its record away when it gets the lock
+    got = threading.Event()
+
+    def wait_for_it():
+        with exclusive(out, 30):
+            got.set()
+
+    with exclusive(out, 0):
+        t = threading.Thread(target=wait_for_it)
+        t.start()
+        for _ in range(100):
+            if (out / f".lock.wait-{os.getpid()}").exists():
+                break
+            time.sleep(0.05)
+        assert (out / f".lock.wait-{os.getpid()}").exists()
+    t.join(10)
+    assert got.is_set() and not (out / f".lock.wait-{os.getpid()}").exists()
+
+    # what a campaign killed while waiting leaves: its record, its process gone
+    with _client() as c:
+        dead = c.create_flow_run(stand_in, name="killed-waiting", state=Running())
+    (out / ".lock.wait-999999999").write_text(json.dumps(
+        {"id": str(dead.id), "name": "killed-waiting", "pid": 999_999_999,
+         "host": socket.gethostname()}))
+    state = calibration_campaign(out=str(out), captures=str(captured), inl_rms=1.0,
+                                 return_state=True)
+    assert state.name == "Published"
+    with _client() as c:
+        after = c.read_flow_run(dead.id)
+    assert after.state.type.value == "CRASHED" and "died waiting for" in after.state.message
+    assert not (out / ".lock.wait-999999999").exists()
+
+
 def test_leftovers_of_dead_processes_go_and_the_cache_stays_bounded(tmp_path):
     from flows.common import clean_leftovers, prune_cache
 
