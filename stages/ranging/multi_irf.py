@@ -1,0 +1,207 @@
+"""More than one surface a pixel with a measured instrument response: the found returns
+subtracted, tail and all, before the next is searched.
+
+A real SPAD's return decays over tens of bins (carrier diffusion; the ams TMF8820's over
+~20 bins of 91 ps, a TCSPC fluorescence decay over nanoseconds). The Gaussian masks of
+:mod:`stages.ranging.multi` leave that tail in the histogram, and the next search finds it
+as a surface. Here each found return is modelled by the whole measured response
+(:class:`~stages.ranging.irf.Response`, every bin of its density, not only its fitting
+span), shifted to the return's fitted time and scaled by its fitted signal, in the pile-up
+corrected domain (:meth:`~stages.ranging.histograms.Histograms.intensity` times the
+cycles). The next return is fitted to the counts with the found returns' model as a fixed
+part (the residual, not a mask: a second surface inside the first's tail can still be
+found), and is tested against background plus that model, taken back to the counts of
+the cycles still at risk as every detection here is.
+
+Model error: a response measured on other captures is not each return's exact shape (the
+TMF8820's zones differ by ~3 % a bin, its captures by up to ~20 % a bin in the far tail,
+and a shift interpolated within a bin leaves ~10 % on a one-bin rising edge). Counts of
+10^5 a bin have a Poisson spread of 0.3 %, so a few per cent of misfit would be a surface.
+The model's part of every bin is therefore given a relative error of
+:data:`MODEL_ERROR`: in the search's weights (the variance is counts plus (error x model)^2)
+and in the detection, which tests the candidate's bin against background plus the found
+returns' model raised by that error. A weaker surface is found where it stands out of the
+brighter one's response by more than that error (measured in ``benchmarks/multi_return.py``).
+
+False alarms, as in :mod:`stages.ranging.multi`: return k + 1 is searched only where
+return k was detected, each test at ``p_fa`` over the valid bins; a background-only pixel
+needs its first test to fire (<= p_fa), a pixel with real returns can be wrong only in the
+test after its last real one (<= p_fa where the model error covers the misfit).
+
+Times: the first return is the caller's single-return estimate (its estimator, its shape,
+its calibration), unchanged where no further return is found. Where one is, every return
+of the pixel is refitted with the others subtracted, and its time is the first's plus its
+offset from the first's response fit alone: one model measures the separations, the
+caller's estimator the anchor.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from stages.ranging.detection import poisson_tail, tested_bin
+from stages.ranging.histograms import Estimate, Histograms
+from stages.ranging.irf import Response, _fwhm_bins
+
+#: relative error of a found return's modelled counts in each bin (see the docstring)
+MODEL_ERROR = 0.2
+#: the fewest cycles still at risk (a fraction of the cycles) where a further return is
+#: tested: beyond, the corrected counts hang on the pulse count more than on the photons
+#: (the TMF8820 within 8 cm, its effective pulse count fitted: 3-12 % at risk 4-7 cm behind
+#: the target, where 20 % of the model was not enough)
+MIN_AT_RISK = 0.5
+#: fine shift grid of the fits (bins), refined by a parabola
+_STEP = 0.1
+_OFF = np.arange(-1.2, 1.2 + 1e-9, _STEP)
+
+
+def _corrected(h: Histograms) -> np.ndarray:
+    """Pile-up corrected counts of every bin (0 on invalid bins)."""
+    return np.where(h.valid, h.intensity() * h.cycles[:, None], 0.0)
+
+
+def _variance(y, known, gain, fit=None):
+    """Each bin's variance: the corrected counts' (Poisson, at least 1, times ``gain``, the
+    cycles over the cycles at risk: the correction's amplification) plus the model error
+    of the found returns' counts ``known``."""
+    base = np.maximum(y if fit is None else fit + known, 1.0) * gain
+    return base + (MODEL_ERROR * gain * known) ** 2
+
+
+def _coarse(y, valid, gain, known, response: Response) -> np.ndarray:
+    """The whole-bin position of the most significant excess over ``known``: the
+    correlation of the residual with the response over the square root of its variance
+    (a misfit under the found returns' peaks does not outweigh a surface beside them)."""
+    n = y.shape[1]
+    whole = response.models(np.arange(n, dtype=np.float64), n)            # (n, n)
+    r = np.where(valid, y - known, 0.0)
+    base = np.median(np.where(valid, r, np.nan), axis=1)
+    base = np.where(np.isfinite(base), base, 0.0)
+    var = np.where(valid, _variance(y, known, gain), 0.0)
+    score = ((r - base[:, None]) @ whole.T) / np.sqrt(np.maximum(var @ (whole ** 2).T,
+                                                                 1e-300))
+    return np.argmax(np.where(valid, score, -np.inf), axis=1)
+
+
+def _fit(y, valid, gain, known, response: Response, centre):
+    """Shift (bins: the response's mode bin), amplitude, background per bin and sigma
+    (bins) of one return per row near the whole-bin ``centre``, fitted to ``y`` with the
+    other returns' model ``known`` fixed: weighted least squares of amplitude and
+    background at each shift of a 0.1-bin grid (weights from the model, twice
+    reweighted), the chi-square's minimum by a parabola, sigma from its curvature."""
+    n_pix, n = y.shape
+    rows = np.arange(n_pix)
+    lo, hi = response.span
+    shifts = centre[:, None] + _OFF[None, :]                              # (P, S)
+    models = response.models(shifts.ravel(), n).reshape(n_pix, _OFF.size, n)
+    kk = np.arange(n)[None, :]
+    sel = (valid & (kk >= centre[:, None] - lo) & (kk <= centre[:, None] + hi))[:, None, :]
+    r, yy, kn = (y - known)[:, None, :], y[:, None, :], known[:, None, :]
+    gg = gain[:, None, :]
+    wts = np.where(sel, 1.0 / _variance(yy, kn, gg), 0.0)
+    for _ in range(3):
+        a, b = _solve(models, r, wts)
+        fit = np.maximum(a, 0)[..., None] * models + np.maximum(b, 0)[..., None]
+        wts = np.where(sel, 1.0 / _variance(yy, kn, gg, fit), 0.0)
+    chi2 = (wts * (r - fit) ** 2).sum(-1)                                  # (P, S)
+    j = np.clip(np.argmin(chi2, axis=1), 1, _OFF.size - 2)
+    s_m, s_0, s_p = chi2[rows, j - 1], chi2[rows, j], chi2[rows, j + 1]
+    curv = s_m - 2 * s_0 + s_p
+    frac = np.clip(np.where(curv > 0, 0.5 * (s_m - s_p) / np.where(curv > 0, curv, 1.0),
+                            0.0), -1.0, 1.0)
+    shift = shifts[rows, j] + frac * _STEP
+    sigma = np.where(curv > 0, np.sqrt(2.0 / np.where(curv > 0, curv, 1.0)) * _STEP, np.inf)
+    return shift, np.maximum(a[rows, j], 0.0), np.maximum(b[rows, j], 0.0), sigma
+
+
+def _solve(models, y, wts):
+    from stages.ranging.irf import _solve as solve
+
+    return solve(models, y, wts)
+
+
+def _model(response: Response, shift, amp, n: int) -> np.ndarray:
+    """Each row's return, the whole response at ``shift`` times ``amp`` (P, n)."""
+    return np.where(np.isfinite(shift)[:, None],
+                    np.nan_to_num(amp)[:, None]
+                    * response.models(np.nan_to_num(shift), n), 0.0)
+
+
+def _detected(h: Histograms, y, shift, amp, known, p_fa) -> np.ndarray:
+    """The candidate's bin (:func:`tested_bin` of the bin holding ``shift``) against the
+    background (the median of the corrected counts ``y`` less the found returns' model
+    ``known``) plus that model raised by its error, taken to the raw counts of the cycles
+    at risk; Poisson tail at ``p_fa`` over the valid bins."""
+    rows = np.arange(shift.size)
+    n = h.counts.shape[1]
+    bg = np.nanmedian(np.where(h.valid, y - known, np.nan), axis=1)
+    bg = np.maximum(np.nan_to_num(bg), 0.0)
+    q = tested_bin(h.counts, h.valid, np.clip(np.floor(np.nan_to_num(shift)), 0, n - 1)
+                   .astype(np.int64))
+    gain = h.cycles / np.maximum(h.at_risk[rows, q], 1.0)
+    lam = (bg + (1 + MODEL_ERROR * gain) * known[rows, q]) / np.maximum(h.cycles, 1.0)
+    b = np.maximum(h.at_risk[rows, q], 0.0) * -np.expm1(-lam)
+    n_bins = np.maximum(np.asarray(h.valid).sum(axis=1), 1)
+    return (poisson_tail(h.counts[rows, q], b) <= p_fa / n_bins) & (amp > 0) & \
+        np.isfinite(shift) & (gain <= 1 / MIN_AT_RISK)
+
+
+def further_returns(h: Histograms, response: Response, first: Estimate, p_fa: float,
+                    max_returns: int) -> list[dict]:
+    """Up to ``max_returns`` returns of each row of ``h`` (its uniform bins, the
+    response's): ``first`` the rows' single-return estimate, searched further where it is
+    detected (see the module docstring). Returns one dict of per-row columns a return
+    (``t_s``, ``sigma_s``, ``fwhm_s``, ``signal_counts``, ``background_per_bin``,
+    ``detected``), the first's own columns where no further return was found."""
+    n_pix, n = h.counts.shape
+    bin_s = float(h.bin_s)
+    y = _corrected(h)
+    valid = np.asarray(h.valid, bool)
+    gain = h.cycles[:, None] / np.maximum(h.at_risk, 1.0)
+    live = np.asarray(first.detected, bool).copy()
+    zero = np.zeros_like(y)
+    centre = _coarse(y, valid, gain, zero, response)
+    s0, a0, _, sig0 = _fit(y, valid, gain, zero, response, centre)
+    shifts, amps, sigmas = [s0], [a0], [sig0]
+    dets = [live.copy()]
+    while len(shifts) < max_returns and live.any():
+        known = sum(_model(response, np.where(live, s, np.nan), a, n)
+                    for s, a in zip(shifts, amps, strict=True))
+        centre = _coarse(y, valid, gain, known, response)
+        s, a, _, sig = _fit(y, valid, gain, known, response, centre)
+        det = live & _detected(h, y, s, a, known, p_fa)
+        shifts.append(np.where(det, s, np.nan))
+        amps.append(np.where(det, a, 0.0))
+        sigmas.append(sig)
+        dets.append(det)
+        live = det
+    k = len(shifts)
+    several = np.zeros(n_pix, bool) if k == 1 else dets[1]
+    for _ in range(2 if several.any() else 0):  # each refitted with the others subtracted
+        rows = np.flatnonzero(several)
+        for i in range(k):
+            if not dets[i][rows].any():
+                continue
+            known = sum(_model(response, shifts[j][rows], amps[j][rows], n)
+                        for j in range(k) if j != i)
+            centre = np.rint(np.nan_to_num(shifts[i][rows], nan=0.0)).astype(np.int64)
+            s, a, _, sig = _fit(y[rows], valid[rows], gain[rows], known, response, centre)
+            ok = dets[i][rows]
+            shifts[i][rows] = np.where(ok, s, shifts[i][rows])
+            amps[i][rows] = np.where(ok, a, amps[i][rows])
+            sigmas[i][rows] = np.where(ok, sig, sigmas[i][rows])
+    fwhm = _fwhm_bins(response) * bin_s
+    out = []
+    for i in range(k):
+        signal = amps[i] * response.models(np.nan_to_num(shifts[i]), n).sum(1)
+        t = np.asarray(first.t_s, np.float64) + (shifts[i] - s0) * bin_s
+        cols = {"t_s": t, "sigma_s": sigmas[i] * bin_s, "fwhm_s": np.full(n_pix, fwhm),
+                "signal_counts": signal, "background_per_bin": np.asarray(
+                    first.background_per_bin, np.float64).copy(), "detected": dets[i]}
+        if i == 0:  # the first as the caller's estimator gave it, unless it has company
+            for name in ("t_s", "sigma_s", "fwhm_s", "signal_counts"):
+                cols[name] = np.where(several, cols[name],
+                                      np.asarray(getattr(first, name), np.float64))
+            cols["detected"] = np.asarray(first.detected, bool)
+        out.append(cols)
+    return out
