@@ -122,13 +122,18 @@ class DistanceCalibration:
 
 
 def _response_doc(r: Response | None) -> dict | None:
-    return None if r is None else {"source": r.source, "bin_ps": r.bin_s * 1e12,
-                                   "density": r.density.tolist()}
+    if r is None:
+        return None
+    return {"source": r.source, "bin_ps": r.bin_s * 1e12, "density": r.density.tolist(),
+            **({} if r.error is None else {"error": r.error.tolist()})}
 
 
 def _response_of(doc: dict | None) -> Response | None:
-    return None if doc is None else Response(np.asarray(doc["density"]),
-                                             doc["bin_ps"] * 1e-12, doc["source"])
+    if doc is None:
+        return None
+    err = doc.get("error")
+    return Response(np.asarray(doc["density"]), doc["bin_ps"] * 1e-12, doc["source"],
+                    None if err is None else np.asarray(err))
 
 
 @dataclass(frozen=True)
@@ -193,11 +198,16 @@ def measurement_times(m: Measurement, estimator: str = "ml", p_fa: float = 1e-3,
                                         cyc[r] if np.isfinite(m.cycles[r]) or cycles is not None
                                         else None)
     if estimator in IRF_ESTIMATORS and response is not None and sigma_s is None:
-        est, used = fit_response(h, response, estimator, p_fa), response.source
+        def single(hh):
+            return fit_response(hh, response, estimator, p_fa)
+        used = response.source
     else:
         sigma = sigma_s or (response.sigma_s if response is not None else m.bin_width_s)
-        est = estimate(h, sigma, estimator, p_fa)
+
+        def single(hh):
+            return estimate(hh, sigma, estimator, p_fa)
         used = f"Gaussian, sigma {sigma * 1e12:.1f} ps"
+    est = single(h)
     origin = 0.0
     if ref.size:
         origin = est.t_s[ref[0]] if est.detected[ref[0]] else np.nan
@@ -212,7 +222,7 @@ def measurement_times(m: Measurement, estimator: str = "ml", p_fa: float = 1e-3,
         rows = np.flatnonzero(keep)
         sub = estimate_returns(_histograms(m, cyc, rows), returns_response.sigma_s,
                                estimator, p_fa, max_returns, response=returns_response,
-                               first=sub)
+                               first=sub, single=single)
         used += f"; further returns modelled by {returns_response.source}"
         return Times(m.tdc[rows][sub.pixel], sub, sub.t_s - origin, used, pileup,
                      bright[rows][sub.pixel])

@@ -28,6 +28,12 @@ from stages.ranging.validation import _safe, check_histograms, check_p_fa, finis
 
 #: the estimators that take a measured response
 IRF_ESTIMATORS = ("matched", "ml")
+#: the least relative error of a measured response as a model of one return, a bin (the
+#: TMF8820's zones: ~3 % apart a bin near the mode, a shift interpolated within a bin
+#: ~10 % on a one-bin rising edge)
+RESPONSE_ERROR = 0.2
+#: ... and the most (a bin where one row's tail is 3x the mean is that row's, not noise)
+RESPONSE_ERROR_MAX = 3.0
 #: fine shift step (bins) of the search, refined by a parabola
 _STEP = 0.1
 
@@ -45,6 +51,9 @@ class Response:
     density: np.ndarray
     bin_s: float
     source: str
+    #: per bin, the relative error of the density as a model of one return (measured on
+    #: the returns it was averaged from, :func:`response_from_returns`); None: not known
+    error: np.ndarray | None = None
 
     def __post_init__(self):
         d = np.asarray(self.density, np.float64)
@@ -56,6 +65,12 @@ class Response:
             raise ValueError(f"response {self.source!r}: bin width must be > 0 s, found "
                              f"{self.bin_s!r}")
         object.__setattr__(self, "density", d / d.sum())
+        if self.error is not None:
+            e = np.asarray(self.error, np.float64)
+            if e.shape != d.shape or not np.all(np.isfinite(e)) or np.any(e < 0):
+                raise ValueError(f"response {self.source!r}: its error needs one finite, "
+                                 "non-negative value a bin")
+            object.__setattr__(self, "error", e)
 
     @property
     def mode(self) -> int:
@@ -76,15 +91,17 @@ class Response:
         long tail left out, as it is by the Gaussian's own width."""
         return _fwhm_bins(self) * self.bin_s / FWHM_PER_SIGMA
 
-    def models(self, shifts: np.ndarray, n_bins: int) -> np.ndarray:
+    def models(self, shifts: np.ndarray, n_bins: int, values=None) -> np.ndarray:
         """Bin-integrated models (len(shifts), n_bins): the response with its mode bin
         moved to bin ``shift`` (``mode + s`` with s = shift - mode), each summing to the
-        part of the response inside the window."""
-        cum = np.concatenate([[0.0], np.cumsum(self.density)])
+        part of the response inside the window (``values``, one a bin of the density, is
+        moved instead where given: e.g. the density times its error)."""
+        d = self.density if values is None else np.asarray(values, np.float64)
+        cum = np.concatenate([[0.0], np.cumsum(d)])
         f = PchipInterpolator(np.arange(cum.size, dtype=np.float64), cum, extrapolate=False)
         e = np.arange(n_bins + 1)[None, :] - (np.asarray(shifts, np.float64)[:, None]
                                                - self.mode)
-        v = np.where(e <= 0, 0.0, np.where(e >= cum.size - 1, 1.0,
+        v = np.where(e <= 0, 0.0, np.where(e >= cum.size - 1, cum[-1],
                                            f(np.clip(e, 0, cum.size - 1))))
         return np.diff(v, axis=1)
 
@@ -277,4 +294,10 @@ def response_from_returns(h: Histograms, t_s, source: str) -> Response:
         raise ValueError(f"response {source!r}: no return above its background")
     a = np.nan_to_num(aligned[good]) / norm[good, None]
     density = a.sum(axis=0) / np.maximum(reach[good].sum(axis=0), 1)
-    return Response(density, bin_s, source)
+    # each bin's error: the largest relative departure of a row from the mean, over the
+    # bin and its neighbours (a shift of a bin), no lower than RESPONSE_ERROR
+    dev = np.where(reach[good], np.abs(a - density), 0.0).max(axis=0)
+    rel = np.where(density > 0, dev / np.where(density > 0, density, 1.0), 0.0)
+    rel = np.maximum.reduce([rel, np.roll(rel, 1), np.roll(rel, -1)])
+    return Response(density, bin_s, source,
+                    error=np.maximum(np.minimum(rel, RESPONSE_ERROR_MAX), RESPONSE_ERROR))

@@ -92,7 +92,7 @@ def _columns(est: Estimate, n_pix: int, rows=None) -> dict:
 def estimate_returns(h: Histograms, sigma_s: float, estimator: str = "ml",
                      p_fa: float = 1e-3, max_returns: int = MAX_RETURNS,
                      response: Response | None = None, first: Estimate | None = None,
-                     ) -> Estimate:
+                     single=None) -> Estimate:
     """Up to ``max_returns`` returns per pixel, each with its own detection at ``p_fa``
     (see the module docstring). Returns the estimate, one row per pixel and return
     (pixel-major, ``pixel`` and ``return_index``, 0 the strongest; every pixel has its row
@@ -103,8 +103,9 @@ def estimate_returns(h: Histograms, sigma_s: float, estimator: str = "ml",
     With a measured ``response`` (a real instrument's, its tail included) the further
     returns are searched by :func:`stages.ranging.multi_irf.further_returns` instead of
     the Gaussian masks; ``first`` is then the pixels' single-return estimate if the caller
-    has one (its estimator and shape, e.g. a measured response's fit), else the
-    ``estimator``'s with ``sigma_s``."""
+    has one, and ``single`` the function of :class:`Histograms` that made it (its
+    estimator and shape, e.g. a measured response's fit), else the ``estimator``'s with
+    ``sigma_s``: it times each return of a pixel with several, the others taken out."""
     if isinstance(max_returns, bool) or not (isinstance(max_returns, int | np.integer)
                                              and max_returns >= 1):
         raise ValueError(f"max_returns must be an integer >= 1, found {max_returns!r}")
@@ -115,10 +116,13 @@ def estimate_returns(h: Histograms, sigma_s: float, estimator: str = "ml",
     if response is not None:
         from stages.ranging.multi_irf import further_returns
 
-        first = estimate(h, sigma_s, estimator, p_fa) if first is None else first
+        if single is None:
+            def single(hh):
+                return estimate(hh, sigma_s, estimator, p_fa)
+        first = single(h) if first is None else first
         live = np.asarray(first.detected, bool) & (flags == "")
         found = further_returns(h, response, dataclasses.replace(first, detected=live),
-                                p_fa, max_returns)
+                                p_fa, max_returns, single)
         found[0]["detected"] = np.asarray(first.detected, bool)
         found[0]["flag"] = _columns(first, n_pix)["flag"]
         for cols in found[1:]:

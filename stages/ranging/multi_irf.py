@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.ranging.detection import poisson_tail, tested_bin
+from stages.ranging.detection import _background, poisson_tail, tested_bin
 from stages.ranging.histograms import Estimate, Histograms
 from stages.ranging.irf import Response, _fwhm_bins
 
@@ -50,6 +50,8 @@ MODEL_ERROR = 0.2
 #: (the TMF8820 within 8 cm, its effective pulse count fitted: 3-12 % at risk 4-7 cm behind
 #: the target, where 20 % of the model was not enough)
 MIN_AT_RISK = 0.5
+#: bins before a candidate's rise whose mean background it is tested against, at least
+LOCAL_BINS = 8
 #: fine shift grid of the fits (bins), refined by a parabola
 _STEP = 0.1
 _OFF = np.arange(-1.2, 1.2 + 1e-9, _STEP)
@@ -60,15 +62,15 @@ def _corrected(h: Histograms) -> np.ndarray:
     return np.where(h.valid, h.intensity() * h.cycles[:, None], 0.0)
 
 
-def _variance(y, known, gain, fit=None):
+def _variance(y, known, kerr, gain, fit=None):
     """Each bin's variance: the corrected counts' (Poisson, at least 1, times ``gain``, the
-    cycles over the cycles at risk: the correction's amplification) plus the model error
-    of the found returns' counts ``known``."""
+    cycles over the cycles at risk: the correction's amplification) plus the found
+    returns' model error ``kerr`` (counts a bin), amplified alike."""
     base = np.maximum(y if fit is None else fit + known, 1.0) * gain
-    return base + (MODEL_ERROR * gain * known) ** 2
+    return base + (gain * kerr) ** 2
 
 
-def _coarse(y, valid, gain, known, response: Response) -> np.ndarray:
+def _coarse(y, valid, gain, known, kerr, response: Response) -> np.ndarray:
     """The whole-bin position of the most significant excess over ``known``: the
     correlation of the residual with the response over the square root of its variance
     (a misfit under the found returns' peaks does not outweigh a surface beside them)."""
@@ -77,13 +79,13 @@ def _coarse(y, valid, gain, known, response: Response) -> np.ndarray:
     r = np.where(valid, y - known, 0.0)
     base = np.median(np.where(valid, r, np.nan), axis=1)
     base = np.where(np.isfinite(base), base, 0.0)
-    var = np.where(valid, _variance(y, known, gain), 0.0)
+    var = np.where(valid, _variance(y, known, kerr, gain), 0.0)
     score = ((r - base[:, None]) @ whole.T) / np.sqrt(np.maximum(var @ (whole ** 2).T,
                                                                  1e-300))
     return np.argmax(np.where(valid, score, -np.inf), axis=1)
 
 
-def _fit(y, valid, gain, known, response: Response, centre):
+def _fit(y, valid, gain, known, kerr, response: Response, centre):
     """Shift (bins: the response's mode bin), amplitude, background per bin and sigma
     (bins) of one return per row near the whole-bin ``centre``, fitted to ``y`` with the
     other returns' model ``known`` fixed: weighted least squares of amplitude and
@@ -97,12 +99,12 @@ def _fit(y, valid, gain, known, response: Response, centre):
     kk = np.arange(n)[None, :]
     sel = (valid & (kk >= centre[:, None] - lo) & (kk <= centre[:, None] + hi))[:, None, :]
     r, yy, kn = (y - known)[:, None, :], y[:, None, :], known[:, None, :]
-    gg = gain[:, None, :]
-    wts = np.where(sel, 1.0 / _variance(yy, kn, gg), 0.0)
+    gg, ke = gain[:, None, :], kerr[:, None, :]
+    wts = np.where(sel, 1.0 / _variance(yy, kn, ke, gg), 0.0)
     for _ in range(3):
         a, b = _solve(models, r, wts)
         fit = np.maximum(a, 0)[..., None] * models + np.maximum(b, 0)[..., None]
-        wts = np.where(sel, 1.0 / _variance(yy, kn, gg, fit), 0.0)
+        wts = np.where(sel, 1.0 / _variance(yy, kn, ke, gg, fit), 0.0)
     chi2 = (wts * (r - fit) ** 2).sum(-1)                                  # (P, S)
     j = np.clip(np.argmin(chi2, axis=1), 1, _OFF.size - 2)
     s_m, s_0, s_p = chi2[rows, j - 1], chi2[rows, j], chi2[rows, j + 1]
@@ -120,39 +122,85 @@ def _solve(models, y, wts):
     return solve(models, y, wts)
 
 
-def _model(response: Response, shift, amp, n: int) -> np.ndarray:
-    """Each row's return, the whole response at ``shift`` times ``amp`` (P, n)."""
-    return np.where(np.isfinite(shift)[:, None],
-                    np.nan_to_num(amp)[:, None]
-                    * response.models(np.nan_to_num(shift), n), 0.0)
+def _model(response: Response, shift, amp, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's return, the whole response at ``shift`` times ``amp`` (P, n), and its
+    error a bin (the response's own where it was measured, else :data:`MODEL_ERROR`)."""
+    err = response.error if response.error is not None else np.full(
+        response.density.size, MODEL_ERROR)
+    ok = np.isfinite(shift)[:, None]
+    s, a = np.nan_to_num(shift), np.nan_to_num(amp)[:, None]
+    return (np.where(ok, a * response.models(s, n), 0.0),
+            np.where(ok, a * response.models(s, n, response.density * err), 0.0))
 
 
-def _detected(h: Histograms, y, shift, amp, known, p_fa) -> np.ndarray:
+def _models(response: Response, shifts, amps, n: int, rows=slice(None), skip=None):
+    """The sum of :func:`_model` over the returns ``shifts``, ``amps`` (but ``skip``)."""
+    known = kerr = 0.0
+    for i, (s, a) in enumerate(zip(shifts, amps, strict=True)):
+        if i != skip:
+            m, e = _model(response, s[rows], a[rows], n)
+            known, kerr = known + m, kerr + e
+    return known, kerr
+
+
+def _detected(h: Histograms, y, shift, amp, known, kerr, p_fa, lead: int) -> np.ndarray:
     """The candidate's bin (:func:`tested_bin` of the bin holding ``shift``) against the
-    background (the median of the corrected counts ``y`` less the found returns' model
-    ``known``) plus that model raised by its error, taken to the raw counts of the cycles
-    at risk; Poisson tail at ``p_fa`` over the valid bins."""
+    background plus the found returns' model ``known`` raised by its error ``kerr``
+    (times the pile-up correction's gain there), taken to the
+    raw counts of the cycles at risk; Poisson tail at ``p_fa`` over the valid bins. The
+    background is the estimators' (:func:`~stages.ranging.detection._background`: a mean
+    without the bins that stand out) of the corrected counts ``y`` less ``known``, no lower
+    than one count over the valid bins' exposure (as :func:`_detection`'s: a median called
+    0 at 0.3 counts a bin, and every count a return), and no lower than the mean over the
+    :data:`LOCAL_BINS` valid bins before the candidate's rise (``lead`` bins before its
+    mode): a real sensor's background is not flat (the TMF8820's rises ~20 % across its
+    window, and a flat one called that slope a return)."""
     rows = np.arange(shift.size)
     n = h.counts.shape[1]
-    bg = np.nanmedian(np.where(h.valid, y - known, np.nan), axis=1)
-    bg = np.maximum(np.nan_to_num(bg), 0.0)
-    q = tested_bin(h.counts, h.valid, np.clip(np.floor(np.nan_to_num(shift)), 0, n - 1)
-                   .astype(np.int64))
+    cyc = np.maximum(np.asarray(h.cycles, np.float64), 1.0)
+    w = h.widths
+    rate = _background(np.clip(y - known, 0.0, None) / cyc[:, None], w, h.valid, h.at_risk)
+    exposure = np.where(h.valid, np.maximum(h.at_risk, 0.0) * w, 0.0).sum(axis=1)
+    rate = np.maximum(rate, 1.0 / np.maximum(exposure, 1e-300))
+    k = np.clip(np.floor(np.nan_to_num(shift)), 0, n - 1).astype(np.int64)
+    q = tested_bin(h.counts, h.valid, k)
+    kk = np.arange(n)[None, :]
+    near = h.valid & (kk < (k - lead)[:, None]) & (kk >= (k - lead - LOCAL_BINS)[:, None])
+    local = np.where(near, np.clip(y - known, 0.0, None) / cyc[:, None], 0.0).sum(axis=1) \
+        / np.maximum(np.where(near, w, 0.0).sum(axis=1), 1e-300)
+    rate = np.where(near.sum(axis=1) >= LOCAL_BINS // 2, np.maximum(rate, local), rate)
     gain = h.cycles / np.maximum(h.at_risk[rows, q], 1.0)
-    lam = (bg + (1 + MODEL_ERROR * gain) * known[rows, q]) / np.maximum(h.cycles, 1.0)
+    lam = rate * w[rows, q] + (known[rows, q] + gain * kerr[rows, q]) / cyc
     b = np.maximum(h.at_risk[rows, q], 0.0) * -np.expm1(-lam)
     n_bins = np.maximum(np.asarray(h.valid).sum(axis=1), 1)
     return (poisson_tail(h.counts[rows, q], b) <= p_fa / n_bins) & (amp > 0) & \
         np.isfinite(shift) & (gain <= 1 / MIN_AT_RISK)
 
 
+def deflated(h: Histograms, y: np.ndarray, others: np.ndarray) -> Histograms:
+    """``h`` with the returns ``others`` (corrected counts a bin) taken out: its corrected
+    counts ``y`` less them (not below 0), piled up again with its cycles (each bin's
+    expected first-photon count, rounded), on the same bins."""
+    lam = np.clip(y - others, 0.0, None) / np.maximum(h.cycles, 1.0)[:, None]
+    out = np.empty_like(lam)
+    risk = np.asarray(h.cycles, np.float64).copy()
+    for j in range(lam.shape[1]):  # bin by bin: the cycles still at risk (a few hundred)
+        out[:, j] = np.rint(risk * -np.expm1(-lam[:, j]))
+        risk = np.maximum(risk - out[:, j], 0.0)
+    return Histograms(np.where(h.valid, out, h.counts), h.edges_s, h.cycles, h.valid)
+
+
 def further_returns(h: Histograms, response: Response, first: Estimate, p_fa: float,
-                    max_returns: int) -> list[dict]:
+                    max_returns: int, single=None) -> list[dict]:
     """Up to ``max_returns`` returns of each row of ``h`` (its uniform bins, the
     response's): ``first`` the rows' single-return estimate, searched further where it is
-    detected (see the module docstring). Returns one dict of per-row columns a return
-    (``t_s``, ``sigma_s``, ``fwhm_s``, ``signal_counts``, ``background_per_bin``,
-    ``detected``), the first's own columns where no further return was found."""
+    detected (see the module docstring). Where a row has several, each return's time and
+    sigma are ``single``'s (the caller's single-return estimator, a function of
+    :class:`Histograms`) on the row with the other returns taken out (:func:`deflated`),
+    else the first's plus its offset in the response's fits. Returns one dict of per-row
+    columns a return (``t_s``, ``sigma_s``, ``fwhm_s``, ``signal_counts``,
+    ``background_per_bin``, ``detected``), the first's own columns where no further return
+    was found."""
     n_pix, n = h.counts.shape
     bin_s = float(h.bin_s)
     y = _corrected(h)
@@ -160,36 +208,47 @@ def further_returns(h: Histograms, response: Response, first: Estimate, p_fa: fl
     gain = h.cycles[:, None] / np.maximum(h.at_risk, 1.0)
     live = np.asarray(first.detected, bool).copy()
     zero = np.zeros_like(y)
-    centre = _coarse(y, valid, gain, zero, response)
-    s0, a0, _, sig0 = _fit(y, valid, gain, zero, response, centre)
-    shifts, amps, sigmas = [s0], [a0], [sig0]
+    # the first return's response fit where the caller's estimate put it (two returns of
+    # one strength: the caller's and the coarse search's pick may differ)
+    at = (np.asarray(first.t_s, np.float64) - h.edges_s[:, 0]) / bin_s
+    centre = np.where(np.isfinite(at), np.rint(np.nan_to_num(at)),
+                      _coarse(y, valid, gain, zero, zero, response)).astype(np.int64)
+    s0, a0, _, sig0 = _fit(y, valid, gain, zero, zero, response, np.clip(centre, 0, n - 1))
+    shifts, amps, sigmas = [s0.copy()], [a0], [sig0]
     dets = [live.copy()]
+    apart = _fwhm_bins(response)
+
+    def refit(rows):
+        """Each found return of ``rows`` refitted with the others subtracted, twice."""
+        for _ in range(2):
+            for i in range(len(shifts)):
+                ok = dets[i][rows]
+                if not ok.any():
+                    continue
+                known, kerr = _models(response, shifts, amps, n, rows, skip=i)
+                centre = np.rint(np.nan_to_num(shifts[i][rows], nan=0.0)).astype(np.int64)
+                s, a, _, sig = _fit(y[rows], valid[rows], gain[rows], known, kerr, response,
+                                    centre)
+                shifts[i][rows] = np.where(ok, s, shifts[i][rows])
+                amps[i][rows] = np.where(ok, a, amps[i][rows])
+                sigmas[i][rows] = np.where(ok, sig, sigmas[i][rows])
+
     while len(shifts) < max_returns and live.any():
-        known = sum(_model(response, np.where(live, s, np.nan), a, n)
-                    for s, a in zip(shifts, amps, strict=True))
-        centre = _coarse(y, valid, gain, known, response)
-        s, a, _, sig = _fit(y, valid, gain, known, response, centre)
-        det = live & _detected(h, y, s, a, known, p_fa)
+        known, kerr = _models(response, [np.where(live, s, np.nan) for s in shifts], amps, n)
+        centre = _coarse(y, valid, gain, known, kerr, response)
+        s, a, _, sig = _fit(y, valid, gain, known, kerr, response, centre)
+        det = live & _detected(h, y, s, a, known, kerr, p_fa, response.span[0])
+        with np.errstate(invalid="ignore"):  # closer than a FWHM: a misfit of the other
+            det &= np.all([~(np.abs(s - f) < apart) for f in shifts], axis=0)
         shifts.append(np.where(det, s, np.nan))
         amps.append(np.where(det, a, 0.0))
         sigmas.append(sig)
         dets.append(det)
         live = det
+        if det.any():
+            refit(np.flatnonzero(det))
     k = len(shifts)
     several = np.zeros(n_pix, bool) if k == 1 else dets[1]
-    for _ in range(2 if several.any() else 0):  # each refitted with the others subtracted
-        rows = np.flatnonzero(several)
-        for i in range(k):
-            if not dets[i][rows].any():
-                continue
-            known = sum(_model(response, shifts[j][rows], amps[j][rows], n)
-                        for j in range(k) if j != i)
-            centre = np.rint(np.nan_to_num(shifts[i][rows], nan=0.0)).astype(np.int64)
-            s, a, _, sig = _fit(y[rows], valid[rows], gain[rows], known, response, centre)
-            ok = dets[i][rows]
-            shifts[i][rows] = np.where(ok, s, shifts[i][rows])
-            amps[i][rows] = np.where(ok, a, amps[i][rows])
-            sigmas[i][rows] = np.where(ok, sig, sigmas[i][rows])
     fwhm = _fwhm_bins(response) * bin_s
     out = []
     for i in range(k):
@@ -204,4 +263,15 @@ def further_returns(h: Histograms, response: Response, first: Estimate, p_fa: fl
                                       np.asarray(getattr(first, name), np.float64))
             cols["detected"] = np.asarray(first.detected, bool)
         out.append(cols)
+    rows = np.flatnonzero(several)
+    if single is None or not rows.size:
+        return out
+    sub = Histograms(h.counts[rows], h.edges_s[rows], h.cycles[rows], h.valid[rows])
+    for i in range(k):
+        e = single(deflated(sub, y[rows], _models(response, shifts, amps, n, rows, i)[0]))
+        t, sig = np.asarray(e.t_s, np.float64), np.asarray(e.sigma_s, np.float64)
+        ok = out[i]["detected"][rows] & np.isfinite(t) & np.isfinite(sig) & \
+            (np.abs(t - out[i]["t_s"][rows]) <= max(fwhm, bin_s))
+        out[i]["t_s"][rows] = np.where(ok, t, out[i]["t_s"][rows])
+        out[i]["sigma_s"][rows] = np.where(ok, sig, out[i]["sigma_s"][rows])
     return out
