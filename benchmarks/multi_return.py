@@ -264,6 +264,36 @@ def real_pairs(estimators=("ml",), seed: int = 7) -> list[str]:
         lines.append(f"| {est} | {df.filter(pl.col('return_index') == 0).height} | "
                      f"{further.height}{' (' + where + ')' if where else ''} | {n_x} | "
                      f"{rms[0]:.3f} / {rms[1]:.3f} |")
+    return lines + ["", *hydraharp(estimators)]
+
+
+def hydraharp(estimators=("ml",)) -> list[str]:
+    """Further returns on the HydraHarp T3 sample (a fluorescence decay, one return a
+    channel, its tail exponential): Gaussian masks against its own response, measured on
+    the data (every channel's strongest return aligned and averaged)."""
+    from pipeline.offline.instruments import _uniform, histogram_ptu
+    from stages.ranging import estimate, response_from_data
+    from stages.ranging.irf import response_from_returns
+
+    ptu = TMF.parent / "picoquant" / "hydraharp_v20_t3.ptu"
+    table, _ = histogram_ptu(str(ptu), None)
+    h = _uniform(table, None)
+    sigma = response_from_data(h)[0]
+    lines = ["#### the HydraHarp T3 sample (tests/data/picoquant): further returns a channel",
+             "", "| estimator | model of a found return | channels | further returns "
+             "(behind the first, m) |", "|---|---|---|---|"]
+    for est in estimators:
+        first = estimate(h, sigma, est, P_FA)
+        resp = response_from_returns(h, np.where(first.detected, first.t_s, np.nan),
+                                     "the channels' strongest returns, aligned and averaged")
+        for how, kw in (("Gaussian masks", {}), ("measured on the data", {"response": resp,
+                                                                         "first": first})):
+            r = estimate_returns(h, sigma, est, P_FA, 3, **kw)
+            more = (r.return_index > 0) & r.detected
+            behind = [f"{(t - first.t_s[p]) * C / 2:.2f}" for t, p in
+                      zip(r.t_s[more], r.pixel[more], strict=True)]
+            lines.append(f"| {est} | {how} | {h.counts.shape[0]} | {int(more.sum())}"
+                         + (f" ({', '.join(behind)})" if behind else "") + " |")
     return lines
 
 

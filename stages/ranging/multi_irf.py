@@ -197,7 +197,9 @@ def further_returns(h: Histograms, response: Response, first: Estimate, p_fa: fl
     detected (see the module docstring). Where a row has several, each return's time and
     sigma are ``single``'s (the caller's single-return estimator, a function of
     :class:`Histograms`) on the row with the other returns taken out (:func:`deflated`),
-    else the first's plus its offset in the response's fits. Returns one dict of per-row
+    else the first's plus its offset in the response's fits; its sigma the larger of
+    ``single``'s and the response fit's (whose variance holds the other returns' model
+    error). Returns one dict of per-row
     columns a return (``t_s``, ``sigma_s``, ``fwhm_s``, ``signal_counts``,
     ``background_per_bin``, ``detected``), the first's own columns where no further return
     was found."""
@@ -273,5 +275,8 @@ def further_returns(h: Histograms, response: Response, first: Estimate, p_fa: fl
         ok = out[i]["detected"][rows] & np.isfinite(t) & np.isfinite(sig) & \
             (np.abs(t - out[i]["t_s"][rows]) <= max(fwhm, bin_s))
         out[i]["t_s"][rows] = np.where(ok, t, out[i]["t_s"][rows])
-        out[i]["sigma_s"][rows] = np.where(ok, sig, out[i]["sigma_s"][rows])
+        # its sigma no smaller than the response fit's, whose variance holds the other
+        # returns' model error (the single estimator's counts only the photons)
+        out[i]["sigma_s"][rows] = np.where(ok, np.fmax(sig, out[i]["sigma_s"][rows]),
+                                           out[i]["sigma_s"][rows])
     return out
