@@ -1,6 +1,8 @@
 """More than one surface a pixel: up to K returns (a window or a fence before the target).
 
-Deflation by masking: the strongest return is found as by one estimator; the bins within
+Deflation by masking (a Gaussian response: the simulator's chip, ``--irf-ps``; with a
+measured one, :mod:`stages.ranging.multi_irf` subtracts the found returns' whole responses
+instead): the strongest return is found as by one estimator; the bins within
 :data:`MASK_WIDTHS` instrument sigmas of it are masked (``valid`` False: still counted in
 the at-risk numbers, so pile-up is handled as for one return) and the estimator searches
 what is left; a found return's time is then refitted with every other return masked (a
