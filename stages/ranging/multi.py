@@ -118,6 +118,11 @@ def estimate_returns(h: Histograms, sigma_s: float, estimator: str = "ml",
     if response is not None:
         from stages.ranging.multi_irf import further_returns
 
+        if abs(response.bin_s / h.bin_s - 1) > 0.01:
+            raise ValueError(f"response {response.source!r} was measured with "
+                             f"{response.bin_s * 1e12:.4g} ps bins, these histograms have "
+                             f"{h.bin_s * 1e12:.4g} ps")
+
         if single is None:
             def single(hh):
                 return estimate(hh, sigma_s, estimator, p_fa)
