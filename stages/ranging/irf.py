@@ -96,14 +96,32 @@ class Response:
         moved to bin ``shift`` (``mode + s`` with s = shift - mode), each summing to the
         part of the response inside the window (``values``, one a bin of the density, is
         moved instead where given: e.g. the density times its error)."""
-        d = self.density if values is None else np.asarray(values, np.float64)
-        cum = np.concatenate([[0.0], np.cumsum(d)])
-        f = PchipInterpolator(np.arange(cum.size, dtype=np.float64), cum, extrapolate=False)
+        cum, f = self._interpolator(values)
         e = np.arange(n_bins + 1)[None, :] - (np.asarray(shifts, np.float64)[:, None]
                                                - self.mode)
         v = np.where(e <= 0, 0.0, np.where(e >= cum.size - 1, cum[-1],
                                            f(np.clip(e, 0, cum.size - 1))))
         return np.diff(v, axis=1)
+
+
+    def whole_bins(self, n_bins: int) -> np.ndarray:
+        """:meth:`models` at every whole bin (n_bins, n_bins), kept on the instance."""
+        cache = self.__dict__.setdefault("_whole", {})
+        if n_bins not in cache:
+            cache[n_bins] = self.models(np.arange(n_bins, dtype=np.float64), n_bins)
+        return cache[n_bins]
+
+    def _interpolator(self, values=None):
+        """(cumulative sum, its monotone interpolator) of the density or ``values``, kept
+        on the instance (a search asks for the same ones hundreds of times)."""
+        cache = self.__dict__.setdefault("_interpolators", {})
+        d = self.density if values is None else np.asarray(values, np.float64)
+        key = None if values is None else d.tobytes()
+        if key not in cache:
+            cum = np.concatenate([[0.0], np.cumsum(d)])
+            cache[key] = (cum, PchipInterpolator(np.arange(cum.size, dtype=np.float64), cum,
+                                                 extrapolate=False))
+        return cache[key]
 
 
 def response_from_counts(counts, bin_s: float, source: str, cycles=None) -> Response:

@@ -75,7 +75,7 @@ def _coarse(y, valid, gain, known, kerr, response: Response) -> np.ndarray:
     correlation of the residual with the response over the square root of its variance
     (a misfit under the found returns' peaks does not outweigh a surface beside them)."""
     n = y.shape[1]
-    whole = response.models(np.arange(n, dtype=np.float64), n)            # (n, n)
+    whole = response.whole_bins(n)                                        # (n, n)
     r = np.where(valid, y - known, 0.0)
     base = np.median(np.where(valid, r, np.nan), axis=1)
     base = np.where(np.isfinite(base), base, 0.0)
