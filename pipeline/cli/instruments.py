@@ -57,6 +57,8 @@ def range_generic(path: str, out: str, calibration, delay_ps, zero, gate, estima
               highlight=False)
     if "bright" in info:
         warn(info["bright"])
+    if "returns" in info and not quiet:
+        err.print(f"returns: {info['returns']}", highlight=False)
     if "crosstalk" in info:
         warn(info["crosstalk"])
     df = pl.from_arrow(table)

@@ -223,7 +223,6 @@ def measurement_times(m: Measurement, estimator: str = "ml", p_fa: float = 1e-3,
         sub = estimate_returns(_histograms(m, cyc, rows), returns_response.sigma_s,
                                estimator, p_fa, max_returns, response=returns_response,
                                first=sub, single=single)
-        used += f"; further returns modelled by {returns_response.source}"
         return Times(m.tdc[rows][sub.pixel], sub, sub.t_s - origin, used, pileup,
                      bright[rows][sub.pixel])
     return Times(m.tdc[keep], sub, sub.t_s - origin, used, pileup, bright[keep])
@@ -468,12 +467,16 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
         if tm.bright.any():
             info["bright"] = (f"{int(tm.bright.sum())} row(s) of {m.name} hold more counts "
                               "than the effective pulses: their own total used instead")
+    if max_returns > 1:
+        info["returns"] = (f"up to {max_returns} a row, each found one's model "
+                           f"{returns_response.source} (its tail included)")
     if crosstalk:
         info["crosstalk"] = (f"{crosstalk} further return(s) within the response's FWHM of "
                              "the zero left out (the sensor's own crosstalk)")
     table = pa.concat_tables(tables)
     meta = {**(table.schema.metadata or {}), b"tcspc.response": info["response"].encode(),
-            b"tcspc.pileup": info["pileup"].encode()}
+            b"tcspc.pileup": info["pileup"].encode(),
+            b"tcspc.returns": info.get("returns", "one a row").encode()}
     if calibration is not None:
         meta[b"tcspc.calibration"] = calibration.path.encode()
     return table.replace_schema_metadata(meta), info
