@@ -202,17 +202,41 @@ def further_returns(h: Histograms, response: Response, first: Estimate, p_fa: fl
     error). Returns one dict of per-row
     columns a return (``t_s``, ``sigma_s``, ``fwhm_s``, ``signal_counts``,
     ``background_per_bin``, ``detected``), the first's own columns where no further return
-    was found."""
+    was found (a row whose first is not detected is not searched)."""
+    n_pix = h.counts.shape[0]
+    live = np.flatnonzero(np.asarray(first.detected, bool))
+    firsts = {name: np.asarray(getattr(first, name), np.float64) for name in
+              ("t_s", "sigma_s", "fwhm_s", "signal_counts", "background_per_bin")}
+    out = [{**{k: v.copy() for k, v in firsts.items()},
+            "detected": np.asarray(first.detected, bool).copy()}]
+    if max_returns == 1 or not live.size:
+        return out
+    sub = Histograms(h.counts[live], h.edges_s[live], h.cycles[live], h.valid[live])
+    found = _search(sub, response, {k: v[live] for k, v in firsts.items()}, p_fa,
+                    max_returns, single)
+    for i, cols in enumerate(found):
+        if i == len(out):
+            out.append({k: np.full(n_pix, np.nan) for k in firsts}
+                       | {"detected": np.zeros(n_pix, bool)})
+        for k, v in cols.items():
+            out[i][k][live] = v
+    return out
+
+
+def _search(h: Histograms, response: Response, first: dict, p_fa: float, max_returns: int,
+            single) -> list[dict]:
+    """:func:`further_returns` on rows whose first return is detected (``first``: its
+    columns)."""
     n_pix, n = h.counts.shape
     bin_s = float(h.bin_s)
     y = _corrected(h)
     valid = np.asarray(h.valid, bool)
-    gain = h.cycles[:, None] / np.maximum(h.at_risk, 1.0)
-    live = np.asarray(first.detected, bool).copy()
+    gain = np.maximum(h.cycles[:, None] / np.maximum(h.at_risk, 1.0), 1.0)
+    live = np.ones(n_pix, bool)
     zero = np.zeros_like(y)
     # the first return's response fit where the caller's estimate put it (two returns of
     # one strength: the caller's and the coarse search's pick may differ)
-    at = (np.asarray(first.t_s, np.float64) - h.edges_s[:, 0]) / bin_s
+    at = (first["t_s"] - h.edges_s[:, 0]) / bin_s
     centre = np.where(np.isfinite(at), np.rint(np.nan_to_num(at)),
                       _coarse(y, valid, gain, zero, zero, response)).astype(np.int64)
     s0, a0, _, sig0 = _fit(y, valid, gain, zero, zero, response, np.clip(centre, 0, n - 1))
@@ -239,7 +263,8 @@ def further_returns(h: Histograms, response: Response, first: Estimate, p_fa: fl
         known, kerr = _models(response, [np.where(live, s, np.nan) for s in shifts], amps, n)
         centre = _coarse(y, valid, gain, known, kerr, response)
         s, a, _, sig = _fit(y, valid, gain, known, kerr, response, centre)
-        det = live & _detected(h, y, s, a, known, kerr, p_fa, response.span[0])
+        det = live & _detected(h, y, s, a, known, kerr, p_fa, response.span[0]) & \
+            np.isfinite(sig)
         with np.errstate(invalid="ignore"):  # closer than a FWHM: a misfit of the other
             det &= np.all([~(np.abs(s - f) < apart) for f in shifts], axis=0)
         shifts.append(np.where(det, s, np.nan))
@@ -255,19 +280,32 @@ def further_returns(h: Histograms, response: Response, first: Estimate, p_fa: fl
     out = []
     for i in range(k):
         signal = amps[i] * response.models(np.nan_to_num(shifts[i]), n).sum(1)
-        t = np.asarray(first.t_s, np.float64) + (shifts[i] - s0) * bin_s
+        t = first["t_s"] + (shifts[i] - s0) * bin_s
         cols = {"t_s": t, "sigma_s": sigmas[i] * bin_s, "fwhm_s": np.full(n_pix, fwhm),
-                "signal_counts": signal, "background_per_bin": np.asarray(
-                    first.background_per_bin, np.float64).copy(), "detected": dets[i]}
+                "signal_counts": signal, "background_per_bin":
+                first["background_per_bin"].copy(), "detected": dets[i]}
         if i == 0:  # the first as the caller's estimator gave it, unless it has company
             for name in ("t_s", "sigma_s", "fwhm_s", "signal_counts"):
-                cols[name] = np.where(several, cols[name],
-                                      np.asarray(getattr(first, name), np.float64))
-            cols["detected"] = np.asarray(first.detected, bool)
+                cols[name] = np.where(several, cols[name], first[name])
         out.append(cols)
     rows = np.flatnonzero(several)
-    if single is None or not rows.size:
-        return out
+    if single is not None and rows.size:
+        _retime(h, y, response, shifts, amps, rows, single, out, fwhm)
+    for i, cols in enumerate(out):  # no detection without a finite time and sigma
+        bad = ~(np.isfinite(cols["t_s"]) & np.isfinite(cols["sigma_s"])
+                & (cols["sigma_s"] > 0))
+        if i:
+            cols["detected"] &= ~bad
+        else:  # the first as the caller gave it
+            for name in ("t_s", "sigma_s", "fwhm_s", "signal_counts"):
+                cols[name] = np.where(bad, first[name], cols[name])
+    return out
+
+
+def _retime(h, y, response, shifts, amps, rows, single, out, fwhm) -> None:
+    """Each return of ``rows`` timed by ``single`` with the other returns taken out (in
+    place in ``out``), where that lands within a FWHM of the response fit's time."""
+    n, k, bin_s = h.counts.shape[1], len(out), float(h.bin_s)
     sub = Histograms(h.counts[rows], h.edges_s[rows], h.cycles[rows], h.valid[rows])
     for i in range(k):
         e = single(deflated(sub, y[rows], _models(response, shifts, amps, n, rows, i)[0]))
@@ -279,4 +317,3 @@ def further_returns(h: Histograms, response: Response, first: Estimate, p_fa: fl
         # returns' model error (the single estimator's counts only the photons)
         out[i]["sigma_s"][rows] = np.where(ok, np.fmax(sig, out[i]["sigma_s"][rows]),
                                            out[i]["sigma_s"][rows])
-    return out

@@ -8,6 +8,8 @@ diffusion tail) integrated over each bin with scipy, first photon by first photo
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy import stats
 
 from stages.ranging import Histograms, estimate_returns
@@ -125,3 +127,27 @@ def test_a_second_surface_in_the_first_ones_tail_is_found(response, sep_widths, 
 def test_a_response_error_is_checked():
     with pytest.raises(ValueError, match="error"):
         Response(np.ones(5), 1e-10, "x", error=np.ones(4))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.lists(st.integers(0, 50_000), min_size=24, max_size=24), min_size=1,
+                max_size=4),
+       st.sampled_from([None, 0.0, 10.0, 1e7]), st.sampled_from(["ml", "fast", "matched"]),
+       st.floats(1e-6, 0.5), st.integers(1, 4))
+def test_whatever_it_is_given_every_detected_return_is_finite(response, rows, cycles, est,
+                                                              p_fa, k):
+    """Any counts (ragged light, saturated bins, cycles missing, zero or fewer than the
+    counts), any estimator, p_fa and K: no crash; every detected row has a finite time and
+    a positive finite sigma; at most K returns a pixel; a pixel without counts nothing."""
+    c = np.asarray(rows, float)
+    n = c.shape[0]
+    cyc = np.full(n, 1e12 if cycles is None else cycles)
+    short = Response(response.density[response.mode - 4:response.mode + 20], BIN, "short",
+                     error=response.error[response.mode - 4:response.mode + 20])
+    h = Histograms(c, np.tile(np.arange(25) * BIN, (n, 1)), cyc, np.ones(c.shape, bool))
+    r = estimate_returns(h, SIG_BINS * BIN, est, p_fa, k, response=short)
+    det = np.asarray(r.detected, bool)
+    assert np.isfinite(r.t_s[det]).all() and (np.asarray(r.sigma_s)[det] > 0).all()
+    assert np.isfinite(np.asarray(r.sigma_s)[det]).all()
+    assert np.bincount(r.pixel, minlength=n).max() <= k
+    assert not det[np.isin(r.pixel, np.flatnonzero(c.sum(axis=1) == 0))].any()
