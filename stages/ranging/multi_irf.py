@@ -14,14 +14,21 @@ found), and is tested against background plus that model, taken back to the coun
 the cycles still at risk as every detection here is.
 
 Model error: a response measured on other captures is not each return's exact shape (the
-TMF8820's zones differ by ~3 % a bin, its captures by up to ~20 % a bin in the far tail,
-and a shift interpolated within a bin leaves ~10 % on a one-bin rising edge). Counts of
-10^5 a bin have a Poisson spread of 0.3 %, so a few per cent of misfit would be a surface.
-The model's part of every bin is therefore given a relative error of
-:data:`MODEL_ERROR`: in the search's weights (the variance is counts plus (error x model)^2)
-and in the detection, which tests the candidate's bin against background plus the found
-returns' model raised by that error. A weaker surface is found where it stands out of the
-brighter one's response by more than that error (measured in ``benchmarks/multi_return.py``).
+TMF8820's zones differ by ~3 % a bin near the mode and some far tails by 2x, and a shift
+interpolated within a bin leaves ~10 % on a one-bin rising edge). Counts of 10^5 a bin
+have a Poisson spread of 0.3 %, so a few per cent of misfit would be a surface. The
+model's part of every bin therefore carries the response's measured relative error
+(``Response.error``, :func:`~stages.ranging.irf.response_from_returns`: the largest
+departure of one averaged return from the mean, at least 20 %; :data:`MODEL_ERROR` where
+the response has none): in the search's weights (the variance is the counts' plus
+(error x model)^2, both times the pile-up correction's gain) and in the detection, which
+tests the candidate's bin against background plus the found returns' model raised by
+that error. A weaker surface is found where it stands out of the brighter one's response
+by more than that error (measured in ``benchmarks/multi_return.py``). Not tested: a
+candidate closer than the response's FWHM to a found return (its misfit), or where fewer
+than :data:`MIN_AT_RISK` of the cycles are still at risk. The background is never taken
+below the mean of the :data:`LOCAL_BINS` bins before the candidate's rise (a real
+background is not flat).
 
 False alarms, as in :mod:`stages.ranging.multi`: return k + 1 is searched only where
 return k was detected, each test at ``p_fa`` over the valid bins; a background-only pixel
@@ -29,10 +36,12 @@ needs its first test to fire (<= p_fa), a pixel with real returns can be wrong o
 test after its last real one (<= p_fa where the model error covers the misfit).
 
 Times: the first return is the caller's single-return estimate (its estimator, its shape,
-its calibration), unchanged where no further return is found. Where one is, every return
-of the pixel is refitted with the others subtracted, and its time is the first's plus its
-offset from the first's response fit alone: one model measures the separations, the
-caller's estimator the anchor.
+its calibration), unchanged where no further return is found. Where one is, the pixel's
+returns are refitted, each with the others subtracted (after every return found), and
+each is timed by the caller's estimator on the histogram with the others taken out
+(:func:`deflated`), so its distance uses that estimator's calibration; else (no such
+estimator given, or it lands more than a FWHM away) the first's time plus its offset in
+the response's fits.
 """
 
 from __future__ import annotations
