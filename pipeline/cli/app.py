@@ -306,8 +306,12 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
 @click.option("--gate", default=None, help="PTU T3: only returns in LO:HI ns after the sync.")
 @click.option("--max-returns", type=click.IntRange(min=1), default=None,
               help="Returns (surfaces) a pixel may have, each with its own detection "
-                   "[default: 3 on a tcspc capture, 1 on an instrument's file: their "
-                   "responses' tails are not Gaussian and were found as further returns].")
+                   "[default: 3 on a tcspc capture and on generic histograms with a "
+                   "--calibration from `calibrate distance` (its measured response, tail "
+                   "and all, is subtracted before the next is searched); 1 on other "
+                   "instruments' files (PTU, LinoSPAD2: their tails are not Gaussian and "
+                   "were found as further returns) and on generic histograms without a "
+                   "calibration, which refuse more].")
 @_format
 @_quiet
 def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
@@ -320,7 +324,8 @@ def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero
     --max-returns surfaces (a window, a fence): a row each, return_index 0 the strongest.
     Generic histograms (any instrument's, docs/instruments_generic.md) take
     --calibration from `calibrate distance`, --delay-ps or --zero; the output names the
-    instrument response and the pile-up correction used (one return a row).
+    instrument response and the pile-up correction used (up to 3 returns a row with a
+    calibration, one without).
     """
     try:
         _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
@@ -351,11 +356,10 @@ def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, g
     fmt = instruments.detect(capture, fmt)
     several = max_returns is not None and max_returns > 1
     if fmt == "histograms" and instruments.is_generic(capture):
-        if several:
-            raise click.UsageError("generic histograms are ranged one return a row "
-                                   "(--max-returns 1)")
+        # several returns need the returns' measured response (tail and all), which a
+        # calibration from `calibrate distance` holds: 3 by default with one, else 1
         instruments.range_generic(capture, out, calibration, delay_ps, zero, gate, estimator,
-                                  irf_ps, p_fa, quiet)
+                                  irf_ps, p_fa, quiet, max_returns)
         return
     if fmt != "tcspc":
         if several:  # the search for further returns models a return's tails as Gaussian;

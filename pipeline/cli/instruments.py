@@ -30,7 +30,7 @@ def is_generic(path: str) -> bool:
 
 
 def range_generic(path: str, out: str, calibration, delay_ps, zero, gate, estimator, irf_ps,
-                  p_fa, quiet: bool) -> None:
+                  p_fa, quiet: bool, max_returns: int | None = None) -> None:
     """Ranges of a generic histograms file (any instrument's) on its own uniform bins."""
     import numpy as np
     import polars as pl
@@ -49,7 +49,7 @@ def range_generic(path: str, out: str, calibration, delay_ps, zero, gate, estima
         cal = DistanceCalibration.load(calibration) if calibration else None
         table, info = rng_generic(path, cal, None if delay_ps is None else delay_ps * 1e-12,
                                   zero, None if irf_ps is None else irf_ps * 1e-12,
-                                  estimator, p_fa)
+                                  estimator, p_fa, max_returns=max_returns)
     except (CalibrationError, ValueError) as exc:
         raise click.ClickException(str(exc)) from None
     write_ranges(table, out)
@@ -57,10 +57,18 @@ def range_generic(path: str, out: str, calibration, delay_ps, zero, gate, estima
               highlight=False)
     if "bright" in info:
         warn(info["bright"])
+    if "returns" in info and not quiet:
+        err.print(f"returns: {info['returns']}", highlight=False)
+    if "crosstalk" in info:
+        warn(info["crosstalk"])
     df = pl.from_arrow(table)
+    more = df.filter(pl.col("detected") & (pl.col("return_index") > 0)).height
+    df = df.filter(pl.col("return_index") == 0)
     det = df.filter(pl.col("detected"))
     if not quiet:
-        err.print(f"{det.height} of {df.height} rows detected ({estimator}, P_fa {p_fa:g}) in "
+        err.print(f"{det.height} of {df.height} rows detected"
+                  + (f" (+{more} further returns)" if more else "")
+                  + f" ({estimator}, P_fa {p_fa:g}) in "
                   f"{df['measurement'].n_unique()} measurement(s), "
                   f"{time.perf_counter() - t0:.2f} s; distance "
                   f"{det['distance_m'].min() if det.height else np.nan:.4f}.."

@@ -32,8 +32,15 @@ from scipy.constants import c as C_LIGHT
 from pipeline.io.atomic import atomic_path
 from pipeline.io.generic import Measurement, read_generic
 from schemas.errors import CalibrationError
-from stages.ranging import ESTIMATORS, Estimate, Histograms, estimate
-from stages.ranging.irf import IRF_ESTIMATORS, Response, fit_response, response_from_counts
+from stages.ranging import ESTIMATORS, Estimate, Histograms, estimate, estimate_returns
+from stages.ranging.irf import (
+    IRF_ESTIMATORS,
+    Response,
+    fit_response,
+    response_from_counts,
+    response_from_returns,
+)
+from stages.ranging.multi import select_rows
 
 CALIBRATION_FILE = "distance_calibration.json"
 #: the key of a fit made with a Gaussian by an estimator that takes a measured response
@@ -60,14 +67,17 @@ class DistanceCalibration:
     measurements: list[str] = field(default_factory=list)
     distances_m: list[float] = field(default_factory=list)
     path: str = ""
+    #: the calibration rows' own returns aligned and averaged (their response, tail
+    #: included): the model of a found return when several are searched (a reference
+    #: channel's tail is another optical path's)
+    returns_response: Response | None = None
 
     def save(self, out: str | Path) -> Path:
         doc = {"kind": "distance", "tdc": self.tdc, "nominal_bin_ps": self.nominal_bin_ps,
                "fits": self.fits, "cycles": self.cycles, "pileup": self.pileup,
                "measurements": self.measurements, "distances_m": self.distances_m,
-               "response": None if self.response is None else {
-                   "source": self.response.source, "bin_ps": self.response.bin_s * 1e12,
-                   "density": self.response.density.tolist()}}
+               "response": _response_doc(self.response),
+               "returns_response": _response_doc(self.returns_response)}
         with atomic_path(out) as tmp:
             tmp.mkdir()
             (tmp / CALIBRATION_FILE).write_text(json.dumps(doc, indent=1, allow_nan=True))
@@ -80,12 +90,11 @@ class DistanceCalibration:
             raise CalibrationError(f"{path}: no {CALIBRATION_FILE} (made by `tcspc calibrate "
                                    "distance`)")
         doc = json.loads(f.read_text())
-        r = doc.get("response")
-        resp = None if r is None else Response(np.asarray(r["density"]), r["bin_ps"] * 1e-12,
-                                               r["source"])
-        return cls(doc["tdc"], doc["nominal_bin_ps"], doc["fits"], resp, doc.get("cycles"),
+        return cls(doc["tdc"], doc["nominal_bin_ps"], doc["fits"],
+                   _response_of(doc.get("response")), doc.get("cycles"),
                    doc.get("pileup", ""), doc.get("measurements", []),
-                   doc.get("distances_m", []), str(path))
+                   doc.get("distances_m", []), str(path),
+                   returns_response=_response_of(doc.get("returns_response")))
 
     def preferred(self, estimator: str) -> str:
         """The fit ``range`` uses for ``estimator`` when no response is asked for: for
@@ -110,6 +119,21 @@ class DistanceCalibration:
         delay = np.array([fit["delay_ps"][i] if i >= 0 else np.nan for i in idx], float)
         width = np.array([fit["bin_width_ps"][i] if i >= 0 else np.nan for i in idx], float)
         return np.asarray(delay, float) * 1e-12, np.asarray(width, float) / self.nominal_bin_ps
+
+
+def _response_doc(r: Response | None) -> dict | None:
+    if r is None:
+        return None
+    return {"source": r.source, "bin_ps": r.bin_s * 1e12, "density": r.density.tolist(),
+            **({} if r.error is None else {"error": r.error.tolist()})}
+
+
+def _response_of(doc: dict | None) -> Response | None:
+    if doc is None:
+        return None
+    err = doc.get("error")
+    return Response(np.asarray(doc["density"]), doc["bin_ps"] * 1e-12, doc["source"],
+                    None if err is None else np.asarray(err))
 
 
 @dataclass(frozen=True)
@@ -141,20 +165,30 @@ def _cycles(m: Measurement, cycles: float | None) -> tuple[np.ndarray, str, np.n
             "none: the file gives no cycles", bright)
 
 
+def _histograms(m: Measurement, cyc: np.ndarray, rows=slice(None)) -> Histograms:
+    """The rows ``rows`` of ``m`` on its nominal bins, with the cycles ``cyc``."""
+    counts = m.counts[rows]
+    n = counts.shape[1]
+    edges = m.bin_width_s * np.arange(n + 1, dtype=np.float64)
+    return Histograms(counts, np.broadcast_to(edges, (counts.shape[0], n + 1)).copy(),
+                      np.asarray(cyc)[rows], np.ones(counts.shape, bool))
+
+
 def measurement_times(m: Measurement, estimator: str = "ml", p_fa: float = 1e-3,
                       response: Response | None = None, sigma_s: float | None = None,
-                      cycles: float | None = None) -> Times:
+                      cycles: float | None = None, max_returns: int = 1,
+                      returns_response: Response | None = None) -> Times:
     """The return time of every non-reference row of ``m``.
 
     ``matched`` and ``ml`` use a measured response (the measurement's own reference
     channel, else ``response``) unless ``sigma_s`` asks for a Gaussian; the other
     estimators use a Gaussian of ``sigma_s`` (default: the response's sigma, else one bin).
+    With ``max_returns`` > 1, up to so many returns a row
+    (:func:`stages.ranging.multi.estimate_returns` with ``returns_response``, the found
+    returns' model): ``Times.tdc`` then names each row's pixel.
     """
     cyc, pileup, bright = _cycles(m, cycles)
-    n = m.counts.shape[1]
-    edges = m.bin_width_s * np.arange(n + 1, dtype=np.float64)
-    h = Histograms(m.counts, np.broadcast_to(edges, (m.counts.shape[0], n + 1)).copy(), cyc,
-                   np.ones(m.counts.shape, bool))
+    h = _histograms(m, cyc)
     ref = np.flatnonzero(m.reference)
     if ref.size:
         r = ref[0]
@@ -164,11 +198,16 @@ def measurement_times(m: Measurement, estimator: str = "ml", p_fa: float = 1e-3,
                                         cyc[r] if np.isfinite(m.cycles[r]) or cycles is not None
                                         else None)
     if estimator in IRF_ESTIMATORS and response is not None and sigma_s is None:
-        est, used = fit_response(h, response, estimator, p_fa), response.source
+        def single(hh):
+            return fit_response(hh, response, estimator, p_fa)
+        used = response.source
     else:
         sigma = sigma_s or (response.sigma_s if response is not None else m.bin_width_s)
-        est = estimate(h, sigma, estimator, p_fa)
+
+        def single(hh):
+            return estimate(hh, sigma, estimator, p_fa)
         used = f"Gaussian, sigma {sigma * 1e12:.1f} ps"
+    est = single(h)
     origin = 0.0
     if ref.size:
         origin = est.t_s[ref[0]] if est.detected[ref[0]] else np.nan
@@ -176,6 +215,16 @@ def measurement_times(m: Measurement, estimator: str = "ml", p_fa: float = 1e-3,
     sub = dataclasses.replace(est, **{f.name: np.asarray(getattr(est, f.name))[keep]
                                       for f in dataclasses.fields(est)
                                       if isinstance(getattr(est, f.name), np.ndarray)})
+    if max_returns > 1:
+        if returns_response is None:
+            raise CalibrationError("several returns a row need the returns' measured "
+                                   "response (a calibration from `tcspc calibrate distance`)")
+        rows = np.flatnonzero(keep)
+        sub = estimate_returns(_histograms(m, cyc, rows), returns_response.sigma_s,
+                               estimator, p_fa, max_returns, response=returns_response,
+                               first=sub, single=single)
+        return Times(m.tdc[rows][sub.pixel], sub, sub.t_s - origin, used, pileup,
+                     bright[rows][sub.pixel])
     return Times(m.tdc[keep], sub, sub.t_s - origin, used, pileup, bright[keep])
 
 
@@ -272,6 +321,7 @@ def calibrate_distance(path: str | Path, truth_csv: str | Path,
             cal.distances_m).size >= 3:
         cal.cycles, cal.pileup = _fit_cycles(meas, dist, cal.response, p_fa)
         cal.response = response(cal.cycles)  # its shape without the pile-up
+    cal.returns_response = _returns_response(meas, cal, p_fa)
     runs = [(name, None) for name in estimators] + [
         (name + GAUSSIAN, cal.response.sigma_s) for name in estimators
         if name in IRF_ESTIMATORS]
@@ -288,6 +338,26 @@ def calibrate_distance(path: str | Path, truth_csv: str | Path,
     if not any(np.isfinite(f["delay_ps"]).any() for f in cal.fits.values()):
         raise CalibrationError(f"{path}: no return detected in the calibration measurements")
     return cal
+
+
+def _returns_response(meas: list[Measurement], cal: DistanceCalibration,
+                      p_fa: float) -> Response | None:
+    """The calibration rows' own response: every detected return of the calibration
+    measurements (a single target each, at a known distance), aligned on ml's time (the
+    Gaussian of the response's FWHM) and averaged (:func:`response_from_returns`)."""
+    hs, ts = [], []
+    for m in meas:
+        cyc = _cycles(m, cal.cycles)[0]
+        tm = measurement_times(m, "ml", p_fa, cal.response, cal.response.sigma_s, cal.cycles)
+        hs.append(_histograms(m, cyc, np.flatnonzero(~m.reference)))
+        ts.append(np.where(tm.est.detected, tm.est.t_s, np.nan))
+    if not np.isfinite(np.concatenate(ts)).any():
+        return None
+    h = Histograms(*(np.concatenate([getattr(x, f) for x in hs])
+                     for f in ("counts", "edges_s", "cycles", "valid")))
+    n = int(np.isfinite(np.concatenate(ts)).sum())
+    return response_from_returns(h, np.concatenate(ts),
+                                 f"the calibration's {n} returns, aligned and averaged")
 
 
 def _fit_cycles(meas, dist, response, p_fa) -> tuple[float | None, str]:
@@ -321,16 +391,31 @@ def _fit_cycles(meas, dist, response, p_fa) -> tuple[float | None, str]:
 def range_generic(path: str | Path, calibration: DistanceCalibration | None = None,
                   delay_s: float | None = None, zero: str | Path | None = None,
                   sigma_s: float | None = None, estimator: str = "ml",
-                  p_fa: float = 1e-3, shape: str = "auto") -> tuple[pa.Table, dict[str, str]]:
+                  p_fa: float = 1e-3, shape: str = "auto", max_returns: int | None = None,
+                  ) -> tuple[pa.Table, dict[str, str]]:
     """Ranges of every measurement of a generic histograms file: with a calibration, a
     given delay, or a delay measured on a zero-distance file. A row is not detected where
     its distance would be negative (flagged, NaN) or unknown.
     ``shape`` (matched and ml with a calibration): ``"auto"`` the calibration's
-    :meth:`~DistanceCalibration.preferred`, ``"measured"`` or ``"gaussian"``."""
+    :meth:`~DistanceCalibration.preferred`, ``"measured"`` or ``"gaussian"``.
+    ``max_returns``: returns a row (default: :data:`~stages.ranging.multi.MAX_RETURNS`
+    with a calibration that holds its returns' measured response, else 1; more than one
+    without it is refused). A further return within the response's FWHM of the zero is
+    left out (the sensor's own crosstalk, its cover glass) and counted in ``info``."""
     from pipeline.offline.ranging import behind_zero, ranges_table
+    from stages.ranging.multi import MAX_RETURNS
 
     cycles = calibration.cycles if calibration is not None else None
     response = calibration.response if calibration is not None else None
+    returns_response = calibration.returns_response if calibration is not None else None
+    if max_returns is None:
+        max_returns = MAX_RETURNS if returns_response is not None else 1
+    if max_returns > 1 and returns_response is None:
+        raise CalibrationError(
+            f"--max-returns {max_returns}: several returns a row need the returns' measured "
+            "response, which a calibration from `tcspc calibrate distance` holds"
+            + (" (this one predates it: calibrate again)" if calibration is not None else ""))
+    crosstalk = 0
     key = estimator
     if calibration is not None:
         if shape not in ("auto", "measured", "gaussian"):
@@ -348,7 +433,8 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
                               strict=True))
     tables, info = [], {}
     for m in read_generic(path):
-        tm = measurement_times(m, estimator, p_fa, response, sigma_s, cycles)
+        tm = measurement_times(m, estimator, p_fa, response, sigma_s, cycles, max_returns,
+                               returns_response)
         scale = np.ones(tm.tdc.size)
         if calibration is not None:
             delay, scale = calibration.row_fit(key, tm.tdc)
@@ -360,12 +446,19 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
         sig = np.asarray(tm.est.sigma_s, float) * scale * C_LIGHT / 2
         # a row without a delay or a finite time is not detected (its flag says why); a
         # return before the zero is flagged as the chip's is (NaN distance, not detected)
+        # (sigma on the real time axis, carried with the rows that behind_zero keeps)
         est = dataclasses.replace(tm.est, detected=np.asarray(tm.est.detected, bool)
-                                  & np.isfinite(d) & np.isfinite(sig))
+                                  & np.isfinite(d) & np.isfinite(sig),
+                                  sigma_s=np.asarray(tm.est.sigma_s, float) * scale)
         est, d = behind_zero(est, d)
+        if max_returns > 1:
+            est, d, n_x = _without_crosstalk(est, d)
+            crosstalk += n_x
+        sig = np.asarray(est.sigma_s, float) * C_LIGHT / 2
         t = ranges_table(m.name, est, d, sig)
+        tdc = tm.tdc if est.pixel is None else m.tdc[~m.reference][est.pixel]
         t = t.set_column(t.schema.get_field_index("tdc"), t.schema.field("tdc"),
-                         pa.array(tm.tdc, t.schema.field("tdc").type))
+                         pa.array(tdc, t.schema.field("tdc").type))
         tables.append(t)
         info = {"response": tm.response + (
             " (the measured response's FWHM: its calibration residuals were smaller than "
@@ -374,12 +467,31 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
         if tm.bright.any():
             info["bright"] = (f"{int(tm.bright.sum())} row(s) of {m.name} hold more counts "
                               "than the effective pulses: their own total used instead")
+    if max_returns > 1:
+        info["returns"] = (f"up to {max_returns} a row, each found one's model "
+                           f"{returns_response.source} (its tail included)")
+    if crosstalk:
+        info["crosstalk"] = (f"{crosstalk} further return(s) within the response's FWHM of "
+                             "the zero left out (the sensor's own crosstalk)")
     table = pa.concat_tables(tables)
     meta = {**(table.schema.metadata or {}), b"tcspc.response": info["response"].encode(),
-            b"tcspc.pileup": info["pileup"].encode()}
+            b"tcspc.pileup": info["pileup"].encode(),
+            b"tcspc.returns": info.get("returns", "one a row").encode()}
     if calibration is not None:
         meta[b"tcspc.calibration"] = calibration.path.encode()
     return table.replace_schema_metadata(meta), info
+
+
+def _without_crosstalk(est: Estimate, d):
+    """``est`` (and its distances) less the further returns within their FWHM of
+    the zero: the sensor's own crosstalk (the TMF8820's cover glass, ~200 counts that a
+    weak target 30-40 cm away leaves standing); how many were left out."""
+    fwhm_m = np.asarray(est.fwhm_s, float) * C_LIGHT / 2
+    x = (np.asarray(est.return_index) > 0) & np.asarray(est.detected, bool) & (d < fwhm_m)
+    if not x.any():
+        return est, d, 0
+    keep = ~x
+    return select_rows(est, keep), d[keep], int(x.sum())
 
 
 def write_ranges(table: pa.Table, out: str | Path) -> None:

@@ -28,6 +28,12 @@ from stages.ranging.validation import _safe, check_histograms, check_p_fa, finis
 
 #: the estimators that take a measured response
 IRF_ESTIMATORS = ("matched", "ml")
+#: the least relative error of a measured response as a model of one return, a bin (the
+#: TMF8820's zones: ~3 % apart a bin near the mode, a shift interpolated within a bin
+#: ~10 % on a one-bin rising edge)
+RESPONSE_ERROR = 0.2
+#: ... and the most (a bin where one row's tail is 3x the mean is that row's, not noise)
+RESPONSE_ERROR_MAX = 3.0
 #: fine shift step (bins) of the search, refined by a parabola
 _STEP = 0.1
 
@@ -45,6 +51,9 @@ class Response:
     density: np.ndarray
     bin_s: float
     source: str
+    #: per bin, the relative error of the density as a model of one return (measured on
+    #: the returns it was averaged from, :func:`response_from_returns`); None: not known
+    error: np.ndarray | None = None
 
     def __post_init__(self):
         d = np.asarray(self.density, np.float64)
@@ -56,6 +65,12 @@ class Response:
             raise ValueError(f"response {self.source!r}: bin width must be > 0 s, found "
                              f"{self.bin_s!r}")
         object.__setattr__(self, "density", d / d.sum())
+        if self.error is not None:
+            e = np.asarray(self.error, np.float64)
+            if e.shape != d.shape or not np.all(np.isfinite(e)) or np.any(e < 0):
+                raise ValueError(f"response {self.source!r}: its error needs one finite, "
+                                 "non-negative value a bin")
+            object.__setattr__(self, "error", e)
 
     @property
     def mode(self) -> int:
@@ -76,17 +91,37 @@ class Response:
         long tail left out, as it is by the Gaussian's own width."""
         return _fwhm_bins(self) * self.bin_s / FWHM_PER_SIGMA
 
-    def models(self, shifts: np.ndarray, n_bins: int) -> np.ndarray:
+    def models(self, shifts: np.ndarray, n_bins: int, values=None) -> np.ndarray:
         """Bin-integrated models (len(shifts), n_bins): the response with its mode bin
         moved to bin ``shift`` (``mode + s`` with s = shift - mode), each summing to the
-        part of the response inside the window."""
-        cum = np.concatenate([[0.0], np.cumsum(self.density)])
-        f = PchipInterpolator(np.arange(cum.size, dtype=np.float64), cum, extrapolate=False)
+        part of the response inside the window (``values``, one a bin of the density, is
+        moved instead where given: e.g. the density times its error)."""
+        cum, f = self._interpolator(values)
         e = np.arange(n_bins + 1)[None, :] - (np.asarray(shifts, np.float64)[:, None]
                                                - self.mode)
-        v = np.where(e <= 0, 0.0, np.where(e >= cum.size - 1, 1.0,
+        v = np.where(e <= 0, 0.0, np.where(e >= cum.size - 1, cum[-1],
                                            f(np.clip(e, 0, cum.size - 1))))
         return np.diff(v, axis=1)
+
+
+    def whole_bins(self, n_bins: int) -> np.ndarray:
+        """:meth:`models` at every whole bin (n_bins, n_bins), kept on the instance."""
+        cache = self.__dict__.setdefault("_whole", {})
+        if n_bins not in cache:
+            cache[n_bins] = self.models(np.arange(n_bins, dtype=np.float64), n_bins)
+        return cache[n_bins]
+
+    def _interpolator(self, values=None):
+        """(cumulative sum, its monotone interpolator) of the density or ``values``, kept
+        on the instance (a search asks for the same ones hundreds of times)."""
+        cache = self.__dict__.setdefault("_interpolators", {})
+        d = self.density if values is None else np.asarray(values, np.float64)
+        key = None if values is None else d.tobytes()
+        if key not in cache:
+            cum = np.concatenate([[0.0], np.cumsum(d)])
+            cache[key] = (cum, PchipInterpolator(np.arange(cum.size, dtype=np.float64), cum,
+                                                 extrapolate=False))
+        return cache[key]
 
 
 def response_from_counts(counts, bin_s: float, source: str, cycles=None) -> Response:
@@ -237,3 +272,50 @@ def _fwhm_bins(response: Response) -> float:
         i = k + below[0]
         right = i - 1 + (d[i - 1] - half) / (d[i - 1] - d[i])
     return max(right - left, 1.0)
+
+
+def response_from_returns(h: Histograms, t_s, source: str) -> Response:
+    """The response of the returns themselves: every row with a finite time ``t_s`` (one
+    return each: captures of a single target at known distances, or each pixel's strongest
+    return), pile-up corrected, its background (the median of the bins before the rise,
+    else of the last quarter) removed, shifted by a fraction of a bin (its cumulative sum
+    interpolated) so that the times coincide, and averaged bin by bin over the rows that
+    reach that bin (a row late in the window has its tail cut by the window's end), each
+    row normalised over the bins that every row reaches. Nothing is kept before 4 bins
+    ahead of the mode. The rows' responses must share a shape (the TMF8820's zones agree
+    within ~3 % a bin); a reference channel's (another optical path) need not be theirs."""
+    bin_s = float(h.bin_s)
+    t = np.asarray(t_s, np.float64)
+    use = np.flatnonzero(np.isfinite(t))
+    if not use.size:
+        raise ValueError(f"response {source!r}: no return to measure it on")
+    n = h.counts.shape[1]
+    y = np.where(h.valid, h.intensity() * h.cycles[:, None], 0.0)[use]
+    pos = (t[use] - h.edges_s[use, 0]) / bin_s                # the times in bins
+    k = np.clip(np.floor(pos).astype(np.int64), 0, n - 1)
+    d = np.empty_like(y)
+    for i in range(use.size):  # per row: a median over a variable span (a few rows)
+        pre = y[i, : max(k[i] - 4, 0)]
+        bg = np.median(pre) if pre.size >= 4 else np.median(y[i, -max(n // 4, 1):])
+        d[i] = np.clip(y[i] - bg, 0.0, None)
+        d[i, : max(k[i] - 4, 0)] = 0.0
+    lead = pos - pos.min()                                     # >= 0: shift each row early
+    cum = np.concatenate([np.zeros((use.size, 1)), np.cumsum(d, axis=1)], axis=1)
+    x = np.arange(n + 1)[None, :] + lead[:, None]
+    aligned = np.diff(np.array([np.interp(xi, np.arange(n + 1), ci, right=np.nan)
+                                for xi, ci in zip(x, cum, strict=True)]), axis=1)
+    reach = np.isfinite(aligned)
+    common = reach.all(axis=0)
+    norm = np.where(common, np.nan_to_num(aligned), 0.0).sum(axis=1)
+    good = norm > 0
+    if not good.any():
+        raise ValueError(f"response {source!r}: no return above its background")
+    a = np.nan_to_num(aligned[good]) / norm[good, None]
+    density = a.sum(axis=0) / np.maximum(reach[good].sum(axis=0), 1)
+    # each bin's error: the largest relative departure of a row from the mean, over the
+    # bin and its neighbours (a shift of a bin), no lower than RESPONSE_ERROR
+    dev = np.where(reach[good], np.abs(a - density), 0.0).max(axis=0)
+    rel = np.where(density > 0, dev / np.where(density > 0, density, 1.0), 0.0)
+    rel = np.maximum.reduce([rel, np.roll(rel, 1), np.roll(rel, -1)])
+    return Response(density, bin_s, source,
+                    error=np.maximum(np.minimum(rel, RESPONSE_ERROR_MAX), RESPONSE_ERROR))

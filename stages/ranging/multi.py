@@ -1,6 +1,8 @@
 """More than one surface a pixel: up to K returns (a window or a fence before the target).
 
-Deflation by masking: the strongest return is found as by one estimator; the bins within
+Deflation by masking (a Gaussian response: the simulator's chip, ``--irf-ps``; with a
+measured one, :mod:`stages.ranging.multi_irf` subtracts the found returns' whole responses
+instead): the strongest return is found as by one estimator; the bins within
 :data:`MASK_WIDTHS` instrument sigmas of it are masked (``valid`` False: still counted in
 the at-risk numbers, so pile-up is handled as for one return) and the estimator searches
 what is left; a found return's time is then refitted with every other return masked (a
@@ -19,11 +21,14 @@ on a pixel with real returns only the test after the last real one can be false,
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from scipy.special import ndtr
 
 from stages.ranging.detection import bin_of, poisson_tail, tested_bin
 from stages.ranging.histograms import Estimate, Histograms
+from stages.ranging.irf import Response
 from stages.ranging.registry import estimate
 from stages.ranging.validation import check_histograms, check_p_fa, check_sigma
 from stages.ranging.width import return_fwhm
@@ -88,13 +93,21 @@ def _columns(est: Estimate, n_pix: int, rows=None) -> dict:
 
 def estimate_returns(h: Histograms, sigma_s: float, estimator: str = "ml",
                      p_fa: float = 1e-3, max_returns: int = MAX_RETURNS,
-                     ) -> Estimate:
+                     response: Response | None = None, first: Estimate | None = None,
+                     single=None) -> Estimate:
     """Up to ``max_returns`` returns per pixel, each with its own detection at ``p_fa``
     (see the module docstring). Returns the estimate, one row per pixel and return
     (pixel-major, ``pixel`` and ``return_index``, 0 the strongest; every pixel has its row
     0, detected or not, and a row k > 0 only for a detected return k).
     ``fwhm_s`` is each return's measured width (:func:`stages.ranging.width.return_fwhm`,
-    the other returns masked); ``max_returns=1`` is the single-return estimate with it."""
+    the other returns masked); ``max_returns=1`` is the single-return estimate with it.
+
+    With a measured ``response`` (a real instrument's, its tail included) the further
+    returns are searched by :func:`stages.ranging.multi_irf.further_returns` instead of
+    the Gaussian masks; ``first`` is then the pixels' single-return estimate if the caller
+    has one, and ``single`` the function of :class:`Histograms` that made it (its
+    estimator and shape, e.g. a measured response's fit), else the ``estimator``'s with
+    ``sigma_s``: it times each return of a pixel with several, the others taken out."""
     if isinstance(max_returns, bool) or not (isinstance(max_returns, int | np.integer)
                                              and max_returns >= 1):
         raise ValueError(f"max_returns must be an integer >= 1, found {max_returns!r}")
@@ -102,6 +115,26 @@ def estimate_returns(h: Histograms, sigma_s: float, estimator: str = "ml",
     sigma_s = check_sigma(sigma_s)
     p_fa = check_p_fa(p_fa)
     n_pix = h.counts.shape[0]
+    if response is not None:
+        from stages.ranging.multi_irf import further_returns
+
+        if abs(response.bin_s / h.bin_s - 1) > 0.01:
+            raise ValueError(f"response {response.source!r} was measured with "
+                             f"{response.bin_s * 1e12:.4g} ps bins, these histograms have "
+                             f"{h.bin_s * 1e12:.4g} ps")
+
+        if single is None:
+            def single(hh):
+                return estimate(hh, sigma_s, estimator, p_fa)
+        first = single(h) if first is None else first
+        live = np.asarray(first.detected, bool) & (flags == "")
+        found = further_returns(h, response, dataclasses.replace(first, detected=live),
+                                p_fa, max_returns, single)
+        found[0]["detected"] = np.asarray(first.detected, bool)
+        found[0]["flag"] = _columns(first, n_pix)["flag"]
+        for cols in found[1:]:
+            cols["flag"] = np.full(n_pix, "", dtype=object)
+        return _assemble(found, first.estimator)
     half = MASK_WIDTHS * sigma_s
     first = estimate(h, sigma_s, estimator, p_fa)
     found = [_columns(first, n_pix)]
@@ -135,6 +168,12 @@ def estimate_returns(h: Histograms, sigma_s: float, estimator: str = "ml",
         others = [f["t_s"] for j, f in enumerate(found) if j != i]
         hm = _rows(h, slice(None), _masked(h, others, half)) if others else h
         cols["fwhm_s"] = return_fwhm(hm, cols["t_s"], sigma_s)
+    return _assemble(found, first.estimator)
+
+
+def _assemble(found: list[dict], estimator: str) -> Estimate:
+    """One row a pixel and detected return of the per-return columns ``found`` (every
+    pixel's row 0 kept), ordered by signal counts."""
     # order by signal counts, strongest first (a pixel's undetected row 0 stays row 0)
     det = np.stack([f["detected"] for f in found])                        # (k, n_pix)
     strength = np.stack([np.nan_to_num(f["signal_counts"], nan=0.0) for f in found])
@@ -150,7 +189,7 @@ def estimate_returns(h: Histograms, sigma_s: float, estimator: str = "ml",
         return np.take_along_axis(a, order, axis=0).T[keep.T]
 
     return Estimate(**{name: col(name, np.float64) for name in _NUMERIC},
-                    detected=col("detected", bool), estimator=first.estimator,
+                    detected=col("detected", bool), estimator=estimator,
                     flag=col("flag", object), return_index=index.astype(np.int64),
                     pixel=pixel.astype(np.int64))
 
