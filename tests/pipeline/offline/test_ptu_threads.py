@@ -147,3 +147,15 @@ def test_a_file_that_shrinks_while_read_is_one_clear_error(many_chunks, tmp_path
     acc = PtuT3Accumulator(header.format, header.resolution_s, header.n_input_channels)
     with pytest.raises(PtuError, match=r"shrinks\.ptu: file shrank while reading"):
         fold_ptu(path, acc, 5_000, 2)
+
+
+def test_the_c_kernels_release_the_gil():
+    """What the threads rest on: the kernels are called through ctypes as C functions
+    (CDLL / CFUNCTYPE), which release the GIL for the call; PyDLL's would hold it."""
+    import ctypes
+
+    for name in ("histogram_hydraharp_t3", "histogram_picoharp_t3", "decode_hydraharp_t3"):
+        fn = ptu._native(name)
+        assert fn is not None
+        assert not fn._flags_ & ctypes._FUNCFLAG_PYTHONAPI, name
+    assert ctypes.PyDLL(None).PyGILState_Check._flags_ & ctypes._FUNCFLAG_PYTHONAPI
