@@ -102,7 +102,7 @@ def _fold_file(path, fmt: str, acc, measurement: str | None, chunk_words: int,
     else:
         for first, words in instrument_words(path, fmt, chunk_words):
             acc.update(words, first)
-    state = acc.snapshot()
+    state = acc.snapshot(copy=False)  # (acc ends here: its counts need no copy)
     table = state.to_table(measurement or Path(path).stem)
     classes = state.totals()
     events = classes.pop("photons" if fmt == "ptu" else "valid")
@@ -158,14 +158,16 @@ def fold_ptu(path: str | Path, acc: PtuT3Accumulator, chunk_records: int,
                 lanes.put((fh, buf, counts))
 
         pool = stack.enter_context(ThreadPoolExecutor(threads, "ptu-histogram"))
+        last = -1  # the largest dtime of any photon: no count lies past it
         try:
             for p in pool.map(part, range(0, n, chunk_records)):  # (in file order)
                 acc.fold(p)
+                last = max(last, p.tally.max_dtime)
         except BaseException:
             pool.shutdown(cancel_futures=True)
             raise
-    for counts in own:
-        acc.counts += counts
+    for counts in own:  # (the used codes only: a format has up to 32768, mostly unused)
+        acc.counts[:, :last + 1] += counts[:, :last + 1]
 
 
 def histogram_ptu(path: str | Path, measurement: str | None = None,

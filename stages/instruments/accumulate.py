@@ -170,9 +170,12 @@ class PtuT3Accumulator:
         c["overflow"] += t.n_overflow_records
         c["invalid"] += t.n_invalid
 
-    def snapshot(self) -> InstrumentState:
-        return InstrumentState(self.counts.copy(), self.n_syncs, self.words,
-                               dict(self.classes), PICOQUANT_T3, self.bin_width_ps)
+    def snapshot(self, copy: bool = True) -> InstrumentState:
+        """The state now; ``copy=False`` shares the counts (for an accumulator that is
+        done: a later update would change the state)."""
+        return InstrumentState(self.counts.copy() if copy else self.counts, self.n_syncs,
+                               self.words, dict(self.classes), PICOQUANT_T3,
+                               self.bin_width_ps)
 
     def checkpoint(self) -> dict[str, np.ndarray]:
         return {"inst_counts": self.counts.copy(),
@@ -239,12 +242,13 @@ class Linospad2Accumulator:
             c["invalid"] += t.invalid
             c["line_65"] += t.line65
 
-    def snapshot(self) -> InstrumentState:
+    def snapshot(self, copy: bool = True) -> InstrumentState:
+        """The state now; ``copy=False`` as :meth:`PtuT3Accumulator.snapshot`."""
         classes = dict(self.classes)
         if self.carry.size:
             classes["partial_cycle"] = int(self.carry.size)
-        return InstrumentState(self.counts.copy(), self.cycles, self.words, classes,
-                               LINOSPAD2, self.bin_width_ps)
+        return InstrumentState(self.counts.copy() if copy else self.counts, self.cycles,
+                               self.words, classes, LINOSPAD2, self.bin_width_ps)
 
     def checkpoint(self) -> dict[str, np.ndarray]:
         return {"inst_counts": self.counts.copy(), "inst_carry": self.carry.copy(),
