@@ -9,11 +9,15 @@ that the stream's transport, journal and restarts keep them so).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pyarrow as pa
 
 from schemas.outputs import HISTOGRAMS
+
+if TYPE_CHECKING:  # (the decoders are imported where a record is decoded)
+    from stages.instruments.ptu import Tally
 
 PICOQUANT_T3 = "picoquant-t3"
 LINOSPAD2 = "linospad2"
@@ -87,7 +91,7 @@ class T3Part:
     ``tail`` the syncs its last event reaches past them (0 when none does), ``words``
     its records."""
 
-    tally: object  #: stages.instruments.ptu.Tally
+    tally: Tally
     tail: int
     words: int
 
