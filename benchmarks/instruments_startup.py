@@ -7,7 +7,12 @@ capture of the same words as the 106 k file (``tcspc pattern``) for reference.
 Each command runs from each source tree given (``--tree``, e.g. the main branch's and
 this one's: the same files, the same run, interleaved so a loaded machine weighs on both
 alike), each with its own bytecode and numba caches under a temporary directory, after
-one untimed run (bytecode, kernels); best and median wall time of ``--repeat`` runs.
+one untimed run (bytecode, kernels); best and median wall time of ``--repeat`` runs, and
+the load average after each row. The files are read from the page cache (written or
+read just before). The first rows are the floor: the interpreter with the libraries an
+instrument command needs (numpy, pyarrow and its parquet writer, click), and
+`tcspc --help`. Threads: the commands' default (``TCSPC_THREADS`` if set, else the
+cores, at most 4).
 
     python benchmarks/instruments_startup.py --tree /path/to/main --tree . [--repeat 5]
                                              [--records 50000000]
@@ -28,6 +33,20 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 HYDRAHARP = ROOT / "tests" / "data" / "picoquant" / "hydraharp_v20_t3.ptu"
 LINOSPAD2 = ROOT / "tests" / "data" / "linospad2" / "test_data_2212b.dat"
+
+
+#: one process: the file's pass as the command makes it, best of argv[2] after one untimed
+PASS = """
+import sys, time
+from pipeline.offline.instruments import histogram_ptu
+histogram_ptu(sys.argv[1])
+best = float("inf")
+for _ in range(int(sys.argv[2])):
+    t0 = time.perf_counter()
+    histogram_ptu(sys.argv[1])
+    best = min(best, time.perf_counter() - t0)
+print(best)
+"""
 
 
 def env_for(tree: Path, cache: Path) -> dict:
@@ -83,7 +102,10 @@ def main() -> None:
         subprocess.run([sys.executable, "-m", "pipeline.cli", "pattern", str(tmp / "chip"),
                         "--cycles", str(106_000 // 16), "--n-tdc", "16"], check=True,
                        capture_output=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        floor = "import numpy, pyarrow, pyarrow.parquet, click"
         cases = [
+            (f"`python -c '{floor}'` (no tcspc)", ["-c", floor], 1),
+            ("`tcspc --help`", ["--help"], 1),
             ("histogram hydraharp 106 k", ["histogram", str(HYDRAHARP)], 1),
             ("decode hydraharp 106 k", ["decode", str(HYDRAHARP)], 1),
             ("histogram linospad2 sample", ["histogram", str(LINOSPAD2)], 1),
@@ -93,15 +115,16 @@ def main() -> None:
              args.records),
         ]
         caches = {t: tmp / f"cache{i}" for i, t in enumerate(args.tree)}
-        print(f"\n| command | {' | '.join(str(t) for t in args.tree)} |")
-        print("|---|" + "---|" * len(args.tree))
+        print(f"\n| command | {' | '.join(str(t) for t in args.tree)} | load |")
+        print("|---|" + "---|" * len(args.tree) + "---|")
         for name, argv, records in cases:
             times: dict[Path, list[float]] = {t: [] for t in args.tree}
-            repeat = args.repeat if records == 1 else max(2, args.repeat // 2)
-            for k in range(repeat + 1):
+            for k in range(args.repeat + 1):
                 for tree in args.tree:  # interleaved: the machine's load weighs alike
-                    cmd = [sys.executable, "-m", "pipeline.cli", *argv, "--out",
-                           str(tmp / "out.parquet"), "-q"]
+                    cmd = [sys.executable, *argv] if argv[0] == "-c" else \
+                        [sys.executable, "-m", "pipeline.cli", *argv]
+                    if argv[0] not in ("-c", "--help"):
+                        cmd += ["--out", str(tmp / "out.parquet"), "-q"]
                     wall = run(cmd, env_for(tree, caches[tree]))
                     if k:  # the first: bytecode and kernels
                         times[tree].append(wall)
@@ -112,7 +135,23 @@ def main() -> None:
                 if records > 1:
                     cell += f", {records / best / 1e6:.0f} M records/s"
                 cells.append(cell)
-            print(f"| {name} | {' | '.join(cells)} |", flush=True)
+            print(f"| {name} | {' | '.join(cells)} | {os.getloadavg()[0]:.1f} |", flush=True)
+        # the file's pass alone (read, loop, table; no start-up), in one process per tree:
+        # `histogram_ptu` as the command calls it, best of --repeat after one untimed run
+        print(f"\n| `histogram_ptu` in one process, T3 {args.records / 1e6:g} M records | "
+              + " | ".join(str(t) for t in args.tree) + " | load |")
+        print("|---|" + "---|" * len(args.tree) + "---|")
+        for threads in ("1", ""):
+            cells = []
+            for tree in args.tree:
+                env = {**env_for(tree, caches[tree]), "TCSPC_THREADS": threads}
+                res = subprocess.run([sys.executable, "-c", PASS, str(big), str(args.repeat)],
+                                     env=env,
+                                     cwd=tree, capture_output=True, text=True, check=True)
+                best = float(res.stdout)
+                cells.append(f"{best:.3f} s, {args.records / best / 1e6:.0f} M records/s")
+            name = "one thread" if threads else "default threads"
+            print(f"| {name} | {' | '.join(cells)} | {os.getloadavg()[0]:.1f} |", flush=True)
     print(f"\nload average {os.getloadavg()[0]:.1f} at the end")
 
 

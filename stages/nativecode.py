@@ -26,7 +26,6 @@ import os
 import platform
 import re
 import shutil
-import subprocess
 import sys
 import threading
 from collections.abc import Callable
@@ -146,6 +145,7 @@ def _link(ll, mod, so_path: Path) -> bool:
     linker = shutil.which("cc") or shutil.which("gcc") or shutil.which("ld")
     if linker is None:
         return False
+    import subprocess  # (only where a kernel is built: not at every command's start)
     tm = ll.Target.from_triple(mod.triple).create_target_machine(
         cpu=ll.get_host_cpu_name(), features=ll.get_host_cpu_features().flatten(), opt=3,
         reloc="pic", codemodel="default")

@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 import contextlib
-import ctypes
-import ctypes.util
 import os
-import secrets
 import shutil
 from collections.abc import Iterator
 from functools import cache
@@ -19,6 +16,9 @@ _RENAME_EXCHANGE = 2
 @cache
 def _renameat2():
     """libc's renameat2 (Linux >= 3.15, glibc >= 2.28), or None where there is none."""
+    import ctypes  # (here: ctypes.util's import is 10-30 ms of every command's start)
+    import ctypes.util
+
     try:
         fn = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True).renameat2
     except (OSError, AttributeError):
@@ -37,6 +37,8 @@ def exchange(a: str | os.PathLike, b: str | os.PathLike) -> bool:
         return False
     if fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
         return True
+    import ctypes
+
     err = ctypes.get_errno()
     if err in (22, 38, 95):  # EINVAL, ENOSYS, EOPNOTSUPP: not here
         return False
@@ -78,6 +80,8 @@ def point_link(link: str | os.PathLike, target: str | os.PathLike) -> Path | Non
     """Make ``link`` a symlink to ``target`` (relative, so the tree can move) without a
     moment when ``link`` is missing: a new link renamed over the old one, or exchanged with
     a directory that stood there (returned, for the caller to keep or remove; else None)."""
+    import secrets
+
     link = Path(link)
     new = link.with_name(f".{link.name}.link-{secrets.token_hex(4)}")
     os.symlink(os.path.relpath(Path(target).resolve(), link.parent.resolve()), new)

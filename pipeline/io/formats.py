@@ -13,7 +13,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pipeline.io.capture import capture_paths
 from schemas.constants import PTU_MAGIC
 from schemas.errors import TcspcError
 
@@ -39,6 +38,8 @@ def detect_format(path: str | Path) -> str:
     path = Path(path)
     if path.is_file() and is_ptu(path):
         return "ptu"
+    from pipeline.io.capture import capture_paths  # (not for a PTU file: its start)
+
     bin_path, json_path = capture_paths(path)
     if json_path.is_file() and (
             bin_path.is_file() or bin_path.with_name(bin_path.name + ".zst").is_file()):

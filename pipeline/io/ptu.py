@@ -300,22 +300,35 @@ def iter_chunks(path: str | os.PathLike, chunk_records: int = CHUNK_RECORDS,
     (``header.truncated`` tells; a trailing partial record is not read); with
     ``strict=True`` it raises :class:`PtuError` instead, before yielding anything.
     """
-    header = header or read_header(path)
+    header = header if header is not None else read_header(path)
     if strict and header.truncated:
         raise PtuError(header.truncation)
     if chunk_records < 1:
         raise ValueError(f"chunk_records must be >= 1, found {chunk_records}")
     n = header.n_readable
     buf = aligned_empty(min(chunk_records, max(n, 1)), "<u4")  # 4x faster reads
-    with open(path, "rb") as fh:
-        fh.seek(header.data_offset)
+    with open(path, "rb", buffering=0) as fh:
         for first in range(0, n, chunk_records):
-            view = buf[:min(chunk_records, n - first)]
-            got = fh.readinto(memoryview(view).cast("B"))
-            if got != view.nbytes:
-                raise PtuError(f"{header.path}: file shrank while reading (record {first}: "
-                               f"got {got} of {view.nbytes} bytes)")
-            yield first, view if sys.byteorder == "little" else view.astype(np.uint32)
+            yield first, read_records(fh, header, first, buf[:min(chunk_records, n - first)])
+
+
+def read_records(fh, header: PtuHeader, first: int, out: np.ndarray) -> np.ndarray:
+    """Records ``first .. first + out.size`` of the file open as ``fh`` (binary), read into
+    ``out`` (``<u4``; page-aligned reads are 4x faster, ``pipeline.io.buffers``); returned
+    as native uint32. Each thread of a parallel read passes its own ``fh`` and ``out``.
+
+    Raises :class:`PtuError` when the file holds fewer bytes than asked for (it shrank
+    after its header was read).
+    """
+    fh.seek(header.data_offset + 4 * first)
+    view, got = memoryview(out).cast("B"), 0
+    while got < out.nbytes:  # (a read may return less than asked, 0 at the end)
+        k = fh.readinto(view[got:])
+        if not k:
+            raise PtuError(f"{header.path}: file shrank while reading (record {first}: "
+                           f"got {got} of {out.nbytes} bytes)")
+        got += k
+    return out if sys.byteorder == "little" else out.astype(np.uint32)
 
 
 def histogram_t3(path: str | os.PathLike, chunk_records: int = CHUNK_RECORDS,
@@ -402,15 +415,17 @@ class DecodeReport:
 
 def iter_decoded_batches(path: str | os.PathLike, chunk_records: int = CHUNK_RECORDS,
                          report: DecodeReport | None = None, engine: str | None = None,
-                         strict: bool = False) -> Iterator[pa.RecordBatch]:
+                         strict: bool = False, header: PtuHeader | None = None
+                         ) -> Iterator[pa.RecordBatch]:
     """Decode a PTU file chunk by chunk into Arrow record batches.
 
     Batches follow ``PTU_T2_EVENTS`` (``time_ps`` = overflow-corrected timetag x
     ``MeasDesc_GlobalResolution``, exact in integer ps) or ``PTU_T3_EVENTS``. Chunks
     without an event yield no batch. ``report``, when given, is filled as decoding goes
-    (its ``truncated`` is set before the first batch).
+    (its ``truncated`` is set before the first batch). ``header``: the file's, read here
+    unless given.
     """
-    header = read_header(path)
+    header = header if header is not None else read_header(path)
     fmt = header.format
     report = report if report is not None else DecodeReport()
     report.header, report.truncated = header, header.truncated

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import queue
 from collections import deque
 from collections.abc import Callable, Iterable
@@ -13,6 +12,7 @@ import numpy as np
 
 from pipeline.io.atomic import atomic_path
 from pipeline.io.capture import Capture
+from pipeline.offline.threads import default_threads
 from schemas.constants import N_CLASSES, WORD_CLASSES
 from stages.artifact import ArtifactBounds, estimate_bounds
 from stages.datapath import default_engine
@@ -33,19 +33,6 @@ def estimate_capture_bounds(cap: Capture, engine: str | None = None,
         acc.update(words, first)
         progress(words.size)
     return estimate_bounds(acc.snapshot().hits)
-
-
-def default_threads() -> int:
-    """Threads for the histogram loop: ``TCSPC_THREADS`` if set, else the cores this
-    process may use, at most 4 (each thread's loop reads ~1 GB/s of words: a few
-    saturate a memory channel)."""
-    if os.environ.get("TCSPC_THREADS"):
-        return max(1, int(os.environ["TCSPC_THREADS"]))
-    try:
-        n = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        n = os.cpu_count() or 1
-    return max(1, min(4, n))
 
 
 def _fan_out(chunks: Iterable[tuple[int, np.ndarray]], lanes: list, progress: Progress,
@@ -173,5 +160,5 @@ def class_summary(counts) -> dict[str, int]:
     return {name: int(counts[i]) for i, name in enumerate(WORD_CLASSES)}
 
 
-__all__ = ["class_summary", "decode_capture", "estimate_capture_bounds",
+__all__ = ["class_summary", "decode_capture", "default_threads", "estimate_capture_bounds",
            "histogram_capture", "write_histograms"]

@@ -22,6 +22,7 @@ import pyarrow.parquet as pq
 
 from pipeline.io.atomic import atomic_path
 from pipeline.io.formats import FormatError
+from pipeline.offline.threads import default_threads
 from stages.instruments.accumulate import (
     LINOSPAD2,
     PICOQUANT_T3,
@@ -71,13 +72,14 @@ class FileSummary:
 
 
 def instrument_accumulator(path: str | Path, fmt: str, firmware: str = "2212b",
-                           by: str = "tdc"):
+                           by: str = "tdc", header=None):
     """The accumulator an instrument's file is histogrammed with, live and offline: a PTU
-    T3 file's record format, resolution and input channels from its header."""
+    T3 file's record format, resolution and input channels from its header (``header``,
+    read here unless given)."""
     if fmt == "ptu":
         from pipeline.io.ptu import read_header
 
-        header = read_header(path)
+        header = header if header is not None else read_header(path)
         if header.format.mode != "T3":
             raise FormatError(f"{path}: {header.format.name} holds T2 records (absolute "
                               "times, no start-stop time to histogram); `tcspc decode` "
@@ -90,17 +92,21 @@ def instrument_accumulator(path: str | Path, fmt: str, firmware: str = "2212b",
     raise FormatError(f"{path}: {fmt!r} is not an instrument format")
 
 
-def _fold_file(path, fmt: str, acc, measurement: str | None, chunk_words: int):
+def _fold_file(path, fmt: str, acc, measurement: str | None, chunk_words: int,
+               threads: int = 1, header=None):
     from pipeline.io.formats import instrument_truncation, instrument_words
 
     t0 = time.perf_counter()
-    for first, words in instrument_words(path, fmt, chunk_words):
-        acc.update(words, first)
-    state = acc.snapshot()
+    if fmt == "ptu":
+        fold_ptu(path, acc, chunk_words, threads, header)
+    else:
+        for first, words in instrument_words(path, fmt, chunk_words):
+            acc.update(words, first)
+    state = acc.snapshot(copy=False)  # (acc ends here: its counts need no copy)
     table = state.to_table(measurement or Path(path).stem)
     classes = state.totals()
     events = classes.pop("photons" if fmt == "ptu" else "valid")
-    damage = instrument_truncation(path, fmt)
+    damage = header.truncation if header is not None else instrument_truncation(path, fmt)
     summary = FileSummary(str(path), fmt, state.words, events, classes, bool(damage),
                           seconds=time.perf_counter() - t0)
     if damage:
@@ -108,12 +114,80 @@ def _fold_file(path, fmt: str, acc, measurement: str | None, chunk_words: int):
     return table, state, summary
 
 
+def fold_ptu(path: str | Path, acc: PtuT3Accumulator, chunk_records: int,
+             threads: int, header=None) -> None:
+    """Fold a PTU T3 file's records into ``acc`` on ``threads`` threads: each reads a chunk
+    into its own buffer and histograms it into its own counts (the compiled loop runs
+    without the GIL, and one thread's read overlaps the others' loops); the chunks' parts
+    are folded into ``acc`` in file order, so the overflow count and the sync total are
+    what one pass gives, and the counts (order-free) are summed at the end. A file of
+    one chunk, or one thread, is read and folded in one pass. ``header``: the file's, read
+    here unless given."""
+    from pipeline.io.ptu import iter_chunks, read_header
+
+    header = header if header is not None else read_header(path)
+    n = header.n_readable
+    if threads < 2 or n <= chunk_records:
+        for first, words in iter_chunks(path, chunk_records, header):
+            acc.update(words, first)
+        return
+    import queue
+    from concurrent.futures import ThreadPoolExecutor
+    from contextlib import ExitStack
+
+    from pipeline.io.buffers import aligned_empty
+    from pipeline.io.ptu import read_records
+
+    threads = min(threads, -(-n // chunk_records))
+    size = min(chunk_records, n)
+    lanes: queue.SimpleQueue = queue.SimpleQueue()
+    with ExitStack() as stack:
+        own = []  # the counts of every lane but the first, which adds into acc's own
+        for i in range(threads):
+            counts = acc.counts if i == 0 else np.zeros_like(acc.counts)
+            own += [counts] if i else []
+            lanes.put((stack.enter_context(open(path, "rb", buffering=0)),
+                       aligned_empty(size, "<u4"), counts))
+
+        def part(first: int):
+            fh, buf, counts = lanes.get()  # one never waits: at most `threads` run at once
+            try:
+                words = read_records(fh, header, first, buf[:min(chunk_records, n - first)])
+                return acc.part(words, counts)
+            finally:
+                lanes.put((fh, buf, counts))
+
+        pool = stack.enter_context(ThreadPoolExecutor(threads, "ptu-histogram"))
+        last = -1  # the largest dtime of any photon: no count lies past it
+        try:
+            for p in pool.map(part, range(0, n, chunk_records)):  # (in file order)
+                acc.fold(p)
+                last = max(last, p.tally.max_dtime)
+        except BaseException:
+            pool.shutdown(cancel_futures=True)
+            raise
+    for counts in own:  # (the used codes only: a format has up to 32768, mostly unused)
+        acc.counts[:, :last + 1] += counts[:, :last + 1]
+
+
 def histogram_ptu(path: str | Path, measurement: str | None = None,
-                  chunk_records: int = 1 << 22) -> tuple[pa.Table, FileSummary]:
+                  chunk_records: int = 1 << 20,
+                  threads: int | None = None) -> tuple[pa.Table, FileSummary]:
     """A PTU T3 file's histograms: a row per input channel, counts per dtime code (up to
-    the last code any channel used: nothing is dropped), ``cycles`` the sync periods."""
-    acc = instrument_accumulator(path, "ptu")
-    table, state, summary = _fold_file(path, "ptu", acc, measurement, chunk_records)
+    the last code any channel used: nothing is dropped), ``cycles`` the sync periods.
+    ``threads`` (default: ``pipeline.offline.threads.default_threads`` with the compiled
+    loops, 1 with the numpy engine, which holds the GIL) share the chunks; the result is
+    the same for any number."""
+    from pipeline.io.ptu import read_header
+
+    header = read_header(path)  # (once: its tags are parsed in Python)
+    acc = instrument_accumulator(path, "ptu", header=header)
+    if threads is None:
+        from stages.instruments.ptu import default_engine
+
+        threads = default_threads() if (acc.engine or default_engine()) == "numba" else 1
+    table, state, summary = _fold_file(path, "ptu", acc, measurement, chunk_records,
+                                       threads, header)
     summary.notes.append(f"{acc.fmt.name}: {table.num_rows} channels x "
                          f"{len(table.column('counts')[0]) if table.num_rows else 0} dtime "
                          f"codes of {acc.bin_width_ps:g} ps, {state.n_cycles:,} sync periods")
@@ -147,14 +221,15 @@ def decode_instrument(path: str | Path, fmt: str, out: str | Path,
     from schemas.instruments import LINOSPAD2_EVENTS, PTU_T2_EVENTS, PTU_T3_EVENTS
 
     t0 = time.perf_counter()
-    damage = instrument_truncation(path, fmt)
     if fmt == "ptu":
         from pipeline.io.ptu import DecodeReport, iter_decoded_batches, read_header
 
-        report = DecodeReport()
-        spec = PTU_T3_EVENTS if read_header(path).format.is_t3 else PTU_T2_EVENTS
-        batches = iter_decoded_batches(path, report=report)
+        report, header = DecodeReport(), read_header(path)
+        damage = header.truncation
+        spec = PTU_T3_EVENTS if header.format.is_t3 else PTU_T2_EVENTS
+        batches = iter_decoded_batches(path, report=report, header=header)
     elif fmt == "linospad2":
+        damage = instrument_truncation(path, fmt)
         from stages.instruments.linospad2 import LINES, WORDS_PER_LINE, decode_words
 
         spec, tally = LINOSPAD2_EVENTS, {"valid": 0, "invalid": 0, "line_65": 0, "words": 0}
@@ -179,7 +254,13 @@ def decode_instrument(path: str | Path, fmt: str, out: str | Path,
     if damage:  # flagged as the histograms are (tcspc.truncated), with the account
         schema = schema.with_metadata({**(schema.metadata or {}), b"tcspc.truncated": b"True",
                                        b"tcspc.truncation": damage.encode()})
-    with atomic_path(out) as tmp, pq.ParquetWriter(tmp, schema) as writer:
+    # dictionary pages for the narrow columns only (kind, channel, dtime; tdc, pixel, fine):
+    # a wide one (a time, a code) has too many values, and the writer tries a dictionary
+    # and drops it page after page. The write takes half (PTU) to a third (LinoSPAD2) of
+    # the time, and the file is 10-25 % smaller; the data read back are the same.
+    narrow = [f.name for f in schema if f.type.bit_width < 32]
+    with atomic_path(out) as tmp, pq.ParquetWriter(tmp, schema,
+                                                   use_dictionary=narrow) as writer:
         for batch in batches:
             writer.write_batch(batch.replace_schema_metadata(schema.metadata))
     if fmt == "ptu":

@@ -9,11 +9,15 @@ that the stream's transport, journal and restarts keep them so).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pyarrow as pa
 
 from schemas.outputs import HISTOGRAMS
+
+if TYPE_CHECKING:  # (the decoders are imported where a record is decoded)
+    from stages.instruments.ptu import Tally
 
 PICOQUANT_T3 = "picoquant-t3"
 LINOSPAD2 = "linospad2"
@@ -80,6 +84,18 @@ class InstrumentState:
                                 self.bin_width_ps)
 
 
+@dataclass(frozen=True)
+class T3Part:
+    """What a run of PTU T3 records adds to an accumulator, apart from its photons'
+    counts: ``tally`` counted from 0 wraps (its ``wraps`` are the wraps the run adds),
+    ``tail`` the syncs its last event reaches past them (0 when none does), ``words``
+    its records."""
+
+    tally: Tally
+    tail: int
+    words: int
+
+
 class PtuT3Accumulator:
     """PicoQuant T3 records, in file order, into counts[channel, dtime].
 
@@ -113,17 +129,44 @@ class PtuT3Accumulator:
             self.n_syncs = 0
 
     def update(self, words: np.ndarray, first: int = 0, seq=None) -> None:
+        words = np.asarray(words, np.uint32)
+        if words.size:
+            self.fold(self.part(words))
+
+    def part(self, words: np.ndarray, counts: np.ndarray | None = None) -> T3Part:
+        """What ``words`` (a non-empty run of records) add, wherever they sit in the file:
+        their photons added into ``counts`` (this accumulator's by default; a thread's own
+        array when chunks are histogrammed in parallel), the rest as a :class:`T3Part`.
+        Nothing of the accumulator changes but ``counts``: the parts of a file's chunks
+        can be made in any order, on any thread, and then :meth:`fold`-ed in file order
+        (a histogram's counts are order-free; the overflow count and the sync total are
+        not, and the fold carries them)."""
         from stages.instruments.ptu import decode_records, histogram_records
 
-        words = np.asarray(words, np.uint32)
-        if words.size == 0:
-            return
-        t = histogram_records(words, self.fmt, self.counts, self.wraps, self.engine)
-        self.wraps = t.wraps
-        last = decode_records(words[-1:], self.fmt, t.wraps, self.engine)
-        end = int(last.time[-1]) + 1 if len(last) else t.wraps * self.fmt.wrap
-        self.n_syncs = max(self.n_syncs, end)
-        self.words += words.size
+        t = histogram_records(words, self.fmt, self.counts if counts is None else counts,
+                              0, self.engine)
+        # the chunk's last event (photon or marker; mostly its last record), decoded from
+        # as few records at its end as it takes: the syncs it reaches past the chunk's
+        # wraps (none when overflow records follow it, or the chunk holds no event)
+        k, tail = 1, 0
+        while True:
+            end = decode_records(words[-k:], self.fmt, 0, self.engine)
+            if len(end):
+                tail = max(0, int(end.time[-1]) + 1 - end.wraps * self.fmt.wrap)
+                break
+            if k >= words.size:
+                break
+            k *= 64
+        return T3Part(t, tail, words.size)
+
+    def fold(self, part: T3Part) -> None:
+        """Add the :meth:`part` of the next chunk of the file (in file order)."""
+        t = part.tally
+        # the sync periods: past the last event, or the last overflow record's wraps if
+        # later (the same however the file is cut into chunks)
+        self.wraps += t.wraps
+        self.n_syncs = max(self.n_syncs, self.wraps * self.fmt.wrap + part.tail)
+        self.words += part.words
         c = self.classes
         c["photons"] += t.n_photons - t.n_out_of_range
         c["out_of_range"] += t.n_out_of_range
@@ -131,9 +174,12 @@ class PtuT3Accumulator:
         c["overflow"] += t.n_overflow_records
         c["invalid"] += t.n_invalid
 
-    def snapshot(self) -> InstrumentState:
-        return InstrumentState(self.counts.copy(), self.n_syncs, self.words,
-                               dict(self.classes), PICOQUANT_T3, self.bin_width_ps)
+    def snapshot(self, copy: bool = True) -> InstrumentState:
+        """The state now; ``copy=False`` shares the counts (for an accumulator that is
+        done: a later update would change the state)."""
+        return InstrumentState(self.counts.copy() if copy else self.counts, self.n_syncs,
+                               self.words, dict(self.classes), PICOQUANT_T3,
+                               self.bin_width_ps)
 
     def checkpoint(self) -> dict[str, np.ndarray]:
         return {"inst_counts": self.counts.copy(),
@@ -200,12 +246,13 @@ class Linospad2Accumulator:
             c["invalid"] += t.invalid
             c["line_65"] += t.line65
 
-    def snapshot(self) -> InstrumentState:
+    def snapshot(self, copy: bool = True) -> InstrumentState:
+        """The state now; ``copy=False`` as :meth:`PtuT3Accumulator.snapshot`."""
         classes = dict(self.classes)
         if self.carry.size:
             classes["partial_cycle"] = int(self.carry.size)
-        return InstrumentState(self.counts.copy(), self.cycles, self.words, classes,
-                               LINOSPAD2, self.bin_width_ps)
+        return InstrumentState(self.counts.copy() if copy else self.counts, self.cycles,
+                               self.words, classes, LINOSPAD2, self.bin_width_ps)
 
     def checkpoint(self) -> dict[str, np.ndarray]:
         return {"inst_counts": self.counts.copy(), "inst_carry": self.carry.copy(),
