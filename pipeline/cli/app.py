@@ -308,10 +308,10 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
               help="Returns (surfaces) a pixel may have, each with its own detection "
                    "[default: 3 on a tcspc capture and on generic histograms with a "
                    "--calibration from `calibrate distance` (its measured response, tail "
-                   "and all, is subtracted before the next is searched); 1 on other "
-                   "instruments' files (PTU, LinoSPAD2: their tails are not Gaussian and "
-                   "were found as further returns) and on generic histograms without a "
-                   "calibration, which refuse more].")
+                   "and all, is subtracted before the next is searched); 1 on a PTU T3 "
+                   "file (more: with --zero its returns are the measured response; with "
+                   "--delay-ps only a warning, the search's tails being Gaussian) and on "
+                   "generic histograms without a calibration, which refuse more].")
 @_format
 @_quiet
 def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
@@ -354,7 +354,6 @@ def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, g
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from exc
     fmt = instruments.detect(capture, fmt)
-    several = max_returns is not None and max_returns > 1
     if fmt == "histograms" and instruments.is_generic(capture):
         # several returns need the returns' measured response (tail and all), which a
         # calibration from `calibrate distance` holds: 3 by default with one, else 1
@@ -362,15 +361,13 @@ def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, g
                                   irf_ps, p_fa, quiet, max_returns)
         return
     if fmt != "tcspc":
-        if several:  # the search for further returns models a return's tails as Gaussian;
-            # a real response's diffusion tail is not, and was found as surfaces
-            warn(f"--max-returns {max_returns} on an instrument's file: a further return "
-                 "may be the response's own tail (the search models tails as Gaussian)")
         if calibration:
             raise click.UsageError("--calibration is the thesis chip's; an instrument's "
                                    "file takes --delay-ps or --zero")
+        # further returns need the measured response, which --zero's file gives: 3 by
+        # default with it, else 1 (and a warning when more are asked)
         instruments.range_instrument(capture, fmt, out, delay_ps, zero, gate, estimator,
-                                     irf_ps, p_fa, "2212b", quiet, max_returns or 1)
+                                     irf_ps, p_fa, "2212b", quiet, max_returns)
         return
     if calibration is None:
         raise click.UsageError("a tcspc capture needs --calibration")

@@ -202,14 +202,20 @@ def _gate(gate: str | None):
 
 
 def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estimator,
-                     irf_ps, p_fa, firmware: str, quiet: bool, max_returns: int = 1) -> None:
+                     irf_ps, p_fa, firmware: str, quiet: bool,
+                     max_returns: int | None = None) -> None:
     """Ranges of a T3 file's (or its histograms') channels on the instrument's own uniform
-    time axis, with a given delay or one measured on a zero-distance file."""
+    time axis, with a given delay or one measured on a zero-distance file. One return a
+    channel unless ``max_returns`` asks for more: then the zero file's returns are the
+    instrument's measured response, which the search for further returns models each
+    found return with, tail included; without ``--zero`` further returns are searched with
+    Gaussian tails, and a warning says that a real response's tail may be found as a
+    surface (docs/ranging.md, "Real responses")."""
     import numpy as np
     import polars as pl
 
     from pipeline.io.atomic import atomic_path
-    from pipeline.offline.instruments import measured_delay, range_uniform
+    from pipeline.offline.instruments import measured_delay, range_uniform, zero_response
     from pipeline.offline.ranging import ranges_table
 
     if (delay_ps is None) == (zero is None):
@@ -219,6 +225,7 @@ def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estima
     g = _gate(gate)
     table, _ = histograms_of(path, fmt, None, firmware, "tdc")
     sigma = None if irf_ps is None else irf_ps * 1e-12
+    response = None
     if zero is not None:
         ztable, _ = histograms_of(zero, detect(zero, None), None, firmware, "tdc")
         delay, zsigma = measured_delay(ztable, sigma, estimator, p_fa, g)
@@ -230,10 +237,24 @@ def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estima
         how = f"measured on {zero} ({int(np.isfinite(delay).sum())} of {delay.size} channels)"
         if not np.isfinite(delay).any():
             raise click.ClickException(f"{zero}: no return detected on any channel, no delay")
+        response = zero_response(ztable, delay, str(zero), g)
+        wz = np.nanmedian(ztable.column("bin_width_ps").to_numpy())
+        w = np.nanmedian(table.column("bin_width_ps").to_numpy())
+        if abs(wz / w - 1) > 0.01:
+            raise click.ClickException(f"{zero} has {wz:g} ps bins, {path} {w:g} ps: the zero "
+                                       "file must be taken at the same resolution")
     else:
         delay = np.full(table.num_rows, delay_ps * 1e-12)
         how = f"given, {delay_ps:g} ps"
-    est, d, s, note = range_uniform(table, delay, sigma, estimator, p_fa, g, max_returns)
+    max_returns = max_returns or 1
+    if max_returns > 1 and response is None:
+        warn(f"--max-returns {max_returns} without --zero: further returns are searched with "
+             "Gaussian tails, so a further return may be the response's own tail (give "
+             "--zero: its returns are the measured response)")
+    est, d, s, note = range_uniform(table, delay, sigma, estimator, p_fa, g, max_returns,
+                                    response)
+    if max_returns > 1 and response is not None:
+        note += f"; further returns modelled on the response measured on {response.source}"
     name = table.column("measurement")[0].as_py() if table.num_rows else Path(path).stem
     ranges = ranges_table(name, est, d, s)
     ranges = ranges.replace_schema_metadata({

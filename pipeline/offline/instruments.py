@@ -40,7 +40,7 @@ C_LIGHT = 299_792_458.0
 
 __all__ = ["LINOSPAD2", "PICOQUANT_T3", "FileSummary", "decode_instrument",
            "histogram_linospad2", "histogram_ptu", "instrument_accumulator",
-           "instrument_table", "measured_delay", "range_uniform"]
+           "instrument_table", "measured_delay", "range_uniform", "zero_response"]
 
 
 @dataclass
@@ -304,30 +304,52 @@ def _uniform(table: pa.Table, gate_ns: tuple[float, float] | None) -> Histograms
 
 
 def peak_times(table: pa.Table, sigma_s: float | None = None, estimator: str = "ml",
-               p_fa: float = 1e-3, gate_ns=None, max_returns: int = 1):
+               p_fa: float = 1e-3, gate_ns=None, max_returns: int = 1, response=None):
     """The return times after the sync, per row (up to ``max_returns`` each), with the
     instrument response ``sigma_s`` (default: measured on the returns,
-    :func:`stages.ranging.width.response_from_data`)."""
+    :func:`stages.ranging.width.response_from_data`). A measured ``response``
+    (:func:`zero_response`) is the model of each return found when searching for the
+    next (its tail included); without one further returns are searched with Gaussian
+    tails, which a real response's long tail is not."""
     from stages.ranging import estimate_returns, response_from_data
 
     h = _uniform(table, gate_ns)
     sigma = response_from_data(h)[0] if sigma_s is None else float(sigma_s)
-    return estimate_returns(h, sigma, estimator, p_fa, max_returns), sigma
+    return estimate_returns(h, sigma, estimator, p_fa, max_returns,
+                            response=response if max_returns > 1 else None), sigma
+
+
+def zero_response(zero: pa.Table, delay_s, source: str, gate_ns=None):
+    """The instrument's response measured on a zero-distance (or any single-target) file:
+    its channels' returns at ``delay_s`` (NaN: not detected, left out), pile-up corrected,
+    aligned and averaged, tail included (:func:`stages.ranging.irf.response_from_returns`).
+    None when no channel has a return."""
+    from stages.ranging.irf import response_from_returns
+
+    t = np.asarray(delay_s, np.float64)
+    if not np.isfinite(t).any():
+        return None
+    n = int(np.isfinite(t).sum())
+    return response_from_returns(_uniform(zero, gate_ns), t,
+                                 f"{source}'s {n} return(s), aligned and averaged")
 
 
 def measured_delay(zero: pa.Table, sigma_s: float | None = None, estimator: str = "ml",
                    p_fa: float = 1e-3, gate_ns=None) -> tuple[np.ndarray, np.ndarray]:
     """Delay per row from a zero-distance measurement (eq. 5.3 with d = 0): the return
-    time there; NaN where nothing was detected. Also the peak's sigma (from its measured
-    FWHM)."""
-    est, _ = peak_times(zero, sigma_s, estimator, p_fa, gate_ns)
+    time there; NaN where nothing was detected. Also, per row, the instrument sigma the
+    delay was estimated with (``sigma_s``, else measured on the zero's returns), which the
+    ranges must use too: an estimator's time of an asymmetric return moves with the model's
+    width (the HydraHarp sample ranged against itself with its returns' FWHM in place of
+    the delay's sigma came out 2.07 m away, not at 0)."""
+    est, sigma = peak_times(zero, sigma_s, estimator, p_fa, gate_ns)
     delay = np.where(est.detected, est.t_s, np.nan)
-    return delay, np.asarray(est.fwhm_s, np.float64) / (2 * np.sqrt(2 * np.log(2)))
+    return delay, np.full(delay.shape, float(sigma))
 
 
 def range_uniform(table: pa.Table, delay_s, sigma_s: float | None = None,
                   estimator: str = "ml", p_fa: float = 1e-3, gate_ns=None,
-                  max_returns: int = 1):
+                  max_returns: int = 1, response=None):
     """Distances of an instrument's T3 histograms: d = c (t - delay) / 2, per row and
     return (``est.pixel``, ``est.return_index``).
 
@@ -337,7 +359,7 @@ def range_uniform(table: pa.Table, delay_s, sigma_s: float | None = None,
     from pipeline.offline.ranging import behind_zero
     from stages.ranging.validation import check_delay
 
-    est, sigma = peak_times(table, sigma_s, estimator, p_fa, gate_ns, max_returns)
+    est, sigma = peak_times(table, sigma_s, estimator, p_fa, gate_ns, max_returns, response)
     delay = np.broadcast_to(check_delay(delay_s, "the delay"), (table.num_rows,))[est.pixel]
     est = dataclasses.replace(est, detected=np.asarray(est.detected, bool) & np.isfinite(delay))
     est, distance = behind_zero(est, C_LIGHT / 2 * (est.t_s - delay))

@@ -100,3 +100,22 @@ def test_an_instruments_file_is_ranged_one_return_a_pixel_unless_asked(tmp_path)
                               "--max-returns", "3"])
     assert res.exit_code == 0 and "the response's own tail" in res.output
     assert pl.read_parquet(out3)["return_index"].max() > 0  # the tail, found as surfaces
+
+
+def test_with_a_zero_file_further_returns_are_searched_with_its_measured_response(tmp_path):
+    """The same file as its own zero: its returns are the measured response, tail and all,
+    so three returns asked find the one there is, at distance 0 on both channels (the
+    delay's instrument sigma is the ranges' too: with the returns' FWHM in its place the
+    file came out 2.07 m from itself)."""
+    from pathlib import Path
+
+    ptu = Path(__file__).parents[2] / "data" / "picoquant" / "hydraharp_v20_t3.ptu"
+    out = tmp_path / "self.parquet"
+    res = CliRunner().invoke(cli, ["range", str(ptu), "--zero", str(ptu), "--out", str(out),
+                                   "--max-returns", "3"])
+    assert res.exit_code == 0, res.output
+    assert "own tail" not in res.output and "further returns modelled on the response" \
+        in res.output
+    r = pl.read_parquet(out)
+    assert r.height == 2 and r["return_index"].max() == 0  # no tail found as a surface
+    assert r["detected"].all() and (r["distance_m"] == 0).all()
