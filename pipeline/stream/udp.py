@@ -354,6 +354,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
 
     from pipeline.stream.fanout import TdcSplitter
     from pipeline.stream.metrics import Metrics
+    from pipeline.stream.rawwire import RawWordsEncoder
 
     ctx = context or zmq.Context.instance()
     token = token if token is not None else wire.load_token()
@@ -425,24 +426,28 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     idle = 0.0
     last_end = None   # the cycle after the datagram flagged last, once it came
 
+    encoder = RawWordsEncoder()
+    splitter = None  # (made at the first batch: a run's n_tdc may come from the stream)
+
     def flush():
-        nonlocal pending, pending_first
+        nonlocal pending, pending_first, splitter
         if not pending:
             return
-        import pyarrow as pa
-
-        words = np.concatenate(pending)
+        # the datagrams' big-endian words, joined, then swapped and cut by TDC range into
+        # each message by one copy (pipeline.stream.rawwire)
+        words = pending[0] if len(pending) == 1 else np.concatenate(pending)
         ranges = split or [(0, n_tdc)]
-        parts = (TdcSplitter(n_tdc, split).split(pending_first, words) if split
+        if split and (splitter is None or splitter.n_tdc != n_tdc):
+            splitter = TdcSplitter(n_tdc, split)  # (n_tdc known from the stream)
+        parts = (splitter.views(pending_first, words) if split
                  else [(pending_first, words)])
         item = []
         for (f, w), rng in zip(parts, ranges, strict=True):
-            batch = pa.record_batch([pa.array(w)], schema=RAW_WORDS.schema)
             head = {"kind": "data", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
                     "run": run, "seq": stats.messages, "step": "ingest",
                     "first_word": int(f), "n_tdc": rng[1] - rng[0], "n_tdc_total": n_tdc,
                     "tdc_range": list(rng), "t_laser_win_ns": gate_ps / 1000, "date": date}
-            item.append(wire.encode(head, batch, token))
+            item.append(encoder.frames(head, w, token))
         if journal is None:
             sendq.put(item)  # nothing to fill a hole from: wait for downstream
         else:
