@@ -9,16 +9,17 @@ the same run.
    (pipeline.stream.rawwire), and zstd at the journal's level (``journal.ZSTD_LEVEL``, on
    its own thread in the source).
 3. ``tcspc daemon`` (journal on with zstd, ``--workers`` histogram workers by TDC range,
-   measurements of 20,000 cycles, the sink; a range stage with ``--calibration``) from each
-   ``--tree``, interleaved: words/s from the source's first batch to the last measurement
-   written, the accounting balanced, and each process's CPU-seconds (read from /proc while
-   it runs). ``--source capture`` replays the capture; ``--source udp`` sends it as
-   datagram v1 (127 cycles a datagram) over loopback to a udp source, paced at
-   ``--udp-rate`` words/s by a sender process on the same two cores (its CPU is printed).
+   measurements of ``--measurement-cycles`` cycles, the sink; a range stage with
+   ``--calibration``) from each ``--tree``, interleaved: words/s from the source's first
+   batch to the last measurement written, the accounting balanced, and each process's
+   CPU-seconds over that time (read from /proc while it runs). ``--source capture``
+   replays the capture; ``--source udp`` sends it as datagram v1 (127 cycles a datagram)
+   over loopback to a udp source, paced at ``--udp-rate`` words/s by a sender process on
+   the same two cores (its CPU is printed apart).
 
     python benchmarks/source_path.py --tree /path/to/main --tree . [--cycles 500000]
         [--hit-prob 0.05] [--workers 1] [--repeat 2] [--calibration DIR] [--codecs]
-        [--source capture|udp] [--udp-rate 60e6]
+        [--source capture|udp] [--udp-rate 60e6] [--measurement-cycles 20000]
 """
 
 from __future__ import annotations
@@ -228,7 +229,8 @@ def _free_port() -> int:
 
 def daemon_run(tree: Path, tmp: Path, capture: Path, workers: int, tag: str,
                calibration: str | None, source: str = "capture", n_tdc: int = 128,
-               udp_rate: float = 60e6) -> tuple[float, dict, dict[str, float]]:
+               udp_rate: float = 60e6, mc: int = 20_000
+               ) -> tuple[float, dict, dict[str, float]]:
     state, outd = tmp / f"state-{tag}", tmp / f"out-{tag}"
     topo = tmp / f"topo-{tag}.toml"
     port = _free_port()
@@ -245,7 +247,7 @@ state = "{state}"
 {src}
 [histogram]
 workers = {workers}
-measurement_cycles = 20000
+measurement_cycles = {mc}
 {hist}
 {f'[range]{chr(10)}calibration = "{calibration}"' if calibration else ''}
 [sink]
@@ -295,6 +297,7 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--calibration", default=None)
+    ap.add_argument("--measurement-cycles", type=int, default=20_000)
     ap.add_argument("--codecs", action="store_true", help="the journal codecs' table")
     ap.add_argument("--source", choices=("capture", "udp"), default="capture")
     ap.add_argument("--udp-rate", type=float, default=60e6, help="words/s the sender paces")
@@ -333,7 +336,7 @@ def main() -> None:
                 cal = args.calibration
                 wall, acc, cpu = daemon_run(tree, tmp, tmp / "cap.bin", args.workers,
                                             f"{i}-{k}", cal, args.source, args.n_tdc,
-                                            args.udp_rate)
+                                            args.udp_rate, args.measurement_cycles)
                 lost = acc.get("lost_datagrams", 0)
                 if args.source == "udp" and lost:  # (the ingest did not keep up)
                     print(f"  {tree}: {lost} datagrams lost at this rate "

@@ -26,7 +26,7 @@ import zmq
 
 from pipeline.stream import datagram, wire
 from pipeline.stream.journal import JournalWriter
-from pipeline.stream.stage import Quarantine, _socket, connect
+from pipeline.stream.stage import Quarantine, _socket, connect, end_context, own_context
 from schemas.words import RAW_WORDS
 
 BATCH_WORDS = 1 << 18  # 1 MiB messages
@@ -363,7 +363,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     from pipeline.stream.metrics import Metrics
     from pipeline.stream.rawwire import RawWordsEncoder
 
-    ctx = context or zmq.Context.instance()
+    ctx, own = own_context(context)
     token = token if token is not None else wire.load_token()
     pushes = [push] if isinstance(push, str) else list(push)
     txs = []
@@ -660,4 +660,6 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         beat.close()
         for tx in txs:
             tx.close(linger=60_000 if not tx_thread.is_alive() else 0)
+        if own and not tx_thread.is_alive():  # (a sender still stuck keeps its sockets)
+            end_context(ctx)
     return stats
