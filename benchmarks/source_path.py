@@ -120,7 +120,8 @@ def _stage_name(cmd: list[str]) -> str:
     if "stage" in cmd and cmd.index("stage") + 1 < len(cmd):
         name = cmd[cmd.index("stage") + 1]
         return "source" if name.startswith(("source-", "ingest-")) else name
-    return "daemon (supervisor)" if "daemon" in cmd else " ".join(cmd[-2:])
+    return ("daemon (supervisor)" if "daemon" in cmd else
+            " ".join(cmd[-2:]) or "(a process gone before it was named)")
 
 
 class CpuWatch:
@@ -302,6 +303,8 @@ def main() -> None:
     ap.add_argument("--source", choices=("capture", "udp"), default="capture")
     ap.add_argument("--udp-rate", type=float, default=60e6, help="words/s the sender paces")
     args = ap.parse_args()
+    if args.calibration:  # (each tree's daemon runs in that tree)
+        args.calibration = str(Path(args.calibration).resolve())
     print("$ python benchmarks/source_path.py " + " ".join(sys.argv[1:]))
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, Python "
           f"{platform.python_version()}, load average {os.getloadavg()[0]:.1f} at start "
