@@ -56,6 +56,7 @@ state = "{d / 'state'}"
 [histogram]
 workers = 2
 measurement_cycles = {mc}
+artifacts = "count-as-hits"
 [sink]
 out = "{d / 'out'}"
 """)

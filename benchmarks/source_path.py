@@ -1,19 +1,25 @@
-"""Where the stream source's cycles go, and the daemon's words/s, side by side with another
-source tree in the same run.
+"""Where the daemon's cycles go, and its words/s, side by side with another source tree in
+the same run.
 
-1. The source's work per batch of a capture replay, each step timed apart (CPU seconds of
-   this process, so other processes' load weighs less), the way main's source does it
-   (read and swap in place, a big-endian copy for the journal, each worker's TDC range cut
-   into a new array, the Arrow IPC copy; zstd level 1 of the journal's frame) and the way
-   it does now (read as stored, journal from that buffer, one swap-and-cut copy into the
-   message: pipeline.stream.rawwire). The zstd step is the journal writer's thread.
-2. ``tcspc daemon`` (capture source, journal on with zstd, ``--workers`` histogram
-   workers by TDC range, measurements of 20,000 cycles, the sink; a range stage with
-   ``--calibration``) from each ``--tree``, interleaved, words/s from the source's first
-   batch to the last measurement written; the accounting must balance.
+1. ``--codecs``: the journal's candidate codecs on the capture's words in the source's
+   1 MiB chunks (zstd levels, LZ4 frames as pyarrow ships them): M words per CPU-second
+   (best of 3, interleaved) and the bytes kept.
+2. The source's work per batch of a capture replay, each step timed apart (CPU seconds of
+   this process): read as stored, one swap-and-cut copy into the message
+   (pipeline.stream.rawwire), and zstd at the journal's level (``journal.ZSTD_LEVEL``, on
+   its own thread in the source).
+3. ``tcspc daemon`` (journal on with zstd, ``--workers`` histogram workers by TDC range,
+   measurements of ``--measurement-cycles`` cycles, the sink; a range stage with
+   ``--calibration``) from each ``--tree``, interleaved: words/s from the source's first
+   batch to the last measurement written, the accounting balanced, and each process's
+   CPU-seconds over that time (read from /proc while it runs). ``--source capture``
+   replays the capture; ``--source udp`` sends it as datagram v1 (127 cycles a datagram)
+   over loopback to a udp source, paced at ``--udp-rate`` words/s by a sender process on
+   the same two cores (its CPU is printed apart).
 
     python benchmarks/source_path.py --tree /path/to/main --tree . [--cycles 500000]
-        [--hit-prob 0.05] [--workers 2] [--repeat 2] [--calibration DIR]
+        [--hit-prob 0.05] [--workers 1] [--repeat 2] [--calibration DIR] [--codecs]
+        [--source capture|udp] [--udp-rate 60e6] [--measurement-cycles 20000]
 """
 
 from __future__ import annotations
@@ -23,9 +29,11 @@ import json
 import os
 import platform
 import re
+import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -34,14 +42,42 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+TICK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
-def source_steps(capture: Path, ranges, rounds: int = 2) -> dict[str, dict[str, float]]:
+
+def codec_table(capture: Path, rounds: int = 3) -> dict[str, tuple[float, float]]:
+    """{codec: (M words per CPU-second, compressed / raw bytes)} on the capture's chunks."""
     import pyarrow as pa
     import zstandard
 
     from pipeline.io.capture import Capture
-    from pipeline.stream import wire
+
+    cap = Capture(capture)
+    chunk = max(1, (1 << 18) // cap.meta.n_tdc) * cap.meta.n_tdc
+    chunks = [memoryview(np.ascontiguousarray(w)).cast("B")
+              for _, w in cap.iter_chunks(chunk, native=False)][:200]
+    codecs = {f"zstd {lv}": zstandard.ZstdCompressor(
+        level=lv, write_checksum=True, write_content_size=True).compress
+        for lv in (1, -1, -3, -5, -7)}
+    lz4 = pa.Codec("lz4")
+    codecs["lz4 frame (pyarrow)"] = lambda c: lz4.compress(c, asbytes=True)
+    best = dict.fromkeys(codecs, float("inf"))
+    size = {}
+    for _ in range(rounds):  # interleaved: the machine's load weighs on all alike
+        for k, f in codecs.items():
+            t = time.process_time()
+            size[k] = sum(len(f(c)) for c in chunks)
+            best[k] = min(best[k], time.process_time() - t)
+    raw = sum(c.nbytes for c in chunks)
+    return {k: (raw / 4 / best[k] / 1e6, size[k] / raw) for k in codecs}
+
+
+def source_steps(capture: Path, ranges, rounds: int = 2) -> dict[str, float]:
+    import zstandard
+
+    from pipeline.io.capture import Capture
     from pipeline.stream.fanout import TdcSplitter
+    from pipeline.stream.journal import ZSTD_LEVEL
     from pipeline.stream.rawwire import RawWordsEncoder
     from schemas.words import RAW_WORDS
 
@@ -49,80 +85,210 @@ def source_steps(capture: Path, ranges, rounds: int = 2) -> dict[str, dict[str, 
     n = cap.meta.n_tdc
     chunk = max(1, (1 << 18) // n) * n
     sp = TdcSplitter(n, ranges)
-    codec = zstandard.ZstdCompressor(level=1, write_checksum=True, write_content_size=True)
+    codec = zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True,
+                                     write_content_size=True)
     enc = RawWordsEncoder()
     head = {"kind": "data", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
             "run": "r", "seq": 0, "step": "source", "first_word": 0, "n_tdc": 1,
             "t_laser_win_ns": 140.0}
-    out = {"before": {}, "now": {}}
+    d: dict[str, float] = {}
+    zstd = f"zstd level {ZSTD_LEVEL} (journal thread)"
 
-    def tick(d, k, t0):
+    def tick(k, t0):
         t = time.process_time()
         d[k] = d.get(k, 0.0) + t - t0
         return t
 
-    for _ in range(rounds):  # interleaved: the machine's load weighs on both alike
-        d = out["before"]
-        t = time.process_time()
-        for first, w in cap.iter_chunks(chunk):
-            t = tick(d, "read + swap in place", t)
-            be = w.astype(">u4")
-            t = tick(d, "big-endian copy (journal)", t)
-            codec.compress(memoryview(be).cast("B"))
-            t = tick(d, "zstd (journal thread)", t)
-            for f, part in sp.split(first, w):
-                wire.encode({**head, "first_word": f},
-                            pa.record_batch([pa.array(part)], schema=RAW_WORDS.schema))
-            t = tick(d, "cut by TDC range + IPC copy", t)
-        d = out["now"]
+    for _ in range(rounds):
         t = time.process_time()
         for first, w in cap.iter_chunks(chunk, native=False):
-            t = tick(d, "read as stored", t)
+            t = tick("read as stored", t)
             codec.compress(memoryview(w).cast("B"))
-            t = tick(d, "zstd (journal thread)", t)
+            t = tick(zstd, t)
             for f, view in sp.views(first, w):
                 enc.frames({**head, "first_word": f}, view)
-            t = tick(d, "swap + cut + IPC, one copy", t)
+            t = tick("swap + cut + IPC, one copy", t)
     words = cap.n_words * rounds
-    return {k: {s: words / v / 1e6 for s, v in d.items()} | {
-        "total (one thread)": words / sum(d.values()) / 1e6} for k, d in out.items()}
+    return {s: words / v / 1e6 for s, v in d.items()} | {
+        "total (one thread)": words / sum(d.values()) / 1e6}
+
+
+def _stage_name(cmd: list[str]) -> str:
+    """A daemon process's name from its command line."""
+    if "--name" in cmd:
+        return cmd[cmd.index("--name") + 1]
+    if "stage" in cmd and cmd.index("stage") + 1 < len(cmd):
+        name = cmd[cmd.index("stage") + 1]
+        return "source" if name.startswith(("source-", "ingest-")) else name
+    return ("daemon (supervisor)" if "daemon" in cmd else
+            " ".join(cmd[-2:]) or "(a process gone before it was named)")
+
+
+class CpuWatch:
+    """CPU-seconds (user + system) of a process and its descendants, by name, polled from
+    /proc while they run; ``stop(t0, t1)`` gives each one's CPU between two wall times
+    (the streaming, not the start-up's imports)."""
+
+    def __init__(self, pid: int, every_s: float = 0.05):
+        self.root, self.every = pid, every_s
+        self.names: dict[int, str] = {}
+        self.samples: dict[int, list[tuple[float, float]]] = {}
+        self.done = threading.Event()
+        self.thread = threading.Thread(target=self._poll, daemon=True)
+        self.thread.start()
+
+    def _read(self) -> None:
+        kids: dict[int, list[int]] = {}
+        stats = {}
+        now = time.time()
+        for p in Path("/proc").iterdir():
+            if not p.name.isdigit():
+                continue
+            try:
+                f = (p / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            kids.setdefault(int(f[1]), []).append(int(p.name))
+            stats[int(p.name)] = (int(f[11]) + int(f[12])) / TICK
+        todo = [self.root]
+        while todo:
+            pid = todo.pop()
+            todo += kids.get(pid, [])
+            if pid not in stats:
+                continue
+            if pid not in self.names:
+                try:
+                    cmd = Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")
+                except OSError:
+                    continue
+                self.names[pid] = _stage_name([c for c in cmd if c])
+                self.samples[pid] = [(now, 0.0)]  # (a process born in the window: from 0)
+            self.samples[pid].append((now, stats[pid]))
+
+    def _poll(self) -> None:
+        while not self.done.is_set():
+            self._read()
+            time.sleep(self.every)
+
+    def stop(self, t0: float, t1: float) -> dict[str, float]:
+        self.done.set()
+        self.thread.join()
+        out: dict[str, float] = {}
+
+        def at(samples, t):
+            return max((c for s, c in samples if s <= t), default=0.0)
+
+        for pid, samples in self.samples.items():
+            name = self.names[pid]
+            out[name] = out.get(name, 0.0) + at(samples, t1) - at(samples, t0)
+        return out
+
+
+def send_datagrams(port: int, capture: str, rate: float, status: str) -> None:
+    """The sensor: the capture as datagram v1 to 127.0.0.1:port, paced at ``rate``
+    words/s, the last one flagged; starts once the ingest beats (STATE/status.json)."""
+    from pipeline.io.capture import Capture
+    from pipeline.stream import datagram
+
+    cap = Capture(capture)
+    n = cap.meta.n_tdc
+    per = (datagram.MAX_PAYLOAD - datagram.HEADER.size) // (4 * n)
+    words = np.concatenate([w for _, w in cap.iter_chunks(per * n * 64)])
+    total = words.size // n
+    dgs = [datagram.encode(words[c * n:min(c + per, total) * n], i, c, n, 140_000,
+                           last=c + per >= total)
+           for i, c in enumerate(range(0, total, per))]
+    del words
+    deadline = time.time() + 120
+    while time.time() < deadline:  # the ingest listens once it beats
+        try:
+            src = json.loads(Path(status).read_text()).get("stages", {}).get("source", {})
+            if src.get("heartbeat_age_s") is not None:
+                break
+        except (OSError, ValueError):
+            pass
+        time.sleep(0.05)
+    out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    out.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
+    per_words = per * n
+    t_first, t0 = time.time(), time.perf_counter()
+    for i, dg in enumerate(dgs):
+        ahead = i * per_words / rate - (time.perf_counter() - t0)
+        if ahead > 0:
+            time.sleep(ahead)
+        out.sendto(dg, ("127.0.0.1", port))
+    dt = time.perf_counter() - t0
+    print(json.dumps({"sent_words": total * n, "seconds": dt, "t_first": t_first,
+                      "cpu_s": time.process_time()}))
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def daemon_run(tree: Path, tmp: Path, capture: Path, workers: int, tag: str,
-               calibration: str | None) -> tuple[float, dict]:
+               calibration: str | None, source: str = "capture", n_tdc: int = 128,
+               udp_rate: float = 60e6, mc: int = 20_000
+               ) -> tuple[float, dict, dict[str, float]]:
     state, outd = tmp / f"state-{tag}", tmp / f"out-{tag}"
     topo = tmp / f"topo-{tag}.toml"
+    port = _free_port()
+    src = (f'kind = "capture"\ncapture = "{capture}"' if source == "capture" else
+           f'kind = "udp"\nbind = "127.0.0.1:{port}"\nn_tdc = {n_tdc}\ngate_ps = 140000\n'
+           f'first_seq = 0\nidle = 5')
+    knows = "count-as-hits" in (tree / "pipeline/stream/topology.py").read_text()
+    hist = (f'calibration = "{calibration}"' if calibration else  # (a tree before the key
+            'artifacts = "count-as-hits"' if source == "udp" and knows else "")  # counts them)
     topo.write_text(f"""
 [daemon]
 state = "{state}"
 [source]
-kind = "capture"
-capture = "{capture}"
+{src}
 [histogram]
 workers = {workers}
-measurement_cycles = 20000
-{f'calibration = "{calibration}"' if calibration else ''}
+measurement_cycles = {mc}
+{hist}
 {f'[range]{chr(10)}calibration = "{calibration}"' if calibration else ''}
 [sink]
 out = "{outd}"
 """)
     env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
     env["PYTHONPATH"] = str(tree)
-    res = subprocess.run([sys.executable, "-m", "pipeline.cli", "daemon", "--config",
-                          str(topo), "--run", "bench"], capture_output=True, text=True,
-                         env=env, cwd=tree, timeout=3600)
-    if res.returncode != 0:
-        raise SystemExit(f"daemon from {tree} failed:\n{res.stderr[-3000:]}")
-    log = (state / "logs" / "source.log").read_text()
-    first = float(re.findall(r"first batch sent at ([0-9.]+)", log)[-1])
+    daemon = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "daemon", "--config",
+                               str(topo), "--run", "bench"], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True, env=env, cwd=tree)
+    watch = CpuWatch(daemon.pid)
+    sender = None
+    if source == "udp":
+        sender = subprocess.Popen([sys.executable, __file__, "--send", str(port), str(capture),
+                                   str(udp_rate), str(state / "status.json")],
+                                  stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    out, err = daemon.communicate(timeout=3600)
+    sent = json.loads(sender.communicate(timeout=600)[0]) if sender is not None else None
+    if daemon.returncode != 0 and not (source == "udp" and daemon.returncode == 3):
+        raise SystemExit(f"daemon from {tree} failed ({daemon.returncode}):\n{err[-3000:]}"
+                         f"\n{out[-3000:]}")
+    if source == "capture":
+        log = (state / "logs" / "source.log").read_text()
+        first = float(re.findall(r"first batch sent at ([0-9.]+)", log)[-1])
+    else:  # the sender's first datagram
+        first = sent["t_first"]
     # the last measurement written (the daemon's reconciliation and exit after it are a
     # fixed cost of the run, not of its words)
     end = max(p.stat().st_mtime for p in outd.glob("*/date=*/run=bench/*.parquet"))
-    acc = json.loads(res.stdout)["accounting"]
-    return end - first, acc
+    acc = json.loads(out)["accounting"]
+    cpu = watch.stop(first, end)
+    if sent is not None:
+        cpu["(sender, not the daemon's)"] = sent["cpu_s"]
+    return end - first, acc, cpu
 
 
 def main() -> None:
+    if sys.argv[1:2] == ["--send"]:  # (the sender process of a udp run)
+        port, capture, rate, status = sys.argv[2:6]
+        return send_datagrams(int(port), capture, float(rate), status)
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--tree", action="append", type=Path, default=[])
@@ -132,7 +298,13 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--calibration", default=None)
+    ap.add_argument("--measurement-cycles", type=int, default=20_000)
+    ap.add_argument("--codecs", action="store_true", help="the journal codecs' table")
+    ap.add_argument("--source", choices=("capture", "udp"), default="capture")
+    ap.add_argument("--udp-rate", type=float, default=60e6, help="words/s the sender paces")
     args = ap.parse_args()
+    if args.calibration:  # (each tree's daemon runs in that tree)
+        args.calibration = str(Path(args.calibration).resolve())
     print("$ python benchmarks/source_path.py " + " ".join(sys.argv[1:]))
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, Python "
           f"{platform.python_version()}, load average {os.getloadavg()[0]:.1f} at start "
@@ -150,26 +322,48 @@ def main() -> None:
         del words
         print(f"capture: {n_words / 1e6:.1f} M words, {args.n_tdc} TDCs, "
               f"{args.hit_prob:.0%} hits (stages.testpattern)\n")
+        if args.codecs:
+            print("journal codecs on the capture's 1 MiB chunks (M words per CPU-second, "
+                  "best of 3; bytes kept):")
+            for k, (speed, ratio) in codec_table(tmp / "cap.bin").items():
+                print(f"  {k:20s} {speed:6.0f}  {ratio:6.1%}")
         steps = source_steps(tmp / "cap.bin", equal_ranges(args.n_tdc, args.workers))
-        print(f"source steps, M words per CPU-second ({args.workers} TDC ranges):")
-        for way, d in steps.items():
-            print(f"  {way}: " + "; ".join(f"{k} {v:.0f}" for k, v in d.items()))
+        print(f"source steps, M words per CPU-second ({args.workers} TDC ranges): "
+              + "; ".join(f"{k} {v:.0f}" for k, v in steps.items()))
         if not args.tree:
             return
         walls: dict[Path, list[float]] = {t: [] for t in args.tree}
+        cpus: dict[Path, list[dict[str, float]]] = {t: [] for t in args.tree}
         for k in range(args.repeat):
             for i, tree in enumerate(args.tree):
-                wall, acc = daemon_run(tree, tmp, tmp / "cap.bin", args.workers,
-                                       f"{i}-{k}", args.calibration)
+                cal = args.calibration
+                wall, acc, cpu = daemon_run(tree, tmp, tmp / "cap.bin", args.workers,
+                                            f"{i}-{k}", cal, args.source, args.n_tdc,
+                                            args.udp_rate, args.measurement_cycles)
+                lost = acc.get("lost_datagrams", 0)
+                if args.source == "udp" and lost:  # (the ingest did not keep up)
+                    print(f"  {tree}: {lost} datagrams lost at this rate "
+                          f"({acc.get('words_in_gaps', 0):,} words); run left out")
+                    continue
                 if not acc.get("balanced") or acc["words_in"] != n_words:
                     raise SystemExit(f"{tree}: the run did not balance: {acc}")
                 walls[tree].append(wall)
-        print(f"\ndaemon, journal zstd, {args.workers} histogram workers"
+                cpus[tree].append(cpu)
+        what = (f"udp datagram v1 paced at {args.udp_rate / 1e6:.0f} M words/s"
+                if args.source == "udp" else "capture replay")
+        print(f"\ndaemon ({what}), journal zstd, {args.workers} histogram workers"
               f"{', range' if args.calibration else ''}, sink; M words/s from the first "
-              f"batch to the last measurement written (best, median of {args.repeat}):")
+              f"batch to the last measurement written (best, median of {args.repeat}); "
+              "CPU-seconds per process (median), and M words per CPU-second:")
         for tree, ws in walls.items():
+            if not ws:
+                continue
             print(f"  {tree}: {n_words / min(ws) / 1e6:.1f} "
                   f"(median {n_words / float(np.median(ws)) / 1e6:.1f}); balanced")
+            for name in sorted({n for c in cpus[tree] for n in c}):
+                s = float(np.median([c.get(name, 0.0) for c in cpus[tree]]))
+                print(f"    {name:28s} {s:6.2f} CPU-s  "
+                      f"{n_words / max(s, 1e-3) / 1e6:7.0f} M words/CPU-s")
     print(f"load average {os.getloadavg()[0]:.1f} at the end")
 
 

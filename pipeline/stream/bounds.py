@@ -6,9 +6,10 @@ offline commands' own estimate (:func:`pipeline.offline.datapath.estimate_captur
 D2nd over every word of the capture), saved once per run in ``STATE/bounds/RUN.json`` (a
 restarted daemon, its workers and the end-of-run reconciliation read the same file): the
 daemon's words are classified exactly as ``tcspc histogram`` classifies the capture. A
-simulated or UDP stream has no words before it starts: without a calibration its
-artifact words are counted as hits, and the daemon says so at start and in the run's
-accounting (``artifact_bounds``).
+simulated or UDP stream has no words before it starts: without a calibration the topology
+is refused (:mod:`pipeline.stream.topology`), unless it asks for ``[histogram] artifacts =
+"count-as-hits"``; then its artifact words are counted as hits, and the daemon says so at
+start and in the run's accounting (``artifact_bounds``).
 """
 
 from __future__ import annotations
@@ -22,13 +23,14 @@ from pipeline.io.atomic import atomic_path
 from pipeline.stream.topology import Topology
 from stages.artifact import ArtifactBounds
 
-NONE = "none (no calibration: artifact words are counted as hits)"
+COUNTED = 'none: artifact words counted as hits ([histogram] artifacts = "count-as-hits")'
 
 
 def bounds_file(topo: Topology) -> Path | None:
     """``STATE/bounds/RUN.json`` where the run's bounds are estimated (a capture source
     without a calibration), else None."""
-    if topo.histogram.get("calibration") or topo.source.get("kind") != "capture":
+    if topo.histogram.get("calibration") or topo.histogram.get("artifacts") \
+            or topo.source.get("kind") != "capture":
         return None
     return topo.state / "bounds" / f"{topo.run}.json"
 
@@ -63,7 +65,7 @@ def ensure_bounds(topo: Topology, log=print) -> str:
         cal = topo.histogram.get("calibration")
         if cal:
             return f"calibration:{Path(cal).resolve()}"
-        return NONE if topo.source.get("kind") in ("sim", "udp") else "none"
+        return COUNTED if topo.histogram.get("artifacts") == "count-as-hits" else "none"
     if not path.exists():
         from pipeline.io.capture import Capture
         from pipeline.offline.datapath import estimate_capture_bounds

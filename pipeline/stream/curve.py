@@ -58,6 +58,15 @@ def needs_curve(endpoints: list[str]) -> bool:
     return any(ep.startswith("tcp://") for ep in endpoints)
 
 
+def release(ctx: zmq.Context) -> None:
+    """Stop the ZAP authenticator :func:`serve` started on ``ctx`` (before ``ctx.term()``,
+    which waits for every socket of the context, the authenticator's too)."""
+    with _auth_lock:
+        auth = _authenticators.pop(id(ctx), None)
+    if auth is not None:
+        auth.stop()
+
+
 def serve(sock: zmq.Socket, keys: Path | None = None) -> None:
     """Make ``sock`` (about to bind) a CURVE server accepting only authorized clients."""
     import zmq.auth

@@ -55,7 +55,9 @@ starts, as are the state directory and the resources: ``pipeline.stream.state``)
     [histogram]
     workers = 2                  # fan-out by TDC range
     measurement_cycles = 20000   # one histogram (and range) per this many cycles
-    calibration = "data/calibration/current"   # artifact bounds (else none are applied)
+    calibration = "data/calibration/current"   # artifact bounds (without one: a capture's
+                                 # are estimated from it at start; sim and udp need it or
+    artifacts = "count-as-hits"  # this, which counts their artifact words as hits)
     n_tdc = 128                  # udp only (sim and capture know theirs)
 
     [range]                      # leave out: histograms only

@@ -28,7 +28,9 @@ class Datagram:
     n_tdc: int
     t_laser_win_ps: int
     last: bool
-    words: np.ndarray  #: native uint32, n_cycles * n_tdc
+    #: n_cycles * n_tdc uint32, a big-endian view of the datagram's bytes (not copied: the
+    #: journal writes them as they are, the message swaps them in its one copy)
+    words: np.ndarray
 
 
 def encode(words: np.ndarray, seq: int, first_cycle: int, n_tdc: int, t_laser_win_ps: int,
@@ -68,7 +70,7 @@ def decode(data: bytes) -> Datagram:
     expected = hlen + 4 * n_cyc * n_tdc
     if len(data) != expected:
         raise DatagramError("bad_length", f"{len(data)} bytes, header says {expected}")
-    words = np.frombuffer(data, ">u4", offset=hlen).astype(np.uint32)
+    words = np.frombuffer(data, ">u4", offset=hlen)
     return Datagram(seq, first, n_cyc, n_tdc, gate, bool(flags & FLAG_LAST), words)
 
 

@@ -6,16 +6,17 @@ range, including from the segment still being written. A closed segment also get
 capture sidecar (``RUN-000000.json``).
 
 By default (``compression="zstd"``) a segment is ``RUN-000000.bin.zst``: each appended
-chunk one zstd frame (level 1), its index entry ``{first_word, segment, offset, bytes,
-words, enc: "zstd"}`` with the frame's byte offset, so a word range is read back frame by
-frame. Concatenated frames are one zstd stream: ``zstd -d RUN-000000.bin.zst`` gives the
-raw capture ``RUN-000000.bin`` of docs/design.md byte for byte, and :class:`pipeline.io.capture.
-Capture` reads the compressed segment directly. Photon-starving words (mostly no-hit words,
-the same 128 per cycle) shrink to ~6 %, a 30 %-hit density test to ~33 %: the journal then
-costs the disk a fraction of the stream's rate (50 M words/s raw is 200 MB/s, what this
-machine's disk sustains with fdatasync). ``compression=None`` writes raw segments
-(``RUN-000000.bin``; entries without ``enc``, offsets in words), which every reader still
-takes.
+chunk one zstd frame (level -3: ZSTD_LEVEL), its index entry ``{first_word, segment,
+offset, bytes, words, enc: "zstd"}`` with the frame's byte offset, so a word range is
+read back frame by frame. Concatenated frames are one zstd stream: ``zstd -d
+RUN-000000.bin.zst`` gives the raw capture ``RUN-000000.bin`` of docs/design.md byte for
+byte, and :class:`pipeline.io.capture.Capture` reads the compressed segment directly.
+Photon-starving words (mostly no-hit words, the same 128 per cycle) shrink to ~7 %, the
+street's density (18 % hits) to ~23 %: the journal then costs the disk a fraction of the
+stream's rate (86 M words/s raw is what this machine's disk sustains with fdatasync). A
+segment written at another level (level 1 before) reads the same: the level is the
+writer's alone. ``compression=None`` writes raw segments (``RUN-000000.bin``; entries
+without ``enc``, offsets in words), which every reader still takes.
 
 Integrity. Every frame carries zstd's content checksum (XXH64 of its words; index entries
 say ``"check": "xxh64"``), so a bit flip or a truncated frame is detected when the frame is
@@ -40,7 +41,11 @@ from pipeline.io.capture import CaptureMeta
 from schemas.errors import TcspcError
 
 COMPRESSIONS = ("zstd", None)
-ZSTD_LEVEL = 1  # ~1 GB/s on photon-starving words; higher levels gain little on them
+# zstd's fast level -3: 1.3x level 1's words per CPU-second at 5 % and at 18 % hits, for
+# 6.6 % against 6.1 % and 23 % against 20 % of the bytes; LZ4 (pyarrow's) is no faster and
+# twice the size at 5 % (`python benchmarks/source_path.py --codecs`, docs/performance.md).
+# A level is the writer's choice only: the frames, and every reader, are zstd's.
+ZSTD_LEVEL = -3
 
 
 class JournalCorrupt(TcspcError, ValueError):

@@ -90,6 +90,26 @@ def _socket(ctx: zmq.Context, kind: int, hwm: int,
     return s
 
 
+END_LINGER_MS = 10_000  #: at a stage's end, how long its last messages may take to go
+
+
+def own_context(context: zmq.Context | None) -> tuple[zmq.Context, bool]:
+    """The given context, or one of the stage's own (True): ended by :func:`end_context`."""
+    return (context, False) if context is not None else (zmq.Context(), True)
+
+
+def end_context(ctx: zmq.Context) -> None:
+    """End a stage's own context once its sockets are closed. ZeroMQ sends from a
+    background thread: a process that exits without this loses what is still queued (the
+    last measurements and the stop of a stage whose consumer is slower, which the daemon
+    then had to SIGTERM and rebuild from the journal). ``term()`` returns once they are
+    delivered or the sockets' linger has run out."""
+    from pipeline.stream.curve import release
+
+    release(ctx)
+    ctx.term()
+
+
 def bind(sock: zmq.Socket, endpoint: str) -> None:
     """Bind ``endpoint``; an ipc:// path left by a dead process is removed first, one a live
     process listens on is refused (libzmq would silently take it over, orphaning it)."""
@@ -257,7 +277,7 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
     is set aside (``.bad``) with its reason on stderr, and the core rebuilds from the
     journal. ``senders``: the step ids this stage takes messages from (None: any); a
     message from another is rejected (``unknown_sender``)."""
-    ctx = context or zmq.Context.instance()
+    ctx, own = own_context(context)
     stats = StageStats()
     token = token if token is not None else wire.load_token()
     q = Quarantine(quarantine, quarantine_max_files, quarantine_max_bytes)
@@ -426,7 +446,9 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
         beat.close()
         rx.close(linger=0)
         if tx is not None:
-            tx.close(linger=0 if stop.is_set() else None)
+            tx.close(linger=0 if stop.is_set() else END_LINGER_MS)
+        if own:
+            end_context(ctx)
     return stats
 
 
@@ -460,7 +482,7 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
         splitter = TdcSplitter(n_tdc, split)
     elif len(pushes) != 1:
         raise ValueError("several endpoints need TDC ranges to split by")
-    ctx = context or zmq.Context.instance()
+    ctx, own = own_context(context)
     token = token if token is not None else wire.load_token()
     txs = []
     for ep in pushes:
@@ -580,6 +602,8 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
         # wait (bounded) for a restarted consumer to take what is queued, the stop included
         for tx in txs:
             tx.close(linger=60_000)
+        if own:
+            end_context(ctx)
     return sent
 
 

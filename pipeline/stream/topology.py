@@ -147,6 +147,9 @@ class HistogramSection(_Section):
     measurement_cycles: int | None = Field(None, ge=1, description="cycles per measurement, "
                                         ">= 1 (leave out: one measurement, the whole run)")
     calibration: str | None = None
+    artifacts: Literal["count-as-hits"] | None = Field(
+        None, description='"count-as-hits": without a calibration, a sim or udp stream\'s '
+        'artifact words are counted as hits (recorded in the accounting)')
     n_tdc: int | None = Field(None, ge=1, le=MAX_TDC, description=f"1..{MAX_TDC}")
     endpoints: list[str] | None = None
 
@@ -260,6 +263,8 @@ def load_topology(path: str | Path | None, run: str | None = None,
         if rng.get("estimator", "ml") not in ESTIMATORS:
             problems.append(f"{where} [range] estimator = {rng['estimator']!r}: use one of "
                             f"{ESTIMATORS}")
+    if src is not None and (hist_m is not None or "histogram" not in raw):
+        _check_artifacts(src["kind"], hist, where, problems)  # (else [histogram]'s problem)
     for sec, body in (("histogram", hist), ("range", rng or {})):
         cal = body.get("calibration")
         if cal and not (Path(cal) / "tdc.parquet").exists():
@@ -297,6 +302,19 @@ def load_topology(path: str | Path | None, run: str | None = None,
                     d.restart_window_s, d.restart_backoff_s, d.restart_backoff_max_s,
                     curve=d.curve,
                     view=None if view is None else view.model_dump(exclude_none=True))
+
+
+def _check_artifacts(kind: str, hist: dict, where: str, problems: list[str]) -> None:
+    """Artifact words are never counted as hits unasked: a sim or udp stream has no words
+    to estimate the bounds from before it starts, so it needs a calibration or the
+    explicit ``[histogram] artifacts = "count-as-hits"`` (which a calibration overrides:
+    its bounds remove the artifacts, and the accounting names it)."""
+    counted = hist.get("artifacts") == "count-as-hits"
+    if kind in ("sim", "udp") and not counted and not hist.get("calibration"):
+        problems.append(f"{where} [histogram]: a {kind} source needs calibration = DIR (its "
+                        "artifact bounds; without one the stream has no words to estimate "
+                        'them from at start), or artifacts = "count-as-hits" to count its '
+                        "artifact words as hits (recorded in the run's accounting)")
 
 
 def _check_source(src: dict, hist: dict, rng, where: str, problems: list[str]) -> int | None:
@@ -400,10 +418,10 @@ def _check_file_source(src: dict, hist: dict, rng, where: str) -> None:
         raise TopologyError(f"{where} [source] firmware {src['firmware']!r}: use 2212b or "
                             "2212s")
     if int(hist.get("workers", 1)) != 1 or "measurement_cycles" in hist \
-            or "calibration" in hist:
+            or "calibration" in hist or "artifacts" in hist:
         raise TopologyError(f"{where} [histogram]: a file source takes one worker, no "
-                            "measurement_cycles and no calibration (one measurement: the "
-                            "file)")
+                            "measurement_cycles, no calibration and no artifacts (one "
+                            "measurement: the file)")
     if rng is not None:
         raise TopologyError(f"{where}: no [range] with a file source (the range stage is the "
                             "thesis chip's; range a T3 file's histograms with `tcspc range`)")
@@ -431,7 +449,9 @@ def default_topology() -> dict:
     return {"daemon": {"state": "data/daemon"},
             "source": {"kind": "sim", "scene": str(root / "scenes" / "street.toml"),
                        "cycles": 100_000, "seed": 1},
-            "histogram": {"workers": 2, "measurement_cycles": 20_000},
+            # (no calibration to hand: the simulated artifacts are counted, and said so)
+            "histogram": {"workers": 2, "measurement_cycles": 20_000,
+                          "artifacts": "count-as-hits"},
             "sink": {"out": "data/stream"}}
 
 

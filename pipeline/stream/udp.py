@@ -26,7 +26,7 @@ import zmq
 
 from pipeline.stream import datagram, wire
 from pipeline.stream.journal import JournalWriter
-from pipeline.stream.stage import Quarantine, _socket, connect
+from pipeline.stream.stage import Quarantine, _socket, connect, end_context, own_context
 from schemas.words import RAW_WORDS
 
 BATCH_WORDS = 1 << 18  # 1 MiB messages
@@ -39,6 +39,7 @@ RING_DATAGRAMS = 4096          #: received, not yet journaled (<= 256 MiB of dat
 SEND_QUEUE = 64                #: journaled messages waiting for a slow stage downstream
 QUORUM = 3                     #: datagrams that must agree before they set the reference
 QUORUM_HOLD = 256              #: candidates held while no quorum is reached
+RCVBUF_BYTES = 64 << 20        #: the kernel's buffer: ~0.4 s of 40 M words/s off the CPU
 
 
 def _signed32(d: int) -> int:
@@ -182,10 +183,16 @@ class IngestStats:
 
 
 def udp_socket(address: str = "127.0.0.1:0") -> socket.socket:
-    """A bound UDP socket; ``host:port`` (port 0 picks a free one)."""
+    """A bound UDP socket; ``host:port`` (port 0 picks a free one). Its kernel receive
+    buffer is what carries the stream while the ingest is off the CPU (a loaded machine):
+    RCVBUF_BYTES where the process may set it past ``net.core.rmem_max``
+    (``SO_RCVBUFFORCE``, CAP_NET_ADMIN), else as much of it as ``rmem_max`` allows."""
     host, port = address.rsplit(":", 1)
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
+    try:
+        s.setsockopt(socket.SOL_SOCKET, getattr(socket, "SO_RCVBUFFORCE", 33), RCVBUF_BYTES)
+    except OSError:  # (not permitted: the sysctl's limit, docs/operations.md)
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RCVBUF_BYTES)
     s.bind((host, int(port)))
     return s
 
@@ -354,8 +361,9 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
 
     from pipeline.stream.fanout import TdcSplitter
     from pipeline.stream.metrics import Metrics
+    from pipeline.stream.rawwire import RawWordsEncoder
 
-    ctx = context or zmq.Context.instance()
+    ctx, own = own_context(context)
     token = token if token is not None else wire.load_token()
     pushes = [push] if isinstance(push, str) else list(push)
     txs = []
@@ -425,24 +433,28 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     idle = 0.0
     last_end = None   # the cycle after the datagram flagged last, once it came
 
+    encoder = RawWordsEncoder()
+    splitter = None  # (made at the first batch: a run's n_tdc may come from the stream)
+
     def flush():
-        nonlocal pending, pending_first
+        nonlocal pending, pending_first, splitter
         if not pending:
             return
-        import pyarrow as pa
-
-        words = np.concatenate(pending)
+        # the datagrams' big-endian words, joined, then swapped and cut by TDC range into
+        # each message by one copy (pipeline.stream.rawwire)
+        words = pending[0] if len(pending) == 1 else np.concatenate(pending)
         ranges = split or [(0, n_tdc)]
-        parts = (TdcSplitter(n_tdc, split).split(pending_first, words) if split
+        if split and (splitter is None or splitter.n_tdc != n_tdc):
+            splitter = TdcSplitter(n_tdc, split)  # (n_tdc known from the stream)
+        parts = (splitter.views(pending_first, words) if split
                  else [(pending_first, words)])
         item = []
         for (f, w), rng in zip(parts, ranges, strict=True):
-            batch = pa.record_batch([pa.array(w)], schema=RAW_WORDS.schema)
             head = {"kind": "data", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
                     "run": run, "seq": stats.messages, "step": "ingest",
                     "first_word": int(f), "n_tdc": rng[1] - rng[0], "n_tdc_total": n_tdc,
                     "tdc_range": list(rng), "t_laser_win_ns": gate_ps / 1000, "date": date}
-            item.append(wire.encode(head, batch, token))
+            item.append(encoder.frames(head, w, token))
         if journal is None:
             sendq.put(item)  # nothing to fill a hole from: wait for downstream
         else:
@@ -648,4 +660,6 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         beat.close()
         for tx in txs:
             tx.close(linger=60_000 if not tx_thread.is_alive() else 0)
+        if own and not tx_thread.is_alive():  # (a sender still stuck keeps its sockets)
+            end_context(ctx)
     return stats

@@ -12,6 +12,7 @@ import numpy as np
 import polars as pl
 import pytest
 
+from pipeline.stream.bounds import COUNTED
 from pipeline.stream.daemon import Supervisor
 from pipeline.stream.journal import read_range
 from pipeline.stream.topology import TopologyError, load_topology
@@ -36,6 +37,7 @@ seed = 5
 [histogram]
 workers = {workers}
 measurement_cycles = 10000
+artifacts = "count-as-hits"
 [sink]
 out = "{tmp_path / 'out'}"
 """
@@ -108,6 +110,7 @@ def test_daemon_end_to_end_with_ranges(tmp_path, caldir):
     assert (r["distance_m"] - 1.5).abs().median() < 0.05
     acc = res["accounting"]
     assert acc["balanced"] and acc["words_in"] == 45_000 * N
+    assert acc["artifact_bounds"] == COUNTED  # the topology's opt-in, in the accounting
     assert acc["measurements_files"] == 5 * 2  # 4 whole + 1 partial, 2 TDC ranges
     st = json.loads((tmp_path / "state" / "status.json").read_text())
     assert st["state"] == "finished"
@@ -166,6 +169,7 @@ idle = 20
 [histogram]
 workers = 2
 measurement_cycles = 256
+artifacts = "count-as-hits"
 [sink]
 out = "{tmp_path / 'out'}"
 """)
@@ -194,6 +198,7 @@ out = "{tmp_path / 'out'}"
     res, sup = run_daemon(tmp_path / "udp.toml", "u", feed)
     acc = res["accounting"]
     assert acc["words_in"] == 39 * 32 * 128 and acc["balanced"]
+    assert acc["artifact_bounds"] == COUNTED
     assert acc["lost_datagrams"] == 1 and acc["words_in_gaps"] == 32 * 128
     assert acc["classes"]["malformed"] > 0
     rejected = acc["rejected_messages"]["source"]

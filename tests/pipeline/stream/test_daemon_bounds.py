@@ -5,6 +5,9 @@ the daemon replaying the same capture must remove the same artifacts (it once re
 none, counted them as hits and reported the run balanced)."""
 
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import polars as pl
@@ -12,8 +15,9 @@ import pytest
 
 from pipeline.io.capture import Capture, CaptureWriter
 from pipeline.offline.datapath import histogram_capture
+from pipeline.stream.bounds import COUNTED, bounds_file, ensure_bounds, histogram_bounds
 from pipeline.stream.daemon import Supervisor
-from pipeline.stream.topology import load_topology
+from pipeline.stream.topology import TopologyError, load_topology
 from schemas import WORD_CLASSES
 from stages.histogram import HistogramAccumulator
 from stages.testpattern import pattern_words
@@ -80,3 +84,51 @@ def test_daemon_without_calibration_classifies_as_the_offline_command(tmp_path, 
             WORD_CLASSES.index("artifact")].tolist()
     saved = json.loads((tmp_path / "state" / "bounds" / "b.json").read_text())
     assert saved["n_min"] == bounds.n_min.tolist() and saved["n_max"] == bounds.n_max.tolist()
+
+
+SMALL = Path(__file__).parents[3] / "scenes" / "small16.toml"
+SOURCES = {"sim": f'kind = "sim"\nscene = "{SMALL}"\ncycles = 1000',
+           "udp": 'kind = "udp"\nbind = "127.0.0.1:9000"\nn_tdc = 16'}
+
+
+def _topo(tmp_path, kind, histogram=""):
+    path = tmp_path / "topo.toml"
+    path.write_text(f'[daemon]\nstate = "{tmp_path / "state"}"\n[source]\n{SOURCES[kind]}\n'
+                    f'[histogram]\nworkers = 1\n{histogram}\n[sink]\nout = "{tmp_path / "o"}"\n')
+    return path
+
+
+@pytest.mark.parametrize("kind", ["sim", "udp"])
+def test_a_stream_without_words_to_estimate_from_needs_a_calibration_or_the_opt_in(tmp_path,
+                                                                                     kind):
+    """A sim or udp source has no words before it starts: without a calibration its
+    artifacts would be counted as hits. Refused at the door, one line naming both ways."""
+    path = _topo(tmp_path, kind)
+    with pytest.raises(TopologyError) as exc:
+        load_topology(path)
+    (line,) = str(exc.value).splitlines()
+    assert line.startswith(f"{path} [histogram]: a {kind} source needs calibration = DIR")
+    assert 'artifacts = "count-as-hits"' in line
+    # the explicit opt-in: no bounds, and the run says so
+    topo = load_topology(_topo(tmp_path, kind, 'artifacts = "count-as-hits"'), "r")
+    assert bounds_file(topo) is None and histogram_bounds(topo) is None
+    assert ensure_bounds(topo, log=lambda m: None) == COUNTED
+    with pytest.raises(TopologyError, match="artifacts = 'hits'"):  # one value only
+        load_topology(_topo(tmp_path, kind, 'artifacts = "hits"'))
+
+
+def test_a_calibration_overrides_the_opt_in(tmp_path, caldir):
+    """With a calibration the bounds are the calibration's, opt-in or not."""
+    topo = load_topology(_topo(tmp_path, "sim", f'calibration = "{caldir}"\n'
+                               'artifacts = "count-as-hits"'), "r")
+    assert ensure_bounds(topo, log=lambda m: None).startswith("calibration:")
+    assert histogram_bounds(topo).n_tdc == 16
+
+
+def test_the_daemon_refuses_it_with_exit_2_and_starts_nothing(tmp_path):
+    path = _topo(tmp_path, "udp")
+    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "daemon", "--config", path],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "needs calibration = DIR" in r.stderr and "count-as-hits" in r.stderr
+    assert not (tmp_path / "state").exists()

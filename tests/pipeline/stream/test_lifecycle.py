@@ -376,6 +376,7 @@ n_tdc = {N}
 [histogram]
 workers = 2
 measurement_cycles = 10000
+artifacts = "count-as-hits"
 [sink]
 out = "{tmp_path / 'out'}"
 """)

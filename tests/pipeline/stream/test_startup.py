@@ -24,12 +24,14 @@ def write_topology(tmp_path, source=None, histogram="workers = 1\nmeasurement_cy
     (tmp_path / f"{name}.toml").write_text(SCENE)
     source = source or f'kind = "sim"\nscene = "{tmp_path / (name + ".toml")}"\ncycles = 1000'
     text = (f'[daemon]\nstate = "{state or tmp_path / "state"}"\n[source]\n{source}\n'
-            f'[histogram]\n{histogram}\n[sink]\nout = "{tmp_path / "out"}"\n{extra}')
+            f'[histogram]\n{histogram}\n{COUNT}\n[sink]\nout = "{tmp_path / "out"}"\n{extra}')
     path = tmp_path / "topo.toml"
     path.write_text(text)
     return path
 
 
+# sim and udp sources without a calibration ask for their artifacts to be counted
+COUNT = 'artifacts = "count-as-hits"'
 UDP = 'kind = "udp"\nbind = "127.0.0.1:9000"\nn_tdc = 16'
 
 # (section, key, the [source] lines or a section's lines, where they go)

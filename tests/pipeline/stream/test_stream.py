@@ -173,3 +173,38 @@ def test_sigkill_of_the_middle_stage_loses_and_double_counts_nothing(tmp_path):
     assert np.array_equal(np.stack(got["counts"].to_numpy()), ref.hits)
     assert got["cycles"].to_list() == [8192] * 128
     assert int(got["n_no_hit"].sum()) == int(ref.class_counts[1].sum())
+
+
+def test_a_stage_that_exits_delivers_what_it_queued_for_a_slow_consumer(tmp_path):
+    """ZeroMQ sends from a background thread: a stage process that exits with messages
+    queued for a slower consumer must deliver them (its last batches and its stop), not
+    leave them to the journal and the supervisor's SIGTERM."""
+    from pipeline.io.capture import CaptureWriter
+    from stages.testpattern import pattern_words
+
+    words, _ = pattern_words(40 * 2048, 16, hit_prob=0.1, rng=3)
+    with CaptureWriter(tmp_path / "cap", 16, kind="pattern") as w:
+        w.write(words)
+    ep = f"ipc://{tmp_path}/slow"
+    ctx = zmq.Context()
+    rx = ctx.socket(zmq.PULL)
+    rx.set_hwm(1)
+    rx.bind(ep)
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "stage", "source-capture",
+                             str(tmp_path / "cap.bin"), "--push", ep, "--run", "r"],
+                            stderr=subprocess.DEVNULL)
+    got, stopped = 0, False
+    try:
+        while rx.poll(30_000):
+            head, batch = wire.decode(rx.recv_multipart(), RAW_WORDS)
+            if head["kind"] == "stop":
+                stopped = True
+                break
+            got += batch.num_rows
+            time.sleep(0.05)  # a consumer slower than the source: its queue is full
+        assert proc.wait(timeout=60) == 0
+    finally:
+        proc.kill()
+        rx.close(linger=0)
+        ctx.term()
+    assert stopped and got == words.size

@@ -24,6 +24,8 @@ state = "{tmp_path / 'state'}"
 [source]
 kind = "sim"
 scene = "{tmp_path / 's.toml'}"
+[histogram]
+artifacts = "count-as-hits"
 [sink]
 out = "{tmp_path / 'out'}"
 {view}"""
