@@ -22,7 +22,7 @@ turns a requested INL precision into cycles.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -808,6 +808,8 @@ class LsbFit:
     n_range: tuple[float, float]
     residual_ps: np.ndarray  #: (n_tdc, n_points)
     levels: np.ndarray | None = None  #: (n_points,) the light levels of the residuals
+    #: the spline through the points, built on first use (the fit is read-only)
+    _splines: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def cubic_ps(self, n) -> np.ndarray:
         """eq. 5.1's cubic at ``n``."""
@@ -824,11 +826,13 @@ class LsbFit:
         lv = None if self.levels is None else np.asarray(self.levels, np.float64)
         if lv is None or lv.size < 3 or n.ndim or not self.in_range(float(n)):
             return self.cubic_ps(n)
-        order = np.argsort(lv)
-        lv, y = lv[order], self.points_ps()[:, order]
-        if not np.all(np.diff(lv) > 0):  # two tests at one light
-            return self.cubic_ps(n)
-        return _spline_rows(lv, y, float(n))
+        if "lsb" not in self._splines:
+            order = np.argsort(lv)
+            lv, y = lv[order], self.points_ps()[:, order]
+            # None: two tests at one light
+            self._splines["lsb"] = RowSplines(lv, y) if np.all(np.diff(lv) > 0) else None
+        spline = self._splines["lsb"]
+        return self.cubic_ps(n) if spline is None else spline(float(n))
 
     def in_range(self, n) -> bool:
         lo, hi = self.n_range
@@ -841,20 +845,34 @@ def _spline_rows(levels: np.ndarray, y: np.ndarray, n: float, coord=np.sqrt) -> 
     ascending). A row lacking a level (a TDC a density test flagged) uses the others: NaN
     (no time axis, flagged) where fewer than 3 remain or ``n`` lies outside the row's own
     levels."""
-    from scipy.interpolate import CubicSpline
+    return RowSplines(levels, y, coord)(n)
 
-    fin = np.isfinite(y)
-    out = np.full(y.shape[0], np.nan)
-    for pattern in np.unique(fin, axis=0):
-        rows = np.all(fin == pattern, axis=1)
-        lv = levels[pattern]
-        if lv.size < 3:
-            continue
-        if not (pattern.all() or lv[0] - 1e-12 <= n <= lv[-1] + 1e-12):
-            continue
-        x = min(max(n, lv[0]), lv[-1])  # (the campaign's range is the caller's check)
-        out[rows] = CubicSpline(coord(lv), y[rows][:, pattern].T, axis=0)(coord(x))
-    return out
+
+class RowSplines:
+    """:func:`_spline_rows`'s splines, built once and read at any light (what depends on
+    the calibration only is not rebuilt for every measurement)."""
+
+    def __init__(self, levels: np.ndarray, y: np.ndarray, coord=np.sqrt):
+        from scipy.interpolate import CubicSpline
+
+        fin = np.isfinite(y)
+        self.n_rows, self.coord, self.parts = y.shape[0], coord, []
+        for pattern in np.unique(fin, axis=0):
+            rows = np.all(fin == pattern, axis=1)
+            lv = levels[pattern]
+            if lv.size < 3:
+                continue
+            self.parts.append((rows, lv, bool(pattern.all()),
+                               CubicSpline(coord(lv), y[rows][:, pattern].T, axis=0)))
+
+    def __call__(self, n: float) -> np.ndarray:
+        out = np.full(self.n_rows, np.nan)
+        for rows, lv, complete, spline in self.parts:
+            if not (complete or lv[0] - 1e-12 <= n <= lv[-1] + 1e-12):
+                continue
+            x = min(max(n, lv[0]), lv[-1])  # (the campaign's range is the caller's check)
+            out[rows] = spline(self.coord(x))
+        return out
 
 
 def fit_lsb(n: np.ndarray, lsb_ps: np.ndarray) -> LsbFit:
@@ -950,7 +968,8 @@ def _bound_at(bounds: np.ndarray, x) -> np.ndarray:
 
 
 def scale_at_light(density: DensityResult, lsb_s, window_s: float,
-                   fit: LsbFit | None = None, light: float | None = None) -> np.ndarray:
+                   fit: LsbFit | None = None, light: float | None = None,
+                   splines: ScaleSplines | None = None, bounds=None) -> np.ndarray:
     """Seconds per unit of :func:`code_bounds` at a light whose LSB (the window over the
     code span, eq. 5.1's polynomial) is ``lsb_s``: tau = T falls at code ``x_T = T / lsb``,
     which is ``B(x_T)`` units of the density test's boundaries, so the scale is
@@ -963,14 +982,14 @@ def scale_at_light(density: DensityResult, lsb_s, window_s: float,
     smooth in the light; the window LSB does not: as x_T moves across codes it carries
     the INL there (``LSB = scale B(x_T) / x_T``), a ripple of ~0.1 ps (0.3 LSB of INL
     over 395 codes) that no smooth curve through the tests' LSBs follows, and 0.1 ps is
-    ~20 ps of range at mid-window."""
-    bounds = code_bounds(density)
+    ~20 ps of range at mid-window. ``splines`` (:func:`scale_splines`) and ``bounds``
+    (:func:`code_bounds`): the same, built once for the calibration by the caller."""
     ok = np.asarray(density.ok, bool)
     if _interpolates(fit, light):
-        levels, s_pts = scale_points(density, fit, window_s)
-        return np.where(ok, _spline_rows(levels, s_pts, float(light)), np.nan)
+        splines = scale_splines(density, fit, window_s) if splines is None else splines
+        return np.where(ok, splines.in_sqrt(float(light)), np.nan)
     x_t = window_s / np.asarray(lsb_s, np.float64)
-    scale = window_s / _bound_at(bounds, x_t)
+    scale = window_s / _bound_at(code_bounds(density) if bounds is None else bounds, x_t)
     return np.where(ok, scale, np.nan)  # a dead TDC has no axis
 
 
@@ -992,6 +1011,26 @@ def scale_points(density: DensityResult, fit: LsbFit, window_s: float):
     pts = fit.points_ps()[:, order] * 1e-12
     return levels[order], np.column_stack([window_s / _bound_at(bounds, window_s / pts[:, j])
                                            for j in range(pts.shape[1])])
+
+
+@dataclass(frozen=True)
+class ScaleSplines:
+    """The density tests' scales (:func:`scale_points`) as splines in sqrt(n) and in n,
+    built once for a calibration and a window (:func:`scale_splines`)."""
+
+    levels: np.ndarray
+    in_sqrt: RowSplines
+    in_n: RowSplines
+
+
+def _identity(v):
+    return v
+
+
+def scale_splines(density: DensityResult, fit: LsbFit, window_s: float) -> ScaleSplines:
+    """What :func:`scale_at_light` and :func:`scale_spread` read at a light, built once."""
+    levels, s_pts = scale_points(density, fit, window_s)
+    return ScaleSplines(levels, RowSplines(levels, s_pts), RowSplines(levels, s_pts, _identity))
 
 
 #: When the spread of the scale (:func:`scale_spread`, as ps at a return's tau) flags a
@@ -1021,7 +1060,8 @@ def scale_unresolved(spread, tau_s, density: DensityResult, sigma_s) -> np.ndarr
 
 
 def scale_spread(density: DensityResult, fit: LsbFit | None, window_s: float,
-                 light: float) -> tuple[np.ndarray, tuple[float, float]]:
+                 light: float, splines: ScaleSplines | None = None
+                 ) -> tuple[np.ndarray, tuple[float, float]]:
     """How well the density tests' levels resolve the scale at ``light``: per TDC the
     relative difference between the scale :func:`scale_at_light` reads (a cubic spline in
     sqrt(n) through the tests' scales) and a cubic spline in n through the same points,
@@ -1037,13 +1077,15 @@ def scale_spread(density: DensityResult, fit: LsbFit | None, window_s: float,
     sweep's captures. The spread says where a curve is unresolved, not how far off
     it is (0.4-0.5 of the spread where the LSB saturates fast, up to ~3x a tiny spread
     elsewhere: the INL's noise in the points), so it flags, it does not correct.
+    ``splines``: :func:`scale_splines` of the same, built once by the caller.
     """
     n_tdc = density.n_tdc
     if not _interpolates(fit, light):
         return np.full(n_tdc, np.nan), (float("nan"), float("nan"))
-    levels, s_pts = scale_points(density, fit, window_s)
-    in_sqrt = _spline_rows(levels, s_pts, float(light))
-    in_n = _spline_rows(levels, s_pts, float(light), coord=lambda v: v)
+    splines = scale_splines(density, fit, window_s) if splines is None else splines
+    levels = splines.levels
+    in_sqrt = splines.in_sqrt(float(light))
+    in_n = splines.in_n(float(light))
     i = int(np.clip(np.searchsorted(levels, light, side="right") - 1, 0, levels.size - 2))
     return np.abs(in_n / in_sqrt - 1), (float(levels[i]), float(levels[i + 1]))
 
@@ -1064,10 +1106,14 @@ def light_end(hits: np.ndarray, min_per_code: float = 1.0):
     n = h.shape[1]
     populated = h.any(axis=1)
     top = np.where(populated, n - np.argmax(h[:, ::-1] > 0, axis=1), 0)
-    k = np.arange(n)[None, :]
-    below = (k >= top[:, None] - 40) & (k < top[:, None] - 10)
-    level = np.array([np.median(row[b]) if b.any() else 0.0
-                      for row, b in zip(h, below, strict=True)])  # once per TDC
+    lo, hi = np.maximum(top - 40, 0), np.maximum(top - 10, 0)
+    level = np.zeros(h.shape[0])
+    full = hi - lo == 30  # the 30 codes all on the axis: one median over those rows
+    if full.any():
+        codes = lo[full, None] + np.arange(30)
+        level[full] = np.median(np.take_along_axis(h[full], codes, axis=1), axis=1)
+    for i in np.flatnonzero(~full & (hi > lo)):  # light ending in the first 40 codes
+        level[i] = np.median(h[i, lo[i]:hi[i]])
     return top, populated & (level >= min_per_code)
 
 

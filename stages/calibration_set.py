@@ -41,6 +41,10 @@ class Calibration:
     irf_sigma_s: float | None   #: the instrument response measured at zero distance
     meta: dict                  #: meta.json: provenance, the density test's light, ...
     path: str = ""              #: where it was loaded from ("" for one not saved yet)
+    #: what depends on the calibration only (its TDC ranges, boundaries, splines), built on
+    #: first use: a live range stage reads them for every measurement
+    _cache: dict = dataclasses.field(default_factory=dict, init=False, repr=False,
+                                     compare=False)
 
     def __post_init__(self):
         n = self.density.n_tdc
@@ -107,11 +111,34 @@ class Calibration:
             f"fit's range [{lo:.3g}, {hi:.3g}]")
         return fit.lsb_ps(light) * 1e-12, note
 
+    def _memo(self, key, make):
+        if key not in self._cache:
+            self._cache[key] = make()
+        return self._cache[key]
+
+    @property
+    def code_bounds(self) -> np.ndarray:
+        """:func:`stages.calibration.code_bounds` of the density test, built once."""
+        return self._memo("code_bounds", lambda: cal.code_bounds(self.density))
+
+    def scale_splines(self, window_s: float) -> cal.ScaleSplines | None:
+        """:func:`stages.calibration.scale_splines` at a window, built once (None without
+        an LSB fit through its points)."""
+        fit = self.lsb_fit
+        if fit is None or fit.levels is None:
+            return None
+        return self._memo(("scale_splines", float(window_s)),
+                          lambda: cal.scale_splines(self.density, fit, window_s))
+
     def rows(self, start: int, stop: int) -> Calibration:
-        """The calibration of TDCs ``start..stop-1`` (a worker's TDC range)."""
+        """The calibration of TDCs ``start..stop-1`` (a worker's TDC range; the same
+        object for the same range, so what it builds is kept)."""
         if stop > self.n_tdc:
             raise ValueError(f"{self.path or 'calibration'}: calibrates {self.n_tdc} TDCs, "
                              f"the data reach TDC {stop - 1}")
+        return self._memo(("rows", int(start), int(stop)), lambda: self._rows(start, stop))
+
+    def _rows(self, start: int, stop: int) -> Calibration:
         sl = slice(start, stop)
         fit = self.lsb_fit
         if fit is not None:
@@ -172,9 +199,10 @@ def time_axis(calibration: Calibration, hits: np.ndarray, cycles: np.ndarray,
                          f"{calibration.n_tdc} TDCs, the histograms have {hits.shape[0]}")
     density = calibration.density
     light = cal.light_level(hits, cycles)
-    bounds = cal.code_bounds(density)
+    bounds = calibration.code_bounds
     lsb, note = calibration.lsb_s(light)
-    scale = cal.scale_at_light(density, lsb, window_s, calibration.lsb_fit, light)
+    scale = cal.scale_at_light(density, lsb, window_s, calibration.lsb_fit, light,
+                               calibration.scale_splines(window_s), bounds)
     source = np.full(hits.shape[0], "lsb polynomial", dtype=object)
     if in_situ:
         own, ok, why = cal.scale_in_situ(hits, cycles, density, window_s, returns=returns,

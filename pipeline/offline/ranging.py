@@ -129,7 +129,8 @@ def _unresolved(calib: Calibration, state: HistogramState, axis, est: Estimate,
     with the range fit's sigma), "" otherwise."""
     light = cal.light_level(state.hits, state.cycles)
     px = est.pixel if est.pixel is not None else np.arange(state.n_tdc)
-    spread, (lo, hi) = cal.scale_spread(calib.density, calib.lsb_fit, window_s, light)
+    spread, (lo, hi) = cal.scale_spread(calib.density, calib.lsb_fit, window_s, light,
+                                        calib.scale_splines(window_s))
     tau_s = window_s - np.asarray(est.t_s, np.float64)
     bad = (np.asarray(est.detected, bool) & (np.asarray(axis.source)[px] != "reset peak")
            & cal.scale_unresolved(spread[px], tau_s,

@@ -1,0 +1,143 @@
+"""The range stage's cost per measurement: `RangeCore.process` (what the daemon's range
+stage runs on each histograms message) on the histograms and calibration of a demo's
+output (`tcspc demo`: ``--data``, its calibration/current and stream/histograms), per
+source tree given (``--tree``, e.g. the main branch's and this one's), in the same run.
+
+Cases: 64 TDCs (one histogram worker's message) and 128 (the two workers' messages of a
+measurement joined), ``max_returns`` 1 and 3, the ``ml`` and ``fast`` estimators. Each
+case runs in a fresh process per tree, the trees alternating, after one untimed pass
+(numba kernels, caches): best of ``--repeat`` passes over the measurements, in ms per
+measurement. The trees' ranges are compared (every column, NaN equal to NaN): "identical"
+means bit for bit.
+
+The implied throughput is the words a measurement holds over its cost, on one core:
+cycles x TDCs x words a TDC a cycle (the chip reads every TDC out every cycle, hit or
+not: 1 word, checked on the messages' class counts), at 20 k and 100 k cycles a
+measurement; the range stage's cost does not grow with the cycles (it reads histograms).
+
+    python benchmarks/range_stage.py --data DEMO/data --tree /path/to/main --tree .
+                                     [--repeat 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+#: one process: one case on one tree; times, and the ranges saved for the comparison
+WORKER = r"""
+import glob, json, sys, time
+import numpy as np, pyarrow as pa, pyarrow.parquet as pq
+from pipeline.io.caldir import load_calibration
+from pipeline.offline.ranging import RangeCore
+
+data, n_tdc, k, estimator, repeat, out = sys.argv[1:7]
+n_tdc, k, repeat = int(n_tdc), int(k), int(repeat)
+cal = load_calibration(f"{data}/calibration/current")
+files = sorted(glob.glob(f"{data}/stream/histograms/**/*.parquet", recursive=True))
+parts = {}
+for f in files:
+    t = pq.read_table(f)
+    parts.setdefault(t["measurement"][0].as_py(), []).append(t)
+batches, words = [], 0.0
+for name, ts in sorted(parts.items()):
+    ts = sorted(ts, key=lambda t: t["tdc"][0].as_py())
+    t = pa.concat_tables(ts) if n_tdc > 64 else ts[0]
+    if t.num_rows != n_tdc:
+        continue
+    batches.append((name, t.combine_chunks().to_batches()[0]))
+    cls = sum(np.asarray(t[c], np.float64) for c in ("n_hit", "n_no_hit", "n_artifact",
+                                                     "n_invalid_phase", "n_malformed"))
+    words = float(np.mean(cls / np.asarray(t["cycles"], np.float64)))
+core = RangeCore(cal, estimator, max_returns=k, forward_histograms=False)
+
+def one(name, b):
+    return core.process({"run": "bench", "measurement": name, "t_laser_win_ns": 20.0,
+                         "window_ns": 80.0}, b)
+
+res = [one(n, b) for n, b in batches]  # untimed: kernels, caches
+best = float("inf")
+for _ in range(repeat):
+    t0 = time.perf_counter()
+    for n, b in batches:
+        one(n, b)
+    best = min(best, time.perf_counter() - t0)
+table = pa.Table.from_batches([b for r in res for _, b in r])
+np.savez(out, **{c: np.asarray(table[c].to_numpy(zero_copy_only=False))
+                 for c in table.column_names})
+print(json.dumps({"ms": best / len(batches) * 1e3, "measurements": len(batches),
+                  "words_per_tdc_cycle": words}))
+"""
+
+
+def same(a: Path, b: Path) -> bool:
+    x, y = np.load(a, allow_pickle=True), np.load(b, allow_pickle=True)
+    if sorted(x.files) != sorted(y.files):
+        return False
+    for c in x.files:
+        u, v = x[c], y[c]
+        if u.shape != v.shape:
+            return False
+        if u.dtype.kind == "f":
+            if not np.array_equal(u, v, equal_nan=True):
+                return False
+        elif not np.array_equal(u, v):
+            return False
+    return True
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, required=True, help="a `tcspc demo` output")
+    ap.add_argument("--tree", action="append", type=Path, required=True)
+    ap.add_argument("--repeat", type=int, default=5)
+    args = ap.parse_args()
+    print("$ python benchmarks/range_stage.py " + " ".join(sys.argv[1:]))
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+          f"Python {platform.python_version()}, load average {os.getloadavg()[0]:.1f} at "
+          "start (one process at a time, one core)")
+    trees = [t.resolve() for t in args.tree]
+    names = " | ".join(f"{t} ms" for t in trees)
+    print(f"\n| TDCs | K | estimator | {names} | ranges | M words/s at 20 k / 100 k cycles"
+          " (last tree) | load |")
+    print("|---|---|---|" + "---|" * len(trees) + "---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        for n_tdc in (64, 128):
+            for k in (1, 3):
+                for est in ("ml", "fast"):
+                    got, outs = [], []
+                    for i, tree in enumerate(trees):
+                        out = Path(tmp) / f"{n_tdc}-{k}-{est}-{i}.npz"
+                        env = {**os.environ, "PYTHONPATH": str(tree)}
+                        res = subprocess.run(
+                            [sys.executable, "-c", WORKER, str(args.data.resolve()),
+                             str(n_tdc), str(k), est, str(args.repeat), str(out)],
+                            capture_output=True, text=True, env=env, cwd=tree)
+                        if res.returncode != 0:
+                            raise SystemExit(f"{tree}: {n_tdc} TDCs K={k} {est} failed:\n"
+                                             f"{res.stderr[-2000:]}")
+                        got.append(json.loads(res.stdout.strip().splitlines()[-1]))
+                        outs.append(out)
+                    ok = all(same(outs[0], o) for o in outs[1:])
+                    last = got[-1]
+                    rate = [c * n_tdc * last["words_per_tdc_cycle"] / (last["ms"] * 1e-3) / 1e6
+                            for c in (20_000, 100_000)]
+                    print(f"| {n_tdc} | {k} | {est} | "
+                          + " | ".join(f"{g['ms']:.2f}" for g in got)
+                          + f" | {'identical' if ok else 'DIFFER'} | {rate[0]:.0f} / "
+                          f"{rate[1]:.0f} | {os.getloadavg()[0]:.1f} |", flush=True)
+    print(f"\n({got[-1]['measurements']} measurements a case; "
+          f"{got[-1]['words_per_tdc_cycle']:.3f} words a TDC a cycle in the messages)")
+
+
+if __name__ == "__main__":
+    main()
