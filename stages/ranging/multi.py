@@ -40,9 +40,24 @@ MAX_RETURNS = 3
 MASK_WIDTHS = 3.0
 
 
+#: what :class:`Histograms` derives row by row (the same on any of its rows)
+_PER_ROW = ("at_risk", "widths", "centres")
+
+
+def _derived(h: Histograms, out: Histograms, rows, bin_s: bool) -> Histograms:
+    """``out`` (``h``'s ``rows``) with what ``h`` derived already (at risk, widths,
+    centres; ``bin_s`` too when ``out`` has all of ``h``'s rows): not derived again."""
+    for name in _PER_ROW + (("bin_s",) if bin_s else ()):
+        if name in h.__dict__:
+            v = h.__dict__[name]
+            out.__dict__[name] = v if name == "bin_s" else v[rows]
+    return out
+
+
 def _rows(h: Histograms, rows, valid=None) -> Histograms:
-    return Histograms(h.counts[rows], h.edges_s[rows], h.cycles[rows],
-                      h.valid[rows] if valid is None else valid)
+    return _derived(h, Histograms(h.counts[rows], h.edges_s[rows], h.cycles[rows],
+                                  h.valid[rows] if valid is None else valid),
+                    rows, isinstance(rows, slice) and rows == slice(None))
 
 
 def _masked(h: Histograms, times: list[np.ndarray], half_s: float) -> np.ndarray:

@@ -25,13 +25,23 @@ MIN_COUNTS = 100.0
 def return_sigma(h: Histograms, t_s, sigma0_s: float, rounds: int = ROUNDS):
     """Per pixel: the return's measured sigma (s) around ``t_s`` and its counts above the
     background. The quantisation of the bins (width^2 / 12) is taken out; NaN where no
-    count stands above the background or ``t_s`` is not finite."""
-    lam = h.intensity()
-    w, valid = h.widths, np.asarray(h.valid, bool)
-    bg = _background(lam, w, valid, h.at_risk)
-    excess = np.where(valid, np.maximum(lam - bg[:, None] * w, 0.0), 0.0) * h.cycles[:, None]
-    cen = h.centres
-    t = np.asarray(t_s, np.float64).copy()
+    count stands above the background or ``t_s`` is not finite (those rows are not
+    computed: a pixel's further returns are mostly none)."""
+    t_all = np.asarray(t_s, np.float64)
+    sig_all, tot_all = np.full(t_all.shape, np.nan), np.zeros(t_all.shape)
+    live = np.flatnonzero(np.isfinite(t_all))
+    if not live.size:
+        return sig_all, tot_all
+    rows = slice(None) if live.size == t_all.size else live
+    counts, at_risk = np.asarray(h.counts)[rows], h.at_risk[rows]
+    r = np.maximum(at_risk, 1.0)  # (Histograms.intensity, on these rows)
+    lam = -np.log1p(-np.minimum(counts / r, 1 - 1e-12))
+    w, valid = h.widths[rows], np.asarray(h.valid, bool)[rows]
+    bg = _background(lam, w, valid, at_risk)
+    excess = np.where(valid, np.maximum(lam - bg[:, None] * w, 0.0), 0.0) * (
+        np.asarray(h.cycles)[rows][:, None])
+    cen = h.centres[rows]
+    t = t_all[rows].copy()
     sig = np.full(t.shape, max(float(sigma0_s), h.bin_s))
     tot = np.zeros(t.shape)
     for _ in range(rounds):
@@ -48,8 +58,10 @@ def return_sigma(h: Histograms, t_s, sigma0_s: float, rounds: int = ROUNDS):
         new = np.sqrt(np.maximum(var - q, 0.0))
         sig = np.where(ok & (new > 0), new, sig)
         t = np.where(ok, mu, t)
-    bad = ~np.isfinite(np.asarray(t_s, np.float64)) | ~(tot > 0)
-    return np.where(bad, np.nan, sig), np.where(bad, 0.0, tot)
+    bad = ~(tot > 0)
+    sig_all[rows] = np.where(bad, np.nan, sig)
+    tot_all[rows] = np.where(bad, 0.0, tot)
+    return sig_all, tot_all
 
 
 def return_fwhm(h: Histograms, t_s, sigma_s: float) -> np.ndarray:
