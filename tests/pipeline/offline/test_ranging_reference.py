@@ -1,0 +1,293 @@
+"""The range stage's faster path gives the results of the one it replaced, bit for bit.
+
+The reference below is the earlier code, kept here: the splines built at every call, one
+median per TDC in ``light_end``, a calibration's TDC range built at every call, each
+return's width computed on every pixel on fresh copies of the histograms. ``range_state``
+run with those patched in is the earlier range stage.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from pipeline.io.caldir import load_calibration
+from pipeline.offline import ranging
+from schemas.constants import N_CLASSES
+from stages import calibration as cal
+from stages.calibration_set import Calibration, time_axis
+from stages.histogram import HistogramState
+from stages.models.tcspc import FWHM_PER_SIGMA
+from stages.ranging import multi
+from stages.ranging.detection import _background
+from stages.ranging.histograms import Histograms
+from stages.ranging.width import ROUNDS, WINDOW_WIDTHS, return_sigma
+
+# ------------------------------------------------------------------ the earlier code
+
+
+def ref_spline_rows(levels, y, n, coord=np.sqrt):
+    from scipy.interpolate import CubicSpline
+
+    fin = np.isfinite(y)
+    out = np.full(y.shape[0], np.nan)
+    for pattern in np.unique(fin, axis=0):
+        rows = np.all(fin == pattern, axis=1)
+        lv = levels[pattern]
+        if lv.size < 3:
+            continue
+        if not (pattern.all() or lv[0] - 1e-12 <= n <= lv[-1] + 1e-12):
+            continue
+        x = min(max(n, lv[0]), lv[-1])
+        out[rows] = CubicSpline(coord(lv), y[rows][:, pattern].T, axis=0)(coord(x))
+    return out
+
+
+def ref_lsb_ps(self, n):
+    n = np.asarray(n, np.float64)
+    lv = None if self.levels is None else np.asarray(self.levels, np.float64)
+    if lv is None or lv.size < 3 or n.ndim or not self.in_range(float(n)):
+        return self.cubic_ps(n)
+    order = np.argsort(lv)
+    lv, y = lv[order], self.points_ps()[:, order]
+    if not np.all(np.diff(lv) > 0):
+        return self.cubic_ps(n)
+    return ref_spline_rows(lv, y, float(n))
+
+
+def ref_scale_at_light(density, lsb_s, window_s, fit=None, light=None, *_):
+    bounds = cal.code_bounds(density)
+    ok = np.asarray(density.ok, bool)
+    if cal._interpolates(fit, light):
+        levels, s_pts = cal.scale_points(density, fit, window_s)
+        return np.where(ok, ref_spline_rows(levels, s_pts, float(light)), np.nan)
+    x_t = window_s / np.asarray(lsb_s, np.float64)
+    return np.where(ok, window_s / cal._bound_at(bounds, x_t), np.nan)
+
+
+def ref_scale_spread(density, fit, window_s, light, *_):
+    if not cal._interpolates(fit, light):
+        return np.full(density.n_tdc, np.nan), (float("nan"), float("nan"))
+    levels, s_pts = cal.scale_points(density, fit, window_s)
+    in_sqrt = ref_spline_rows(levels, s_pts, float(light))
+    in_n = ref_spline_rows(levels, s_pts, float(light), coord=lambda v: v)
+    i = int(np.clip(np.searchsorted(levels, light, side="right") - 1, 0, levels.size - 2))
+    return np.abs(in_n / in_sqrt - 1), (float(levels[i]), float(levels[i + 1]))
+
+
+def ref_light_end(hits, min_per_code=1.0):
+    h = np.asarray(hits)
+    n = h.shape[1]
+    populated = h.any(axis=1)
+    top = np.where(populated, n - np.argmax(h[:, ::-1] > 0, axis=1), 0)
+    k = np.arange(n)[None, :]
+    below = (k >= top[:, None] - 40) & (k < top[:, None] - 10)
+    level = np.array([np.median(row[b]) if b.any() else 0.0
+                      for row, b in zip(h, below, strict=True)])
+    return top, populated & (level >= min_per_code)
+
+
+def ref_return_sigma(h, t_s, sigma0_s, rounds=ROUNDS):
+    lam = h.intensity()
+    w, valid = h.widths, np.asarray(h.valid, bool)
+    bg = _background(lam, w, valid, h.at_risk)
+    excess = np.where(valid, np.maximum(lam - bg[:, None] * w, 0.0), 0.0) * h.cycles[:, None]
+    cen = h.centres
+    t = np.asarray(t_s, np.float64).copy()
+    sig = np.full(t.shape, max(float(sigma0_s), h.bin_s))
+    tot = np.zeros(t.shape)
+    for _ in range(rounds):
+        half = WINDOW_WIDTHS * np.maximum(sig, h.bin_s)
+        with np.errstate(invalid="ignore"):
+            win = np.abs(cen - t[:, None]) <= half[:, None]
+        e = np.where(win, excess, 0.0)
+        tot = e.sum(axis=1)
+        ok = tot > 0
+        d = np.where(ok, tot, 1.0)
+        mu = (e * cen).sum(axis=1) / d
+        var = (e * (cen - mu[:, None]) ** 2).sum(axis=1) / d
+        q = (e * w ** 2).sum(axis=1) / d / 12.0
+        new = np.sqrt(np.maximum(var - q, 0.0))
+        sig = np.where(ok & (new > 0), new, sig)
+        t = np.where(ok, mu, t)
+    bad = ~np.isfinite(np.asarray(t_s, np.float64)) | ~(tot > 0)
+    return np.where(bad, np.nan, sig), np.where(bad, 0.0, tot)
+
+
+def ref_rows(h, rows, valid=None):
+    return Histograms(h.counts[rows], h.edges_s[rows], h.cycles[rows],
+                      h.valid[rows] if valid is None else valid)
+
+
+def ref_calibration_rows(self, start, stop):
+    return self._rows(start, stop)
+
+
+def patch_earlier(m):
+    """The earlier range stage, patched in (``m``: a monkeypatch)."""
+    m.setattr(cal.LsbFit, "lsb_ps", ref_lsb_ps)
+    m.setattr(cal, "scale_at_light", ref_scale_at_light)
+    m.setattr(cal, "scale_spread", ref_scale_spread)
+    m.setattr(cal, "light_end", ref_light_end)
+    m.setattr(Calibration, "rows", ref_calibration_rows)
+    m.setattr(multi, "_rows", ref_rows)
+    m.setattr(multi, "return_fwhm",
+              lambda h, t, s: FWHM_PER_SIGMA * ref_return_sigma(h, t, s)[0])
+
+
+# ------------------------------------------------------------------ the measurements
+
+
+def _state(hits, cycles, offset=0):
+    hits = np.asarray(hits, np.uint64)
+    cc = np.zeros((N_CLASSES, hits.shape[0]), np.uint64)
+    cc[0] = hits.sum(1)
+    cc[1] = cycles - cc[0]
+    return HistogramState(hits, cc, int(cc.sum()), tdc_offset=offset)
+
+
+@pytest.fixture(scope="module")
+def measurements(mirror16):
+    """The mirror at 1.5 m; it with a second, weaker return 40-70 codes lower on most
+    TDCs (a window before the target) and a third on some; the second's TDCs 8-15 alone (a
+    worker's range)."""
+    st, _, window_s = mirror16
+    rng = np.random.default_rng(7)
+    cycles = int(st.cycles.max())
+    hits = np.asarray(st.hits, np.float64)
+    peak = np.argmax(hits[:, 20:-40], axis=1) + 20
+    k = np.arange(hits.shape[1])[None, :]
+    more = hits.copy()
+    for shift, amp, rows in ((55, 300.0, slice(0, 14)), (110, 120.0, slice(0, 6))):
+        c = np.clip(peak - shift, 15, None)[:, None]
+        bump = np.zeros_like(hits)
+        bump[rows] = amp * np.exp(-0.5 * ((k - c) / 1.6) ** 2)[rows]
+        more = more + rng.poisson(bump)
+    two = _state(more, cycles)
+    part = _state(more[8:], cycles, offset=8)
+    return [("mirror", st), ("returns", two), ("worker", part)], window_s
+
+
+@pytest.fixture(scope="module")
+def calibration(caldir):
+    return load_calibration(caldir)
+
+
+def _run(calib, state, window_s, **kw):
+    est, d, s, note = ranging.range_state(state, calib, window_s, 140e-9, **kw)
+    return {**{f: getattr(est, f) for f in ("t_s", "sigma_s", "fwhm_s", "signal_counts",
+                                            "background_per_bin", "detected", "pixel",
+                                            "return_index", "flag")},
+            "distance": d, "sigma_m": s, "note": note}
+
+
+def _same(a: dict, b: dict):
+    assert a.keys() == b.keys()
+    for k in a:
+        x, y = a[k], b[k]
+        if isinstance(x, str):
+            assert x == y, k
+        elif np.asarray(x).dtype.kind == "f":
+            assert np.array_equal(x, y, equal_nan=True), (k, x, y)
+        else:
+            assert np.array_equal(np.asarray(x), np.asarray(y)), (k, x, y)
+
+
+@pytest.mark.parametrize("estimator", ["ml", "fast"])
+def test_range_state_gives_the_earlier_results_bit_for_bit(measurements, calibration,
+                                                           estimator, monkeypatch):
+    states, window_s = measurements
+    cases = [(name, st, k, situ) for name, st in states for k in (1, 3)
+             for situ in (False, True)]
+    new = [_run(calibration, st, window_s, estimator=estimator, max_returns=k,
+                in_situ=situ) for _, st, k, situ in cases]
+    again = [_run(calibration, st, window_s, estimator=estimator, max_returns=k,
+                  in_situ=situ) for _, st, k, situ in cases]  # (what was cached, reused)
+    assert any((r["return_index"] > 0).any() for r in new)  # further returns were found
+    assert any(np.isfinite(r["fwhm_s"][r["return_index"] > 0]).any() for r in new)
+    fresh = Calibration(calibration.density, calibration.second, calibration.lsb_fit,
+                        calibration.delay_s, calibration.delay_reasons,
+                        calibration.irf_sigma_s, calibration.meta, calibration.path)
+    with monkeypatch.context() as m:
+        patch_earlier(m)
+        old = [_run(fresh, st, window_s, estimator=estimator, max_returns=k, in_situ=situ)
+               for _, st, k, situ in cases]
+    for a, b, c in zip(new, again, old, strict=True):
+        _same(a, c)
+        _same(b, c)
+
+
+def test_without_an_lsb_fit_the_scale_is_the_earlier_one(measurements, calibration,
+                                                         monkeypatch):
+    """One density test (no LSB fit): the scale from the cached code boundaries."""
+    states, window_s = measurements
+    one = dataclasses.replace(calibration, lsb_fit=None)
+    new = _run(one, states[1][1], window_s, max_returns=3)
+    patch_earlier(monkeypatch)
+    _same(new, _run(dataclasses.replace(one), states[1][1], window_s, max_returns=3))
+
+
+def test_the_splines_read_at_any_light_are_the_ones_built_for_it(calibration):
+    density, fit = calibration.density, calibration.lsb_fit
+    levels, pts = cal.scale_points(density, fit, 80e-9)
+    holes = pts.copy()
+    holes[1, 0] = holes[2, -1] = holes[3, 1:3] = np.nan  # TDCs a test flagged
+    lo, hi = levels[0], levels[-1]
+    lights = [lo - 0.01, lo, np.sqrt(lo * hi), 0.5 * (levels[1] + levels[2]), hi,
+              hi + 0.01, float(levels[2])]
+    for y in (pts, holes):
+        sqrt_, lin = cal.RowSplines(levels, y), cal.RowSplines(levels, y, lambda v: v)
+        for n in lights:
+            assert np.array_equal(sqrt_(n), ref_spline_rows(levels, y, n), equal_nan=True)
+            assert np.array_equal(lin(n), ref_spline_rows(levels, y, n, lambda v: v),
+                                  equal_nan=True)
+    for n in lights:
+        assert np.array_equal(fit.lsb_ps(n), ref_lsb_ps(fit, n), equal_nan=True)
+        assert np.array_equal(fit.lsb_ps(n), ref_lsb_ps(fit, n), equal_nan=True)  # cached
+        for a, b in zip(cal.scale_spread(density, fit, 80e-9, n,
+                                         calibration.scale_splines(80e-9)),
+                        ref_scale_spread(density, fit, 80e-9, n), strict=True):
+            assert np.array_equal(a, b, equal_nan=True)
+    assert calibration.rows(2, 9) is calibration.rows(2, 9)
+    assert calibration.scale_splines(80e-9) is calibration.scale_splines(80e-9)
+
+
+def test_light_end_gives_the_earlier_medians():
+    """Every top a TDC's light may end at (the 30 codes below it whole, cut by code 0,
+    none), and empty TDCs."""
+    rng = np.random.default_rng(3)
+    n = 512
+    tops = np.r_[0, 1, 5, 10, 11, 12, 25, 39, 40, 41, 60, 200, 511, 512,
+                 rng.integers(0, n + 1, 40)]
+    hits = np.zeros((tops.size, n), np.uint64)
+    for i, top in enumerate(tops):
+        hits[i, :top] = rng.poisson(rng.choice([0.3, 1.0, 2.5, 40.0]), top)
+        if top:
+            hits[i, top - 1] = max(int(hits[i, top - 1]), 1)
+    for h in (hits, hits.astype(np.float64), hits[:, ::-1]):
+        top, step = cal.light_end(h)
+        rtop, rstep = ref_light_end(h)
+        assert np.array_equal(top, rtop) and np.array_equal(step, rstep)
+    assert cal.light_end(hits)[1].any() and not cal.light_end(hits)[1].all()
+
+
+def test_a_returns_width_on_the_pixels_that_have_it(measurements, calibration):
+    """NaN times (no such return) skipped, the others as when every row was computed."""
+    states, window_s = measurements
+    st = states[1][1]
+    ax = time_axis(calibration, st.hits, st.cycles, window_s)
+    h = Histograms.from_codes(st.hits, ax.tau_edges_s, st.cycles, window_s, x_t=ax.x_t)
+    t = np.asarray(h.centres[np.arange(h.counts.shape[0]),
+                             np.argmax(np.where(h.valid, h.counts, -1), axis=1)])
+    for tt in (t, np.where(np.arange(t.size) % 3 == 0, np.nan, t),
+               np.full(t.size, np.nan)):
+        for s0 in (h.bin_s, 3 * h.bin_s):
+            a, b = return_sigma(h, tt, s0), ref_return_sigma(h, tt, s0)
+            assert np.array_equal(a[0], b[0], equal_nan=True)
+            assert np.array_equal(a[1], b[1])
+    masked = multi._rows(h, slice(None), multi._masked(h, [t], 1e-9))
+    for name in ("at_risk", "widths", "centres", "bin_s"):
+        assert np.array_equal(getattr(masked, name),
+                              getattr(ref_rows(h, slice(None), masked.valid), name))
