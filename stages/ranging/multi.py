@@ -64,9 +64,11 @@ def _masked(h: Histograms, times: list[np.ndarray], half_s: float) -> np.ndarray
     """``h``'s valid bins less those within ``half_s`` of any of ``times`` (per row)."""
     cen = h.centres
     keep = np.asarray(h.valid, bool).copy()
-    for t in times:
-        with np.errstate(invalid="ignore"):
-            keep &= ~(np.abs(cen - t[:, None]) <= half_s)
+    for t in times:  # (a row without the return, its time NaN, keeps its bins)
+        t = np.asarray(t, np.float64)
+        live = np.flatnonzero(np.isfinite(t))
+        rows = slice(None) if live.size == t.size else live
+        keep[rows] &= ~(np.abs(cen[rows] - t[rows, None]) <= half_s)
     return keep
 
 

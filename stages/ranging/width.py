@@ -40,24 +40,33 @@ def return_sigma(h: Histograms, t_s, sigma0_s: float, rounds: int = ROUNDS):
     bg = _background(lam, w, valid, at_risk)
     excess = np.where(valid, np.maximum(lam - bg[:, None] * w, 0.0), 0.0) * (
         np.asarray(h.cycles)[rows][:, None])
-    cen = h.centres[rows]
+    cen, w2 = h.centres[rows], w ** 2
     t = t_all[rows].copy()
     sig = np.full(t.shape, max(float(sigma0_s), h.bin_s))
     tot = np.zeros(t.shape)
-    for _ in range(rounds):
-        half = WINDOW_WIDTHS * np.maximum(sig, h.bin_s)
+    on = np.arange(t.size)  # the rows still moving: a row whose time and sigma a round
+    for _ in range(rounds):  # left as they were has reached what the next rounds give
+        t_on, sig_on = t[on], sig[on]
+        half = WINDOW_WIDTHS * np.maximum(sig_on, h.bin_s)
         with np.errstate(invalid="ignore"):
-            win = np.abs(cen - t[:, None]) <= half[:, None]
+            win = np.abs(cen - t_on[:, None]) <= half[:, None]
         e = np.where(win, excess, 0.0)
-        tot = e.sum(axis=1)
-        ok = tot > 0
-        d = np.where(ok, tot, 1.0)
+        tot_on = e.sum(axis=1)
+        ok = tot_on > 0
+        d = np.where(ok, tot_on, 1.0)
         mu = (e * cen).sum(axis=1) / d
         var = (e * (cen - mu[:, None]) ** 2).sum(axis=1) / d
-        q = (e * w ** 2).sum(axis=1) / d / 12.0
+        q = (e * w2).sum(axis=1) / d / 12.0
         new = np.sqrt(np.maximum(var - q, 0.0))
-        sig = np.where(ok & (new > 0), new, sig)
-        t = np.where(ok, mu, t)
+        sig_new = np.where(ok & (new > 0), new, sig_on)
+        t_new = np.where(ok, mu, t_on)
+        tot[on], sig[on], t[on] = tot_on, sig_new, t_new
+        moved = (sig_new != sig_on) | ~((t_new == t_on) | (np.isnan(t_new) & np.isnan(t_on)))
+        on = on[moved]
+        if not on.size:
+            break
+        if on.size < moved.size:
+            excess, cen, w2 = excess[moved], cen[moved], w2[moved]
     bad = ~(tot > 0)
     sig_all[rows] = np.where(bad, np.nan, sig)
     tot_all[rows] = np.where(bad, 0.0, tot)
