@@ -183,8 +183,11 @@ if numba is not None:
                         better = True
                         break
                     scale *= 0.5
-                if better:
-                    t0, m, ll = nt, nm, nll
+                # where no step improves, or the step leaves the fit where it was, every
+                # further iteration starts from the same point and does the same: stop
+                if not better or (nt == t0 and nm == m):
+                    break
+                t0, m, ll = nt, nm, nll
                 if abs(scale * st) <= 1e-16:
                     active = False
             i00, i01, i11, _, _ = _ml_info(t0, m, bg[p], lo_e, hi_e, cnt, rr, ok, sigma_s)

@@ -9,6 +9,7 @@ run with those patched in is the earlier range stage.
 from __future__ import annotations
 
 import dataclasses
+import importlib
 
 import numpy as np
 import pytest
@@ -116,6 +117,85 @@ def ref_return_sigma(h, t_s, sigma0_s, rounds=ROUNDS):
     return np.where(bad, np.nan, sig), np.where(bad, 0.0, tot)
 
 
+def _ref_ml_kernel():
+    """The ML fit's compiled loop as it was: every pixel through all its iterations."""
+    import math
+
+    from stages.ranging._numba import numba
+
+    if numba is None:  # (the numpy path, unchanged)
+        return None
+    ml_mod = importlib.import_module("stages.ranging.ml")
+    ml_ll, ml_info = ml_mod._ml_ll, ml_mod._ml_info
+
+    @numba.njit(cache=False, nogil=True)
+    def kernel(counts_all, widths, centres, valid_all, cycles, t_start, peak, bg, k,
+               sigma_s, iterations):
+        n_pix, n = counts_all.shape
+        nw = 2 * k + 1
+        out_t, out_s, out_m = np.empty(n_pix), np.empty(n_pix), np.empty(n_pix)
+        lo_e, hi_e, cnt, rr = np.empty(nw), np.empty(nw), np.empty(nw), np.empty(nw)
+        ok = np.empty(nw, np.bool_)
+        for p in range(n_pix):
+            acc = 0.0
+            cum = np.empty(n)
+            for j in range(n):
+                cum[j] = cycles[p] - acc
+                acc += counts_all[p, j]
+            last = -1
+            hw = 0.0
+            wsum = 0.0
+            for i in range(nw):
+                j = min(max(peak[p] - k + i, 0), n - 1)
+                lo_e[i] = centres[p, j] - 0.5 * widths[p, j]
+                hi_e[i] = centres[p, j] + 0.5 * widths[p, j]
+                cnt[i] = counts_all[p, j]
+                rr[i] = max(cum[j], 0.0)
+                ok[i] = valid_all[p, j] and j != last
+                last = j
+                if ok[i]:
+                    hw += cnt[i]
+                    wsum += hi_e[i] - lo_e[i]
+            r0 = max(rr[0], hw + 1)
+            m = max(-math.log1p(-hw / r0) - bg[p] * wsum, 1e-9)
+            t0 = t_start[p]
+            ll = ml_ll(t0, m, bg[p], lo_e, hi_e, cnt, rr, ok, sigma_s)
+            active = True
+            for _ in range(iterations):
+                if not active:
+                    break
+                i00, i01, i11, s0, s1 = ml_info(t0, m, bg[p], lo_e, hi_e, cnt, rr, ok,
+                                                sigma_s)
+                det = i00 * i11 - i01 * i01
+                if det <= 0:
+                    break
+                st = (i11 * s0 - i01 * s1) / det
+                sm = (i00 * s1 - i01 * s0) / det
+                scale = 1.0
+                better = False
+                nt, nm, nll = t0, m, ll
+                for _h in range(8):
+                    nt = t0 + scale * st
+                    nm = max(m + scale * sm, 1e-12)
+                    nll = ml_ll(nt, nm, bg[p], lo_e, hi_e, cnt, rr, ok, sigma_s)
+                    if nll >= ll - 1e-12:
+                        better = True
+                        break
+                    scale *= 0.5
+                if better:
+                    t0, m, ll = nt, nm, nll
+                if abs(scale * st) <= 1e-16:
+                    active = False
+            i00, i01, i11, _, _ = ml_info(t0, m, bg[p], lo_e, hi_e, cnt, rr, ok, sigma_s)
+            det = i00 * i11 - i01 * i01
+            out_t[p] = t0
+            out_m[p] = m
+            out_s[p] = math.sqrt(i11 / det) if det > 0 else np.inf
+        return out_t, out_s, out_m, bg, peak
+
+    return kernel
+
+
 def ref_rows(h, rows, valid=None):
     return Histograms(h.counts[rows], h.edges_s[rows], h.cycles[rows],
                       h.valid[rows] if valid is None else valid)
@@ -125,8 +205,16 @@ def ref_calibration_rows(self, start, stop):
     return self._rows(start, stop)
 
 
-def patch_earlier(m):
-    """The earlier range stage, patched in (``m``: a monkeypatch)."""
+@pytest.fixture(scope="module")
+def ref_ml_kernel():
+    return _ref_ml_kernel()
+
+
+def patch_earlier(m, ml_kernel=None):
+    """The earlier range stage, patched in (``m``: a monkeypatch; ``ml_kernel``: the ML
+    fit's loop as it was, where numba is installed)."""
+    if ml_kernel is not None:
+        m.setattr(importlib.import_module("stages.ranging.ml"), "_ml_numba", ml_kernel)
     m.setattr(cal.LsbFit, "lsb_ps", ref_lsb_ps)
     m.setattr(cal, "scale_at_light", ref_scale_at_light)
     m.setattr(cal, "scale_spread", ref_scale_spread)
@@ -197,7 +285,8 @@ def _same(a: dict, b: dict):
 
 @pytest.mark.parametrize("estimator", ["ml", "fast"])
 def test_range_state_gives_the_earlier_results_bit_for_bit(measurements, calibration,
-                                                           estimator, monkeypatch):
+                                                           estimator, monkeypatch,
+                                                           ref_ml_kernel):
     states, window_s = measurements
     cases = [(name, st, k, situ) for name, st in states for k in (1, 3)
              for situ in (False, True)]
@@ -211,7 +300,7 @@ def test_range_state_gives_the_earlier_results_bit_for_bit(measurements, calibra
                         calibration.delay_s, calibration.delay_reasons,
                         calibration.irf_sigma_s, calibration.meta, calibration.path)
     with monkeypatch.context() as m:
-        patch_earlier(m)
+        patch_earlier(m, ref_ml_kernel)
         old = [_run(fresh, st, window_s, estimator=estimator, max_returns=k, in_situ=situ)
                for _, st, k, situ in cases]
     for a, b, c in zip(new, again, old, strict=True):
@@ -220,12 +309,12 @@ def test_range_state_gives_the_earlier_results_bit_for_bit(measurements, calibra
 
 
 def test_without_an_lsb_fit_the_scale_is_the_earlier_one(measurements, calibration,
-                                                         monkeypatch):
+                                                         monkeypatch, ref_ml_kernel):
     """One density test (no LSB fit): the scale from the cached code boundaries."""
     states, window_s = measurements
     one = dataclasses.replace(calibration, lsb_fit=None)
     new = _run(one, states[1][1], window_s, max_returns=3)
-    patch_earlier(monkeypatch)
+    patch_earlier(monkeypatch, ref_ml_kernel)
     _same(new, _run(dataclasses.replace(one), states[1][1], window_s, max_returns=3))
 
 
