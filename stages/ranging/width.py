@@ -45,18 +45,26 @@ def return_sigma(h: Histograms, t_s, sigma0_s: float, rounds: int = ROUNDS):
     sig = np.full(t.shape, max(float(sigma0_s), h.bin_s))
     tot = np.zeros(t.shape)
     on = np.arange(t.size)  # the rows still moving: a row whose time and sigma a round
-    for _ in range(rounds):  # left as they were has reached what the next rounds give
+    # left as they were has reached what the next rounds give. (Buffers reused: a
+    # temporary of a few hundred kB is fresh pages from the system at every operation.)
+    buf_all, e_all = np.empty_like(excess), np.empty_like(excess)
+    win_all = np.empty(excess.shape, bool)
+    for _ in range(rounds):
         t_on, sig_on = t[on], sig[on]
+        buf, e, win = buf_all[:on.size], e_all[:on.size], win_all[:on.size]
         half = WINDOW_WIDTHS * np.maximum(sig_on, h.bin_s)
         with np.errstate(invalid="ignore"):
-            win = np.abs(cen - t_on[:, None]) <= half[:, None]
-        e = np.where(win, excess, 0.0)
+            np.less_equal(np.abs(np.subtract(cen, t_on[:, None], out=buf), out=buf),
+                          half[:, None], out=win)
+        e.fill(0.0)
+        np.copyto(e, excess, where=win)
         tot_on = e.sum(axis=1)
         ok = tot_on > 0
         d = np.where(ok, tot_on, 1.0)
-        mu = (e * cen).sum(axis=1) / d
-        var = (e * (cen - mu[:, None]) ** 2).sum(axis=1) / d
-        q = (e * w2).sum(axis=1) / d / 12.0
+        mu = np.multiply(e, cen, out=buf).sum(axis=1) / d
+        np.subtract(cen, mu[:, None], out=buf)
+        var = np.multiply(e, np.multiply(buf, buf, out=buf), out=buf).sum(axis=1) / d
+        q = np.multiply(e, w2, out=buf).sum(axis=1) / d / 12.0
         new = np.sqrt(np.maximum(var - q, 0.0))
         sig_new = np.where(ok & (new > 0), new, sig_on)
         t_new = np.where(ok, mu, t_on)
