@@ -136,11 +136,11 @@ if numba is not None:
         cnt = np.empty(nw)
         rr = np.empty(nw)
         ok = np.empty(nw, np.bool_)
+        cum = np.empty(n)
         for p in range(n_pix):
             acc = 0.0
-            # at-risk of the window's bins
-            cum = np.empty(n)
-            for j in range(n):
+            # at-risk of the window's bins (up to its last: the sum runs in order)
+            for j in range(min(max(peak[p] + k, 0), n - 1) + 1):
                 cum[j] = cycles[p] - acc
                 acc += counts_all[p, j]
             last = -1
