@@ -137,6 +137,9 @@ if numba is not None:
         rr = np.empty(nw)
         ok = np.empty(nw, np.bool_)
         cum = np.empty(n)
+        # the normal CDF at the window's edges, at the fit's time and at a trial's: what
+        # the likelihood computed, the information at the same time reads again
+        pa, pb, qa, qb = np.empty(nw), np.empty(nw), np.empty(nw), np.empty(nw)
         for p in range(n_pix):
             acc = 0.0
             # at-risk of the window's bins (up to its last: the sum runs in order)
@@ -160,13 +163,13 @@ if numba is not None:
             r0 = max(rr[0], hw + 1)
             m = max(-math.log1p(-hw / r0) - bg[p] * wsum, 1e-9)
             t0 = t_start[p]
-            ll = _ml_ll(t0, m, bg[p], lo_e, hi_e, cnt, rr, ok, sigma_s)
+            ll = _ml_ll(t0, m, bg[p], lo_e, hi_e, cnt, rr, ok, sigma_s, pa, pb)
             active = True
             for _ in range(iterations):
                 if not active:
                     break
                 i00, i01, i11, s0, s1 = _ml_info(t0, m, bg[p], lo_e, hi_e, cnt, rr, ok,
-                                                 sigma_s)
+                                                 sigma_s, pa, pb)
                 det = i00 * i11 - i01 * i01
                 if det <= 0:
                     break
@@ -178,7 +181,7 @@ if numba is not None:
                 for _h in range(8):
                     nt = t0 + scale * st
                     nm = max(m + scale * sm, 1e-12)
-                    nll = _ml_ll(nt, nm, bg[p], lo_e, hi_e, cnt, rr, ok, sigma_s)
+                    nll = _ml_ll(nt, nm, bg[p], lo_e, hi_e, cnt, rr, ok, sigma_s, qa, qb)
                     if nll >= ll - 1e-12:
                         better = True
                         break
@@ -188,9 +191,11 @@ if numba is not None:
                 if not better or (nt == t0 and nm == m):
                     break
                 t0, m, ll = nt, nm, nll
+                pa, qa, pb, qb = qa, pa, qb, pb
                 if abs(scale * st) <= 1e-16:
                     active = False
-            i00, i01, i11, _, _ = _ml_info(t0, m, bg[p], lo_e, hi_e, cnt, rr, ok, sigma_s)
+            i00, i01, i11, _, _ = _ml_info(t0, m, bg[p], lo_e, hi_e, cnt, rr, ok, sigma_s,
+                                           pa, pb)
             det = i00 * i11 - i01 * i01
             out_t[p] = t0
             out_m[p] = m
@@ -202,25 +207,31 @@ if numba is not None:
         return 0.5 * math.erfc(-z / math.sqrt(2.0))
 
     @numba.njit(cache=True, nogil=True)
-    def _ml_ll(t0, m, bg, lo_e, hi_e, cnt, rr, ok, sigma_s):
+    def _ml_ll(t0, m, bg, lo_e, hi_e, cnt, rr, ok, sigma_s, pa, pb):
+        """The log-likelihood at ``t0``, ``m``; the normal CDF at the bins' edges kept in
+        ``pa``, ``pb`` (for :func:`_ml_info` at the same ``t0``)."""
         ll = 0.0
         for i in range(lo_e.size):
             if not ok[i]:
                 continue
-            dphi = _ndtr((hi_e[i] - t0) / sigma_s) - _ndtr((lo_e[i] - t0) / sigma_s)
+            pa[i] = _ndtr((lo_e[i] - t0) / sigma_s)
+            pb[i] = _ndtr((hi_e[i] - t0) / sigma_s)
+            dphi = pb[i] - pa[i]
             lam = max(m * dphi + bg * (hi_e[i] - lo_e[i]), 1e-300)
             ll += cnt[i] * math.log(-math.expm1(-lam)) - (rr[i] - cnt[i]) * lam
         return ll
 
     @numba.njit(cache=True, nogil=True)
-    def _ml_info(t0, m, bg, lo_e, hi_e, cnt, rr, ok, sigma_s):
+    def _ml_info(t0, m, bg, lo_e, hi_e, cnt, rr, ok, sigma_s, pa, pb):
+        """Information and score at ``t0``, ``m``, with ``pa``, ``pb`` from
+        :func:`_ml_ll` at this ``t0``."""
         i00 = i01 = i11 = s0 = s1 = 0.0
         for i in range(lo_e.size):
             if not ok[i]:
                 continue
             za = (lo_e[i] - t0) / sigma_s
             zb = (hi_e[i] - t0) / sigma_s
-            dphi = _ndtr(zb) - _ndtr(za)
+            dphi = pb[i] - pa[i]
             lam = max(m * dphi + bg * (hi_e[i] - lo_e[i]), 1e-300)
             em1 = math.expm1(lam)
             sl = cnt[i] / em1 - (rr[i] - cnt[i])

@@ -20,7 +20,7 @@ from schemas.constants import N_CLASSES
 from stages import calibration as cal
 from stages.calibration_set import Calibration, time_axis
 from stages.histogram import HistogramState
-from stages.models.tcspc import FWHM_PER_SIGMA
+from stages.models.tcspc import FWHM_PER_SIGMA, SQRT2PI
 from stages.ranging import multi
 from stages.ranging.detection import _background
 from stages.ranging.histograms import Histograms
@@ -118,15 +118,51 @@ def ref_return_sigma(h, t_s, sigma0_s, rounds=ROUNDS):
 
 
 def _ref_ml_kernel():
-    """The ML fit's compiled loop as it was: every pixel through all its iterations."""
+    """The ML fit's compiled loop as it was: every pixel through all its iterations, the
+    normal CDF at the edges computed for the likelihood and again for the information."""
     import math
 
     from stages.ranging._numba import numba
 
     if numba is None:  # (the numpy path, unchanged)
         return None
-    ml_mod = importlib.import_module("stages.ranging.ml")
-    ml_ll, ml_info = ml_mod._ml_ll, ml_mod._ml_info
+    @numba.njit(cache=False, nogil=True)
+    def ndtr(z):
+        return 0.5 * math.erfc(-z / math.sqrt(2.0))
+
+    @numba.njit(cache=False, nogil=True)
+    def ml_ll(t0, m, bg, lo_e, hi_e, cnt, rr, ok, sigma_s):
+        ll = 0.0
+        for i in range(lo_e.size):
+            if not ok[i]:
+                continue
+            dphi = ndtr((hi_e[i] - t0) / sigma_s) - ndtr((lo_e[i] - t0) / sigma_s)
+            lam = max(m * dphi + bg * (hi_e[i] - lo_e[i]), 1e-300)
+            ll += cnt[i] * math.log(-math.expm1(-lam)) - (rr[i] - cnt[i]) * lam
+        return ll
+
+    @numba.njit(cache=False, nogil=True)
+    def ml_info(t0, m, bg, lo_e, hi_e, cnt, rr, ok, sigma_s):
+        i00 = i01 = i11 = s0 = s1 = 0.0
+        for i in range(lo_e.size):
+            if not ok[i]:
+                continue
+            za = (lo_e[i] - t0) / sigma_s
+            zb = (hi_e[i] - t0) / sigma_s
+            dphi = ndtr(zb) - ndtr(za)
+            lam = max(m * dphi + bg * (hi_e[i] - lo_e[i]), 1e-300)
+            em1 = math.expm1(lam)
+            sl = cnt[i] / em1 - (rr[i] - cnt[i])
+            il = rr[i] / em1
+            pdf = (math.exp(-0.5 * zb * zb) - math.exp(-0.5 * za * za)) / (SQRT2PI * sigma_s)
+            jt = -m * pdf
+            jm = dphi
+            i00 += il * jt * jt
+            i01 += il * jt * jm
+            i11 += il * jm * jm
+            s0 += sl * jt
+            s1 += sl * jm
+        return i00, i01, i11, s0, s1
 
     @numba.njit(cache=False, nogil=True)
     def kernel(counts_all, widths, centres, valid_all, cycles, t_start, peak, bg, k,
