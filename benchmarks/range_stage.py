@@ -1,7 +1,8 @@
 """The range stage's cost per measurement: `RangeCore.process` (what the daemon's range
 stage runs on each histograms message) on the histograms and calibration of a demo's
-output (`tcspc demo`: ``--data``, its calibration/current and stream/histograms), per
-source tree given (``--tree``, e.g. the main branch's and this one's), in the same run.
+output (``--data``, the directory `tcspc demo --out` wrote: its calibration/current and
+stream/histograms), per source tree given (``--tree``, e.g. the main branch's and this
+one's), in the same run.
 
 Cases: 64 TDCs (one histogram worker's message) and 128 (the two workers' messages of a
 measurement joined), ``max_returns`` 1 and 3, the ``ml`` and ``fast`` estimators. Each
@@ -57,6 +58,8 @@ for name, ts in sorted(parts.items()):
     cls = sum(np.asarray(t[c], np.float64) for c in ("n_hit", "n_no_hit", "n_artifact",
                                                      "n_invalid_phase", "n_malformed"))
     words = float(np.mean(cls / np.asarray(t["cycles"], np.float64)))
+if not batches:
+    sys.exit(f"{data}: no histograms message of {n_tdc} TDCs in stream/histograms")
 core = RangeCore(cal, estimator, max_returns=k, forward_histograms=False)
 
 def one(name, b):
@@ -106,7 +109,7 @@ def main() -> None:
           f"Python {platform.python_version()}, load average {os.getloadavg()[0]:.1f} at "
           "start (one process at a time, one core)")
     trees = [t.resolve() for t in args.tree]
-    names = " | ".join(f"{t} ms" for t in trees)
+    names = " | ".join(f"{t} ms" for t in args.tree)
     print(f"\n| TDCs | K | estimator | {names} | ranges | M words/s at 20 k / 100 k cycles"
           " (last tree) | load |")
     print("|---|---|---|" + "---|" * len(trees) + "---|---|---|")
