@@ -392,32 +392,42 @@ def test_a_busy_calibration_fails_naming_the_holder(tmp_path):
         state.result()
 
 
-def test_a_run_that_died_holding_the_lock_is_marked_crashed(captured, tmp_path):
+def _a_running_campaign(name: str):
+    """A flow run the API shows Running, named as a campaign (what a killed one leaves)."""
     from prefect import flow
     from prefect.states import Running
-
-    from flows.calibration import calibration_campaign
 
     @flow(name="calibration_campaign")
     def stand_in():
         pass
 
-    out = tmp_path / "cal"
-    out.mkdir()
     with _client() as c:
-        dead = c.create_flow_run(stand_in, name="killed", state=Running())
-    # what a killed campaign leaves: its record in the lock file (the kernel dropped the
-    # lock itself), a half-written capture in the cache
-    (out / ".lock").write_text(json.dumps({"id": str(dead.id), "name": "killed",
-                                           "pid": 999_999_999}))
-    half = out / "cache" / ".abc.tmp-999999999"
-    half.mkdir(parents=True)
+        return c.create_flow_run(stand_in, name=name, state=Running()).id
+
+
+def _state_after_the_next_campaign(captured, out, run_id):
+    """Run a campaign on ``out``; the API's state of ``run_id`` after it."""
+    from flows.calibration import calibration_campaign
+
     state = calibration_campaign(out=str(out), captures=str(captured), inl_rms=1.0,
                                  return_state=True)
     assert state.name == "Published"
     with _client() as c:
-        after = c.read_flow_run(dead.id)
-    assert after.state.type.value == "CRASHED" and "died holding" in after.state.message
+        return c.read_flow_run(run_id).state
+
+
+def test_a_run_that_died_holding_the_lock_is_marked_crashed(captured, tmp_path):
+    out = tmp_path / "cal"
+    out.mkdir()
+    dead = _a_running_campaign("killed")
+    # what a killed campaign leaves: its record in the lock file (the kernel dropped the
+    # lock itself), a half-written capture in the cache
+    (out / ".lock").write_text(json.dumps({"id": str(dead), "name": "killed",
+                                           "pid": 999_999_999}))
+    half = out / "cache" / ".abc.tmp-999999999"
+    half.mkdir(parents=True)
+    after = _state_after_the_next_campaign(captured, out, dead)
+    assert after.type.value == "CRASHED" and "died holding" in after.message
     assert not half.exists()
 
 
@@ -425,15 +435,7 @@ def test_a_run_killed_while_waiting_for_the_lock_is_marked_crashed(captured, tmp
     import socket
     import threading
 
-    from prefect import flow
-    from prefect.states import Running
-
-    from flows.calibration import calibration_campaign
     from flows.common import exclusive
-
-    @flow(name="calibration_campaign")
-    def stand_in():
-        pass
 
     out = tmp_path / "cal"
     out.mkdir()
@@ -456,17 +458,12 @@ def test_a_run_killed_while_waiting_for_the_lock_is_marked_crashed(captured, tmp
     assert got.is_set() and not (out / f".lock.wait-{os.getpid()}").exists()
 
     # what a campaign killed while waiting leaves: its record, its process gone
-    with _client() as c:
-        dead = c.create_flow_run(stand_in, name="killed-waiting", state=Running())
+    dead = _a_running_campaign("killed-waiting")
     (out / ".lock.wait-999999999").write_text(json.dumps(
-        {"id": str(dead.id), "name": "killed-waiting", "pid": 999_999_999,
+        {"id": str(dead), "name": "killed-waiting", "pid": 999_999_999,
          "host": socket.gethostname()}))
-    state = calibration_campaign(out=str(out), captures=str(captured), inl_rms=1.0,
-                                 return_state=True)
-    assert state.name == "Published"
-    with _client() as c:
-        after = c.read_flow_run(dead.id)
-    assert after.state.type.value == "CRASHED" and "died waiting for" in after.state.message
+    after = _state_after_the_next_campaign(captured, out, dead)
+    assert after.type.value == "CRASHED" and "died waiting for" in after.message
     assert not (out / ".lock.wait-999999999").exists()
 
 
