@@ -150,8 +150,21 @@ def _fit(y, valid, gain, known, kerr, response: Response, centre):
     rows = np.arange(n_pix)
     lo, hi = response.span
     shifts = centre[:, None] + _OFF[None, :]                              # (P, S)
-    models = response.models(shifts.ravel(), n).reshape(n_pix, _OFF.size, n)
-    kk = np.arange(n)[None, :]
+    # only the bins the fit weighs (the span around centre, within a window of whole
+    # blocks of 8 bins: numpy's pairwise sums then add the same numbers in the same order
+    # as over every bin, whose other weights are 0)
+    width = -(-(lo + hi + 8) // 8) * 8
+    start = np.zeros(n_pix, np.int64)
+    if width < n:
+        start = np.clip(np.minimum((centre - lo) // 8 * 8, n - width), 0, None)
+        y, valid, gain, known, kerr = (np.take_along_axis(
+            np.broadcast_to(a, (n_pix, n)), start[:, None] + np.arange(width)[None, :], 1)
+            for a in (y, valid, gain, known, kerr))
+    else:
+        width = n
+    models = _window_models(response, shifts.ravel(), np.repeat(start, _OFF.size),
+                            width).reshape(n_pix, _OFF.size, width)
+    kk = start[:, None] + np.arange(width)[None, :]
     sel = (valid & (kk >= centre[:, None] - lo) & (kk <= centre[:, None] + hi))[:, None, :]
     r, yy, kn = (y - known)[:, None, :], y[:, None, :], known[:, None, :]
     gg, ke = gain[:, None, :], kerr[:, None, :]
@@ -169,6 +182,17 @@ def _fit(y, valid, gain, known, kerr, response: Response, centre):
     shift = shifts[rows, j] + frac * _STEP
     sigma = np.where(curv > 0, np.sqrt(2.0 / np.where(curv > 0, curv, 1.0)) * _STEP, np.inf)
     return shift, np.maximum(a[rows, j], 0.0), np.maximum(b[rows, j], 0.0), sigma
+
+
+def _window_models(response: Response, shifts, start, width: int) -> np.ndarray:
+    """:meth:`~stages.ranging.irf.Response.models` of the bins ``start`` to ``start +
+    width - 1`` only (each shift its own ``start``): the same numbers."""
+    cum, f = response._interpolator()
+    e = (np.asarray(start)[:, None] + np.arange(width + 1)[None, :]) - (
+        np.asarray(shifts, np.float64)[:, None] - response.mode)
+    v = np.where(e <= 0, 0.0, np.where(e >= cum.size - 1, cum[-1],
+                                       f(np.clip(e, 0, cum.size - 1))))
+    return np.diff(v, axis=1)
 
 
 def _solve(models, y, wts):
