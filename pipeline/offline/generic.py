@@ -41,6 +41,7 @@ from stages.ranging.irf import (
     response_from_returns,
 )
 from stages.ranging.multi import select_rows
+from stages.ranging.multi_irf import PerGroup, merge_rows
 
 CALIBRATION_FILE = "distance_calibration.json"
 #: the key of a fit made with a Gaussian by an estimator that takes a measured response
@@ -187,6 +188,31 @@ def measurement_times(m: Measurement, estimator: str = "ml", p_fa: float = 1e-3,
     (:func:`stages.ranging.multi.estimate_returns` with ``returns_response``, the found
     returns' model): ``Times.tdc`` then names each row's pixel.
     """
+    return measurements_times([m], estimator, p_fa, response, sigma_s, cycles, max_returns,
+                              returns_response)[0]
+
+
+#: the most rows a batch of measurements whose further returns are searched together (the
+#: search's fits hold ~25 shifts x bins x 8 bytes a row in each of a few arrays)
+BATCH_ROWS = 2048
+
+
+@dataclass
+class _First:
+    """A measurement's single-return estimate of its non-reference rows, before its
+    further returns are searched."""
+
+    m: Measurement
+    cyc: np.ndarray
+    pileup: str
+    bright: np.ndarray
+    used: str
+    single: object           #: its single-return estimator, a function of Histograms
+    est: Estimate            #: of the rows ``~m.reference``
+    origin: float
+
+
+def _first(m: Measurement, estimator, p_fa, response, sigma_s, cycles) -> _First:
     cyc, pileup, bright = _cycles(m, cycles)
     h = _histograms(m, cyc)
     ref = np.flatnonzero(m.reference)
@@ -212,20 +238,62 @@ def measurement_times(m: Measurement, estimator: str = "ml", p_fa: float = 1e-3,
     if ref.size:
         origin = est.t_s[ref[0]] if est.detected[ref[0]] else np.nan
     keep = ~m.reference
-    sub = dataclasses.replace(est, **{f.name: np.asarray(getattr(est, f.name))[keep]
-                                      for f in dataclasses.fields(est)
-                                      if isinstance(getattr(est, f.name), np.ndarray)})
-    if max_returns > 1:
-        if returns_response is None:
-            raise CalibrationError("several returns a row need the returns' measured "
-                                   "response (a calibration from `tcspc calibrate distance`)")
-        rows = np.flatnonzero(keep)
-        sub = estimate_returns(_histograms(m, cyc, rows), returns_response.sigma_s,
-                               estimator, p_fa, max_returns, response=returns_response,
-                               first=sub, single=single)
-        return Times(m.tdc[rows][sub.pixel], sub, sub.t_s - origin, used, pileup,
-                     bright[rows][sub.pixel])
-    return Times(m.tdc[keep], sub, sub.t_s - origin, used, pileup, bright[keep])
+    return _First(m, cyc, pileup, bright, used, single, select_rows(est, keep), origin)
+
+
+def measurements_times(ms: list[Measurement], estimator: str = "ml", p_fa: float = 1e-3,
+                       response: Response | None = None, sigma_s: float | None = None,
+                       cycles: float | None = None, max_returns: int = 1,
+                       returns_response: Response | None = None) -> list[Times]:
+    """:func:`measurement_times` of each of ``ms``. Their further returns (``max_returns``
+    > 1) are searched in batches of measurements with the same bins (up to
+    :data:`BATCH_ROWS` rows), each row with its own measurement's cycles, single-return
+    estimator and reference: the same results as one measurement at a time, the search's
+    Python paid once a batch."""
+    firsts = [_first(m, estimator, p_fa, response, sigma_s, cycles) for m in ms]
+    if max_returns == 1:
+        return [Times(f.m.tdc[~f.m.reference], f.est, f.est.t_s - f.origin, f.used,
+                      f.pileup, f.bright[~f.m.reference]) for f in firsts]
+    if returns_response is None:
+        raise CalibrationError("several returns a row need the returns' measured "
+                               "response (a calibration from `tcspc calibrate distance`)")
+    out: list[Times | None] = [None] * len(firsts)
+    for batch in _batches(firsts):
+        fs = [firsts[i] for i in batch]
+        rows = [np.flatnonzero(~f.m.reference) for f in fs]
+        hs = [_histograms(f.m, f.cyc, r) for f, r in zip(fs, rows, strict=True)]
+        h = Histograms(*(np.concatenate([getattr(x, a) for x in hs])
+                         for a in ("counts", "edges_s", "cycles", "valid")))
+        group = np.repeat(np.arange(len(fs)), [r.size for r in rows])
+        first = merge_rows([(np.flatnonzero(group == j), f.est) for j, f in enumerate(fs)],
+                        group.size)
+        found = estimate_returns(h, returns_response.sigma_s, estimator, p_fa, max_returns,
+                                 response=returns_response, first=first,
+                                 single=PerGroup(group, [f.single for f in fs]))
+        start = np.cumsum([0] + [r.size for r in rows])
+        for j, (i, f, r) in enumerate(zip(batch, fs, rows, strict=True)):
+            mine = (found.pixel >= start[j]) & (found.pixel < start[j + 1])
+            sub = select_rows(found, mine)
+            sub = dataclasses.replace(sub, pixel=sub.pixel - start[j])
+            out[i] = Times(f.m.tdc[r][sub.pixel], sub, sub.t_s - f.origin, f.used,
+                           f.pileup, f.bright[r][sub.pixel])
+    return out
+
+
+def _batches(firsts: list[_First]) -> list[list[int]]:
+    """Indices of ``firsts`` in batches of measurements with the same bins (their count
+    and width), of up to :data:`BATCH_ROWS` rows (a measurement is never split)."""
+    out, open_ = [], {}
+    for i, f in enumerate(firsts):
+        key = (f.m.counts.shape[1], f.m.bin_width_s)
+        n = int((~f.m.reference).sum())
+        b = open_.get(key)
+        if b is None or b[1] + n > BATCH_ROWS:
+            b = open_[key] = [[], 0]
+            out.append(b[0])
+        b[0].append(i)
+        b[1] += n
+    return out
 
 
 def read_truth(path: str | Path) -> dict[tuple[str, int | None], float]:
@@ -432,9 +500,9 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
         zero_delay = dict(zip(zt.tdc.tolist(), np.where(zt.est.detected, zt.t_s, np.nan),
                               strict=True))
     tables, info = [], {}
-    for m in read_generic(path):
-        tm = measurement_times(m, estimator, p_fa, response, sigma_s, cycles, max_returns,
-                               returns_response)
+    meas = read_generic(path)
+    for m, tm in zip(meas, measurements_times(meas, estimator, p_fa, response, sigma_s, cycles,
+                                              max_returns, returns_response), strict=True):
         scale = np.ones(tm.tdc.size)
         if calibration is not None:
             delay, scale = calibration.row_fit(key, tm.tdc)

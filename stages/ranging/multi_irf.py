@@ -46,6 +46,9 @@ the response's fits.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
 import numpy as np
 
 from stages.ranging.detection import _background, poisson_tail, tested_bin
@@ -64,6 +67,49 @@ LOCAL_BINS = 8
 #: fine shift grid of the fits (bins), refined by a parabola
 _STEP = 0.1
 _OFF = np.arange(-1.2, 1.2 + 1e-9, _STEP)
+
+
+@dataclass(frozen=True)
+class PerGroup:
+    """A single-return estimator of its own for each group of rows (a batch of several
+    measurements, each timed with its own reference channel's response): row ``i`` by
+    ``singles[group[i]]``, each called on its group's rows only (as alone), so a batch
+    gives each row what its measurement alone would. A function of :class:`Histograms` of
+    its rows; :meth:`take` the estimator of some of them."""
+
+    group: np.ndarray
+    singles: Sequence[Callable[[Histograms], Estimate]]
+
+    def take(self, rows) -> PerGroup:
+        """The estimator of the rows ``rows`` (in that order)."""
+        return PerGroup(np.asarray(self.group)[rows], self.singles)
+
+    def __call__(self, h: Histograms) -> Estimate:
+        parts = []
+        for g in np.unique(self.group):
+            idx = np.flatnonzero(self.group == g)
+            parts.append((idx, self.singles[g](Histograms(
+                h.counts[idx], h.edges_s[idx], h.cycles[idx], h.valid[idx]))))
+        return merge_rows(parts, len(self.group))
+
+
+def merge_rows(parts: list[tuple[np.ndarray, Estimate]], n: int) -> Estimate:
+    """One estimate of ``n`` rows from estimates of the rows ``idx`` of each part."""
+    first = parts[0][1]
+    cols = {}
+    for name in Estimate.__dataclass_fields__:
+        vals = [getattr(e, name) for _, e in parts]
+        if not any(isinstance(v, np.ndarray) for v in vals):
+            cols[name] = vals[0]
+            continue
+        if name == "flag":
+            vals = [np.full(idx.size, "", object) if v is None else v
+                    for (idx, _), v in zip(parts, vals, strict=True)]
+        col = np.empty(n, np.result_type(*[np.asarray(v).dtype for v in vals]))
+        for (idx, _), v in zip(parts, vals, strict=True):
+            col[idx] = v
+        cols[name] = col
+    return Estimate(**cols) if len(parts) > 1 else first
 
 
 def _corrected(h: Histograms) -> np.ndarray:
@@ -104,8 +150,21 @@ def _fit(y, valid, gain, known, kerr, response: Response, centre):
     rows = np.arange(n_pix)
     lo, hi = response.span
     shifts = centre[:, None] + _OFF[None, :]                              # (P, S)
-    models = response.models(shifts.ravel(), n).reshape(n_pix, _OFF.size, n)
-    kk = np.arange(n)[None, :]
+    # only the bins the fit weighs (the span around centre, within a window of whole
+    # blocks of 8 bins: numpy's pairwise sums then add the same numbers in the same order
+    # as over every bin, whose other weights are 0)
+    width = -(-(lo + hi + 8) // 8) * 8
+    start = np.zeros(n_pix, np.int64)
+    if width < n:
+        start = np.clip(np.minimum((centre - lo) // 8 * 8, n - width), 0, None)
+        y, valid, gain, known, kerr = (np.take_along_axis(
+            np.broadcast_to(a, (n_pix, n)), start[:, None] + np.arange(width)[None, :], 1)
+            for a in (y, valid, gain, known, kerr))
+    else:
+        width = n
+    models = _window_models(response, shifts.ravel(), np.repeat(start, _OFF.size),
+                            width).reshape(n_pix, _OFF.size, width)
+    kk = start[:, None] + np.arange(width)[None, :]
     sel = (valid & (kk >= centre[:, None] - lo) & (kk <= centre[:, None] + hi))[:, None, :]
     r, yy, kn = (y - known)[:, None, :], y[:, None, :], known[:, None, :]
     gg, ke = gain[:, None, :], kerr[:, None, :]
@@ -123,6 +182,17 @@ def _fit(y, valid, gain, known, kerr, response: Response, centre):
     shift = shifts[rows, j] + frac * _STEP
     sigma = np.where(curv > 0, np.sqrt(2.0 / np.where(curv > 0, curv, 1.0)) * _STEP, np.inf)
     return shift, np.maximum(a[rows, j], 0.0), np.maximum(b[rows, j], 0.0), sigma
+
+
+def _window_models(response: Response, shifts, start, width: int) -> np.ndarray:
+    """:meth:`~stages.ranging.irf.Response.models` of the bins ``start`` to ``start +
+    width - 1`` only (each shift its own ``start``): the same numbers."""
+    cum, f = response._interpolator()
+    e = (np.asarray(start)[:, None] + np.arange(width + 1)[None, :]) - (
+        np.asarray(shifts, np.float64)[:, None] - response.mode)
+    v = np.where(e <= 0, 0.0, np.where(e >= cum.size - 1, cum[-1],
+                                       f(np.clip(e, 0, cum.size - 1))))
+    return np.diff(v, axis=1)
 
 
 def _solve(models, y, wts):
@@ -222,7 +292,7 @@ def further_returns(h: Histograms, response: Response, first: Estimate, p_fa: fl
         return out
     sub = Histograms(h.counts[live], h.edges_s[live], h.cycles[live], h.valid[live])
     found = _search(sub, response, {k: v[live] for k, v in firsts.items()}, p_fa,
-                    max_returns, single)
+                    max_returns, single.take(live) if isinstance(single, PerGroup) else single)
     for i, cols in enumerate(found):
         if i == len(out):
             out.append({k: np.full(n_pix, np.nan) for k in firsts}
@@ -269,13 +339,21 @@ def _search(h: Histograms, response: Response, first: dict, p_fa: float, max_ret
                 sigmas[i][rows] = np.where(ok, sig, sigmas[i][rows])
 
     while len(shifts) < max_returns and live.any():
-        known, kerr = _models(response, [np.where(live, s, np.nan) for s in shifts], amps, n)
-        centre = _coarse(y, valid, gain, known, kerr, response)
-        s, a, _, sig = _fit(y, valid, gain, known, kerr, response, centre)
-        det = live & _detected(h, y, s, a, known, kerr, p_fa, response.span[0]) & \
-            np.isfinite(sig)
+        # only the rows whose last return was found (each row's arithmetic its own)
+        at = np.flatnonzero(live)
+        hl = Histograms(h.counts[at], h.edges_s[at], h.cycles[at], h.valid[at])
+        known, kerr = _models(response, shifts, amps, n, at)
+        yl, vl, gl = y[at], valid[at], gain[at]
+        centre = _coarse(yl, vl, gl, known, kerr, response)
+        sl, al, _, sgl = _fit(yl, vl, gl, known, kerr, response, centre)
+        dl = _detected(hl, yl, sl, al, known, kerr, p_fa, response.span[0]) & \
+            np.isfinite(sgl)
         with np.errstate(invalid="ignore"):  # closer than a FWHM: a misfit of the other
-            det &= np.all([~(np.abs(s - f) < apart) for f in shifts], axis=0)
+            dl &= np.all([~(np.abs(sl - f[at]) < apart) for f in shifts], axis=0)
+        det = np.zeros(n_pix, bool)
+        det[at] = dl
+        s, a, sig = (np.full(n_pix, np.nan) for _ in range(3))
+        s[at], a[at], sig[at] = sl, al, sgl
         shifts.append(np.where(det, s, np.nan))
         amps.append(np.where(det, a, 0.0))
         sigmas.append(sig)
@@ -316,6 +394,8 @@ def _retime(h, y, response, shifts, amps, rows, single, out, fwhm) -> None:
     place in ``out``), where that lands within a FWHM of the response fit's time."""
     n, k, bin_s = h.counts.shape[1], len(out), float(h.bin_s)
     sub = Histograms(h.counts[rows], h.edges_s[rows], h.cycles[rows], h.valid[rows])
+    if isinstance(single, PerGroup):
+        single = single.take(rows)
     for i in range(k):
         e = single(deflated(sub, y[rows], _models(response, shifts, amps, n, rows, i)[0]))
         t, sig = np.asarray(e.t_s, np.float64), np.asarray(e.sigma_s, np.float64)

@@ -151,3 +151,64 @@ def test_whatever_it_is_given_every_detected_return_is_finite(response, rows, cy
     assert np.isfinite(np.asarray(r.sigma_s)[det]).all()
     assert np.bincount(r.pixel, minlength=n).max() <= k
     assert not det[np.isin(r.pixel, np.flatnonzero(c.sum(axis=1) == 0))].any()
+
+
+def _fit_every_bin(y, valid, gain, known, kerr, response, centre):
+    """The search's fit as it was written first, over every bin (the weights 0 outside
+    the span around ``centre``): the reference of the fit over its window of bins."""
+    from stages.ranging import multi_irf as mi
+
+    n_pix, n = y.shape
+    rows = np.arange(n_pix)
+    lo, hi = response.span
+    shifts = centre[:, None] + mi._OFF[None, :]
+    models = response.models(shifts.ravel(), n).reshape(n_pix, mi._OFF.size, n)
+    kk = np.arange(n)[None, :]
+    sel = (valid & (kk >= centre[:, None] - lo) & (kk <= centre[:, None] + hi))[:, None, :]
+    r, yy, kn = (y - known)[:, None, :], y[:, None, :], known[:, None, :]
+    gg, ke = gain[:, None, :], kerr[:, None, :]
+    wts = np.where(sel, 1.0 / mi._variance(yy, kn, ke, gg), 0.0)
+    for _ in range(3):
+        a, b = mi._solve(models, r, wts)
+        fit = np.maximum(a, 0)[..., None] * models + np.maximum(b, 0)[..., None]
+        wts = np.where(sel, 1.0 / mi._variance(yy, kn, ke, gg, fit), 0.0)
+    chi2 = (wts * (r - fit) ** 2).sum(-1)
+    j = np.clip(np.argmin(chi2, axis=1), 1, mi._OFF.size - 2)
+    s_m, s_0, s_p = chi2[rows, j - 1], chi2[rows, j], chi2[rows, j + 1]
+    curv = s_m - 2 * s_0 + s_p
+    frac = np.clip(np.where(curv > 0, 0.5 * (s_m - s_p) / np.where(curv > 0, curv, 1.0),
+                            0.0), -1.0, 1.0)
+    sigma = np.where(curv > 0, np.sqrt(2.0 / np.where(curv > 0, curv, 1.0)) * mi._STEP, np.inf)
+    return (shifts[rows, j] + frac * mi._STEP, np.maximum(a[rows, j], 0.0),
+            np.maximum(b[rows, j], 0.0), sigma)
+
+
+@pytest.mark.parametrize("pad", [0, 72])
+def test_the_fit_over_its_window_is_the_fit_over_every_bin(response, pad):
+    """The search fits each return on a window of whole 8-bin blocks around it: on 128
+    bins (one block of numpy's pairwise sums) the same numbers bit for bit as over every
+    bin; on 200 (two blocks, a window may straddle them) within the sums' last bits."""
+    from stages.ranging import multi_irf as mi
+
+    rng = np.random.default_rng(3)
+    n_pix = 200
+    t0 = rng.uniform(-2, N_BINS - 10, n_pix)  # near both edges too
+    h = _draw(rng, [20_000, 6_000], [t0, t0 + rng.uniform(3, 12, n_pix)], 2.0, n_pix)
+    counts = np.hstack([h.counts, rng.poisson(2.0, (n_pix, pad))])
+    h = Histograms(counts, np.broadcast_to(np.arange(N_BINS + pad + 1) * BIN,
+                                           (n_pix, N_BINS + pad + 1)).copy(),
+                   h.cycles, np.ones(counts.shape, bool))
+    y, valid = mi._corrected(h), h.valid
+    gain = np.maximum(h.cycles[:, None] / np.maximum(h.at_risk, 1.0), 1.0)
+    zero = np.zeros_like(y)
+    centre = mi._coarse(y, valid, gain, zero, zero, response)
+    first = mi._fit(y, valid, gain, zero, zero, response, centre)
+    known, kerr = mi._model(response, first[0], first[1], y.shape[1])
+    for args in ((zero, zero, centre), (known, kerr, np.clip(centre + 6, 0, None))):
+        got = mi._fit(y, valid, gain, *args[:2], response, args[2])
+        want = _fit_every_bin(y, valid, gain, *args[:2], response, args[2])
+        for g, w in zip(got, want, strict=True):
+            if pad:
+                np.testing.assert_allclose(g, w, rtol=1e-12, atol=0)
+            else:
+                np.testing.assert_array_equal(g, w)

@@ -281,6 +281,61 @@ def _piled(lam, cycles):
     return np.rint(out)
 
 
+def _summed(a, b, cycles):
+    """The zones of captures ``a`` and ``b`` summed (each one's pile-up undone with
+    ``cycles``, added, piled up again), with ``a``'s reference channel."""
+    lam = _coates(a.counts[~a.reference], cycles) + _coates(b.counts[~b.reference], cycles)
+    return np.vstack([_piled(lam, cycles), a.counts[a.reference]])
+
+
+def _write_measurements(path, counts: dict):
+    """TMF8820-like measurements (9 zones and the reference last, 91 ps bins) written with
+    plain pyarrow, ``counts`` by name."""
+    n = sum(len(c) for c in counts.values())
+    pq.write_table(pa.table({
+        "measurement": [k for k, c in counts.items() for _ in c],
+        "tdc": pa.array([j for c in counts.values() for j in range(len(c))], pa.uint16()),
+        "counts": [r.astype(np.int64).tolist() for c in counts.values() for r in c],
+        "cycles": pa.nulls(n, pa.uint64()), "instrument": ["generic"] * n,
+        "bin_width_ps": [91.0] * n,
+        "reference": [j == len(c) - 1 for c in counts.values() for j in range(len(c))]}),
+        path)
+    return path
+
+
+def test_tmf8820_a_file_ranged_in_batches_as_one_measurement_at_a_time(tmf, monkeypatch):
+    """The further-returns search runs on batches of measurements; each row must get what
+    its measurement ranged alone gets (its own reference, cycles and calibration), bit
+    for bit: real captures, some summed in pairs (several returns, retimed), in one file
+    ranged whole (one batch, then batches of two measurements) and one at a time."""
+    import pipeline.offline.generic as g
+
+    d, truth, _, _ = tmf
+    cal = DistanceCalibration.load(d / "cal")
+    by = {m.name: m for m in read_generic(d / "h.parquet")}
+    name = {x: truth.sort((pl.col("distance_m") - x).abs())["measurement"][0]
+            for x in (0.0, 0.06, 0.12, 0.18, 0.25, 0.31, 0.4)}
+    counts = {name[x]: by[name[x]].counts for x in (0.0, 0.06, 0.25, 0.4)}
+    counts["dark"] = np.vstack([np.zeros_like(counts[name[0.06]][:3]),
+                                counts[name[0.06]][3:]])  # 3 zones without a count
+    counts |= {f"pair{i}": _summed(by[name[x]], by[name[y]], cal.cycles)
+               for i, (x, y) in enumerate([(0.18, 0.31), (0.12, 0.25), (0.25, 0.4)])}
+    f = _write_measurements(d / "batch.parquet", counts)
+    alone = pa.concat_tables([
+        range_generic(_write_measurements(d / f"alone-{k}.parquet", {k: c}), cal,
+                      estimator=est)[0] for est in ("ml", "fast") for k, c in counts.items()])
+    assert pl.from_arrow(alone).filter(pl.col("return_index") > 0).height >= 9
+    assert not pl.from_arrow(alone)["detected"].all()
+    for rows in (g.BATCH_ROWS, 18):
+        monkeypatch.setattr(g, "BATCH_ROWS", rows)
+        whole = pa.concat_tables([range_generic(f, cal, estimator=est)[0]
+                                  for est in ("ml", "fast")])
+        assert whole.column_names == alone.column_names
+        for name in whole.column_names:
+            a, b = whole.column(name).to_numpy(), alone.column(name).to_numpy()
+            assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name
+
+
 def test_tmf8820_two_captures_summed_give_both_surfaces(tmf):
     """Two real returns in one histogram: the captures at 0.18 and 0.31 m (three FWHMs of
     the measured response apart, the far one ~30 % of the signal), each zone's pile-up
@@ -292,16 +347,8 @@ def test_tmf8820_two_captures_summed_give_both_surfaces(tmf):
     by = {m.name: m for m in read_generic(d / "h.parquet")}
     pick = [truth.sort((pl.col("distance_m") - x).abs()).row(0) for x in (0.18, 0.31)]
     (na, da), (nb, db) = pick
-    a, b = by[na], by[nb]
-    lam = _coates(a.counts[~a.reference], cal.cycles) + _coates(b.counts[~b.reference],
-                                                                cal.cycles)
-    counts = np.vstack([_piled(lam, cal.cycles), a.counts[a.reference]])
     f = d / "pair.parquet"
-    pq.write_table(pa.table({
-        "measurement": ["pair"] * 10, "tdc": pa.array(range(10), pa.uint16()),
-        "counts": [r.astype(np.int64).tolist() for r in counts],
-        "cycles": pa.nulls(10, pa.uint64()), "instrument": ["generic"] * 10,
-        "bin_width_ps": [91.0] * 10, "reference": [False] * 9 + [True]}), f)
+    _write_measurements(f, {"pair": _summed(by[na], by[nb], cal.cycles)})
     table, _ = range_generic(f, cal)
     df = pl.from_arrow(table).filter(pl.col("detected"))
     assert df.group_by("tdc").len()["len"].to_list() == [2] * 9
