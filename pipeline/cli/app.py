@@ -312,10 +312,13 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
                    "file (more: with --zero its returns are the measured response; with "
                    "--delay-ps only a warning, the search's tails being Gaussian) and on "
                    "generic histograms without a calibration, which refuse more].")
+@click.option("--allow-truncated", is_flag=True,
+              help="PTU T3: range a file (or a --zero file) cut short anyway, flagged "
+                   "tcspc.truncated in the output (without it: nothing written, exit 3).")
 @_format
 @_quiet
 def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
-              max_returns, fmt, quiet) -> None:
+              max_returns, allow_truncated, fmt, quiet) -> None:
     """Distance per pixel (eq. 5.4) with uncertainty and a detection decision.
 
     CAPTURE is a tcspc capture (with --calibration), or a PicoQuant T3 file or its
@@ -329,7 +332,7 @@ def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero
     """
     try:
         _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
-               max_returns, fmt, quiet)
+               max_returns, fmt, quiet, allow_truncated)
     except ValueError as exc:  # an argument or a histogram the estimators refuse: one line
         from schemas.errors import TcspcError
 
@@ -339,7 +342,7 @@ def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero
 
 
 def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
-           max_returns, fmt, quiet) -> None:
+           max_returns, fmt, quiet, allow_truncated=False) -> None:
     from pipeline.cli import instruments
     from stages.ranging.validation import check_delay, check_p_fa, check_sigma
 
@@ -367,7 +370,8 @@ def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, g
         # further returns need the measured response, which --zero's file gives: 3 by
         # default with it, else 1 (and a warning when more are asked)
         instruments.range_instrument(capture, fmt, out, delay_ps, zero, gate, estimator,
-                                     irf_ps, p_fa, "2212b", quiet, max_returns)
+                                     irf_ps, p_fa, "2212b", quiet, max_returns,
+                                     allow_truncated)
         return
     if calibration is None:
         raise click.UsageError("a tcspc capture needs --calibration")

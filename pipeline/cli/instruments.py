@@ -201,9 +201,20 @@ def _gate(gate: str | None):
     return lo, hi
 
 
+def _truncated(path, table, summary) -> str | None:
+    """What a file cut short holds (None: whole): a PTU file's summary, or a histograms
+    file flagged ``tcspc.truncated`` by the command that wrote it."""
+    if summary is not None:
+        return (f"{path} is truncated: its {summary.records:,} whole records before the "
+                "damage") if summary.truncated else None
+    if (table.schema.metadata or {}).get(b"tcspc.truncated") == b"True":
+        return f"{path} is flagged truncated (histograms of a file cut short)"
+    return None
+
+
 def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estimator,
                      irf_ps, p_fa, firmware: str, quiet: bool,
-                     max_returns: int | None = None) -> None:
+                     max_returns: int | None = None, allow_truncated: bool = False) -> None:
     """Ranges of a T3 file's (or its histograms') channels on the instrument's own uniform
     time axis, with a given delay or one measured on a zero-distance file. One return a
     channel unless ``max_returns`` asks for more: then the zero file's returns are the
@@ -223,11 +234,21 @@ def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estima
                                "--zero ZERO_DISTANCE_FILE (not both)")
     t0 = time.perf_counter()
     g = _gate(gate)
-    table, _ = histograms_of(path, fmt, None, firmware, "tdc")
+    table, summary = histograms_of(path, fmt, None, firmware, "tdc")
+    cut = [_truncated(path, table, summary)]
     sigma = None if irf_ps is None else irf_ps * 1e-12
     response = None
     if zero is not None:
-        ztable, _ = histograms_of(zero, detect(zero, None), None, firmware, "tdc")
+        ztable, zsummary = histograms_of(zero, detect(zero, None), None, firmware, "tdc")
+        cut.append(_truncated(zero, ztable, zsummary))
+    cut = [c for c in cut if c]
+    if cut and not allow_truncated:  # a delay or a return from part of a file: refused
+        raise Truncated("; ".join(cut) + ": its ranges would come from part of a "
+                        "measurement; nothing written (--allow-truncated ranges it anyway, "
+                        "flagged in the output)")
+    for c in cut:
+        warn(c + " (--allow-truncated: ranged anyway, flagged tcspc.truncated)")
+    if zero is not None:
         delay, zsigma = measured_delay(ztable, sigma, estimator, p_fa, g)
         if ztable.num_rows != table.num_rows:
             raise click.ClickException(f"{zero} has {ztable.num_rows} channels, {path} "
@@ -259,7 +280,8 @@ def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estima
     ranges = ranges_table(name, est, d, s)
     ranges = ranges.replace_schema_metadata({
         **ranges.schema.metadata, b"tcspc.source": str(path).encode(),
-        b"tcspc.delay": how.encode(), b"tcspc.time_axis": note.encode()})
+        b"tcspc.delay": how.encode(), b"tcspc.time_axis": note.encode(),
+        **({b"tcspc.truncated": b"True"} if cut else {})})
     import pyarrow.parquet as pq
 
     with atomic_path(out) as tmp:

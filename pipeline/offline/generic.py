@@ -72,9 +72,13 @@ class DistanceCalibration:
     #: included): the model of a found return when several are searched (a reference
     #: channel's tail is another optical path's)
     returns_response: Response | None = None
+    #: whether its measurements had a reference channel: every time is then relative to
+    #: the reference's return, and a file ranged with it must have one too (None: unknown)
+    reference: bool | None = None
 
     def save(self, out: str | Path) -> Path:
         doc = {"kind": "distance", "tdc": self.tdc, "nominal_bin_ps": self.nominal_bin_ps,
+               "reference": self.reference,
                "fits": self.fits, "cycles": self.cycles, "pileup": self.pileup,
                "measurements": self.measurements, "distances_m": self.distances_m,
                "response": _response_doc(self.response),
@@ -91,11 +95,34 @@ class DistanceCalibration:
             raise CalibrationError(f"{path}: no {CALIBRATION_FILE} (made by `tcspc calibrate "
                                    "distance`)")
         doc = json.loads(f.read_text())
+        response = _response_of(doc.get("response"))
+        reference = doc.get("reference")
+        if reference is None and response is not None:  # (made before the key was kept)
+            reference = response.source.startswith("reference channel")
         return cls(doc["tdc"], doc["nominal_bin_ps"], doc["fits"],
-                   _response_of(doc.get("response")), doc.get("cycles"),
+                   response, doc.get("cycles"),
                    doc.get("pileup", ""), doc.get("measurements", []),
                    doc.get("distances_m", []), str(path),
-                   returns_response=_response_of(doc.get("returns_response")))
+                   returns_response=_response_of(doc.get("returns_response")),
+                   reference=reference)
+
+    def check_layout(self, m: Measurement, path) -> None:
+        """Refuse a measurement the calibration's times do not apply to: one whose rows it
+        did not fit, or with a reference channel where its measurements had none (or the
+        reverse: a time relative to the reference's return is ~0.2 m off the TMF8820's
+        time after its pulse)."""
+        extra = sorted(set(m.tdc[~m.reference].tolist()) - set(self.tdc))
+        if extra:
+            raise CalibrationError(f"{path}: measurement {m.name}: rows {_span(extra)} have "
+                                   f"no calibration in {self.path} (it fitted rows "
+                                   f"{_span(self.tdc)})")
+        has = bool(np.any(m.reference))
+        if self.reference is not None and has != self.reference:
+            raise CalibrationError(
+                f"{path}: measurement {m.name} has {'a' if has else 'no'} reference channel, "
+                f"{self.path} was fitted on measurements {'with' if self.reference else 'without'}"
+                " one (times are measured from the reference's return when there is one): "
+                "calibrate on files of the same layout")
 
     def preferred(self, estimator: str) -> str:
         """The fit ``range`` uses for ``estimator`` when no response is asked for: for
@@ -296,6 +323,14 @@ def _batches(firsts: list[_First]) -> list[list[int]]:
     return out
 
 
+def _span(rows) -> str:
+    """Row numbers, short: ``0-8`` for a run, else the list."""
+    rows = sorted(int(r) for r in rows)
+    if len(rows) > 2 and rows == list(range(rows[0], rows[-1] + 1)):
+        return f"{rows[0]}-{rows[-1]}"
+    return ", ".join(map(str, rows))
+
+
 def read_truth(path: str | Path) -> dict[tuple[str, int | None], float]:
     """truth.csv: ``measurement,distance_m`` and optionally ``tdc`` (a row's own distance)."""
     with open(path, newline="") as fh:
@@ -364,12 +399,17 @@ def calibrate_distance(path: str | Path, truth_csv: str | Path,
             raise CalibrationError(f"{path}: measurement {m.name} has rows "
                                    f"{m.tdc[~m.reference].tolist()}, {meas[0].name} "
                                    f"{tdc.tolist()}")
+    refs = {bool(np.any(m.reference)) for m in meas}
+    if len(refs) > 1:
+        raise CalibrationError(f"{path}: some measurements have a reference channel and some "
+                               "do not; their times cannot share one calibration")
     dist = np.array([[truth.get((m.name, int(t)), truth.get((m.name, None), np.nan))
                       for t in tdc] for m in meas])
     nominal = meas[0].bin_width_s
     cal = DistanceCalibration([int(t) for t in tdc], nominal * 1e12,
                               measurements=[m.name for m in meas],
-                              distances_m=np.nanmedian(dist, axis=1).tolist())
+                              distances_m=np.nanmedian(dist, axis=1).tolist(),
+                              reference=refs.pop())
     order = np.argsort(cal.distances_m)
     mid = meas[order[len(order) // 2]]
     if mid.reference.any():
@@ -501,6 +541,15 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
                               strict=True))
     tables, info = [], {}
     meas = read_generic(path)
+    for m in meas:
+        if calibration is not None:
+            calibration.check_layout(m, path)
+        elif zero is not None and bool(np.any(m.reference)) != bool(np.any(z.reference)):
+            raise CalibrationError(
+                f"{path}: measurement {m.name} has {'a' if m.reference.any() else 'no'} "
+                f"reference channel, the zero-distance file {zero} "
+                f"{'has' if z.reference.any() else 'has not'} (times are measured from the "
+                "reference's return when there is one)")
     for m, tm in zip(meas, measurements_times(meas, estimator, p_fa, response, sigma_s, cycles,
                                               max_returns, returns_response), strict=True):
         scale = np.ones(tm.tdc.size)

@@ -119,3 +119,27 @@ def test_with_a_zero_file_further_returns_are_searched_with_its_measured_respons
     r = pl.read_parquet(out)
     assert r.height == 2 and r["return_index"].max() == 0  # no tail found as a surface
     assert r["detected"].all() and (r["distance_m"] == 0).all()
+
+
+def test_a_truncated_instrument_file_is_not_ranged_unless_allowed(tmp_path):
+    """A PTU file cut short, as the target or as the zero: nothing written, exit 3 (a
+    delay measured on half a zero file put the file's own return 1-2 cm away, exit 0);
+    --allow-truncated ranges it, flagged in the output's metadata."""
+    from pathlib import Path
+
+    import pyarrow.parquet as pq
+
+    ptu = Path(__file__).parents[2] / "data" / "picoquant" / "hydraharp_v20_t3.ptu"
+    cut = tmp_path / "cut.ptu"
+    cut.write_bytes(ptu.read_bytes()[:200_002])
+    runner = CliRunner()
+    for args in (["range", str(ptu), "--zero", str(cut)], ["range", str(cut), "--zero", str(ptu)],
+                 ["range", str(cut), "--delay-ps", "0"]):
+        out = tmp_path / "r.parquet"
+        res = runner.invoke(cli, [*args, "--out", str(out)])
+        assert res.exit_code == 3 and "cut.ptu is truncated" in res.output, res.output
+        assert not out.exists()
+    res = runner.invoke(cli, ["range", str(ptu), "--zero", str(cut), "--out", str(out),
+                              "--allow-truncated", "-q"])
+    assert res.exit_code == 0, res.output
+    assert pq.read_schema(out).metadata[b"tcspc.truncated"] == b"True"

@@ -355,3 +355,37 @@ def test_tmf8820_two_captures_summed_give_both_surfaces(tmf):
     for tdc, grp in df.group_by("tdc"):
         got = np.sort(grp["distance_m"].to_numpy())
         assert np.abs(got - [da, db]).max() < 3e-3, (tdc, got, da, db)
+
+
+def test_a_file_the_calibration_does_not_fit_is_refused_in_one_line(tmf):
+    """A calibration fitted on measurements with a reference channel (times measured from
+    its return) on a file without one read every TMF8820 zone ~0.19 m long with no word
+    of it; and rows it never fitted came out undetected, unflagged. Both refused, as is
+    a zero-distance file of the other layout."""
+    from schemas.errors import CalibrationError
+
+    d, truth, cal, _ = tmf
+    one = pl.read_parquet(d / "h.parquet").filter(pl.col("measurement") == cal[1])
+    noref = d / "noref.parquet"
+    one.filter(~pl.col("reference")).write_parquet(noref)
+    calib = DistanceCalibration.load(d / "cal")
+    assert calib.reference is True
+    with pytest.raises(CalibrationError, match="has no reference channel.*fitted on "
+                                               "measurements with one"):
+        range_generic(noref, calib)
+    moved = d / "moved.parquet"
+    one.with_columns(pl.when(pl.col("reference")).then(pl.col("tdc"))
+                     .otherwise(pl.col("tdc") + 20).alias("tdc")).write_parquet(moved)
+    with pytest.raises(CalibrationError, match="rows 20-28 have no calibration"):
+        range_generic(moved, calib)
+    with pytest.raises(CalibrationError, match="the zero-distance file"):
+        range_generic(noref, zero=d / "h.parquet")
+    # an older calibration (no "reference" key) says it by its response's source
+    doc = json.loads((d / "cal" / "distance_calibration.json").read_text())
+    doc.pop("reference")
+    old = d / "cal-old"
+    old.mkdir(exist_ok=True)
+    (old / "distance_calibration.json").write_text(json.dumps(doc))
+    assert DistanceCalibration.load(old).reference is True
+    r = tcspc("range", noref, "--calibration", d / "cal", "--out", d / "x.parquet")
+    assert r.returncode != 0 and r.stderr.count("\n") <= 2 and "reference channel" in r.stderr
