@@ -39,9 +39,12 @@ def range_generic(path: str, out: str, calibration, delay_ps, zero, gate, estima
     from pipeline.offline.generic import range_generic as rng_generic
     from schemas.errors import CalibrationError
 
-    if sum(x is not None for x in (calibration, delay_ps, zero)) != 1:
-        raise click.UsageError("generic histograms need one of --calibration (from "
-                               "`tcspc calibrate distance`), --delay-ps or --zero")
+    given = [n for n, x in (("--calibration", calibration), ("--delay-ps", delay_ps),
+                            ("--zero", zero)) if x is not None]
+    if len(given) != 1:
+        raise click.UsageError("generic histograms need exactly one of --calibration (from "
+                               "`tcspc calibrate distance`), --delay-ps or --zero"
+                               + (f"; given {' and '.join(given)}" if given else ""))
     if gate is not None:
         raise click.UsageError("--gate is for a PicoQuant T3 file")
     t0 = time.perf_counter()
