@@ -147,6 +147,10 @@ def _range(path: str, fmt: str, dest: Path, calibration: str | None,
 
     table, summary = (inst.histogram_ptu(path) if fmt == "ptu"
                       else inst.histogram_linospad2(path))
+    cut = inst.truncation(path, table, summary)
+    if cut:  # as `tcspc range`: ranges from part of a measurement are not written
+        raise ValueError(f"{cut}: not ranged (its ranges would come from part of a "
+                         "measurement)")
     est, d, s, note = inst.range_uniform(table, np.full(table.num_rows, delay_ps * 1e-12))
     ranges = ranges_table(Path(path).stem, est, d, s)
     ranges = ranges.replace_schema_metadata({**ranges.schema.metadata,

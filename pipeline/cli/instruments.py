@@ -204,17 +204,6 @@ def _gate(gate: str | None):
     return lo, hi
 
 
-def _truncated(path, table, summary) -> str | None:
-    """What a file cut short holds (None: whole): a PTU file's summary, or a histograms
-    file flagged ``tcspc.truncated`` by the command that wrote it."""
-    if summary is not None:
-        return (f"{path} is truncated: its {summary.records:,} whole records before the "
-                "damage") if summary.truncated else None
-    if (table.schema.metadata or {}).get(b"tcspc.truncated") == b"True":
-        return f"{path} is flagged truncated (histograms of a file cut short)"
-    return None
-
-
 def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estimator,
                      irf_ps, p_fa, firmware: str, quiet: bool,
                      max_returns: int | None = None, allow_truncated: bool = False) -> None:
@@ -229,7 +218,12 @@ def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estima
     import polars as pl
 
     from pipeline.io.atomic import atomic_path
-    from pipeline.offline.instruments import measured_delay, range_uniform, zero_response
+    from pipeline.offline.instruments import (
+        measured_delay,
+        range_uniform,
+        truncation,
+        zero_response,
+    )
     from pipeline.offline.ranging import ranges_table
 
     if (delay_ps is None) == (zero is None):
@@ -238,12 +232,12 @@ def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estima
     t0 = time.perf_counter()
     g = _gate(gate)
     table, summary = histograms_of(path, fmt, None, firmware, "tdc")
-    cut = [_truncated(path, table, summary)]
+    cut = [truncation(path, table, summary)]
     sigma = None if irf_ps is None else irf_ps * 1e-12
     response = None
     if zero is not None:
         ztable, zsummary = histograms_of(zero, detect(zero, None), None, firmware, "tdc")
-        cut.append(_truncated(zero, ztable, zsummary))
+        cut.append(truncation(zero, ztable, zsummary))
     cut = [c for c in cut if c]
     if cut and not allow_truncated:  # a delay or a return from part of a file: refused
         raise Truncated("; ".join(cut) + ": its ranges would come from part of a "

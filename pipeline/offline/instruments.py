@@ -40,7 +40,8 @@ C_LIGHT = 299_792_458.0
 
 __all__ = ["LINOSPAD2", "PICOQUANT_T3", "FileSummary", "decode_instrument",
            "histogram_linospad2", "histogram_ptu", "instrument_accumulator",
-           "instrument_table", "measured_delay", "range_uniform", "zero_response"]
+           "instrument_table", "measured_delay", "range_uniform", "truncation",
+           "zero_response"]
 
 
 @dataclass
@@ -301,6 +302,19 @@ def _uniform(table: pa.Table, gate_ns: tuple[float, float] | None) -> Histograms
     from stages.ranging import Histograms
 
     return Histograms(counts, edges, cycles, valid)
+
+
+def truncation(path, table: pa.Table, summary: FileSummary | None) -> str | None:
+    """What a file cut short holds, in a line (None: whole): a PTU file's ``summary``, or
+    a histograms ``table`` flagged ``tcspc.truncated`` by the command that wrote it. Its
+    ranges would come from part of a measurement: `range` and the batch flow refuse it
+    unless told."""
+    if summary is not None:
+        return (f"{path} is truncated: its {summary.records:,} whole records before the "
+                "damage") if summary.truncated else None
+    if (table.schema.metadata or {}).get(b"tcspc.truncated") == b"True":
+        return f"{path} is flagged truncated (histograms of a file cut short)"
+    return None
 
 
 def peak_times(table: pa.Table, sigma_s: float | None = None, estimator: str = "ml",

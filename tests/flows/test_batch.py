@@ -129,3 +129,11 @@ def test_calibrate_and_range_a_directory(harness, inputs, caldir, tmp_path):
     assert chip.filter(pl.col("detected"))["distance_m"].median() == pytest.approx(1.5, abs=0.1)
     ptu = pl.read_parquet(Path(res["run"]) / "range" / "hydraharp_v20_t3.ptu.parquet")
     assert ptu.height == 2
+
+    # a T3 file cut short is not ranged, as `tcspc range` refuses it: its row says why
+    (r / "cut.ptu").write_bytes((inputs / "hydraharp_v20_t3.ptu").read_bytes()[:200_002])
+    with pytest.raises(RuntimeError, match=r"1 of 3 files failed.*cut.ptu is truncated"):
+        batch(str(r), op="range", out=str(tmp_path / "rng_cut"), calibration=str(caldir),
+              delay_ps=0.0)
+    run = next((tmp_path / "rng_cut" / "runs").iterdir())
+    assert not (run / "range" / "cut.ptu.parquet").exists()
