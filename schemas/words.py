@@ -22,6 +22,17 @@ RAW_WORDS = SchemaSpec("raw_words", "1.0", (
           "word i of a stream belongs to cycle first_cycle + i // n_tdc"),
 ))
 
+#: Raw words in sparse form: a message of ``n_words`` words (its header) carries only the
+#: words that are not their position's plain no_hit word (marker bit 9 and the address,
+#: nothing else; any other word is another class), with their index in the message's span.
+#: The source sends chip words so between stages (docs/streaming.md "Sparse raw words").
+RAW_SPARSE = SchemaSpec("raw_sparse", "1.0", (
+    field("index", pa.uint32(), "", "index of the word in the message's span of n_words "
+          "words, strictly ascending; word i of the span is stream word first_word + i"),
+    field("word", pa.uint32(), "", "the raw 32-bit TDC word as a native integer; every word "
+          "of the span not listed is its position's plain no_hit word"),
+))
+
 _CLASS_TYPE = pa.dictionary(pa.int8(), pa.string())
 
 DECODED_EVENTS = SchemaSpec("decoded_events", "1.0", (

@@ -33,6 +33,7 @@ must know (at 1e-4 artifacts a cycle, ~0.015 LSB of INL).
 from __future__ import annotations
 
 import ctypes
+import functools
 import importlib.util
 import sys
 import threading
@@ -512,6 +513,218 @@ def _self_bounded_loop(words, pos0, n_tdc, phase, core_lo, core_hi, cand, d2nd, 
     _count_no_hits(class_counts, pos0, words.size, n_tdc, scratch)
 
 
+# --- the sparse form of raw words --------------------------------------------------------
+#
+# Most of a capture's words are their position's plain no_hit word (the marker and the
+# address, nothing else: 95 % of them at 5 % hits), and a word equal to that is exactly a
+# no_hit word (any other word is malformed, invalid, a hit or an artifact). So n words are
+# carried whole by the others alone: their indices in the span, ascending, and the words.
+# The source makes that form as it reads (one pass, ``_encode_loop``), cutting a fan-out's
+# TDC ranges in the same pass, and a histogram worker folds it without looking at the
+# no_hit words (``_sparse_loop``: the kernel's second pass, with no sift): at 5 % hits a
+# message is a tenth of the words' bytes and the fold a fraction of the dense one's.
+
+
+def _bswap32(w):
+    return (((w & np.uint32(0xFF)) << np.uint32(24)) | ((w & np.uint32(0xFF00)) << np.uint32(8))
+            | ((w >> np.uint32(8)) & np.uint32(0xFF00)) | (w >> np.uint32(24)))
+
+
+def _encode_loop(words, pos0, n_tdc, pattern, lo, hi, swap, index, out, sizes):
+    """The sparse form of the words of positions ``lo .. hi - 1`` in ``words`` (the first
+    at position ``pos0``): ``index[:sizes[1]]`` (in the range's own word order) and
+    ``out[:sizes[1]]``; ``sizes[0]``: the range's words. ``pattern`` is each position's
+    no_hit word as ``words`` hold it; ``swap`` byte-swaps the kept words to native order.
+    (Stores without a branch, as :func:`_sift`; one call per range: a helper taking every
+    range in one pass ran 3x slower.)"""
+    m = 0
+    sub = 0
+    pos = pos0
+    if lo == 0 and hi == n_tdc:  # every position (no fan-out): no range test per word
+        for i in range(words.size):
+            w = words[i]
+            index[m] = i
+            out[m] = w
+            m += w != pattern[pos]
+            pos += 1
+            if pos == n_tdc:
+                pos = 0
+        sub = words.size
+    for i in range(words.size if sub == 0 else 0):
+        if pos >= lo and pos < hi:
+            w = words[i]
+            index[m] = sub
+            out[m] = w
+            m += w != pattern[pos]
+            sub += 1
+        pos += 1
+        if pos == n_tdc:
+            pos = 0
+    if swap:
+        for j in range(m):
+            out[j] = _bswap32(out[j])
+    sizes[0] = sub
+    sizes[1] = m
+
+
+def _sparse_loop(index, words, n, pos0, n_tdc, phase, inblock, hits, class_counts, d2mode,
+                 offset, arts, count_arts, scratch):
+    """Fold ``n`` words given in sparse form (``index``, ``words``; the first of the span
+    at position ``pos0``) as :func:`_kernel_loop` folds them whole. (Its loop body is
+    :func:`_kernel_loop`'s, written out: as an inlined helper numba made it 4-7x slower.)"""
+    _mark_others(class_counts, n_tdc, scratch)
+    for j in range(words.size):
+        w = words[j]
+        pos = (pos0 + index[j]) % n_tdc
+        cls, p1, p2 = _classify(w, pos + offset, phase)
+        if cls == HIT:
+            d2 = ((w >> 26) & 0x1F) * 8 + p2
+            code = d2 if d2mode else ((w >> 16) & 0x3F) * 8 + p1
+            if inblock[pos, d2]:
+                hits[pos, code] += np.uint64(1)
+            else:
+                cls = ARTIFACT
+                if count_arts:
+                    arts[pos, code] += np.uint64(1)
+        if cls != NO_HIT:
+            class_counts[cls, pos] += np.uint64(1)
+    _count_no_hits(class_counts, pos0, n, n_tdc, scratch)
+
+
+@functools.lru_cache(maxsize=64)
+def no_hit_words(n_tdc: int, tdc_offset: int = 0, swapped: bool = False) -> np.ndarray:
+    """Each position's plain no_hit word (uint32, read-only): marker bit 9 and the address;
+    ``swapped``: byte-swapped (as big-endian words hold it)."""
+    out = (np.uint32(MARKER_VALUE)
+           | ((np.arange(n_tdc, dtype=np.uint32) + np.uint32(tdc_offset)) << np.uint32(1)))
+    if swapped:
+        out = out.byteswap()
+    out.flags.writeable = False
+    return out
+
+
+@dataclass(frozen=True)
+class SparseWords:
+    """``n`` consecutive raw words in sparse form: ``index`` (uint32, ascending, each below
+    ``n``) of the words that are not their position's plain no_hit word, and those
+    ``words`` (native uint32). Sliced like the words (``sw[a:b]``), and ``size`` is ``n``,
+    so code that cuts a stream of words cuts this alike."""
+
+    n: int
+    index: np.ndarray
+    words: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return self.n
+
+    def __getitem__(self, part: slice) -> SparseWords:
+        start, stop, step = part.indices(self.n)
+        if step != 1:
+            raise ValueError("sparse words are cut by ranges only")
+        stop = max(start, stop)
+        lo, hi = np.searchsorted(self.index, [start, stop])
+        return SparseWords(stop - start, self.index[lo:hi] - np.uint32(start),
+                           self.words[lo:hi])
+
+    def problem(self) -> str | None:
+        """What makes this not a sparse form of ``n`` words (None: nothing): a sender's
+        message is checked before it is folded, as whole words are by their class."""
+        if self.index.dtype != np.uint32 or self.words.dtype != np.uint32:
+            return f"index and words must be uint32, found {self.index.dtype}, {self.words.dtype}"
+        if self.index.shape != self.words.shape or self.index.ndim != 1:
+            return f"{self.index.size} indices for {self.words.size} words"
+        if self.index.size > self.n or (self.index.size and int(self.index[-1]) >= self.n):
+            return f"an index beyond the span of {self.n} words"
+        if self.index.size > 1 and not bool(np.all(self.index[1:] > self.index[:-1])):
+            return "indices not strictly ascending"
+        return None
+
+    def dense(self, first_word: int, n_tdc: int, tdc_offset: int = 0) -> np.ndarray:
+        """The words whole (native uint32), the first at stream index ``first_word``."""
+        pos = (first_word + np.arange(self.n, dtype=np.int64)) % n_tdc
+        out = no_hit_words(n_tdc, tdc_offset)[pos]
+        out[self.index.astype(np.intp)] = self.words
+        return out
+
+
+def sparse_encode(words: np.ndarray, first_word: int, n_tdc: int,
+                  ranges: list[tuple[int, int]] | None = None,
+                  engine: str | None = None) -> list[SparseWords]:
+    """The sparse form of ``words`` (uint32 of either byte order, word ``i`` at stream
+    index ``first_word + i``), one per TDC range of ``ranges`` (default: one range, all
+    TDCs): range (a, b)'s words are those of positions a..b-1, in stream order, as a
+    fan-out by TDC range sends them (its first at ``first_word // n_tdc * (b - a)`` when
+    ``first_word`` starts a cycle)."""
+    words = np.ascontiguousarray(words).ravel()
+    if words.dtype not in (np.dtype("<u4"), np.dtype(">u4")):
+        raise TypeError(f"words must be uint32, found {words.dtype}")
+    ranges = ranges or [(0, n_tdc)]
+    swap = not words.dtype.isnative
+    raw = words.view(np.uint32)
+    pattern = no_hit_words(n_tdc, 0, swap)
+    pos0 = first_word % n_tdc
+    engine = engine or default_engine()
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {ENGINES}, found {engine!r}")
+    parts, sizes = [], []
+    if engine == "numpy":
+        pos = (pos0 + np.arange(raw.size, dtype=np.int64)) % n_tdc
+        differs = raw != pattern[pos]
+    for a, b in ranges:
+        if engine == "numba":
+            cap = raw.size // n_tdc * (b - a) + min(raw.size, b - a)  # the range's words, at most
+            index, out = np.empty(cap, np.uint32), np.empty(cap, np.uint32)
+            got = np.zeros(2, np.int64)
+            fn = _native("encode")
+            if fn is not None:
+                fn(raw.ctypes.data, raw.size, pos0, n_tdc, pattern.ctypes.data, a, b, swap,
+                   index.ctypes.data, out.ctypes.data, got.ctypes.data)
+            else:
+                _jitted("encode")(raw, pos0, n_tdc, pattern, a, b, swap, index, out, got)
+            parts.append((index[:got[1]], out[:got[1]]))
+            sizes.append(got[0])
+        else:
+            mine = (pos >= a) & (pos < b)
+            keep = mine & differs
+            kept = raw[keep]
+            parts.append(((np.cumsum(mine) - 1)[keep].astype(np.uint32),
+                          kept.byteswap() if swap else kept))
+            sizes.append(int(mine.sum()))
+    return [SparseWords(int(n), i, w) for (i, w), n in zip(parts, sizes, strict=True)]
+
+
+def accumulate_sparse(sparse: SparseWords, first_word: int, tables: WordTables,
+                      hits: np.ndarray, class_counts: np.ndarray, engine: str | None = None,
+                      artifacts: np.ndarray | None = None) -> None:
+    """Fold words given in sparse form as :func:`accumulate` folds them whole (the same
+    counts; ``sparse`` checked by its :meth:`SparseWords.problem` first)."""
+    engine = engine or default_engine()
+    if engine == "numpy":
+        _accumulate_numpy(sparse.dense(first_word, tables.n_tdc, tables.tdc_offset),
+                          first_word, tables, hits, class_counts, artifacts)
+        return
+    if engine != "numba":
+        raise ValueError(f"engine must be one of {ENGINES}, found {engine!r}")
+    count = artifacts is not None
+    arts = artifacts if count else np.zeros((1, 1), np.uint64)
+    scratch = _scratch()
+    index = np.ascontiguousarray(sparse.index, np.uint32)
+    words = np.ascontiguousarray(sparse.words, np.uint32)
+    pos0 = first_word % tables.n_tdc
+    fn = _native("sparse")
+    if fn is not None and all(_plain(a, np.uint64) for a in (hits, class_counts, arts)):
+        fn(index.ctypes.data, words.ctypes.data, words.size, sparse.n, pos0, tables.n_tdc,
+           PHASE_DECODE.ctypes.data, tables.in_block_u8.ctypes.data, hits.ctypes.data,
+           hits.shape[1], class_counts.ctypes.data, tables.mode == "d2nd",
+           tables.tdc_offset, arts.ctypes.data, arts.shape[0], arts.shape[1], count,
+           scratch.ctypes.data)
+        return
+    _jitted("sparse")(index, words, sparse.n, pos0, tables.n_tdc, PHASE_DECODE,
+                      tables.in_block, hits, class_counts, tables.mode == "d2nd",
+                      tables.tdc_offset, arts, count, scratch)
+
+
 # --- the numba engine: the loops above, compiled -----------------------------------------
 #
 # The same loop bodies run either as numba-dispatched functions (``_jitted``, numba's cache)
@@ -528,9 +741,15 @@ _ARGTYPES = {
     # words, n, pos0, n_tdc, phase, core_lo, core_hi, cand, d2nd, keys, capacity, fill,
     # edge, edge dims (3), class_counts, scratch
     "self_bounded": [_P, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I, _P, _P, _I, _I, _I, _P, _P],
+    # index, words, m, n, pos0, n_tdc, phase, inblock(u8), hits, n_bins, class_counts,
+    # d2mode, offset, arts, arts_rows, arts_cols, count_arts, scratch
+    "sparse": [_P, _P, _I, _I, _I, _I, _P, _P, _P, _I, _P, _I, _I, _P, _I, _I, _I, _P],
+    # words, n, pos0, n_tdc, pattern, lo, hi, swap, index, out, sizes
+    "encode": [_P, _I, _I, _I, _P, _I, _I, _I, _P, _P, _P],
 }
-_LOOPS = {"kernel": _kernel_loop, "self_bounded": _self_bounded_loop}
-_HELPERS = (_others, _mark_others, _count_no_hits, _sift, _classify)
+_LOOPS = {"kernel": _kernel_loop, "self_bounded": _self_bounded_loop,
+          "sparse": _sparse_loop, "encode": _encode_loop}
+_HELPERS = (_others, _mark_others, _count_no_hits, _sift, _classify, _bswap32)
 _JITTED: dict = {}
 
 
@@ -598,6 +817,29 @@ def _build(name: str):
                  carray(scratch, (3, SIFT)))
 
         return numba.cfunc(sig, nopython=True)(c_kernel)
+    if name == "sparse":
+        sig = types.void(p(u32), p(u32), i64, i64, i64, i64, p(i8), p(u8), p(u64), i64,
+                         p(u64), i64, i64, p(u64), i64, i64, i64, p(i64))
+
+        def c_sparse(index, w, m, n, pos0, n_tdc, phase, inblock, hits, n_bins, cc, d2mode,
+                     offset, arts, arts_rows, arts_cols, count_arts, scratch):
+            loop(carray(index, (m,)), carray(w, (m,)), n, pos0, n_tdc, carray(phase, (16,)),
+                 carray(inblock, (n_tdc, N_CODES_2ND)), carray(hits, (n_tdc, n_bins)),
+                 carray(cc, (N_CLASSES, n_tdc)), d2mode != 0, offset,
+                 carray(arts, (arts_rows, arts_cols)), count_arts != 0,
+                 carray(scratch, (3, SIFT)))
+
+        return numba.cfunc(sig, nopython=True)(c_sparse)
+    if name == "encode":
+        sig = types.void(p(u32), i64, i64, i64, p(u32), i64, i64, i64, p(u32), p(u32),
+                         p(i64))
+
+        def c_encode(w, n, pos0, n_tdc, pattern, lo, hi, swap, index, out, sizes):
+            cap = n // n_tdc * (hi - lo) + min(n, hi - lo)
+            loop(carray(w, (n,)), pos0, n_tdc, carray(pattern, (n_tdc,)), lo, hi, swap != 0,
+                 carray(index, (cap,)), carray(out, (cap,)), carray(sizes, (2,)))
+
+        return numba.cfunc(sig, nopython=True)(c_encode)
     sig = types.void(p(u32), i64, i64, i64, p(i8), p(i64), p(i64), p(u64), p(u64), p(u32),
                      i64, p(i64), p(u64), i64, i64, i64, p(u64), p(i64))
 

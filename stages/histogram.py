@@ -13,7 +13,14 @@ import numpy as np
 
 from schemas.constants import ARTIFACT, HIT, N_CLASSES, N_CODES, N_CODES_2ND, WORD_CLASSES
 from stages.artifact import ArtifactBounds, estimate_bounds
-from stages.datapath import EDGE_KEYS, WordTables, accumulate, accumulate_self_bounded
+from stages.datapath import (
+    EDGE_KEYS,
+    SparseWords,
+    WordTables,
+    accumulate,
+    accumulate_self_bounded,
+    accumulate_sparse,
+)
 
 if TYPE_CHECKING:  # pyarrow is imported where a table is made: not on the hot path
     import pyarrow as pa
@@ -163,18 +170,22 @@ class HistogramAccumulator:
 
     def update(self, words: np.ndarray, first_word: int | None = None,
                seq: int | None = None) -> None:
-        """Fold a batch of native uint32 words in.
+        """Fold a batch of native uint32 words in (or their :class:`SparseWords` form).
 
         ``first_word`` is the stream index of ``words[0]`` (it fixes the TDC of each word);
         by default the batch continues the words already folded in. ``seq`` is the batch's
         sequence number, kept for checkpoints.
         """
-        words = np.asarray(words)
-        if words.dtype != np.uint32:
-            raise TypeError(f"{self.step_id}: words must be uint32, found {words.dtype}")
         start = self._words if first_word is None else int(first_word)
-        accumulate(words.ravel(), start, self._tables, self._hits, self._class_counts,
-                   self.engine, self._artifacts)
+        if isinstance(words, SparseWords):
+            accumulate_sparse(words, start, self._tables, self._hits, self._class_counts,
+                              self.engine, self._artifacts)
+        else:
+            words = np.asarray(words)
+            if words.dtype != np.uint32:
+                raise TypeError(f"{self.step_id}: words must be uint32, found {words.dtype}")
+            accumulate(words.ravel(), start, self._tables, self._hits, self._class_counts,
+                       self.engine, self._artifacts)
         self._words += words.size
         if seq is not None:
             self._last_seq = int(seq)

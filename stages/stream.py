@@ -15,9 +15,11 @@ from __future__ import annotations
 import numpy as np
 import pyarrow as pa
 
+from schemas.errors import Rejected
 from schemas.outputs import HISTOGRAMS
-from schemas.words import RAW_WORDS
+from schemas.words import RAW_SPARSE, RAW_WORDS
 from stages.artifact import ArtifactBounds
+from stages.datapath import SparseWords
 from stages.histogram import HistogramAccumulator
 
 
@@ -28,7 +30,8 @@ class HistogramCore:
     cycle (a fan-out by TDC range); its stream index counts its own words.
     """
 
-    in_spec = RAW_WORDS
+    #: raw words whole, or in sparse form (what a chip's source sends)
+    in_spec = {RAW_WORDS.name: RAW_WORDS, RAW_SPARSE.name: RAW_SPARSE}
     out_spec = HISTOGRAMS
 
     def __init__(self, n_tdc: int, bounds: ArtifactBounds | None = None,
@@ -143,6 +146,16 @@ class HistogramCore:
                                                   "n_tdc_total", "date") if k in header}}
         words = batch.column("word").to_numpy(zero_copy_only=False).astype(np.uint32,
                                                                           copy=False)
+        if header.get("schema") == RAW_SPARSE.name:
+            if self.instrument:
+                raise Rejected("schema_mismatch", f"{self.step_id}: sparse raw words are the "
+                               "thesis chip's; this worker folds an instrument's records")
+            index = batch.column("index").to_numpy(zero_copy_only=False).astype(np.uint32,
+                                                                               copy=False)
+            words = SparseWords(int(header["n_words"]), index, words)
+            problem = words.problem()
+            if problem:
+                raise Rejected("bad_payload", f"message {header['seq']}: {problem}")
         self._fold(int(header["first_word"]), words, int(header["seq"]))
         return self._take()
 

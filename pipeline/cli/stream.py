@@ -35,6 +35,12 @@ _journal_compression = click.option(
                             "the raw capture) or raw (RUN-N.bin).")
 
 
+_wire = click.option(
+    "--wire", type=click.Choice(["sparse", "words"]), default="sparse", show_default=True,
+    help="Send the chip's words sparse (only those that are not plain no_hit words, with "
+         "their index: a tenth of the bytes at 5 % hits) or whole.")
+
+
 def _compression(name: str) -> str | None:
     return None if name == "none" else name
 
@@ -71,8 +77,9 @@ def _skip_journaled(batches, journal, run_id):
 @_split
 @_metrics
 @_date
+@_wire
 def stage_source_sim(scene_path, cycles, pushes, seed, chip_seed, run_id, rate, journal,
-                     journal_compression, split, metrics, date) -> None:
+                     journal_compression, split, metrics, date, wire) -> None:
     """The simulator as a source: raw-word batches of SCENE_PATH."""
     from pipeline.offline.simulate import make_simulator
     from pipeline.stream.journal import JournalWriter
@@ -87,7 +94,8 @@ def stage_source_sim(scene_path, cycles, pushes, seed, chip_seed, run_id, rate, 
                        compression=_compression(journal_compression)) if journal else None
     sent = run_source(batches, list(pushes), step_id="source", run=run_id, n_tdc=n,
                       t_laser_win_ns=gate, rate_words_s=rate, journal=jw, split=_ranges(split),
-                      metrics=metrics, window_ns=sim.sm.scene.sensor.window_ns, date=date)
+                      metrics=metrics, window_ns=sim.sm.scene.sensor.window_ns, date=date,
+                      sparse=wire == "sparse")
     err.print(f"source-sim: sent {sent:,} words")
 
 
@@ -104,8 +112,9 @@ def stage_source_sim(scene_path, cycles, pushes, seed, chip_seed, run_id, rate, 
 @_date
 @click.option("--repeat", default=1, show_default=True, type=click.IntRange(1),
               help="Replay the capture this many times as one run (soak tests).")
+@_wire
 def stage_source_capture(capture, pushes, run_id, rate, journal, journal_compression, split,
-                         metrics, date, repeat) -> None:
+                         metrics, date, repeat, wire) -> None:
     """Replay a capture into the stream, at a chosen rate or as fast as it is taken."""
     from pipeline.io.capture import Capture
     from pipeline.stream.journal import JournalWriter
@@ -131,7 +140,8 @@ def stage_source_capture(capture, pushes, run_id, rate, journal, journal_compres
     sent = run_source(batches, list(pushes), step_id="source", run=run_id,
                       n_tdc=n, t_laser_win_ns=cap.meta.t_laser_win_ns,
                       rate_words_s=rate, journal=jw, split=_ranges(split), metrics=metrics,
-                      window_ns=cap.meta.window_ns, date=date, stable=cap.chunk_ring - 1)
+                      window_ns=cap.meta.window_ns, date=date, stable=cap.chunk_ring - 1,
+                      sparse=wire == "sparse")
     err.print(f"source-capture: sent {sent:,} words")
 
 

@@ -51,6 +51,8 @@ starts, as are the state directory and the resources: ``pipeline.stream.state``)
     file = "run.ptu"             # file: a PTU T3 or LinoSPAD2 file, rate (records/s),
                                  # format (default: from the content), firmware; one
                                  # histogram worker, one measurement, no [range]
+    wire = "sparse"              # sim, capture: how words go to the workers: "sparse" (the
+                                 # words that are not plain no_hit words; default) or "words"
 
     [histogram]
     workers = 2                  # fan-out by TDC range
@@ -178,17 +180,18 @@ def build(topo: Topology) -> list[Proc]:
               "--journal", journal, "--journal-compression", topo.journal_compression,
               "--split", ",".join(f"{a}:{b}" for a, b in ranges),
               "--date", topo.date, *m]
+    wire_form = ("--wire", src.get("wire") or "sparse")
     if src["kind"] == "sim":
         argv = _tcspc("stage", "source-sim", src["scene"], "--cycles",
                       src.get("cycles", 40_000), "--seed", src.get("seed", 0), "--chip-seed",
-                      src.get("chip_seed", 1), *common,
+                      src.get("chip_seed", 1), *common, *wire_form,
                       *(("--rate", src["rate"]) if src.get("rate") else ()))
     elif src["kind"] == "file":
         argv = _tcspc("stage", "source-file", src["file"], *common, "--format", src["format"],
                       "--firmware", src.get("firmware", "2212b"),
                       *(("--rate", src["rate"]) if src.get("rate") else ()))
     elif src["kind"] == "capture":
-        argv = _tcspc("stage", "source-capture", src["capture"], *common,
+        argv = _tcspc("stage", "source-capture", src["capture"], *common, *wire_form,
                       "--repeat", src.get("repeat", 1),
                       *(("--rate", src["rate"]) if src.get("rate") else ()))
     else:

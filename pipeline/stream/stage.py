@@ -457,7 +457,7 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
                context: zmq.Context | None = None, journal=None,
                split: list[tuple[int, int]] | None = None, metrics: str | None = None,
                window_ns: float | None = None, date: str | None = None,
-               token: str | None = None, stable: int = 0) -> int:
+               token: str | None = None, stable: int = 0, sparse: bool = False) -> int:
     """Send ``(first_word, words)`` batches as raw_words messages, then a stop. Returns the
     words sent. ``rate_words_s`` limits the rate (None: as fast as the consumer takes).
     With a ``journal`` (JournalWriter) every batch is journaled before it is sent. With
@@ -466,12 +466,18 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
     byte order (a capture's big-endian words are journaled as they are and swapped into
     the message: :mod:`pipeline.stream.rawwire`). ``stable``: for how many later batches a
     batch's words stay valid (a reader's ring of buffers); from 2 the journal writes them
-    without a copy (it is one batch behind), else it takes a copy."""
+    without a copy (it is one batch behind), else it takes a copy. ``sparse``: send the
+    thesis chip's words as ``raw_sparse`` messages (only the words that are not their
+    position's plain no_hit word, with their index: docs/streaming.md "Sparse raw words"),
+    made in the one pass that cuts the fan-out's ranges; the journal still takes every
+    word."""
     import numpy as np
+    import pyarrow as pa
 
     from pipeline.stream.fanout import TdcSplitter
     from pipeline.stream.rawwire import RawWordsEncoder
-    from schemas.words import RAW_WORDS
+    from schemas.words import RAW_SPARSE, RAW_WORDS
+    from stages.datapath import sparse_encode
 
     pushes = [push] if isinstance(push, str) else list(push)
     encoder = RawWordsEncoder()
@@ -558,14 +564,24 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
             else:
                 wrote = None
             parts = splitter.views(first, words) if splitter else [(first, words)]
+            if sparse:  # one pass over the words for every range (whole cycles, checked)
+                cut = sparse_encode(words, first, n_tdc, split)
+                parts = [(f, sw) for (f, _), sw in zip(parts, cut, strict=True)]
             msgs = []
             for (f, w), rng in zip(parts, split or [(0, n_tdc)], strict=True):
-                head = {"kind": "data", "schema": RAW_WORDS.name,
-                        "version": RAW_WORDS.version, "run": run, "seq": seq, "step": step_id,
+                spec = RAW_SPARSE if sparse else RAW_WORDS
+                head = {"kind": "data", "schema": spec.name,
+                        "version": spec.version, "run": run, "seq": seq, "step": step_id,
                         "first_word": int(f), "n_tdc": rng[1] - rng[0],
                         "n_tdc_total": n_tdc, "tdc_range": list(rng),
                         "t_laser_win_ns": t_laser_win_ns, **extra}
-                msgs.append(encoder.frames(head, w, token))  # the words' one copy
+                if sparse:
+                    head["n_words"] = w.n
+                    msgs.append(wire.encode(head, pa.record_batch(
+                        [pa.array(w.index), pa.array(w.words)], schema=RAW_SPARSE.schema),
+                        token))
+                else:
+                    msgs.append(encoder.frames(head, w, token))  # the words' one copy
             if pending is not None:
                 send_pending()
             pending = (msgs, wrote)

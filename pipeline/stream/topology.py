@@ -132,11 +132,13 @@ class SourceSection(_Section):
     file: str | None = None
     format: str | None = None
     firmware: Literal["2212b", "2212s"] | None = None
+    wire: Literal["sparse", "words"] | None = Field(None, description='sim and capture: '
+                                                    '"sparse" (default) or "words"')
 
 
 #: the [source] keys each kind takes (besides kind)
-SOURCE_KEYS = {"sim": ("scene", "cycles", "seed", "chip_seed", "rate"),
-               "capture": ("capture", "rate", "repeat"),
+SOURCE_KEYS = {"sim": ("scene", "cycles", "seed", "chip_seed", "rate", "wire"),
+               "capture": ("capture", "rate", "repeat", "wire"),
                "udp": ("bind", "idle", "n_tdc", "reorder_window", "max_jump_cycles", "gate_ps",
                        "first_seq"),
                "file": ("file", "format", "firmware", "rate")}

@@ -68,6 +68,13 @@ HEADER_SCHEMAS: dict[tuple[str, str | None], dict] = {
         "n_tdc": {**_int(1, 65_536), "required": True},
         "n_tdc_total": _int(1, 65_536),
         "t_laser_win_ns": {**_NUM_POS, "required": True}},
+    ("data", "raw_sparse"): {
+        **_COMMON,
+        "first_word": {**_int(), "required": True},
+        "n_words": {**_int(0, MAX_MESSAGE_BYTES), "required": True},
+        "n_tdc": {**_int(1, 65_536), "required": True},
+        "n_tdc_total": _int(1, 65_536),
+        "t_laser_win_ns": {**_NUM_POS, "required": True}},
     ("data", "histograms"): {
         **_COMMON,
         "t_laser_win_ns": {**_NUM_POS, "required": True},

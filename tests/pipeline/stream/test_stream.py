@@ -13,7 +13,8 @@ import zmq
 from pipeline.offline.simulate import make_simulator
 from pipeline.stream import wire
 from pipeline.stream.stage import run_stage
-from schemas import RAW_WORDS
+from schemas import RAW_SPARSE, RAW_WORDS
+from stages.datapath import SparseWords
 from stages.histogram import HistogramAccumulator
 from stages.stream import HistogramCore
 
@@ -193,14 +194,20 @@ def test_a_stage_that_exits_delivers_what_it_queued_for_a_slow_consumer(tmp_path
     proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "stage", "source-capture",
                              str(tmp_path / "cap.bin"), "--push", ep, "--run", "r"],
                             stderr=subprocess.DEVNULL)
-    got, stopped = 0, False
+    got, stopped, parts = 0, False, []
     try:
         while rx.poll(30_000):
-            head, batch = wire.decode(rx.recv_multipart(), RAW_WORDS)
+            head, batch = wire.decode(rx.recv_multipart(), {RAW_WORDS.name: RAW_WORDS,
+                                                            RAW_SPARSE.name: RAW_SPARSE})
             if head["kind"] == "stop":
                 stopped = True
                 break
-            got += batch.num_rows
+            assert head["schema"] == RAW_SPARSE.name  # the chip's words go sparse
+            sw = SparseWords(head["n_words"], batch.column("index").to_numpy(),
+                             batch.column("word").to_numpy())
+            assert sw.problem() is None and head["first_word"] == got
+            parts.append(sw.dense(head["first_word"], 16))
+            got += sw.size
             time.sleep(0.05)  # a consumer slower than the source: its queue is full
         assert proc.wait(timeout=60) == 0
     finally:
@@ -208,3 +215,5 @@ def test_a_stage_that_exits_delivers_what_it_queued_for_a_slow_consumer(tmp_path
         rx.close(linger=0)
         ctx.term()
     assert stopped and got == words.size
+    # the sparse messages carry every word (its own data, not the code's no_hit pattern)
+    np.testing.assert_array_equal(np.concatenate(parts), words.ravel())
