@@ -640,6 +640,23 @@ class SparseWords:
             return "indices not strictly ascending"
         return None
 
+    def cut(self, first_word: int, n_tdc: int, ranges: list[tuple[int, int]]
+            ) -> list[SparseWords]:
+        """Each TDC range's words (a fan-out's), as :func:`sparse_encode` with ``ranges``
+        gives them, from the form of whole cycles starting at ``first_word`` (numpy over
+        the listed words only: a tenth of the words at 5 % hits)."""
+        if first_word % n_tdc or self.n % n_tdc:
+            raise ValueError(f"a cut by TDC range needs whole cycles: {self.n} words at word "
+                             f"{first_word} with {n_tdc} TDCs per cycle")
+        cycle, pos = np.divmod(self.index.astype(np.int64), n_tdc)
+        out = []
+        for a, b in ranges:
+            mine = (pos >= a) & (pos < b)
+            out.append(SparseWords(self.n // n_tdc * (b - a),
+                                   (cycle[mine] * (b - a) + pos[mine] - a).astype(np.uint32),
+                                   self.words[mine]))
+        return out
+
     def dense(self, first_word: int, n_tdc: int, tdc_offset: int = 0) -> np.ndarray:
         """The words whole (native uint32), the first at stream index ``first_word``."""
         pos = (first_word + np.arange(self.n, dtype=np.int64)) % n_tdc

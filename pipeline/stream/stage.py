@@ -564,8 +564,9 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
             else:
                 wrote = None
             parts = splitter.views(first, words) if splitter else [(first, words)]
-            if sparse:  # one pass over the words for every range (whole cycles, checked)
-                cut = sparse_encode(words, first, n_tdc, split)
+            if sparse:  # one pass over the words; a fan-out's ranges cut from its result
+                (whole,) = sparse_encode(words, first, n_tdc)
+                cut = whole.cut(first, n_tdc, split) if split else [whole]
                 parts = [(f, sw) for (f, _), sw in zip(parts, cut, strict=True)]
             msgs = []
             for (f, w), rng in zip(parts, split or [(0, n_tdc)], strict=True):

@@ -176,3 +176,21 @@ def test_the_c_kernels_the_dispatcher_and_the_plain_loops_agree(monkeypatch):
     twin = once("numpy")
     for a, b, c, d in zip(native, dispatched, plain, twin, strict=True):
         assert np.array_equal(a, b) and np.array_equal(a, c) and np.array_equal(a, d)
+
+
+@settings(max_examples=40, deadline=None)
+@given(n_tdc=st.integers(1, 20), cycles=st.integers(0, 30), start=st.integers(0, 10**5),
+       cuts=st.lists(st.integers(1, 19), max_size=3), seed=st.integers(0, 2**31))
+def test_a_fanout_cut_from_the_whole_form_is_the_form_of_each_range(n_tdc, cycles, start, cuts,
+                                                                    seed):
+    words = _words(np.random.default_rng(seed), cycles, n_tdc, 0.3)
+    ranges = _ranges(n_tdc, cuts)
+    (whole,) = dp.sparse_encode(words, start * n_tdc, n_tdc)
+    direct = dp.sparse_encode(words, start * n_tdc, n_tdc, ranges)
+    for got, want in zip(whole.cut(start * n_tdc, n_tdc, ranges), direct, strict=True):
+        assert got.size == want.size
+        np.testing.assert_array_equal(got.index, want.index)
+        np.testing.assert_array_equal(got.words, want.words)
+    if n_tdc > 1:
+        with pytest.raises(ValueError, match="whole cycles"):
+            whole.cut(start * n_tdc + 1, n_tdc, ranges)
