@@ -9,6 +9,7 @@ Validation at the edges is :func:`validate`; inside hot loops compare schema ide
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import pyarrow as pa
 
@@ -48,8 +49,8 @@ class SchemaSpec:
     def major(self) -> int:
         return int(self.version.split(".")[0])
 
-    @property
-    def schema(self) -> pa.Schema:
+    @cached_property
+    def schema(self) -> pa.Schema:  # (built once: every message is checked against it)
         return pa.schema(list(self.fields), metadata={
             META_NAME: self.name.encode(), META_VERSION: self.version.encode()})
 
