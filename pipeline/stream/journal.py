@@ -109,21 +109,51 @@ def segment_number(path: Path) -> int:
     return int(path.name.split(".", 1)[0].rsplit("-", 1)[1])
 
 
-class JournalWriter:
-    def __init__(self, directory: str | Path, run: str, n_tdc: int, t_laser_win_ns: float,
-                 window_ns: float = 80.0, segment_words: int = 1 << 26,
-                 compression: str | None = DEFAULT_COMPRESSION):
-        if compression not in COMPRESSIONS:
+class FrameEncoder:
+    """One chunk as a journal segment holds it: ``encode(first_word, words)`` gives its
+    bytes and its index entry's fields (``enc``, ``bytes``, ``check``; a raw chunk's
+    ``crc32``). ``words``: uint32, native or big-endian (as a capture holds them)."""
+
+    def __init__(self, enc: str | None, n_tdc: int):
+        if enc not in COMPRESSIONS:
             raise ValueError(f"journal compression must be one of {COMPRESSIONS}, found "
-                             f"{compression!r}")
-        self.enc = compression
+                             f"{enc!r}")
+        self.enc, self.n_tdc = enc, n_tdc
         self._codec = None
-        if compression is not None:
+        if enc is not None:
             import zstandard
 
             # content checksum: a damaged frame fails to decode instead of giving words
             self._codec = zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True,
                                                    write_content_size=True)
+        self._be = np.empty(0, ">u4")
+
+    def encode(self, first_word: int, words: np.ndarray) -> tuple[bytes | memoryview, dict]:
+        n = words.size
+        if self.enc == "zstd-nohit":  # (takes native or big-endian words as they are)
+            data = nohit.encode(words, first_word, self.n_tdc)
+        elif words.dtype == np.dtype(">u4") and words.flags.c_contiguous:
+            data = words  # already as the file holds them
+        else:
+            if self._be.size < n:
+                self._be = np.empty(max(n, 1 << 20), ">u4")
+            np.copyto(self._be[:n], words, casting="unsafe")  # one byte-swap, reused buffer
+            data = self._be[:n]
+        if self._codec is not None:  # one frame per chunk (releases the GIL)
+            blob = self._codec.compress(memoryview(data).cast("B"))
+            return blob, {"bytes": len(blob), "enc": self.enc, "check": "xxh64"}
+        import zlib
+
+        blob = memoryview(data).cast("B")
+        return blob, {"crc32": zlib.crc32(blob)}
+
+
+class JournalWriter:
+    def __init__(self, directory: str | Path, run: str, n_tdc: int, t_laser_win_ns: float,
+                 window_ns: float = 80.0, segment_words: int = 1 << 26,
+                 compression: str | None = DEFAULT_COMPRESSION):
+        self.encoder = FrameEncoder(compression, n_tdc)
+        self.enc = compression
         self.dir = Path(directory)
         self.dir.mkdir(parents=True, exist_ok=True)
         self._lock = _lock_run(self.dir, run)  # before anything is written
@@ -151,7 +181,6 @@ class JournalWriter:
             except OSError:
                 pass  # (derived: the index and the sidecars hold the same)
         self.segments: list[Path] = []
-        self._be = np.empty(0, ">u4")
 
     def _rotate(self) -> None:
         self._close_segment()
@@ -171,27 +200,10 @@ class JournalWriter:
         if self.fh is None or self.words + words.size > self.segment_words:
             self._rotate()
         n = words.size
-        if self.enc == "zstd-nohit":  # (takes native or big-endian words as they are)
-            data = nohit.encode(words, first_word, self.n_tdc)
-        elif words.dtype == np.dtype(">u4") and words.flags.c_contiguous:
-            data = words  # already as the file holds them
-        else:
-            if self._be.size < n:
-                self._be = np.empty(max(n, 1 << 20), ">u4")
-            np.copyto(self._be[:n], words, casting="unsafe")  # one byte-swap, reused buffer
-            data = self._be[:n]
+        blob, fields = self.encoder.encode(first_word, words)
         entry = {"first_word": int(first_word), "segment": self.segment,
-                 "offset": self.offset, "words": int(n), **(extra or {})}
-        if self._codec is not None:  # one frame per chunk (releases the GIL)
-            blob = self._codec.compress(memoryview(data).cast("B"))
-            entry.update(bytes=len(blob), enc=self.enc, check="xxh64")
-            step = len(blob)
-        else:
-            import zlib
-
-            blob = memoryview(data).cast("B")
-            entry["crc32"] = zlib.crc32(blob)
-            step = n
+                 "offset": self.offset, "words": int(n), **(extra or {}), **fields}
+        step = len(blob) if self.enc else n
         seg_at, index_at = self.fh.tell(), self.index.tell()
         try:
             _write_all(self.fh.fileno(), blob)
@@ -333,8 +345,11 @@ def _decompress(frame: bytes, size: int | None, first_word: int, seg: Path,
     words = size // 4 if words is None else words
     limit = size if size is not None else nohit.HEADER.size + -(-words // 8) + 4 * words
     try:  # verifies the frame's content checksum when it has one
+        if zstandard.frame_content_size(frame) > limit:  # (a damaged header: no allocation)
+            raise zstandard.ZstdError(f"its header says {zstandard.frame_content_size(frame)}"
+                                      f" bytes, more than {limit}")
         raw = zstandard.ZstdDecompressor().decompress(frame, max_output_size=limit)
-    except zstandard.ZstdError as exc:
+    except (zstandard.ZstdError, MemoryError) as exc:
         raise JournalCorrupt(first_word, words, f"zstd frame in {seg.name} does "
                              f"not decode ({exc})") from None
     if size is not None and len(raw) != size:
