@@ -2,13 +2,15 @@
 the same run.
 
 1. ``--codecs``: the journal's candidate codecs on the capture's words in the source's
-   1 MiB chunks (zstd levels, LZ4 frames as pyarrow ships them): M words per CPU-second
-   (best of 3, interleaved) and the bytes kept.
+   1 MiB chunks (zstd levels, LZ4 frames as pyarrow ships them, and the zstd-nohit frames:
+   the words less their no-hit pattern, then zstd, pipeline.io.nohit): M words per
+   CPU-second (best of 3, interleaved) and the bytes kept.
 2. The source's work per batch of a capture replay, each step timed apart (CPU seconds of
    this process): read as stored, one swap-and-cut copy into the message
-   (pipeline.stream.rawwire), and zstd at the journal's level (``journal.ZSTD_LEVEL``, on
-   its own thread in the source).
-3. ``tcspc daemon`` (journal on with zstd, ``--workers`` histogram workers by TDC range,
+   (pipeline.stream.rawwire), and the journal's frame at its default encoding
+   (``journal.DEFAULT_COMPRESSION``, on its own thread in the source).
+3. ``tcspc daemon`` (journal on at each tree's default encoding, ``--workers`` histogram
+   workers by TDC range,
    measurements of ``--measurement-cycles`` cycles, the sink; a range stage with
    ``--calibration``) from each ``--tree``, interleaved: words/s from the source's first
    batch to the last measurement written, the accounting balanced, and each process's
@@ -50,34 +52,38 @@ def codec_table(capture: Path, rounds: int = 3) -> dict[str, tuple[float, float]
     import pyarrow as pa
     import zstandard
 
+    from pipeline.io import nohit
     from pipeline.io.capture import Capture
 
     cap = Capture(capture)
-    chunk = max(1, (1 << 18) // cap.meta.n_tdc) * cap.meta.n_tdc
-    chunks = [memoryview(np.ascontiguousarray(w)).cast("B")
-              for _, w in cap.iter_chunks(chunk, native=False)][:200]
-    codecs = {f"zstd {lv}": zstandard.ZstdCompressor(
-        level=lv, write_checksum=True, write_content_size=True).compress
-        for lv in (1, -1, -3, -5, -7)}
+    n_tdc = cap.meta.n_tdc
+    chunk = max(1, (1 << 18) // n_tdc) * n_tdc
+    chunks = [(f, np.array(w)) for f, w in cap.iter_chunks(chunk, native=False)][:200]
+    zstd = {lv: zstandard.ZstdCompressor(level=lv, write_checksum=True,
+                                         write_content_size=True) for lv in (1, -1, -3, -5, -7)}
+    codecs = {f"zstd {lv}": lambda f, w, z=z: z.compress(memoryview(w).cast("B"))
+              for lv, z in zstd.items()}
     lz4 = pa.Codec("lz4")
-    codecs["lz4 frame (pyarrow)"] = lambda c: lz4.compress(c, asbytes=True)
+    codecs["lz4 frame (pyarrow)"] = lambda f, w: lz4.compress(memoryview(w).cast("B"),
+                                                              asbytes=True)
+    for lv in (1, -3):  # (the journal's frame: pipeline.stream.journal.FrameEncoder)
+        codecs[f"zstd-nohit {lv}"] = lambda f, w, z=zstd[lv]: z.compress(
+            nohit.encode(w, f, n_tdc))
     best = dict.fromkeys(codecs, float("inf"))
     size = {}
     for _ in range(rounds):  # interleaved: the machine's load weighs on all alike
-        for k, f in codecs.items():
+        for k, fn in codecs.items():
             t = time.process_time()
-            size[k] = sum(len(f(c)) for c in chunks)
+            size[k] = sum(len(fn(f, w)) for f, w in chunks)
             best[k] = min(best[k], time.process_time() - t)
-    raw = sum(c.nbytes for c in chunks)
+    raw = sum(w.nbytes for _, w in chunks)
     return {k: (raw / 4 / best[k] / 1e6, size[k] / raw) for k in codecs}
 
 
 def source_steps(capture: Path, ranges, rounds: int = 2) -> dict[str, float]:
-    import zstandard
-
     from pipeline.io.capture import Capture
     from pipeline.stream.fanout import TdcSplitter
-    from pipeline.stream.journal import ZSTD_LEVEL
+    from pipeline.stream.journal import DEFAULT_COMPRESSION, ZSTD_LEVEL, FrameEncoder
     from pipeline.stream.rawwire import RawWordsEncoder
     from schemas.words import RAW_WORDS
 
@@ -85,14 +91,13 @@ def source_steps(capture: Path, ranges, rounds: int = 2) -> dict[str, float]:
     n = cap.meta.n_tdc
     chunk = max(1, (1 << 18) // n) * n
     sp = TdcSplitter(n, ranges)
-    codec = zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True,
-                                     write_content_size=True)
+    journal = FrameEncoder(DEFAULT_COMPRESSION, n)
     enc = RawWordsEncoder()
     head = {"kind": "data", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
             "run": "r", "seq": 0, "step": "source", "first_word": 0, "n_tdc": 1,
             "t_laser_win_ns": 140.0}
     d: dict[str, float] = {}
-    zstd = f"zstd level {ZSTD_LEVEL} (journal thread)"
+    zstd = f"journal {DEFAULT_COMPRESSION} {ZSTD_LEVEL} (its thread)"
 
     def tick(k, t0):
         t = time.process_time()
@@ -103,7 +108,7 @@ def source_steps(capture: Path, ranges, rounds: int = 2) -> dict[str, float]:
         t = time.process_time()
         for first, w in cap.iter_chunks(chunk, native=False):
             t = tick("read as stored", t)
-            codec.compress(memoryview(w).cast("B"))
+            journal.encode(first, w)
             t = tick(zstd, t)
             for f, view in sp.views(first, w):
                 enc.frames({**head, "first_word": f}, view)
@@ -351,7 +356,8 @@ def main() -> None:
                 cpus[tree].append(cpu)
         what = (f"udp datagram v1 paced at {args.udp_rate / 1e6:.0f} M words/s"
                 if args.source == "udp" else "capture replay")
-        print(f"\ndaemon ({what}), journal zstd, {args.workers} histogram workers"
+        print(f"\ndaemon ({what}), journal at each tree's default encoding, "
+              f"{args.workers} histogram workers"
               f"{', range' if args.calibration else ''}, sink; M words/s from the first "
               f"batch to the last measurement written (best, median of {args.repeat}); "
               "CPU-seconds per process (median), and M words per CPU-second:")

@@ -57,7 +57,7 @@ def discover(directory: str | Path) -> list[tuple[str, str]]:
             fmt = detect_format(p)
         except FormatError:
             continue  # a capture's .bin (found by its .json), a licence, a note ...
-        if fmt == "tcspc" and p.suffix in (".bin", ".zst"):
+        if fmt == "tcspc" and p.suffix in (".bin", ".zst", ".nhz"):
             continue
         found.append((str(p), fmt))
     return found

@@ -475,6 +475,8 @@ _LAZY = {  # name: (module, attribute, short help)
               "Chapter 2: link budget, ambient light, transmission, prediction, histograms."),
     "view": ("pipeline.cli.view", "view",
              "The live web page: daemon health, the sensor's histograms and maps, calibration."),
+    "journal": ("pipeline.cli.journal", "journal",
+                "The daemon's journal: a segment (any encoding) as the raw capture."),
 }
 #: Short help of the commands added by the layers above through the entry point.
 _ENTRY_HELP = {"flow": "Run or serve the Prefect flows (calibration, sweeps, reports).",

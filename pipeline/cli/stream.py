@@ -30,9 +30,11 @@ _date = click.option("--date", default=None, help="The run's date partition (def
 _accept = click.option("--accept", "senders", multiple=True,
                        help="Step id this stage takes messages from (repeat; default: any).")
 _journal_compression = click.option(
-    "--journal-compression", type=click.Choice(["zstd", "none"]), default="zstd",
-    show_default=True, help="Journal segments as zstd frames (RUN-N.bin.zst; `zstd -d` gives "
-                            "the raw capture) or raw (RUN-N.bin).")
+    "--journal-compression", type=click.Choice(["zstd-nohit", "zstd", "none"]),
+    default="zstd-nohit", show_default=True,
+    help="Journal segments as zstd frames of the words less their no-hit pattern "
+         "(RUN-N.bin.nhz; `tcspc journal export` gives the raw capture), as zstd frames of "
+         "the words (RUN-N.bin.zst; `zstd -d` gives it) or raw (RUN-N.bin).")
 
 
 _wire = click.option(

@@ -74,10 +74,16 @@ class CaptureMeta:
         return cls(**{k: v for k, v in d.items() if k in known})
 
 
+#: a compressed capture's file suffix (after NAME.bin) and its encoding
+COMPRESSED_ENC = {".zst": "zstd", ".nhz": "zstd-nohit"}
+COMPRESSED = tuple(f".bin{ext}" for ext in COMPRESSED_ENC)
+
+
 def capture_paths(path: str | os.PathLike) -> tuple[Path, Path]:
-    """``(NAME.bin, NAME.json)`` from any of NAME, NAME.bin, NAME.bin.zst or NAME.json."""
+    """``(NAME.bin, NAME.json)`` from any of NAME, NAME.bin, NAME.bin.zst, NAME.bin.nhz or
+    NAME.json."""
     p = Path(path)
-    if p.name.endswith(".bin.zst"):
+    if p.name.endswith(COMPRESSED):
         p = p.with_suffix("")
     if p.suffix in (".bin", ".json"):
         p = p.with_suffix("")
@@ -89,7 +95,7 @@ def _not_a_capture(given: Path, bin_path: Path) -> str:
     what = "a capture is NAME.bin (raw 32-bit words) with NAME.json beside it"
     if given.is_dir():
         return f"{given}: a directory, not a capture; {what}"
-    if given.is_file() and given != bin_path and given.suffix not in (".json", ".zst"):
+    if given.is_file() and given != bin_path and given.suffix not in (".json", ".zst", ".nhz"):
         return f"{given}: not a capture ({bin_path.name} not found); {what}"
     return f"{given}: capture not found ({bin_path} does not exist); {what}"
 
@@ -113,12 +119,15 @@ class Capture:
 
     def __init__(self, path: str | os.PathLike, strict: bool = True):
         self.bin_path, self.json_path = capture_paths(path)
-        zst = self.bin_path.with_name(self.bin_path.name + ".zst")
-        # a zstd-compressed capture (a journal segment, see pipeline.stream.journal): the same
-        # words, read through a streaming decompressor
-        self.compressed = not self.bin_path.is_file() and zst.is_file()
-        if self.compressed:
-            self.bin_path = zst
+        # a compressed capture (a journal segment, see pipeline.stream.journal): the same
+        # words, read through a streaming decoder (zstd's, or the zstd-nohit frames')
+        self.compressed = None
+        if not self.bin_path.is_file():
+            for ext, enc in COMPRESSED_ENC.items():
+                packed = self.bin_path.with_name(self.bin_path.name + ext)
+                if packed.is_file():
+                    self.bin_path, self.compressed = packed, enc
+                    break
         if not self.bin_path.is_file():
             raise CaptureError(_not_a_capture(Path(path), self.bin_path))
         if not self.json_path.is_file():
@@ -150,6 +159,10 @@ class Capture:
         return self.bin_path.name.split(".", 1)[0]
 
     def _open(self):
+        if self.compressed == "zstd-nohit":
+            from pipeline.io.nohit import FrameReader
+
+            return FrameReader(self.bin_path)
         if self.compressed:
             import pyarrow as pa
 

@@ -42,7 +42,8 @@ def detect_format(path: str | Path) -> str:
 
     bin_path, json_path = capture_paths(path)
     if json_path.is_file() and (
-            bin_path.is_file() or bin_path.with_name(bin_path.name + ".zst").is_file()):
+            bin_path.is_file() or any(bin_path.with_name(bin_path.name + ext).is_file()
+                                   for ext in (".zst", ".nhz"))):
         return "tcspc"
     if path.is_file():
         from pipeline.io.linospad2 import looks_like_linospad2

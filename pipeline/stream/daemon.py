@@ -33,8 +33,9 @@ starts, as are the state directory and the resources: ``pipeline.stream.state``)
     restart_backoff_max_s = 30   # the window, up to this
     journal_keep_gb = 50         # prune the oldest consumed segments beyond this (default:
                                  # keep all; a week-long run needs a bound)
-    journal_compression = "zstd" # zstd (default: ~6 % of the raw bytes in photon-starving
-                                 # light; `zstd -d` gives the raw capture) or "none"
+    journal_compression = "zstd-nohit" # (default: ~7 % of the raw bytes in photon-starving
+                                 # light; `tcspc journal export` gives the raw capture),
+                                 # "zstd" (`zstd -d` gives it) or "none"
     metrics = "ipc://..."        # default ipc://STATE/sock/metrics
     hwm = 4                      # ZeroMQ high-water mark, messages per socket
     curve = "auto"               # ZeroMQ CURVE (keys in STATE/curve): "auto" turns it on

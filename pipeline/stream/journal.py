@@ -37,15 +37,29 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.io import nohit
 from pipeline.io.capture import CaptureMeta
 from schemas.errors import TcspcError
 
-COMPRESSIONS = ("zstd", None)
+COMPRESSIONS = ("zstd-nohit", "zstd", None)
+DEFAULT_COMPRESSION = "zstd-nohit"
+#: each encoding's segment file suffix (after ``.bin``); entries name theirs (``enc``)
+SUFFIXES = {None: "", "zstd": ".zst", "zstd-nohit": ".nhz"}
 # zstd's fast level -3: 1.3x level 1's words per CPU-second at 5 % and at 18 % hits, for
 # 6.6 % against 6.1 % and 23 % against 20 % of the bytes; LZ4 (pyarrow's) is no faster and
 # twice the size at 5 % (`python benchmarks/source_path.py --codecs`, docs/performance.md).
 # A level is the writer's choice only: the frames, and every reader, are zstd's.
 ZSTD_LEVEL = -3
+
+
+class JournalEncodingUnknown(TcspcError, ValueError):
+    """An index entry whose encoding (``enc``) this reader does not know (a newer writer's)."""
+
+    def __init__(self, enc, first_word: int | None = None):
+        at = "" if first_word is None else f" (the chunk at word {first_word})"
+        super().__init__(f"journal encoding {enc!r}{at} is not one this tcspc reads "
+                         f"({', '.join(repr(e) for e in SUFFIXES)}); read it with the "
+                         "tcspc that wrote it")
 
 
 class JournalCorrupt(TcspcError, ValueError):
@@ -75,15 +89,19 @@ class JournalLocked(TcspcError, OSError):
     """Another live process is writing this run's journal (one run, one writer)."""
 
 
-def segment_path(directory: str | Path, run: str, segment: int, enc: str | None) -> Path:
-    """A segment's file: ``RUN-000000.bin``, or ``RUN-000000.bin.zst`` when compressed."""
-    return Path(directory) / f"{run}-{segment:06d}.bin{'.zst' if enc == 'zstd' else ''}"
+def segment_path(directory: str | Path, run: str, segment: int, enc: str | None,
+                 first_word: int | None = None) -> Path:
+    """A segment's file: ``RUN-000000.bin`` (raw), ``.bin.zst`` (zstd) or ``.bin.nhz``
+    (zstd-nohit); JournalEncodingUnknown for an encoding this reader does not know."""
+    if enc not in SUFFIXES:
+        raise JournalEncodingUnknown(enc, first_word)
+    return Path(directory) / f"{run}-{segment:06d}.bin{SUFFIXES[enc]}"
 
 
 def segment_files(directory: str | Path, run: str) -> list[Path]:
     """The run's segment files, raw and compressed, in segment order."""
     d = Path(directory)
-    return sorted([*d.glob(f"{run}-*.bin"), *d.glob(f"{run}-*.bin.zst")],
+    return sorted([p for ext in SUFFIXES.values() for p in d.glob(f"{run}-*.bin{ext}")],
                   key=lambda p: p.name.split(".", 1)[0])
 
 
@@ -91,21 +109,51 @@ def segment_number(path: Path) -> int:
     return int(path.name.split(".", 1)[0].rsplit("-", 1)[1])
 
 
-class JournalWriter:
-    def __init__(self, directory: str | Path, run: str, n_tdc: int, t_laser_win_ns: float,
-                 window_ns: float = 80.0, segment_words: int = 1 << 26,
-                 compression: str | None = "zstd"):
-        if compression not in COMPRESSIONS:
+class FrameEncoder:
+    """One chunk as a journal segment holds it: ``encode(first_word, words)`` gives its
+    bytes and its index entry's fields (``enc``, ``bytes``, ``check``; a raw chunk's
+    ``crc32``). ``words``: uint32, native or big-endian (as a capture holds them)."""
+
+    def __init__(self, enc: str | None, n_tdc: int):
+        if enc not in COMPRESSIONS:
             raise ValueError(f"journal compression must be one of {COMPRESSIONS}, found "
-                             f"{compression!r}")
-        self.enc = compression
+                             f"{enc!r}")
+        self.enc, self.n_tdc = enc, n_tdc
         self._codec = None
-        if compression == "zstd":
+        if enc is not None:
             import zstandard
 
             # content checksum: a damaged frame fails to decode instead of giving words
             self._codec = zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True,
                                                    write_content_size=True)
+        self._be = np.empty(0, ">u4")
+
+    def encode(self, first_word: int, words: np.ndarray) -> tuple[bytes | memoryview, dict]:
+        n = words.size
+        if self.enc == "zstd-nohit":  # (takes native or big-endian words as they are)
+            data = nohit.encode(words, first_word, self.n_tdc)
+        elif words.dtype == np.dtype(">u4") and words.flags.c_contiguous:
+            data = words  # already as the file holds them
+        else:
+            if self._be.size < n:
+                self._be = np.empty(max(n, 1 << 20), ">u4")
+            np.copyto(self._be[:n], words, casting="unsafe")  # one byte-swap, reused buffer
+            data = self._be[:n]
+        if self._codec is not None:  # one frame per chunk (releases the GIL)
+            blob = self._codec.compress(memoryview(data).cast("B"))
+            return blob, {"bytes": len(blob), "enc": self.enc, "check": "xxh64"}
+        import zlib
+
+        blob = memoryview(data).cast("B")
+        return blob, {"crc32": zlib.crc32(blob)}
+
+
+class JournalWriter:
+    def __init__(self, directory: str | Path, run: str, n_tdc: int, t_laser_win_ns: float,
+                 window_ns: float = 80.0, segment_words: int = 1 << 26,
+                 compression: str | None = DEFAULT_COMPRESSION):
+        self.encoder = FrameEncoder(compression, n_tdc)
+        self.enc = compression
         self.dir = Path(directory)
         self.dir.mkdir(parents=True, exist_ok=True)
         self._lock = _lock_run(self.dir, run)  # before anything is written
@@ -133,7 +181,6 @@ class JournalWriter:
             except OSError:
                 pass  # (derived: the index and the sidecars hold the same)
         self.segments: list[Path] = []
-        self._be = np.empty(0, ">u4")
 
     def _rotate(self) -> None:
         self._close_segment()
@@ -153,25 +200,10 @@ class JournalWriter:
         if self.fh is None or self.words + words.size > self.segment_words:
             self._rotate()
         n = words.size
-        if words.dtype == np.dtype(">u4") and words.flags.c_contiguous:
-            data = words  # already as the file holds them
-        else:
-            if self._be.size < n:
-                self._be = np.empty(max(n, 1 << 20), ">u4")
-            np.copyto(self._be[:n], words, casting="unsafe")  # one byte-swap, reused buffer
-            data = self._be[:n]
+        blob, fields = self.encoder.encode(first_word, words)
         entry = {"first_word": int(first_word), "segment": self.segment,
-                 "offset": self.offset, "words": int(n), **(extra or {})}
-        if self._codec is not None:  # one frame per chunk (releases the GIL)
-            blob = self._codec.compress(memoryview(data).cast("B"))
-            entry.update(bytes=len(blob), enc=self.enc, check="xxh64")
-            step = len(blob)
-        else:
-            import zlib
-
-            blob = memoryview(data).cast("B")
-            entry["crc32"] = zlib.crc32(blob)
-            step = n
+                 "offset": self.offset, "words": int(n), **(extra or {}), **fields}
+        step = len(blob) if self.enc else n
         seg_at, index_at = self.fh.tell(), self.index.tell()
         try:
             _write_all(self.fh.fileno(), blob)
@@ -257,8 +289,7 @@ def read_range(directory: str | Path, run: str, start: int, stop: int,
         a, b = max(lo, start), min(hi, stop)
         if a >= b:
             continue
-        enc = e.get("enc")
-        seg = segment_path(d, run, e["segment"], enc)
+        seg = segment_path(d, run, e["segment"], e.get("enc"), e["first_word"])
         if not seg.exists():  # pruned (retention): those words are gone
             continue
         try:
@@ -272,8 +303,8 @@ def read_range(directory: str | Path, run: str, start: int, stop: int,
         yield a, np.frombuffer(raw, ">u4").astype(np.uint32)
 
 
-def _read_chunk(seg: Path, e: dict) -> bytes:
-    """The bytes of one index entry's whole chunk, checked."""
+def _read_chunk(seg: Path, e: dict):
+    """The bytes of one index entry's whole chunk (big-endian words), checked."""
     enc, n = e.get("enc"), e["words"]
     with open(seg, "rb") as fh:
         if enc is None:
@@ -295,20 +326,34 @@ def _read_chunk(seg: Path, e: dict) -> bytes:
     if len(frame) != e["bytes"]:
         raise JournalCorrupt(e["first_word"], n, f"truncated frame: {len(frame)} of "
                              f"{e['bytes']} bytes in {seg.name} at {e['offset']}")
-    return _decompress(enc, frame, 4 * n, e["first_word"], seg)
+    if enc == "zstd":
+        return _decompress(frame, 4 * n, e["first_word"], seg)
+    content = _decompress(frame, None, e["first_word"], seg, n)
+    try:
+        return nohit.decode(content, e["first_word"], n)[1].view(np.uint8)
+    except nohit.FrameError as exc:
+        raise JournalCorrupt(e["first_word"], n, f"zstd-nohit frame in {seg.name}: "
+                             f"{exc}") from None
 
 
-def _decompress(enc: str, frame: bytes, size: int, first_word: int = 0,
-                seg: Path | None = None) -> bytes:
+def _decompress(frame: bytes, size: int | None, first_word: int, seg: Path,
+                words: int | None = None) -> bytes:
+    """A zstd frame's content, checked: ``size`` bytes exactly (None: a zstd-nohit frame's,
+    at most its header, mask and every word)."""
     import zstandard
 
+    words = size // 4 if words is None else words
+    limit = size if size is not None else nohit.HEADER.size + -(-words // 8) + 4 * words
     try:  # verifies the frame's content checksum when it has one
-        raw = zstandard.ZstdDecompressor().decompress(frame, max_output_size=size)
-    except zstandard.ZstdError as exc:
-        raise JournalCorrupt(first_word, size // 4, f"zstd frame in {seg and seg.name} does "
+        if zstandard.frame_content_size(frame) > limit:  # (a damaged header: no allocation)
+            raise zstandard.ZstdError(f"its header says {zstandard.frame_content_size(frame)}"
+                                      f" bytes, more than {limit}")
+        raw = zstandard.ZstdDecompressor().decompress(frame, max_output_size=limit)
+    except (zstandard.ZstdError, MemoryError) as exc:
+        raise JournalCorrupt(first_word, words, f"zstd frame in {seg.name} does "
                              f"not decode ({exc})") from None
-    if len(raw) != size:
-        raise JournalCorrupt(first_word, size // 4, f"zstd frame in {seg and seg.name} "
+    if size is not None and len(raw) != size:
+        raise JournalCorrupt(first_word, words, f"zstd frame in {seg.name} "
                              f"holds {len(raw)} bytes, the index says {size}")
     return raw
 
@@ -324,7 +369,7 @@ def verify(directory: str | Path, run: str) -> dict:
             continue
         out["chunks"] += 1
         out["words"] += e["words"]
-        seg = segment_path(d, run, e["segment"], e.get("enc"))
+        seg = segment_path(d, run, e["segment"], e.get("enc"), e["first_word"])
         if not seg.exists():
             out["pruned_chunks"] += 1
             continue
@@ -467,7 +512,8 @@ def pruned_words(directory: str | Path, run: str, start: int, stop: int) -> int:
             continue
         a = max(e["first_word"], start)
         b = min(e["first_word"] + e["words"], stop)
-        if a < b and not segment_path(d, run, e["segment"], e.get("enc")).exists():
+        if a < b and not segment_path(d, run, e["segment"], e.get("enc"),
+                                      e["first_word"]).exists():
             n += b - a
     return n
 

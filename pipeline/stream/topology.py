@@ -38,7 +38,7 @@ class Topology:
     sink: dict
     n_tdc: int
     journal_keep_gb: float | None = None
-    journal_compression: str = "zstd"
+    journal_compression: str = "zstd-nohit"
     restart_window_s: float = 600.0
     restart_backoff_s: float = 0.5
     restart_backoff_max_s: float = 30.0
@@ -96,7 +96,7 @@ class DaemonSection(_Section):
                   "would mean unbounded in ZeroMQ: refused)")
     journal_keep_gb: float | None = Field(None, gt=0, description="journal kept, GB, > 0 "
                                        "(leave out: keep all)")
-    journal_compression: Literal["zstd", "none"] = "zstd"
+    journal_compression: Literal["zstd-nohit", "zstd", "none"] = "zstd-nohit"
     restart_window_s: float = Field(600.0, gt=0, description="the restart budget's window, "
                                  "s, > 0")
     restart_backoff_s: float = Field(0.5, ge=0, description="wait before a restart, s (0: "

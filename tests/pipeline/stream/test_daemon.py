@@ -250,7 +250,8 @@ def test_a_reset_peak_below_the_calibrated_window_is_not_a_target(caldir):
     assert not est.detected.any(), d[est.detected]
 
 
-@pytest.mark.parametrize("enc, ext", [("zstd", ".bin.zst"), (None, ".bin")])
+@pytest.mark.parametrize("enc, ext", [("zstd-nohit", ".bin.nhz"), ("zstd", ".bin.zst"),
+                                      (None, ".bin")])
 def test_journal_retention_prunes_only_what_every_worker_is_past(tmp_path, enc, ext):
     from pipeline.stream.journal import (
         IndexSpans,

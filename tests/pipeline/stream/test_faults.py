@@ -147,12 +147,12 @@ def test_a_corrupt_journal_met_by_the_repair_path_is_reported_never_used(
         entries = [e for e in _entries(journal / "g.index.jsonl") if not e.get("end")]
         flip = next(e for e in entries if e["first_word"] <= 2 * MC * N + 5 <
                     e["first_word"] + e["words"])
-        seg = segment_path(journal, "g", flip["segment"], "zstd")
+        seg = segment_path(journal, "g", flip["segment"], flip["enc"])
         data = bytearray(seg.read_bytes())
         data[flip["offset"] + flip["bytes"] // 2] ^= 0x04
         seg.write_bytes(bytes(data))
         cut = entries[-1]
-        seg = segment_path(journal, "g", cut["segment"], "zstd")
+        seg = segment_path(journal, "g", cut["segment"], cut["enc"])
         os.truncate(seg, cut["offset"] + cut["bytes"] - 5)
         seen.update(flip=flip, cut=cut)
         return real(topo)
@@ -186,7 +186,7 @@ def test_a_corrupt_journal_met_by_the_repair_path_is_reported_never_used(
     assert f"{len(withheld)} measurement(s) withheld" in res["problems"][0]
 
 
-@pytest.mark.parametrize("enc", ["zstd", None])
+@pytest.mark.parametrize("enc", ["zstd-nohit", "zstd", None])
 def test_every_single_bit_flip_in_the_journal_is_detected(tmp_path, enc):
     rng = np.random.default_rng(7)
     w = JournalWriter(tmp_path, "r", 4, 140.0, compression=enc)

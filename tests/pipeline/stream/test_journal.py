@@ -1,6 +1,6 @@
-"""The journal's segments, compressed (zstd frames, the default) and raw: every word range
-reads back exactly, a closed compressed segment is a capture, and `zstd -d` turns it into
-the raw capture of docs/design.md byte for byte."""
+"""The journal's segments, compressed (zstd-nohit frames, the default, and zstd frames) and
+raw: every word range reads back exactly, a closed compressed segment is a capture, and
+`zstd -d` turns a zstd one into the raw capture of docs/design.md byte for byte."""
 
 import shutil
 import subprocess
@@ -35,7 +35,7 @@ def test_any_word_range_reads_back_exactly(tmp_path_factory, cuts, a, span, seg)
     chunks = [c * N_TDC for c in cuts]
     chunks[-1] += words.size - sum(chunks) if sum(chunks) < words.size else 0
     total = min(sum(chunks), words.size)
-    for enc in ("zstd", None):
+    for enc in ("zstd-nohit", "zstd", None):
         d = tmp_path_factory.mktemp(f"j{enc}")
         _journal(d, words, chunks, enc, segment_words=seg)
         lo, hi = min(a, total), min(a + span, total)
@@ -44,12 +44,13 @@ def test_any_word_range_reads_back_exactly(tmp_path_factory, cuts, a, span, seg)
         assert np.array_equal(back, words[lo:hi])
 
 
-def test_compressed_segments_are_small_captures(tmp_path):
+@pytest.mark.parametrize("enc, ext", [("zstd", ".bin.zst"), ("zstd-nohit", ".bin.nhz")])
+def test_compressed_segments_are_small_captures(tmp_path, enc, ext):
     words, _ = pattern_words(4096, N_TDC, hit_prob=0.05, rng=1)
-    _journal(tmp_path / "z", words, [256 * N_TDC] * 16, "zstd")
+    _journal(tmp_path / "z", words, [256 * N_TDC] * 16, enc)
     _journal(tmp_path / "raw", words, [256 * N_TDC] * 16, None)
     (z,), (raw,) = segment_files(tmp_path / "z", "r"), segment_files(tmp_path / "raw", "r")
-    assert z.name == "r-000000.bin.zst" and raw.name == "r-000000.bin"
+    assert z.name == "r-000000" + ext and raw.name == "r-000000.bin"
     assert z.stat().st_size < 0.2 * raw.stat().st_size  # 5 % hits: mostly no-hit words
     cap = Capture(z)  # the sidecar r-000000.json beside it, kind journal
     assert cap.compressed and cap.meta.kind == "journal" and cap.n_words == words.size
@@ -70,15 +71,16 @@ def test_zstd_d_gives_the_raw_capture(tmp_path):
     assert (tmp_path / "out.bin").read_bytes() == (tmp_path / "raw" / "r-000000.bin").read_bytes()
 
 
-def test_a_compressed_capture_shorter_than_its_sidecar_is_refused(tmp_path):
+@pytest.mark.parametrize("enc, ext", [("zstd", ".bin.zst"), ("zstd-nohit", ".bin.nhz")])
+def test_a_compressed_capture_shorter_than_its_sidecar_is_refused(tmp_path, enc, ext):
     words, _ = pattern_words(256, N_TDC, hit_prob=0.3, rng=3)
-    _journal(tmp_path, words, [128 * N_TDC] * 2, "zstd")
-    z = tmp_path / "r-000000.bin.zst"
+    _journal(tmp_path, words, [128 * N_TDC] * 2, enc)
+    z = tmp_path / f"r-000000{ext}"
     frames = z.read_bytes()
     z.write_bytes(frames[: len(frames) // 3])  # cut inside the first frame
     from schemas.errors import CaptureError
 
-    with pytest.raises(CaptureError, match="r-000000.bin.zst"):
+    with pytest.raises(CaptureError, match=f"r-000000{ext}"):
         cap = Capture(z)
         for _ in cap.iter_chunks():
             pass
