@@ -89,6 +89,19 @@ def encode(words: np.ndarray, first_word: int, n_tdc: int, native: bool = True) 
                      memoryview(others).cast("B")))
 
 
+def encode_sparse(index: np.ndarray, others: np.ndarray, n: int, first_word: int,
+                  n_tdc: int) -> bytes:
+    """The frame content :func:`encode` gives, from the words' sparse form (``index``:
+    ascending places in the chunk of the words that differ from their no-hit word,
+    ``others``: those words, native; ``stages.datapath.SparseWords``), as a chip's source
+    has it: the mask is set from the indices, no pass over the chunk's words."""
+    differs = np.zeros(n, bool)
+    differs[index] = True
+    return b"".join((HEADER.pack(MAGIC, n_tdc, n, first_word),
+                     np.packbits(differs, bitorder="little"),
+                     memoryview(np.asarray(others, np.uint32).astype(">u4")).cast("B")))
+
+
 def _split_loop(u, pattern, mask, others, fill):
     """The kernel: ``mask`` (np.packbits' little bit order) of the words of ``u`` that
     differ from ``pattern``, and those words gathered into ``others`` (room for all of

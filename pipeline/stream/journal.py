@@ -128,9 +128,15 @@ class FrameEncoder:
                                                    write_content_size=True)
         self._be = np.empty(0, ">u4")
 
-    def encode(self, first_word: int, words: np.ndarray) -> tuple[bytes | memoryview, dict]:
+    def encode(self, first_word: int, words: np.ndarray, sparse=None
+               ) -> tuple[bytes | memoryview, dict]:
+        """``sparse``: the words' :class:`stages.datapath.SparseWords` where the caller has
+        it (a chip's source): a ``zstd-nohit`` frame is then made from it, the same bytes
+        without a second pass over the words."""
         n = words.size
-        if self.enc == "zstd-nohit":  # (takes native or big-endian words as they are)
+        if self.enc == "zstd-nohit" and sparse is not None and sparse.n == n:
+            data = nohit.encode_sparse(sparse.index, sparse.words, n, first_word, self.n_tdc)
+        elif self.enc == "zstd-nohit":  # (takes native or big-endian words as they are)
             data = nohit.encode(words, first_word, self.n_tdc)
         elif words.dtype == np.dtype(">u4") and words.flags.c_contiguous:
             data = words  # already as the file holds them
@@ -191,16 +197,18 @@ class JournalWriter:
         self.words = 0
         self.segments.append(path)
 
-    def append(self, first_word: int, words: np.ndarray, extra: dict | None = None) -> None:
+    def append(self, first_word: int, words: np.ndarray, extra: dict | None = None,
+               sparse=None) -> None:
         """Journal one chunk: its bytes, then its index line. All or nothing: if the disk
         refuses either (full, read-only), both files are cut back to where they were and
         the OSError is raised, so the caller may wait and append the same chunk again.
         ``extra``: more keys for the chunk's index line (the UDP ingest's datagram
-        sequence number, from which a restarted ingest resumes)."""
+        sequence number, from which a restarted ingest resumes). ``sparse``: the chunk's
+        sparse form, where the caller made it (:meth:`FrameEncoder.encode`)."""
         if self.fh is None or self.words + words.size > self.segment_words:
             self._rotate()
         n = words.size
-        blob, fields = self.encoder.encode(first_word, words)
+        blob, fields = self.encoder.encode(first_word, words, sparse)
         entry = {"first_word": int(first_word), "segment": self.segment,
                  "offset": self.offset, "words": int(n), **(extra or {}), **fields}
         step = len(blob) if self.enc else n

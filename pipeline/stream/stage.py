@@ -514,7 +514,7 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
 
     paused = {}  # the journal writer's "disk full" while it waits (read by this thread)
 
-    def append(first, words):
+    def append(first, words, sparse=None):
         # a full disk pauses the run (the source is deterministic: nothing is lost by
         # waiting); a signal while waiting ends it after the last journaled batch
         from pipeline.stream.journal import is_disk_full
@@ -522,7 +522,7 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
         wait = 0.2
         while True:
             try:
-                journal.append(first, words)
+                journal.append(first, words, sparse=sparse)
                 paused.clear()
                 return
             except OSError as exc:
@@ -558,14 +558,15 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
             words = np.asarray(words)
             if words.dtype not in (np.dtype("<u4"), np.dtype(">u4")):
                 words = words.astype(np.uint32)
+            whole = sparse_encode(words, first, n_tdc)[0] if sparse else None
             if writer is not None:  # (a copy unless the words outlive the write)
+                # the sparse form is the journal's frame too (one pass over the words)
                 wrote = writer.submit(append, first, words if stable >= 2 else
-                                      words.astype(">u4"))
+                                      words.astype(">u4"), whole)
             else:
                 wrote = None
             parts = splitter.views(first, words) if splitter else [(first, words)]
-            if sparse:  # one pass over the words; a fan-out's ranges cut from its result
-                (whole,) = sparse_encode(words, first, n_tdc)
+            if sparse:  # a fan-out's ranges cut from the one pass's result
                 cut = whole.cut(first, n_tdc, split) if split else [whole]
                 parts = [(f, sw) for (f, _), sw in zip(parts, cut, strict=True)]
             msgs = []
