@@ -4,12 +4,17 @@ output (``--data``, the directory `tcspc demo --out` wrote: its calibration/curr
 stream/histograms), per source tree given (``--tree``, e.g. the main branch's and this
 one's), in the same run.
 
-Cases: 64 TDCs (one histogram worker's message) and 128 (the two workers' messages of a
-measurement joined), ``max_returns`` 1 and 3, the ``ml`` and ``fast`` estimators. Each
+Cases: the demo's street measurements and the test pattern's (``stages.testpattern``, what
+``benchmarks/source_path.py`` streams through the daemon: 5 % hits, half of them in a peak
+3 codes wide, 20 000 cycles, 3 measurements, histogrammed with the calibration's bounds as
+the daemon's worker does); 64 TDCs (one histogram worker's message) and 128 (the two
+workers' messages of a measurement joined), ``max_returns`` 1 and 3, the ``ml`` and
+``fast`` estimators (``--only street`` or ``--only pattern`` for one of the data). Each
 case runs in a fresh process per tree, the trees alternating, after one untimed pass
 (numba kernels, caches): best of ``--repeat`` passes over the measurements, in ms per
 measurement. The trees' ranges are compared (every column, NaN equal to NaN): "identical"
-means bit for bit.
+means bit for bit; else how far the distances are in their own sigmas and the other
+numbers relative, where the rows, detections and flags are the same (``same``).
 
 The implied throughput is the words a measurement holds over its cost, on one core:
 cycles x TDCs x words a TDC a cycle (the chip reads every TDC out every cycle, hit or
@@ -17,7 +22,7 @@ not: 1 word, checked on the messages' class counts), at 20 k and 100 k cycles a
 measurement; the range stage's cost does not grow with the cycles (it reads histograms).
 
     python benchmarks/range_stage.py --data DEMO/data --tree /path/to/main --tree .
-                                     [--repeat 5]
+                                     [--repeat 5] [--only street|pattern]
 """
 
 from __future__ import annotations
@@ -40,14 +45,24 @@ import numpy as np, pyarrow as pa, pyarrow.parquet as pq
 from pipeline.io.caldir import load_calibration
 from pipeline.offline.ranging import RangeCore
 
-data, n_tdc, k, estimator, repeat, out = sys.argv[1:7]
+data, source, n_tdc, k, estimator, repeat, out = sys.argv[1:8]
 n_tdc, k, repeat = int(n_tdc), int(k), int(repeat)
 cal = load_calibration(f"{data}/calibration/current")
-files = sorted(glob.glob(f"{data}/stream/histograms/**/*.parquet", recursive=True))
 parts = {}
-for f in files:
-    t = pq.read_table(f)
-    parts.setdefault(t["measurement"][0].as_py(), []).append(t)
+if source == "pattern":  # the daemon's benchmark words, histogrammed as its worker does
+    from stages.histogram import HistogramAccumulator
+    from stages.testpattern import pattern_words
+    for seed in range(3):
+        words, _ = pattern_words(20_000, cal.n_tdc, hit_prob=0.05, rng=seed)
+        acc = HistogramAccumulator(cal.n_tdc, cal.bounds)
+        acc.update(words, 0)
+        t = acc.snapshot().to_table(f"pattern{seed}")
+        parts[f"pattern{seed}"] = [t.slice(a, 64) for a in range(0, t.num_rows, 64)]
+else:
+    files = sorted(glob.glob(f"{data}/stream/histograms/**/*.parquet", recursive=True))
+    for f in files:
+        t = pq.read_table(f)
+        parts.setdefault(t["measurement"][0].as_py(), []).append(t)
 batches, words = [], 0.0
 for name, ts in sorted(parts.items()):
     ts = sorted(ts, key=lambda t: t["tdc"][0].as_py())
@@ -59,7 +74,7 @@ for name, ts in sorted(parts.items()):
                                                      "n_invalid_phase", "n_malformed"))
     words = float(np.mean(cls / np.asarray(t["cycles"], np.float64)))
 if not batches:
-    sys.exit(f"{data}: no histograms message of {n_tdc} TDCs in stream/histograms")
+    sys.exit(f"{data}: no histograms message of {n_tdc} TDCs ({source})")
 core = RangeCore(cal, estimator, max_returns=k, forward_histograms=False)
 
 def one(name, b):
@@ -81,20 +96,37 @@ print(json.dumps({"ms": best / len(batches) * 1e3, "measurements": len(batches),
 """
 
 
-def same(a: Path, b: Path) -> bool:
+def same(a: Path, b: Path) -> str:
+    """"identical" (every column bit for bit, NaN equal to NaN); else, where the rows,
+    detections and flags are the same, how far the numbers are: the distances in their
+    own sigmas (``sigma_m``), the other numbers relative (the widths summed in another
+    order, the ML fit's stop at a step below a part of its sigmas); "DIFFER: column"
+    where a row, a detection or a flag differs."""
     x, y = np.load(a, allow_pickle=True), np.load(b, allow_pickle=True)
     if sorted(x.files) != sorted(y.files):
-        return False
+        return "DIFFER: columns"
+    if any(x[c].shape != y[c].shape for c in x.files):
+        return "DIFFER: rows"
+    d_sig, rel = 0.0, 0.0
     for c in x.files:
         u, v = x[c], y[c]
-        if u.shape != v.shape:
-            return False
-        if u.dtype.kind == "f":
-            if not np.array_equal(u, v, equal_nan=True):
-                return False
-        elif not np.array_equal(u, v):
-            return False
-    return True
+        if u.dtype.kind != "f":
+            if not np.array_equal(u, v):
+                return f"DIFFER: {c}"
+            continue
+        if np.array_equal(u, v, equal_nan=True):
+            continue
+        if not np.array_equal(np.isnan(u), np.isnan(v)):
+            return f"DIFFER: {c} (NaN)"
+        f = np.isfinite(u) & (u != v)
+        if c == "distance_m":
+            s_ = np.asarray(x["sigma_m"], np.float64)[f]
+            d_sig = max(d_sig, float(np.max(np.abs(u[f] - v[f]) / s_)))
+        else:
+            rel = max(rel, float(np.max(np.abs(u[f] / v[f] - 1))))
+    if d_sig == 0 and rel == 0:
+        return "identical"
+    return f"distances to {d_sig:.0e} sigma, the rest to {rel:.0e}"
 
 
 def main() -> None:
@@ -103,6 +135,7 @@ def main() -> None:
     ap.add_argument("--data", type=Path, required=True, help="a `tcspc demo` output")
     ap.add_argument("--tree", action="append", type=Path, required=True)
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--only", choices=("street", "pattern"), default=None)
     args = ap.parse_args()
     print("$ python benchmarks/range_stage.py " + " ".join(sys.argv[1:]))
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
@@ -110,34 +143,35 @@ def main() -> None:
           "start (one process at a time, one core)")
     trees = [t.resolve() for t in args.tree]
     names = " | ".join(f"{t} ms" for t in args.tree)
-    print(f"\n| TDCs | K | estimator | {names} | ranges | M words/s at 20 k / 100 k cycles"
-          " (last tree) | load |")
-    print("|---|---|---|" + "---|" * len(trees) + "---|---|---|")
+    print(f"\n| data | TDCs | K | estimator | {names} | ranges | M words/s at 20 k / 100 k "
+          "cycles (last tree) | load |")
+    print("|---|---|---|---|" + "---|" * len(trees) + "---|---|---|")
+    sources = [args.only] if args.only else ["street", "pattern"]
+    cases = [(src, n, k, e) for src in sources for n in (64, 128) for k in (1, 3)
+             for e in ("ml", "fast")]
     with tempfile.TemporaryDirectory() as tmp:
-        for n_tdc in (64, 128):
-            for k in (1, 3):
-                for est in ("ml", "fast"):
-                    got, outs = [], []
-                    for i, tree in enumerate(trees):
-                        out = Path(tmp) / f"{n_tdc}-{k}-{est}-{i}.npz"
-                        env = {**os.environ, "PYTHONPATH": str(tree)}
-                        res = subprocess.run(
-                            [sys.executable, "-c", WORKER, str(args.data.resolve()),
-                             str(n_tdc), str(k), est, str(args.repeat), str(out)],
-                            capture_output=True, text=True, env=env, cwd=tree)
-                        if res.returncode != 0:
-                            raise SystemExit(f"{tree}: {n_tdc} TDCs K={k} {est} failed:\n"
-                                             f"{res.stderr[-2000:]}")
-                        got.append(json.loads(res.stdout.strip().splitlines()[-1]))
-                        outs.append(out)
-                    ok = all(same(outs[0], o) for o in outs[1:])
-                    last = got[-1]
-                    rate = [c * n_tdc * last["words_per_tdc_cycle"] / (last["ms"] * 1e-3) / 1e6
-                            for c in (20_000, 100_000)]
-                    print(f"| {n_tdc} | {k} | {est} | "
-                          + " | ".join(f"{g['ms']:.2f}" for g in got)
-                          + f" | {'identical' if ok else 'DIFFER'} | {rate[0]:.0f} / "
-                          f"{rate[1]:.0f} | {os.getloadavg()[0]:.1f} |", flush=True)
+        for source, n_tdc, k, est in cases:
+            got, outs = [], []
+            for i, tree in enumerate(trees):
+                out = Path(tmp) / f"{source}-{n_tdc}-{k}-{est}-{i}.npz"
+                env = {**os.environ, "PYTHONPATH": str(tree)}
+                res = subprocess.run(
+                    [sys.executable, "-c", WORKER, str(args.data.resolve()), source,
+                     str(n_tdc), str(k), est, str(args.repeat), str(out)],
+                    capture_output=True, text=True, env=env, cwd=tree)
+                if res.returncode != 0:
+                    raise SystemExit(f"{tree}: {n_tdc} TDCs K={k} {est} failed:\n"
+                                     f"{res.stderr[-2000:]}")
+                got.append(json.loads(res.stdout.strip().splitlines()[-1]))
+                outs.append(out)
+            ok = "; ".join(same(outs[0], o) for o in outs[1:])
+            last = got[-1]
+            rate = [c * n_tdc * last["words_per_tdc_cycle"] / (last["ms"] * 1e-3) / 1e6
+                    for c in (20_000, 100_000)]
+            print(f"| {source} | {n_tdc} | {k} | {est} | "
+                  + " | ".join(f"{g['ms']:.2f}" for g in got)
+                  + f" | {ok} | {rate[0]:.0f} / "
+                  f"{rate[1]:.0f} | {os.getloadavg()[0]:.1f} |", flush=True)
     print(f"\n({got[-1]['measurements']} measurements a case; "
           f"{got[-1]['words_per_tdc_cycle']:.3f} words a TDC a cycle in the messages)")
 

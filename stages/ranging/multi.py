@@ -41,12 +41,12 @@ MASK_WIDTHS = 3.0
 
 
 #: what :class:`Histograms` derives row by row (the same on any of its rows)
-_PER_ROW = ("at_risk", "widths", "centres")
+_PER_ROW = ("at_risk", "widths", "centres", "lam")
 
 
 def _derived(h: Histograms, out: Histograms, rows, bin_s: bool) -> Histograms:
     """``out`` (``h``'s ``rows``) with what ``h`` derived already (at risk, widths,
-    centres; ``bin_s`` too when ``out`` has all of ``h``'s rows): not derived again."""
+    centres, intensity; ``bin_s`` too when ``out`` has all of ``h``'s rows): not derived again."""
     for name in _PER_ROW + (("bin_s",) if bin_s else ()):
         if name in h.__dict__:
             v = h.__dict__[name]
@@ -55,6 +55,9 @@ def _derived(h: Histograms, out: Histograms, rows, bin_s: bool) -> Histograms:
 
 
 def _rows(h: Histograms, rows, valid=None) -> Histograms:
+    if not isinstance(rows, slice) and len(rows) == h.counts.shape[0] and (
+            np.array_equal(rows, np.arange(len(rows)))):
+        rows = slice(None)  # every row, in order: views, not copies (the same numbers)
     return _derived(h, Histograms(h.counts[rows], h.edges_s[rows], h.cycles[rows],
                                   h.valid[rows] if valid is None else valid),
                     rows, isinstance(rows, slice) and rows == slice(None))
@@ -181,6 +184,7 @@ def estimate_returns(h: Histograms, sigma_s: float, estimator: str = "ml",
             e = estimate(sub, sigma_s, estimator, p_fa)
             for name in _NUMERIC:
                 cols[name][rows] = np.asarray(getattr(e, name), np.float64)
+    _ = h.lam  # (the intensity: computed once, read by each return's masked copy of h)
     for i, cols in enumerate(found):  # each return's measured width, the others masked
         others = [f["t_s"] for j, f in enumerate(found) if j != i]
         hm = _rows(h, slice(None), _masked(h, others, half)) if others else h

@@ -247,3 +247,61 @@ def test_the_compiled_scans_and_their_numpy_forms_agree():
         ref = bool(np.isfinite(ends).all() and (ends[:, 1] > ends[:, 0]).all()
                    and (e[:, 1:] >= e[:, :-1]).all())
         assert v._edges_scan(e) == ref
+
+
+def _widths_agree(h, t, sigma):
+    """The compiled width (its window's bins only) and the numpy one (whole rows): the same
+    rows measured, the same to the last bits of their sums."""
+    from stages.ranging.width import return_sigma
+
+    with np.errstate(all="ignore"):
+        want = return_sigma(h, t, sigma, compiled=False)
+    got = return_sigma(h, t, sigma, compiled=True)
+    for a, b in zip(got, want, strict=True):
+        assert np.array_equal(np.isnan(a), np.isnan(b)), (a, b)
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * B)
+
+
+def test_the_compiled_width_and_its_numpy_form_agree_on_the_hard_cases():
+    from stages.ranging import width
+
+    if width.numba is None:
+        pytest.skip("numba not installed")
+    n = 60
+    x = np.arange(n)
+    ret = np.random.default_rng(4).poisson(2.0 + 400 * np.exp(-0.5 * ((x - 30) / 2.5) ** 2))
+    cases = {
+        "a return": ret,
+        "zero counts": np.zeros(n),
+        "one count": np.where(x == 17, 1.0, 0.0),
+        "at the first bin": np.where(x < 3, 500.0, 1.0),
+        "at the last bin": np.where(x > n - 4, 500.0, 1.0),
+        "below the background": np.where(x == 30, 0.0, 3.0),
+    }
+    for name, c in cases.items():
+        h = hist(np.vstack([c, c]), cycles=1e5)
+        for t in (np.array([30.5 * B, np.nan]), np.array([0.0, (n - 0.5) * B]),
+                  np.array([-5 * B, 2 * n * B])):
+            for sigma in (B, 2.5 * B, 40 * B):
+                _widths_agree(h, t, sigma)
+        # a row without a time axis (NaN edges), and a dead code (zero width)
+        e = np.tile(np.arange(n + 1) * B, (2, 1))
+        e[0, 10] = np.nan
+        e[1, 31] = e[1, 30]
+        _widths_agree(hist(np.vstack([c, c]), cycles=1e5, edges=e),
+                      np.array([30.5 * B, 30.5 * B]), 2.5 * B)
+
+
+@given(case=anything(), where=st.floats(-0.2, 1.2))
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+def test_the_compiled_width_and_its_numpy_form_agree_on_anything(case, where):
+    from stages.ranging import width
+
+    if width.numba is None:
+        pytest.skip("numba not installed")
+    h, sigma, _, _ = case
+    if not (np.isfinite(sigma) and sigma > 0):
+        return
+    with np.errstate(all="ignore"):
+        t = h.edges_s[:, 0] + where * (h.edges_s[:, -1] - h.edges_s[:, 0])
+    _widths_agree(h, t, sigma)

@@ -1,4 +1,14 @@
-"""The range stage's faster path gives the results of the one it replaced, bit for bit.
+"""The range stage's faster path gives the results of the one it replaced, bit for bit,
+but for two changes of arithmetic, each tested apart with its tolerance:
+
+- the widths (``fwhm_s``): the compiled width sums each round's window only, its
+  additions in another order than numpy's pairwise sums over whole rows, so a width may
+  differ from the earlier one in its last bits (:data:`WIDTH_RTOL`, a million times below
+  the photon noise of a width measured on even 10^6 counts, ~1e-3);
+- the ML fit stops when a step moves its time and signal by less than
+  :data:`stages.ranging.ml.STEP_TOL` of their own sigmas; with that tolerance 0 (the
+  earlier rule: fixed points and the iteration limit only) the results are the earlier
+  ones, and with it they move by a small part of their own sigmas (:data:`ML_SIGMAS`).
 
 The reference below is the earlier code, kept here: the splines built at every call, one
 median per TDC in ``light_end``, a calibration's TDC range built at every call, each
@@ -249,8 +259,9 @@ def ref_ml_kernel():
 def patch_earlier(m, ml_kernel=None):
     """The earlier range stage, patched in (``m``: a monkeypatch; ``ml_kernel``: the ML
     fit's loop as it was, where numba is installed)."""
-    if ml_kernel is not None:
-        m.setattr(importlib.import_module("stages.ranging.ml"), "_ml_numba", ml_kernel)
+    if ml_kernel is not None:  # (the earlier loop had no step tolerance: fixed points only)
+        m.setattr(importlib.import_module("stages.ranging.ml"), "_ml_numba",
+                  lambda *a: ml_kernel(*a[:-1]))
     m.setattr(cal.LsbFit, "lsb_ps", ref_lsb_ps)
     m.setattr(cal, "scale_at_light", ref_scale_at_light)
     m.setattr(cal, "scale_spread", ref_scale_spread)
@@ -307,11 +318,24 @@ def _run(calib, state, window_s, **kw):
             "distance": d, "sigma_m": s, "note": note}
 
 
+#: how far a width summed over its window may be from the one summed over whole rows
+#: (~1e-16 a sum, a few sums a round; measured <= 5e-16 on these measurements)
+WIDTH_RTOL = 1e-12
+
+
+#: how far the ML fit's stop at a step below STEP_TOL of its sigmas may move its time
+#: (in the estimate's own sigma) and its signal and sigma (relative)
+ML_SIGMAS, ML_RTOL = 0.01, 1e-3
+
+
 def _same(a: dict, b: dict):
     assert a.keys() == b.keys()
     for k in a:
         x, y = a[k], b[k]
-        if isinstance(x, str):
+        if k == "fwhm_s":
+            assert np.array_equal(np.isnan(x), np.isnan(y)), k
+            np.testing.assert_allclose(x, y, rtol=WIDTH_RTOL, err_msg=k)
+        elif isinstance(x, str):
             assert x == y, k
         elif np.asarray(x).dtype.kind == "f":
             assert np.array_equal(x, y, equal_nan=True), (k, x, y)
@@ -320,12 +344,13 @@ def _same(a: dict, b: dict):
 
 
 @pytest.mark.parametrize("estimator", ["ml", "fast"])
-def test_range_state_gives_the_earlier_results_bit_for_bit(measurements, calibration,
+def test_range_state_gives_the_earlier_results(measurements, calibration,
                                                            estimator, monkeypatch,
                                                            ref_ml_kernel):
     states, window_s = measurements
     cases = [(name, st, k, situ) for name, st in states for k in (1, 3)
              for situ in (False, True)]
+    monkeypatch.setattr(importlib.import_module("stages.ranging.ml"), "STEP_TOL", 0.0)
     new = [_run(calibration, st, window_s, estimator=estimator, max_returns=k,
                 in_situ=situ) for _, st, k, situ in cases]
     again = [_run(calibration, st, window_s, estimator=estimator, max_returns=k,
@@ -344,10 +369,35 @@ def test_range_state_gives_the_earlier_results_bit_for_bit(measurements, calibra
         _same(b, c)
 
 
+@pytest.mark.parametrize("situ", [False, True])
+def test_the_ml_fits_step_tolerance_moves_it_by_a_small_part_of_its_sigma(
+        measurements, calibration, monkeypatch, situ):
+    """The ML fit's stop at a step below STEP_TOL of its sigmas against its stop at fixed
+    points only: the same rows, detections and flags; times within ML_SIGMAS of their own
+    sigma, the signal, sigma and width within ML_RTOL."""
+    states, window_s = measurements
+    ml_mod = importlib.import_module("stages.ranging.ml")
+    assert ml_mod.STEP_TOL > 0
+    for _, st in states:
+        for k in (1, 3):
+            now = _run(calibration, st, window_s, max_returns=k, in_situ=situ)
+            with monkeypatch.context() as m:
+                m.setattr(ml_mod, "STEP_TOL", 0.0)
+                fixed = _run(calibration, st, window_s, max_returns=k, in_situ=situ)
+            for name in ("pixel", "return_index", "detected", "flag"):
+                assert np.array_equal(now[name], fixed[name]), name
+            sig = fixed["sigma_s"]
+            ok = np.isfinite(sig) & (sig > 0)
+            assert np.all(np.abs(now["t_s"] - fixed["t_s"])[ok] <= ML_SIGMAS * sig[ok])
+            for name in ("signal_counts", "sigma_s", "fwhm_s", "background_per_bin"):
+                np.testing.assert_allclose(now[name], fixed[name], rtol=ML_RTOL, err_msg=name)
+
+
 def test_without_an_lsb_fit_the_scale_is_the_earlier_one(measurements, calibration,
                                                          monkeypatch, ref_ml_kernel):
     """One density test (no LSB fit): the scale from the cached code boundaries."""
     states, window_s = measurements
+    monkeypatch.setattr(importlib.import_module("stages.ranging.ml"), "STEP_TOL", 0.0)
     one = dataclasses.replace(calibration, lsb_fit=None)
     new = _run(one, states[1][1], window_s, max_returns=3)
     patch_earlier(monkeypatch, ref_ml_kernel)
@@ -409,9 +459,13 @@ def test_a_returns_width_on_the_pixels_that_have_it(measurements, calibration):
     for tt in (t, np.where(np.arange(t.size) % 3 == 0, np.nan, t),
                np.full(t.size, np.nan)):
         for s0 in (h.bin_s, 3 * h.bin_s):
-            a, b = return_sigma(h, tt, s0), ref_return_sigma(h, tt, s0)
-            assert np.array_equal(a[0], b[0], equal_nan=True)
+            a, b = return_sigma(h, tt, s0, compiled=False), ref_return_sigma(h, tt, s0)
+            assert np.array_equal(a[0], b[0], equal_nan=True)  # numpy's: bit for bit
             assert np.array_equal(a[1], b[1])
+            c = return_sigma(h, tt, s0)  # the compiled path, where numba is installed
+            assert np.array_equal(np.isnan(c[0]), np.isnan(b[0]))
+            np.testing.assert_allclose(c[0], b[0], rtol=WIDTH_RTOL)
+            np.testing.assert_allclose(c[1], b[1], rtol=WIDTH_RTOL)
     masked = multi._rows(h, slice(None), multi._masked(h, [t], 1e-9))
     for name in ("at_risk", "widths", "centres", "bin_s"):
         assert np.array_equal(getattr(masked, name),
