@@ -22,10 +22,12 @@ on a pixel with real returns only the test after the last real one can be false,
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 from scipy.special import ndtr
 
+from stages.ranging._numba import numba
 from stages.ranging.detection import bin_of, poisson_tail, tested_bin
 from stages.ranging.histograms import Estimate, Histograms
 from stages.ranging.irf import Response
@@ -67,12 +69,30 @@ def _masked(h: Histograms, times: list[np.ndarray], half_s: float) -> np.ndarray
     """``h``'s valid bins less those within ``half_s`` of any of ``times`` (per row)."""
     cen = h.centres
     keep = np.asarray(h.valid, bool).copy()
+    if numba is not None and keep.shape == cen.shape and keep.ndim == 2:
+        cen = np.ascontiguousarray(cen, np.float64)
+        for t in times:
+            _mask_near(keep, cen, np.ascontiguousarray(t, np.float64), float(half_s))
+        return keep
     for t in times:  # (a row without the return, its time NaN, keeps its bins)
         t = np.asarray(t, np.float64)
         live = np.flatnonzero(np.isfinite(t))
         rows = slice(None) if live.size == t.size else live
         keep[rows] &= ~(np.abs(cen[rows] - t[rows, None]) <= half_s)
     return keep
+
+
+if numba is not None:
+    @numba.njit(cache=True, nogil=True)
+    def _mask_near(keep, cen, t, half_s):
+        """:func:`_masked`'s step a row at a time: the bins within ``half_s`` of ``t``
+        (a row whose ``t`` is not finite keeps its bins), the same comparisons."""
+        for p in range(t.size):
+            if not math.isfinite(t[p]):
+                continue
+            for j in range(cen.shape[1]):
+                if abs(cen[p, j] - t[p]) <= half_s:
+                    keep[p, j] = False
 
 
 def _beyond_tails(sub: Histograms, t_s, found_t, found_m, sigma_s, bg_rate, p_fa):

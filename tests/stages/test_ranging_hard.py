@@ -305,3 +305,51 @@ def test_the_compiled_width_and_its_numpy_form_agree_on_anything(case, where):
     with np.errstate(all="ignore"):
         t = h.edges_s[:, 0] + where * (h.edges_s[:, -1] - h.edges_s[:, 0])
     _widths_agree(h, t, sigma)
+
+
+def test_the_compiled_bin_and_exposure_and_their_numpy_forms_agree():
+    """The detection's bin of an estimate and the valid bins' exposure, a row at a time
+    (numba), against the numpy forms, bit for bit: NaN edges, times outside the axis or not
+    finite, negative and NaN at-risk numbers, masked bins, one bin."""
+    from stages.ranging import detection as d
+
+    if d.numba is None:
+        pytest.skip("numba not installed")
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 40):
+        e = np.sort(rng.uniform(0, 1e-8, (6, n + 1)), axis=1)
+        e[2, n // 2] = np.nan
+        t = np.array([-1.0, 0.5e-8, 2e-8, np.nan, np.inf, e[5, n // 2]])
+        peak = rng.integers(0, n, 6)
+        with np.errstate(invalid="ignore"):
+            cb = np.minimum((e[:, 1:n] <= t[:, None]).sum(axis=1), n - 1)
+        np.testing.assert_array_equal(d.bin_of(e, t, peak),
+                                      np.where(np.isfinite(t), cb, peak))
+        at_risk = rng.uniform(-5, 1e4, (6, n))
+        at_risk[1, 0] = np.nan
+        w = np.diff(e, axis=1)
+        valid = rng.random((6, n)) < 0.8
+        want = np.cumsum(np.where(valid, np.maximum(at_risk, 0.0) * w, 0.0), axis=1)[:, -1]
+        np.testing.assert_array_equal(d._exposure(at_risk, w, valid), want)
+
+
+def test_the_compiled_masks_and_their_numpy_form_agree(monkeypatch):
+    """The bins masked around found returns (numba, a row at a time) against the numpy
+    form: NaN and infinite times keep their rows' bins, NaN centres are never masked."""
+    from stages.ranging import multi
+
+    if multi.numba is None:
+        pytest.skip("numba not installed")
+    c = np.random.default_rng(6).poisson(2.0, (5, 50)).astype(float)
+    e = np.tile(np.arange(51) * B, (5, 1))
+    e[3, 20] = np.nan
+    h = hist(c, edges=e)
+    times = [np.array([10.5 * B, np.nan, 49.5 * B, 20.2 * B, -3 * B]),
+             np.array([np.inf, 30.0 * B, 0.0, np.nan, 12.0 * B])]
+    for half in (0.0, 2.5 * B, 100 * B):
+        got = multi._masked(h, times, half)
+        with monkeypatch.context() as m:
+            m.setattr(multi, "numba", None)
+            want = multi._masked(h, times, half)
+        np.testing.assert_array_equal(got, want)
+        assert got.sum() < h.valid.sum()
