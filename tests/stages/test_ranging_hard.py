@@ -278,7 +278,7 @@ def test_the_compiled_width_and_its_numpy_form_agree_on_the_hard_cases():
         "at the last bin": np.where(x > n - 4, 500.0, 1.0),
         "below the background": np.where(x == 30, 0.0, 3.0),
     }
-    for name, c in cases.items():
+    for _name, c in cases.items():
         h = hist(np.vstack([c, c]), cycles=1e5)
         for t in (np.array([30.5 * B, np.nan]), np.array([0.0, (n - 0.5) * B]),
                   np.array([-5 * B, 2 * n * B])):
