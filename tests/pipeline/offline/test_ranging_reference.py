@@ -470,3 +470,29 @@ def test_a_returns_width_on_the_pixels_that_have_it(measurements, calibration):
     for name in ("at_risk", "widths", "centres", "bin_s"):
         assert np.array_equal(getattr(masked, name),
                               getattr(ref_rows(h, slice(None), masked.valid), name))
+
+
+def test_the_range_stage_loads_its_kernels_at_start(caldir):
+    """A fresh process: constructing the stage ranges a made-up measurement, so that the
+    compiled kernels are loaded (numba's cache, ~0.25 CPU-seconds) before the first
+    measurement arrives; nothing of it is counted as ranged."""
+    import subprocess
+    import sys
+
+    from stages.ranging import numba
+
+    if numba is None:
+        pytest.skip("numba not installed")
+    code = (
+        "import sys\n"
+        "from pipeline.io.caldir import load_calibration\n"
+        "from pipeline.offline.ranging import RangeCore\n"
+        "from stages.ranging import width\n"
+        "ml = sys.modules['stages.ranging.ml']\n"
+        "assert not ml._ml_numba.signatures and not width._sigma_numba.signatures\n"
+        "core = RangeCore(load_calibration(sys.argv[1]), 'ml', max_returns=3)\n"
+        "assert ml._ml_numba.signatures and width._sigma_numba.signatures\n"
+        "assert core.ranged == 0 and core.notes == {}\n")
+    res = subprocess.run([sys.executable, "-c", code, str(caldir)], capture_output=True,
+                         text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
