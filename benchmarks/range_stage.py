@@ -25,7 +25,10 @@ not: 1 word, checked on the messages' class counts), at 20 k and 100 k cycles a
 measurement; the range stage's cost does not grow with the cycles (it reads histograms).
 
     python benchmarks/range_stage.py --data DEMO/data --tree /path/to/main --tree .
-                                     [--repeat 5] [--only street|pattern]
+                                     [--repeat 5] [--only street|pattern] [--parts]
+
+``--parts``: below each case, the CPU ms a measurement spent inside the range path's main
+steps (``PARTS_SHOWN``; a step inside another counts in both), each tree's own.
 """
 
 from __future__ import annotations
@@ -48,7 +51,7 @@ import numpy as np, pyarrow as pa, pyarrow.parquet as pq
 from pipeline.io.caldir import load_calibration
 from pipeline.offline.ranging import RangeCore
 
-data, source, n_tdc, k, estimator, repeat, out = sys.argv[1:8]
+data, source, n_tdc, k, estimator, repeat, out, PARTS = sys.argv[1:9]
 n_tdc, k, repeat = int(n_tdc), int(k), int(repeat)
 cal = load_calibration(f"{data}/calibration/current")
 parts = {}
@@ -85,6 +88,22 @@ def one(name, b):
                          "window_ns": 80.0}, b)
 
 res = [one(n, b) for n, b in batches]  # untimed: kernels, caches
+parts = {}
+if PARTS:  # CPU ms a measurement inside each named function (nested ones counted in both)
+    import importlib
+    for path in PARTS.split(","):
+        mod_name, fn_name = path.rsplit(".", 1)
+        mod = importlib.import_module(mod_name)
+        fn = getattr(mod, fn_name, None)
+        if fn is None:
+            continue
+        def timed(*a, _fn=fn, _name=fn_name, **kw):
+            t0 = time.process_time()
+            try:
+                return _fn(*a, **kw)
+            finally:
+                parts[_name] = parts.get(_name, 0.0) + time.process_time() - t0
+        setattr(mod, fn_name, timed)
 best = float("inf")
 for _ in range(repeat):
     t0 = time.process_time()
@@ -95,8 +114,19 @@ table = pa.Table.from_batches([b for r in res for _, b in r])
 np.savez(out, **{c: np.asarray(table[c].to_numpy(zero_copy_only=False))
                  for c in table.column_names})
 print(json.dumps({"ms": best / len(batches) * 1e3, "measurements": len(batches),
-                  "words_per_tdc_cycle": words}))
+                  "words_per_tdc_cycle": words,
+                  "parts": {k: v / (repeat * len(batches)) * 1e3 for k, v in parts.items()}}))
 """
+
+
+#: the steps ``--parts`` times (a function a tree lacks is left out of its column)
+PARTS_SHOWN = (
+    "pipeline.offline.ranging.estimate_returns", "stages.ranging.multi.estimate",
+    "stages.ranging.ml._ml_numba", "stages.ranging.ml._ml_setup", "stages.ranging.ml._detect",
+    "stages.ranging.multi.return_fwhm", "stages.ranging.multi._masked",
+    "stages.ranging.multi._rows", "pipeline.offline.ranging.time_axis",
+    "pipeline.offline.ranging._unresolved", "pipeline.offline.ranging.ranges_table")
+PARTS = ",".join(PARTS_SHOWN)
 
 
 def same(a: Path, b: Path) -> str:
@@ -143,6 +173,8 @@ def main() -> None:
     ap.add_argument("--tree", action="append", type=Path, required=True)
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--only", choices=("street", "pattern"), default=None)
+    ap.add_argument("--parts", action="store_true",
+                    help="also the CPU ms a measurement inside the range path's main steps")
     args = ap.parse_args()
     print("$ python benchmarks/range_stage.py " + " ".join(sys.argv[1:]))
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
@@ -164,7 +196,8 @@ def main() -> None:
                 env = {**os.environ, "PYTHONPATH": str(tree)}
                 res = subprocess.run(
                     [sys.executable, "-c", WORKER, str(args.data.resolve()), source,
-                     str(n_tdc), str(k), est, str(args.repeat), str(out)],
+                     str(n_tdc), str(k), est, str(args.repeat), str(out),
+                     PARTS if args.parts else ""],
                     capture_output=True, text=True, env=env, cwd=tree)
                 if res.returncode != 0:
                     raise SystemExit(f"{tree}: {n_tdc} TDCs K={k} {est} failed:\n"
@@ -179,6 +212,11 @@ def main() -> None:
                   + " | ".join(f"{g['ms']:.2f}" for g in got)
                   + f" | {ok} | {rate[0]:.0f} / "
                   f"{rate[1]:.0f} | {os.getloadavg()[0]:.1f} |", flush=True)
+            if args.parts:
+                for name in PARTS_SHOWN:
+                    print(f"|   {name} | | | | " + " | ".join(
+                        f"{g['parts'].get(name.rsplit('.', 1)[1], float('nan')):.2f}"
+                        for g in got) + " | | | |")
     print(f"\n({got[-1]['measurements']} measurements a case; "
           f"{got[-1]['words_per_tdc_cycle']:.3f} words a TDC a cycle in the messages)")
 
