@@ -69,7 +69,8 @@ def _masked(h: Histograms, times: list[np.ndarray], half_s: float) -> np.ndarray
     """``h``'s valid bins less those within ``half_s`` of any of ``times`` (per row)."""
     cen = h.centres
     keep = np.asarray(h.valid, bool).copy()
-    if numba is not None and keep.shape == cen.shape and keep.ndim == 2:
+    if numba is not None and keep.shape == cen.shape and keep.ndim == 2 and all(
+            np.shape(t) == keep.shape[:1] for t in times):
         cen = np.ascontiguousarray(cen, np.float64)
         for t in times:
             _mask_near(keep, cen, np.ascontiguousarray(t, np.float64), float(half_s))
