@@ -496,3 +496,46 @@ def test_the_range_stage_loads_its_kernels_at_start(caldir):
     res = subprocess.run([sys.executable, "-c", code, str(caldir)], capture_output=True,
                          text=True, timeout=120)
     assert res.returncode == 0, res.stderr[-2000:]
+
+
+def test_without_numba_the_range_stage_gives_the_same_ranges(measurements, calibration,
+                                                             caldir, tmp_path):
+    """The numpy forms (numba not importable, a fresh process) range the measurement with
+    several returns as the compiled path does: the same rows and detections, the times
+    within ML_SIGMAS of their sigma, the widths within ML_RTOL."""
+    import subprocess
+    import sys
+
+    states, window_s = measurements
+    st = states[1][1]
+    np.save(tmp_path / "hits.npy", np.asarray(st.hits))
+    np.save(tmp_path / "classes.npy", np.asarray(st.class_counts))
+    code = (
+        "import sys\n"
+        "sys.modules['numba'] = None  # (import numba fails: the numpy forms)\n"
+        "import numpy as np\n"
+        "from pipeline.io.caldir import load_calibration\n"
+        "from pipeline.offline import ranging\n"
+        "from stages.histogram import HistogramState\n"
+        "from stages.ranging import numba\n"
+        "assert numba is None\n"
+        "d = sys.argv[2]\n"
+        "h, c = np.load(d + '/hits.npy'), np.load(d + '/classes.npy')\n"
+        "st = HistogramState(h, c, int(c.sum()))\n"
+        "est, dist, s, note = ranging.range_state(st, load_calibration(sys.argv[1]),"
+        " float(sys.argv[3]), 140e-9, max_returns=3)\n"
+        "np.savez(d + '/out.npz', t=est.t_s, sig=est.sigma_s, fwhm=est.fwhm_s,"
+        " det=est.detected, pixel=est.pixel, ri=est.return_index)\n")
+    res = subprocess.run([sys.executable, "-c", code, str(caldir), str(tmp_path),
+                          repr(window_s)], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    got = np.load(tmp_path / "out.npz")
+    want = _run(calibration, st, window_s, max_returns=3)
+    assert (want["return_index"] > 0).any()
+    np.testing.assert_array_equal(got["pixel"], want["pixel"])
+    np.testing.assert_array_equal(got["ri"], want["return_index"])
+    np.testing.assert_array_equal(got["det"], want["detected"])
+    ok = np.isfinite(want["sigma_s"])
+    assert np.array_equal(np.isfinite(got["t"]), np.isfinite(want["t_s"]))
+    assert np.all(np.abs(got["t"] - want["t_s"])[ok] <= ML_SIGMAS * want["sigma_s"][ok])
+    np.testing.assert_allclose(got["fwhm"], want["fwhm_s"], rtol=ML_RTOL)
