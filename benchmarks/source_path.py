@@ -129,6 +129,10 @@ def _stage_name(cmd: list[str]) -> str:
             " ".join(cmd[-2:]) or "(a process gone before it was named)")
 
 
+#: the names a process has before its own command line is readable
+PROVISIONAL = ("daemon (supervisor)", "(a process gone before it was named)")
+
+
 class CpuWatch:
     """CPU-seconds (user + system) of a process and its descendants, by name, polled from
     /proc while they run; ``stop(t0, t1)`` gives each one's CPU between two wall times
@@ -161,13 +165,15 @@ class CpuWatch:
             todo += kids.get(pid, [])
             if pid not in stats:
                 continue
-            if pid not in self.names:
+            if pid not in self.names or (pid != self.root and self.names[pid] in PROVISIONAL):
+                # (a child seen between its fork and its exec has the supervisor's command
+                # line, or none: named again at the next poll)
                 try:
                     cmd = Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")
                 except OSError:
                     continue
                 self.names[pid] = _stage_name([c for c in cmd if c])
-                self.samples[pid] = [(now, 0.0)]  # (a process born in the window: from 0)
+                self.samples.setdefault(pid, [(now, 0.0)])  # (born in the window: from 0)
             self.samples[pid].append((now, stats[pid]))
 
     def _poll(self) -> None:

@@ -114,6 +114,9 @@ def bin_of(edges_s, t_s, peak) -> np.ndarray:
     e = np.asarray(edges_s, np.float64)
     t = np.asarray(t_s, np.float64)
     n = e.shape[1] - 1
+    if numba is not None and e.ndim == 2 and t.shape == e.shape[:1] and n >= 1:
+        return _bin_count(np.ascontiguousarray(e), t,
+                          np.broadcast_to(np.asarray(peak, np.int64), t.shape))
     with np.errstate(invalid="ignore"):
         cb = np.minimum((e[:, 1:n] <= t[:, None]).sum(axis=1), n - 1)
     return np.where(np.isfinite(t), cb, np.asarray(peak))
@@ -130,7 +133,12 @@ def _detection(counts, valid, at_risk, widths, peak, bg_rate, p_fa, exposure=Non
     The compiled fast kernel has its twin inline."""
     rows = np.arange(peak.size)
     q = tested_bin(counts, valid, peak)
-    if exposure is None:
+    if exposure is None and numba is not None and np.shape(valid) == np.shape(at_risk) == (
+            np.shape(widths)) and np.ndim(widths) == 2 and np.shape(widths)[1]:
+        exposure = _exposure(np.ascontiguousarray(at_risk, np.float64),
+                             np.ascontiguousarray(widths, np.float64),
+                             np.ascontiguousarray(valid, np.bool_))
+    elif exposure is None:
         exposure = np.cumsum(np.where(valid, np.maximum(at_risk, 0.0) * widths, 0.0),
                              axis=1)[:, -1]
     rate = np.maximum(bg_rate, 1.0 / np.maximum(exposure, 1e-300))
@@ -194,3 +202,35 @@ if numba is not None:
             if abs(delta - 1.0) < 1e-16:
                 break
         return max(1.0 - front * h, 0.0)
+
+    @numba.njit(cache=True, nogil=True)
+    def _bin_count(e, t, peak):
+        """:func:`bin_of` a row at a time: the count of inner edges at or below t (the
+        same count, without the (n_pix, n_bins) comparison array)."""
+        n = e.shape[1] - 1
+        out = np.empty(t.size, np.int64)
+        for p in range(t.size):
+            if not math.isfinite(t[p]):
+                out[p] = peak[p]
+                continue
+            c = 0
+            for j in range(1, n):
+                if e[p, j] <= t[p]:
+                    c += 1
+            out[p] = min(c, n - 1)
+        return out
+
+    @numba.njit(cache=True, nogil=True)
+    def _exposure(at_risk, widths, valid):
+        """The valid bins' cycle-seconds at risk, a row at a time: numpy's running sum's
+        last element (the same additions in the same order)."""
+        n_pix, n = at_risk.shape
+        out = np.empty(n_pix)
+        for p in range(n_pix):
+            acc = 0.0
+            for j in range(n):
+                r = at_risk[p, j]
+                x = ((r if not r < 0.0 else 0.0) * widths[p, j]) if valid[p, j] else 0.0
+                acc = x if j == 0 else acc + x
+            out[p] = acc
+        return out

@@ -63,6 +63,11 @@ class Histograms:
     def centres(self) -> np.ndarray:
         return 0.5 * (self.edges_s[:, 1:] + self.edges_s[:, :-1])
 
+    @cached_property
+    def lam(self) -> np.ndarray:
+        """:meth:`intensity`, kept (read, never written: each return's width reads it)."""
+        return self.intensity()
+
     def intensity(self) -> np.ndarray:
         """Coates-corrected expected detections per bin per cycle (undistorted)."""
         r = np.maximum(self.at_risk, 1.0)

@@ -18,6 +18,11 @@ from stages.ranging.validation import validated
 if numba is not None:
     from stages.ranging.fast import _fast_numba
 
+#: the fit stops when a step moves its time and its signal by less than this part of their
+#: own sigmas (from the information): the last steps of a slow approach were moving the
+#: time by 1e-7 of its sigma, each as costly as the first
+STEP_TOL = 1e-3
+
 
 def _ml_setup(h: Histograms, sigma_s: float, half_width_sigma: float, compiled: bool):
     """What both ML paths start from: the fast estimator's peak, background and time."""
@@ -33,28 +38,33 @@ def _ml_setup(h: Histograms, sigma_s: float, half_width_sigma: float, compiled: 
 
 @validated
 def ml(h: Histograms, sigma_s: float, p_fa: float = 1e-3, iterations: int = 30,
-       half_width_sigma: float = 8.0, compiled: bool | None = None):
+       half_width_sigma: float = 8.0, compiled: bool | None = None,
+       step_tol: float | None = None):
     """Poisson maximum likelihood of signal + background with pile-up (the exact binomial
     factorisation, see the module docstring), by Fisher scoring with step halving.
 
     The signal (arrival time, detections per cycle) is fitted in a window of
     ``half_width_sigma`` around the fast estimator's peak, starting from its time; the
     flat background is its constant-hazard estimate away from the peak. sigma from the
-    expected information. Compiled where numba is installed; the numpy path runs the same
-    iterations (tested to agree).
+    expected information. The fit stops at a fixed point, after ``iterations``, or when a
+    step moves both the time and the signal by less than ``step_tol`` (default
+    :data:`STEP_TOL`) of their own sigmas (0: only at a fixed point or the limit).
+    Compiled where numba is installed; the numpy path runs the same iterations (tested to
+    agree).
     """
     compiled = (numba is not None) if compiled is None else compiled
+    step_tol = STEP_TOL if step_tol is None else float(step_tol)
     args, k = _ml_setup(h, sigma_s, half_width_sigma, compiled)
     if compiled:
-        t0, sig, m, bg, peak = _ml_numba(*args, k, sigma_s, iterations)
+        t0, sig, m, bg, peak = _ml_numba(*args, k, sigma_s, iterations, step_tol)
     else:
-        t0, sig, m, bg, peak = _ml_numpy(*args, k, sigma_s, iterations)
+        t0, sig, m, bg, peak = _ml_numpy(*args, k, sigma_s, iterations, step_tol)
     return Estimate(t0, sig, np.full(t0.size, FWHM_PER_SIGMA * sigma_s), m * h.cycles,
                     bg * h.bin_s * h.cycles, _detect(h, peak, bg, p_fa, t0), "ml")
 
 
 def _ml_numpy(counts_all, widths, centres, valid_all, cycles, t_start, peak, bg, k, sigma_s,
-              iterations):
+              iterations, step_tol=STEP_TOL):
     n_pix, n = counts_all.shape
     idx = np.clip(peak[:, None] + np.arange(-k, k + 1)[None, :], 0, n - 1)
     rows = np.arange(n_pix)[:, None]
@@ -114,6 +124,10 @@ def _ml_numpy(counts_all, widths, centres, valid_all, cycles, t_start, peak, bg,
         lam, za, zb, dphi = model(t0, m)
         ll = loglik(lam)
         active &= np.abs(scale * st) > 1e-16
+        with np.errstate(invalid="ignore", divide="ignore"):
+            sd_t, sd_m = np.sqrt(i11 / det), np.sqrt(i00 / det)
+        active &= ~(ok & (np.abs(scale * st) <= step_tol * sd_t)
+                    & (np.abs(scale * sm) <= step_tol * sd_m))
         if not active.any():
             break
     i00, i01, i11, _, _ = info_score(m, lam, za, zb, dphi)
@@ -125,7 +139,7 @@ def _ml_numpy(counts_all, widths, centres, valid_all, cycles, t_start, peak, bg,
 if numba is not None:
     @numba.njit(cache=True, nogil=True)
     def _ml_numba(counts_all, widths, centres, valid_all, cycles, t_start, peak, bg, k,
-                  sigma_s, iterations):
+                  sigma_s, iterations, step_tol):
         n_pix, n = counts_all.shape
         nw = 2 * k + 1
         out_t = np.empty(n_pix)
@@ -194,6 +208,11 @@ if numba is not None:
                 pa, qa, pb, qb = qa, pa, qb, pb
                 if abs(scale * st) <= 1e-16:
                     active = False
+                # a step within a small part of the fit's own sigmas (time and signal):
+                # converged, what further steps add is far below the estimate's noise
+                elif (abs(scale * st) <= step_tol * math.sqrt(i11 / det)
+                      and abs(scale * sm) <= step_tol * math.sqrt(i00 / det)):
+                    active = False
             i00, i01, i11, _, _ = _ml_info(t0, m, bg[p], lo_e, hi_e, cnt, rr, ok, sigma_s,
                                            pa, pb)
             det = i00 * i11 - i01 * i01
@@ -211,11 +230,17 @@ if numba is not None:
         """The log-likelihood at ``t0``, ``m``; the normal CDF at the bins' edges kept in
         ``pa``, ``pb`` (for :func:`_ml_info` at the same ``t0``)."""
         ll = 0.0
-        for i in range(lo_e.size):
+        shared = False  # bin i - 1 is fitted and ends where bin i starts: its upper CDF
+        for i in range(lo_e.size):  # is bin i's lower one (the same number, not again)
             if not ok[i]:
+                shared = False
                 continue
-            pa[i] = _ndtr((lo_e[i] - t0) / sigma_s)
+            if shared and lo_e[i] == hi_e[i - 1]:
+                pa[i] = pb[i - 1]
+            else:
+                pa[i] = _ndtr((lo_e[i] - t0) / sigma_s)
             pb[i] = _ndtr((hi_e[i] - t0) / sigma_s)
+            shared = True
             dphi = pb[i] - pa[i]
             lam = max(m * dphi + bg * (hi_e[i] - lo_e[i]), 1e-300)
             ll += cnt[i] * math.log(-math.expm1(-lam)) - (rr[i] - cnt[i]) * lam
@@ -226,8 +251,11 @@ if numba is not None:
         """Information and score at ``t0``, ``m``, with ``pa``, ``pb`` from
         :func:`_ml_ll` at this ``t0``."""
         i00 = i01 = i11 = s0 = s1 = 0.0
+        shared = False  # (as in _ml_ll: the density at a shared edge is computed once)
+        eb = 0.0
         for i in range(lo_e.size):
             if not ok[i]:
+                shared = False
                 continue
             za = (lo_e[i] - t0) / sigma_s
             zb = (hi_e[i] - t0) / sigma_s
@@ -236,7 +264,10 @@ if numba is not None:
             em1 = math.expm1(lam)
             sl = cnt[i] / em1 - (rr[i] - cnt[i])
             il = rr[i] / em1
-            pdf = (math.exp(-0.5 * zb * zb) - math.exp(-0.5 * za * za)) / (SQRT2PI * sigma_s)
+            ea = eb if shared and lo_e[i] == hi_e[i - 1] else math.exp(-0.5 * za * za)
+            eb = math.exp(-0.5 * zb * zb)
+            shared = True
+            pdf = (eb - ea) / (SQRT2PI * sigma_s)
             jt = -m * pdf
             jm = dphi
             i00 += il * jt * jt

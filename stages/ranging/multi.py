@@ -22,10 +22,12 @@ on a pixel with real returns only the test after the last real one can be false,
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 from scipy.special import ndtr
 
+from stages.ranging._numba import numba
 from stages.ranging.detection import bin_of, poisson_tail, tested_bin
 from stages.ranging.histograms import Estimate, Histograms
 from stages.ranging.irf import Response
@@ -41,12 +43,12 @@ MASK_WIDTHS = 3.0
 
 
 #: what :class:`Histograms` derives row by row (the same on any of its rows)
-_PER_ROW = ("at_risk", "widths", "centres")
+_PER_ROW = ("at_risk", "widths", "centres", "lam")
 
 
 def _derived(h: Histograms, out: Histograms, rows, bin_s: bool) -> Histograms:
     """``out`` (``h``'s ``rows``) with what ``h`` derived already (at risk, widths,
-    centres; ``bin_s`` too when ``out`` has all of ``h``'s rows): not derived again."""
+    centres, intensity; ``bin_s`` too when ``out`` has all of ``h``'s rows): not derived again."""
     for name in _PER_ROW + (("bin_s",) if bin_s else ()):
         if name in h.__dict__:
             v = h.__dict__[name]
@@ -55,6 +57,9 @@ def _derived(h: Histograms, out: Histograms, rows, bin_s: bool) -> Histograms:
 
 
 def _rows(h: Histograms, rows, valid=None) -> Histograms:
+    if not isinstance(rows, slice) and len(rows) == h.counts.shape[0] and (
+            np.array_equal(rows, np.arange(len(rows)))):
+        rows = slice(None)  # every row, in order: views, not copies (the same numbers)
     return _derived(h, Histograms(h.counts[rows], h.edges_s[rows], h.cycles[rows],
                                   h.valid[rows] if valid is None else valid),
                     rows, isinstance(rows, slice) and rows == slice(None))
@@ -64,12 +69,31 @@ def _masked(h: Histograms, times: list[np.ndarray], half_s: float) -> np.ndarray
     """``h``'s valid bins less those within ``half_s`` of any of ``times`` (per row)."""
     cen = h.centres
     keep = np.asarray(h.valid, bool).copy()
+    if numba is not None and keep.shape == cen.shape and keep.ndim == 2 and all(
+            np.shape(t) == keep.shape[:1] for t in times):
+        cen = np.ascontiguousarray(cen, np.float64)
+        for t in times:
+            _mask_near(keep, cen, np.ascontiguousarray(t, np.float64), float(half_s))
+        return keep
     for t in times:  # (a row without the return, its time NaN, keeps its bins)
         t = np.asarray(t, np.float64)
         live = np.flatnonzero(np.isfinite(t))
         rows = slice(None) if live.size == t.size else live
         keep[rows] &= ~(np.abs(cen[rows] - t[rows, None]) <= half_s)
     return keep
+
+
+if numba is not None:
+    @numba.njit(cache=True, nogil=True)
+    def _mask_near(keep, cen, t, half_s):
+        """:func:`_masked`'s step a row at a time: the bins within ``half_s`` of ``t``
+        (a row whose ``t`` is not finite keeps its bins), the same comparisons."""
+        for p in range(t.size):
+            if not math.isfinite(t[p]):
+                continue
+            for j in range(cen.shape[1]):
+                if abs(cen[p, j] - t[p]) <= half_s:
+                    keep[p, j] = False
 
 
 def _beyond_tails(sub: Histograms, t_s, found_t, found_m, sigma_s, bg_rate, p_fa):
@@ -181,6 +205,7 @@ def estimate_returns(h: Histograms, sigma_s: float, estimator: str = "ml",
             e = estimate(sub, sigma_s, estimator, p_fa)
             for name in _NUMERIC:
                 cols[name][rows] = np.asarray(getattr(e, name), np.float64)
+    _ = h.lam  # (the intensity: computed once, read by each return's masked copy of h)
     for i, cols in enumerate(found):  # each return's measured width, the others masked
         others = [f["t_s"] for j, f in enumerate(found) if j != i]
         hm = _rows(h, slice(None), _masked(h, others, half)) if others else h

@@ -5,9 +5,12 @@ the instrument response taken from the data when none is given."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from stages.models.tcspc import FWHM_PER_SIGMA
+from stages.ranging._numba import numba
 from stages.ranging.detection import _background
 from stages.ranging.histograms import Histograms
 
@@ -22,7 +25,8 @@ ROUNDS = 5
 MIN_COUNTS = 100.0
 
 
-def return_sigma(h: Histograms, t_s, sigma0_s: float, rounds: int = ROUNDS):
+def return_sigma(h: Histograms, t_s, sigma0_s: float, rounds: int = ROUNDS,
+                 compiled: bool | None = None):
     """Per pixel: the return's measured sigma (s) around ``t_s`` and its counts above the
     background. The quantisation of the bins (width^2 / 12) is taken out; NaN where no
     count stands above the background or ``t_s`` is not finite (those rows are not
@@ -32,17 +36,39 @@ def return_sigma(h: Histograms, t_s, sigma0_s: float, rounds: int = ROUNDS):
     live = np.flatnonzero(np.isfinite(t_all))
     if not live.size:
         return sig_all, tot_all
-    rows = slice(None) if live.size == t_all.size else live
-    counts, at_risk = np.asarray(h.counts)[rows], h.at_risk[rows]
-    r = np.maximum(at_risk, 1.0)  # (Histograms.intensity, on these rows)
-    lam = -np.log1p(-np.minimum(counts / r, 1 - 1e-12))
-    w, valid = h.widths[rows], np.asarray(h.valid, bool)[rows]
-    bg = _background(lam, w, valid, at_risk)
-    excess = np.where(valid, np.maximum(lam - bg[:, None] * w, 0.0), 0.0) * (
-        np.asarray(h.cycles)[rows][:, None])
-    cen, w2 = h.centres[rows], w ** 2
-    t = t_all[rows].copy()
-    sig = np.full(t.shape, max(float(sigma0_s), h.bin_s))
+    compiled = (numba is not None) if compiled is None else compiled
+    sig0 = max(float(sigma0_s), h.bin_s)
+    if compiled:
+        t, sig = t_all[live], np.full(live.size, sig0)
+        tot = _sigma_numba(np.ascontiguousarray(h.lam),
+                           np.ascontiguousarray(h.at_risk), np.ascontiguousarray(h.widths),
+                           np.ascontiguousarray(h.valid, np.bool_),
+                           np.ascontiguousarray(np.broadcast_to(  # (one for all rows too)
+                               np.asarray(h.cycles, np.float64), h.counts.shape[:1])),
+                           np.ascontiguousarray(h.centres), live, t, sig, float(h.bin_s),
+                           int(rounds))
+        rows = live
+    else:
+        rows = slice(None) if live.size == t_all.size else live
+        counts, at_risk = np.asarray(h.counts)[rows], h.at_risk[rows]
+        r = np.maximum(at_risk, 1.0)  # (Histograms.intensity, on these rows)
+        lam = -np.log1p(-np.minimum(counts / r, 1 - 1e-12))
+        w, valid = h.widths[rows], np.asarray(h.valid, bool)[rows]
+        bg = _background(lam, w, valid, at_risk)
+        excess = np.where(valid, np.maximum(lam - bg[:, None] * w, 0.0), 0.0) * (
+            np.asarray(h.cycles)[rows][:, None])
+        t, sig = t_all[rows].copy(), np.full(excess.shape[0], sig0)
+        tot = _moments_numpy(excess, h.centres[rows], w ** 2, t, sig, float(h.bin_s),
+                             int(rounds))
+    bad = ~(tot > 0)
+    sig_all[rows] = np.where(bad, np.nan, sig)
+    tot_all[rows] = np.where(bad, 0.0, tot)
+    return sig_all, tot_all
+
+
+def _moments_numpy(excess, cen, w2, t, sig, bin_s, rounds):
+    """The window's rounds over whole rows (the numpy path): ``t`` and ``sig`` updated in
+    place, the counts in the last window returned."""
     tot = np.zeros(t.shape)
     on = np.arange(t.size)  # the rows still moving: a row whose time and sigma a round
     # left as they were has reached what the next rounds give. (Buffers reused: a
@@ -52,7 +78,7 @@ def return_sigma(h: Histograms, t_s, sigma0_s: float, rounds: int = ROUNDS):
     for _ in range(rounds):
         t_on, sig_on = t[on], sig[on]
         buf, e, win = buf_all[:on.size], e_all[:on.size], win_all[:on.size]
-        half = WINDOW_WIDTHS * np.maximum(sig_on, h.bin_s)
+        half = WINDOW_WIDTHS * np.maximum(sig_on, bin_s)
         with np.errstate(invalid="ignore"):
             np.less_equal(np.abs(np.subtract(cen, t_on[:, None], out=buf), out=buf),
                           half[:, None], out=win)
@@ -75,10 +101,101 @@ def return_sigma(h: Histograms, t_s, sigma0_s: float, rounds: int = ROUNDS):
             break
         if on.size < moved.size:
             excess, cen, w2 = excess[moved], cen[moved], w2[moved]
-    bad = ~(tot > 0)
-    sig_all[rows] = np.where(bad, np.nan, sig)
-    tot_all[rows] = np.where(bad, 0.0, tot)
-    return sig_all, tot_all
+    return tot
+
+
+if numba is not None:
+    @numba.njit(cache=True, nogil=True)
+    def _window_sums(ex, cen, w, a, b, tp, half, full):
+        """One round's sums over bins ``a``..``b - 1`` of a row (``full``: every bin, those
+        outside the window adding 0 times their centre and width, as numpy's zeros do)."""
+        s0 = s1 = 0.0
+        for j in range(a, b):
+            if not full or abs(cen[j] - tp) <= half:
+                s0 += ex[j]
+                s1 += ex[j] * cen[j]
+            else:
+                s1 += 0.0 * cen[j]
+        d = s0 if s0 > 0 else 1.0
+        mu = s1 / d
+        s2 = s3 = 0.0
+        for j in range(a, b):
+            e = ex[j] if not full or abs(cen[j] - tp) <= half else 0.0
+            c = cen[j] - mu
+            s2 += e * (c * c)
+            s3 += e * (w[j] * w[j])
+        return s0, mu, s2 / d, s3 / d / 12.0
+
+    @numba.njit(cache=True, nogil=True)
+    def _sigma_numba(lam_all, at_risk, widths, valid, cycles, centres, rows, t, sig, bin_s,
+                     rounds):
+        """:func:`return_sigma`'s work on ``rows`` a row at a time (``lam_all``: the
+        intensity, :attr:`Histograms.lam`): the row's excess (as
+        :func:`stages.ranging.detection._background` and the numpy path make it), then
+        the rounds, each summing its window's bins only (found from the centre nearest
+        the time: the centres increase along a row; a row whose centres or widths are not
+        finite and increasing sums every bin, as numpy does). The same windows, rounds
+        and stop as :func:`_moments_numpy`; the sums in another order. ``t``, ``sig`` (one
+        a row) updated in place; the counts in the last window returned."""
+        n = lam_all.shape[1]
+        ex = np.empty(n)
+        tot = np.zeros(rows.size)
+        for i in range(rows.size):
+            p = rows[i]
+            cen, w, lam = centres[p], widths[p], lam_all[p]
+            sl = sw = 0.0
+            for j in range(n):
+                if valid[p, j]:
+                    sl += lam[j]
+                    sw += w[j]
+            rate = sl / (sw if sw > 1e-300 else 1e-300)
+            sl = sw = 0.0
+            for j in range(n):
+                r = at_risk[p, j]
+                r = r if not r < 1.0 else 1.0
+                expect = rate * w[j]
+                # (within a count of what is expected it is kept whatever the sqrt adds)
+                if valid[p, j] and ((expect >= 0.0 and lam[j] <= expect + 1 / r) or
+                                    lam[j] <= expect + (5 * math.sqrt(expect * r) + 1) / r):
+                    sl += lam[j]
+                    sw += w[j]
+            bg = sl / (sw if sw > 1e-300 else 1e-300)
+            ordered = True
+            for j in range(n):
+                v = lam[j] - bg * w[j]
+                ex[j] = (v if not v < 0.0 else 0.0) * cycles[p] if valid[p, j] else (
+                    0.0 * cycles[p])
+                if not (math.isfinite(cen[j]) and math.isfinite(w[j])
+                        and (j == 0 or cen[j - 1] <= cen[j])):
+                    ordered = False
+            for _ in range(rounds):
+                tp, sp = t[i], sig[i]
+                half = WINDOW_WIDTHS * (sp if sp > bin_s else bin_s)
+                if ordered and math.isfinite(tp) and math.isfinite(half):
+                    lo, hi = 0, n  # the first centre >= tp; the window around it
+                    while lo < hi:
+                        mid = (lo + hi) // 2
+                        if cen[mid] < tp:
+                            lo = mid + 1
+                        else:
+                            hi = mid
+                    a = lo
+                    while a > 0 and abs(cen[a - 1] - tp) <= half:
+                        a -= 1
+                    b = lo
+                    while b < n and abs(cen[b] - tp) <= half:
+                        b += 1
+                    s0, mu, var, q = _window_sums(ex, cen, w, a, b, tp, half, False)
+                else:
+                    s0, mu, var, q = _window_sums(ex, cen, w, 0, n, tp, half, True)
+                v = var - q
+                new = math.sqrt(v if not v < 0.0 else 0.0)
+                sig_new = new if s0 > 0 and new > 0 else sp
+                t_new = mu if s0 > 0 else tp
+                tot[i], sig[i], t[i] = s0, sig_new, t_new
+                if sig_new == sp and (t_new == tp or (math.isnan(t_new) and math.isnan(tp))):
+                    break
+        return tot
 
 
 def return_fwhm(h: Histograms, t_s, sigma_s: float) -> np.ndarray:

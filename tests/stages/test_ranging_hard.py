@@ -247,3 +247,109 @@ def test_the_compiled_scans_and_their_numpy_forms_agree():
         ref = bool(np.isfinite(ends).all() and (ends[:, 1] > ends[:, 0]).all()
                    and (e[:, 1:] >= e[:, :-1]).all())
         assert v._edges_scan(e) == ref
+
+
+def _widths_agree(h, t, sigma):
+    """The compiled width (its window's bins only) and the numpy one (whole rows): the same
+    rows measured, the same to the last bits of their sums."""
+    from stages.ranging.width import return_sigma
+
+    with np.errstate(all="ignore"):
+        want = return_sigma(h, t, sigma, compiled=False)
+    got = return_sigma(h, t, sigma, compiled=True)
+    for a, b in zip(got, want, strict=True):
+        assert np.array_equal(np.isnan(a), np.isnan(b)), (a, b)
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * B)
+
+
+def test_the_compiled_width_and_its_numpy_form_agree_on_the_hard_cases():
+    from stages.ranging import width
+
+    if width.numba is None:
+        pytest.skip("numba not installed")
+    n = 60
+    x = np.arange(n)
+    ret = np.random.default_rng(4).poisson(2.0 + 400 * np.exp(-0.5 * ((x - 30) / 2.5) ** 2))
+    cases = {
+        "a return": ret,
+        "zero counts": np.zeros(n),
+        "one count": np.where(x == 17, 1.0, 0.0),
+        "at the first bin": np.where(x < 3, 500.0, 1.0),
+        "at the last bin": np.where(x > n - 4, 500.0, 1.0),
+        "below the background": np.where(x == 30, 0.0, 3.0),
+    }
+    for _name, c in cases.items():
+        h = hist(np.vstack([c, c]), cycles=1e5)
+        for t in (np.array([30.5 * B, np.nan]), np.array([0.0, (n - 0.5) * B]),
+                  np.array([-5 * B, 2 * n * B])):
+            for sigma in (B, 2.5 * B, 40 * B):
+                _widths_agree(h, t, sigma)
+        # a row without a time axis (NaN edges), and a dead code (zero width)
+        e = np.tile(np.arange(n + 1) * B, (2, 1))
+        e[0, 10] = np.nan
+        e[1, 31] = e[1, 30]
+        _widths_agree(hist(np.vstack([c, c]), cycles=1e5, edges=e),
+                      np.array([30.5 * B, 30.5 * B]), 2.5 * B)
+
+
+@given(case=anything(), where=st.floats(-0.2, 1.2))
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+def test_the_compiled_width_and_its_numpy_form_agree_on_anything(case, where):
+    from stages.ranging import width
+
+    if width.numba is None:
+        pytest.skip("numba not installed")
+    h, sigma, _, _ = case
+    if not (np.isfinite(sigma) and sigma > 0):
+        return
+    with np.errstate(all="ignore"):
+        t = h.edges_s[:, 0] + where * (h.edges_s[:, -1] - h.edges_s[:, 0])
+    _widths_agree(h, t, sigma)
+
+
+def test_the_compiled_bin_and_exposure_and_their_numpy_forms_agree():
+    """The detection's bin of an estimate and the valid bins' exposure, a row at a time
+    (numba), against the numpy forms, bit for bit: NaN edges, times outside the axis or not
+    finite, negative and NaN at-risk numbers, masked bins, one bin."""
+    from stages.ranging import detection as d
+
+    if d.numba is None:
+        pytest.skip("numba not installed")
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 40):
+        e = np.sort(rng.uniform(0, 1e-8, (6, n + 1)), axis=1)
+        e[2, n // 2] = np.nan
+        t = np.array([-1.0, 0.5e-8, 2e-8, np.nan, np.inf, e[5, n // 2]])
+        peak = rng.integers(0, n, 6)
+        with np.errstate(invalid="ignore"):
+            cb = np.minimum((e[:, 1:n] <= t[:, None]).sum(axis=1), n - 1)
+        np.testing.assert_array_equal(d.bin_of(e, t, peak),
+                                      np.where(np.isfinite(t), cb, peak))
+        at_risk = rng.uniform(-5, 1e4, (6, n))
+        at_risk[1, 0] = np.nan
+        w = np.diff(e, axis=1)
+        valid = rng.random((6, n)) < 0.8
+        want = np.cumsum(np.where(valid, np.maximum(at_risk, 0.0) * w, 0.0), axis=1)[:, -1]
+        np.testing.assert_array_equal(d._exposure(at_risk, w, valid), want)
+
+
+def test_the_compiled_masks_and_their_numpy_form_agree(monkeypatch):
+    """The bins masked around found returns (numba, a row at a time) against the numpy
+    form: NaN and infinite times keep their rows' bins, NaN centres are never masked."""
+    from stages.ranging import multi
+
+    if multi.numba is None:
+        pytest.skip("numba not installed")
+    c = np.random.default_rng(6).poisson(2.0, (5, 50)).astype(float)
+    e = np.tile(np.arange(51) * B, (5, 1))
+    e[3, 20] = np.nan
+    h = hist(c, edges=e)
+    times = [np.array([10.5 * B, np.nan, 49.5 * B, 20.2 * B, -3 * B]),
+             np.array([np.inf, 30.0 * B, 0.0, np.nan, 12.0 * B])]
+    for half in (0.0, 2.5 * B, 100 * B):
+        got = multi._masked(h, times, half)
+        with monkeypatch.context() as m:
+            m.setattr(multi, "numba", None)
+            want = multi._masked(h, times, half)
+        np.testing.assert_array_equal(got, want)
+        assert got.sum() < h.valid.sum()
