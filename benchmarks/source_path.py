@@ -206,7 +206,8 @@ def send_datagrams(port: int, capture: str, rate: float, status: str) -> None:
     per = (datagram.MAX_PAYLOAD - datagram.HEADER.size) // (4 * n)
     words = np.concatenate([w for _, w in cap.iter_chunks(per * n * 64)])
     total = words.size // n
-    dgs = [datagram.encode(words[c * n:min(c + per, total) * n], i, c, n, 140_000,
+    gate_ps = round(cap.meta.t_laser_win_ns * 1000)
+    dgs = [datagram.encode(words[c * n:min(c + per, total) * n], i, c, n, gate_ps,
                            last=c + per >= total)
            for i, c in enumerate(range(0, total, per))]
     del words
@@ -243,11 +244,14 @@ def daemon_run(tree: Path, tmp: Path, capture: Path, workers: int, tag: str,
                calibration: str | None, source: str = "capture", n_tdc: int = 128,
                udp_rate: float = 60e6, mc: int = 20_000
                ) -> tuple[float, dict, dict[str, float]]:
+    from pipeline.io.capture import Capture
+
     state, outd = tmp / f"state-{tag}", tmp / f"out-{tag}"
     topo = tmp / f"topo-{tag}.toml"
     port = _free_port()
     src = (f'kind = "capture"\ncapture = "{capture}"' if source == "capture" else
-           f'kind = "udp"\nbind = "127.0.0.1:{port}"\nn_tdc = {n_tdc}\ngate_ps = 140000\n'
+           f'kind = "udp"\nbind = "127.0.0.1:{port}"\nn_tdc = {n_tdc}\n'
+           f'gate_ps = {round(Capture(capture).meta.t_laser_win_ns * 1000)}\n'
            f'first_seq = 0\nidle = 5')
     knows = "count-as-hits" in (tree / "pipeline/stream/topology.py").read_text()
     hist = (f'calibration = "{calibration}"' if calibration else  # (a tree before the key
@@ -308,6 +312,11 @@ def main() -> None:
     ap.add_argument("--hit-prob", type=float, default=0.05)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--capture", type=Path, default=None,
+                    help="replay this capture (e.g. a simulated scene's, whose calibration "
+                         "--calibration is) instead of the test pattern")
+    ap.add_argument("--times", type=int, default=1,
+                    help="with --capture: its words this many times over (one run)")
     ap.add_argument("--calibration", default=None)
     ap.add_argument("--measurement-cycles", type=int, default=20_000)
     ap.add_argument("--codecs", action="store_true", help="the journal codecs' table")
@@ -326,13 +335,28 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        words, _ = pattern_words(args.cycles, args.n_tdc, hit_prob=args.hit_prob, rng=0)
-        with CaptureWriter(tmp / "cap", args.n_tdc, kind="pattern") as w:
-            w.write(words)
-        n_words = words.size
+        if args.capture is not None:  # a scene's words, the same chip as its calibration
+            from pipeline.io.capture import Capture
+
+            src = Capture(args.capture)
+            words = src.read_words(0, src.n_words)
+            args.n_tdc, gate = src.meta.n_tdc, src.meta.t_laser_win_ns
+            with CaptureWriter(tmp / "cap", args.n_tdc, src.meta.window_ns, gate,
+                               kind="range") as w:
+                for _ in range(args.times):
+                    w.write(words)
+            hits = float(np.mean((words.astype(np.uint32) & 0x7FFFF000) != 0))
+            what = f"{args.capture.name} x {args.times}, ~{hits:.1%} words with a code"
+            n_words = words.size * args.times
+        else:
+            words, _ = pattern_words(args.cycles, args.n_tdc, hit_prob=args.hit_prob, rng=0)
+            gate = 140.0
+            with CaptureWriter(tmp / "cap", args.n_tdc, kind="pattern") as w:
+                w.write(words)
+            n_words = words.size
+            what = f"{args.hit_prob:.0%} hits (stages.testpattern)"
         del words
-        print(f"capture: {n_words / 1e6:.1f} M words, {args.n_tdc} TDCs, "
-              f"{args.hit_prob:.0%} hits (stages.testpattern)\n")
+        print(f"capture: {n_words / 1e6:.1f} M words, {args.n_tdc} TDCs, {what}\n")
         if args.codecs:
             print("journal codecs on the capture's 1 MiB chunks (M words per CPU-second, "
                   "best of 3; bytes kept):")
