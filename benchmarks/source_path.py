@@ -161,13 +161,16 @@ class CpuWatch:
             todo += kids.get(pid, [])
             if pid not in stats:
                 continue
-            if pid not in self.names:
+            # (a child seen between fork and exec still has its parent's command line:
+            # named again once it has its own)
+            if pid not in self.names or (pid != self.root and self.names[pid] in (
+                    "daemon (supervisor)", "(a process gone before it was named)")):
                 try:
                     cmd = Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")
                 except OSError:
                     continue
                 self.names[pid] = _stage_name([c for c in cmd if c])
-                self.samples[pid] = [(now, 0.0)]  # (a process born in the window: from 0)
+                self.samples.setdefault(pid, [(now, 0.0)])  # (born in the window: from 0)
             self.samples[pid].append((now, stats[pid]))
 
     def _poll(self) -> None:

@@ -119,6 +119,11 @@ def _kernel():
     return nativecode.kernel("split", __file__, [p, i64, p, p, p, p], _build)
 
 
+def warm() -> None:
+    """Load (or, the first time on a host, compile) the kernel now."""
+    _kernel()
+
+
 def _build():
     import numba
     from numba import carray, types
