@@ -80,6 +80,32 @@ def codec_table(capture: Path, rounds: int = 3) -> dict[str, tuple[float, float]
     return {k: (raw / 4 / best[k] / 1e6, size[k] / raw) for k in codecs}
 
 
+def segment_reads(capture: Path, tmp: Path, rounds: int = 3) -> dict[str, float]:
+    """{encoding: M words per CPU-second} reading a closed journal segment of the capture's
+    first 200 chunks back through :class:`pipeline.io.capture.Capture` (best of 3)."""
+    from pipeline.io.capture import Capture
+    from pipeline.stream.journal import JournalWriter, segment_path
+
+    cap = Capture(capture)
+    chunk = max(1, (1 << 18) // cap.meta.n_tdc) * cap.meta.n_tdc
+    segs = {}
+    for enc in ("zstd", "zstd-nohit"):
+        j = JournalWriter(tmp / f"read-{enc}", "r", cap.meta.n_tdc, 140.0, compression=enc)
+        for i, (f, w) in enumerate(cap.iter_chunks(chunk, native=False)):
+            if i == 200:
+                break
+            j.append(f, w)
+        j.close()
+        segs[enc] = segment_path(tmp / f"read-{enc}", "r", 0, enc)
+    best = dict.fromkeys(segs, float("inf"))
+    for _ in range(rounds):
+        for enc, seg in segs.items():
+            t = time.process_time()
+            n = sum(w.size for _, w in Capture(seg).iter_chunks())
+            best[enc] = min(best[enc], time.process_time() - t)
+    return {enc: n / b / 1e6 for enc, b in best.items()}
+
+
 def source_steps(capture: Path, ranges, rounds: int = 2) -> dict[str, float]:
     from pipeline.io.capture import Capture
     from pipeline.stream.fanout import TdcSplitter
@@ -335,6 +361,9 @@ def main() -> None:
                   "best of 3; bytes kept):")
             for k, (speed, ratio) in codec_table(tmp / "cap.bin").items():
                 print(f"  {k:20s} {speed:6.0f}  {ratio:6.1%}")
+            print("reading a closed segment back (Capture, M words per CPU-second, best of "
+                  "3): " + "; ".join(f"{k} {v:.0f}" for k, v in
+                                      segment_reads(tmp / "cap.bin", tmp).items()))
         steps = source_steps(tmp / "cap.bin", equal_ranges(args.n_tdc, args.workers))
         print(f"source steps, M words per CPU-second ({args.workers} TDC ranges): "
               + "; ".join(f"{k} {v:.0f}" for k, v in steps.items()))

@@ -5,7 +5,7 @@ A TDC that saw no photon in a cycle sends its no-hit word, a constant of its pos
 bits), so most of a photon-starving stream is a pattern known in advance. A frame's
 content (one zstd frame, level ``ZSTD_LEVEL``, with zstd's content checksum) is::
 
-    header   16 bytes, little-endian: b"TJN1", n_tdc (u32), words (u32), first_word (u64)
+    header   20 bytes, little-endian: b"TJN1", n_tdc (u32), words (u32), first_word (u64)
     mask     ceil(words / 8) bytes: bit i (np.packbits, little bit order) set where word i
              differs from its position's no-hit word; position (first_word + i) % n_tdc
     others   the words whose bit is set, big-endian, in stream order
@@ -162,15 +162,13 @@ def decode(content: bytes | memoryview, first_word: int | None = None,
     if rest < 0 or rest % 4:
         raise FrameError(f"{content.nbytes} bytes do not hold a {n}-word mask and whole words")
     mask = np.frombuffer(content, np.uint8, nmask, HEADER.size)
-    differs = np.unpackbits(mask, count=n, bitorder="little").view(bool)
+    where = np.flatnonzero(np.unpackbits(mask, count=n, bitorder="little").view(bool))
     others = np.frombuffer(content, ">u4", rest // 4, HEADER.size + nmask)
-    if int(np.count_nonzero(differs)) != others.size or (
-            n % 8 and int(mask[-1]) >> (n % 8)):
-        raise FrameError(f"the mask marks {int(np.count_nonzero(differs))} words, "
-                         f"{others.size} follow it")
+    if where.size != others.size or (n % 8 and int(mask[-1]) >> (n % 8)):
+        raise FrameError(f"the mask marks {where.size} words, {others.size} follow it")
     off = first % n_tdc
     out = _tile(n_tdc, n, ">u4")[off:off + n].view(">u4").copy()
-    out[differs] = others
+    out[where] = others  # (a scatter by index: 2-3x boolean assignment at 18 %)
     return first, out
 
 
@@ -206,8 +204,8 @@ class FrameReader:
         if magic != MAGIC:
             raise FrameError(f"not a zstd-nohit frame (magic {magic!r})")
         mask = self._exact(-(-n // 8))
-        k = int(np.unpackbits(np.frombuffer(mask, np.uint8), count=n,
-                              bitorder="little").sum())
+        k = int(np.count_nonzero(np.unpackbits(np.frombuffer(mask, np.uint8), count=n,
+                                               bitorder="little").view(bool)))
         others = self._exact(4 * k)
         self._buf = memoryview(decode(head + mask + others)[1]).cast("B")
         return True
