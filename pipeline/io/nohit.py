@@ -140,19 +140,26 @@ def _build():
     return numba.cfunc(sig, nopython=True)(c_split)
 
 
+#: more TDCs than a frame may name (the chip's addresses are 8 bits): a header saying more
+#: is damaged, and is refused before its pattern is built
+MAX_TDC = 1 << 20
+
+
 def decode(content: bytes | memoryview, first_word: int | None = None,
-           words: int | None = None) -> tuple[int, np.ndarray]:
+           words: int | None = None, n_tdc: int | None = None) -> tuple[int, np.ndarray]:
     """``(first_word, words)`` of a frame's content, the words big-endian (``>u4``);
-    FrameError when it is not well-formed or disagrees with the expected ``first_word`` or
-    ``words`` count (the index's)."""
+    FrameError when it is not well-formed or disagrees with the expected ``first_word``,
+    ``words`` count (the index's) or ``n_tdc`` (a capture sidecar's)."""
     content = memoryview(content).cast("B")
     if content.nbytes < HEADER.size:
         raise FrameError(f"{content.nbytes} bytes, shorter than the frame header")
-    magic, n_tdc, n, first = HEADER.unpack_from(content)
+    magic, frame_tdc, n, first = HEADER.unpack_from(content)
     if magic != MAGIC:
         raise FrameError(f"not a zstd-nohit frame (magic {bytes(magic)!r})")
-    if n_tdc < 1:
-        raise FrameError("n_tdc 0 in the frame header")
+    if not 1 <= frame_tdc <= MAX_TDC or (n_tdc is not None and frame_tdc != n_tdc):
+        raise FrameError(f"n_tdc {frame_tdc} in the frame header"
+                         + (f", the sidecar says {n_tdc}" if n_tdc is not None else ""))
+    n_tdc = frame_tdc
     if words is not None and n != words:
         raise FrameError(f"the frame holds {n} words, the index says {words}")
     if first_word is not None and first != first_word:
@@ -177,9 +184,10 @@ class FrameReader:
     ``readinto``, a context manager): what :class:`pipeline.io.capture.Capture` opens for
     ``NAME.bin.nhz``. A damaged frame raises (zstd's error, or FrameError)."""
 
-    def __init__(self, path):
+    def __init__(self, path, n_tdc: int | None = None):
         import zstandard
 
+        self.n_tdc = n_tdc
         self._fh = open(path, "rb")
         self._z = zstandard.ZstdDecompressor().stream_reader(self._fh, read_across_frames=True)
         self._buf = memoryview(b"")
@@ -207,7 +215,7 @@ class FrameReader:
         k = int(np.count_nonzero(np.unpackbits(np.frombuffer(mask, np.uint8), count=n,
                                                bitorder="little").view(bool)))
         others = self._exact(4 * k)
-        self._buf = memoryview(decode(head + mask + others)[1]).cast("B")
+        self._buf = memoryview(decode(head + mask + others, n_tdc=self.n_tdc)[1]).cast("B")
         return True
 
     def readinto(self, buf) -> int:

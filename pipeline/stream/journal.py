@@ -62,9 +62,9 @@ class JournalEncodingUnknown(TcspcError, ValueError):
 
     def __init__(self, enc, first_word: int | None = None):
         at = "" if first_word is None else f" (the chunk at word {first_word})"
+        known = ", ".join(repr(e) for e in SUFFIXES if e)
         super().__init__(f"journal encoding {enc!r}{at} is not one this tcspc reads "
-                         f"({', '.join(repr(e) for e in SUFFIXES)}); read it with the "
-                         "tcspc that wrote it")
+                         f"({known} or raw); read it with the tcspc that wrote it")
 
 
 class JournalCorrupt(TcspcError, ValueError):

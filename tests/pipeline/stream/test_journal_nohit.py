@@ -169,6 +169,13 @@ def test_content_that_disagrees_with_itself_or_the_index_is_refused():
         nohit.decode(good[:-4])
     with pytest.raises(nohit.FrameError, match="magic"):
         nohit.decode(b"XXXX" + good[4:])
+    with pytest.raises(nohit.FrameError, match="n_tdc 16 in the frame header, the sidecar "
+                       "says 8"):
+        nohit.decode(good, n_tdc=8)
+    huge = bytearray(good)
+    huge[4:8] = (1 << 31).to_bytes(4, "little")  # (no pattern of 2**31 words is built)
+    with pytest.raises(nohit.FrameError, match="n_tdc 2147483648"):
+        nohit.decode(bytes(huge))
 
 
 def test_an_unknown_encoding_is_refused_by_name(tmp_path):
