@@ -59,14 +59,14 @@ def codec_table(capture: Path, rounds: int = 3) -> dict[str, tuple[float, float]
     n_tdc = cap.meta.n_tdc
     chunk = max(1, (1 << 18) // n_tdc) * n_tdc
     chunks = [(f, np.array(w)) for f, w in cap.iter_chunks(chunk, native=False)][:200]
-    zstd = {lv: zstandard.ZstdCompressor(level=lv, write_checksum=True,
-                                         write_content_size=True) for lv in (1, -1, -3, -5, -7)}
+    zstd = {lv: zstandard.ZstdCompressor(level=lv, write_checksum=True, write_content_size=True)
+            for lv in (1, -1, -3, -5, -7, -20, -50)}
     codecs = {f"zstd {lv}": lambda f, w, z=z: z.compress(memoryview(w).cast("B"))
-              for lv, z in zstd.items()}
+              for lv, z in zstd.items() if lv > -20}
     lz4 = pa.Codec("lz4")
     codecs["lz4 frame (pyarrow)"] = lambda f, w: lz4.compress(memoryview(w).cast("B"),
                                                               asbytes=True)
-    for lv in (1, -3):  # (the journal's frame: pipeline.stream.journal.FrameEncoder)
+    for lv in (1, -3, -20, -50):  # (the journal's frame: pipeline.stream.journal.FrameEncoder)
         codecs[f"zstd-nohit {lv}"] = lambda f, w, z=zstd[lv]: z.compress(
             nohit.encode(w, f, n_tdc))
     best = dict.fromkeys(codecs, float("inf"))
@@ -109,7 +109,7 @@ def segment_reads(capture: Path, tmp: Path, rounds: int = 3) -> dict[str, float]
 def source_steps(capture: Path, ranges, rounds: int = 2) -> dict[str, float]:
     from pipeline.io.capture import Capture
     from pipeline.stream.fanout import TdcSplitter
-    from pipeline.stream.journal import DEFAULT_COMPRESSION, ZSTD_LEVEL, FrameEncoder
+    from pipeline.stream.journal import DEFAULT_COMPRESSION, FrameEncoder
     from pipeline.stream.rawwire import RawWordsEncoder
     from schemas.words import RAW_WORDS
 
@@ -123,7 +123,7 @@ def source_steps(capture: Path, ranges, rounds: int = 2) -> dict[str, float]:
             "run": "r", "seq": 0, "step": "source", "first_word": 0, "n_tdc": 1,
             "t_laser_win_ns": 140.0}
     d: dict[str, float] = {}
-    zstd = f"journal {DEFAULT_COMPRESSION} {ZSTD_LEVEL} (its thread)"
+    zstd = f"journal {DEFAULT_COMPRESSION} {journal.level} (its thread)"
 
     def tick(k, t0):
         t = time.process_time()

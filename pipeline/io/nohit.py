@@ -3,7 +3,7 @@
 A TDC that saw no photon in a cycle sends its no-hit word, a constant of its position
 (docs/design.md "Raw word": ``0x200 | address << 1``, the address the position's low 8
 bits), so most of a photon-starving stream is a pattern known in advance. A frame's
-content (one zstd frame, level ``ZSTD_LEVEL``, with zstd's content checksum) is::
+content (one zstd frame, level ``NOHIT_LEVEL``, with zstd's content checksum) is::
 
     header   20 bytes, little-endian: b"TJN1", n_tdc (u32), words (u32), first_word (u64)
     mask     ceil(words / 8) bytes: bit i (np.packbits, little bit order) set where word i

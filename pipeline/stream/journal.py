@@ -9,12 +9,13 @@ Each chunk is one frame; its index entry ``{first_word, segment, offset, bytes, 
 enc, check}`` locates it and names its encoding (``enc``), so a word range is read back
 frame by frame and one run may hold segments of every encoding:
 
-- ``"zstd-nohit"`` (the default, ``RUN-000000.bin.nhz``): zstd (level -3: ZSTD_LEVEL) on
+- ``"zstd-nohit"`` (the default, ``RUN-000000.bin.nhz``): zstd (level -20: NOHIT_LEVEL) on
   the chunk less its no-hit pattern: a bit per word where it differs from its position's
   no-hit word, then those words (pipeline.io.nohit). Lossless for any words; 2.5x the words
   per CPU-second of ``"zstd"`` at 5 % hits and 7x at 18 %, in about the same bytes.
-- ``"zstd"`` (``RUN-000000.bin.zst``): zstd on the big-endian words. Concatenated frames
-  are one zstd stream: ``zstd -d`` gives the raw capture of docs/design.md byte for byte.
+- ``"zstd"`` (``RUN-000000.bin.zst``): zstd (level -3: ZSTD_LEVEL) on the big-endian
+  words. Concatenated frames are one zstd stream: ``zstd -d`` gives the raw capture of
+  docs/design.md byte for byte.
 - raw (``compression=None``, ``RUN-000000.bin``; entries without ``enc``, offsets in
   words).
 
@@ -55,6 +56,11 @@ SUFFIXES = {None: "", "zstd": ".zst", "zstd-nohit": ".nhz"}
 # twice the size at 5 % (`python benchmarks/source_path.py --codecs`, docs/performance.md).
 # A level is the writer's choice only: the frames, and every reader, are zstd's.
 ZSTD_LEVEL = -3
+# zstd-nohit's frames hold the bit mask and the words that differ: at 5 % hits zstd's time
+# goes to the mask, where level -20 takes 1.3x the words per CPU-second of -3 for 7.6 %
+# against 6.8 % of the bytes (the same at 18 %, where the mask is near random); the disk
+# has room for the difference, the CPU is the goal's limit.
+NOHIT_LEVEL = -20
 
 
 class JournalEncodingUnknown(TcspcError, ValueError):
@@ -124,12 +130,13 @@ class FrameEncoder:
             raise ValueError(f"journal compression must be one of {COMPRESSIONS}, found "
                              f"{enc!r}")
         self.enc, self.n_tdc = enc, n_tdc
-        self._codec = None
+        self._codec, self.level = None, None
         if enc is not None:
             import zstandard
 
             # content checksum: a damaged frame fails to decode instead of giving words
-            self._codec = zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True,
+            self.level = NOHIT_LEVEL if enc == "zstd-nohit" else ZSTD_LEVEL
+            self._codec = zstandard.ZstdCompressor(level=self.level, write_checksum=True,
                                                    write_content_size=True)
         self._be = np.empty(0, ">u4")
         if enc == "zstd-nohit":
