@@ -11,8 +11,8 @@ frame by frame and one run may hold segments of every encoding:
 
 - ``"zstd-nohit"`` (the default, ``RUN-000000.bin.nhz``): zstd (level -20: NOHIT_LEVEL) on
   the chunk less its no-hit pattern: a bit per word where it differs from its position's
-  no-hit word, then those words (pipeline.io.nohit). Lossless for any words; 2.5x the words
-  per CPU-second of ``"zstd"`` at 5 % hits and 7x at 18 %, in about the same bytes.
+  no-hit word, then those words (pipeline.io.nohit). Lossless for any words; 2.8x the words
+  per CPU-second of ``"zstd"`` at 5 % hits and 6.7x at 18 %, in about the same bytes.
 - ``"zstd"`` (``RUN-000000.bin.zst``): zstd (level -3: ZSTD_LEVEL) on the big-endian
   words. Concatenated frames are one zstd stream: ``zstd -d`` gives the raw capture of
   docs/design.md byte for byte.
