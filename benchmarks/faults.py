@@ -238,7 +238,7 @@ def sim_scenarios(tmp: Path, lines: list[str], only=None) -> None:
         j = d / "state" / "journal"
         e = next(e for e in _entries(j / "r.index.jsonl") if not e.get("end")
                  and e["first_word"] <= 3 * MC * N < e["first_word"] + e["words"])
-        seg = segment_path(j, "r", e["segment"], "zstd")
+        seg = segment_path(j, "r", e["segment"], e.get("enc"))
         b = bytearray(seg.read_bytes())
         b[e["offset"] + e["bytes"] // 2] ^= 1
         seg.write_bytes(bytes(b))

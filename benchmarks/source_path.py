@@ -59,14 +59,14 @@ def codec_table(capture: Path, rounds: int = 3) -> dict[str, tuple[float, float]
     n_tdc = cap.meta.n_tdc
     chunk = max(1, (1 << 18) // n_tdc) * n_tdc
     chunks = [(f, np.array(w)) for f, w in cap.iter_chunks(chunk, native=False)][:200]
-    zstd = {lv: zstandard.ZstdCompressor(level=lv, write_checksum=True,
-                                         write_content_size=True) for lv in (1, -1, -3, -5, -7)}
+    zstd = {lv: zstandard.ZstdCompressor(level=lv, write_checksum=True, write_content_size=True)
+            for lv in (1, -1, -3, -5, -7, -20, -50)}
     codecs = {f"zstd {lv}": lambda f, w, z=z: z.compress(memoryview(w).cast("B"))
-              for lv, z in zstd.items()}
+              for lv, z in zstd.items() if lv > -20}
     lz4 = pa.Codec("lz4")
     codecs["lz4 frame (pyarrow)"] = lambda f, w: lz4.compress(memoryview(w).cast("B"),
                                                               asbytes=True)
-    for lv in (1, -3):  # (the journal's frame: pipeline.stream.journal.FrameEncoder)
+    for lv in (1, -3, -20, -50):  # (the journal's frame: pipeline.stream.journal.FrameEncoder)
         codecs[f"zstd-nohit {lv}"] = lambda f, w, z=zstd[lv]: z.compress(
             nohit.encode(w, f, n_tdc))
     best = dict.fromkeys(codecs, float("inf"))
@@ -80,10 +80,36 @@ def codec_table(capture: Path, rounds: int = 3) -> dict[str, tuple[float, float]
     return {k: (raw / 4 / best[k] / 1e6, size[k] / raw) for k in codecs}
 
 
+def segment_reads(capture: Path, tmp: Path, rounds: int = 3) -> dict[str, float]:
+    """{encoding: M words per CPU-second} reading a closed journal segment of the capture's
+    first 200 chunks back through :class:`pipeline.io.capture.Capture` (best of 3)."""
+    from pipeline.io.capture import Capture
+    from pipeline.stream.journal import JournalWriter, segment_path
+
+    cap = Capture(capture)
+    chunk = max(1, (1 << 18) // cap.meta.n_tdc) * cap.meta.n_tdc
+    segs = {}
+    for enc in ("zstd", "zstd-nohit"):
+        j = JournalWriter(tmp / f"read-{enc}", "r", cap.meta.n_tdc, 140.0, compression=enc)
+        for i, (f, w) in enumerate(cap.iter_chunks(chunk, native=False)):
+            if i == 200:
+                break
+            j.append(f, w)
+        j.close()
+        segs[enc] = segment_path(tmp / f"read-{enc}", "r", 0, enc)
+    best = dict.fromkeys(segs, float("inf"))
+    for _ in range(rounds):
+        for enc, seg in segs.items():
+            t = time.process_time()
+            n = sum(w.size for _, w in Capture(seg).iter_chunks())
+            best[enc] = min(best[enc], time.process_time() - t)
+    return {enc: n / b / 1e6 for enc, b in best.items()}
+
+
 def source_steps(capture: Path, ranges, rounds: int = 2) -> dict[str, float]:
     from pipeline.io.capture import Capture
     from pipeline.stream.fanout import TdcSplitter
-    from pipeline.stream.journal import DEFAULT_COMPRESSION, ZSTD_LEVEL, FrameEncoder
+    from pipeline.stream.journal import DEFAULT_COMPRESSION, FrameEncoder
     from pipeline.stream.rawwire import RawWordsEncoder
     from schemas.words import RAW_WORDS
 
@@ -97,7 +123,7 @@ def source_steps(capture: Path, ranges, rounds: int = 2) -> dict[str, float]:
             "run": "r", "seq": 0, "step": "source", "first_word": 0, "n_tdc": 1,
             "t_laser_win_ns": 140.0}
     d: dict[str, float] = {}
-    zstd = f"journal {DEFAULT_COMPRESSION} {ZSTD_LEVEL} (its thread)"
+    zstd = f"journal {DEFAULT_COMPRESSION} {journal.level} (its thread)"
 
     def tick(k, t0):
         t = time.process_time()
@@ -362,6 +388,9 @@ def main() -> None:
                   "best of 3; bytes kept):")
             for k, (speed, ratio) in codec_table(tmp / "cap.bin").items():
                 print(f"  {k:20s} {speed:6.0f}  {ratio:6.1%}")
+            print("reading a closed segment back (Capture, M words per CPU-second, best of "
+                  "3): " + "; ".join(f"{k} {v:.0f}" for k, v in
+                                      segment_reads(tmp / "cap.bin", tmp).items()))
         steps = source_steps(tmp / "cap.bin", equal_ranges(args.n_tdc, args.workers))
         print(f"source steps, M words per CPU-second ({args.workers} TDC ranges): "
               + "; ".join(f"{k} {v:.0f}" for k, v in steps.items()))

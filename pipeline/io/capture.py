@@ -162,7 +162,7 @@ class Capture:
         if self.compressed == "zstd-nohit":
             from pipeline.io.nohit import FrameReader
 
-            return FrameReader(self.bin_path)
+            return FrameReader(self.bin_path, self.meta.n_tdc)
         if self.compressed:
             import pyarrow as pa
 

@@ -1,6 +1,6 @@
 """Which kind of file a path is, from its content (``--format`` overrides).
 
-- ``tcspc``: the project's own capture (``NAME.bin`` [.zst] with its ``NAME.json``);
+- ``tcspc``: the project's own capture (``NAME.bin`` [.zst, .nhz] with its ``NAME.json``);
 - ``ptu``: a PicoQuant PTU file (magic ``PQTTTR``);
 - ``linospad2``: LinoSPAD2 raw words (whole cycles of 65 lines x 200 words, and the
   structure :func:`pipeline.io.linospad2.looks_like_linospad2` checks).

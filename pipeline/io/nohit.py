@@ -3,9 +3,9 @@
 A TDC that saw no photon in a cycle sends its no-hit word, a constant of its position
 (docs/design.md "Raw word": ``0x200 | address << 1``, the address the position's low 8
 bits), so most of a photon-starving stream is a pattern known in advance. A frame's
-content (one zstd frame, level ``ZSTD_LEVEL``, with zstd's content checksum) is::
+content (one zstd frame, level ``NOHIT_LEVEL``, with zstd's content checksum) is::
 
-    header   16 bytes, little-endian: b"TJN1", n_tdc (u32), words (u32), first_word (u64)
+    header   20 bytes, little-endian: b"TJN1", n_tdc (u32), words (u32), first_word (u64)
     mask     ceil(words / 8) bytes: bit i (np.packbits, little bit order) set where word i
              differs from its position's no-hit word; position (first_word + i) % n_tdc
     others   the words whose bit is set, big-endian, in stream order
@@ -132,6 +132,11 @@ def _kernel():
     return nativecode.kernel("split", __file__, [p, i64, p, p, p, p], _build)
 
 
+def warm() -> None:
+    """Load (or, the first time on a host, compile) the kernel now."""
+    _kernel()
+
+
 def _build():
     import numba
     from numba import carray, types
@@ -148,19 +153,26 @@ def _build():
     return numba.cfunc(sig, nopython=True)(c_split)
 
 
+#: more TDCs than a frame may name (the chip's addresses are 8 bits): a header saying more
+#: is damaged, and is refused before its pattern is built
+MAX_TDC = 1 << 20
+
+
 def decode(content: bytes | memoryview, first_word: int | None = None,
-           words: int | None = None) -> tuple[int, np.ndarray]:
+           words: int | None = None, n_tdc: int | None = None) -> tuple[int, np.ndarray]:
     """``(first_word, words)`` of a frame's content, the words big-endian (``>u4``);
-    FrameError when it is not well-formed or disagrees with the expected ``first_word`` or
-    ``words`` count (the index's)."""
+    FrameError when it is not well-formed or disagrees with the expected ``first_word``,
+    ``words`` count (the index's) or ``n_tdc`` (a capture sidecar's)."""
     content = memoryview(content).cast("B")
     if content.nbytes < HEADER.size:
         raise FrameError(f"{content.nbytes} bytes, shorter than the frame header")
-    magic, n_tdc, n, first = HEADER.unpack_from(content)
+    magic, frame_tdc, n, first = HEADER.unpack_from(content)
     if magic != MAGIC:
         raise FrameError(f"not a zstd-nohit frame (magic {bytes(magic)!r})")
-    if n_tdc < 1:
-        raise FrameError("n_tdc 0 in the frame header")
+    if not 1 <= frame_tdc <= MAX_TDC or (n_tdc is not None and frame_tdc != n_tdc):
+        raise FrameError(f"n_tdc {frame_tdc} in the frame header"
+                         + (f", the sidecar says {n_tdc}" if n_tdc is not None else ""))
+    n_tdc = frame_tdc
     if words is not None and n != words:
         raise FrameError(f"the frame holds {n} words, the index says {words}")
     if first_word is not None and first != first_word:
@@ -170,15 +182,13 @@ def decode(content: bytes | memoryview, first_word: int | None = None,
     if rest < 0 or rest % 4:
         raise FrameError(f"{content.nbytes} bytes do not hold a {n}-word mask and whole words")
     mask = np.frombuffer(content, np.uint8, nmask, HEADER.size)
-    differs = np.unpackbits(mask, count=n, bitorder="little").view(bool)
+    where = np.flatnonzero(np.unpackbits(mask, count=n, bitorder="little").view(bool))
     others = np.frombuffer(content, ">u4", rest // 4, HEADER.size + nmask)
-    if int(np.count_nonzero(differs)) != others.size or (
-            n % 8 and int(mask[-1]) >> (n % 8)):
-        raise FrameError(f"the mask marks {int(np.count_nonzero(differs))} words, "
-                         f"{others.size} follow it")
+    if where.size != others.size or (n % 8 and int(mask[-1]) >> (n % 8)):
+        raise FrameError(f"the mask marks {where.size} words, {others.size} follow it")
     off = first % n_tdc
     out = _tile(n_tdc, n, ">u4")[off:off + n].view(">u4").copy()
-    out[differs] = others
+    out[where] = others  # (a scatter by index: 2-3x boolean assignment at 18 %)
     return first, out
 
 
@@ -187,9 +197,10 @@ class FrameReader:
     ``readinto``, a context manager): what :class:`pipeline.io.capture.Capture` opens for
     ``NAME.bin.nhz``. A damaged frame raises (zstd's error, or FrameError)."""
 
-    def __init__(self, path):
+    def __init__(self, path, n_tdc: int | None = None):
         import zstandard
 
+        self.n_tdc = n_tdc
         self._fh = open(path, "rb")
         self._z = zstandard.ZstdDecompressor().stream_reader(self._fh, read_across_frames=True)
         self._buf = memoryview(b"")
@@ -214,10 +225,10 @@ class FrameReader:
         if magic != MAGIC:
             raise FrameError(f"not a zstd-nohit frame (magic {magic!r})")
         mask = self._exact(-(-n // 8))
-        k = int(np.unpackbits(np.frombuffer(mask, np.uint8), count=n,
-                              bitorder="little").sum())
+        k = int(np.count_nonzero(np.unpackbits(np.frombuffer(mask, np.uint8), count=n,
+                                               bitorder="little").view(bool)))
         others = self._exact(4 * k)
-        self._buf = memoryview(decode(head + mask + others)[1]).cast("B")
+        self._buf = memoryview(decode(head + mask + others, n_tdc=self.n_tdc)[1]).cast("B")
         return True
 
     def readinto(self, buf) -> int:

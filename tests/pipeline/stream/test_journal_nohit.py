@@ -169,6 +169,13 @@ def test_content_that_disagrees_with_itself_or_the_index_is_refused():
         nohit.decode(good[:-4])
     with pytest.raises(nohit.FrameError, match="magic"):
         nohit.decode(b"XXXX" + good[4:])
+    with pytest.raises(nohit.FrameError, match="n_tdc 16 in the frame header, the sidecar "
+                       "says 8"):
+        nohit.decode(good, n_tdc=8)
+    huge = bytearray(good)
+    huge[4:8] = (1 << 31).to_bytes(4, "little")  # (no pattern of 2**31 words is built)
+    with pytest.raises(nohit.FrameError, match="n_tdc 2147483648"):
+        nohit.decode(bytes(huge))
 
 
 def test_an_unknown_encoding_is_refused_by_name(tmp_path):
@@ -236,3 +243,26 @@ def test_every_flip_in_a_frame_header_is_detected_or_harmless(tmp_path, enc):
                 assert np.array_equal(got, w), (byte, bit)
                 harmless += 1
     assert harmless <= 2
+
+
+def test_a_segment_is_a_capture_and_a_damaged_one_is_refused(tmp_path):
+    """A closed zstd-nohit segment is recognised as a capture and reads as one; a flipped
+    bit inside it is a CaptureError naming the file, never words."""
+    from pipeline.io.formats import detect_format
+    from schemas.errors import CaptureError
+
+    w, _ = pattern_words(2000, 16, hit_prob=0.18, rng=5)
+    j = JournalWriter(tmp_path, "r", 16, 140.0, compression="zstd-nohit")
+    for i in range(0, w.size, 4000):
+        j.append(i, w[i:i + 4000])
+    j.close()
+    seg = segment_path(tmp_path, "r", 0, "zstd-nohit")
+    assert detect_format(seg) == "tcspc"
+    assert np.array_equal(np.concatenate([x.copy() for _, x in Capture(seg).iter_chunks(
+        5000)]), w)
+    data = bytearray(seg.read_bytes())
+    data[len(data) // 2] ^= 0x10
+    seg.write_bytes(bytes(data))
+    with pytest.raises(CaptureError, match="r-000000.bin.nhz"):
+        for _ in Capture(seg).iter_chunks(5000):
+            pass
