@@ -269,7 +269,7 @@ def _free_port() -> int:
 def daemon_run(tree: Path, tmp: Path, capture: Path, workers: int, tag: str,
                calibration: str | None, source: str = "capture", n_tdc: int = 128,
                udp_rate: float = 60e6, mc: int = 20_000
-               ) -> tuple[float, dict, dict[str, float]]:
+               ) -> tuple[float, dict, dict[str, float], dict]:
     from pipeline.io.capture import Capture
 
     state, outd = tmp / f"state-{tag}", tmp / f"out-{tag}"
@@ -320,10 +320,20 @@ out = "{outd}"
     # fixed cost of the run, not of its words)
     end = max(p.stat().st_mtime for p in outd.glob("*/date=*/run=bench/*.parquet"))
     acc = json.loads(out)["accounting"]
+    # the steady state: from the measurement a fifth of the way in to the last (the stages'
+    # start-up, which overlaps the run's first measurements, left out)
+    done: dict[int, float] = {}
+    for p in outd.glob("*/date=*/run=bench/part-*.parquet"):
+        k = int(p.name.split("-")[1])
+        done[k] = max(done.get(k, 0.0), p.stat().st_mtime)
+    ks = sorted(done)
+    k0 = ks[len(ks) // 5] if len(ks) >= 5 else ks[0]
+    steady = {"words": (ks[-1] - k0) * mc * n_tdc, "wall": done[ks[-1]] - done[k0],
+              "cpu": watch.stop(done[k0], done[ks[-1]]) if ks[-1] > k0 else {}}
     cpu = watch.stop(first, end)
     if sent is not None:
         cpu["(sender, not the daemon's)"] = sent["cpu_s"]
-    return end - first, acc, cpu
+    return end - first, acc, cpu, steady
 
 
 def main() -> None:
@@ -398,10 +408,11 @@ def main() -> None:
             return
         walls: dict[Path, list[float]] = {t: [] for t in args.tree}
         cpus: dict[Path, list[dict[str, float]]] = {t: [] for t in args.tree}
+        steadies: dict[Path, list[dict]] = {t: [] for t in args.tree}
         for k in range(args.repeat):
             for i, tree in enumerate(args.tree):
                 cal = args.calibration
-                wall, acc, cpu = daemon_run(tree, tmp, tmp / "cap.bin", args.workers,
+                wall, acc, cpu, steady = daemon_run(tree, tmp, tmp / "cap.bin", args.workers,
                                             f"{i}-{k}", cal, args.source, args.n_tdc,
                                             args.udp_rate, args.measurement_cycles)
                 lost = acc.get("lost_datagrams", 0)
@@ -413,6 +424,7 @@ def main() -> None:
                     raise SystemExit(f"{tree}: the run did not balance: {acc}")
                 walls[tree].append(wall)
                 cpus[tree].append(cpu)
+                steadies[tree].append(steady)
         what = (f"udp datagram v1 paced at {args.udp_rate / 1e6:.0f} M words/s"
                 if args.source == "udp" else "capture replay")
         print(f"\ndaemon ({what}), journal at each tree's default encoding, "
@@ -429,6 +441,24 @@ def main() -> None:
                 s = float(np.median([c.get(name, 0.0) for c in cpus[tree]]))
                 print(f"    {name:28s} {s:6.2f} CPU-s  "
                       f"{n_words / max(s, 1e-3) / 1e6:7.0f} M words/CPU-s")
+        print("\nthe steady state: from the measurement a fifth of the way in to the last "
+              "written (the stages' start-up left out); M words/s (best, median) and each "
+              "process's M words per CPU-second (median), and the cores the processes "
+              "would need at 110 M words/s:")
+        for tree, st in steadies.items():
+            st = [x for x in st if x["wall"] > 0 and x["words"]]
+            if not st:
+                continue
+            rates = [x["words"] / x["wall"] / 1e6 for x in st]
+            print(f"  {tree}: {max(rates):.1f} (median {float(np.median(rates)):.1f})")
+            total = 0.0
+            for name in sorted({n for x in st for n in x["cpu"]}):
+                per = float(np.median([x["words"] / max(x["cpu"].get(name, 0.0), 1e-6)
+                                       for x in st])) / 1e6
+                cores = 110 / per if per < 1e5 else 0.0
+                total += cores if "sender" not in name else 0.0
+                print(f"    {name:28s} {per:7.0f} M words/CPU-s  {cores:5.2f} cores")
+            print(f"    {'(the daemon, all)':28s} {'':7s}                 {total:5.2f} cores")
     print(f"load average {os.getloadavg()[0]:.1f} at the end")
 
 
