@@ -567,7 +567,8 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
                 wrote = None
             parts = splitter.views(first, words) if splitter else [(first, words)]
             if sparse:  # a fan-out's ranges cut from the one pass's result
-                cut = whole.cut(first, n_tdc, split) if split else [whole]
+                cut = ([whole] if not split or split == [(0, n_tdc)] else
+                       whole.cut(first, n_tdc, split))
                 parts = [(f, sw) for (f, _), sw in zip(parts, cut, strict=True)]
             msgs = []
             for (f, w), rng in zip(parts, split or [(0, n_tdc)], strict=True):
