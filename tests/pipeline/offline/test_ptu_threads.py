@@ -181,3 +181,63 @@ def test_the_c_kernels_release_the_gil():
         assert fn is not None
         assert not fn._flags_ & ctypes._FUNCFLAG_PYTHONAPI, name
     assert ctypes.PyDLL(None).PyGILState_Check._flags_ & ctypes._FUNCFLAG_PYTHONAPI
+
+
+BESIDE = """
+import builtins, sys, threading
+from pipeline.io.ptu import read_header
+from pipeline.offline.instruments import fold_ptu, instrument_accumulator
+from stages.instruments.ptu import native_loops
+path = sys.argv[1]
+h = read_header(path)
+acc = instrument_accumulator(path, "ptu", header=h)
+assert native_loops(h.format) and "pyarrow" not in sys.modules
+new, seen, builtin = [], [], builtins.__import__
+
+def watch(name, *args, **kwargs):  # a module another thread than this one imports
+    if threading.current_thread() is not threading.main_thread() and name not in sys.modules:
+        new.append(name)
+    return builtin(name, *args, **kwargs)
+
+builtins.__import__ = watch
+fold_ptu(path, acc, 5_000, 2, h, lambda: seen.append(
+    (threading.current_thread() is threading.main_thread(), acc.words)))
+print(new, seen)
+"""
+
+
+def run_fresh(code: str, *args) -> str:
+    import os
+    import subprocess
+    import sys
+
+    root = str(Path(__file__).parents[3])
+    res = subprocess.run([sys.executable, "-c", code, *map(str, args)], capture_output=True,
+                         text=True, timeout=120, env={**os.environ, "PYTHONPATH": root})
+    assert res.returncode == 0, res.stderr
+    return res.stdout.strip()
+
+
+def test_the_threads_import_nothing_while_the_caller_works_beside_them(many_chunks):
+    """What lets the command import pyarrow while the pass runs: with the C kernels
+    loaded first (`native_loops`), the threads' pass imports no module (so this thread is
+    the only importer), and `meanwhile` runs once on this thread before any chunk is
+    folded."""
+    assert run_fresh(BESIDE, many_chunks) == "[] [(True, 0)]"
+
+
+def test_the_command_path_imports_pyarrow_beside_the_pass_alike(many_chunks, tmp_path):
+    """`histogram_ptu` in a fresh process (pyarrow not yet imported: it is imported beside
+    the threads' pass) writes the table one pass gives."""
+    from pipeline.io.histograms import read_histograms
+    from pipeline.offline.instruments import write_instrument_histograms
+
+    code = ("import sys; from pipeline.offline.instruments import histogram_ptu, "
+            "write_instrument_histograms as w; assert 'pyarrow' not in sys.modules; "
+            "t, s = histogram_ptu(sys.argv[1], chunk_records=5_000, threads=2); "
+            "w(t, sys.argv[2], sys.argv[1], s); print(s.records)")
+    assert run_fresh(code, many_chunks, tmp_path / "two.parquet") == "200000"
+    table, summary = histogram_ptu(many_chunks, chunk_records=5_000, threads=1)
+    write_instrument_histograms(table, tmp_path / "one.parquet", many_chunks, summary)
+    assert read_histograms(tmp_path / "two.parquet").equals(
+        read_histograms(tmp_path / "one.parquet"))
