@@ -20,5 +20,3 @@ N_CODES_2ND = 256
 
 #: A PicoQuant PTU file's first 8 bytes (its format's magic).
 PTU_MAGIC = b"PQTTTR\0\0"
-#: The values of ``kind`` in the PTU event datasets (``schemas.instruments``).
-PHOTON, MARKER = 0, 1

@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import pyarrow as pa
 
-from schemas.constants import MARKER, PHOTON, PTU_MAGIC  # noqa: F401  (re-exported)
+from schemas.constants import PTU_MAGIC  # noqa: F401  (re-exported)
 from schemas.core import SchemaSpec, field
 
+#: the values of ``kind`` in the PTU event datasets
+PHOTON, MARKER = 0, 1
 EVENT_KINDS = ("photon", "marker")
 
 PTU_T2_EVENTS = SchemaSpec("ptu_t2_events", "1.0", (

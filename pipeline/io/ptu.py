@@ -26,14 +26,14 @@ import warnings
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
+import pyarrow as pa
 
 from pipeline.io.atomic import atomic_path
 from pipeline.io.buffers import aligned_empty
-from schemas.constants import PTU_MAGIC
 from schemas.errors import TcspcError
+from schemas.instruments import PTU_MAGIC, PTU_T2_EVENTS, PTU_T3_EVENTS
 from stages.instruments.accumulate import column
 from stages.instruments.ptu import (
     SYNC_CHANNEL,
@@ -46,9 +46,6 @@ from stages.instruments.ptu import (
     resolution_ps_fraction,
     to_picoseconds,
 )
-
-if TYPE_CHECKING:  # (pyarrow is imported where a table is made: a histogram's pass runs
-    import pyarrow as pa  # while it loads, pipeline.offline.instruments.histogram_ptu)
 
 MAGIC = PTU_MAGIC
 #: A T2 file's timetag unit is its TDC's bin (1-80 ps in PicoQuant's instruments): a
@@ -428,10 +425,6 @@ def iter_decoded_batches(path: str | os.PathLike, chunk_records: int = CHUNK_REC
     (its ``truncated`` is set before the first batch). ``header``: the file's, read here
     unless given.
     """
-    import pyarrow as pa
-
-    from schemas.instruments import PTU_T2_EVENTS, PTU_T3_EVENTS
-
     header = header if header is not None else read_header(path)
     fmt = header.format
     report = report if report is not None else DecodeReport()
@@ -461,10 +454,6 @@ def decode(path: str | os.PathLike, chunk_records: int = CHUNK_RECORDS,
     ``ptu.truncated``, ...). Holds every event in memory: stream large files with
     :func:`iter_decoded_batches`.
     """
-    import pyarrow as pa
-
-    from schemas.instruments import PTU_T2_EVENTS, PTU_T3_EVENTS
-
     report = DecodeReport()
     batches = list(iter_decoded_batches(path, chunk_records, report, engine, strict))
     spec = PTU_T3_EVENTS if report.header.format.is_t3 else PTU_T2_EVENTS
@@ -607,10 +596,6 @@ def export_photon_hdf5(path_ptu: str | os.PathLike, out_h5: str | os.PathLike,
     except ImportError as exc:  # an optional dependency: say how to get it
         raise ModuleNotFoundError("export_photon_hdf5 needs phconvert (pip install "
                                   "phconvert; it brings PyTables)") from exc
-    import pyarrow as pa
-
-    from schemas.instruments import PTU_T2_EVENTS, PTU_T3_EVENTS
-
     report = DecodeReport()
     table = pa.Table.from_batches(
         list(iter_decoded_batches(path_ptu, report=report, engine=engine, strict=strict)),

@@ -11,13 +11,14 @@ zero-distance file), which :func:`range_uniform` says in its note.
 from __future__ import annotations
 
 import dataclasses
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 
 from pipeline.io.atomic import atomic_path
 from pipeline.io.formats import FormatError
@@ -31,9 +32,7 @@ from stages.instruments.accumulate import (
     instrument_table,
 )
 
-if TYPE_CHECKING:  # (ranging imports scipy.special: 0.3-1 s a histogram or decode never needs;
-    import pyarrow as pa  # pyarrow loads beside a PTU file's pass, `histogram_ptu`)
-
+if TYPE_CHECKING:  # (ranging imports scipy.special: 0.3-1 s a histogram or decode never needs)
     from stages.ranging import Histograms
 
 #: m/s, exact (SI); scipy.constants' import costs 0.1-0.5 s on a command's start
@@ -95,12 +94,12 @@ def instrument_accumulator(path: str | Path, fmt: str, firmware: str = "2212b",
 
 
 def _fold_file(path, fmt: str, acc, measurement: str | None, chunk_words: int,
-               threads: int = 1, header=None, meanwhile=None):
+               threads: int = 1, header=None):
     from pipeline.io.formats import instrument_truncation, instrument_words
 
     t0 = time.perf_counter()
     if fmt == "ptu":
-        fold_ptu(path, acc, chunk_words, threads, header, meanwhile)
+        fold_ptu(path, acc, chunk_words, threads, header)
     else:
         for first, words in instrument_words(path, fmt, chunk_words):
             acc.update(words, first)
@@ -117,16 +116,14 @@ def _fold_file(path, fmt: str, acc, measurement: str | None, chunk_words: int,
 
 
 def fold_ptu(path: str | Path, acc: PtuT3Accumulator, chunk_records: int,
-             threads: int, header=None, meanwhile=None) -> None:
+             threads: int, header=None) -> None:
     """Fold a PTU T3 file's records into ``acc`` on ``threads`` threads: each reads a chunk
     into its own buffer and histograms it into its own counts (the compiled loop runs
     without the GIL, and one thread's read overlaps the others' loops); the chunks' parts
     are folded into ``acc`` in file order, so the overflow count and the sync total are
     what one pass gives, and the counts (order-free) are summed at the end. A file of
     one chunk, or one thread, is read and folded in one pass. ``header``: the file's, read
-    here unless given. ``meanwhile``: called on this thread once the threads have their
-    chunks (a pass of one thread or one chunk does not call it): work that needs no
-    core the loops hold, such as an import the write needs."""
+    here unless given."""
     from pipeline.io.ptu import iter_chunks, read_header
 
     header = header if header is not None else read_header(path)
@@ -164,10 +161,7 @@ def fold_ptu(path: str | Path, acc: PtuT3Accumulator, chunk_records: int,
         pool = stack.enter_context(ThreadPoolExecutor(threads, "ptu-histogram"))
         last = -1  # the largest dtime of any photon: no count lies past it
         try:
-            parts = pool.map(part, range(0, n, chunk_records))  # (in file order)
-            if meanwhile is not None:
-                meanwhile()
-            for p in parts:
+            for p in pool.map(part, range(0, n, chunk_records)):  # (in file order)
                 acc.fold(p)
                 last = max(last, p.tally.max_dtime)
         except BaseException:
@@ -175,10 +169,6 @@ def fold_ptu(path: str | Path, acc: PtuT3Accumulator, chunk_records: int,
             raise
     for counts in own:  # (the used codes only: a format has up to 32768, mostly unused)
         acc.counts[:, :last + 1] += counts[:, :last + 1]
-
-
-def _import_writer() -> None:
-    import pipeline.io.histograms  # noqa: F401 (pyarrow and its parquet writer)
 
 
 def histogram_ptu(path: str | Path, measurement: str | None = None,
@@ -190,20 +180,15 @@ def histogram_ptu(path: str | Path, measurement: str | None = None,
     loops, 1 with the numpy engine, which holds the GIL) share the chunks; the result is
     the same for any number."""
     from pipeline.io.ptu import read_header
-    from stages.instruments.ptu import default_engine, native_loops
 
     header = read_header(path)  # (once: its tags are parsed in Python)
     acc = instrument_accumulator(path, "ptu", header=header)
     if threads is None:
+        from stages.instruments.ptu import default_engine
+
         threads = default_threads() if (acc.engine or default_engine()) == "numba" else 1
-    # The table and its write need pyarrow (40-70 ms to import, a fifth of the command on
-    # 50 M records): while threads run the pass in the C kernels, which release the GIL,
-    # this thread imports it. The kernels are loaded first, so the threads import nothing
-    # (one importer at a time); with numba's dispatcher it is imported after the pass.
-    beside = ("pyarrow.parquet" not in sys.modules and threads > 1
-              and native_loops(acc.fmt, acc.engine))
     table, state, summary = _fold_file(path, "ptu", acc, measurement, chunk_records,
-                                       threads, header, _import_writer if beside else None)
+                                       threads, header)
     summary.notes.append(f"{acc.fmt.name}: {table.num_rows} channels x "
                          f"{len(table.column('counts')[0]) if table.num_rows else 0} dtime "
                          f"codes of {acc.bin_width_ps:g} ps, {state.n_cycles:,} sync periods")
@@ -233,9 +218,6 @@ def decode_instrument(path: str | Path, fmt: str, out: str | Path,
     """Decode a PTU or LinoSPAD2 file into its events dataset (``ptu_t2_events``,
     ``ptu_t3_events`` or ``linospad2_events``), streaming in bounded memory, atomically;
     every record accounted for in the returned summary."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
     from pipeline.io.formats import instrument_truncation, instrument_words
     from schemas.instruments import LINOSPAD2_EVENTS, PTU_T2_EVENTS, PTU_T3_EVENTS
 

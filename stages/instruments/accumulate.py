@@ -12,10 +12,11 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+import pyarrow as pa
 
-if TYPE_CHECKING:  # (the decoders are imported where a record is decoded; pyarrow where
-    import pyarrow as pa  # a table is made: a file's pass runs while it loads)
+from schemas.outputs import HISTOGRAMS
 
+if TYPE_CHECKING:  # (the decoders are imported where a record is decoded)
     from stages.instruments.ptu import Tally
 
 PICOQUANT_T3 = "picoquant-t3"
@@ -27,8 +28,6 @@ def column(values, type_: pa.DataType) -> pa.Array:
     """A column without nulls over a numpy array's memory (converted to ``type_``'s dtype
     where it differs, else no copy), without ``pa.array``'s check for a masked array,
     which imports numpy.ma (30-90 ms of a command's start)."""
-    import pyarrow as pa
-
     values = np.ascontiguousarray(values, type_.to_pandas_dtype())
     return pa.Array.from_buffers(type_, values.size, [None, pa.py_buffer(values)])
 
@@ -39,10 +38,6 @@ def instrument_table(measurement: str, counts: np.ndarray, cycles, instrument: s
     ``cycles`` per row (or one for all), ``rows`` the ``tdc`` value of each row. The class
     columns are the thesis chip's: ``n_hit`` is the row's counts, the others 0 (an
     instrument's record classes are in the file's ``tcspc.class_counts``)."""
-    import pyarrow as pa
-
-    from schemas.outputs import HISTOGRAMS
-
     counts = np.ascontiguousarray(counts, np.uint64)
     n, k = counts.shape
     rows = np.arange(n) if rows is None else np.asarray(rows)

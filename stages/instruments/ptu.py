@@ -55,7 +55,7 @@ from fractions import Fraction
 
 import numpy as np
 
-from schemas.constants import MARKER, PHOTON
+from schemas.instruments import MARKER, PHOTON
 
 # numba is a dependency, but the numpy path must work (and is tested) without it; it is
 # imported only where a kernel must be compiled (stages.nativecode loads them without it)
@@ -586,16 +586,6 @@ def _native(name: str):
 
     kind = name.split("_")[0]
     return nativecode.kernel(name, __file__, _ARGTYPES[kind], lambda: _build(name, kind))
-
-
-def native_loops(fmt: RecordFormat, engine: str | None = None) -> bool:
-    """Load the C kernels a T3 histogram's pass calls (the histogram's, and the decode of
-    each chunk's last event) now: True when they are loaded, so a pass imports nothing
-    more; False with the numpy engine or where numba's dispatcher would run them (it
-    imports and types at its first call)."""
-    if (engine or default_engine()) != "numba":
-        return False
-    return all(_native(_loop_name(fmt, kind)) is not None for kind in ("histogram", "decode"))
 
 
 def _build(name: str, kind: str):
