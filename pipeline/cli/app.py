@@ -18,10 +18,11 @@ from pipeline.cli.console import console, err, error, out, warn  # noqa: F401 (r
 
 
 def _one_blas_thread() -> None:
-    """numpy's OpenBLAS starts a thread pool of one thread per core when numpy is first
-    imported: 60-70 ms of a `histogram` or `decode` command's ~0.27 s on this 2-core VM
-    (more with more cores), for linear algebra those commands never do. Asked for one
-    thread before numpy loads (a user's own OPENBLAS_NUM_THREADS is kept)."""
+    """numpy's OpenBLAS starts a thread per core when numpy is first imported, and they
+    spin before they sleep: 50-130 ms of CPU of a `histogram` or `decode` command's
+    0.2-0.5 s on this 2-core VM (more with more cores; docs/performance.md), for linear
+    algebra those commands never do. Asked for one thread before numpy loads (a user's
+    own OPENBLAS_NUM_THREADS is kept)."""
     if "numpy" not in sys.modules:  # (afterwards it would change nothing but children)
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 

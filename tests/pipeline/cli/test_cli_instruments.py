@@ -182,7 +182,7 @@ print(os.environ.get("OPENBLAS_NUM_THREADS"),
 
 @pytest.mark.parametrize("command", ["histogram", "decode"])
 def test_instrument_commands_load_numpy_without_a_blas_thread_pool(tmp_path, command):
-    """numpy's OpenBLAS starts a thread per core when it loads (60-70 ms of a 0.27 s
+    """numpy's OpenBLAS starts a thread per core when it loads (50-130 ms of CPU of a
     command on 2 cores): `histogram` and `decode`, which do no linear algebra, ask for one
     before numpy loads; a user's OPENBLAS_NUM_THREADS is kept."""
     env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
