@@ -7,12 +7,14 @@ capture of the same words as the 106 k file (``tcspc pattern``) for reference.
 Each command runs from each source tree given (``--tree``, e.g. the main branch's and
 this one's: the same files, the same run, interleaved so a loaded machine weighs on both
 alike), each with its own bytecode and numba caches under a temporary directory, after
-one untimed run (bytecode, kernels); best and median wall time of ``--repeat`` runs, and
-the load average after each row. The files are read from the page cache (written or
+one untimed run (bytecode, kernels); best and median wall time of ``--repeat`` runs, the
+median CPU time (user + system, all threads: steadier than the wall on a shared machine)
+and the load average after each row. The files are read from the page cache (written or
 read just before). The first rows are the floor: the interpreter with the libraries an
-instrument command needs (numpy, pyarrow and its parquet writer, click), and
-`tcspc --help`. Threads: the commands' default (``TCSPC_THREADS`` if set, else the
-cores, at most 4).
+instrument command needs (numpy, pyarrow and its parquet writer, click), as a plain
+``python -c`` loads them and with one OpenBLAS thread (``OPENBLAS_NUM_THREADS=1``, as the
+commands load numpy), and `tcspc --help`. Threads: the commands' default
+(``TCSPC_THREADS`` if set, else the cores, at most 4).
 
     python benchmarks/instruments_startup.py --tree /path/to/main --tree . [--repeat 5]
                                              [--records 50000000]
@@ -55,14 +57,21 @@ def env_for(tree: Path, cache: Path) -> dict:
             "NUMBA_CACHE_DIR": str(cache / "numba")}
 
 
-def run(cmd: list[str], env: dict) -> float:
+def run(cmd: list[str], env: dict) -> tuple[float, float]:
+    """(wall, CPU) seconds of ``cmd`` in a fresh process."""
     t0 = time.perf_counter()
     # (cwd: `python -m` puts the working directory first on the path, before PYTHONPATH)
-    res = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=env["PYTHONPATH"])
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env,
+                            cwd=env["PYTHONPATH"])
+    stderr = proc.stderr.read()
+    _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
-    if res.returncode != 0:
-        raise SystemExit(f"{' '.join(cmd)} failed ({res.returncode}):\n{res.stderr[-2000:]}")
-    return wall
+    proc.stderr.close()
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}):\n"
+                         f"{stderr[-2000:].decode(errors='replace')}")
+    return wall, usage.ru_utime + usage.ru_stime
 
 
 def big_t3(path: Path, records: int) -> Path:
@@ -105,6 +114,7 @@ def main() -> None:
         floor = "import numpy, pyarrow, pyarrow.parquet, click"
         cases = [
             (f"`python -c '{floor}'` (no tcspc)", ["-c", floor], 1),
+            ("the same, `OPENBLAS_NUM_THREADS=1`", ["-c", floor, "blas1"], 1),
             ("`tcspc --help`", ["--help"], 1),
             ("histogram hydraharp 106 k", ["histogram", str(HYDRAHARP)], 1),
             ("decode hydraharp 106 k", ["decode", str(HYDRAHARP)], 1),
@@ -119,19 +129,25 @@ def main() -> None:
         print("|---|" + "---|" * len(args.tree) + "---|")
         for name, argv, records in cases:
             times: dict[Path, list[float]] = {t: [] for t in args.tree}
+            cpus: dict[Path, list[float]] = {t: [] for t in args.tree}
             for k in range(args.repeat + 1):
                 for tree in args.tree:  # interleaved: the machine's load weighs alike
-                    cmd = [sys.executable, *argv] if argv[0] == "-c" else \
+                    env = env_for(tree, caches[tree])
+                    cmd = [sys.executable, *argv[:2]] if argv[0] == "-c" else \
                         [sys.executable, "-m", "pipeline.cli", *argv]
+                    if argv[-1] == "blas1":
+                        env["OPENBLAS_NUM_THREADS"] = "1"
                     if argv[0] not in ("-c", "--help"):
                         cmd += ["--out", str(tmp / "out.parquet"), "-q"]
-                    wall = run(cmd, env_for(tree, caches[tree]))
+                    wall, cpu = run(cmd, env)
                     if k:  # the first: bytecode and kernels
                         times[tree].append(wall)
+                        cpus[tree].append(cpu)
             cells = []
             for tree in args.tree:
                 best, med = min(times[tree]), statistics.median(times[tree])
-                cell = f"{best:.3f} s (median {med:.3f})"
+                cell = (f"{best:.3f} s (median {med:.3f}, CPU "
+                        f"{statistics.median(cpus[tree]):.3f})")
                 if records > 1:
                     cell += f", {records / best / 1e6:.0f} M records/s"
                 cells.append(cell)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gc
+import os
 import sys
 import time
 from contextlib import contextmanager
@@ -14,6 +15,16 @@ from pipeline.cli.console import console, err, error, out, warn  # noqa: F401 (r
 # Heavy modules (numpy, pyarrow, numba, scipy) are imported in the commands that use them:
 # `tcspc --help` and a command's own --help stay fast (tests/pipeline/cli/test_cli.py checks).
 # So are rich's progress bar and table (20 ms): a quiet command does not draw them.
+
+
+def _one_blas_thread() -> None:
+    """numpy's OpenBLAS starts a thread per core when numpy is first imported, and they
+    spin before they sleep: 50-130 ms of CPU of a `histogram` or `decode` command's
+    0.2-0.5 s on this 2-core VM (more with more cores; docs/performance.md), for linear
+    algebra those commands never do. Asked for one thread before numpy loads (a user's
+    own OPENBLAS_NUM_THREADS is kept)."""
+    if "numpy" not in sys.modules:  # (afterwards it would change nothing but children)
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
 @contextmanager
@@ -142,6 +153,7 @@ def decode(capture, out, include_no_hit, calibration, engine, fmt, firmware, all
     (T2: channel and absolute time in ps; T3: channel, sync number, dtime); a LinoSPAD2
     file its pixel words (cycle, TDC, pixel, code, fine code).
     """
+    _one_blas_thread()
     from pipeline.cli import instruments
 
     fmt = instruments.detect(capture, fmt)
@@ -180,6 +192,7 @@ def histogram(capture, out, measurement, calibration, engine, fmt, firmware, by,
     A tcspc capture: first-stage codes of its hit words. A PTU T3 file: dtime codes, a row
     per input channel. A LinoSPAD2 file: fine codes, a row per TDC or pixel (--by).
     """
+    _one_blas_thread()
     from pipeline.cli import instruments
 
     fmt = instruments.detect(capture, fmt)
