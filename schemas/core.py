@@ -9,7 +9,6 @@ Validation at the edges is :func:`validate`; inside hot loops compare schema ide
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 
 import pyarrow as pa
 
@@ -49,10 +48,14 @@ class SchemaSpec:
     def major(self) -> int:
         return int(self.version.split(".")[0])
 
-    @cached_property
-    def schema(self) -> pa.Schema:  # (built once: every message is checked against it)
-        return pa.schema(list(self.fields), metadata={
-            META_NAME: self.name.encode(), META_VERSION: self.version.encode()})
+    @property
+    def schema(self) -> pa.Schema:
+        got = self.__dict__.get("_schema")  # built once: every message is checked against it
+        if got is None:
+            got = pa.schema(list(self.fields), metadata={
+                META_NAME: self.name.encode(), META_VERSION: self.version.encode()})
+            object.__setattr__(self, "_schema", got)
+        return got
 
     @property
     def names(self) -> list[str]:
