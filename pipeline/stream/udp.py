@@ -695,13 +695,16 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             "datagrams": stats.datagrams, "lost_datagrams": stats.lost_datagrams,
             "duplicates": stats.duplicates, "late": stats.late,
             "gap_cycles": stats.gap_cycles, "rejected": dict(stats.rejected)}
-        try:  # a stage downstream that takes nothing for a minute is given up on: the
-            # daemon ends it, and it fetches the words it lacks from the journal
+        # a stage downstream that takes nothing for a minute (in all: a full send queue,
+        # as small batches make it, does not add its own minute) is given up on: the
+        # daemon ends it, and it fetches the words it lacks from the journal
+        give_up = time.monotonic() + 60
+        try:
             sendq.put([wire.encode(stop_head, None, token) for _ in txs], timeout=60)
-            sendq.put(None, timeout=60)
+            sendq.put(None, timeout=max(0.0, give_up - time.monotonic()))
         except queue.Full:
             pass
-        tx_thread.join(timeout=60)
+        tx_thread.join(timeout=max(0.0, give_up - time.monotonic()))
         beat.beat(force=True, state="finished", **stats.fields())
     finally:
         halt_rx.set()
