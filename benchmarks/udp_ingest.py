@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -166,9 +165,11 @@ def main() -> None:
     args = ap.parse_args()
     trees = [t.resolve() for t in args.tree] or [ROOT]
     print("$ python benchmarks/udp_ingest.py " + " ".join(sys.argv[1:]))
-    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, Python "
-          f"{platform.python_version()}, load average {os.getloadavg()[0]:.1f} at start "
-          "(shared with other work)")
+    sys.path.insert(0, str(ROOT))
+    from benchmarks.datapath import machine
+
+    print(f"machine: {machine()}; load average {os.getloadavg()[0]:.1f} at start (shared "
+          "with other work)")
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         n, per = datagrams(tmp / "dgs.bin", args.cycles)
