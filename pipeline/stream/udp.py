@@ -360,8 +360,8 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     Three threads, so receiving never waits for downstream: a receiver reads every datagram
     that is ready (up to ``rx_batch``) and hands them to a ring of ``ring_datagrams`` as one
     list (when full, because the journal cannot keep up, a datagram is counted in
-    ``ring_dropped``); this thread checks the list's headers together, reassembles the
-    datagrams one by one, and journals the released ones in batches, one journal chunk (and
+    ``ring_dropped``); this thread checks and reassembles the datagrams one by one, and
+    journals the released ones in batches, one journal chunk (and
     one message) per batch of consecutive cycles, of BATCH_WORDS or what came within
     ``flush_s``; a sender passes them on. With a journal, a batch that finds the
     send queue (``send_queue`` messages) full is not sent but counted
@@ -695,16 +695,13 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             "datagrams": stats.datagrams, "lost_datagrams": stats.lost_datagrams,
             "duplicates": stats.duplicates, "late": stats.late,
             "gap_cycles": stats.gap_cycles, "rejected": dict(stats.rejected)}
-        # a stage downstream that takes nothing for a minute (in all: a full send queue,
-        # as small batches make it, does not add its own minute) is given up on: the
-        # daemon ends it, and it fetches the words it lacks from the journal
-        give_up = time.monotonic() + 60
-        try:
+        try:  # a stage downstream that takes nothing for a minute is given up on: the
+            # daemon ends it, and it fetches the words it lacks from the journal
             sendq.put([wire.encode(stop_head, None, token) for _ in txs], timeout=60)
-            sendq.put(None, timeout=max(0.0, give_up - time.monotonic()))
+            sendq.put(None, timeout=60)
         except queue.Full:
             pass
-        tx_thread.join(timeout=max(0.0, give_up - time.monotonic()))
+        tx_thread.join(timeout=60)
         beat.beat(force=True, state="finished", **stats.fields())
     finally:
         halt_rx.set()
