@@ -632,6 +632,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         return (last_end is not None and last_end >= 0 and reasm.next_cycle >= last_end
                 and not reasm.held)
 
+    gave_up = False  # on a stage downstream that took nothing for a minute (a journal)
     try:
         while not stop.is_set():
             stats.gap_cycles, stats.lost_datagrams = reasm.gap_cycles, reasm.lost()
@@ -700,8 +701,12 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             sendq.put([wire.encode(stop_head, None, token) for _ in txs], timeout=60)
             sendq.put(None, timeout=60)
         except queue.Full:
-            pass
-        tx_thread.join(timeout=60)
+            gave_up = journal is not None
+        tx_thread.join(timeout=0 if gave_up else 60)
+        # with a journal, a sender still stuck after that minute is given up on too: its
+        # messages are not lingered over for another minute (the stage is ended and reads
+        # the journal). Before batches, few and large messages seldom left it stuck.
+        gave_up = journal is not None and (gave_up or tx_thread.is_alive())
         beat.beat(force=True, state="finished", **stats.fields())
     finally:
         halt_rx.set()
@@ -717,7 +722,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             stats.journal = [str(p) for p in writer.segments]
         beat.close()
         for tx in txs:
-            tx.close(linger=60_000 if not tx_thread.is_alive() else 0)
+            tx.close(linger=60_000 if not tx_thread.is_alive() and not gave_up else 0)
         if own and not tx_thread.is_alive():  # (a sender still stuck keeps its sockets)
             end_context(ctx)
     return stats
