@@ -385,8 +385,8 @@ def udp_scenarios(tmp: Path, lines: list[str], only=None) -> None:
     def line(name, injected, res, sup, dt, got, n_sent):
         acc = res.get("accounting") or {}
         src = sup.metrics.get("source", {})
-        # lost silently: datagrams neither journaled (each is one chunk of the journal,
-        # whichever ingest process took it) nor counted (duplicate, late, rejected, lost)
+        # lost silently: datagrams neither journaled (counted in the journal's chunks,
+        # whichever ingest process took them) nor counted (duplicate, late, rejected, lost)
         taken = res["taken"]
         counted = (src.get("duplicates", 0) + sum(src.get("rejected", {}).values())
                    + acc.get("lost_datagrams", 0))
@@ -457,7 +457,9 @@ def udp_scenarios(tmp: Path, lines: list[str], only=None) -> None:
 def _journaled_datagrams(journal: Path, run: str) -> int:
     from pipeline.stream.journal import _entries
 
-    return sum(1 for e in _entries(journal / f"{run}.index.jsonl") if "first_word" in e)
+    # a chunk is a batch of consecutive datagrams (``datagrams``; one before batches)
+    return sum(int(e.get("datagrams", 1)) for e in _entries(journal / f"{run}.index.jsonl")
+               if "first_word" in e)
 
 
 def main() -> None:

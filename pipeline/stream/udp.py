@@ -14,6 +14,7 @@ rejected datagram, never a gap to fill.
 from __future__ import annotations
 
 import queue
+import select
 import socket
 import threading
 import time
@@ -36,6 +37,8 @@ MAX_JUMP_CYCLES = 1 << 20      #: a datagram this far past the run's newest cycl
 MAX_JUMP_DATAGRAMS = 1 << 16   #: ... and this far in sequence number
 GATE_PS = (1_000, 10_000_000)  #: a gate outside 1 ns .. 10 us is not a gate
 RING_DATAGRAMS = 4096          #: received, not yet journaled (<= 256 MiB of datagrams)
+RX_BATCH = 64                  #: datagrams one hand-off to the ring carries at most
+FLUSH_S = 0.01                 #: a partial batch is journaled and sent after this long
 SEND_QUEUE = 64                #: journaled messages waiting for a slow stage downstream
 QUORUM = 3                     #: datagrams that must agree before they set the reference
 QUORUM_HOLD = 256              #: candidates held while no quorum is reached
@@ -128,8 +131,11 @@ class Reference:
 
 
 def resume_state(journal: str | Path, run: str) -> dict | None:
-    """Where a restarted ingest takes the run up (from the journal's index: each datagram's
-    chunk records its unwrapped sequence number), or None for a run not yet journaled by a
+    """Where a restarted ingest takes the run up (from the journal's index: each chunk, a
+    batch of consecutive datagrams, records their unwrapped sequence numbers: ``seq`` the
+    highest, ``seq_cycle`` its first cycle, ``seq_lo`` the lowest, ``datagrams`` how many;
+    a chunk of one datagram, as an ingest before batches wrote them, has ``seq`` alone), or
+    None for a run not yet journaled by a
     UDP ingest: ``next_cycle`` (the end of the journaled stream), ``seq_lo``/``seq_hi``,
     ``taken`` (datagrams journaled), ``late`` (datagrams that came too late, counted by the
     ingest that journaled the last chunk), ``anchor`` (the newest datagram's sequence number
@@ -145,9 +151,10 @@ def resume_state(journal: str | Path, run: str) -> dict | None:
     n = int(meta["n_tdc"])
     top = max(seqs, key=lambda e: e["seq"])
     end = max(e["first_word"] + e["words"] for e in entries)
-    return {"next_cycle": end // n, "seq_lo": min(e["seq"] for e in seqs),
-            "seq_hi": top["seq"], "taken": len(seqs), "late": int(seqs[-1].get("late", 0)),
-            "anchor": (top["seq"], top["first_word"] // n),
+    return {"next_cycle": end // n, "seq_lo": min(e.get("seq_lo", e["seq"]) for e in seqs),
+            "seq_hi": top["seq"], "taken": sum(int(e.get("datagrams", 1)) for e in seqs),
+            "late": int(seqs[-1].get("late", 0)),
+            "anchor": (top["seq"], top.get("seq_cycle", top["first_word"] // n)),
             "gap_cycles": end // n - sum(e["words"] for e in entries) // n, "n_tdc": n,
             "gate_ps": round(float(meta["t_laser_win_ns"]) * 1000)}
 
@@ -331,7 +338,8 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                    linger_s: float = REORDER_LINGER_S, token: str | None = None,
                    ring_datagrams: int = RING_DATAGRAMS, send_queue: int = SEND_QUEUE,
                    gate_ps: int | None = None, first_seq: int | None = None,
-                   quorum: int = QUORUM) -> IngestStats:
+                   quorum: int = QUORUM, rx_batch: int = RX_BATCH,
+                   flush_s: float = FLUSH_S) -> IngestStats:
     """Receive until a datagram flagged last (and the reorder window is settled), ``stop``,
     or ``idle_s`` without data.
 
@@ -349,10 +357,13 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     TDC count; the datagrams that came while the ingest was down are counted as lost and
     their cycles as a gap, exactly, however long it was down.
 
-    Three threads, so receiving never waits for downstream: a receiver puts datagrams into
-    a ring of ``ring_datagrams`` (when full, because the journal cannot keep up, a datagram
-    is counted in ``ring_dropped``); this thread checks, reassembles and journals them and
-    queues the batches; a sender passes them on. With a journal, a batch that finds the
+    Three threads, so receiving never waits for downstream: a receiver reads every datagram
+    that is ready (up to ``rx_batch``) and hands them to a ring of ``ring_datagrams`` as one
+    list (when full, because the journal cannot keep up, a datagram is counted in
+    ``ring_dropped``); this thread checks and reassembles the datagrams one by one, and
+    journals the released ones in batches, one journal chunk (and
+    one message) per batch of consecutive cycles, of BATCH_WORDS or what came within
+    ``flush_s``; a sender passes them on. With a journal, a batch that finds the
     send queue (``send_queue`` messages) full is not sent but counted
     (``deferred_messages``): its words are in the journal, and the worker downstream fills
     the hole from there when the next batch or the stop reaches it. Back-pressure thus
@@ -393,23 +404,41 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     elif first_seq is not None:
         ref.anchor = (first_seq, 0)
     quar = Quarantine(quarantine)
-    sock.settimeout(0.2)
-    ring: queue.Queue = queue.Queue(maxsize=ring_datagrams)
+    ring: queue.Queue = queue.Queue()  # lists of datagrams, bounded by ring_fill's count
+    ring_fill, ring_lock = [0], threading.Lock()
     sendq: queue.Queue = queue.Queue(maxsize=send_queue)
     halt_rx, abort_tx = threading.Event(), threading.Event()
 
     def receiver():
-        while not halt_rx.is_set():
+        # what is ready, read at once (up to rx_batch; recvmmsg's batching, in Python):
+        # one hand-off per list, not per datagram
+        size = datagram.MAX_PAYLOAD + 1
+        sock.setblocking(False)
+        poll = select.poll()
+        poll.register(sock, select.POLLIN)
+        closed = False
+        while not halt_rx.is_set() and not closed:
             try:
-                data = sock.recv(datagram.MAX_PAYLOAD + 1)
-            except TimeoutError:
-                continue
+                if not poll.poll(200):
+                    continue
             except OSError:
-                return  # the socket was closed under us: the run is over
+                return
+            items = []
             try:
-                ring.put_nowait(data)
-            except queue.Full:
-                stats.ring_dropped += 1  # (one writer: this thread)
+                while len(items) < rx_batch:
+                    items.append(sock.recv(size))
+            except BlockingIOError:
+                pass
+            except OSError:
+                closed = True  # the socket was closed under us: the run is over
+            with ring_lock:
+                room = max(0, ring_datagrams - ring_fill[0])
+                if len(items) > room:
+                    stats.ring_dropped += len(items) - room  # (one writer: this thread)
+                    items = items[:room]
+                ring_fill[0] += len(items)
+            if items:
+                ring.put(items)
 
     def sender():
         while True:
@@ -426,8 +455,11 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     tx_thread = threading.Thread(target=sender, name="udp-send", daemon=True)
     rx_thread.start()
     tx_thread.start()
-    pending: list[np.ndarray] = []
+    pending: list[np.ndarray] = []   # released, consecutive: the next batch's words
+    pending_seqs: list[tuple[int, int]] = []  # ... its datagrams' (seq, first cycle)
     pending_first = None
+    pending_words = 0
+    pending_t0 = 0.0
     next_word = None
     writer: JournalWriter | None = None
     idle = 0.0
@@ -437,17 +469,29 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     splitter = None  # (made at the first batch: a run's n_tdc may come from the stream)
 
     def flush():
-        nonlocal pending, pending_first, splitter
+        # the batch: journaled as one chunk (its index line carries its datagrams' sequence
+        # numbers, from which a restarted ingest resumes), then sent
+        nonlocal pending, pending_seqs, pending_first, pending_words, splitter
         if not pending:
             return
-        # the datagrams' big-endian words, joined, then swapped and cut by TDC range into
-        # each message by one copy (pipeline.stream.rawwire)
+        # the datagrams' big-endian words, joined by one copy: the journal compresses them
+        # as they are, the message swaps and cuts them by TDC range in its one copy
+        # (pipeline.stream.rawwire)
         words = pending[0] if len(pending) == 1 else np.concatenate(pending)
+        seqs, first = pending_seqs, pending_first
+        pending, pending_seqs, pending_first, pending_words = [], [], None, 0
+        top = max(seqs)
+        extra = {"seq": top[0], "seq_cycle": top[1], "seq_lo": min(seqs)[0],
+                 "datagrams": len(seqs), "late": stats.late}
+        if journal is not None and not journal_words(first, words, extra):
+            stats.unjournaled_words += int(words.size)  # a stop came while the disk was
+            return                                       # full: counted, never sent
+        stats.words += int(words.size)
+        stats.accepted += len(seqs)
         ranges = split or [(0, n_tdc)]
         if split and (splitter is None or splitter.n_tdc != n_tdc):
             splitter = TdcSplitter(n_tdc, split)  # (n_tdc known from the stream)
-        parts = (splitter.views(pending_first, words) if split
-                 else [(pending_first, words)])
+        parts = splitter.views(first, words) if split else [(first, words)]
         item = []
         for (f, w), rng in zip(parts, ranges, strict=True):
             head = {"kind": "data", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
@@ -464,26 +508,21 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                 stats.deferred_messages += 1
                 stats.deferred_words += int(words.size)
         stats.messages += 1
-        pending, pending_first = [], None
 
     def take(released):
-        # released in stream order: journal (once per cycle), then batch for sending
-        nonlocal pending_first, next_word
+        # released in stream order: batched (each cycle once), journaled and sent by flush
+        nonlocal pending_first, pending_words, pending_t0, next_word
         seq, d = released
         first = d.first_cycle * n_tdc
         if next_word is not None and first != next_word:
             flush()  # a gap: the next batch starts where the words do
-        if journal is not None and not journal_words(first, d.words, {"seq": seq,
-                                                                      "late": stats.late}):
-            stats.unjournaled_words += int(d.words.size)  # a stop came while the disk was
-            return                                        # full: counted, never sent
         if pending_first is None:
-            pending_first = first
+            pending_first, pending_t0 = first, time.monotonic()
         pending.append(d.words)
+        pending_seqs.append((seq, d.first_cycle))
+        pending_words += d.words.size
         next_word = first + d.words.size
-        stats.words += d.words.size
-        stats.accepted += 1
-        if sum(p.size for p in pending) >= BATCH_WORDS:
+        if pending_words >= BATCH_WORDS:
             flush()
 
     def journal_words(first: int, words: np.ndarray, extra: dict) -> bool:
@@ -559,6 +598,41 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         for gd, gdata in group:
             offer(gd, gdata)
 
+    def intake(data: bytes) -> None:
+        # one datagram, checked against the run (one at a time: a batch's headers read by
+        # numpy at once measured slower than struct's per header at every batch size)
+        nonlocal last_end
+        try:
+            d = datagram.decode(data)
+            if n_tdc is not None and d.n_tdc != n_tdc:
+                raise datagram.DatagramError("n_tdc_mismatch",
+                                             f"{d.n_tdc} TDCs, the run has {n_tdc}")
+            if not GATE_PS[0] <= d.t_laser_win_ps <= GATE_PS[1] or (
+                    gate_ps is not None and d.t_laser_win_ps != gate_ps):
+                raise datagram.DatagramError("bad_gate", f"gate {d.t_laser_win_ps} ps "
+                                             f"(run: {gate_ps}, bounds {GATE_PS})")
+            if d.n_cycles == 0:
+                raise datagram.DatagramError("empty", "no cycles")
+        except datagram.DatagramError as exc:
+            reject(exc.reason, str(exc), data)
+            return
+        if ref is not None:  # no reference yet: held until a quorum agrees
+            group, strays = ref.offer(d, data)
+            for sd, sdata in strays:
+                stray(sd, sdata)
+            if group is None:
+                if d.last and ref.held:
+                    last_end = -1  # settle after the linger (below)
+                return
+            fix(group)
+            return
+        offer(d, data)
+
+    def complete() -> bool:  # the last datagram and everything before it are in
+        return (last_end is not None and last_end >= 0 and reasm.next_cycle >= last_end
+                and not reasm.held)
+
+    gave_up = False  # on a stage downstream that took nothing for a minute (a journal)
     try:
         while not stop.is_set():
             stats.gap_cycles, stats.lost_datagrams = reasm.gap_cycles, reasm.lost()
@@ -569,13 +643,14 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                     stray(sd, sdata)
                 last_end = None
                 fix(group)
-            if last_end is not None and last_end >= 0 and reasm.next_cycle >= last_end \
-                    and not reasm.held:
-                break  # the last datagram and everything before it are in
+            if complete():
+                break
+            waited = time.monotonic()
             try:
-                data = ring.get(timeout=0.2)
+                batch = ring.get(timeout=flush_s if pending else 0.2)
             except queue.Empty:
-                idle += 0.2
+                flush()  # a partial batch waits no longer than flush_s
+                idle += time.monotonic() - waited
                 if reasm.held and idle >= linger_s:  # a quiet stream: nothing will fill
                     for r in reasm.drain():         # the holes; hold no words back
                         take(r)
@@ -585,33 +660,17 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                 if idle_s is not None and idle >= idle_s:
                     break
                 continue
+            with ring_lock:
+                ring_fill[0] -= len(batch)
             idle = 0.0
-            stats.datagrams += 1
-            try:
-                d = datagram.decode(data)
-                if n_tdc is not None and d.n_tdc != n_tdc:
-                    raise datagram.DatagramError("n_tdc_mismatch",
-                                                 f"{d.n_tdc} TDCs, the run has {n_tdc}")
-                if not GATE_PS[0] <= d.t_laser_win_ps <= GATE_PS[1] or (
-                        gate_ps is not None and d.t_laser_win_ps != gate_ps):
-                    raise datagram.DatagramError("bad_gate", f"gate {d.t_laser_win_ps} ps "
-                                                 f"(run: {gate_ps}, bounds {GATE_PS})")
-                if d.n_cycles == 0:
-                    raise datagram.DatagramError("empty", "no cycles")
-            except datagram.DatagramError as exc:
-                reject(exc.reason, str(exc), data)
-                continue
-            if ref is not None:  # no reference yet: held until a quorum agrees
-                group, strays = ref.offer(d, data)
-                for sd, sdata in strays:
-                    stray(sd, sdata)
-                if group is None:
-                    if d.last and ref.held:
-                        last_end = -1  # settle after the linger (below)
-                    continue
-                fix(group)
-                continue
-            offer(d, data)
+            stats.datagrams += len(batch)
+            for k, data in enumerate(batch):
+                if complete():  # the rest came after the run's end: counted, not taken
+                    stats.rejected["after_end"] += len(batch) - k
+                    break
+                intake(data)
+            if pending and time.monotonic() - pending_t0 >= flush_s:
+                flush()
         if ref is not None:  # the run's end without a quorum: the largest group agreeing
             group, strays = ref.settle()
             for sd, sdata in strays:
@@ -627,8 +686,8 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             writer = None
         halt_rx.set()
         rx_thread.join()
-        stats.datagrams += ring.qsize()  # came after the end: counted, not taken
-        stats.rejected["after_end"] += ring.qsize()
+        stats.datagrams += ring_fill[0]  # came after the end: counted, not taken
+        stats.rejected["after_end"] += ring_fill[0]
         if not stats.rejected["after_end"]:
             del stats.rejected["after_end"]
         stop_head = {
@@ -642,8 +701,12 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             sendq.put([wire.encode(stop_head, None, token) for _ in txs], timeout=60)
             sendq.put(None, timeout=60)
         except queue.Full:
-            pass
-        tx_thread.join(timeout=60)
+            gave_up = journal is not None
+        tx_thread.join(timeout=0 if gave_up else 60)
+        # with a journal, a sender still stuck after that minute is given up on too: its
+        # messages are not lingered over for another minute (the stage is ended and reads
+        # the journal). Before batches, few and large messages seldom left it stuck.
+        gave_up = journal is not None and (gave_up or tx_thread.is_alive())
         beat.beat(force=True, state="finished", **stats.fields())
     finally:
         halt_rx.set()
@@ -659,7 +722,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             stats.journal = [str(p) for p in writer.segments]
         beat.close()
         for tx in txs:
-            tx.close(linger=60_000 if not tx_thread.is_alive() else 0)
+            tx.close(linger=60_000 if not tx_thread.is_alive() and not gave_up else 0)
         if own and not tx_thread.is_alive():  # (a sender still stuck keeps its sockets)
             end_context(ctx)
     return stats
