@@ -215,12 +215,13 @@ def stage_source_file(path, pushes, run_id, rate, fmt, firmware, journal, journa
               help="The sequence number of the run's first datagram, at cycle 0 (default: "
                    "from a quorum of datagrams).")
 @_journal_compression
+@_wire
 @_split
 @_metrics
 @_date
 def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, n_tdc,
                      reorder_window, max_jump_cycles, gate_ps, first_seq, journal_compression,
-                     split, metrics, date) -> None:
+                     split, metrics, date, wire) -> None:
     """The FPGA's UDP datagrams (docs/streaming.md) in, journaled raw-word batches out.
     Restarted on a run its journal holds, it takes the run up where the journal has it."""
     import signal
@@ -237,7 +238,8 @@ def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, n_tdc
                            compression=_compression(journal_compression), n_tdc=n_tdc,
                            reorder_window=reorder_window or REORDER_WINDOW,
                            max_jump_cycles=max_jump_cycles or MAX_JUMP_CYCLES,
-                           gate_ps=gate_ps, first_seq=first_seq)
+                           gate_ps=gate_ps, first_seq=first_seq,
+                           sparse=wire == "sparse")
     err.print(f"ingest: {stats.datagrams} datagrams, {stats.words:,} words, "
               f"{stats.lost_datagrams} lost, {stats.duplicates} duplicates, {stats.late} "
               f"late, {stats.gap_cycles} cycles in gaps, rejected {dict(stats.rejected)}")

@@ -52,8 +52,9 @@ starts, as are the state directory and the resources: ``pipeline.stream.state``)
     file = "run.ptu"             # file: a PTU T3 or LinoSPAD2 file, rate (records/s),
                                  # format (default: from the content), firmware; one
                                  # histogram worker, one measurement, no [range]
-    wire = "sparse"              # sim, capture: how words go to the workers: "sparse" (the
-                                 # words that are not plain no_hit words; default) or "words"
+    wire = "sparse"              # sim, capture, udp: how words go to the workers: "sparse"
+                                 # (the words that are not plain no_hit words; default) or
+                                 # "words"
 
     [histogram]
     workers = 2                  # fan-out by TDC range
@@ -196,7 +197,8 @@ def build(topo: Topology) -> list[Proc]:
                       "--repeat", src.get("repeat", 1),
                       *(("--rate", src["rate"]) if src.get("rate") else ()))
     else:
-        argv = _tcspc("stage", "ingest-udp", "--bind", src["bind"], *common, "--quarantine",
+        argv = _tcspc("stage", "ingest-udp", "--bind", src["bind"], *common, *wire_form,
+                      "--quarantine",
                       quar / "ingest", *(("--idle", src["idle"]) if src.get("idle") else ()),
                       "--n-tdc", topo.n_tdc,
                       *(x for k in ("reorder_window", "max_jump_cycles", "gate_ps",

@@ -61,3 +61,29 @@ class RawWordsEncoder:
         dst = out[at:end].view("<u4")
         np.copyto(dst.reshape(words.shape), words, casting="unsafe")  # (the one copy)
         return [head, out]
+
+
+def sparse_frames(header: dict, sparse, token: str | None = None) -> list:
+    """The frames of a ``raw_sparse`` message (docs/streaming.md "Sparse raw words") of
+    ``sparse`` (:class:`stages.datapath.SparseWords`): ``header`` as for ``raw_words``; its
+    schema, version and ``n_words`` are set here."""
+    import pyarrow as pa
+
+    from schemas.words import RAW_SPARSE
+
+    head = {**header, "schema": RAW_SPARSE.name, "version": RAW_SPARSE.version,
+            "n_words": int(sparse.n)}
+    return wire.encode(head, pa.record_batch([pa.array(sparse.index), pa.array(sparse.words)],
+                                             schema=RAW_SPARSE.schema), token)
+
+
+def sparse_parts(words: np.ndarray, first: int, n_tdc: int,
+                 split: list[tuple[int, int]] | None):
+    """``(whole, parts)``: the sparse form of a batch of whole cycles (the journal's frame
+    is made from it) and each TDC range's, cut from it (one pass over the words)."""
+    from stages.datapath import sparse_encode
+
+    (whole,) = sparse_encode(words, first, n_tdc)
+    parts = ([whole] if not split or list(split) == [(0, n_tdc)] else
+             whole.cut(first, n_tdc, split))
+    return whole, parts

@@ -472,12 +472,10 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
     made in the one pass that cuts the fan-out's ranges; the journal still takes every
     word."""
     import numpy as np
-    import pyarrow as pa
 
     from pipeline.stream.fanout import TdcSplitter
-    from pipeline.stream.rawwire import RawWordsEncoder
-    from schemas.words import RAW_SPARSE, RAW_WORDS
-    from stages.datapath import sparse_encode
+    from pipeline.stream.rawwire import RawWordsEncoder, sparse_frames, sparse_parts
+    from schemas.words import RAW_WORDS
 
     pushes = [push] if isinstance(push, str) else list(push)
     encoder = RawWordsEncoder()
@@ -558,7 +556,7 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
             words = np.asarray(words)
             if words.dtype not in (np.dtype("<u4"), np.dtype(">u4")):
                 words = words.astype(np.uint32)
-            whole = sparse_encode(words, first, n_tdc)[0] if sparse else None
+            whole, cut = sparse_parts(words, first, n_tdc, split) if sparse else (None, None)
             if writer is not None:  # (a copy unless the words outlive the write)
                 # the sparse form is the journal's frame too (one pass over the words)
                 wrote = writer.submit(append, first, words if stable >= 2 else
@@ -567,24 +565,16 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
                 wrote = None
             parts = splitter.views(first, words) if splitter else [(first, words)]
             if sparse:  # a fan-out's ranges cut from the one pass's result
-                cut = ([whole] if not split or split == [(0, n_tdc)] else
-                       whole.cut(first, n_tdc, split))
                 parts = [(f, sw) for (f, _), sw in zip(parts, cut, strict=True)]
             msgs = []
             for (f, w), rng in zip(parts, split or [(0, n_tdc)], strict=True):
-                spec = RAW_SPARSE if sparse else RAW_WORDS
-                head = {"kind": "data", "schema": spec.name,
-                        "version": spec.version, "run": run, "seq": seq, "step": step_id,
+                head = {"kind": "data", "schema": RAW_WORDS.name,
+                        "version": RAW_WORDS.version, "run": run, "seq": seq, "step": step_id,
                         "first_word": int(f), "n_tdc": rng[1] - rng[0],
                         "n_tdc_total": n_tdc, "tdc_range": list(rng),
                         "t_laser_win_ns": t_laser_win_ns, **extra}
-                if sparse:
-                    head["n_words"] = w.n
-                    msgs.append(wire.encode(head, pa.record_batch(
-                        [pa.array(w.index), pa.array(w.words)], schema=RAW_SPARSE.schema),
-                        token))
-                else:
-                    msgs.append(encoder.frames(head, w, token))  # the words' one copy
+                msgs.append(sparse_frames(head, w, token) if sparse else
+                            encoder.frames(head, w, token))  # (whole words: one copy)
             if pending is not None:
                 send_pending()
             pending = (msgs, wrote)

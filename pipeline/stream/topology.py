@@ -132,7 +132,7 @@ class SourceSection(_Section):
     file: str | None = None
     format: str | None = None
     firmware: Literal["2212b", "2212s"] | None = None
-    wire: Literal["sparse", "words"] | None = Field(None, description='sim and capture: '
+    wire: Literal["sparse", "words"] | None = Field(None, description='sim, capture and udp: '
                                                     '"sparse" (default) or "words"')
 
 
@@ -140,7 +140,7 @@ class SourceSection(_Section):
 SOURCE_KEYS = {"sim": ("scene", "cycles", "seed", "chip_seed", "rate", "wire"),
                "capture": ("capture", "rate", "repeat", "wire"),
                "udp": ("bind", "idle", "n_tdc", "reorder_window", "max_jump_cycles", "gate_ps",
-                       "first_seq"),
+                       "first_seq", "wire"),
                "file": ("file", "format", "firmware", "rate")}
 
 

@@ -339,7 +339,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                    ring_datagrams: int = RING_DATAGRAMS, send_queue: int = SEND_QUEUE,
                    gate_ps: int | None = None, first_seq: int | None = None,
                    quorum: int = QUORUM, rx_batch: int = RX_BATCH,
-                   flush_s: float = FLUSH_S) -> IngestStats:
+                   flush_s: float = FLUSH_S, sparse: bool = False) -> IngestStats:
     """Receive until a datagram flagged last (and the reorder window is settled), ``stop``,
     or ``idle_s`` without data.
 
@@ -367,12 +367,14 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     send queue (``send_queue`` messages) full is not sent but counted
     (``deferred_messages``): its words are in the journal, and the worker downstream fills
     the hole from there when the next batch or the stop reaches it. Back-pressure thus
-    stops at the journal. Without a journal this thread waits for the sender instead."""
+    stops at the journal. Without a journal this thread waits for the sender instead.
+    ``sparse``: send each batch as ``raw_sparse`` (docs/streaming.md "Sparse raw words"),
+    whose one pass over the words also makes the journal's ``zstd-nohit`` frame."""
     import datetime as dt
 
     from pipeline.stream.fanout import TdcSplitter
     from pipeline.stream.metrics import Metrics
-    from pipeline.stream.rawwire import RawWordsEncoder
+    from pipeline.stream.rawwire import RawWordsEncoder, sparse_frames, sparse_parts
 
     ctx, own = own_context(context)
     token = token if token is not None else wire.load_token()
@@ -483,7 +485,10 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         top = max(seqs)
         extra = {"seq": top[0], "seq_cycle": top[1], "seq_lo": min(seqs)[0],
                  "datagrams": len(seqs), "late": stats.late}
-        if journal is not None and not journal_words(first, words, extra):
+        whole = cut = None
+        if sparse:  # one pass: the journal's frame and the messages are made from it
+            whole, cut = sparse_parts(words, first, n_tdc, split)
+        if journal is not None and not journal_words(first, words, extra, whole):
             stats.unjournaled_words += int(words.size)  # a stop came while the disk was
             return                                       # full: counted, never sent
         stats.words += int(words.size)
@@ -492,13 +497,16 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         if split and (splitter is None or splitter.n_tdc != n_tdc):
             splitter = TdcSplitter(n_tdc, split)  # (n_tdc known from the stream)
         parts = splitter.views(first, words) if split else [(first, words)]
+        if sparse:
+            parts = [(f, sw) for (f, _), sw in zip(parts, cut, strict=True)]
         item = []
         for (f, w), rng in zip(parts, ranges, strict=True):
             head = {"kind": "data", "schema": RAW_WORDS.name, "version": RAW_WORDS.version,
                     "run": run, "seq": stats.messages, "step": "ingest",
                     "first_word": int(f), "n_tdc": rng[1] - rng[0], "n_tdc_total": n_tdc,
                     "tdc_range": list(rng), "t_laser_win_ns": gate_ps / 1000, "date": date}
-            item.append(encoder.frames(head, w, token))
+            item.append(sparse_frames(head, w, token) if sparse else
+                        encoder.frames(head, w, token))
         if journal is None:
             sendq.put(item)  # nothing to fill a hole from: wait for downstream
         else:
@@ -525,7 +533,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         if pending_words >= BATCH_WORDS:
             flush()
 
-    def journal_words(first: int, words: np.ndarray, extra: dict) -> bool:
+    def journal_words(first: int, words: np.ndarray, extra: dict, whole=None) -> bool:
         # a full disk pauses intake here (the receive thread goes on into the ring, whose
         # overflow is counted): retried until there is room, or False at a stop
         from pipeline.stream.journal import is_disk_full
@@ -538,7 +546,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                     writer = JournalWriter(journal, run, n_tdc, gate_ps / 1000,
                                            segment_words=segment_words,
                                            compression=compression)
-                writer.append(first, words, extra)  # (a restarted ingest resumes there)
+                writer.append(first, words, extra, sparse=whole)  # (resumed from there)
                 return True
             except OSError as exc:
                 if not is_disk_full(exc):

@@ -21,7 +21,7 @@ import zmq
 from pipeline.stream import datagram, wire
 from pipeline.stream.journal import read_range, run_end
 from pipeline.stream.udp import consistent, max_cycles
-from schemas import RAW_WORDS
+from schemas import RAW_SPARSE, RAW_WORDS
 from stages.testpattern import pattern_words
 
 
@@ -146,7 +146,8 @@ def test_a_restarted_udp_ingest_takes_the_run_up_from_the_journal(tmp_path):
 
     def drain():
         while rx.poll(30_000):
-            head, _ = wire.decode(rx.recv_multipart(), RAW_WORDS)
+            head, _ = wire.decode(rx.recv_multipart(), {RAW_WORDS.name: RAW_WORDS,
+                                                        RAW_SPARSE.name: RAW_SPARSE})
             if head["kind"] == "stop":
                 stops.append(head)
                 return

@@ -8,12 +8,14 @@ import threading
 import time
 
 import numpy as np
+import pytest
 import zmq
 
 from pipeline.stream import datagram, wire
 from pipeline.stream.journal import _entries, read_range
 from pipeline.stream.udp import resume_state, run_udp_ingest, udp_socket
-from schemas import RAW_WORDS
+from schemas import RAW_SPARSE, RAW_WORDS
+from stages.datapath import SparseWords
 from stages.testpattern import pattern_words
 
 N_TDC, CYC, GATE_PS = 16, 4, 140_000
@@ -51,10 +53,15 @@ class Ingest:
     def messages(self, timeout_ms=1000):
         got = []
         while self.rx.poll(timeout_ms):
-            head, batch = wire.decode(self.rx.recv_multipart(), RAW_WORDS)
+            head, batch = wire.decode(self.rx.recv_multipart(), {
+                RAW_WORDS.name: RAW_WORDS, RAW_SPARSE.name: RAW_SPARSE})
             if head["kind"] == "stop":
                 return got, head
-            got.append((head["first_word"], batch.column("word").to_numpy()))
+            words = batch.column("word").to_numpy()
+            if head["schema"] == RAW_SPARSE.name:  # the words whole again, from the contract
+                words = SparseWords(head["n_words"], batch.column("index").to_numpy(),
+                                    words).dense(head["first_word"], N_TDC)
+            got.append((head["first_word"], words))
         return got, None
 
     def end(self):
@@ -81,17 +88,20 @@ def _by_cycle(pieces):
     return out
 
 
-def test_a_gap_and_a_reorder_inside_a_batch(tmp_path):
+@pytest.mark.parametrize("sparse", [False, True])
+def test_a_gap_and_a_reorder_inside_a_batch(tmp_path, sparse):
     """Datagrams sent back to back (several per receive), two swapped and one never sent:
     the swapped pair is put back inside its batch, the missing one ends the batch (a chunk
     holds consecutive cycles) and is counted; each chunk's index line names exactly the
-    datagrams whose cycles it holds."""
+    datagrams whose cycles it holds. Sent whole or sparse (then the journal's frames are
+    made from the sparse form), the messages and the journal give back the words sent."""
     n, missing = 40, 21
     words, dgs = _stream(n, rng=5)
     order = [i for i in range(n) if i != missing]
     a = order.index(10)
     order[a], order[a + 1] = order[a + 1], order[a]  # 11 before 10
-    ing = Ingest(tmp_path, "g", tmp_path / "j", reorder_window=8, flush_s=5.0)
+    ing = Ingest(tmp_path, "g", tmp_path / "j", reorder_window=8, flush_s=5.0,
+                 sparse=sparse, compression="zstd-nohit")
     ing.send([dgs[i] for i in order])
     s, got, stop = ing.end()
     assert s.lost_datagrams == 1 and s.gap_cycles == CYC and s.duplicates == s.late == 0
