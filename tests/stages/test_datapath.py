@@ -130,7 +130,7 @@ def test_bad_arguments():
                    np.zeros((5, 4), np.uint64), "cuda")
 
 
-@pytest.mark.parametrize("kernel", ["kernel", "self_bounded"])
+@pytest.mark.parametrize("kernel", ["kernel", "self_bounded", "sparse", "encode"])
 def test_the_numba_engine_loads_natively_and_both_ways_agree(kernel, rng, monkeypatch):
     """The numba engine's loops run as C kernels loaded without numba (stages.nativecode)
     or through numba's dispatcher, and as plain Python: the same results, the numpy
@@ -145,6 +145,13 @@ def test_the_numba_engine_loads_natively_and_both_ways_agree(kernel, rng, monkey
     bounds = ArtifactBounds(np.full(n, 20), np.full(n, 150))
 
     def once(engine):
+        if kernel in ("sparse", "encode"):  # the sparse form of the words (big-endian, as a
+            (sw,) = dp.sparse_encode(words.astype(">u4"), 5, n, engine=engine)  # capture)
+            t = WordTables(n, bounds)
+            out = (np.zeros((n, 512), np.uint64), np.zeros((N_CLASSES, n), np.uint64),
+                   np.zeros((n, 512), np.uint64))
+            dp.accumulate_sparse(sw, 5, t, out[0], out[1], engine, out[2])
+            return (sw.index, sw.words, *out)
         if kernel == "kernel":
             t = WordTables(n, bounds)
             out = (np.zeros((n, 512), np.uint64), np.zeros((N_CLASSES, n), np.uint64),

@@ -153,31 +153,6 @@ def test_an_instrument_worker_refuses_sparse_words():
         core.process({"schema": "raw_sparse", "n_words": 4, "first_word": 0, "seq": 0}, batch)
 
 
-def test_the_c_kernels_the_dispatcher_and_the_plain_loops_agree(monkeypatch):
-    """The same loops run as C kernels, through numba's dispatcher (no native kernel) and
-    as plain Python: each gives the numpy twin's result."""
-    rng = np.random.default_rng(3)
-    n_tdc = 16
-    words = _words(rng, 300, n_tdc, 0.2)[5:]  # starts mid-cycle
-    bounds = ArtifactBounds(np.full(n_tdc, 30), np.full(n_tdc, 220))
-
-    def once(engine):
-        (sw,) = dp.sparse_encode(words.astype(">u4"), 5, n_tdc, engine=engine)
-        acc = HistogramAccumulator(n_tdc, bounds, engine=engine, count_artifacts=True)
-        acc.update(sw, 5)
-        s = acc.snapshot()
-        return sw.index, sw.words, s.hits, s.class_counts, s.artifacts
-
-    native = once("numba")
-    monkeypatch.setattr(dp, "_native", lambda name: None)
-    dispatched = once("numba")
-    monkeypatch.setattr(dp, "_jitted", lambda name: dp._LOOPS[name])
-    plain = once("numba")
-    twin = once("numpy")
-    for a, b, c, d in zip(native, dispatched, plain, twin, strict=True):
-        assert np.array_equal(a, b) and np.array_equal(a, c) and np.array_equal(a, d)
-
-
 @settings(max_examples=40, deadline=None)
 @given(n_tdc=st.integers(1, 20), cycles=st.integers(0, 30), start=st.integers(0, 10**5),
        cuts=st.lists(st.integers(1, 19), max_size=3), seed=st.integers(0, 2**31))
