@@ -593,10 +593,11 @@ def _sparse_loop(index, words, n, pos0, n_tdc, phase, inblock, hits, class_count
 
 @functools.lru_cache(maxsize=64)
 def no_hit_words(n_tdc: int, tdc_offset: int = 0, swapped: bool = False) -> np.ndarray:
-    """Each position's plain no_hit word (uint32, read-only): marker bit 9 and the address;
-    ``swapped``: byte-swapped (as big-endian words hold it)."""
-    out = (np.uint32(MARKER_VALUE)
-           | ((np.arange(n_tdc, dtype=np.uint32) + np.uint32(tdc_offset)) << np.uint32(1)))
+    """Each position's plain no_hit word (uint32, read-only): marker bit 9 and the address
+    (its 8 bits); ``swapped``: byte-swapped (as big-endian words hold it). The one
+    definition: the sparse form and the journal's ``zstd-nohit`` frames both use it."""
+    address = (np.arange(n_tdc, dtype=np.uint32) + np.uint32(tdc_offset)) & np.uint32(0xFF)
+    out = np.uint32(MARKER_VALUE) | (address << np.uint32(1))
     if swapped:
         out = out.byteswap()
     out.flags.writeable = False

@@ -18,6 +18,12 @@ from pipeline.cli.console import err
 @click.group()
 def stage() -> None:
     """Run one stage of the stream alone (the graph can span processes and hosts)."""
+    from pipeline.cli.app import _one_blas_thread
+
+    # a stage is one core's work, whoever starts it (the daemon, a systemd unit, a shell):
+    # numpy's OpenBLAS would start a thread per core whose spinning after each small
+    # product takes the cores the other stages need
+    _one_blas_thread()
 
 
 _push = click.option("--push", "pushes", required=True, multiple=True,

@@ -26,18 +26,14 @@ import struct
 
 import numpy as np
 
+from stages.datapath import no_hit_words  # the one definition of the pattern
+
 MAGIC = b"TJN1"
 HEADER = struct.Struct("<4sIIQ")  # magic, n_tdc, words, first_word
 
 
 class FrameError(ValueError):
     """A frame's content that is not a well-formed ``zstd-nohit`` frame (the reason)."""
-
-
-def no_hit_words(n_tdc: int) -> np.ndarray:
-    """Each position's no-hit word (native uint32): ``0x200 | (position & 0xFF) << 1``."""
-    pos = np.arange(n_tdc, dtype=np.uint32)
-    return (np.uint32(0x200) | ((pos & np.uint32(0xFF)) << np.uint32(1))).astype(np.uint32)
 
 
 _tiles: dict[tuple[int, str], np.ndarray] = {}

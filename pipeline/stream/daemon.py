@@ -331,10 +331,6 @@ class Supervisor:
             pass  # a full state disk: the stage starts all the same
         # the run's token by file (never on a command line, where `ps` shows it)
         env = {**os.environ, "PYTHONUNBUFFERED": "1", TOKEN_ENV: str(self.token_file)}
-        # a stage is one core's work: numpy's OpenBLAS would start a thread per core whose
-        # spinning after each small product takes the cores the other stages need (a
-        # user's own OPENBLAS_NUM_THREADS is kept)
-        env.setdefault("OPENBLAS_NUM_THREADS", "1")
         if self.curve_dir is not None:
             from pipeline.stream.curve import CURVE_ENV
 

@@ -195,3 +195,18 @@ def test_instrument_commands_load_numpy_without_a_blas_thread_pool(tmp_path, com
         r = subprocess.run(args, capture_output=True, text=True, env=run_env, timeout=120)
         assert r.returncode == 0, r.stderr
         assert r.stdout.strip().startswith(want), r.stdout
+
+
+def test_every_stage_process_asks_for_one_blas_thread():
+    """A stage is one core's work whoever starts it (the daemon, a systemd unit, a shell):
+    `tcspc stage ...` asks for one OpenBLAS thread before numpy loads (a user's own
+    setting kept), so no pool spins on the cores the graph's other stages need."""
+    script = BLAS.replace("print(", "import numpy\nprint(")
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    for given, want in ((None, "1 [1]"), ("2", "2 [")):
+        run_env = {**env, "PYTHONPATH": str(ROOT), **({"OPENBLAS_NUM_THREADS": given}
+                                                       if given else {})}
+        r = subprocess.run([sys.executable, "-c", script, "stage", "sink", "--help"],
+                           capture_output=True, text=True, env=run_env, timeout=120)
+        assert r.returncode == 0, r.stderr
+        assert r.stdout.strip().splitlines()[-1].startswith(want), r.stdout[-300:]
