@@ -138,7 +138,7 @@ def test_the_numba_engine_loads_natively_and_both_ways_agree(kernel, rng, monkey
     import stages.datapath as dp
     from stages import nativecode
 
-    assert dp._native(kernel) is not None, nativecode.failures.get(kernel)
+    assert dp.kernels._native(kernel) is not None, nativecode.failures.get(kernel)
     n = 16
     words = corrupt(pattern_words(3000, n, hit_prob=0.3, artifact_prob=0.02, rng=3)[0],
                     rng, 0.02)
@@ -166,9 +166,9 @@ def test_the_numba_engine_loads_natively_and_both_ways_agree(kernel, rng, monkey
         return out
 
     native = once("numba")
-    monkeypatch.setattr(dp, "_native", lambda name: None)
+    monkeypatch.setattr(dp.kernels, "_native", lambda name: None)
     dispatched = once("numba")
-    monkeypatch.setattr(dp, "_jitted", lambda name: dp._LOOPS[name])
+    monkeypatch.setattr(dp.kernels, "_jitted", lambda name: dp._LOOPS[name])
     plain = once("numba")
     twin = once("numpy")
     assert words.size > 3 * dp.SIFT
@@ -184,7 +184,7 @@ def test_a_process_with_the_kernels_cached_runs_them_without_numba():
 
     import stages.datapath as dp
 
-    assert dp._native("self_bounded") is not None and dp._native("kernel") is not None
+    assert dp.kernels._native("self_bounded") is not None and dp._native("kernel") is not None
     code = ("import sys, numpy as np; from stages import datapath as dp; "
             "from stages.histogram import SelfBoundingHistogram; "
             "from stages.testpattern import pattern_words; "
@@ -211,7 +211,7 @@ def test_without_a_linker_the_kernel_is_loaded_from_its_object_code(tmp_path, mo
     ref = run(words, n, 0, t.bounds, "numpy")
     for _ in range(2):  # built, then loaded from the cache
         monkeypatch.setattr(nativecode, "_loaded", {})
-        assert dp._native("kernel") is not None, nativecode.failures
+        assert dp.kernels._native("kernel") is not None, nativecode.failures
         hits, cc = run(words, n, 0, t.bounds, "numba")
         assert np.array_equal(hits, ref[0]) and np.array_equal(cc, ref[1])
-    assert not list(tmp_path.glob("*.so")) and list(tmp_path.glob("datapath.kernel-*.o"))
+    assert not list(tmp_path.glob("*.so")) and list(tmp_path.glob("kernels.kernel-*.o"))
