@@ -129,7 +129,10 @@ def demo(out, cycles) -> None:
     """The whole story on embedded defaults (what `make demo` runs)."""
     result = run_story(out, cycles)
     if not result["ok"]:
-        raise click.ClickException("demo: a check failed (see above)")
+        from pipeline.cli.console import Incomplete
+
+        raise Incomplete("demo: a check failed (see above; every check and its result: "
+                         f"{out}/demo.json)")
 
 
 

@@ -7,10 +7,18 @@ import os
 import sys
 import time
 from contextlib import contextmanager
+from pathlib import Path
 
 import click
 
-from pipeline.cli.console import console, err, error, out, warn  # noqa: F401 (re-exported)
+from pipeline.cli.console import (  # noqa: F401 (re-exported)
+    InternalError,
+    console,
+    err,
+    error,
+    out,
+    warn,
+)
 
 # Heavy modules (numpy, pyarrow, numba, scipy) are imported in the commands that use them:
 # `tcspc --help` and a command's own --help stay fast (tests/pipeline/cli/test_cli.py checks).
@@ -74,8 +82,22 @@ def _summary(counts, n_words: int, seconds: float, bounds_source: str,
               f"({n_words / max(seconds, 1e-9) / 1e6:.1f} M words/s); "
               f"artifact bounds: {bounds_source}")
     if total != n_words:  # every word is accounted for, or this is a bug worth stopping on
-        raise click.ClickException(f"accounting error: classes add up to {total}, "
+        raise InternalError(f"accounting error: classes add up to {total}, "
                                    f"{n_words} words were read")
+
+
+def _check_cut(cap, out: str, allow: bool) -> None:
+    """A capture cut short is treated as a PTU file cut short: its whole cycles written,
+    the output flagged ``tcspc.truncated``, exit 3 unless --allow-truncated."""
+    if cap.truncated:
+        from pipeline.cli.instruments import Truncated
+
+        if not allow:
+            raise Truncated(f"{cap.truncated}: {out} holds its {cap.n_words // cap.meta.n_tdc:,}"
+                            " whole cycles, flagged truncated in its metadata; "
+                            "--allow-truncated accepts that (exit 0)")
+        warn(f"{cap.truncated} (--allow-truncated: its whole cycles written, flagged "
+             "tcspc.truncated)")
 
 
 def _warn_uncertain(bounds) -> None:
@@ -86,9 +108,11 @@ def _warn_uncertain(bounds) -> None:
 
 
 def _open(path: str, calibration: str | None):
+    """The capture (read to its last whole cycle when cut short: :func:`_check_cut`) and
+    the calibration's bounds, if one is given."""
     from pipeline.io.capture import Capture
 
-    cap = Capture(path)
+    cap = Capture(path, allow_truncated=True)
     if not calibration:  # (caldir imports pyarrow.parquet and scipy: not needed here)
         return cap, None
     from pipeline.io.caldir import read_bounds
@@ -96,10 +120,69 @@ def _open(path: str, calibration: str | None):
     return cap, read_bounds(calibration, cap.meta.n_tdc)
 
 
+#: the exit statuses of every command (docs/design.md "Exit codes" has the table of each
+#: command's; tests/pipeline/cli/test_exit_codes.py holds them)
+EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT, EXIT_INCOMPLETE, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+
+
+def _one_line_usage(exc: click.UsageError) -> str:
+    """click's three-line usage block as one line: the message and where help is."""
+    where = exc.ctx.command_path if exc.ctx is not None else "tcspc"
+    return f"{exc.format_message()} (see: {where} --help)"
+
+
+def run_command(call) -> int:
+    """Run ``call`` (a command line) and return its exit status, every error as one line
+    on stderr: 2 for bad input or configuration (a usage error, a ``ClickException``, a
+    project error, an OSError), the status an error carries where it has its own (3 for
+    an incomplete result), 130 when interrupted, 1 for anything else: a bug, said as one
+    line too (``TCSPC_TRACEBACK=1`` shows the traceback)."""
+    try:
+        rv = call()
+    except SystemExit as exc:  # a command's own status (the daemon's, a flow's)
+        code = exc.code
+        return code if isinstance(code, int) else (0 if code is None else EXIT_INTERNAL)
+    except (click.exceptions.Abort, KeyboardInterrupt):
+        err.print("aborted")
+        return EXIT_INTERRUPTED
+    except click.exceptions.Exit as exc:
+        return exc.exit_code
+    except click.UsageError as exc:
+        error(_one_line_usage(exc))
+        return EXIT_BAD_INPUT
+    except click.ClickException as exc:
+        error(exc.format_message())
+        # a plain ClickException is a refusal of the user's input: 2 (click's own default,
+        # 1, is kept for internal errors only); subclasses carry their own (3: incomplete)
+        return EXIT_BAD_INPUT if type(exc) is click.ClickException else exc.exit_code
+    except Exception as exc:
+        from schemas.errors import TcspcError
+
+        if isinstance(exc, TcspcError | OSError):
+            error(str(exc))  # one line, the text as it is (markup off)
+            return EXIT_BAD_INPUT
+        if os.environ.get("TCSPC_TRACEBACK"):
+            raise
+        error(f"internal error (a bug; TCSPC_TRACEBACK=1 shows where): "
+              f"{type(exc).__name__}: {exc}")
+        return EXIT_INTERNAL
+    return rv if isinstance(rv, int) else EXIT_OK
+
+
 class _Root(click.Group):
-    """The root group: the entry points' commands are read on first need."""
+    """The root group: the entry points' commands are read on first need, and every error
+    becomes one line and the exit status of the contract (:func:`run_command`), whoever
+    calls the group (the ``tcspc`` script, click's test runner)."""
 
     entry_points_read = False
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True,
+             **extra):
+        code = run_command(lambda: super(_Root, self).main(
+            args, prog_name, complete_var, standalone_mode=False, **extra))
+        if standalone_mode:
+            sys.exit(code)
+        return code
 
     def get_command(self, ctx, name):
         if name not in self.commands:
@@ -127,8 +210,25 @@ _format = click.option("--format", "fmt", type=click.Choice(["tcspc", "ptu", "li
                        default=None, help="Input format (default: read from the content).")
 _allow_truncated = click.option(
     "--allow-truncated", is_flag=True,
-    help="A PTU or LinoSPAD2 file cut short: exit 0 (default: the records before the damage "
-         "are written, flagged truncated, and the command exits 3).")
+    help="A capture, PTU or LinoSPAD2 file cut short: exit 0 (default: the whole cycles or "
+         "records before the damage are written, flagged truncated, and the command exits "
+         "3).")
+_overwrite = click.option(
+    "--overwrite", is_flag=True,
+    help="Replace an existing output of the same kind (never a file or directory of "
+         "another kind; without it an existing output is refused before any work).")
+
+
+def check_out(path, kind: str = "file", overwrite: bool = False, **how):
+    """The output policy, at the door (pipeline.io.atomic.check_output)."""
+    from pipeline.io.atomic import check_output
+
+    return check_output(path, kind, overwrite=overwrite, **how)
+
+
+#: what `tcspc decode` may write: each input format's events (or Photon-HDF5)
+DECODED = ("decoded_events", "ptu_t2_events", "ptu_t3_events", "linospad2_events")
+
 _firmware = click.option("--firmware", type=click.Choice(["2212b", "2212s"]), default="2212b",
                          show_default=True, help="LinoSPAD2 firmware (pixel mapping).")
 
@@ -144,9 +244,10 @@ _firmware = click.option("--firmware", type=click.Choice(["2212b", "2212s"]), de
 @_format
 @_firmware
 @_allow_truncated
+@_overwrite
 @_quiet
 def decode(capture, out, include_no_hit, calibration, engine, fmt, firmware, allow_truncated,
-           quiet) -> None:
+           overwrite, quiet) -> None:
     """Decode CAPTURE into an events parquet file.
 
     A tcspc capture (NAME.bin) gives decoded_events; a PTU file its photons and markers
@@ -157,6 +258,9 @@ def decode(capture, out, include_no_hit, calibration, engine, fmt, firmware, all
     from pipeline.cli import instruments
 
     fmt = instruments.detect(capture, fmt)
+    h5 = Path(out).suffix.lower() in (".h5", ".hdf5")  # Photon-HDF5 (a PTU file's photons)
+    check_out(out, overwrite=overwrite, fmt="hdf5" if h5 else "parquet",
+              schema=None if h5 else DECODED)
     if fmt != "tcspc":
         _not_for_instruments(fmt, calibration=calibration, include_no_hit=include_no_hit)
         instruments.decode(capture, fmt, out, firmware, quiet, allow_truncated)
@@ -171,6 +275,7 @@ def decode(capture, out, include_no_hit, calibration, engine, fmt, firmware, all
         _summary(counts, cap.n_words, time.perf_counter() - t0, bounds.describe())
         err.print(f"wrote {out}")
     _warn_uncertain(bounds)
+    _check_cut(cap, out, allow_truncated)
 
 
 @cli.command()
@@ -184,9 +289,10 @@ def decode(capture, out, include_no_hit, calibration, engine, fmt, firmware, all
 @click.option("--by", type=click.Choice(["tdc", "pixel"]), default="tdc", show_default=True,
               help="LinoSPAD2: a row per TDC (64) or per pixel (256).")
 @_allow_truncated
+@_overwrite
 @_quiet
 def histogram(capture, out, measurement, calibration, engine, fmt, firmware, by,
-              allow_truncated, quiet) -> None:
+              allow_truncated, overwrite, quiet) -> None:
     """Histograms of CAPTURE, a row per TDC (histograms dataset).
 
     A tcspc capture: first-stage codes of its hit words. A PTU T3 file: dtime codes, a row
@@ -196,6 +302,7 @@ def histogram(capture, out, measurement, calibration, engine, fmt, firmware, by,
     from pipeline.cli import instruments
 
     fmt = instruments.detect(capture, fmt)
+    check_out(out, overwrite=overwrite, schema="histograms")
     if fmt != "tcspc":
         _not_for_instruments(fmt, calibration=calibration)
         instruments.histogram(capture, fmt, out, measurement, firmware, by, quiet,
@@ -209,12 +316,14 @@ def histogram(capture, out, measurement, calibration, engine, fmt, firmware, by,
         state, bounds = histogram_capture(cap, bounds, engine, step,
                                           log=lambda m: err.print(f"histogram: {m}"))
     write_histograms(state, measurement or cap.name, out,
-                     {"capture": cap.bin_path, "bounds": bounds.describe()})
+                     {"capture": cap.bin_path, "bounds": bounds.describe(),
+                      **({"truncated": True} if cap.truncated else {})})
     if not quiet:
         _summary(state.class_counts.sum(axis=1), cap.n_words, time.perf_counter() - t0,
                  bounds.describe())
         err.print(f"wrote {out}")
     _warn_uncertain(bounds)
+    _check_cut(cap, out, allow_truncated)
 
 
 @cli.command()
@@ -224,7 +333,8 @@ def histogram(capture, out, measurement, calibration, engine, fmt, firmware, by,
 @click.option("--hit-prob", default=0.05, show_default=True, type=click.FloatRange(0, 1))
 @click.option("--peak-code", default=300.0, show_default=True)
 @click.option("--seed", default=0, show_default=True)
-def pattern(out, cycles, n_tdc, hit_prob, peak_code, seed) -> None:
+@_overwrite
+def pattern(out, cycles, n_tdc, hit_prob, peak_code, seed, overwrite) -> None:
     """Write a synthetic capture OUT(.bin) with a known class mix (not the simulator).
 
     Its sidecar's truth holds the intended class counts, so decode and histogram can be
@@ -234,6 +344,7 @@ def pattern(out, cycles, n_tdc, hit_prob, peak_code, seed) -> None:
     from schemas import WORD_CLASSES
     from stages.testpattern import pattern_words
 
+    check_out(out, "capture", overwrite, option="OUT", expected_bytes=4 * cycles * n_tdc)
     words, truth = pattern_words(cycles, n_tdc, hit_prob=hit_prob, peak_code=peak_code,
                                  rng=seed)
     with CaptureWriter(out, n_tdc, kind="pattern", note=f"pattern_words seed={seed}") as w:
@@ -277,14 +388,17 @@ def schema(markdown) -> None:
 @click.option("--invalid-rate", default=0.0, show_default=True,
               type=click.FloatRange(0, 1), help="Fraction of words given a bubble code.")
 @click.option("--ideal-tdc", is_flag=True, help="No INL/DNL and no artifact.")
+@_overwrite
 @_quiet
 def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, invalid_rate,
-             ideal_tdc, quiet) -> None:
+             ideal_tdc, overwrite, quiet) -> None:
     """Simulate SCENE_PATH: a raw capture whose sidecar holds the truth."""
     from pipeline.offline.simulate import simulate_capture
     from stages.models.scene import load_scene
 
     scene = load_scene(scene_path)  # every problem of the file, before anything starts
+    check_out(out, "capture", overwrite,
+              expected_bytes=4 * cycles * scene.sensor.n_pixels)  # (a word a TDC a cycle)
     t0 = time.perf_counter()
     with _progress(cycles, 1, quiet, "simulate", "cycles") as step:
         meta, sim = simulate_capture(scene, cycles, out, seed=seed, chip_seed=chip_seed,
@@ -326,12 +440,14 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
                    "--delay-ps only a warning, the search's tails being Gaussian) and on "
                    "generic histograms without a calibration, which refuse more].")
 @click.option("--allow-truncated", is_flag=True,
-              help="PTU T3: range a file (or a --zero file) cut short anyway, flagged "
-                   "tcspc.truncated in the output (without it: nothing written, exit 3).")
+              help="A capture or PTU T3 file (or a --zero file) cut short: range it anyway, "
+                   "flagged tcspc.truncated in the output (without it: nothing written, "
+                   "exit 3).")
 @_format
+@_overwrite
 @_quiet
 def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
-              max_returns, allow_truncated, fmt, quiet) -> None:
+              max_returns, allow_truncated, fmt, overwrite, quiet) -> None:
     """Distance per pixel (eq. 5.4) with uncertainty and a detection decision.
 
     CAPTURE is a tcspc capture (with --calibration), or a PicoQuant T3 file or its
@@ -343,6 +459,7 @@ def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero
     instrument response and the pile-up correction used (up to 3 returns a row with a
     calibration, one without).
     """
+    check_out(out, overwrite=overwrite, schema="ranges")
     try:
         _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
                max_returns, fmt, quiet, allow_truncated)
@@ -369,7 +486,7 @@ def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, g
             check_delay(delay_ps, "--delay-ps")
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from exc
-    fmt = instruments.detect(capture, fmt)
+    fmt = instruments.detect(capture, fmt, histograms=True)
     if fmt == "histograms" and instruments.is_generic(capture):
         # several returns need the returns' measured response (tail and all), which a
         # calibration from `calibrate distance` holds: 3 by default with one, else 1
@@ -392,11 +509,21 @@ def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, g
         raise click.UsageError("--delay-ps, --zero and --gate are for an instrument's file; "
                                "a tcspc capture takes its delay from --calibration")
     from pipeline.io.caldir import load_calibration
+    from pipeline.io.capture import Capture
     from pipeline.offline.ranging import range_capture
 
     t0 = time.perf_counter()
     calib = load_calibration(calibration)
-    table, note = range_capture(capture, calib, out, estimator,
+    cap = Capture(capture, allow_truncated=True)
+    if cap.truncated and not allow_truncated:  # as a PTU file cut short: nothing written
+        from pipeline.cli.instruments import Truncated
+
+        raise Truncated(f"{cap.truncated}: its ranges would come from part of a measurement; "
+                        "nothing written (--allow-truncated ranges it anyway, flagged "
+                        "tcspc.truncated in the output)")
+    if cap.truncated:
+        warn(cap.truncated + " (--allow-truncated: ranged anyway, flagged tcspc.truncated)")
+    table, note = range_capture(cap, calib, out, estimator,
                                 None if irf_ps is None else irf_ps * 1e-12, p_fa,
                                 max_returns or 3)
     if note:
@@ -532,21 +659,7 @@ def main() -> None:
 
 
 def _main() -> None:
-    try:
-        cli.main(standalone_mode=False)
-    except click.exceptions.Abort:
-        err.print("aborted")
-        sys.exit(130)
-    except click.ClickException as exc:
-        exc.show()
-        sys.exit(exc.exit_code)
-    except Exception as exc:
-        from schemas.errors import TcspcError
-
-        if not isinstance(exc, TcspcError | OSError):
-            raise
-        error(str(exc))  # one line, the text as it is (markup off)
-        sys.exit(2)
+    cli.main(prog_name="tcspc")
 
 
 if __name__ == "__main__":

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 import numpy as np
 
+from pipeline.cli.app import _overwrite, check_out
 from pipeline.cli.console import console, note, warn
 from pipeline.io.capture import Capture
 from pipeline.offline.calibrate import (
@@ -27,6 +30,14 @@ def calibrate() -> None:
 
 _inl = click.option("--inl-rms", default=0.5, show_default=True, type=float,
                     help="Refuse a capture whose INL would be worse than this (LSB RMS).")
+
+
+def _check_outs(out: str, plot: str | None, overwrite: bool,
+                contents: tuple[str, ...] = ("tdc.parquet", "meta.json")) -> None:
+    """A calibration directory and its figure, checked before any work."""
+    check_out(out, "dir", overwrite, contents=contents)
+    if plot:
+        check_out(plot, overwrite=overwrite, option="--plot", fmt="png")
 
 
 def _report(res: cal.DensityResult, second: cal.SecondStage) -> None:
@@ -56,8 +67,10 @@ def _report(res: cal.DensityResult, second: cal.SecondStage) -> None:
                    "under CAPTURE's reset peak, whose random DNL otherwise tilts the INL "
                    "by up to ~0.1 LSB.")
 @_inl
-def density(capture, out, plot, fill, inl_rms) -> None:
+@_overwrite
+def density(capture, out, plot, fill, inl_rms, overwrite) -> None:
     """Density test of a uniform-light CAPTURE: DNL, INL, LSB, Nmin/Nmax/Nth/PDM."""
+    _check_outs(out, plot, overwrite)
     cap = Capture(capture)
     others = [Capture(p) for p in fill]
     res, second = density_from_capture(cap, inl_rms, fill=others)
@@ -75,8 +88,10 @@ def density(capture, out, plot, fill, inl_rms) -> None:
 @click.option("--out", required=True, type=click.Path(), help="calibration directory")
 @click.option("--plot", type=click.Path(), help="LSB against light as a PNG.")
 @_inl
-def lsb(captures, out, plot, inl_rms) -> None:
+@_overwrite
+def lsb(captures, out, plot, inl_rms, overwrite) -> None:
     """Density tests at several light levels: LSB per TDC as a cubic in eq. 5.1's n."""
+    _check_outs(out, plot, overwrite)
     try:
         _, fit, n, lsbs = lsb_campaign(captures, out, inl_rms, log=err.print)
     except CalibrationError as exc:
@@ -108,6 +123,12 @@ def delay(capture, out, distance_m) -> None:
     and why the others did not; exits non-zero, leaving CALDIR as it was, when none did."""
     from collections import Counter
 
+    from pipeline.io.atomic import OutputError
+
+    if not (Path(out) / "tdc.parquet").is_file():
+        raise OutputError(f"--out {out}: not a calibration directory (no tdc.parquet; "
+                          "`tcspc calibrate density` or `lsb` makes one)")
+    check_out(Path(out) / "tdc.parquet", overwrite=True, schema="calibration_tdc")
     calib = add_delay(capture, out, log=lambda m: err.print(f"delay: {m}", highlight=False),
                       distance_m=distance_m)
     d, used = calib.delay_s, calib.meta["delay"]
@@ -128,7 +149,8 @@ def delay(capture, out, distance_m) -> None:
               help="CSV: measurement,distance_m (and optionally tdc, a row's own distance).")
 @click.option("--out", required=True, type=click.Path(), help="calibration directory")
 @click.option("--p-fa", default=1e-3, show_default=True, help="False-alarm probability.")
-def distance(histograms, truth, out, p_fa) -> None:
+@_overwrite
+def distance(histograms, truth, out, p_fa, overwrite) -> None:
     """Delay and bin width per row of generic HISTOGRAMS from targets at known distances.
 
     For every estimator and row: the delay (eq. 5.3 at the target's distance) and, from
@@ -136,8 +158,9 @@ def distance(histograms, truth, out, p_fa) -> None:
     the instrument response measured on the reference channel (or the brightest row at
     the middle distance); from three or more distances, the effective laser pulses of an
     instrument that does not report them (pile-up). Prints the fit's residuals and RMS."""
-    from pipeline.offline.generic import calibrate_distance
+    from pipeline.offline.generic import CALIBRATION_FILE, calibrate_distance
 
+    _check_outs(out, None, overwrite, contents=(CALIBRATION_FILE,))
     try:
         cal = calibrate_distance(histograms, truth, p_fa=p_fa)
     except (CalibrationError, ValueError) as exc:
@@ -172,7 +195,8 @@ def distance(histograms, truth, out, p_fa) -> None:
 @click.option("--out", type=click.Path(), help="Per-TDC drift as parquet.")
 @click.option("--tolerance-ps", default=1.0, show_default=True,
               help="Report TDCs whose LSB drifted more than this.")
-def track(capture, calibration, out, tolerance_ps) -> None:
+@_overwrite
+def track(capture, calibration, out, tolerance_ps, overwrite) -> None:
     """Online tracking: the LSB from CAPTURE's background photons against CALIBRATION.
 
     Background in an ordinary range capture is a density test too; its signal peaks are
@@ -180,6 +204,8 @@ def track(capture, calibration, out, tolerance_ps) -> None:
     """
     from pipeline.io.caldir import load_calibration
 
+    if out:
+        check_out(out, overwrite=overwrite, fmt="parquet")
     calib = load_calibration(calibration)
     cap = Capture(capture)
     acc = HistogramAccumulator(cap.meta.n_tdc, calib.bounds, count_artifacts=True)

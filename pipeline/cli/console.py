@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import sys
 
+import click
+
 
 def console(stderr: bool = False):
     """A rich console that wraps lines only on a terminal: piped or captured, one message
@@ -63,3 +65,17 @@ def error(message: str, con=err) -> None:
     several lines (a config's problems, one a line) gets the label on each line."""
     for line in str(message).splitlines() or [""]:
         _labelled("error:", "red", line, con)
+
+
+class InternalError(click.ClickException):
+    """A bug, not the user's input (word classes that do not add up to the words read):
+    exit status 1, the one status the contract keeps for internal errors."""
+
+    exit_code = 1
+
+
+class Incomplete(click.ClickException):
+    """A result written (or refused) as incomplete: an input cut short, a check of the
+    result that failed, a run that does not balance: exit status 3."""
+
+    exit_code = 3

@@ -8,18 +8,35 @@ from pathlib import Path
 
 import click
 
-from pipeline.cli.console import err, warn
+from pipeline.cli.console import Incomplete, InternalError, err, warn
+
+#: what a command's CAPTURE may be, for the messages that refuse one
+_INPUTS = ("a capture (NAME.bin with NAME.json beside it), a PicoQuant PTU file or "
+           "LinoSPAD2 raw words")
 
 
-def detect(path: str, given: str | None) -> str:
+def detect(path: str, given: str | None, histograms: bool = False) -> str:
     """The format of ``path``: ``--format`` if given, else read from the content; a
-    parquet file is a ``histograms`` dataset (``range`` takes those)."""
-    from pipeline.io.formats import resolve_format
+    parquet file is a ``histograms`` dataset, which only ``range`` takes (``histograms``).
+    A directory, an empty file or a parquet file where none is taken is refused by what
+    it is, not by the formats it is not."""
+    from pipeline.io.capture import capture_paths
+    from pipeline.io.formats import FormatError, resolve_format
 
-    if given is None and Path(path).is_file():
+    p = Path(path)
+    if p.is_dir() and not capture_paths(p)[0].is_file():
+        raise FormatError(f"{path}: a directory; give a file: {_INPUTS}"
+                          + (", or a histograms parquet file" if histograms else ""))
+    if p.is_file() and given is None:
         with open(path, "rb") as fh:  # 4 bytes, not the file (a PTU file can be GBs)
-            if fh.read(4) == b"PAR1":
-                return "histograms"
+            head = fh.read(4)
+        if not head:
+            raise FormatError(f"{path}: an empty file (0 bytes)")
+        if head == b"PAR1":
+            if not histograms:
+                raise FormatError(f"{path}: a parquet file; this command takes {_INPUTS} "
+                                  "(`tcspc range` takes histograms parquet)")
+            return "histograms"
     return resolve_format(path, given)
 
 
@@ -90,8 +107,8 @@ def _print_summary(summary, quiet: bool) -> None:
 EXIT_TRUNCATED = 3
 
 
-class Truncated(click.ClickException):
-    exit_code = EXIT_TRUNCATED
+class Truncated(Incomplete):
+    """An input file cut short (exit 3, :data:`EXIT_TRUNCATED`)."""
 
 
 def _check_truncated(path: str, out: str, summary, allow: bool) -> None:
@@ -103,7 +120,7 @@ def _check_truncated(path: str, out: str, summary, allow: bool) -> None:
 
 def _check_accounting(summary) -> None:
     if summary.accounted != summary.records:
-        raise click.ClickException(f"accounting error: {summary.accounted:,} records "
+        raise InternalError(f"accounting error: {summary.accounted:,} records "
                                    f"classified, {summary.records:,} read")
 
 
@@ -236,7 +253,8 @@ def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estima
     sigma = None if irf_ps is None else irf_ps * 1e-12
     response = None
     if zero is not None:
-        ztable, zsummary = histograms_of(zero, detect(zero, None), None, firmware, "tdc")
+        ztable, zsummary = histograms_of(zero, detect(zero, None, histograms=True), None,
+                                      firmware, "tdc")
         cut.append(truncation(zero, ztable, zsummary))
     cut = [c for c in cut if c]
     if cut and not allow_truncated:  # a delay or a return from part of a file: refused

@@ -15,19 +15,20 @@ def journal() -> None:
 @journal.command("export")
 @click.argument("segment", type=click.Path(exists=True, dir_okay=False))
 @click.argument("out", type=click.Path())
-def export(segment: str, out: str) -> None:
+@click.option("--overwrite", is_flag=True, help="Replace an existing capture OUT.")
+def export(segment: str, out: str, overwrite: bool) -> None:
     """Write a closed journal SEGMENT (RUN-000000.bin.nhz, .bin.zst or .bin, with its
     sidecar RUN-000000.json beside it) as the raw capture OUT (OUT.bin and OUT.json): the
     words byte for byte as they came in, whatever the segment's encoding. What `zstd -d`
-    gives for a zstd segment, for a zstd-nohit one too. Refuses to overwrite a file."""
+    gives for a zstd segment, for a zstd-nohit one too. An existing OUT is replaced only
+    with --overwrite."""
+    from pipeline.io.atomic import check_output
     from pipeline.io.capture import Capture, CaptureWriter, capture_paths
-    from schemas.errors import CaptureError
 
     cap = Capture(segment)
-    bin_path, json_path = capture_paths(out)
-    for p in (bin_path, json_path):
-        if p.exists():
-            raise CaptureError(f"{p}: exists; tcspc journal export writes a new capture")
+    bin_path, _ = capture_paths(out)
+    check_output(out, "capture", overwrite=overwrite, option="OUT",
+                 expected_bytes=4 * cap.n_words)
     m = cap.meta
     with CaptureWriter(out, m.n_tdc, m.window_ns, m.t_laser_win_ns, kind=m.kind,
                        note=m.note, truth=m.truth) as w:

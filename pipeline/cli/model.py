@@ -11,6 +11,7 @@ import click
 import numpy as np
 from rich.table import Table
 
+from pipeline.cli.app import _overwrite, check_out
 from pipeline.cli.console import console
 from stages.models import atmosphere as atm
 from stages.models import noise, signal
@@ -134,8 +135,13 @@ def transmission(distance, temperature, altitude, rh, as_json) -> None:
 @click.option("--out", "out_path", type=click.Path(), help="Write the full grid as parquet.")
 @click.option("--plot", type=click.Path(), help="Figure 2.13 as a PNG.")
 @_json
-def predict_cmd(config, distance, gated, out_path, plot, as_json) -> None:
+@_overwrite
+def predict_cmd(config, distance, gated, out_path, plot, as_json, overwrite) -> None:
     """P of detecting the peak (eq. 2.44-2.48) for Table 2.2's configurations."""
+    if out_path:
+        check_out(out_path, overwrite=overwrite, fmt="parquet")
+    if plot:
+        check_out(plot, overwrite=overwrite, option="--plot", fmt="png")
     configs = config or tuple(range(1, 9))
     rows = []
     for c in configs:
@@ -172,8 +178,11 @@ def table_cmd(as_json) -> None:
 @click.option("--cycles", default=40_000, show_default=True)
 @click.option("--plot", type=click.Path(), help="The expected histogram as a PNG.")
 @_json
-def histogram(scene_path, pixel, cycles, plot, as_json) -> None:
+@_overwrite
+def histogram(scene_path, pixel, cycles, plot, as_json, overwrite) -> None:
     """Expected first-photon histogram of a scene's pixel, with the CRLB and the report."""
+    if plot:
+        check_out(plot, overwrite=overwrite, option="--plot", fmt="png")
     sm = evaluate(load_scene(scene_path), cycles)
     s = sm.scene.sensor
     px = int(np.argmax(sm.m_signal)) if pixel is None else pixel
@@ -218,8 +227,11 @@ def histogram(scene_path, pixel, cycles, plot, as_json) -> None:
 @model.command()
 @click.option("--out", "out_dir", default="data/figures", show_default=True,
               type=click.Path())
-def figures(out_dir) -> None:
-    """Regenerate Figures 2.2, 2.13, 2.16 and 2.18 as PNGs."""
+@_overwrite
+def figures(out_dir, overwrite) -> None:
+    """Regenerate Figures 2.2, 2.13, 2.16 and 2.18 as PNGs (figure_2_2.png ...)."""
+    for n in ("2_2", "2_13", "2_16", "2_18"):
+        check_out(Path(out_dir) / f"figure_{n}.png", overwrite=overwrite, fmt="png")
     from pipeline.report.figures import all_figures
 
     for p in all_figures(out_dir):

@@ -110,14 +110,21 @@ class Capture:
     strict : bool
         When True (the default), a word count that disagrees with ``cycles * n_tdc`` in
         the sidecar is an error; when False, the file's own length is used.
+    allow_truncated : bool
+        A file cut short (fewer bytes than the sidecar's cycles take) is read to its last
+        whole cycle and :attr:`truncated` says so, where it is otherwise an error (the
+        commands flag such an output and exit 3, as for a PTU file cut short).
     """
 
     #: buffers :meth:`iter_chunks` cycles through: a view it yielded stays valid while
     #: this many less one further chunks are read. One by default (the least memory); a
     #: reader that hands chunks to other threads sets more on its capture.
     chunk_ring = 1
+    #: why the file holds fewer words than its sidecar says (None: it holds them all)
+    truncated: str | None = None
 
-    def __init__(self, path: str | os.PathLike, strict: bool = True):
+    def __init__(self, path: str | os.PathLike, strict: bool = True,
+                 allow_truncated: bool = False):
         self.bin_path, self.json_path = capture_paths(path)
         # a compressed capture (a journal segment, see pipeline.stream.journal): the same
         # words, read through a streaming decoder (zstd's, or the zstd-nohit frames')
@@ -143,11 +150,18 @@ class Capture:
             self._check_addresses()
             return
         size = self.bin_path.stat().st_size
+        expected = self.meta.cycles * self.meta.n_tdc
+        if size < 4 * expected and allow_truncated:  # cut short: its whole cycles are read
+            n_tdc = self.meta.n_tdc
+            self.n_words = size // 4 // n_tdc * n_tdc
+            self.truncated = (f"{self.bin_path} is cut short: {size:,} bytes where the "
+                              f"sidecar's {self.meta.cycles:,} cycles take {4 * expected:,}")
+            self._check_addresses()
+            return
         if size % 4:
             raise CaptureError(f"{self.bin_path}: size {size} bytes is not a multiple of 4 "
                                f"(a truncated word at the end?)")
         self.n_words = size // 4
-        expected = self.meta.cycles * self.meta.n_tdc
         if self.n_words != expected and strict:
             raise CaptureError(
                 f"{self.bin_path}: holds {self.n_words} words, but the sidecar says "

@@ -54,7 +54,8 @@ def detect_format(path: str | Path) -> str:
         raise FormatError(f"{path}: no such file")
     raise FormatError(f"{path}: not a PTU file (no PQTTTR magic), not a tcspc capture (no "
                       "NAME.json beside it) and not LinoSPAD2 raw words (not whole 65 x 200-"
-                      "word cycles of that structure); give --format if you know better")
+                      "word cycles of that structure); if it is one of those, give --format "
+                      f"{'|'.join(FORMATS)}")
 
 
 def resolve_format(path: str | Path, given: str | None) -> str:

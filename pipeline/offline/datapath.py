@@ -146,7 +146,8 @@ def decode_capture(cap: Capture, out: str | Path, bounds: ArtifactBounds | None 
     counts = np.zeros(N_CLASSES, np.int64)
     schema = DECODED_EVENTS.schema.with_metadata({
         **DECODED_EVENTS.schema.metadata, b"tcspc.capture": str(cap.bin_path).encode(),
-        b"tcspc.bounds": bounds.source.encode()})
+        b"tcspc.bounds": bounds.source.encode(),
+        **({b"tcspc.truncated": b"True"} if getattr(cap, "truncated", None) else {})})
     with atomic_path(out) as tmp, pq.ParquetWriter(tmp, schema) as writer:
         for first, words in cap.iter_chunks():
             batch, cls = decode_batch(words, cap.meta.n_tdc, first, bounds, include_no_hit)

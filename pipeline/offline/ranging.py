@@ -179,8 +179,9 @@ def range_capture(capture: str | Path, calibration: Calibration, out: str | Path
                   p_fa: float = 1e-3, max_returns: int = 1) -> tuple[pa.Table, str]:
     """Range a whole capture, up to ``max_returns`` returns a pixel (``tcspc range``: 3 by
     default; 1 here, a row a TDC, for the flows that aggregate per TDC); returns the
-    ranges table and the note of :func:`range_state`."""
-    cap = Capture(capture)
+    ranges table and the note of :func:`range_state`. ``capture``: a path, or an open
+    :class:`Capture` (one read to its last whole cycle is flagged ``tcspc.truncated``)."""
+    cap = capture if isinstance(capture, Capture) else Capture(capture)
     if calibration.n_tdc != cap.meta.n_tdc:
         raise CalibrationError(f"{calibration.path}: calibrates {calibration.n_tdc} TDCs, "
                                f"{cap.bin_path} has {cap.meta.n_tdc}")
@@ -193,7 +194,9 @@ def range_capture(capture: str | Path, calibration: Calibration, out: str | Path
     table = ranges_table(cap.name, est, d, s)
     table = table.replace_schema_metadata({**table.schema.metadata,
                                            b"tcspc.calibration": calibration.path.encode(),
-                                           b"tcspc.capture": str(cap.bin_path).encode()})
+                                           b"tcspc.capture": str(cap.bin_path).encode(),
+                                           **({b"tcspc.truncated": b"True"}
+                                              if cap.truncated else {})})
     with atomic_path(out) as tmp:
         pq.write_table(table, tmp)
     return table, note

@@ -133,7 +133,7 @@ def test_a_truncated_file_keeps_what_decodes_flags_it_and_exits_3(tmp_path, keep
                                       np.pad(want[ch], (0, n - want[ch].size)))
         else:
             assert pl.read_parquet(out).filter(pl.col("kind") == 0).height == photon.sum()
-        r = tcspc(cmd, cut, "--out", out, "-q", "--allow-truncated")
+        r = tcspc(cmd, cut, "--out", out, "-q", "--allow-truncated", "--overwrite")
         assert r.returncode == 0, r.stderr
         assert "truncated" in r.stderr  # said all the same
 
@@ -146,7 +146,7 @@ def test_a_truncated_linospad2_file_exits_3(tmp_path):
     assert r.returncode == 3 and "truncated" in r.stderr, r.stderr
     assert pq.read_schema(tmp_path / "h.parquet").metadata[b"tcspc.truncated"] == b"True"
     r = tcspc("histogram", cut, "--format", "linospad2", "--out", tmp_path / "h.parquet", "-q",
-              "--allow-truncated")
+              "--allow-truncated", "--overwrite")
     assert r.returncode == 0, r.stderr
 
 

@@ -182,7 +182,8 @@ def _ranged(tmf, subset=None, estimator="ml"):
         src = d / f"subset-{len(subset)}.parquet"
         pq.write_table(t.filter(pa.array(keep)), src)
     out = d / f"r-{estimator}-{len(subset or [])}.parquet"
-    r = tcspc("range", src, "--calibration", d / "cal", "--out", out, "--estimator", estimator)
+    r = tcspc("range", src, "--calibration", d / "cal", "--out", out, "--estimator", estimator,
+              "--overwrite")  # (the same subset again: the same ranges)
     assert r.returncode == 0, r.stderr
     df = pl.read_parquet(out).join(truth.rename({"distance_m": "truth_m"}), on="measurement")
     return df.with_columns(((pl.col("distance_m") - pl.col("truth_m")) * 1e3).alias("err_mm"))
