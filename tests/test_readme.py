@@ -1,6 +1,8 @@
 """README's "Useful commands" run as written: every command, option and input of the block
 is checked here (fast), the cheap ones run, and the whole block runs in order through
-examples/readme_commands.sh in the slow suite."""
+examples/readme_commands.sh in the slow suite. The block starts by putting `tcspc` on the
+PATH (``. .venv/bin/activate``); the tests give their directory a ``.venv`` (the one
+running them). README stays a front door: under 100 lines."""
 
 import os
 import re
@@ -15,7 +17,10 @@ import pytest
 ROOT = Path(__file__).parents[1]
 
 
-def readme_commands() -> list[str]:
+ACTIVATE = ". .venv/bin/activate"
+
+
+def readme_lines() -> list[str]:
     """The lines of the sh block under "## Useful commands", comments dropped (what
     examples/readme_commands.sh pipes to sh)."""
     text = (ROOT / "README.md").read_text()
@@ -23,6 +28,18 @@ def readme_commands() -> list[str]:
     assert block, 'README.md has no "## Useful commands" sh block'
     return [re.sub(r"  +# .*$", "", line) for line in block.group(1).splitlines()
             if line.strip()]
+
+
+def readme_commands() -> list[str]:
+    """The block's commands, after the line that activates .venv."""
+    lines = readme_lines()
+    assert lines[0] == ACTIVATE, f"the block starts with {ACTIVATE!r}, found {lines[0]!r}"
+    return lines[1:]
+
+
+def test_readme_is_a_front_door():
+    lines = (ROOT / "README.md").read_text().splitlines()
+    assert len(lines) < 100, f"README.md has {len(lines)} lines"
 
 
 def expanded() -> list[list[str]]:
@@ -97,8 +114,9 @@ def test_the_instrument_command_runs_as_written(tmp_path):
     """The cheapest command of the block, exactly as written, from a root-like directory."""
     for name in ("scenes", "examples", "tests"):
         (tmp_path / name).symlink_to(ROOT / name)
+    (tmp_path / ".venv").symlink_to(Path(sys.executable).parents[1])
     (line,) = [c for c in readme_commands() if ".ptu" in c]
-    proc = subprocess.run(line, shell=True, cwd=tmp_path, env=_env(), capture_output=True,
+    proc = subprocess.run(f"{ACTIVATE} && {line}", shell=True, cwd=tmp_path, env=_env(), capture_output=True,
                           text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert (tmp_path / "out" / "h.parquet").stat().st_size > 0
@@ -109,6 +127,7 @@ def test_the_instrument_command_runs_as_written(tmp_path):
 def test_readme_commands_run_in_order(tmp_path):
     for name in ("scenes", "examples", "tests", "README.md"):
         (tmp_path / name).symlink_to(ROOT / name)
+    (tmp_path / ".venv").symlink_to(Path(sys.executable).parents[1])
     proc = subprocess.run(["sh", "examples/readme_commands.sh"], cwd=tmp_path, env=_env(),
                           capture_output=True, text=True, timeout=3600)
     assert proc.returncode == 0, proc.stderr[-3000:]
