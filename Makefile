@@ -33,9 +33,10 @@ bench: $(STAMP)  ## benchmarks/datapath.py (add the peer with: pip install -e '.
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 
-docs: $(STAMP)  ## regenerate docs/schemas.md from schemas/ and docs/cli.md from the commands
+docs: $(STAMP)  ## regenerate docs/schemas.md, docs/cli.md and docs/operations.md's topology keys
 	$(VENV)/bin/tcspc schema --markdown > docs/schemas.md
 	$(PY) -m pipeline.cli.docs > docs/cli.md
+	$(PY) -m pipeline.cli.docs --operations docs/operations.md
 
 clean:
 	rm -rf $(VENV) .prefect data .pytest_cache .hypothesis

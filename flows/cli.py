@@ -64,13 +64,25 @@ def flow() -> None:
     """Run or serve the Prefect flows (calibration, sweeps, reports)."""
 
 
+def summary(doc: str | None) -> str:
+    """A docstring's first paragraph as plain text, whole (not its first line, which cut a
+    sentence in two): one line, reStructuredText's roles and literals unmarked."""
+    import re
+
+    first = " ".join((doc or "").strip().split("\n\n")[0].split())
+    first = re.sub(r":[a-z]+:`~?([^`]+)`", r"\1", first)  # :func:`x` -> x
+    return re.sub(r"``([^`]+)``", r"\1", first)  # ``x`` -> x
+
+
 @flow.command("list")
 def list_cmd() -> None:
     """The flows and their parameters with defaults."""
+    import textwrap
+
     for name in FLOWS:
         fn = load(name).fn
-        doc = (inspect.getdoc(fn) or "").splitlines()[0]
-        click.echo(f"{name}: {doc}")
+        click.echo(textwrap.fill(f"{name}: {summary(inspect.getdoc(fn))}", width=100,
+                                 subsequent_indent="  "))
         for p in inspect.signature(fn).parameters.values():
             click.echo(f"    {p.name} = {p.default!r}")
 

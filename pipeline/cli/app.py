@@ -314,7 +314,8 @@ def histogram(capture, out, measurement, calibration, engine, fmt, firmware, by,
     t0 = time.perf_counter()
     with _progress(cap.n_words, 1, quiet, "histogram") as step:
         state, bounds = histogram_capture(cap, bounds, engine, step,
-                                          log=lambda m: err.print(f"histogram: {m}"))
+                                          log=(lambda m: None) if quiet else
+                                          (lambda m: err.print(f"histogram: {m}")))
     write_histograms(state, measurement or cap.name, out,
                      {"capture": cap.bin_path, "bounds": bounds.describe(),
                       **({"truncated": True} if cap.truncated else {})})

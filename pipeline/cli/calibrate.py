@@ -83,7 +83,8 @@ def density(capture, out, plot, fill, inl_rms, overwrite) -> None:
     err.print(f"wrote {out}")
 
 
-@calibrate.command()
+@calibrate.command(short_help="Density tests at several light levels: LSB per TDC against "
+                              "light (eq. 5.1).")
 @click.argument("captures", nargs=-1, required=True, type=click.Path())
 @click.option("--out", required=True, type=click.Path(), help="calibration directory")
 @click.option("--plot", type=click.Path(), help="LSB against light as a PNG.")
@@ -105,7 +106,8 @@ def lsb(captures, out, plot, inl_rms, overwrite) -> None:
     err.print(f"wrote {out}")
 
 
-@calibrate.command()
+@calibrate.command(short_help="System delay per TDC from a zero-distance capture "
+                              "(eq. 5.3).")
 @click.argument("capture", type=click.Path())
 @click.option("--out", required=True, type=click.Path(exists=True, file_okay=False),
               help="calibration directory with a density test; the delay is added to it")

@@ -73,8 +73,9 @@ def range_generic(path: str, out: str, calibration, delay_ps, zero, gate, estima
     except (CalibrationError, ValueError) as exc:
         raise click.ClickException(str(exc)) from None
     write_ranges(table, out)
-    err.print(f"instrument response: {info['response']}; pile-up: {info['pileup']}",
-              highlight=False)
+    if not quiet:
+        err.print(f"instrument response: {info['response']}; pile-up: {info['pileup']}",
+                  highlight=False)
     if "bright" in info:
         warn(info["bright"])
     if "returns" in info and not quiet:
@@ -301,8 +302,8 @@ def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estima
 
     with atomic_path(out) as tmp:
         pq.write_table(ranges, tmp)
-    err.print(f"time axis: {note}; delay {how}", highlight=False)
     if not quiet:
+        err.print(f"time axis: {note}; delay {how}", highlight=False)
         df = pl.from_arrow(ranges)
         for r in df.iter_rows(named=True):
             err.print(f"  channel {r['tdc']}"

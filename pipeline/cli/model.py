@@ -53,7 +53,8 @@ def model() -> None:
     """Chapter 2: link budget, ambient light, transmission, prediction, histograms."""
 
 
-@model.command("link-budget")
+@model.command("link-budget", short_help="Photons per pixel per pulse: mirror and diffuse "
+                                         "target (eq. 2.23-2.26).")
 @click.option("--distance", "-d", multiple=True, type=float, default=(1.0, 10.0, 100.0),
               show_default=True, help="Target distance in m (repeat for several).")
 @click.option("--energy-pj", default=29.0, show_default=True)
@@ -76,7 +77,8 @@ def link_budget(distance, energy_pj, reflectivity, pdp, fill_factor, as_json) ->
     _emit(rows, "link budget (photons per pixel per pulse)", as_json)
 
 
-@model.command()
+@model.command(short_help="Background photons per pixel: sunlight, lux, lamps "
+                          "(eq. 2.37-2.43).")
 @click.option("--lux", default=100_000.0, show_default=True, help="Daylight illuminance.")
 @click.option("--filter-nm", default=10.0, show_default=True)
 @click.option("--pde", default=0.25 * 0.049, show_default=True)
@@ -126,7 +128,8 @@ def transmission(distance, temperature, altitude, rh, as_json) -> None:
     _emit(rows, f"transmission at {altitude:g} m, {temperature:g} K", as_json)
 
 
-@model.command("predict")
+@model.command("predict", short_help="P of detecting the peak for Table 2.2's "
+                                     "configurations (eq. 2.44-2.48).")
 @click.option("--config", "-c", multiple=True, type=click.IntRange(1, 8),
               help="Table 2.2 configuration (default: all eight).")
 @click.option("--distance", "-d", multiple=True, type=float,

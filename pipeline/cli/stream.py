@@ -442,8 +442,8 @@ def plan(config, run_id, out) -> None:
 
 @click.command()
 @click.option("--config", type=click.Path(exists=True, dir_okay=False), default=None,
-              help="Topology TOML (default: the street scene through 2 workers; see "
-                   "pipeline/stream/daemon.py for the keys).")
+              help="Topology TOML (default: the street scene through 2 workers; every "
+                   "key: docs/operations.md, \"Every key of a topology\").")
 @click.option("--run", "run_id", default=None, help="Run id (default: from the config).")
 def daemon(config, run_id) -> None:
     """Start the stream graph under a supervisor that restarts crashed stages; on exit,

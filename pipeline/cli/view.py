@@ -106,3 +106,14 @@ def view(config, state, out, calibration, run_id, port, bind, layout, open_brows
     finally:
         server.stop()
         model.close()
+        _forget_url(where, url)
+
+
+def _forget_url(where: Path | None, url: str) -> None:
+    """STATE/view.url names a page that is gone once the server stops: removed, unless
+    another `tcspc view` has written its own URL there since."""
+    try:
+        if where is not None and where.read_text().strip() == url:
+            where.unlink()
+    except OSError:
+        pass

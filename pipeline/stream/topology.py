@@ -96,7 +96,9 @@ class DaemonSection(_Section):
                   "would mean unbounded in ZeroMQ: refused)")
     journal_keep_gb: float | None = Field(None, gt=0, description="journal kept, GB, > 0 "
                                        "(leave out: keep all)")
-    journal_compression: Literal["zstd-nohit", "zstd", "none"] = "zstd-nohit"
+    journal_compression: Literal["zstd-nohit", "zstd", "none"] = Field(
+        "zstd-nohit", description="journal segments as zstd frames of the words less their "
+        "no-hit pattern, as zstd frames of the words, or raw")
     restart_window_s: float = Field(600.0, gt=0, description="the restart budget's window, "
                                  "s, > 0")
     restart_backoff_s: float = Field(0.5, ge=0, description="wait before a restart, s (0: "
@@ -108,13 +110,14 @@ class DaemonSection(_Section):
 class SourceSection(_Section):
     kind: Literal["sim", "capture", "udp", "file"] = Field(..., description="sim | capture | udp "
                                                         "| file")
-    scene: str | None = None
+    scene: str | None = Field(None, description="the scene TOML simulated")
     cycles: int | None = Field(None, ge=1, description="laser cycles simulated, >= 1")
-    seed: int | None = Field(None, ge=0)
-    chip_seed: int | None = Field(None, ge=0)
+    seed: int | None = Field(None, ge=0, description="seed of the photons, >= 0")
+    chip_seed: int | None = Field(None, ge=0, description="seed of the chip's LSB, INL and "
+                                  "second stage, >= 0")
     rate: float | None = Field(None, gt=0, description="words (records) per s, > 0 (leave "
                             "out: as fast as the graph takes them)")
-    capture: str | None = None
+    capture: str | None = Field(None, description="the capture replayed (NAME.bin)")
     repeat: int | None = Field(None, ge=1, description="times the capture is replayed, >= 1")
     bind: str | None = Field(None, description="HOST:PORT to listen on, port 1..65535")
     idle: float | None = Field(None, gt=0, description="seconds without a datagram that end "
@@ -129,9 +132,11 @@ class SourceSection(_Section):
                                 "in ps, 1e3..1e7 (leave out: from a quorum of datagrams)")
     first_seq: int | None = Field(None, ge=0, le=2**32 - 1, description="the run's first "
                                   "datagram sequence, 0..2^32-1 (leave out: from a quorum)")
-    file: str | None = None
-    format: str | None = None
-    firmware: Literal["2212b", "2212s"] | None = None
+    file: str | None = Field(None, description="a PTU T3 or LinoSPAD2 file replayed")
+    format: str | None = Field(None, description="the file's format (leave out: read from "
+                               "its content)")
+    firmware: Literal["2212b", "2212s"] | None = Field(None, description="LinoSPAD2 "
+                                                       "firmware (its pixel mapping)")
     wire: Literal["sparse", "words"] | None = Field(None, description='sim, capture and udp: '
                                                     '"sparse" (default) or "words"')
 
@@ -148,25 +153,28 @@ class HistogramSection(_Section):
     workers: int = Field(1, ge=1, description="histogram workers, 1..n_tdc")
     measurement_cycles: int | None = Field(None, ge=1, description="cycles per measurement, "
                                         ">= 1 (leave out: one measurement, the whole run)")
-    calibration: str | None = None
+    calibration: str | None = Field(None, description="a calibration directory: the "
+                                    "artifact bounds (Nmin, Nmax) per TDC")
     artifacts: Literal["count-as-hits"] | None = Field(
         None, description='"count-as-hits": without a calibration, a sim or udp stream\'s '
         'artifact words are counted as hits (recorded in the accounting)')
     n_tdc: int | None = Field(None, ge=1, le=MAX_TDC, description=f"1..{MAX_TDC}")
-    endpoints: list[str] | None = None
+    endpoints: list[str] | None = Field(None, description="the workers' endpoints, one a "
+                                        "worker (leave out: ipc://STATE/sock/NAME)")
 
 
 class RangeSection(_Section):
     calibration: str = Field(..., description="a calibration directory")
-    estimator: str = "ml"
+    estimator: str = Field("ml", description="ml, fast, matched, centroid or gaussfit "
+                           "(docs/ranging.md)")
     max_returns: int = Field(3, ge=1, le=16, description="1..16 returns a pixel (0 is not "
                              "'none': leave the section out to range nothing)")
-    endpoint: str | None = None
+    endpoint: str | None = Field(None, description="its endpoint (leave out: ipc://STATE/sock/NAME)")
 
 
 class SinkSection(_Section):
     out: str = Field("data/stream", min_length=1, description="the datasets' directory")
-    endpoint: str | None = None
+    endpoint: str | None = Field(None, description="its endpoint (leave out: ipc://STATE/sock/NAME)")
 
 
 class ViewSection(_Section):

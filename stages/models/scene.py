@@ -369,8 +369,11 @@ def evaluate(scene: Scene, cycles: int = 40_000) -> SceneModel:
         rel = float(np.max(dcr) / amb_hz) if amb_hz > 0 else float("inf")
         if rel >= tol:
             bg = bg + dcr
-            report.append(Effect("dark counts", "computed", rel,
-                                 "largest DCR / ambient rate", "Table 3.1 with hot pixels"))
+            # (no ambient light: the ratio is infinite; the rate itself says more)
+            size, what = ((rel, "largest DCR / ambient rate") if amb_hz > 0 else
+                          (float(np.max(dcr)), "largest DCR in Hz, no ambient light"))
+            report.append(Effect("dark counts", "computed", size, what,
+                                 "Table 3.1 with hot pixels"))
         else:
             report.append(Effect("dark counts", "omitted (below tolerance)", rel,
                                  "largest DCR / ambient rate", "Table 3.1 with hot pixels"))

@@ -524,10 +524,11 @@ def test_a_project_error_keeps_its_brackets(monkeypatch, capsys):
     from pipeline.cli import app
     from schemas.errors import CalibrationError
 
-    def boom(**_):
+    def boom(*_):
         raise CalibrationError("invalid [0, 3] for TDCs [range]")
 
-    monkeypatch.setattr(app.cli, "main", boom)
+    monkeypatch.setattr(app.cli, "invoke", boom)
+    monkeypatch.setattr("sys.argv", ["tcspc", "schema"])
     with pytest.raises(SystemExit) as exc:
         app._main()
     assert exc.value.code == 2

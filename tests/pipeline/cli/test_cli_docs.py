@@ -16,3 +16,18 @@ def test_cli_reference_covers_every_command():
     for cmd in ("tcspc calibrate delay", "tcspc range", "tcspc stage sink", "tcspc flow run",
                 "tcspc model predict", "tcspc daemon"):
         assert f"`{cmd}`" in text
+
+
+def test_topology_keys_do_not_drift():
+    """docs/operations.md's table of every topology key is the schema's (`make docs`)."""
+    from pipeline.cli.docs import topology_markdown, with_topology
+    from pipeline.stream.topology import SECTIONS
+
+    page = (Path(__file__).parents[3] / "docs" / "operations.md").read_text()
+    assert with_topology(page) == page, "docs/operations.md's topology keys are stale: " \
+                                        "run `make docs`"
+    table = topology_markdown()
+    for sec, model in SECTIONS.items():
+        assert f"`[{sec}]`" in table
+        for key, info in model.model_fields.items():
+            assert f"| `{key}` |" in table and info.description, (sec, key)

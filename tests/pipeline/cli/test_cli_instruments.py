@@ -160,10 +160,10 @@ def test_decode_to_photon_hdf5(tmp_path):
     out = tmp_path / "hh.h5"
     r = tcspc("decode", T3, "--out", out)
     assert r.returncode == 0, r.stderr
-    phconvert.hdf5.assert_valid_photon_hdf5(str(out), warnings=False)
     import tables
 
-    with tables.open_file(str(out)) as h5:
+    with tables.open_file(str(out)) as h5:  # (given a path, phconvert leaves it open)
+        phconvert.hdf5.assert_valid_photon_hdf5(h5, warnings=False)
         det = h5.root.photon_data.detectors.read()
         assert np.bincount(det).tolist() == [45012, 32871]  # the histogram's n_hit per channel
     r = tcspc("decode", LINO, "--out", tmp_path / "l.h5")

@@ -425,8 +425,8 @@ def test_photon_hdf5_holds_the_photons(tmp_path, code):
     d = decode_records(words, record_format(code))
     photon = (d.kind == 0) & (d.channel != SYNC_CHANNEL)
     assert got["n_records_read"] == 4000 and got["n_photons"] == photon.sum()
-    phconvert.hdf5.assert_valid_photon_hdf5(str(out), warnings=False)
-    with tables.open_file(str(out)) as h5:
+    with tables.open_file(str(out)) as h5:  # (given a path, phconvert leaves it open)
+        phconvert.hdf5.assert_valid_photon_hdf5(h5, warnings=False)
         pd = h5.root.photon_data
         assert np.array_equal(pd.timestamps.read(), d.time[photon].astype(np.int64))
         assert np.array_equal(pd.detectors.read(), d.channel[photon])
