@@ -108,7 +108,8 @@ def ambient(lux, filter_nm, pde, lamp_lm, lamp_distance, lamp_angle, as_json) ->
     _emit(rows, f"ambient light at 405 nm through a {filter_nm:g} nm filter", as_json)
 
 
-@model.command()
+@model.command(short_help="Rayleigh transmission of a horizontal path and the vertical "
+                          "column (eq. 2.34-2.36).")
 @click.option("--distance", "-d", multiple=True, type=float, default=(200.0,),
               show_default=True)
 @click.option("--temperature", default=288.15, show_default=True, help="K")
