@@ -355,7 +355,8 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
               f"{core.duplicates:,} already counted, unfilled gaps {core.gap_words:,}")
 
 
-@stage.command("range")
+@stage.command("range", short_help="Ranges of each measurement's histograms with a calibration "
+               "(eq. 5.4).")
 @click.option("--pull", required=True, help="Endpoint to bind for input (histograms)")
 @click.option("--push", required=True, help="Endpoint to send ranges and histograms to")
 @click.option("--calibration", required=True, type=click.Path(exists=True, file_okay=False))
