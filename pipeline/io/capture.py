@@ -12,7 +12,7 @@ import math
 import os
 import sys
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +43,8 @@ class CaptureMeta:
     version: int = VERSION
 
     def to_dict(self) -> dict:
-        d = asdict(self)
+        d = asdict(replace(self, truth=None))
+        d["truth"] = _plain(self.truth)  # (a LazyTruth's arrays read: a dict of values)
         return {k: v for k, v in d.items() if v is not None}
 
     @classmethod
@@ -145,6 +146,9 @@ class Capture:
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise CaptureError(f"{self.json_path}: sidecar is not valid JSON: {exc}") from exc
         self.meta = CaptureMeta.from_dict(raw, str(self.json_path))
+        if self.meta.truth is not None:  # (large arrays beside it, read when asked for)
+            self.meta = replace(self.meta,
+                                truth=_resolve_truth(self.meta.truth, self.json_path))
         if self.compressed:  # the sidecar's count; a short file fails while read
             self.n_words = self.meta.cycles * self.meta.n_tdc
             self._check_addresses()
@@ -303,8 +307,19 @@ class CaptureWriter:
         meta = CaptureMeta.from_dict({**self._meta, "cycles": self.n_words // n_tdc,
                                       "format": FORMAT, "version": VERSION},
                                      str(self.json_path))
+        doc = meta.to_dict()
+        table_path = truth_table_path(self.json_path)
+        tables: dict = {}
+        if "truth" in doc:
+            doc["truth"], tables = _split_truth(doc["truth"], table_path.name)
         tmp_json = self.json_path.with_name(f".{self.json_path.name}.tmp-{os.getpid()}")
-        tmp_json.write_text(json.dumps(meta.to_dict(), indent=1, default=_jsonable))
+        tmp_json.write_text(json.dumps(doc, separators=(",", ":"), default=_jsonable))
+        if tables:  # (written before the sidecar that names it)
+            tmp_table = table_path.with_name(f".{table_path.name}.tmp-{os.getpid()}")
+            _write_truth_table(tables, tmp_table)
+            os.replace(tmp_table, table_path)
+        else:  # (a capture written over one that had a table: not its truth)
+            table_path.unlink(missing_ok=True)
         os.replace(self._tmp_bin, self.bin_path)
         os.replace(tmp_json, self.json_path)
         return meta
@@ -326,9 +341,132 @@ class CaptureWriter:
 def _jsonable(o):
     if isinstance(o, np.ndarray):
         return o.tolist()
+    if isinstance(o, LazyTruth):
+        return dict(o.items())
     if isinstance(o, np.generic):
         return o.item()
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+# --- the simulator's truth: small values in the sidecar, tables beside it -----------------
+#
+# A simulated capture's truth holds the chip's INL tables (2 x 128 x 512 numbers): 1.25 MB
+# of the 1.9 MB an indented sidecar took. Arrays of TRUTH_TABLE_MIN numbers or more go to
+# NAME.truth.parquet, a row each (``key``: the path in the truth, ``shape``, ``values``
+# flattened, float64), and the sidecar, written compact, names them:
+# ``{"$truth_table": "NAME.truth.parquet", "key": "chip/inl_lsb"}``. A reader resolves a
+# reference when the value is first asked for (a command that does not read the truth
+# never opens the table), and a sidecar with every array inline (written before) reads
+# as it did.
+
+#: arrays of at least this many numbers are kept in NAME.truth.parquet
+TRUTH_TABLE_MIN = 4096
+_REF = "$truth_table"
+
+
+def truth_table_path(json_path: str | os.PathLike) -> Path:
+    """NAME.truth.parquet beside NAME.json."""
+    p = Path(json_path)
+    return p.with_name(p.name[:-len(".json")] + ".truth.parquet")
+
+
+def _split_truth(node, table_name: str, key: str = "", tables: dict | None = None):
+    """(the truth with its large arrays replaced by references, {key: array})."""
+    tables = {} if tables is None else tables
+    if isinstance(node, dict):
+        return {k: _split_truth(v, table_name, f"{key}/{k}" if key else str(k), tables)[0]
+                for k, v in node.items()}, tables
+    if isinstance(node, np.ndarray | list | tuple) and not isinstance(node, str):
+        try:
+            arr = np.asarray(node, dtype=np.float64)
+        except (TypeError, ValueError):  # (a list of words, of records: kept as it is)
+            return node, tables
+        if arr.size >= TRUTH_TABLE_MIN:
+            tables[key] = arr
+            return {_REF: table_name, "key": key}, tables
+    return node, tables
+
+
+def _write_truth_table(tables: dict, path: Path) -> None:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    keys = sorted(tables)
+    table = pa.table({"key": pa.array(keys, pa.string()),
+                      "shape": pa.array([list(tables[k].shape) for k in keys],
+                                        pa.list_(pa.int64())),
+                      "values": pa.array([tables[k].ravel() for k in keys],
+                                         pa.list_(pa.float64()))})
+    pq.write_table(table, path)
+
+
+class _TruthTables:
+    """The arrays of one NAME.truth.parquet, read on first use."""
+
+    def __init__(self, path: Path) -> None:
+        self.path, self._arrays = path, None
+
+    def get(self, key: str) -> np.ndarray:
+        if self._arrays is None:
+            import pyarrow.parquet as pq
+
+            if not self.path.is_file():
+                raise CaptureError(f"{self.path}: not found; the sidecar's truth names it "
+                                   "(a simulated capture is NAME.bin, NAME.json and "
+                                   "NAME.truth.parquet)")
+            t = pq.read_table(self.path).to_pydict()
+            self._arrays = {k: np.asarray(v, np.float64).reshape(shape) for k, shape, v
+                            in zip(t["key"], t["shape"], t["values"], strict=True)}
+        if key not in self._arrays:
+            raise CaptureError(f"{self.path}: holds no truth {key!r}")
+        return self._arrays[key]
+
+
+class LazyTruth(dict):
+    """A truth (section) whose large arrays are read from NAME.truth.parquet when asked for:
+    a plain dict to its readers (``truth["chip"]["inl_lsb"]``, ``.get``, ``.items``)."""
+
+    def __init__(self, node: dict, tables: _TruthTables) -> None:
+        super().__init__({k: LazyTruth(v, tables) if isinstance(v, dict) and _REF not in v
+                          else v for k, v in node.items()})
+        self._tables = tables
+
+    def __getitem__(self, k):
+        v = super().__getitem__(k)
+        if isinstance(v, dict) and _REF in v:
+            v = self._tables.get(v["key"]).tolist()
+            super().__setitem__(k, v)
+        return v
+
+    def get(self, k, default=None):
+        return self[k] if k in self else default
+
+    def items(self):
+        return [(k, self[k]) for k in self]
+
+    def values(self):
+        return [self[k] for k in self]
+
+    def __reduce__(self):  # (pickled, e.g. by a Prefect task: as the plain dict it is)
+        return dict, (dict(self.items()),)
+
+
+def _has_ref(node) -> bool:
+    return isinstance(node, dict) and (_REF in node or any(_has_ref(v) for v in node.values()))
+
+
+def _plain(node):
+    """A truth as plain dicts (a LazyTruth's references read), for a new sidecar."""
+    if isinstance(node, dict):
+        return {k: _plain(v) for k, v in node.items()}
+    return node
+
+
+def _resolve_truth(truth, json_path: Path):
+    """The sidecar's truth, its references to NAME.truth.parquet made lazy."""
+    if _has_ref(truth):
+        return LazyTruth(truth, _TruthTables(truth_table_path(json_path)))
+    return truth
 
 
 def write_capture(path: str | os.PathLike, words: np.ndarray, n_tdc: int,
