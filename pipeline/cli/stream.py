@@ -405,7 +405,8 @@ def stage_sink(pull, out, quarantine, workers, metrics, senders) -> None:
 @click.option("--run", "run_id", default=None, help="Run id (default: from the config).")
 @click.option("--out", required=True, type=click.Path(file_okay=False),
               help="Directory for one NAME.env per stage (systemd's EnvironmentFile).")
-def plan(config, run_id, out) -> None:
+@click.option("--overwrite", is_flag=True, help="Replace NAME.env files already there.")
+def plan(config, run_id, out, overwrite) -> None:
     """Each stage of the graph as a service: writes OUT/NAME.env for the systemd template
     tcspc-stage@.service (docs/systemd/, docs/operations.md): the stage's arguments,
     the run's token file and, with CURVE on, the key directory (both made in the state
@@ -424,6 +425,10 @@ def plan(config, run_id, out) -> None:
             raise click.ClickException(f"{name}: an argument holds white space, which "
                                        "systemd's $TCSPC_STAGE_ARGS would split: "
                                        + shlex.join(args))
+    from pipeline.io.atomic import check_output
+
+    for name, _ in stages:  # (the output policy: docs/design.md "Outputs")
+        check_output(Path(out) / f"{name}.env", overwrite=overwrite)
     for d in ("logs", "journal", f"checkpoints/{topo.run}"):
         (topo.state / d).mkdir(parents=True, exist_ok=True)
     token, _ = run_token(topo.state, topo.run)
