@@ -148,7 +148,10 @@ def run_command(call) -> int:
     except click.exceptions.Exit as exc:
         return exc.exit_code
     except click.UsageError as exc:
-        error(_one_line_usage(exc))
+        if type(exc).__name__ == "NoArgsIsHelpError":  # a group named alone: its help
+            exc.show()
+        else:
+            error(_one_line_usage(exc))
         return EXIT_BAD_INPUT
     except click.ClickException as exc:
         error(exc.format_message())

@@ -303,6 +303,11 @@ def test_each_case_ends_as_the_table_says(cmd, status, argv, fragment, f, capsys
     assert ".tmp-" not in err  # (the user's path, never an internal temporary)
 
 
+def test_a_group_named_alone_shows_its_help(capsys):
+    code, err = run(["calibrate"], capsys)
+    assert code == 2 and "Commands:" in err and "error:" not in err
+
+
 def test_an_internal_error_is_one_line_and_exit_1(capsys, monkeypatch):
     """A bug (here a function that raises what no check expects) is exit 1, one line."""
     import pipeline.cli.app as app
