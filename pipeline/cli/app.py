@@ -83,7 +83,7 @@ def _summary(counts, n_words: int, seconds: float, bounds_source: str,
               f"artifact bounds: {bounds_source}")
     if total != n_words:  # every word is accounted for, or this is a bug worth stopping on
         raise InternalError(f"accounting error: classes add up to {total}, "
-                                   f"{n_words} words were read")
+                            f"{n_words} words were read")
 
 
 def _check_cut(cap, out: str, allow: bool) -> None:

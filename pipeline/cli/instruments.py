@@ -122,7 +122,7 @@ def _check_truncated(path: str, out: str, summary, allow: bool) -> None:
 def _check_accounting(summary) -> None:
     if summary.accounted != summary.records:
         raise InternalError(f"accounting error: {summary.accounted:,} records "
-                                   f"classified, {summary.records:,} read")
+                            f"classified, {summary.records:,} read")
 
 
 def histograms_of(path: str, fmt: str, measurement: str | None, firmware: str, by: str):
