@@ -116,6 +116,16 @@ CASES = [
     ("tcspc range", 2, lambda f: ["range", f.generic, "--out", f.new("r.parquet"),
                                   "--delay-ps", "1000", "--max-returns", "3"],
      "calibrate distance"),
+    # the estimators' checks at the door (docs/ranging.md; the hard cases of
+    # test_cli_range_hard.py, each held here at its status)
+    ("tcspc range", 2, lambda f: ["range", f.hand(0.0), "--out", f.new("r.parquet"),
+                                  "--delay-ps", "1000"], "bin widths"),
+    ("tcspc range", 2, lambda f: ["range", f.hand(16.0, bins=0), "--out", f.new("r.parquet"),
+                                  "--delay-ps", "1000"], "at least one bin"),
+    ("tcspc range", 2, lambda f: ["range", f.hand(16.0), "--out", f.new("r.parquet"),
+                                  "--delay-ps", "1000", "--irf-ps", "1e9"], "no wider"),
+    ("tcspc range", 2, lambda f: ["range", f.hand(16.0), "--out", f.new("r.parquet"),
+                                  "--delay-ps", "nan"], "--delay-ps must be finite"),
     ("tcspc range", 3, lambda f: ["range", f.cut_ptu, "--out", f.new("r.parquet"),
                                   "--delay-ps", "1000"], "nothing written"),
     ("tcspc calibrate delay", 2, lambda f: ["calibrate", "delay", f.cap, "--out", f.dir],
@@ -237,6 +247,25 @@ def f(tmp_path_factory):
     busy.bind(("127.0.0.1", 0))
     busy.listen()
     made = iter(range(10**6))
+
+    def hand(width_ps: float, bins: int = 2000) -> Path:
+        """A histograms 2.0 file as another tool would write it (one return)."""
+        from schemas.outputs import HISTOGRAMS
+
+        counts = np.random.default_rng(0).poisson(1.0, bins)
+        counts[bins // 2 - 2:bins // 2 + 2] += 400 if bins else 0
+        path = d / f"hand-{width_ps}-{bins}.parquet"
+        zero = {k: pa.array([0], pa.uint64()) for k in ("n_no_hit", "n_artifact",
+                                                        "n_invalid_phase", "n_malformed")}
+        pq.write_table(pa.table({
+            "measurement": ["hand"], "tdc": pa.array([0], pa.uint16()),
+            "cycles": pa.array([10**6], pa.uint64()),
+            "counts": pa.array([counts.tolist()], pa.list_(pa.uint64())),
+            "n_hit": pa.array([int(counts.sum())], pa.uint64()), **zero,
+            "instrument": ["picoquant-t3"], "bin_width_ps": pa.array([width_ps])},
+            schema=HISTOGRAMS.schema), path)
+        return path
+
     ns = SimpleNamespace(
         cap=d / "cap.bin", cut=d / "cut.bin", cut_ptu=d / "cut.ptu", png=d / "pic.png",
         png_out=d / "out.png", empty_parquet=d / "empty.parquet", dir=d / "adir",
@@ -245,7 +274,7 @@ def f(tmp_path_factory):
         empty_csv=d / "empty.csv", scene=d / "scene.toml", bad_scene=d / "bad.toml",
         bad_topology=d / "bad_topology.toml", missing=d / "missing.bin",
         under_file=d / "afile" / "x.parquet", busy_port=busy.getsockname()[1],
-        new=lambda name: d / f"new{next(made)}" / name)
+        new=lambda name: d / f"new{next(made)}" / name, hand=hand)
     yield ns
     busy.close()
 
