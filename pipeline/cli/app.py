@@ -100,6 +100,16 @@ def _check_cut(cap, out: str, allow: bool) -> None:
              "tcspc.truncated)")
 
 
+def _input_bytes(path: str) -> int:
+    """The size of an input file (a capture's words), 0 where it cannot be told."""
+    from pipeline.io.capture import capture_paths
+
+    for p in (Path(path), capture_paths(path)[0]):
+        if p.is_file():
+            return p.stat().st_size
+    return 0
+
+
 def _warn_uncertain(bounds) -> None:
     """Estimated bounds the data cannot vouch for are said, even with --quiet."""
     if bounds.uncertain.any():
@@ -262,8 +272,9 @@ def decode(capture, out, include_no_hit, calibration, engine, fmt, firmware, all
 
     fmt = instruments.detect(capture, fmt)
     h5 = Path(out).suffix.lower() in (".h5", ".hdf5")  # Photon-HDF5 (a PTU file's photons)
+    # (the events take about as much room as the words or records they come from)
     check_out(out, overwrite=overwrite, fmt="hdf5" if h5 else "parquet",
-              schema=None if h5 else DECODED)
+              schema=None if h5 else DECODED, expected_bytes=_input_bytes(capture))
     if fmt != "tcspc":
         _not_for_instruments(fmt, calibration=calibration, include_no_hit=include_no_hit)
         instruments.decode(capture, fmt, out, firmware, quiet, allow_truncated)
