@@ -93,6 +93,6 @@ def test_no_room_is_refused_with_the_numbers(tmp_path, monkeypatch):
     check_output(tmp_path / "c.bin", "capture", expected_bytes=5e8)
     with pytest.raises(OutputError, match=r"needs ~5.12 PB, 1 GB free"):
         check_output(tmp_path / "c.bin", "capture", expected_bytes=5.12e15)
-    assert atomic.HEADROOM_BYTES == 64 << 20  # (docs/design.md says 64 MB)
+    assert atomic.HEADROOM_BYTES == 64 << 20  # (docs/design.md says 64 MiB)
     with pytest.raises(OutputError, match="needs ~"):  # the margin counts
         check_output(tmp_path / "c.bin", "capture", expected_bytes=10**9 - 10**6)
