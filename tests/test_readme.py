@@ -116,8 +116,8 @@ def test_the_instrument_command_runs_as_written(tmp_path):
         (tmp_path / name).symlink_to(ROOT / name)
     (tmp_path / ".venv").symlink_to(Path(sys.executable).parents[1])
     (line,) = [c for c in readme_commands() if ".ptu" in c]
-    proc = subprocess.run(f"{ACTIVATE} && {line}", shell=True, cwd=tmp_path, env=_env(), capture_output=True,
-                          text=True, timeout=300)
+    proc = subprocess.run(f"{ACTIVATE} && {line}", shell=True, cwd=tmp_path, env=_env(),
+                          capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert (tmp_path / "out" / "h.parquet").stat().st_size > 0
 

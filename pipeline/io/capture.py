@@ -352,8 +352,9 @@ def _jsonable(o):
 #
 # A simulated capture's truth holds the chip's INL tables (2 x 128 x 512 numbers): 1.25 MB
 # of the 1.9 MB an indented sidecar took. Arrays of TRUTH_TABLE_MIN numbers or more go to
-# NAME.truth.parquet, a row each (``key``: the path in the truth, ``shape``, ``values``
-# flattened, float64), and the sidecar, written compact, names them:
+# NAME.truth.parquet, a row each (``key``: the path in the truth, ``shape``, ``dtype``
+# (numpy's: integers come back as integers), ``values`` flattened as float64), and the
+# sidecar, written compact, names them:
 # ``{"$truth_table": "NAME.truth.parquet", "key": "chip/inl_lsb"}``. A reader resolves a
 # reference when the value is first asked for (a command that does not read the truth
 # never opens the table), and a sidecar with every array inline (written before) reads
@@ -378,8 +379,10 @@ def _split_truth(node, table_name: str, key: str = "", tables: dict | None = Non
                 for k, v in node.items()}, tables
     if isinstance(node, np.ndarray | list | tuple) and not isinstance(node, str):
         try:
-            arr = np.asarray(node, dtype=np.float64)
-        except (TypeError, ValueError):  # (a list of words, of records: kept as it is)
+            arr = np.asarray(node)
+            if arr.dtype.kind not in "biuf":
+                raise TypeError(arr.dtype)
+        except (TypeError, ValueError):  # (None among numbers, dicts: kept as it is)
             return node, tables
         if arr.size >= TRUTH_TABLE_MIN:
             tables[key] = arr
@@ -395,7 +398,8 @@ def _write_truth_table(tables: dict, path: Path) -> None:
     table = pa.table({"key": pa.array(keys, pa.string()),
                       "shape": pa.array([list(tables[k].shape) for k in keys],
                                         pa.list_(pa.int64())),
-                      "values": pa.array([tables[k].ravel() for k in keys],
+                      "dtype": pa.array([tables[k].dtype.str for k in keys], pa.string()),
+                      "values": pa.array([tables[k].astype(np.float64).ravel() for k in keys],
                                          pa.list_(pa.float64()))})
     pq.write_table(table, path)
 
@@ -415,8 +419,9 @@ class _TruthTables:
                                    "(a simulated capture is NAME.bin, NAME.json and "
                                    "NAME.truth.parquet)")
             t = pq.read_table(self.path).to_pydict()
-            self._arrays = {k: np.asarray(v, np.float64).reshape(shape) for k, shape, v
-                            in zip(t["key"], t["shape"], t["values"], strict=True)}
+            self._arrays = {k: np.asarray(v, np.float64).reshape(shape).astype(dtype)
+                            for k, shape, dtype, v in zip(t["key"], t["shape"], t["dtype"],
+                                                          t["values"], strict=True)}
         if key not in self._arrays:
             raise CaptureError(f"{self.path}: holds no truth {key!r}")
         return self._arrays[key]

@@ -28,7 +28,8 @@ ROOT = Path(__file__).parents[3]
 def _truth(rng):
     return {"generator": "test", "distance_m": [1.5, None, 3.0],
             "chip": {"inl_lsb": rng.normal(size=(8, 512)), "n_min": list(range(8)),
-                     "nested": {"table": rng.normal(size=TRUTH_TABLE_MIN)}}}
+                     "nested": {"table": rng.normal(size=TRUTH_TABLE_MIN),
+                                "counts": list(range(TRUTH_TABLE_MIN))}}}
 
 
 def _write(path, truth):
@@ -52,6 +53,8 @@ def test_large_arrays_go_beside_the_compact_sidecar_and_come_back(tmp_path):
     np.testing.assert_array_equal(np.array(got["chip"]["inl_lsb"]), truth["chip"]["inl_lsb"])
     np.testing.assert_array_equal(np.array(got["chip"]["nested"]["table"]),
                                   truth["chip"]["nested"]["table"])
+    counts = got["chip"]["nested"]["counts"]  # integers come back as integers
+    assert counts == list(range(TRUTH_TABLE_MIN)) and isinstance(counts[5], int)
     assert got["distance_m"] == [1.5, None, 3.0] and got.get("missing") is None
     # a copy (journal export writes the truth again) holds the arrays themselves
     again = Capture(tmp_path / "c").meta.to_dict()["truth"]
