@@ -150,8 +150,10 @@ def run_command(call) -> int:
     try:
         rv = call()
     except SystemExit as exc:  # a command's own status (the daemon's, a flow's)
-        code = exc.code
-        return code if isinstance(code, int) else (0 if code is None else EXIT_INTERNAL)
+        if exc.code is None or isinstance(exc.code, int):
+            return exc.code or EXIT_OK
+        error(str(exc.code))  # (sys.exit("message"): said, as Python would)
+        return EXIT_INTERNAL
     except (click.exceptions.Abort, KeyboardInterrupt):
         err.print("aborted")
         return EXIT_INTERRUPTED
