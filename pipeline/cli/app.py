@@ -488,6 +488,8 @@ _LAZY = {  # name: (module, attribute, short help)
               "Chapter 2: link budget, ambient light, transmission, prediction, histograms."),
     "view": ("pipeline.cli.view", "view",
              "The live web page: daemon health, the sensor's histograms and maps, calibration."),
+    "export": ("pipeline.cli.export", "export",
+               "Ranges and a geometry as a point cloud (LAS, PLY, PCD, MCAP)."),
     "journal": ("pipeline.cli.journal", "journal",
                 "The daemon's journal: a segment (any encoding) as the raw capture."),
 }
