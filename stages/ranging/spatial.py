@@ -231,7 +231,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> Spatial
         a_s = np.zeros((h, w))
         b_s = np.zeros((h, w))
         first = np.maximum(cand_half[..., r], 3.5 * sb)[..., None]
-        for half in (first, (first + WIDTH_FIT * sb) / 2, WIDTH_FIT * sb):
+        for half in (first, (first + WIDTH_FIT * sb) / 2, WIDTH_FIT * sb, WIDTH_FIT * sb, WIDTH_FIT * sb):
             tq = t0[..., None] + a_s[..., None] * dr + b_s[..., None] * dc
             n0, s1, s2, _, _ = window_sums(tq, half)
             wgt = np.maximum(n0, 0.0)
@@ -263,7 +263,16 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> Spatial
         # the background photons left in the window move t0 too: their count over the
         # signal's, each with the window's spread
         var_bg = (bsum.sum(-1) * (WIDTH_FIT * sb) ** 2 / 3) / np.maximum(tot, 1.0) ** 2
-        var_t0 = var_photon * np.abs(Minv[..., 0, 0]) + var_bg
+        var_model = var_photon * np.abs(Minv[..., 0, 0]) + var_bg
+        # and the sandwich (heteroscedasticity-consistent, HC1) variance of the same fit:
+        # every neighbour's leverage on t0 times its photons' summed residual, squared,
+        # which takes in what the model leaves out (the background's fluctuation, a
+        # surface that is not quite a plane); the larger of the two
+        lev = np.einsum("hwi,im->hwm", Minv[..., 0, :], X)
+        res = np.where(pos, s1 - tq * n0, 0.0)
+        m_eff = np.maximum(pos.sum(-1), 4)
+        var_sand = ((lev * res) ** 2).sum(-1) * m_eff / (m_eff - 3)
+        var_t0 = np.maximum(var_model, var_sand)
         # -- 3. the decision
         half = WIDTH_TEST * sb
         a = np.clip(np.floor(t0 - half + 0.5).astype(np.int64), 0, n)
@@ -278,11 +287,14 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> Spatial
             nquad += (poisson_tail(cnt, bq) <= p_fa) & ((inside * side).sum(-1) > 0)
         quad = nquad == 4
         found = cand_ok[..., r] & np.isfinite(t0)
-        t_out[..., r] = np.where(found, t0 * bin_s + t0_s, np.nan)
+        # (a candidate the window does not detect still gives the pixel a distance, as a
+        # per-pixel estimator's undetected peak does; it is never detected)
+        t_out[..., r] = np.where(np.isfinite(t0), t0 * bin_s + t0_s, np.nan)
         sig_out[..., r] = np.sqrt(var_t0) * bin_s
         sig_cnt[..., r] = tot / np.maximum(inside.sum(-1), 1)
         own[..., r] = found & own_r
-        rank[..., r] = np.where(found, nquad * 1e6 + (mine - beta * (z - a)) * 1e3, -1e9)
+        rank[..., r] = (np.where(found, nquad * 1e6, -1e8)
+                        + (mine - beta * (z - a)) * 1e3 + sig_cnt[..., r])
         surr[..., r] = found & quad
     # two candidates that settled on one surface are one
     for r in range(1, nc):
