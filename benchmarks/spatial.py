@@ -25,8 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.spatial_scenes import (  # noqa: E402
-    BIN_S, C, N_BINS, SIGMA_S, depth_errors, histograms, scene)
+from benchmarks.spatial_scenes import BIN_S, N_BINS, SIGMA_S, C, depth_errors, histograms, scene  # noqa: E402
 from stages.ranging import Histograms, estimate  # noqa: E402
 from stages.ranging.spatial import spatial  # noqa: E402
 

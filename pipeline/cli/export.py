@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
+import numpy as np
 
 from pipeline.cli.console import err, warn
 
@@ -52,3 +53,45 @@ def export(ranges, geometry, fmt, out, overwrite, quiet) -> None:
         what = "messages" if fmt == "mcap" else "points"
         err.print(f"wrote {out}: {n:,} {what}, {len(clouds)} measurement(s), geometry "
                   f"{geom.name} ({geom.rows} x {geom.cols}, {geom.distance} distances)")
+
+
+def range_spatial(capture, out, spatial, geometry, irf_ps, p_fa, delay_ps, max_returns,
+                  quiet, **refused) -> None:
+    """`tcspc range --spatial` (pipeline/offline/spatial.py)."""
+    import time
+
+    from stages.ranging.validation import check_p_fa, check_sigma
+
+    if not spatial:
+        raise click.UsageError("--geometry is for --spatial (and `tcspc export`)")
+    given = [f"--{k}" for k, v in refused.items() if v]
+    if given:
+        raise click.UsageError(f"{', '.join(given)}: not with --spatial (it takes "
+                               "--delay-ps and --irf-ps)")
+    if irf_ps is None or delay_ps is None:
+        raise click.UsageError("--spatial needs --irf-ps (the pulse's sigma) and --delay-ps")
+    try:
+        check_p_fa(p_fa)
+        check_sigma(irf_ps, name="--irf-ps")
+        if not np.isfinite(delay_ps):
+            raise ValueError(f"--delay-ps must be finite, found {delay_ps}")
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from exc
+    from pipeline.io.geometry import load_geometry
+    from pipeline.offline.generic import write_ranges
+    from pipeline.offline.spatial import range_spatial as run
+
+    t0 = time.perf_counter()
+    geom = load_geometry(geometry) if geometry else None
+    table, unplaced = run(capture, delay_ps * 1e-12, irf_ps * 1e-12, p_fa, geom,
+                          max_returns or 2)
+    if unplaced:
+        warn(f"{unplaced} row(s) without a place on the array: not ranged")
+    write_ranges(table, out)
+    if not quiet:
+        det = np.asarray(table.column("detected").to_numpy(zero_copy_only=False))
+        first = np.asarray(table.column("return_index").to_numpy()) == 0
+        err.print(f"{int((det & first).sum())} of {int(first.sum())} pixels detected "
+                  f"(+{int((det & ~first).sum())} further returns) (spatial, P_fa {p_fa:g} "
+                  f"a pixel) in {time.perf_counter() - t0:.2f} s; wrote {out}",
+                  highlight=False)

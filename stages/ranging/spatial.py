@@ -103,12 +103,13 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
 
     edges = np.linspace(0, h, bands + 1).astype(int)
     halo = window + 1
-    parts = [(max(a - halo, 0), a, b, min(b + halo, h)) for a, b in zip(edges[:-1], edges[1:])]
+    parts = [(max(a - halo, 0), a, b, min(b + halo, h))
+             for a, b in zip(edges[:-1], edges[1:], strict=True)]
     with ThreadPoolExecutor(bands) as ex:
         got = list(ex.map(lambda p: _spatial(counts[p[0]:p[3]], bin_s, sigma_s, p_fa, window,
                                              max_returns, t0_s), parts))
     return SpatialEstimate(*(np.concatenate([getattr(e, f)[a - lo:b - lo]
-                                             for e, (lo, a, b, _) in zip(got, parts)])
+                                             for e, (lo, a, b, _) in zip(got, parts, strict=True)])
                              for f in SpatialEstimate.__dataclass_fields__))
 
 
@@ -231,7 +232,8 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> Spatial
         a_s = np.zeros((h, w))
         b_s = np.zeros((h, w))
         first = np.maximum(cand_half[..., r], 3.5 * sb)[..., None]
-        for half in (first, (first + WIDTH_FIT * sb) / 2, WIDTH_FIT * sb, WIDTH_FIT * sb, WIDTH_FIT * sb):
+        fit = WIDTH_FIT * sb
+        for half in (first, (first + fit) / 2, fit, fit, fit):
             tq = t0[..., None] + a_s[..., None] * dr + b_s[..., None] * dc
             n0, s1, s2, _, _ = window_sums(tq, half)
             wgt = np.maximum(n0, 0.0)
@@ -308,7 +310,10 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> Spatial
     # corner windows that see them, then by the pixel's own excess counts
     key = np.where(det, 1e12 + sig_cnt, rank)
     order = np.argsort(-key, axis=-1, kind="stable")[..., :max_returns]
-    take = (lambda x: np.take_along_axis(x, order, -1))
+
+    def take(x):
+        return np.take_along_axis(x, order, -1)
+
     return SpatialEstimate(take(t_out), take(sig_out), take(sig_cnt),
                            np.repeat(beta[..., None], max_returns, -1), take(det),
                            take(own), take(surr))

@@ -92,7 +92,8 @@ def _read_las(path):
     n, = struct.unpack_from("<Q", b, 247)
     extra, pos = [], hsize
     for _ in range(nvlr):
-        user, rid, length = b[pos + 2:pos + 18].rstrip(b"\0"), *struct.unpack_from("<HH", b, pos + 18)
+        user = b[pos + 2:pos + 18].rstrip(b"\0")
+        rid, length = struct.unpack_from("<HH", b, pos + 18)
         if user == b"LASF_Spec" and rid == 4:
             for k in range(length // 192):
                 d = b[pos + 54 + 192 * k: pos + 54 + 192 * (k + 1)]
