@@ -41,7 +41,7 @@ WINDOW = 3      # k: the window is (2k + 1)^2 pixels
 WIDTH_FIT = 2.5  # the plane fit's window, +- sigmas of the pulse
 WIDTH_TEST = 2.0  # the pixel's own test window
 BOXES = (1.2, 4.0, 10.0)  # the candidates' time boxes, +- sigmas of the pulse
-CANDIDATES = 3   # surfaces searched for in a window (a pixel keeps up to max_returns)
+CANDIDATES = 4   # surfaces searched for in a window (a pixel keeps up to max_returns)
 
 
 def QUADRANTS(dr, dc):  # noqa: N802
@@ -306,9 +306,9 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> Spatial
                            (rank, -1e9)):
                 arr[..., r] = np.where(same, v, arr[..., r])
     det = own | surr
-    # detected before not, then by the neighbourhood's signal; the undetected by the
-    # corner windows that see them, then by the pixel's own excess counts
-    key = np.where(det, 1e12 + sig_cnt, rank)
+    # detected before not; then by the corner windows that see the surface, then by the
+    # pixel's own excess counts, then by the neighbourhood's signal
+    key = np.where(det, 1e12, 0.0) + rank
     order = np.argsort(-key, axis=-1, kind="stable")[..., :max_returns]
 
     def take(x):
