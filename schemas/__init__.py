@@ -26,9 +26,9 @@ _WHERE = {  # name: the submodule that defines it
 
 def __getattr__(name: str):
     if name == "ALL_SPECS":
+        from schemas.geometry import PIXEL_GEOMETRY
         from schemas.instruments import LINOSPAD2_EVENTS, PTU_T2_EVENTS, PTU_T3_EVENTS
         from schemas.outputs import CALIBRATION_INL, CALIBRATION_TDC, HISTOGRAMS, RANGES
-        from schemas.geometry import PIXEL_GEOMETRY
         from schemas.words import DECODED_EVENTS, RAW_SPARSE, RAW_WORDS
 
         value = (RAW_WORDS, RAW_SPARSE, DECODED_EVENTS, HISTOGRAMS, CALIBRATION_TDC,

@@ -14,7 +14,15 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from benchmarks.spatial_scenes import (  # noqa: E402
-    BIN_S, C, N_BINS, SIGMA_S, Scene, depth_errors, histograms, scene)
+    BIN_S,
+    N_BINS,
+    SIGMA_S,
+    C,
+    Scene,
+    depth_errors,
+    histograms,
+    scene,
+)
 from stages.ranging import Histograms, estimate  # noqa: E402
 from stages.ranging.spatial import spatial  # noqa: E402
 
