@@ -181,6 +181,8 @@ class ViewSection(_Section):
     bind: str = Field("127.0.0.1", min_length=1, description="an address, e.g. 127.0.0.1")
     layout: str | None = Field(None, pattern=r"^\d+x\d+$", description='COLUMNSxROWS, e.g. '
                             '"16x8"')
+    geometry: str | None = Field(None, min_length=1, description="the maps laid out as "
+                                 "this geometry's array (docs/geometry.md)")
 
 
 SECTIONS: dict[str, type[_Section]] = {

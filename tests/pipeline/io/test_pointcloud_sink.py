@@ -62,3 +62,17 @@ def test_topology_checks_the_pair(tmp_path):
     assert _cloud_args(load(pointcloud="mcap", geometry="tmf8820").sink) == [
         "--pointcloud", "mcap", "--geometry", "tmf8820"]
     assert _cloud_args(load().sink) == []
+
+
+def test_the_view_lays_the_maps_out_as_the_geometry(tmp_path):
+    from pipeline.stream.sidecar import view_args
+    from pipeline.view.sensor import geometry_xy
+
+    x, y, layout = geometry_xy([0, 4, 8, 9], load_geometry("tmf8820"))
+    assert layout == (3, 3)
+    assert x[:3].tolist() == [0, 1, 2] and y[:3].tolist() == [0, 1, 2]
+    assert np.isnan(x[3]) and np.isnan(y[3])     # the reference channel has no pixel
+    topo = load_topology(None, "r", overrides={
+        "daemon": {"state": str(tmp_path / "s")}, "sink": {"out": str(tmp_path / "o")},
+        "view": {"geometry": "tmf8820"}})
+    assert view_args(topo)[-2:] == ["--geometry", "tmf8820"]
