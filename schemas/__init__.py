@@ -18,6 +18,7 @@ _WHERE = {  # name: the submodule that defines it
     **dict.fromkeys(("CALIBRATION_INL", "CALIBRATION_TDC", "HISTOGRAMS", "RANGES"),
                     "outputs"),
     **dict.fromkeys(("DECODED_EVENTS", "RAW_SPARSE", "RAW_WORDS"), "words"),
+    "PIXEL_GEOMETRY": "geometry",
     **dict.fromkeys(("ARTIFACT", "HIT", "INVALID_PHASE", "MALFORMED", "N_CLASSES", "N_CODES",
                      "N_CODES_2ND", "NO_HIT", "WORD_CLASSES"), "constants"),
 }
@@ -25,12 +26,14 @@ _WHERE = {  # name: the submodule that defines it
 
 def __getattr__(name: str):
     if name == "ALL_SPECS":
+        from schemas.geometry import PIXEL_GEOMETRY
         from schemas.instruments import LINOSPAD2_EVENTS, PTU_T2_EVENTS, PTU_T3_EVENTS
         from schemas.outputs import CALIBRATION_INL, CALIBRATION_TDC, HISTOGRAMS, RANGES
         from schemas.words import DECODED_EVENTS, RAW_SPARSE, RAW_WORDS
 
         value = (RAW_WORDS, RAW_SPARSE, DECODED_EVENTS, HISTOGRAMS, CALIBRATION_TDC,
-                 CALIBRATION_INL, RANGES, PTU_T2_EVENTS, PTU_T3_EVENTS, LINOSPAD2_EVENTS)
+                 CALIBRATION_INL, RANGES, PTU_T2_EVENTS, PTU_T3_EVENTS, LINOSPAD2_EVENTS,
+                 PIXEL_GEOMETRY)
     elif name in _WHERE:
         value = getattr(importlib.import_module(f"schemas.{_WHERE[name]}"), name)
     else:

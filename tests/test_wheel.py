@@ -20,7 +20,8 @@ def test_wheel_installs_and_runs_the_demo(tmp_path):
                     str(tmp_path / "dist"), str(ROOT)], check=True, timeout=600)
     (wheel,) = (tmp_path / "dist").glob("tcspc_lidar-*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
-    shipped = {f"scenes/{p.name}" for p in (ROOT / "scenes").glob("*.toml")}
+    shipped = {f"{d}/{p.name}" for d in ("scenes", "geometries")
+               for p in (ROOT / d).glob("*.toml")}
     assert shipped <= names, f"scenes missing from the wheel: {sorted(shipped - names)}"
     assert not [n for n in names if n.startswith(("tests/", "benchmarks/", "examples/"))]
 

@@ -460,11 +460,18 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
               help="A capture or PTU T3 file (or a --zero file) cut short: range it anyway, "
                    "flagged tcspc.truncated in the output (without it: nothing written, "
                    "exit 3).")
+@click.option("--spatial", is_flag=True,
+              help="Generic histograms as an image (their row/col columns or --geometry): "
+                   "each pixel ranged with its neighbours, for few photons in strong "
+                   "background (docs/ranging.md); needs --delay-ps and --irf-ps.")
+@click.option("--geometry", default=None,
+              help="With --spatial: the array's layout (docs/geometry.md).")
 @_format
 @_overwrite
 @_quiet
 def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
-              max_returns, allow_truncated, fmt, overwrite, quiet) -> None:
+              max_returns, allow_truncated, spatial, geometry, fmt, overwrite,
+              quiet) -> None:
     """Distance per pixel (eq. 5.4) with uncertainty and a detection decision.
 
     CAPTURE is a tcspc capture (with --calibration), or a PicoQuant T3 file or its
@@ -478,6 +485,12 @@ def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero
     """
     check_out(out, overwrite=overwrite, schema="ranges")
     try:
+        if spatial or geometry:
+            from pipeline.cli.export import range_spatial
+
+            range_spatial(capture, out, spatial, geometry, irf_ps, p_fa, delay_ps,
+                          max_returns, quiet, calibration=calibration, zero=zero, gate=gate)
+            return
         _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
                max_returns, fmt, quiet, allow_truncated)
     except ValueError as exc:  # an argument or a histogram the estimators refuse: one line
@@ -632,6 +645,8 @@ _LAZY = {  # name: (module, attribute, short help)
               "Chapter 2: link budget, ambient light, transmission, prediction, histograms."),
     "view": ("pipeline.cli.view", "view",
              "The live web page: daemon health, the sensor's histograms and maps, calibration."),
+    "export": ("pipeline.cli.export", "export",
+               "Ranges and a geometry as a point cloud (LAS, PLY, PCD, MCAP)."),
     "journal": ("pipeline.cli.journal", "journal",
                 "The daemon's journal: a segment (any encoding) as the raw capture."),
 }

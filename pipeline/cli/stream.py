@@ -386,13 +386,23 @@ def stage_range(pull, push, calibration, estimator, max_returns, workers, quaran
 @click.option("--out", required=True, type=click.Path(), help="dataset root")
 @click.option("--quarantine", type=click.Path(), default=None)
 @click.option("--workers", default=1, show_default=True, help="Stages feeding this sink.")
+@click.option("--pointcloud", type=click.Choice(["las", "ply", "pcd", "mcap"]), default=None,
+              help="Each ranges message also as a point cloud (docs/geometry.md).")
+@click.option("--geometry", default=None, help="With --pointcloud: the geometry.")
 @_metrics
 @_accept
-def stage_sink(pull, out, quarantine, workers, metrics, senders) -> None:
+def stage_sink(pull, out, quarantine, workers, pointcloud, geometry, metrics, senders) -> None:
     """Parquet datasets (histograms, ranges), Hive-partitioned by date and run."""
     from pipeline.stream.stage import ParquetSink, run_stage
 
-    sink = ParquetSink(out)
+    cloud = None
+    if pointcloud:
+        if not geometry:
+            raise click.UsageError("--pointcloud needs --geometry")
+        from pipeline.io.geometry import load_geometry
+
+        cloud = (pointcloud, load_geometry(geometry))  # checked before the stage starts
+    sink = ParquetSink(out, cloud=cloud)
     stats = run_stage(sink, pull, None, quarantine=quarantine, expect_stops=workers,
                       metrics=metrics, name="sink", senders=list(senders) or None)
     err.print(f"sink: wrote {sink.files} files; rejected {dict(stats.rejected)}")

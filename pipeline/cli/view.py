@@ -43,11 +43,14 @@ def _from_config(config: str | None) -> dict:
 @click.option("--layout", default=None,
               help="The array as COLUMNSxROWS, TDC t at column t % COLUMNS  [default: 16x8 "
                    "for 128 TDCs]")
+@click.option("--geometry", default=None,
+              help="Lay the maps out as this geometry's array (rows x cols, each TDC at its "
+                   "row and col; docs/geometry.md); overrides --layout.")
 @click.option("--open", "open_browser", is_flag=True, help="Open the page in a browser too.")
 @click.option("--nice", type=click.IntRange(0, 19), default=10, show_default=True,
               help="Lower the server's CPU priority by this much: on a busy machine the "
                    "daemon's stages go first.")
-def view(config, state, out, calibration, run_id, port, bind, layout, open_browser,
+def view(config, state, out, calibration, run_id, port, bind, layout, geometry, open_browser,
          nice) -> None:
     """Serve the live web page of a daemon and its datasets: per-stage health, the sensor's
     latest measurement (histograms, distance and counts maps), the calibration in use and
@@ -75,11 +78,17 @@ def view(config, state, out, calibration, run_id, port, bind, layout, open_brows
             parse_layout(layout, 1)
         except ValueError as exc:
             raise click.BadParameter(str(exc), param_hint="--layout") from None
+    geometry = geometry or cfg.get("geometry")
+    if geometry:
+        from pipeline.io.geometry import load_geometry
+
+        geometry = load_geometry(geometry)  # (a bad one: one line, exit 2)
     port = cfg.get("port", 5006) if port is None else port
     bind = bind or cfg.get("bind") or "127.0.0.1"
     if nice:
         os.nice(nice)  # (the LSB estimate's thread too: it starts later, with this)
     model = ViewModel(state, out, calibration, run_id or cfg.get("run"), layout)
+    model.geometry = geometry or None
     try:
         server, url = make_server(model, port, bind)
     except OSError as exc:

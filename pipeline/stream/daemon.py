@@ -151,7 +151,8 @@ def build(topo: Topology) -> list[Proc]:
     procs = [Proc("sink", _tcspc("stage", "sink", "--pull", sink_ep, "--out", topo.sink["out"],
                                  "--quarantine", quar / "sink", "--workers",
                                  1 if topo.range else len(ranges), *m,
-                                 *accept(*(["range"] if topo.range else []), *hist_names)),
+                                 *accept(*(["range"] if topo.range else []), *hist_names),
+                                 *_cloud_args(topo.sink)),
                   ["range"] if topo.range else [f"histogram-{i}" for i in range(len(ranges))])]
     if topo.range:
         after_hist = topo.endpoint(topo.range, "range")
@@ -665,3 +666,10 @@ def exit_code(result: dict) -> int:
 
 
 # ------------------------------------------------------------------ reconcile, accounting
+
+
+def _cloud_args(sink: dict) -> list:
+    """The sink stage's point-cloud options (``[sink] pointcloud``, ``geometry``)."""
+    if not sink.get("pointcloud"):
+        return []
+    return ["--pointcloud", sink["pointcloud"], "--geometry", sink.get("geometry", "")]

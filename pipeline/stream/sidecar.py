@@ -49,7 +49,8 @@ def view_args(topo) -> list[str] | None:
             "--run", topo.run, "--port", str(v.get("port", 5006)),
             "--bind", v.get("bind", "127.0.0.1"),
             *(("--calibration", str(cal)) if cal else ()),
-            *(("--layout", v["layout"]) if v.get("layout") else ())]
+            *(("--layout", v["layout"]) if v.get("layout") else ()),
+            *(("--geometry", v["geometry"]) if v.get("geometry") else ())]
 
 
 class Sidecar:

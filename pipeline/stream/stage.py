@@ -625,11 +625,13 @@ class ParquetSink:
     in_spec = {HISTOGRAMS.name: HISTOGRAMS, RANGES.name: RANGES}
     out_spec = HISTOGRAMS
 
-    def __init__(self, out: str | Path, step_id: str = "sink"):
+    def __init__(self, out: str | Path, step_id: str = "sink", cloud=None):
         self.out = Path(out)
         self.step_id = step_id
         self.files = 0                 #: files written (a count: the daemon runs for weeks)
         self.last: Path | None = None
+        #: (format, geometry): each ranges message also as a point cloud (issue 35)
+        self.cloud = cloud
 
     def path(self, header: dict) -> Path:
         """The message's file; a header whose run, date or schema could lead outside the
@@ -671,7 +673,25 @@ class ParquetSink:
             pq.write_table(table, tmp)
         self.files += 1
         self.last = path
+        if self.cloud is not None and header.get("schema") == RANGES.name:
+            self._write_cloud(header, table, path)
         return []
+
+    def _write_cloud(self, header: dict, table, path: Path) -> None:
+        """OUT/pointcloud/date=.../run=.../<the parquet file's name>.FMT, the measurement
+        stamped at the time it is written (a stream's ranges carry no acquisition time)."""
+        import time
+
+        from pipeline.io import pointcloud
+
+        fmt, geom = self.cloud
+        rel = path.relative_to(self.out / header["schema"])
+        dest = (self.out / "pointcloud" / rel).with_suffix(f".{fmt}")
+        names = dict.fromkeys(table.column("measurement").to_pylist())
+        now = time.time_ns()
+        clouds, _ = pointcloud.clouds(table, geom, {n: now for n in names})
+        pointcloud.write(fmt, clouds, geom, dest)
+        self.clouds = getattr(self, "clouds", 0) + 1
 
     def finish(self, header: dict) -> list:
         return []

@@ -175,6 +175,12 @@ class RangeSection(_Section):
 class SinkSection(_Section):
     out: str = Field("data/stream", min_length=1, description="the datasets' directory")
     endpoint: str | None = Field(None, description="its endpoint (leave out: ipc://STATE/sock/NAME)")
+    # issue 35: each ranges message also as a point cloud (docs/geometry.md)
+    pointcloud: Literal["las", "ply", "pcd", "mcap"] | None = Field(
+        None, description="las, ply, pcd or mcap: each measurement's ranges also as a point "
+        "cloud under OUT/pointcloud (needs geometry)")
+    geometry: str | None = Field(None, min_length=1, description="a shipped geometry "
+                                 "(thesis128, tmf8820), a .toml or a .parquet")
 
 
 class ViewSection(_Section):
@@ -183,6 +189,8 @@ class ViewSection(_Section):
     bind: str = Field("127.0.0.1", min_length=1, description="an address, e.g. 127.0.0.1")
     layout: str | None = Field(None, pattern=r"^\d+x\d+$", description='COLUMNSxROWS, e.g. '
                             '"16x8"')
+    geometry: str | None = Field(None, min_length=1, description="the maps laid out as "
+                                 "this geometry's array (docs/geometry.md)")
 
 
 SECTIONS: dict[str, type[_Section]] = {
@@ -280,6 +288,8 @@ def load_topology(path: str | Path | None, run: str | None = None,
         if cal and not (Path(cal) / "tdc.parquet").exists():
             problems.append(f"{where} [{sec}] calibration = {cal!r}: not a calibration "
                             "directory (run `tcspc flow run calibration_campaign` first)")
+    if sink.get("pointcloud") or sink.get("geometry"):  # issue 35: a cloud per measurement
+        _check_cloud(sink, where, problems)
     state = Path(d.state)
     if writable and (secs["daemon"] is not None or "daemon" not in raw):
         _check_writable(state, where, "[daemon] state", problems)
@@ -312,6 +322,18 @@ def load_topology(path: str | Path | None, run: str | None = None,
                     d.restart_window_s, d.restart_backoff_s, d.restart_backoff_max_s,
                     curve=d.curve,
                     view=None if view is None else view.model_dump(exclude_none=True))
+
+
+def _check_cloud(sink: dict, where: str, problems: list[str]) -> None:
+    if not sink.get("pointcloud") or not sink.get("geometry"):
+        problems.append(f"{where} [sink] pointcloud and geometry go together (give both)")
+        return
+    from pipeline.io.geometry import load_geometry
+
+    try:
+        load_geometry(sink["geometry"])
+    except ValueError as exc:
+        problems.append(f"{where} [sink] geometry = {sink['geometry']!r}: {exc}")
 
 
 def _check_artifacts(kind: str, hist: dict, where: str, problems: list[str]) -> None:

@@ -55,6 +55,7 @@ class ViewModel:
         self.state, self.out = Path(state), Path(out)
         self.cal_path = Path(calibration) if calibration else None
         self.pinned_run, self.layout_text = run, layout
+        self.geometry = None  #: a stages.geometry.Geometry: the maps laid out as its array
         self.feed = StatusFeed(self.state) if feed else None
         self.history = RateHistory()
         self.status: dict | None = None

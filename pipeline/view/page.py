@@ -306,6 +306,11 @@ class Page:
         self.tdc_pick.high = n - 1
         layout = self.m.layout(n)
         x, y = meas.tdc % layout[0] + 0.5, meas.tdc // layout[0] + 0.5
+        if self.m.geometry is not None:  # (issue 35: each TDC at its row and col)
+            from pipeline.view.sensor import geometry_xy
+
+            x, y, layout = geometry_xy(meas.tdc, self.m.geometry)
+            x, y = x + 0.5, y + 0.5
         dead, hot = got["dead"], got["hot"]
         hpc = meas.classes["hit"] / np.maximum(meas.cycles, 1)
         for p in (self.dist_fig, self.count_fig):

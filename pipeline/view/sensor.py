@@ -49,6 +49,16 @@ def pixel_xy(tdc, layout: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     return tdc % cols, tdc // cols
 
 
+def geometry_xy(tdc, geom) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """Column and row of each TDC on a geometry's array (NaN: the geometry has no pixel
+    for it), and the array as (columns, rows)."""
+    i = geom.index_of(np.asarray(tdc, np.int64))
+    ok = i >= 0
+    j = np.maximum(i, 0)
+    return (np.where(ok, geom.col[j], np.nan), np.where(ok, geom.row[j], np.nan),
+            (int(geom.cols), int(geom.rows)))
+
+
 def pixel_flags(n_hit, cycles) -> tuple[np.ndarray, np.ndarray]:
     """(dead, hot) per TDC: dead counts no hit in a measurement that read it; hot counts
     more than ``HOT_FACTOR`` times the array's median hits per cycle."""

@@ -1,0 +1,82 @@
+"""Scenes and photon histograms for the spatial ranging benchmark and tests, written apart
+from the project's simulator (numpy only, nothing of ``stages``): Lindell 2018's set-up,
+64 x 64 pixels, 1024 bins of 80 ps, a Gaussian pulse of 440 ps FWHM, signal and
+background photons per pixel as given (Poisson), the background flat over the bins.
+
+The scene is piecewise planar: a wall slanted left to right (6-8 m), a floor slanted
+top to bottom in the lower rows (3-4 m), a box facing the sensor (3 m) and a slanted
+board (4-5.5 m) with depth edges all round, a semi-transparent pane (3.6 m) in front of
+the wall where each pixel sees two surfaces, half the signal each, and empty sky (no
+return at all) in the upper left and a gap of sky beside the box.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+C = 299_792_458.0
+BIN_S = 80e-12
+N_BINS = 1024
+PULSE_FWHM_S = 440e-12
+SIGMA_S = PULSE_FWHM_S / (2 * np.sqrt(2 * np.log(2)))
+
+
+@dataclass(frozen=True)
+class Scene:
+    """``depth`` (H, W, 2) metres of up to two surfaces a pixel (NaN: none) and
+    ``share`` (H, W, 2) the signal's split between them."""
+
+    depth: np.ndarray
+    share: np.ndarray
+
+    @property
+    def surface(self) -> np.ndarray:
+        return np.isfinite(self.depth[..., 0])
+
+
+def scene(h: int = 64, w: int = 64) -> Scene:
+    r, c = np.mgrid[0:h, 0:w] / np.array([h, w])[:, None, None]  # 0..1 down and across
+    d = 6.0 + 2.0 * c                                   # the wall, slanted
+    floor = r > 0.75
+    d = np.where(floor, 3.0 + 1.0 * (1 - r) / 0.25, d)  # the floor, nearer at the bottom
+    box = (r > 0.3) & (r < 0.65) & (c > 0.12) & (c < 0.4)
+    d = np.where(box, 3.0, d)
+    board = (r > 0.2) & (r < 0.7) & (c > 0.55) & (c < 0.8)
+    d = np.where(board, 4.0 + 1.5 * (c - 0.55) / 0.25 + 0.5 * (r - 0.2), d)
+    sky = ((r < 0.25) & (c < 0.45)) | ((r > 0.3) & (r < 0.65) & (c >= 0.4) & (c < 0.5))
+    d = np.where(sky, np.nan, d)
+    pane = (r > 0.72) & (r < 0.95) & (c > 0.82) & (c < 0.97) & ~floor
+    pane |= (r > 0.05) & (r < 0.18) & (c > 0.6) & (c < 0.9)
+    depth = np.stack([d, np.where(pane, 3.6, np.nan)], -1)
+    share = np.stack([np.where(pane, 0.5, 1.0), np.where(pane, 0.5, 0.0)], -1)
+    return Scene(depth, share)
+
+
+def histograms(sc: Scene, signal: float, background: float, rng) -> np.ndarray:
+    """Photon counts (H, W, N_BINS): Poisson(signal x share) photons a surface at
+    2 depth / c with the Gaussian pulse, Poisson(background) photons flat over the bins."""
+    rng = np.random.default_rng(rng)
+    h, w, _ = sc.depth.shape
+    out = np.zeros(h * w * N_BINS, np.int64)
+    pix = np.arange(h * w)
+    for k in range(2):
+        d = sc.depth[..., k].ravel()
+        lam = np.where(np.isfinite(d), signal * sc.share[..., k].ravel(), 0.0)
+        n = rng.poisson(lam)
+        who = np.repeat(pix, n)
+        t = 2 * np.repeat(np.nan_to_num(d), n) / C + rng.normal(0, SIGMA_S, who.size)
+        b = np.floor(t / BIN_S).astype(np.int64)
+        ok = (b >= 0) & (b < N_BINS)
+        np.add.at(out, who[ok] * N_BINS + b[ok], 1)
+    nb = rng.poisson(background, h * w)
+    who = np.repeat(pix, nb)
+    np.add.at(out, who * N_BINS + rng.integers(0, N_BINS, who.size), 1)
+    return out.reshape(h, w, N_BINS)
+
+
+def depth_errors(sc: Scene, depth_m: np.ndarray) -> np.ndarray:
+    """|estimate - nearest true surface| on the pixels that have a surface (metres)."""
+    e = np.abs(depth_m[..., None] - sc.depth)
+    return np.fmin(e[..., 0], e[..., 1])[sc.surface]  # (NaN only where neither is a surface)

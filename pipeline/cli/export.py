@@ -1,0 +1,99 @@
+"""``tcspc export``: a ranges file and a geometry as a point cloud (docs/geometry.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+import numpy as np
+
+from pipeline.cli.console import err, warn
+
+_SUFFIX = {".las": "las", ".ply": "ply", ".pcd": "pcd", ".mcap": "mcap"}
+
+
+@click.command(short_help="Ranges and a geometry as a point cloud (LAS, PLY, PCD, MCAP).")
+@click.argument("ranges", type=click.Path(exists=True))
+@click.option("--geometry", "geometry", required=True,
+              help="A shipped geometry (thesis128, tmf8820), a geometry .toml or a "
+                   "pixel_geometry .parquet (docs/geometry.md).")
+@click.option("--format", "fmt", type=click.Choice(["las", "ply", "pcd", "mcap"]),
+              default=None, help="Default: from --out's suffix.")
+@click.option("--out", required=True, type=click.Path(), help="The file to write.")
+@click.option("--overwrite", is_flag=True,
+              help="Replace an existing --out (without it an existing output is refused).")
+@click.option("-q", "--quiet", is_flag=True, help="No summary.")
+def export(ranges, geometry, fmt, out, overwrite, quiet) -> None:
+    """Write RANGES (a ranges parquet file or directory) as a point cloud: a point per
+    detected return, x y z in metres in the geometry's frame (ROS REP 103: x forward, y
+    left, z up), intensity = signal counts, sigma_m, return_index.
+
+    LAS 1.4 (extra bytes for sigma_m), PLY, PCD, or ROS 2 sensor_msgs/PointCloud2 in MCAP
+    (organised rows x cols, NaN where no return, one message per measurement at its
+    time, further returns on their own topics).
+    """
+    fmt = fmt or _SUFFIX.get(Path(out).suffix.lower())
+    if fmt is None:
+        raise click.BadParameter(f"cannot tell the format from {out!r}; give --format "
+                                 "las, ply, pcd or mcap", param_hint="--format")
+    from pipeline.io.atomic import check_output
+
+    check_output(out, "file", overwrite=overwrite)
+    from pipeline.io import pointcloud
+    from pipeline.io.geometry import load_geometry
+    from pipeline.io.ranges import read_ranges
+
+    geom = load_geometry(geometry)
+    table = read_ranges(ranges)
+    clouds, missing = pointcloud.clouds(table, geom,
+                                        pointcloud.measurement_times(table, ranges))
+    if missing:
+        warn(f"{missing} detected return(s) of TDCs that geometry {geom.name} has no "
+             "pixel for: not exported")
+    n = pointcloud.write(fmt, clouds, geom, out)
+    if not quiet:
+        what = "messages" if fmt == "mcap" else "points"
+        err.print(f"wrote {out}: {n:,} {what}, {len(clouds)} measurement(s), geometry "
+                  f"{geom.name} ({geom.rows} x {geom.cols}, {geom.distance} distances)")
+
+
+def range_spatial(capture, out, spatial, geometry, irf_ps, p_fa, delay_ps, max_returns,
+                  quiet, **refused) -> None:
+    """`tcspc range --spatial` (pipeline/offline/spatial.py)."""
+    import time
+
+    from stages.ranging.validation import check_p_fa, check_sigma
+
+    if not spatial:
+        raise click.UsageError("--geometry is for --spatial (and `tcspc export`)")
+    given = [f"--{k}" for k, v in refused.items() if v]
+    if given:
+        raise click.UsageError(f"{', '.join(given)}: not with --spatial (it takes "
+                               "--delay-ps and --irf-ps)")
+    if irf_ps is None or delay_ps is None:
+        raise click.UsageError("--spatial needs --irf-ps (the pulse's sigma) and --delay-ps")
+    try:
+        check_p_fa(p_fa)
+        check_sigma(irf_ps, name="--irf-ps")
+        if not np.isfinite(delay_ps):
+            raise ValueError(f"--delay-ps must be finite, found {delay_ps}")
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from exc
+    from pipeline.io.geometry import load_geometry
+    from pipeline.offline.generic import write_ranges
+    from pipeline.offline.spatial import range_spatial as run
+
+    t0 = time.perf_counter()
+    geom = load_geometry(geometry) if geometry else None
+    table, unplaced = run(capture, delay_ps * 1e-12, irf_ps * 1e-12, p_fa, geom,
+                          max_returns or 2)
+    if unplaced:
+        warn(f"{unplaced} row(s) without a place on the array: not ranged")
+    write_ranges(table, out)
+    if not quiet:
+        det = np.asarray(table.column("detected").to_numpy(zero_copy_only=False))
+        first = np.asarray(table.column("return_index").to_numpy()) == 0
+        err.print(f"{int((det & first).sum())} of {int(first.sum())} pixels detected "
+                  f"(+{int((det & ~first).sum())} further returns) (spatial, P_fa {p_fa:g} "
+                  f"a pixel) in {time.perf_counter() - t0:.2f} s; wrote {out}",
+                  highlight=False)

@@ -1,0 +1,328 @@
+"""Ranging with the neighbours: where a pixel sees a handful of signal photons in strong
+background, the pixels around it mostly lie on the same surface (Rapp & Goyal 2017's
+censoring of background photons by neighbourhood; Lindell 2018's benchmark).
+
+On an image of histograms (rows, cols, bins) on one time axis, at a constant cost per
+pixel (every step below is a sum over a fixed window or a prefix-sum difference):
+
+1. Candidates. The histograms are summed over a (2k+1)^2 window around each pixel and over
+   +-1.2 sigma of the pulse in time; the largest excess over the window's background and the
+   next one at least 4 sigma away are the candidate surfaces, each kept where the window's
+   count is a detection at ``p_fa`` over the bins (the exact Poisson tail, the union bound).
+2. Censoring and a local plane. For each candidate, three mean-shift steps fit a plane
+   t = t0 + a dr + b dc to the background-subtracted photons of the neighbours that fall
+   within +-2.5 sigma of the plane (a weighted least squares on prefix sums: every
+   neighbour's counts, sum of times and of squares in the window). Photons of another
+   surface fall outside the window and are censored: a depth edge stays an edge, and
+   a slanted plane is not bent. The pixel itself is left out of the fit, so its own
+   photons can test it (3).
+3. Decision, per pixel and candidate. The pixel's own counts in +-2 sigma of t0 against
+   its background alone: a window fixed by the neighbours, so no look-elsewhere, and
+   background alone passes with probability at most ``p_fa`` (the exact Poisson tail).
+   Or, the surface surrounds the pixel: each of the four (k+1)^2 windows that have the
+   pixel in a corner holds a detection at t0 (each at ``p_fa``). A pixel beside an
+   object, in empty sky, has a quarter of windows that see only sky, and so no surface
+   unless its own photons say so.
+4. sigma: the photons' spread about the plane over their number, through the fit's
+   design (its (0, 0) element), with the background left in the window.
+
+Up to ``max_returns`` (2) surfaces a pixel, the strongest first.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from stages.ranging.detection import poisson_tail
+
+WINDOW = 3      # k: the window is (2k + 1)^2 pixels
+WIDTH_FIT = 2.5  # the plane fit's window, +- sigmas of the pulse
+WIDTH_TEST = 2.0  # the pixel's own test window
+BOXES = (1.2, 4.0, 10.0)  # the candidates' time boxes, +- sigmas of the pulse
+CANDIDATES = 4   # surfaces searched for in a window (a pixel keeps up to max_returns)
+
+
+def QUADRANTS(dr, dc):  # noqa: N802
+    """The four (k+1)^2 windows with the pixel in a corner."""
+    return [(dr * a >= 0) & (dc * b >= 0) for a in (1, -1) for b in (1, -1)]
+
+
+@dataclass(frozen=True)
+class SpatialEstimate:
+    """Per pixel and return (rows, cols, max_returns): ``t_s`` (NaN: no candidate),
+    ``sigma_s``, ``signal_counts`` (the neighbourhood's signal per pixel, background
+    subtracted), ``background_per_bin``, ``detected``, and how (``own``: the pixel's own
+    photons; ``surrounded``: the four corner windows)."""
+
+    t_s: np.ndarray
+    sigma_s: np.ndarray
+    signal_counts: np.ndarray
+    background_per_bin: np.ndarray
+    detected: np.ndarray
+    own: np.ndarray
+    surrounded: np.ndarray
+
+
+def _box(a: np.ndarray, k: int) -> np.ndarray:
+    """Sums over the (2k+1)^2 window (clipped at the image's edges) along axes 0 and 1."""
+    h, w = a.shape[:2]
+    s = np.zeros((h + 1, w + 1) + a.shape[2:], np.float64)
+    s[1:, 1:] = a.cumsum(0).cumsum(1)
+    r0, r1 = np.clip(np.arange(h) - k, 0, h), np.clip(np.arange(h) + k + 1, 0, h)
+    c0, c1 = np.clip(np.arange(w) - k, 0, w), np.clip(np.arange(w) + k + 1, 0, w)
+    return (s[r1][:, c1] - s[r0][:, c1] - s[r1][:, c0] + s[r0][:, c0])
+
+
+def _cumbins(a: np.ndarray) -> np.ndarray:
+    """Prefix sums along the bins with a leading 0."""
+    out = np.zeros(a.shape[:-1] + (a.shape[-1] + 1,), np.float64)
+    np.cumsum(a, axis=-1, out=out[..., 1:])
+    return out
+
+
+def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3,
+            window: int = WINDOW, max_returns: int = 2, t0_s: float = 0.0,
+            threads: int = 1) -> SpatialEstimate:
+    """Range an image of histograms with its neighbours (module docstring).
+
+    ``counts`` (rows, cols, bins) photon counts (no pile-up: a photon-counting histogram
+    or one already corrected), bin j spanning ``t0_s + [j, j + 1) bin_s``; ``sigma_s``
+    the pulse's (instrument response's) sigma. ``threads`` > 1 ranges bands of rows at
+    once (numpy releases the GIL), each with ``window + 1`` rows of its neighbours' so the
+    result is the same as in one piece (tested).
+    """
+    counts = np.asarray(counts, np.float64)
+    _check(counts, bin_s, sigma_s, p_fa, window, max_returns)
+    h = counts.shape[0]
+    bands = min(max(1, int(threads)), max(1, h // (4 * window + 4)))
+    if bands == 1:
+        return _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s)
+    from concurrent.futures import ThreadPoolExecutor
+
+    edges = np.linspace(0, h, bands + 1).astype(int)
+    halo = window + 1
+    parts = [(max(a - halo, 0), a, b, min(b + halo, h))
+             for a, b in zip(edges[:-1], edges[1:], strict=True)]
+    with ThreadPoolExecutor(bands) as ex:
+        got = list(ex.map(lambda p: _spatial(counts[p[0]:p[3]], bin_s, sigma_s, p_fa, window,
+                                             max_returns, t0_s), parts))
+    return SpatialEstimate(*(np.concatenate([getattr(e, f)[a - lo:b - lo]
+                                             for e, (lo, a, b, _) in zip(got, parts, strict=True)])
+                             for f in SpatialEstimate.__dataclass_fields__))
+
+
+def _check(counts, bin_s, sigma_s, p_fa, window, max_returns) -> None:
+    if counts.ndim != 3 or min(counts.shape) < 1 or counts.shape[2] < 3:
+        raise ValueError(f"counts must be (rows, cols, bins >= 3), found {counts.shape}")
+    if not np.all(np.isfinite(counts)) or counts.min() < 0:
+        raise ValueError("counts must be finite and >= 0")
+    for name, v in (("bin_s", bin_s), ("sigma_s", sigma_s)):
+        if not (np.isfinite(v) and v > 0):
+            raise ValueError(f"{name} must be positive and finite, found {v}")
+    if not 0 < p_fa < 1:
+        raise ValueError(f"p_fa must be in (0, 1), found {p_fa}")
+    if not (1 <= window <= 16 and 1 <= max_returns <= 4):
+        raise ValueError(f"window must be 1..16 and max_returns 1..4, found {window}, "
+                         f"{max_returns}")
+
+
+def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> SpatialEstimate:
+    h, w, n = counts.shape
+    sb = sigma_s / bin_s                     # the pulse's sigma in bins
+    P0 = _cumbins(counts)                    # (h, w, n + 1)
+    # -- 1. candidates from the window's histogram, in time boxes of three widths (a
+    # slanted surface spreads the window's photons over more bins). (A 3 x 3 window's
+    # best as a fifth candidate, for edge pixels whose surface is the 7 x 7 window's
+    # minority, took a tenth of a point off the pixels > 10 cm off at (2, 50) for 50 %
+    # more time: not kept.)
+    def between(P, a, z):  # P[..., z] - P[..., a] for (h, w) indices
+        return (np.take_along_axis(P, z[..., None], -1)
+                - np.take_along_axis(P, a[..., None], -1))[..., 0]
+
+    def candidates(k_win, boxes, nc):
+        PA = _cumbins(_box(counts, k_win))       # (h, w, n + 1)
+        halves = [max(1, int(round(x * sb))) for x in boxes]
+
+        def boxed(k):  # counts in [j - k, j + k] (clipped) for every bin j: slices
+            p = np.pad(PA, ((0, 0), (0, 0), (k, k)), mode="edge")
+            return p[..., 2 * k + 1:2 * k + 1 + n] - p[..., :n]
+
+        # the window's background a bin: the mean without the strongest box's region
+        c0 = np.argmax(boxed(halves[0]), axis=-1)
+        e = int(halves[-1] + 4 * sb)
+        a0, z0 = np.clip(c0 - e, 0, n), np.clip(c0 + e + 1, 0, n)
+        bgA = (PA[..., n] - between(PA, a0, z0)) / np.maximum(n - (z0 - a0), 1)
+        Z = np.full((h, w, n), -np.inf, np.float32)
+        which = np.zeros((h, w, n), np.int8)
+        for i, kb in enumerate(halves):
+            nb = np.minimum(np.arange(n) + kb + 1, n) - np.maximum(np.arange(n) - kb, 0)
+            b = (bgA[..., None] * nb).astype(np.float32)
+            z = (boxed(kb).astype(np.float32) - b) / np.sqrt(b + 1.0)
+            better = z > Z
+            np.copyto(Z, z, where=better)
+            np.copyto(which, np.int8(i), where=better)
+        # the best of every block of bins, then the candidates block by block, each at
+        # least its box and 4 sigma from the ones before it
+        B = max(1, int(sb))
+        nblk = -(-n // B)
+        Zp = np.pad(Z, ((0, 0), (0, 0), (0, nblk * B - n)), constant_values=-np.inf)
+        Zp = Zp.reshape(h, w, nblk, B)
+        inb = np.argmax(Zp, axis=-1)
+        Zb = np.take_along_axis(Zp, inb[..., None], -1)[..., 0]
+        cand = np.zeros((h, w, nc), np.int64)
+        half = np.zeros((h, w, nc))
+        ok = np.zeros((h, w, nc), bool)
+        hv = np.array(halves)
+        blk = np.arange(nblk)
+        for r in range(nc):
+            k = np.argmax(Zb, axis=-1)
+            c = k * B + np.take_along_axis(inb, k[..., None], -1)[..., 0]
+            kb = hv[np.take_along_axis(which, c[..., None], -1)[..., 0]]
+            cand[..., r], half[..., r] = c, kb
+            a, z = np.clip(c - kb, 0, n), np.clip(c + kb + 1, 0, n)
+            # the union bound over the bins and the box widths
+            ok[..., r] = ((poisson_tail(between(PA, a, z), bgA * (z - a))
+                           <= p_fa / (n * len(halves)))
+                          & (np.take_along_axis(Zb, k[..., None], -1)[..., 0] > -np.inf))
+            near = np.abs(blk * B - c[..., None]) <= (kb + 4 * sb + B)[..., None]
+            Zb = np.where(near, -np.inf, Zb)
+        return cand, half, ok
+
+    cand, cand_half, cand_ok = candidates(window, BOXES, max(CANDIDATES, max_returns))
+    nc = cand.shape[-1]
+    # the pixels' own background a bin, outside the strongest candidate: over 3 x 3
+    e0 = (cand_half[..., 0] + 4 * sb).astype(np.int64)
+    a0, z0 = np.clip(cand[..., 0] - e0, 0, n), np.clip(cand[..., 0] + e0 + 1, 0, n)
+    out_cnt = P0[..., n] - between(P0, a0, z0)
+    beta = _box(out_cnt, 1) / np.maximum(_box((n - (z0 - a0)).astype(np.float64), 1), 1.0)
+    j = np.arange(n)
+    # -- 2. the plane fit for every candidate, at every pixel
+    # counts, sums of bin-time and of its square, prefix-summed together: one gather a
+    # neighbour and window edge
+    tj = j + 0.5
+    P = np.zeros((h, w, n + 1, 3))
+    P[..., 1:, 0] = P0[..., 1:]
+    np.cumsum(counts * tj, axis=-1, out=P[..., 1:, 1])
+    np.cumsum(counts * (tj * tj), axis=-1, out=P[..., 1:, 2])
+    P = P.reshape(h * w, n + 1, 3)
+    d = np.arange(-window, window + 1)
+    dr, dc = (x.ravel() for x in np.meshgrid(d, d, indexing="ij"))
+    centre = (dr == 0) & (dc == 0)
+    dr, dc = dr[~centre], dc[~centre]                      # (m,) offsets, the pixel left out
+    R = np.arange(h)[:, None, None] + dr[None, None, :]
+    Cc = np.arange(w)[None, :, None] + dc[None, None, :]
+    inside = (R >= 0) & (R < h) & (Cc >= 0) & (Cc < w)     # (h, w, m)
+    on = inside.astype(np.float64)
+    q = np.clip(R, 0, h - 1) * w + np.clip(Cc, 0, w - 1)   # flat neighbour index
+    beta_q = beta.ravel()[q] * on
+    X = np.stack([np.ones_like(dr), dr, dc]).astype(np.float64)  # (3, m)
+    shape = (h, w, nc)
+    t_out, sig_out, sig_cnt = np.full(shape, np.nan), np.full(shape, np.inf), np.zeros(shape)
+    own, surr, rank = np.zeros(shape, bool), np.zeros(shape, bool), np.zeros(shape)
+
+    def window_sums(tq, half):
+        """Counts, sums of bin-time and of its square in tq +- half (bins), background
+        subtracted, for every neighbour; and the raw counts and background."""
+        a = np.clip(np.floor(tq - half + 0.5).astype(np.int64), 0, n)
+        z = np.clip(np.floor(tq + half + 0.5).astype(np.int64), 0, n)
+        g = (P[q, z] - P[q, a]) * on[..., None]               # (h, w, m, 3)
+        raw, s1, s2 = g[..., 0], g[..., 1], g[..., 2]
+        bsum = beta_q * (z - a)
+        mid1 = beta_q * (z * z - a * a) / 2.0                 # sum of (j + 0.5) over the bins
+        mid2 = beta_q * ((z ** 3 - a ** 3) / 3.0 - (z - a) / 12.0)  # of (j + 0.5)^2
+        return raw - bsum, s1 - mid1, s2 - mid2, raw, bsum
+
+    for r in range(nc):
+        t0 = cand[..., r] + 0.5                               # bins
+        a_s = np.zeros((h, w))
+        b_s = np.zeros((h, w))
+        first = np.maximum(cand_half[..., r], 3.5 * sb)[..., None]
+        fit = WIDTH_FIT * sb
+        for half in (first, (first + fit) / 2, fit, fit, fit):
+            tq = t0[..., None] + a_s[..., None] * dr + b_s[..., None] * dc
+            n0, s1, s2, _, _ = window_sums(tq, half)
+            wgt = np.maximum(n0, 0.0)
+            # weighted least squares of the photons' times on (1, dr, dc): moments of the
+            # net counts (a neighbour's net count may be negative: its weight is 0)
+            s1w = np.where(n0 > 0, s1, 0.0)
+            M = np.einsum("hwm,im,jm->hwij", wgt, X, X)
+            y = np.einsum("hwm,im->hwi", s1w, X)
+            tot = wgt.sum(-1)
+            ridge = 1.0 + 0.01 * tot                          # slopes shrink where few
+            M[..., 1, 1] += ridge
+            M[..., 2, 2] += ridge
+            M[..., 0, 0] += 1e-9
+            y[..., 0] += 1e-9 * t0
+            beta_fit = np.linalg.solve(M, y[..., None])[..., 0]
+            good = tot > 1.0
+            t0 = np.where(good, beta_fit[..., 0], t0)
+            a_s = np.where(good, beta_fit[..., 1], 0.0)
+            b_s = np.where(good, beta_fit[..., 2], 0.0)
+        # spread of the photons about the plane, per photon (background left in)
+        tq = t0[..., None] + a_s[..., None] * dr + b_s[..., None] * dc
+        n0, s1, s2, raw, bsum = window_sums(tq, WIDTH_FIT * sb)
+        pos = n0 > 0
+        rss = np.where(pos, s2 - 2 * tq * s1 + tq ** 2 * n0, 0.0).sum(-1)
+        tot = np.where(pos, n0, 0.0).sum(-1)
+        Minv = np.linalg.inv(np.einsum("hwm,im,jm->hwij", np.where(pos, n0, 0.0), X, X)
+                             + np.eye(3) * 1e-6)
+        var_photon = np.maximum(rss / np.maximum(tot, 1.0), sb ** 2 / 4)
+        # the background photons left in the window move t0 too: their count over the
+        # signal's, each with the window's spread
+        var_bg = (bsum.sum(-1) * (WIDTH_FIT * sb) ** 2 / 3) / np.maximum(tot, 1.0) ** 2
+        var_model = var_photon * np.abs(Minv[..., 0, 0]) + var_bg
+        # and the sandwich (heteroscedasticity-consistent, HC1) variance of the same fit:
+        # every neighbour's leverage on t0 times its photons' summed residual, squared,
+        # which takes in what the model leaves out (the background's fluctuation, a
+        # surface that is not quite a plane); the larger of the two
+        lev = np.einsum("hwi,im->hwm", Minv[..., 0, :], X)
+        res = np.where(pos, s1 - tq * n0, 0.0)
+        m_eff = np.maximum(pos.sum(-1), 4)
+        var_sand = ((lev * res) ** 2).sum(-1) * m_eff / (m_eff - 3)
+        var_t0 = np.maximum(var_model, var_sand)
+        # -- 3. the decision
+        half = WIDTH_TEST * sb
+        a = np.clip(np.floor(t0 - half + 0.5).astype(np.int64), 0, n)
+        z = np.clip(np.floor(t0 + half + 0.5).astype(np.int64), 0, n)
+        mine = (np.take_along_axis(P0, z[..., None], -1)
+                - np.take_along_axis(P0, a[..., None], -1))[..., 0]
+        own_r = poisson_tail(mine, beta * (z - a)) <= p_fa
+        nquad = np.zeros((h, w))
+        for side in QUADRANTS(dr, dc):
+            cnt = (raw * side).sum(-1)
+            bq = (bsum * side).sum(-1)
+            nquad += (poisson_tail(cnt, bq) <= p_fa) & ((inside * side).sum(-1) > 0)
+        quad = nquad == 4
+        found = cand_ok[..., r] & np.isfinite(t0)
+        # (a candidate the window does not detect still gives the pixel a distance, as a
+        # per-pixel estimator's undetected peak does; it is never detected)
+        t_out[..., r] = np.where(np.isfinite(t0), t0 * bin_s + t0_s, np.nan)
+        sig_out[..., r] = np.sqrt(var_t0) * bin_s
+        sig_cnt[..., r] = tot / np.maximum(inside.sum(-1), 1)
+        own[..., r] = found & own_r
+        # (ranking by the excess counts of the pixel and its 8 nearest instead of its own
+        # left more pixels > 10 cm off in most cells of Lindell's grid: not kept)
+        rank[..., r] = (np.where(found, 0.0, -1e8) + nquad * 1e6
+                        + (mine - beta * (z - a)) * 1e3 + sig_cnt[..., r])
+        surr[..., r] = found & quad
+    # two candidates that settled on one surface are one
+    for r in range(1, nc):
+        for s in range(r):
+            same = np.abs(t_out[..., r] - t_out[..., s]) < 3 * sigma_s
+            for arr, v in ((t_out, np.nan), (own, False), (surr, False), (sig_cnt, 0.0),
+                           (rank, -1e9)):
+                arr[..., r] = np.where(same, v, arr[..., r])
+    det = own | surr
+    # detected before not; then by the corner windows that see the surface, then by the
+    # pixel's own excess counts, then by the neighbourhood's signal
+    key = np.where(det, 1e12, 0.0) + rank
+    order = np.argsort(-key, axis=-1, kind="stable")[..., :max_returns]
+
+    def take(x):
+        return np.take_along_axis(x, order, -1)
+
+    return SpatialEstimate(take(t_out), take(sig_out), take(sig_cnt),
+                           np.repeat(beta[..., None], max_returns, -1), take(det),
+                           take(own), take(surr))
