@@ -1,14 +1,9 @@
-"""The ingest: the FPGA's UDP datagrams in, journaled raw-word batches out.
+"""The ingest's loop: a socket in, journaled raw-word batches out (three threads).
 
-Binds 127.0.0.1 unless told otherwise. Every datagram is accounted for: taken (its words
-journaled to capture segments before they are passed on), a duplicate (counted, dropped),
-late (it came after its reorder window closed: counted and quarantined), or rejected by
-reason and quarantined. UDP reorders and duplicates, so datagrams are reassembled by first
-cycle in a bounded reorder window and each cycle is journaled once, in order; cycles no
-datagram brought are a gap (counted), and sequence numbers never seen are lost datagrams.
-Every header field is bounded against the run: a cycle or sequence number beyond the
-window (``max_jump_cycles``, ``max_jump_datagrams``), another TDC count or gate, is a
-rejected datagram, never a gap to fill.
+Every datagram is accounted for: taken (its words journaled to capture segments before they
+are passed on), a duplicate (counted, dropped), late (it came after its reorder window
+closed: counted and quarantined), or rejected by reason and quarantined. Every header field
+is bounded against the run: another TDC count or gate is a rejected datagram.
 """
 
 from __future__ import annotations
@@ -18,7 +13,7 @@ import select
 import socket
 import threading
 import time
-from collections import Counter, deque
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,135 +23,24 @@ import zmq
 from pipeline.stream import datagram, wire
 from pipeline.stream.journal import JournalWriter
 from pipeline.stream.stage import Quarantine, _socket, connect, end_context, own_context
+from pipeline.stream.udp.order import (
+    MAX_JUMP_CYCLES,
+    MAX_JUMP_DATAGRAMS,
+    REORDER_WINDOW,
+    Reassembler,
+)
+from pipeline.stream.udp.reference import QUORUM, Reference
+from pipeline.stream.udp.resume import resume_state
 from schemas.words import RAW_WORDS
 
 BATCH_WORDS = 1 << 18  # 1 MiB messages
-REORDER_WINDOW = 64            #: datagrams held to put reordered ones back in place
 REORDER_LINGER_S = 0.5         #: after the last datagram, wait this long for stragglers
-MAX_JUMP_CYCLES = 1 << 20      #: a datagram this far past the run's newest cycle is refused
-MAX_JUMP_DATAGRAMS = 1 << 16   #: ... and this far in sequence number
 GATE_PS = (1_000, 10_000_000)  #: a gate outside 1 ns .. 10 us is not a gate
 RING_DATAGRAMS = 4096          #: received, not yet journaled (<= 256 MiB of datagrams)
 RX_BATCH = 64                  #: datagrams one hand-off to the ring carries at most
 FLUSH_S = 0.01                 #: a partial batch is journaled and sent after this long
 SEND_QUEUE = 64                #: journaled messages waiting for a slow stage downstream
-QUORUM = 3                     #: datagrams that must agree before they set the reference
-QUORUM_HOLD = 256              #: candidates held while no quorum is reached
 RCVBUF_BYTES = 64 << 20        #: the kernel's buffer: ~0.4 s of 40 M words/s off the CPU
-
-
-def _signed32(d: int) -> int:
-    d &= 0xFFFFFFFF
-    return d - (1 << 32) if d >= 1 << 31 else d
-
-
-def max_cycles(n_tdc: int) -> int:
-    """The most cycles one datagram of ``n_tdc`` TDCs can hold (a UDP payload)."""
-    return max(1, (datagram.MAX_PAYLOAD - datagram.HEADER.size) // (4 * n_tdc))
-
-
-def consistent(ds: int, dc: int, n_tdc: int) -> bool:
-    """Can two datagrams of one stream be ``ds`` sequence numbers and ``dc`` cycles apart?
-    Every datagram holds at least one cycle and at most a UDP payload's, so the cycles
-    between them are within [|ds|, |ds| max_cycles], on the same side."""
-    if ds == 0:
-        return dc == 0
-    if ds < 0:
-        ds, dc = -ds, -dc
-    return ds <= dc <= ds * max_cycles(n_tdc)
-
-
-class Reference:
-    """The run's reference (its gate, TDC count, and where sequence numbers and cycles
-    stand), never taken from whichever datagram comes first: from the configuration
-    (``gate_ps``, ``n_tdc``, ``first_seq``: the run's first datagram is ``first_seq`` at
-    cycle 0), from the journal of the run a restarted ingest resumes (``anchor``: the newest
-    journaled datagram's sequence number and first cycle), or from a quorum: ``quorum``
-    datagrams with the same gate and TDC count whose sequence numbers and cycles could
-    belong to one stream (:func:`consistent`), and that agree with the configuration and the
-    anchor. Until then datagrams are held (at most QUORUM_HOLD: beyond, the oldest is a
-    stray); when the quorum forms, the held datagrams that agree with it are taken in their
-    arrival order, the others are strays (counted, quarantined)."""
-
-    def __init__(self, quorum: int = QUORUM, n_tdc: int | None = None,
-                 gate_ps: int | None = None, anchor: tuple[int, int] | None = None):
-        self.quorum, self.n_tdc, self.gate_ps, self.anchor = quorum, n_tdc, gate_ps, anchor
-        self.held: list[tuple[datagram.Datagram, bytes]] = []
-
-    def _fits(self, d: datagram.Datagram) -> bool:
-        if (self.n_tdc is not None and d.n_tdc != self.n_tdc) or (
-                self.gate_ps is not None and d.t_laser_win_ps != self.gate_ps):
-            return False
-        if self.anchor is None:
-            return True
-        seq, cycle = self.anchor
-        return consistent(_signed32(d.seq - seq), d.first_cycle - cycle, d.n_tdc)
-
-    @staticmethod
-    def agree(a: datagram.Datagram, b: datagram.Datagram) -> bool:
-        return (a.n_tdc == b.n_tdc and a.t_laser_win_ps == b.t_laser_win_ps
-                and consistent(_signed32(b.seq - a.seq), b.first_cycle - a.first_cycle,
-                               a.n_tdc))
-
-    def offer(self, d: datagram.Datagram, data: bytes) -> tuple[list | None, list]:
-        """Hold ``d``: ``(taken, strays)``, ``taken`` None while no quorum has formed, else
-        the held datagrams (``(d, data)``) that agree with it, in arrival order."""
-        strays = []
-        if not self._fits(d):
-            return None, [(d, data)]
-        self.held.append((d, data))
-        # distinct datagrams: a stray sent three times is not a quorum
-        group = {c[0].seq for c in self.held if self.agree(d, c[0])}
-        if len(group) >= self.quorum:
-            return self._fix(d)
-        if len(self.held) > QUORUM_HOLD:
-            strays.append(self.held.pop(0))
-        return None, strays
-
-    def settle(self) -> tuple[list, list]:
-        """The stream's end without a quorum: the largest group that agrees (the earliest of
-        equals) is the run's; the rest are strays."""
-        if not self.held:
-            return [], []
-        best = max(self.held, key=lambda c: len({o[0].seq for o in self.held
-                                                  if self.agree(c[0], o[0])}))
-        return self._fix(best[0])
-
-    def _fix(self, d: datagram.Datagram) -> tuple[list, list]:
-        taken = [c for c in self.held if self.agree(d, c[0])]
-        strays = [c for c in self.held if not self.agree(d, c[0])]
-        self.held = []
-        self.n_tdc, self.gate_ps = d.n_tdc, d.t_laser_win_ps
-        return taken, strays
-
-
-def resume_state(journal: str | Path, run: str) -> dict | None:
-    """Where a restarted ingest takes the run up (from the journal's index: each chunk, a
-    batch of consecutive datagrams, records their unwrapped sequence numbers: ``seq`` the
-    highest, ``seq_cycle`` its first cycle, ``seq_lo`` the lowest, ``datagrams`` how many;
-    a chunk of one datagram, as an ingest before batches wrote them, has ``seq`` alone), or
-    None for a run not yet journaled by a
-    UDP ingest: ``next_cycle`` (the end of the journaled stream), ``seq_lo``/``seq_hi``,
-    ``taken`` (datagrams journaled), ``late`` (datagrams that came too late, counted by the
-    ingest that journaled the last chunk), ``anchor`` (the newest datagram's sequence number
-    and first cycle), ``gap_cycles``, ``n_tdc`` and ``gate_ps`` (the run's meta)."""
-    from pipeline.stream.journal import _entries, run_meta
-
-    entries = [e for e in _entries(Path(journal) / f"{run}.index.jsonl")
-               if "first_word" in e]
-    meta = run_meta(journal, run)
-    seqs = [e for e in entries if "seq" in e]
-    if not seqs or "n_tdc" not in meta:
-        return None
-    n = int(meta["n_tdc"])
-    top = max(seqs, key=lambda e: e["seq"])
-    end = max(e["first_word"] + e["words"] for e in entries)
-    return {"next_cycle": end // n, "seq_lo": min(e.get("seq_lo", e["seq"]) for e in seqs),
-            "seq_hi": top["seq"], "taken": sum(int(e.get("datagrams", 1)) for e in seqs),
-            "late": int(seqs[-1].get("late", 0)),
-            "anchor": (top["seq"], top.get("seq_cycle", top["first_word"] // n)),
-            "gap_cycles": end // n - sum(e["words"] for e in entries) // n, "n_tdc": n,
-            "gate_ps": round(float(meta["t_laser_win_ns"]) * 1000)}
 
 
 @dataclass
@@ -202,129 +86,6 @@ def udp_socket(address: str = "127.0.0.1:0") -> socket.socket:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RCVBUF_BYTES)
     s.bind((host, int(port)))
     return s
-
-
-class Reassembler:
-    """Datagrams in arrival order in, runs of whole cycles in stream order out.
-
-    Holds up to ``window`` datagrams keyed by first cycle; the one that continues the stream
-    is released at once. When the window is full, the hole before the oldest held datagram
-    is given up as a gap (its cycles counted) and the stream moves on. Sequence numbers are
-    unwrapped (32-bit) against the newest seen; the lost count is the span of sequence
-    numbers minus those taken.
-    """
-
-    def __init__(self, window: int = REORDER_WINDOW, max_jump_cycles: int = MAX_JUMP_CYCLES,
-                 max_jump_datagrams: int = MAX_JUMP_DATAGRAMS):
-        if window < 1:
-            raise ValueError(f"reorder window must be >= 1 datagram, found {window}")
-        self.window, self.max_jump_cycles = window, max_jump_cycles
-        self.max_jump_datagrams = max_jump_datagrams
-        self.held: dict[int, tuple[int, datagram.Datagram]] = {}  # first cycle -> (seq, d)
-        self.next_cycle = 0          #: cycles before this are journaled or given up
-        self.newest_cycle = 0        #: end of the newest datagram accepted
-        self.seq_lo = self.seq_hi = None  # unwrapped span of accepted sequence numbers
-        self.seqs_seen = 0  # taken or late: received, whatever became of it
-        self.recent: deque = deque(maxlen=4 * window)  # (seq, first cycle) released
-        self.recent_set: set = set()
-        self.gap_cycles = 0
-        self.newest: tuple[int, int] | None = None  #: (seq, first cycle) of the newest taken
-
-    def resume(self, state: dict) -> None:
-        """Take the run up where the journal has it (:func:`resume_state`)."""
-        self.next_cycle = self.newest_cycle = state["next_cycle"]
-        self.seq_lo, self.seq_hi = state["seq_lo"], state["seq_hi"]
-        self.seqs_seen = state["taken"] + state["late"]
-        self.gap_cycles = state["gap_cycles"]
-        self.newest = state["anchor"]
-
-    def rejoin(self, seq: int, first_cycle: int) -> None:
-        """The stream went on while this ingest was down: a quorum of datagrams consistent
-        with the journal's newest says where it is now. The cycles in between are a gap and
-        their datagrams lost (the sequence span counts them), however long the outage."""
-        seq = self._unwrap(seq)
-        if first_cycle > self.next_cycle:
-            self.gap_cycles += first_cycle - self.next_cycle
-            self.next_cycle = self.newest_cycle = first_cycle
-        if self.seq_hi is not None and seq - 1 > self.seq_hi:
-            self.seq_hi = seq - 1  # (their sequence numbers are a span never received)
-
-    def _unwrap(self, seq: int) -> int:
-        if self.seq_hi is None:
-            return seq
-        d = (seq - self.seq_hi) & 0xFFFFFFFF
-        return self.seq_hi + (d - (1 << 32) if d >= 1 << 31 else d)
-
-    def lost(self) -> int:
-        if self.seq_hi is None:
-            return 0
-        return max(0, self.seq_hi - self.seq_lo + 1 - self.seqs_seen)
-
-    def offer(self, d: datagram.Datagram) -> tuple[str, list]:
-        """Take one checked datagram: ``("taken" | "duplicate" | "late", released)``,
-        ``released`` the datagrams now in stream order. Out-of-window fields raise
-        DatagramError."""
-        seq = self._unwrap(d.seq)
-        if self.seq_hi is not None and abs(seq - self.seq_hi) > self.max_jump_datagrams:
-            raise datagram.DatagramError("seq_out_of_window", f"sequence {d.seq} is "
-                                         f"{seq - self.seq_hi:+d} from the newest")
-        if d.first_cycle - max(self.newest_cycle, self.next_cycle) > self.max_jump_cycles:
-            raise datagram.DatagramError("cycle_out_of_window", f"first cycle {d.first_cycle}"
-                                         f" is beyond the run's newest {self.newest_cycle} "
-                                         f"+ {self.max_jump_cycles}")
-        if self.newest is not None and not consistent(seq - self.newest[0], d.first_cycle
-                                                      - self.newest[1], d.n_tdc):
-            raise datagram.DatagramError("inconsistent", f"sequence {d.seq} at first cycle "
-                                         f"{d.first_cycle} cannot follow the run's newest, "
-                                         f"{self.newest[0]} at {self.newest[1]}")
-        key = (seq, d.first_cycle)
-        if key in self.recent_set or (d.first_cycle in self.held
-                                      and self.held[d.first_cycle][0] == seq):
-            return "duplicate", []
-        if d.first_cycle < self.next_cycle:
-            if self.seq_lo is not None and self.seq_lo <= seq <= self.seq_hi:
-                self.seqs_seen += 1  # it came (too late): not a lost datagram
-            return "late", []
-        if d.first_cycle in self.held:
-            raise datagram.DatagramError("conflict", f"cycle {d.first_cycle} again with "
-                                         f"sequence {d.seq}, held with another")
-        self.held[d.first_cycle] = (seq, d)
-        self.seqs_seen += 1
-        self.seq_lo = seq if self.seq_lo is None else min(self.seq_lo, seq)
-        self.seq_hi = seq if self.seq_hi is None else max(self.seq_hi, seq)
-        self.newest_cycle = max(self.newest_cycle, d.first_cycle + d.n_cycles)
-        if self.newest is None or seq > self.newest[0]:
-            self.newest = (seq, d.first_cycle)
-        out = self._release()
-        while len(self.held) > self.window:  # the window is full: give up the hole
-            out += self._skip()
-        return "taken", out
-
-    def _release(self) -> list:
-        out = []
-        while self.next_cycle in self.held:
-            seq, d = self.held.pop(self.next_cycle)
-            out.append((seq, d))
-            if len(self.recent) == self.recent.maxlen:
-                self.recent_set.discard(self.recent[0])
-            self.recent.append((seq, d.first_cycle))
-            self.recent_set.add((seq, d.first_cycle))
-            self.next_cycle += d.n_cycles
-        return out
-
-    def _skip(self) -> list:
-        first = min(self.held)
-        self.gap_cycles += first - self.next_cycle
-        self.next_cycle = first
-        return self._release()
-
-    def drain(self) -> list:
-        """The run's end: release everything held, the holes counted as gaps."""
-        out = []
-        while self.held:
-            out += self._skip()
-        return out
-
 
 def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "udp",
                    journal: str | Path | None = None, segment_words: int = 1 << 24,
