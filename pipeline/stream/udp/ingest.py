@@ -29,8 +29,9 @@ from pipeline.stream.udp.order import (
     REORDER_WINDOW,
     Reassembler,
 )
-from pipeline.stream.udp.reference import QUORUM, Reference
+from pipeline.stream.udp.reference import QUORUM, QUORUM_HOLD, Reference
 from pipeline.stream.udp.resume import resume_state
+from pipeline.stream.udp.senders import Senders, parse_peers, sender_name
 from schemas.words import RAW_WORDS
 
 BATCH_WORDS = 1 << 18  # 1 MiB messages
@@ -41,6 +42,7 @@ RX_BATCH = 64                  #: datagrams one hand-off to the ring carries at 
 FLUSH_S = 0.01                 #: a partial batch is journaled and sent after this long
 SEND_QUEUE = 64                #: journaled messages waiting for a slow stage downstream
 RCVBUF_BYTES = 64 << 20        #: the kernel's buffer: ~0.4 s of 40 M words/s off the CPU
+BREAK_QUORUM = 8               #: datagrams that must agree before a new stream is a reset
 
 
 @dataclass
@@ -60,6 +62,10 @@ class IngestStats:
     paused_s: float = 0.0     #: time intake waited for a full disk
     unjournaled_words: int = 0  #: taken, but a stop came while the disk was full
     messages: int = 0
+    conflicts: int = 0        #: a sequence number and cycle taken before, with other bytes
+    #: the FPGA restarted its stream (or its sequence numbers jumped): each a new segment
+    resets: list = field(default_factory=list)
+    senders: Senders | None = None  #: the run's sender and the others, kept out
     journal: list[str] = field(default_factory=list)  #: segment files written
 
     def fields(self) -> dict:
@@ -70,7 +76,9 @@ class IngestStats:
                 "quarantine_dropped": self.quarantine_dropped,
                 "ring_dropped": self.ring_dropped, "deferred_messages": self.deferred_messages,
                 "deferred_words": self.deferred_words, "paused_s": round(self.paused_s, 1),
-                "unjournaled_words": self.unjournaled_words}
+                "unjournaled_words": self.unjournaled_words, "conflicts": self.conflicts,
+                "resets": list(self.resets),
+                **(self.senders.fields() if self.senders is not None else {})}
 
 
 def udp_socket(address: str = "127.0.0.1:0") -> socket.socket:
@@ -100,7 +108,9 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                    ring_datagrams: int = RING_DATAGRAMS, send_queue: int = SEND_QUEUE,
                    gate_ps: int | None = None, first_seq: int | None = None,
                    quorum: int = QUORUM, rx_batch: int = RX_BATCH,
-                   flush_s: float = FLUSH_S, sparse: bool = False) -> IngestStats:
+                   flush_s: float = FLUSH_S, sparse: bool = False,
+                   peers: list[str] | None = None,
+                   break_quorum: int = BREAK_QUORUM) -> IngestStats:
     """Receive until a datagram flagged last (and the reorder window is settled), ``stop``,
     or ``idle_s`` without data.
 
@@ -112,6 +122,10 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     (default: $TCSPC_TOKEN_FILE). ``gate_ps``, ``first_seq``: the run's gate and first
     sequence number, when the configuration knows them; otherwise the reference comes from
     a ``quorum`` of datagrams that agree (:class:`Reference`), never from the first one.
+    ``peers``: the senders (``HOST`` or ``HOST:PORT``) whose datagrams are read; without,
+    the run locks onto the sender of its reference (:mod:`.senders`). ``break_quorum``:
+    datagrams of the run's sender that agree with each other but not with the stream
+    before they are taken as the FPGA's restarted stream (a new segment of the run).
 
     With a journal that already holds the run (a restarted ingest), the run is taken up
     where the journal has it (:func:`resume_state`): its sequence numbers, cycles, gate and
@@ -150,15 +164,20 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     beat = Metrics(metrics, "source", ctx, token=token)
     date = date or dt.date.today().isoformat()
     stop = stop or threading.Event()
-    stats = IngestStats()
+    senders = Senders(parse_peers(peers), quorum)
+    stats = IngestStats(senders=senders)
     reasm = Reassembler(reorder_window, max_jump_cycles, max_jump_datagrams)
     resumed = resume_state(journal, run) if journal is not None else None
     ref = Reference(quorum, n_tdc, gate_ps)
     if resumed is not None:  # a restarted ingest: the journal is the truth
         reasm.resume(resumed)
         stats.late = resumed["late"]
+        stats.ring_dropped, stats.conflicts = resumed["ring_dropped"], resumed["conflicts"]
+        stats.resets = resumed["resets"]
         n_tdc, gate_ps = resumed["n_tdc"], resumed["gate_ps"]
-        ref = Reference(quorum, n_tdc, gate_ps, anchor=resumed["anchor"])
+        ref = Reference(quorum, n_tdc, gate_ps, anchor=resumed["device_anchor"])
+        # (the sender is locked again by the quorum that agrees with the journal: an FPGA
+        # may send from another port after a reset of its own)
     elif first_seq is not None and n_tdc is not None and gate_ps is not None:
         # the configuration fixes the reference: the run's first datagram, at cycle 0
         reasm.seq_lo, reasm.seq_hi = first_seq, first_seq - 1
@@ -171,6 +190,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     ring_fill, ring_lock = [0], threading.Lock()
     sendq: queue.Queue = queue.Queue(maxsize=send_queue)
     halt_rx, abort_tx = threading.Event(), threading.Event()
+    last_rx = [time.monotonic()]  # when the run's sender(s) last sent: idle is since then
 
     def receiver():
         # what is ready, read at once (up to rx_batch; recvmmsg's batching, in Python):
@@ -189,11 +209,17 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             items = []
             try:
                 while len(items) < rx_batch:
-                    items.append(sock.recv(size))
+                    data, addr = sock.recvfrom(size)
+                    if senders.admits(addr):
+                        items.append((data, addr))
+                    else:  # another sender: named and counted, never in the ring
+                        senders.note(addr, data)
             except BlockingIOError:
                 pass
             except OSError:
                 closed = True  # the socket was closed under us: the run is over
+            if items:
+                last_rx[0] = time.monotonic()
             with ring_lock:
                 room = max(0, ring_datagrams - ring_fill[0])
                 if len(items) > room:
@@ -227,6 +253,8 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     writer: JournalWriter | None = None
     idle = 0.0
     last_end = None   # the cycle after the datagram flagged last, once it came
+    breaks: Reference | None = None  # datagrams held as the start of a restarted stream
+    events: list[dict] = []  # stream events for the next chunk's index line
 
     encoder = RawWordsEncoder()
     splitter = None  # (made at the first batch: a run's n_tdc may come from the stream)
@@ -245,7 +273,15 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         pending, pending_seqs, pending_first, pending_words = [], [], None, 0
         top = max(seqs)
         extra = {"seq": top[0], "seq_cycle": top[1], "seq_lo": min(seqs)[0],
-                 "datagrams": len(seqs), "late": stats.late}
+                 "datagrams": len(seqs), "late": stats.late,
+                 "ring_dropped": stats.ring_dropped, "conflicts": stats.conflicts}
+        if senders.locked is not None:
+            extra["sender"] = sender_name(senders.locked)
+        if reasm.seg != (0, 0):  # device -> run offsets of a restarted stream
+            extra["seg"] = list(reasm.seg)
+        if events:
+            extra["events"] = events[:]
+            events.clear()
         whole = cut = None
         if sparse:  # one pass: the journal's frame and the messages are made from it
             whole, cut = sparse_parts(words, first, n_tdc, split)
@@ -322,13 +358,31 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
 
     def reject(reason: str, detail: str, data: bytes):
         stats.rejected[reason] += 1
+        if reason == "conflict":  # the stream contradicts itself: the run is incomplete
+            stats.conflicts += 1
         try:
             quar.put(reason, data, detail=detail)
         except OSError:
             quar.dropped += 1  # a full disk: counted, not kept
         stats.quarantine_dropped = quar.dropped
 
-    def offer(d: datagram.Datagram, data: bytes) -> None:
+    def offer(d: datagram.Datagram, data: bytes, addr=None) -> None:
+        # the run's axes; a datagram that could start another stream is held for a quorum
+        nonlocal breaks
+        t = reasm.translate(d)
+        if not reasm.breaks(t):
+            stream(t, data)
+            return
+        if breaks is None:
+            breaks = Reference(break_quorum, n_tdc, gate_ps)
+        group, strays = breaks.offer(d, data, addr)
+        for sd, sdata, _ in strays:  # not a new stream: judged against the run's
+            stream(reasm.translate(sd), sdata)
+        if group is not None:
+            breaks = None
+            restart(group)
+
+    def stream(d: datagram.Datagram, data: bytes) -> None:
         nonlocal last_end
         try:
             verdict, released = reasm.offer(d)
@@ -337,6 +391,10 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             return
         if verdict == "duplicate":
             stats.duplicates += 1
+            return
+        if verdict == "conflict":
+            reject("conflict", f"sequence {d.seq} at cycle {d.first_cycle} again, with "
+                               f"other bytes than the datagram taken", data)
             return
         if verdict == "late":
             stats.late += 1
@@ -348,26 +406,64 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         if d.last:
             last_end = d.first_cycle + d.n_cycles
 
+    def restart(group: list) -> None:
+        # ``break_quorum`` datagrams of one sender agree with each other, not with the
+        # stream: the FPGA restarted it (its sequence numbers back, with or without its
+        # cycle counter) or its sequence numbers jumped with the cycles going on. The old
+        # stream is released, the event journaled, the new one put after it on the run's
+        # axes: a new segment, measured on. Anything else is judged as the run's datagram.
+        a = min(group, key=lambda c: c[0].seq)[0]
+        at = reasm.translate(a)
+        behind = reasm._unwrap(at.seq) < reasm.newest[0]
+        goes_on = at.first_cycle >= reasm.next_cycle  # the cycle counter was not reset
+        if not behind and not goes_on:
+            for sd, sdata, _ in group:
+                stream(reasm.translate(sd), sdata)
+            return
+        stats.conflicts += sum(reasm.conflicts(reasm.translate(c[0])) for c in group)
+        for r in reasm.drain():
+            take(r)
+        flush()
+        base = first_seq or 0
+        if not behind or a.seq - base > QUORUM_HOLD:
+            base = a.seq  # (where it restarted from is unknown: nothing counted lost)
+        end = reasm.next_cycle
+        reasm.new_segment(reasm.seq_hi + 1 - base, reasm.seg[1] if goes_on else end)
+        event = {"event": "fpga_restart" if behind else "sequence_jump",
+                 "cycle_counter": "continued" if goes_on else "restarted",
+                 "device_seq": a.seq, "device_cycle": a.first_cycle, "at_cycle": end,
+                 "seq_offset": reasm.seg[0], "cycle_offset": reasm.seg[1],
+                 "t": round(time.time(), 3)}
+        stats.resets.append(event)
+        events.append(event)
+        print(f"ingest: the stream restarted ({event['event']}, cycle counter "
+              f"{event['cycle_counter']}) at sequence {a.seq}, cycle {a.first_cycle}: a new "
+              f"segment from the run's cycle {end}", flush=True)
+        for sd, sdata, _ in group:
+            stream(reasm.translate(sd), sdata)
+
     def stray(d: datagram.Datagram, data: bytes) -> None:
         reject("stray", f"sequence {d.seq}, first cycle {d.first_cycle}, {d.n_tdc} TDCs, "
                         f"gate {d.t_laser_win_ps} ps: not the run's stream", data)
 
     def fix(group: list) -> None:
-        # the reference is fixed: the held datagrams that agree go in, in arrival order
+        # the reference is fixed: the held datagrams that agree go in, in arrival order;
+        # their sender is the run's (without peers, every other is kept out from now)
         nonlocal ref, n_tdc, gate_ps, last_end
         if not group:
             return
         n_tdc, gate_ps = group[0][0].n_tdc, group[0][0].t_laser_win_ps
+        senders.lock(group[0][2])
         if resumed is not None:
-            first = min(group, key=lambda c: c[0].first_cycle)[0]
+            first = reasm.translate(min(group, key=lambda c: c[0].first_cycle)[0])
             reasm.rejoin(first.seq, first.first_cycle)
         ref = None
         if last_end == -1:
             last_end = None
-        for gd, gdata in group:
-            offer(gd, gdata)
+        for gd, gdata, gaddr in group:
+            offer(gd, gdata, gaddr)
 
-    def intake(data: bytes) -> None:
+    def intake(data: bytes, addr) -> None:
         # one datagram, checked against the run (one at a time: a batch's headers read by
         # numpy at once measured slower than struct's per header at every batch size)
         nonlocal last_end
@@ -386,8 +482,8 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             reject(exc.reason, str(exc), data)
             return
         if ref is not None:  # no reference yet: held until a quorum agrees
-            group, strays = ref.offer(d, data)
-            for sd, sdata in strays:
+            group, strays = ref.offer(d, data, addr)
+            for sd, sdata, _ in strays:
                 stray(sd, sdata)
             if group is None:
                 if d.last and ref.held:
@@ -395,7 +491,8 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                 return
             fix(group)
             return
-        offer(d, data)
+        senders.lock(addr)  # (a configured reference: its first datagram's sender)
+        offer(d, data, addr)
 
     def complete() -> bool:  # the last datagram and everything before it are in
         return (last_end is not None and last_end >= 0 and reasm.next_cycle >= last_end
@@ -408,18 +505,19 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             beat.beat(state="running", **stats.fields())
             if last_end == -1 and idle >= linger_s and ref is not None:
                 group, strays = ref.settle()  # a run of fewer datagrams than the quorum
-                for sd, sdata in strays:
+                for sd, sdata, _ in strays:
                     stray(sd, sdata)
                 last_end = None
                 fix(group)
             if complete():
                 break
-            waited = time.monotonic()
             try:
                 batch = ring.get(timeout=flush_s if pending else 0.2)
             except queue.Empty:
                 flush()  # a partial batch waits no longer than flush_s
-                idle += time.monotonic() - waited
+                # idle: since the run's sender last sent (the time this thread spent
+                # waiting on its own journal, a full disk, is not idle: the ring held on)
+                idle = time.monotonic() - last_rx[0] if not ring_fill[0] else 0.0
                 if reasm.held and idle >= linger_s:  # a quiet stream: nothing will fill
                     for r in reasm.drain():         # the holes; hold no words back
                         take(r)
@@ -432,19 +530,28 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             with ring_lock:
                 ring_fill[0] -= len(batch)
             idle = 0.0
-            stats.datagrams += len(batch)
-            for k, data in enumerate(batch):
+            for k, (data, addr) in enumerate(batch):
+                if not senders.admits(addr):  # (the lock came after the receiver read it)
+                    senders.note(addr, data)
+                    continue
+                stats.datagrams += 1
                 if complete():  # the rest came after the run's end: counted, not taken
-                    stats.rejected["after_end"] += len(batch) - k
+                    rest = sum(senders.admits(a) for _, a in batch[k + 1:])
+                    stats.datagrams += rest
+                    stats.rejected["after_end"] += 1 + rest
                     break
-                intake(data)
+                intake(data, addr)
             if pending and time.monotonic() - pending_t0 >= flush_s:
                 flush()
         if ref is not None:  # the run's end without a quorum: the largest group agreeing
             group, strays = ref.settle()
-            for sd, sdata in strays:
+            for sd, sdata, _ in strays:
                 stray(sd, sdata)
             fix(group)
+        if breaks is not None:  # no new stream formed: each judged as the run's datagram
+            for sd, sdata, _ in breaks.held:
+                stream(reasm.translate(sd), sdata)
+            breaks = None
         for r in reasm.drain():
             take(r)
         flush()
@@ -464,7 +571,9 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             "run": run, "seq": stats.messages, "step": "ingest", "words": stats.words,
             "datagrams": stats.datagrams, "lost_datagrams": stats.lost_datagrams,
             "duplicates": stats.duplicates, "late": stats.late,
-            "gap_cycles": stats.gap_cycles, "rejected": dict(stats.rejected)}
+            "gap_cycles": stats.gap_cycles, "rejected": dict(stats.rejected),
+            "conflicts": stats.conflicts, "ring_dropped": stats.ring_dropped,
+            "resets": len(stats.resets)}
         try:  # a stage downstream that takes nothing for a minute is given up on: the
             # daemon ends it, and it fetches the words it lacks from the journal
             sendq.put([wire.encode(stop_head, None, token) for _ in txs], timeout=60)

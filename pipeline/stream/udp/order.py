@@ -11,6 +11,9 @@ one stream.
 from __future__ import annotations
 
 from collections import deque
+from dataclasses import replace
+
+import numpy as np
 
 from pipeline.stream import datagram
 
@@ -39,6 +42,7 @@ def consistent(ds: int, dc: int, n_tdc: int) -> bool:
         ds, dc = -ds, -dc
     return ds <= dc <= ds * max_cycles(n_tdc)
 
+
 class Reassembler:
     """Datagrams in arrival order in, runs of whole cycles in stream order out.
 
@@ -60,10 +64,15 @@ class Reassembler:
         self.newest_cycle = 0        #: end of the newest datagram accepted
         self.seq_lo = self.seq_hi = None  # unwrapped span of accepted sequence numbers
         self.seqs_seen = 0  # taken or late: received, whatever became of it
-        self.recent: deque = deque(maxlen=4 * window)  # (seq, first cycle) released
-        self.recent_set: set = set()
+        # (seq, first cycle) released -> its words (a view of the datagram's bytes: a
+        # duplicate is compared with them, a repeat with other bytes is a conflict)
+        self.recent: deque = deque(maxlen=4 * window)
+        self.recent_words: dict = {}
         self.gap_cycles = 0
         self.newest: tuple[int, int] | None = None  #: (seq, first cycle) of the newest taken
+        #: device -> run: (sequence offset mod 2^32, cycle offset); (0, 0) until the FPGA
+        #: restarts its stream (a new segment of the run, :meth:`new_segment`)
+        self.seg = (0, 0)
 
     def resume(self, state: dict) -> None:
         """Take the run up where the journal has it (:func:`resume_state`)."""
@@ -72,6 +81,7 @@ class Reassembler:
         self.seqs_seen = state["taken"] + state["late"]
         self.gap_cycles = state["gap_cycles"]
         self.newest = state["anchor"]
+        self.seg = tuple(state.get("seg", (0, 0)))
 
     def rejoin(self, seq: int, first_cycle: int) -> None:
         """The stream went on while this ingest was down: a quorum of datagrams consistent
@@ -95,27 +105,65 @@ class Reassembler:
             return 0
         return max(0, self.seq_hi - self.seq_lo + 1 - self.seqs_seen)
 
-    def offer(self, d: datagram.Datagram) -> tuple[str, list]:
-        """Take one checked datagram: ``("taken" | "duplicate" | "late", released)``,
-        ``released`` the datagrams now in stream order. Out-of-window fields raise
-        DatagramError."""
+    def translate(self, d: datagram.Datagram) -> datagram.Datagram:
+        """``d`` on the run's axes (its segment's sequence and cycle offsets)."""
+        if self.seg == (0, 0):
+            return d
+        return replace(d, seq=(d.seq + self.seg[0]) & 0xFFFFFFFF,
+                       first_cycle=d.first_cycle + self.seg[1])
+
+    def refusal(self, d: datagram.Datagram) -> datagram.DatagramError | None:
+        """Why ``d`` (on the run's axes) cannot be the stream's, or None."""
         seq = self._unwrap(d.seq)
         if self.seq_hi is not None and abs(seq - self.seq_hi) > self.max_jump_datagrams:
-            raise datagram.DatagramError("seq_out_of_window", f"sequence {d.seq} is "
-                                         f"{seq - self.seq_hi:+d} from the newest")
+            return datagram.DatagramError("seq_out_of_window", f"sequence {d.seq} is "
+                                          f"{seq - self.seq_hi:+d} from the newest")
         if d.first_cycle - max(self.newest_cycle, self.next_cycle) > self.max_jump_cycles:
-            raise datagram.DatagramError("cycle_out_of_window", f"first cycle {d.first_cycle}"
-                                         f" is beyond the run's newest {self.newest_cycle} "
-                                         f"+ {self.max_jump_cycles}")
+            return datagram.DatagramError("cycle_out_of_window", f"first cycle "
+                                          f"{d.first_cycle} is beyond the run's newest "
+                                          f"{self.newest_cycle} + {self.max_jump_cycles}")
         if self.newest is not None and not consistent(seq - self.newest[0], d.first_cycle
                                                       - self.newest[1], d.n_tdc):
-            raise datagram.DatagramError("inconsistent", f"sequence {d.seq} at first cycle "
-                                         f"{d.first_cycle} cannot follow the run's newest, "
-                                         f"{self.newest[0]} at {self.newest[1]}")
+            return datagram.DatagramError("inconsistent", f"sequence {d.seq} at first cycle "
+                                          f"{d.first_cycle} cannot follow the run's newest, "
+                                          f"{self.newest[0]} at {self.newest[1]}")
+        return None
+
+    def conflicts(self, d: datagram.Datagram) -> bool:
+        """``d`` repeats a sequence number and first cycle taken with other bytes."""
+        key = (self._unwrap(d.seq), d.first_cycle)
+        old = self.recent_words.get(key)
+        if old is None and d.first_cycle in self.held and self.held[d.first_cycle][0] == key[0]:
+            old = self.held[d.first_cycle][1].words
+        return old is not None and not np.array_equal(old, d.words)
+
+    def breaks(self, d: datagram.Datagram) -> bool:
+        """Could ``d`` (on the run's axes) begin another stream (an FPGA reset)? A datagram
+        the stream refuses, far behind its newest (more than its duplicate horizon), or a
+        repeat with other bytes: held for a quorum of its own before it is judged."""
+        if self.newest is None:
+            return False
+        return (self.refusal(d) is not None or self.conflicts(d)
+                or self._unwrap(d.seq) - self.newest[0] < -self.recent.maxlen)
+
+    def new_segment(self, seq_off: int, cycle_off: int) -> None:
+        """The FPGA restarted its stream: from now on device datagrams are put on the run's
+        axes by these offsets; the new stream is checked against itself, not the old one."""
+        self.seg = (seq_off & 0xFFFFFFFF, cycle_off)
+        self.newest = None
+
+    def offer(self, d: datagram.Datagram) -> tuple[str, list]:
+        """Take one checked datagram: ``("taken" | "duplicate" | "late" | "conflict",
+        released)``, ``released`` the datagrams now in stream order. Out-of-window fields
+        raise DatagramError."""
+        refused = self.refusal(d)
+        if refused is not None:
+            raise refused
+        seq = self._unwrap(d.seq)
         key = (seq, d.first_cycle)
-        if key in self.recent_set or (d.first_cycle in self.held
-                                      and self.held[d.first_cycle][0] == seq):
-            return "duplicate", []
+        if key in self.recent_words or (d.first_cycle in self.held
+                                        and self.held[d.first_cycle][0] == seq):
+            return ("conflict" if self.conflicts(d) else "duplicate"), []
         if d.first_cycle < self.next_cycle:
             if self.seq_lo is not None and self.seq_lo <= seq <= self.seq_hi:
                 self.seqs_seen += 1  # it came (too late): not a lost datagram
@@ -141,9 +189,9 @@ class Reassembler:
             seq, d = self.held.pop(self.next_cycle)
             out.append((seq, d))
             if len(self.recent) == self.recent.maxlen:
-                self.recent_set.discard(self.recent[0])
+                self.recent_words.pop(self.recent[0], None)
             self.recent.append((seq, d.first_cycle))
-            self.recent_set.add((seq, d.first_cycle))
+            self.recent_words[(seq, d.first_cycle)] = d.words
             self.next_cycle += d.n_cycles
         return out
 

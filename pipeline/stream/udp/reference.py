@@ -19,12 +19,17 @@ class Reference:
     belong to one stream (:func:`consistent`), and that agree with the configuration and the
     anchor. Until then datagrams are held (at most QUORUM_HOLD: beyond, the oldest is a
     stray); when the quorum forms, the held datagrams that agree with it are taken in their
-    arrival order, the others are strays (counted, quarantined)."""
+    arrival order, the others are strays (counted, quarantined).
+
+    Datagrams agree only when they come from the same sender (``addr``): a quorum is one
+    sender's stream, never three senders' datagrams that happen to fit; ``sender`` is
+    the one whose quorum fixed the reference."""
 
     def __init__(self, quorum: int = QUORUM, n_tdc: int | None = None,
                  gate_ps: int | None = None, anchor: tuple[int, int] | None = None):
         self.quorum, self.n_tdc, self.gate_ps, self.anchor = quorum, n_tdc, gate_ps, anchor
-        self.held: list[tuple[datagram.Datagram, bytes]] = []
+        self.held: list[tuple[datagram.Datagram, bytes, tuple | None]] = []
+        self.sender: tuple | None = None
 
     def _fits(self, d: datagram.Datagram) -> bool:
         if (self.n_tdc is not None and d.n_tdc != self.n_tdc) or (
@@ -41,17 +46,22 @@ class Reference:
                 and consistent(_signed32(b.seq - a.seq), b.first_cycle - a.first_cycle,
                                a.n_tdc))
 
-    def offer(self, d: datagram.Datagram, data: bytes) -> tuple[list | None, list]:
+    def _with(self, c: tuple, o: tuple) -> bool:
+        return c[2] == o[2] and self.agree(c[0], o[0])
+
+    def offer(self, d: datagram.Datagram, data: bytes, addr: tuple | None = None
+              ) -> tuple[list | None, list]:
         """Hold ``d``: ``(taken, strays)``, ``taken`` None while no quorum has formed, else
-        the held datagrams (``(d, data)``) that agree with it, in arrival order."""
+        the held datagrams (``(d, data, addr)``) that agree with it, in arrival order."""
         strays = []
+        c = (d, data, addr)
         if not self._fits(d):
-            return None, [(d, data)]
-        self.held.append((d, data))
+            return None, [c]
+        self.held.append(c)
         # distinct datagrams: a stray sent three times is not a quorum
-        group = {c[0].seq for c in self.held if self.agree(d, c[0])}
+        group = {o[0].seq for o in self.held if self._with(c, o)}
         if len(group) >= self.quorum:
-            return self._fix(d)
+            return self._fix(c)
         if len(self.held) > QUORUM_HOLD:
             strays.append(self.held.pop(0))
         return None, strays
@@ -62,12 +72,12 @@ class Reference:
         if not self.held:
             return [], []
         best = max(self.held, key=lambda c: len({o[0].seq for o in self.held
-                                                  if self.agree(c[0], o[0])}))
-        return self._fix(best[0])
+                                                  if self._with(c, o)}))
+        return self._fix(best)
 
-    def _fix(self, d: datagram.Datagram) -> tuple[list, list]:
-        taken = [c for c in self.held if self.agree(d, c[0])]
-        strays = [c for c in self.held if not self.agree(d, c[0])]
+    def _fix(self, c: tuple) -> tuple[list, list]:
+        taken = [o for o in self.held if self._with(c, o)]
+        strays = [o for o in self.held if not self._with(c, o)]
         self.held = []
-        self.n_tdc, self.gate_ps = d.n_tdc, d.t_laser_win_ps
+        self.n_tdc, self.gate_ps, self.sender = c[0].n_tdc, c[0].t_laser_win_ps, c[2]
         return taken, strays
