@@ -203,7 +203,8 @@ def build(topo: Topology) -> list[Proc]:
                       "--n-tdc", topo.n_tdc,
                       *(x for k in ("reorder_window", "max_jump_cycles", "gate_ps",
                                       "first_seq") if k in src
-                        for x in (f"--{k.replace('_', '-')}", src[k])))
+                        for x in (f"--{k.replace('_', '-')}", src[k])),
+                      *(x for p in src.get("peers") or () for x in ("--peer", p)))
     procs.append(Proc("source", argv, []))
     return procs
 
@@ -641,9 +642,25 @@ def problems(result: dict) -> list[str]:
         if rec.get(key):
             out.append(f"{len(rec[key])} measurement(s) {what}: [measurement, first TDC] "
                        f"{rec[key][:8]}")
-    if acc.get("words_in_gaps", 0) or acc.get("lost_datagrams", 0):
+    if acc.get("words_in_gaps", 0) or acc.get("lost_datagrams", 0) or acc.get(
+            "ring_dropped_datagrams", 0):
         out.append(f"input lost before the journal: {acc.get('lost_datagrams', 0):,} "
-                   f"datagrams, {acc.get('words_in_gaps', 0):,} words in gaps")
+                   f"datagrams, {acc.get('words_in_gaps', 0):,} words in gaps, "
+                   f"{acc.get('ring_dropped_datagrams', 0):,} datagrams dropped by the "
+                   f"ingest's full ring")
+    if acc.get("conflicting_datagrams", 0):
+        out.append(f"{acc['conflicting_datagrams']:,} conflicting datagram(s): a sequence "
+                   f"number and cycle taken before came again with other bytes")
+    if acc.get("stream_restarts"):
+        out.append(f"the UDP stream restarted {len(acc['stream_restarts'])} time(s) (an FPGA "
+                   f"reset or a sequence jump; journaled, measured on in a new segment): "
+                   f"{[(e['event'], e['at_cycle']) for e in acc['stream_restarts'][:4]]}")
+    second = sorted(n for n, b in (acc.get("other_senders") or {}).items()
+                    if b.get("consistent"))
+    if second and not acc.get("peers"):
+        out.append(f"a second sender sent a consistent stream: {', '.join(second)}; the run "
+                   f"took {acc.get('sender')}'s (set [source] peers to say which is the "
+                   f"run's)")
     return out
 
 

@@ -11,8 +11,8 @@ window (``max_jump_cycles``, ``max_jump_datagrams``), another TDC count or gate,
 rejected datagram, never a gap to fill.
 
 Rooms: :mod:`.order` (sequence numbers and cycles, the reorder window), :mod:`.reference`
-(which stream is the run's), :mod:`.resume` (a restarted ingest), :mod:`.ingest` (the
-socket, the threads, the journal and the messages).
+(which stream is the run's), :mod:`.senders` (whose datagrams are read), :mod:`.resume` (a
+restarted ingest), :mod:`.ingest` (the socket, the threads, the journal and the messages).
 """
 
 from pipeline.stream.udp.ingest import (
@@ -39,9 +39,10 @@ from pipeline.stream.udp.order import (
 )
 from pipeline.stream.udp.reference import QUORUM, QUORUM_HOLD, Reference
 from pipeline.stream.udp.resume import resume_state
+from pipeline.stream.udp.senders import Senders, parse_peers
 
 __all__ = ["BATCH_WORDS", "FLUSH_S", "GATE_PS", "MAX_JUMP_CYCLES", "MAX_JUMP_DATAGRAMS",
            "QUORUM", "QUORUM_HOLD", "RCVBUF_BYTES", "REORDER_LINGER_S", "REORDER_WINDOW",
            "RING_DATAGRAMS", "RX_BATCH", "SEND_QUEUE", "IngestStats", "Reassembler",
            "Reference", "_signed32", "consistent", "max_cycles", "resume_state",
-           "run_udp_ingest", "udp_socket"]
+           "run_udp_ingest", "udp_socket", "Senders", "parse_peers"]

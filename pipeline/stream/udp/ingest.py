@@ -420,7 +420,6 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             for sd, sdata, _ in group:
                 stream(reasm.translate(sd), sdata)
             return
-        stats.conflicts += sum(reasm.conflicts(reasm.translate(c[0])) for c in group)
         for r in reasm.drain():
             take(r)
         flush()

@@ -139,11 +139,12 @@ class Reassembler:
 
     def breaks(self, d: datagram.Datagram) -> bool:
         """Could ``d`` (on the run's axes) begin another stream (an FPGA reset)? A datagram
-        the stream refuses, far behind its newest (more than its duplicate horizon), or a
-        repeat with other bytes: held for a quorum of its own before it is judged."""
-        if self.newest is None:
+        the stream refuses, or far behind its newest (more than its duplicate horizon): held
+        for a quorum of its own before it is judged. (A repeat with other bytes is not: it
+        is a conflict, whoever sent it.)"""
+        if self.newest is None or self.conflicts(d):
             return False
-        return (self.refusal(d) is not None or self.conflicts(d)
+        return (self.refusal(d) is not None
                 or self._unwrap(d.seq) - self.newest[0] < -self.recent.maxlen)
 
     def new_segment(self, seq_off: int, cycle_off: int) -> None:
