@@ -299,6 +299,7 @@ class Supervisor:
         self._spans = None
         self.forged_heartbeats = 0
         self._status_failing = False
+        self._paused: set[str] = set()  #: stages paused at the last status (logged)
         self._status_msg: bytes | None = None  #: the last status, for the status PUB
         args = view_args(topo)  # the web page's server ([view]), beside the graph
         self.view = None if args is None else Sidecar(
@@ -496,11 +497,16 @@ class Supervisor:
                 "stages": stages, "queue_depth": depth}
 
     def _write_status(self, extra: dict | None = None) -> None:
+        status = {**self.status(), **(extra or {})}
+        paused = status.get("paused") or {}
+        for name in sorted(set(paused) ^ self._paused):  # a full disk is said, in the log
+            self.log(f"{name}: paused ({paused[name]})" if name in paused else
+                     f"{name}: resumed")
+        self._paused = set(paused)
         try:
-            text = json.dumps({**self.status(), **(extra or {})}, indent=1, default=str)
+            text = json.dumps(status, indent=1, default=str)
             self._status_msg = text.encode()
-            with atomic_path(self.topo.state / "status.json") as tmp:
-                tmp.write_text(text)
+            write_status_file(self.topo.state / "status.json", text)
         except OSError as exc:  # a full state disk must not kill the supervisor
             if not self._status_failing:
                 self.log(f"status.json not written: {exc}")
@@ -618,6 +624,33 @@ class Supervisor:
             self.view.end()
         self.lock.release()
         return result
+
+
+STATUS_SLACK = 8192  #: status.json's padding: room to be rewritten in place on a full disk
+
+
+def write_status_file(path: Path, text: str) -> None:
+    """status.json, replaced atomically, padded with spaces (JSON ignores them) so that on
+    a full state disk, when no new file can be made, it is rewritten in place within the
+    blocks it already has: the status a full disk makes ("paused") is never hidden behind
+    the last one written before it."""
+    try:
+        with atomic_path(path) as tmp:
+            tmp.write_text(text + "\n" + " " * STATUS_SLACK)
+        return
+    except OSError as exc:
+        from pipeline.stream.journal import is_disk_full
+
+        if not is_disk_full(exc):
+            raise
+        fd = os.open(path, os.O_WRONLY | os.O_NOFOLLOW)
+        try:
+            size = os.fstat(fd).st_size
+            if len(text) + 1 > size:
+                raise
+            os.pwrite(fd, (text + "\n").ljust(size).encode(), 0)
+        finally:
+            os.close(fd)
 
 
 # ------------------------------------------------------------------ the run's verdict

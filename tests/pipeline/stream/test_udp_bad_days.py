@@ -24,6 +24,22 @@ from stages.testpattern import pattern_words
 N_TDC, CYC, GATE = 16, 4, 140_000
 
 
+def _load(name):
+    # a sibling test module, loaded by path (tests/ is not a package)
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(f"_bd_{name}",
+                                                  Path(__file__).with_name(f"{name}.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+_faults = _load("test_faults")
+tmpfs = _faults.tmpfs  # (the fixture: a RAM disk to fill; root only)
+
+
 def _stream(n, rng=3, gate=GATE, seq0=0, cycle0=0, last=True):
     words, _ = pattern_words(n * CYC, N_TDC, hit_prob=0.2, rng=rng)
     return words, [datagram.encode(words[i * CYC * N_TDC:(i + 1) * CYC * N_TDC], seq0 + i,
@@ -325,3 +341,74 @@ def test_a_journal_disk_full_longer_than_idle_does_not_end_the_run(tmp_path):
     assert s.paused_s >= 2.0  # it waited for the disk ...
     assert s.accepted == 160 and "after_end" not in s.rejected  # ... and ended on the last
     assert np.array_equal(p.words(), words)
+
+
+@pytest.mark.slow  # (~25 s; root for the tmpfs)
+def test_a_full_state_disk_is_a_health_state_and_the_run_goes_on(tmp_path, tmpfs):
+    # the daemon's state (journal, status.json) on a tmpfs filled for 7 s, longer than
+    # the source's idle (4 s), at 40 datagrams/s: status.json and the log say "paused",
+    # and the run ends on the stream's last datagram with every datagram in
+    import json
+
+    from pipeline.stream.daemon import Supervisor
+    from pipeline.stream.topology import load_topology
+
+    state = tmpfs("state", "48m")
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    (tmp_path / "t.toml").write_text(f"""
+[daemon]
+state = "{state}"
+[source]
+kind = "udp"
+bind = "127.0.0.1:{port}"
+n_tdc = {N_TDC}
+idle = 4
+[histogram]
+workers = 2
+measurement_cycles = 64
+artifacts = "count-as-hits"
+[sink]
+out = "{tmp_path / 'out'}"
+""")
+    n = 600
+    words, dgs = _stream(n)
+    log, seen = [], {}
+    sup = Supervisor(load_topology(tmp_path / "t.toml", "u"), log=log.append)
+    res = {}
+    t = threading.Thread(target=lambda: res.update(sup.run()))
+    t.start()
+    deadline = time.time() + 60
+    while "source" not in sup.metrics:
+        assert time.time() < deadline
+        time.sleep(0.05)
+    out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    t0 = time.perf_counter()
+    filler = None
+    for i, d in enumerate(dgs):
+        if i == 100:
+            filler = _faults._fill(state)
+        if filler is not None and time.perf_counter() - t0 > 100 / 40 + 7:
+            for _ in range(40):  # status.json, read from the full disk, says so
+                st = json.loads((state / "status.json").read_text())
+                if st["stages"]["source"]["health"] == "paused":
+                    seen = st
+                    break
+                time.sleep(0.1)
+            filler.unlink()
+            filler = None
+        out.sendto(d, ("127.0.0.1", port))
+        ahead = (i + 1) / 40 - (time.perf_counter() - t0)
+        if ahead > 0:
+            time.sleep(ahead)
+    out.close()
+    t.join(timeout=120)
+    assert not t.is_alive()
+    assert seen and "disk full" in seen["paused"]["source"]
+    assert any(m.startswith("source: paused (disk full") for m in log), log
+    assert any(m == "source: resumed" for m in log)
+    src = sup.metrics["source"]
+    assert src["accepted"] == n and "after_end" not in src["rejected"], src
+    assert res["state"] == "finished", res["problems"]
+    assert res["accounting"]["words_in"] == words.size and res["accounting"]["balanced"]
