@@ -49,6 +49,8 @@ starts, as are the state directory and the resources: ``pipeline.stream.state``)
     bind = "127.0.0.1:9000"      # udp: where to listen, idle (s) to end the run;
     gate_ps = 140000             # udp: the run's gate and its first datagram's sequence
     first_seq = 0                # number (else a quorum of agreeing datagrams sets them)
+    peers = ["192.168.1.10"]     # udp: the senders read, HOST or HOST:PORT (else the run
+                                 # locks onto the sender of its reference)
     file = "run.ptu"             # file: a PTU T3 or LinoSPAD2 file, rate (records/s),
                                  # format (default: from the content), firmware; one
                                  # histogram worker, one measurement, no [range]

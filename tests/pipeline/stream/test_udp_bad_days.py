@@ -412,3 +412,34 @@ out = "{tmp_path / 'out'}"
     assert src["accepted"] == n and "after_end" not in src["rejected"], src
     assert res["state"] == "finished", res["problems"]
     assert res["accounting"]["words_in"] == words.size and res["accounting"]["balanced"]
+
+
+def test_peers_in_the_topology_reach_the_ingest_or_are_refused_in_one_line(tmp_path):
+    from pipeline.stream.daemon import build
+    from pipeline.stream.topology import TopologyError, load_topology
+
+    def topo(peers):
+        (tmp_path / "t.toml").write_text(f"""
+[daemon]
+state = "{tmp_path / 'state'}"
+[source]
+kind = "udp"
+bind = "127.0.0.1:9000"
+n_tdc = 16
+peers = {peers}
+[histogram]
+artifacts = "count-as-hits"
+[sink]
+out = "{tmp_path / 'out'}"
+""")
+        return load_topology(tmp_path / "t.toml", "u")
+
+    (src,) = [p for p in build(topo('["127.0.0.1:7000", "localhost"]')) if p.name == "source"]
+    argv = [str(a) for a in src.argv]
+    assert [argv[i + 1] for i, a in enumerate(argv) if a == "--peer"] == [
+        "127.0.0.1:7000", "localhost"]
+    for bad, why in (('["10.0.0.1:99999"]', "port 1..65535"), ('[]', "no sender"),
+                     ('["no such host.invalid"]', "HOST or HOST:PORT")):
+        with pytest.raises(TopologyError, match=why) as exc:
+            topo(bad)
+        assert "\n" not in str(exc.value)
