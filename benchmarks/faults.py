@@ -307,15 +307,8 @@ def sim_scenarios(tmp: Path, lines: list[str], only=None) -> None:
                 # of the run were all written before a filler at 0.5 M words was complete
                 # on the loaded machine, and the row never saw a pause
                 wait_words(s, 1e5 if which == "out" else 5e5)
-                target = s.topo.state if which == "state" else Path(s.topo.sink["out"])
-                filler = target / "filler"
-                with open(filler, "wb", buffering=0) as fh:
-                    for size in (1 << 20, 1 << 12, 1):
-                        try:
-                            while True:
-                                fh.write(b"\0" * size)
-                        except OSError:
-                            continue
+                filler = _fill_disk(s.topo.state if which == "state"
+                                    else Path(s.topo.sink["out"]))
                 deadline = time.time() + 120  # (a run that never pauses must not hang)
                 while stage not in s.status()["paused"] and time.time() < deadline:
                     time.sleep(0.05)

@@ -255,6 +255,9 @@ def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, n_tdc
         parse_peers(peers)
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--peer") from None
+    if not peers:
+        err.print("ingest: no --peer ([source] peers): the run locks onto the sender of its "
+                  "reference; a second consistent sender makes it incomplete")
     halt = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: halt.set())

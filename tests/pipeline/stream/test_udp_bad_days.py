@@ -272,6 +272,30 @@ def test_an_fpga_reset_is_a_journaled_event_and_the_run_measures_on(tmp_path, co
         assert state == "incomplete" and any("restarted 1 time" in w for w in why)
 
 
+def test_an_ingest_restarted_after_a_reset_takes_up_the_new_segment(tmp_path):
+    # reset at datagram 400 (cycle counter too); the ingest ends after 600 and a new one
+    # on the same journal takes the run up on the new segment's axes
+    n, at, cut = 800, 400, 600
+    words, dgs = _stream(n)
+    sched = dgs[:at] + [datagram.encode(words[i * CYC * N_TDC:(i + 1) * CYC * N_TDC],
+                                        i - at, (i - at) * CYC, N_TDC, GATE,
+                                        last=i == n - 1) for i in range(at, n)]
+    p = Port(tmp_path, idle_s=1)
+    p.sender("fpga")
+    p.start()
+    p.send([("fpga", x) for x in sched[:cut]])
+    s1 = p.end()
+    assert s1.accepted == cut and len(s1.resets) == 1
+    p = Port(tmp_path)
+    p.sender("fpga")
+    p.start()
+    p.send([("fpga", x) for x in sched[cut:]])
+    s2 = p.end()
+    assert s2.accepted == n - cut and dict(s2.rejected) == {}
+    assert s2.lost_datagrams == 0 and s2.gap_cycles == 0 and len(s2.resets) == 1
+    assert np.array_equal(p.words(), words)
+
+
 def test_a_sequence_jump_with_contiguous_cycles_loses_nothing(tmp_path):
     n, at = 600, 300
     words, dgs = _stream(n)
