@@ -516,7 +516,7 @@ def status(state, watch, as_json) -> None:
         raise click.ClickException(f"{path}: no status (is a daemon running with --state "
                                    f"{state}?)")
     if as_json:
-        click.echo(path.read_text())
+        click.echo(path.read_text().rstrip())  # (padded: see write_status_file)
         return
     # piped: no wrapped columns; markup off: stage names and reasons are printed as they are
     con = Console(width=None if sys.stdout.isatty() else 160, markup=False)
