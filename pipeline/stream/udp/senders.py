@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import ipaddress
 import socket
+import sys
 import threading
 
 from pipeline.stream import datagram
@@ -91,8 +92,12 @@ class Senders:
                     _signed32(d.seq - last[0]), d.first_cycle - last[1], d.n_tdc):
                 streak = last[4] + 1
             self._last[name] = (d.seq, d.first_cycle, d.n_tdc, d.t_laser_win_ps, streak)
-            if streak >= self.quorum:
+            if streak >= self.quorum and not book["consistent"]:
                 book["consistent"] = True
+                why = "" if self.peers else "; without [source] peers the run ends incomplete"
+                print(f"ingest: another sender, {name}, sends a consistent stream (gate "
+                      f"{d.t_laser_win_ps} ps, {d.n_tdc} TDCs): kept out{why}",
+                      file=sys.stderr, flush=True)
 
     def second_stream(self) -> list[str]:
         """Other senders whose datagrams formed a consistent stream of their own."""
