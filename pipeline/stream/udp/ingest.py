@@ -178,6 +178,8 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         ref = Reference(quorum, n_tdc, gate_ps, anchor=resumed["device_anchor"])
         # (the sender is locked again by the quorum that agrees with the journal: an FPGA
         # may send from another port after a reset of its own)
+        for name in resumed["second_senders"]:
+            senders.others[name] = {"datagrams": 0, "consistent": True}
     elif first_seq is not None and n_tdc is not None and gate_ps is not None:
         # the configuration fixes the reference: the run's first datagram, at cycle 0
         reasm.seq_lo, reasm.seq_hi = first_seq, first_seq - 1
@@ -277,6 +279,8 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                  "ring_dropped": stats.ring_dropped, "conflicts": stats.conflicts}
         if senders.locked is not None:
             extra["sender"] = sender_name(senders.locked)
+        if senders.second_stream():  # (a restarted ingest must not forget them)
+            extra["second_senders"] = senders.second_stream()
         if reasm.seg != (0, 0):  # device -> run offsets of a restarted stream
             extra["seg"] = list(reasm.seg)
         if events:

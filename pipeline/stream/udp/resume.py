@@ -17,7 +17,8 @@ def resume_state(journal: str | Path, run: str) -> dict | None:
     and first cycle), ``gap_cycles``, ``n_tdc`` and ``gate_ps`` (the run's meta). Since
     the FPGA's restarts became segments of the run, a chunk also records ``ring_dropped``
     and ``conflicts`` (the ingest's counts so far), ``sender`` (the run's, when it locked
-    onto one), ``seg`` (a restarted stream's device -> run offsets) and ``events`` (the
+    onto one), ``second_senders`` (other senders whose datagrams formed a
+    consistent stream), ``seg`` (a restarted stream's device -> run offsets) and ``events`` (the
     restarts journaled with it): ``seg``, ``device_anchor`` (the newest on the device's
     axes, which the datagrams still use), ``sender``, ``resets``."""
     from pipeline.stream.journal import _entries, run_meta
@@ -36,6 +37,7 @@ def resume_state(journal: str | Path, run: str) -> dict | None:
     return {"seg": seg, "device_anchor": ((anchor[0] - seg[0]) & 0xFFFFFFFF,
                                           anchor[1] - seg[1]),
             "sender": seqs[-1].get("sender"),
+            "second_senders": seqs[-1].get("second_senders", []),
             "ring_dropped": int(seqs[-1].get("ring_dropped", 0)),
             "conflicts": int(seqs[-1].get("conflicts", 0)),
             "resets": [ev for e in seqs for ev in e.get("events", [])],

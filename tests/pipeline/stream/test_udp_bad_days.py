@@ -175,6 +175,26 @@ def test_an_old_rig_left_on_the_port_never_takes_the_run(tmp_path, rig_gate):
             assert any("second sender" in w and fpga in w and "peers" in w for w in why)
 
 
+def test_a_second_sender_is_remembered_by_a_restarted_ingest(tmp_path):
+    words, real = _stream(300)
+    _, rig = _stream(100, rng=5, last=False)
+    p = Port(tmp_path, idle_s=1)
+    p.sender("fpga")
+    old = p.sender("rig")
+    p.start()
+    p.send(_interleave([("fpga", x) for x in real[:100]], [("rig", x) for x in rig]))
+    s1 = p.end()
+    assert s1.senders.second_stream() == [old]
+    p = Port(tmp_path)  # the rig has stopped; the ingest was restarted
+    p.sender("fpga")
+    p.start()
+    p.send([("fpga", x) for x in real[100:]])
+    s2 = p.end()
+    assert s2.accepted == 200 and np.array_equal(p.words(), words)
+    state, why, _ = p.verdict(s2)
+    assert state == "incomplete" and any(old in w for w in why)
+
+
 def test_a_duplicate_with_other_bytes_is_a_conflict_and_the_run_incomplete(tmp_path):
     # a forger who can send from the FPGA's own address (spoofed) gets there first
     words, real = _stream(60)
