@@ -508,7 +508,7 @@ def udp_bad_days(run, line, want, dgs, words, lines) -> None:
                  "from datagram 100, 40 datagrams/s, idle = 4 s",
                  run("statefull", dgs, 40, fill=(100, 20.0)), n)
 
-    lines.append("| **hostile** | | | | | | | | | |")
+    hostile = ["| **hostile** | | | | | | | | | |"]  # (the section's head, with its first row)
     other, _ = pattern_words(n * cyc, N, hit_prob=0.1, rng=11)  # another stream's words
     socks = {k: socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for k in ("fpga", "x")}
     for sk in socks.values():
@@ -520,6 +520,8 @@ def udp_bad_days(run, line, want, dgs, words, lines) -> None:
         for with_peers in (True,) if only_peers else (True, False):
             label = f"{name}, {'peers set' if with_peers else 'no peers'}"
             if want(label):
+                lines.extend(hostile)
+                hostile.clear()
                 emit_row(label, injected, run(label.replace(",", ""), sched, rate,
                                               src_extra=peers if with_peers else "",
                                               outs=socks), n_sent)
