@@ -487,3 +487,27 @@ out = "{tmp_path / 'out'}"
         with pytest.raises(TopologyError, match=why) as exc:
             topo(bad)
         assert "\n" not in str(exc.value)
+
+
+def test_status_json_is_rewritten_in_place_when_no_new_file_can_be_made(tmp_path,
+                                                                          monkeypatch):
+    import contextlib
+    import json
+
+    from pipeline.stream import daemon
+
+    path = tmp_path / "status.json"
+    daemon.write_status_file(path, json.dumps({"state": "running", "health": "ok"}))
+
+    @contextlib.contextmanager
+    def full(_):
+        raise OSError(errno.ENOSPC, "No space left on device")
+        yield
+
+    monkeypatch.setattr(daemon, "atomic_path", full)
+    daemon.write_status_file(path, json.dumps({"state": "running", "health": "paused",
+                                               "paused": {"source": "disk full"}}))
+    assert json.loads(path.read_text())["health"] == "paused"
+    with pytest.raises(OSError):  # (more than the padding holds: never a torn file)
+        daemon.write_status_file(path, json.dumps({"x": "y" * 20_000}))
+    assert json.loads(path.read_text())["health"] == "paused"
