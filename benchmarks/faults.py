@@ -307,15 +307,8 @@ def sim_scenarios(tmp: Path, lines: list[str], only=None) -> None:
                 # of the run were all written before a filler at 0.5 M words was complete
                 # on the loaded machine, and the row never saw a pause
                 wait_words(s, 1e5 if which == "out" else 5e5)
-                target = s.topo.state if which == "state" else Path(s.topo.sink["out"])
-                filler = target / "filler"
-                with open(filler, "wb", buffering=0) as fh:
-                    for size in (1 << 20, 1 << 12, 1):
-                        try:
-                            while True:
-                                fh.write(b"\0" * size)
-                        except OSError:
-                            continue
+                filler = _fill_disk(s.topo.state if which == "state"
+                                    else Path(s.topo.sink["out"]))
                 deadline = time.time() + 120  # (a run that never pauses must not hang)
                 while stage not in s.status()["paused"] and time.time() < deadline:
                     time.sleep(0.05)
@@ -341,14 +334,25 @@ def udp_scenarios(tmp: Path, lines: list[str], only=None) -> None:
     dgs = [datagram.encode(words[i * cyc * N:(i + 1) * cyc * N], i, i * cyc, N, 140_000,
                            last=(i == n - 1)) for i in range(n)]
 
-    def feed(schedule, rate, stall=None, kill_at=None, freeze_at=None):
+    def feed(schedule, rate, stall=None, kill_at=None, freeze_at=None, outs=None,
+             fill=None):
+        # ``schedule``: datagrams, or (sender, datagram) with ``outs`` the senders' sockets
         def during(sup):
             while "source" not in sup.metrics:
                 time.sleep(0.05)
             port = int(sup.topo.source["bind"].rsplit(":", 1)[1])
             out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            filler = None
             t0 = time.perf_counter()
             for i, data in enumerate(schedule):
+                sock = out
+                if isinstance(data, tuple):
+                    sock, data = outs[data[0]], data[1]
+                if fill is not None and i == fill[0]:  # the state disk full for fill[1] s
+                    filler = _fill_disk(sup.topo.state)
+                if filler is not None and time.perf_counter() - t0 > fill[0] / rate + fill[1]:
+                    filler.unlink()
+                    filler = None
                 if kill_at is not None and i == kill_at:
                     kill(sup, "source")  # the FPGA goes on while the ingest is down
                 if freeze_at is not None and i == freeze_at:
@@ -357,7 +361,7 @@ def udp_scenarios(tmp: Path, lines: list[str], only=None) -> None:
                     os.kill(sup.by_name[stall].popen.pid, signal.SIGSTOP)
                 if stall and i == 100 + int(3 * rate):
                     os.kill(sup.by_name[stall].popen.pid, signal.SIGCONT)
-                out.sendto(data, ("127.0.0.1", port))
+                sock.sendto(data, ("127.0.0.1", port))
                 ahead = (i + 1) / rate - (time.perf_counter() - t0)
                 if ahead > 0:
                     time.sleep(ahead)
@@ -369,27 +373,39 @@ def udp_scenarios(tmp: Path, lines: list[str], only=None) -> None:
                 os.kill(w.popen.pid, signal.SIGCONT)
         return during
 
-    def run(name, schedule, rate, stall=None, kill_at=None, src_extra="", freeze_at=None):
+    def run(name, schedule, rate, stall=None, kill_at=None, src_extra="", freeze_at=None,
+            outs=None, fill=None):
         d = tmp / f"udp_{name.replace(' ', '_')}"
         d.mkdir()
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
-        res, sup, dt = run_daemon(topology(d, udp_port=port, src_extra=src_extra), "u",
-                                  feed(schedule, rate, stall, kill_at, freeze_at))
-        res["taken"] = _journaled_datagrams(d / "state" / "journal", "u")
-        return res, sup, dt, histograms(d / "out", "u")
+        topo = topology(d, udp_port=port, src_extra=src_extra)
+        if fill is not None:  # the state directory on a RAM disk to fill (root only)
+            (d / "state").mkdir(mode=0o700)
+            if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=48m,mode=700", "tmpfs",
+                               str(d / "state")], capture_output=True).returncode:
+                return None
+        try:
+            res, sup, dt = run_daemon(topo, "u", feed(schedule, rate, stall, kill_at,
+                                                      freeze_at, outs, fill))
+            res["taken"] = _journaled_datagrams(d / "state" / "journal", "u")
+            return res, sup, dt, histograms(d / "out", "u")
+        finally:
+            if fill is not None:
+                subprocess.run(["umount", "-l", str(d / "state")], capture_output=True)
 
     res, sup, ref_dt, ref = run("clean", dgs, 1000)
 
-    def line(name, injected, res, sup, dt, got, n_sent):
+    def line(name, injected, res, sup, dt, got, n_sent, counted_too=False):
         acc = res.get("accounting") or {}
         src = sup.metrics.get("source", {})
         # lost silently: datagrams neither journaled (counted in the journal's chunks,
         # whichever ingest process took them) nor counted (duplicate, late, rejected, lost)
         taken = res["taken"]
         counted = (src.get("duplicates", 0) + sum(src.get("rejected", {}).values())
-                   + acc.get("lost_datagrams", 0))
+                   + acc.get("lost_datagrams", 0) + acc.get("ring_dropped_datagrams", 0)
+                   + sum(b["datagrams"] for b in src.get("other_senders", {}).values()))
         lost_silent = n_sent - taken - counted
         # a measurement short by cycles the accounting counts as a gap is counted, not wrong
         short = {k for k, v in got.items() if k in ref and v != ref[k] and v[0] < ref[k][0]}
@@ -400,7 +416,8 @@ def udp_scenarios(tmp: Path, lines: list[str], only=None) -> None:
                 f" words ({taken:,} datagrams; {acc.get('lost_datagrams', 0):,} counted "
                 f"lost) | {lost_silent} | {wrong} | {missing} (gaps {gaps:,} words"
                 f"{f', {-(-len(short) // N)} measurement(s) short by them' if short else ''}) | "
-                f"{sum(res.get('restarts', {}).values())} | {end(res)} | {dt - ref_dt:+.1f} |")
+                f"{sum(res.get('restarts', {}).values())} | {end(res)}"
+                f"{_counted(acc) if counted_too else ''} | {dt - ref_dt:+.1f} |")
 
     lines.append(line("UDP clean", "nothing", res, sup, ref_dt, ref, n))
     print(lines[-1], flush=True)
@@ -452,6 +469,117 @@ def udp_scenarios(tmp: Path, lines: list[str], only=None) -> None:
                           "1 000 (200/s); the stream goes on, past max_jump_cycles", res,
                           sup, dt, got, n))
         print(lines[-1], flush=True)
+    udp_bad_days(run, line, want, dgs, words, lines)
+
+
+def udp_bad_days(run, line, want, dgs, words, lines) -> None:
+    """Issue 38 points 2-3: an FPGA reset, a sequence jump, a full state disk; and, in
+    a "hostile" section, issue 36 point 3 and 38 point 1: other senders on the port."""
+    from pipeline.stream import datagram
+    from stages.testpattern import pattern_words
+
+    n, cyc = len(dgs), 64
+
+    def enc(i, seq, cycle, w=words, gate=140_000, last=None):
+        return datagram.encode(w[i * cyc * N:(i + 1) * cyc * N], seq, cycle, N, gate,
+                               last=(i == n - 1) if last is None else last)
+
+    def emit_row(name, injected, out, n_sent):
+        if out is None:
+            lines.append(f"| {name} | {injected} | (skipped: a tmpfs needs root) |")
+        else:
+            lines.append(line(name, injected, *out, n_sent, counted_too=True))
+        print(lines[-1], flush=True)
+
+    if want("UDP, an FPGA reset (cycle counter restarted)"):
+        sched = dgs[:500] + [enc(i, i - 500, (i - 500) * cyc) for i in range(500, n)]
+        emit_row("UDP, an FPGA reset (cycle counter restarted)", "sequence and cycle "
+                 "restart at 0 at datagram 500", run("reset", sched, 1000), n)
+    if want("UDP, an FPGA reset (cycle counter continued)"):
+        sched = dgs[:500] + [enc(i, i - 500, i * cyc) for i in range(500, n)]
+        emit_row("UDP, an FPGA reset (cycle counter continued)", "sequence restarts at 0 "
+                 "at datagram 500, cycles go on", run("reset2", sched, 1000), n)
+    if want("UDP, a sequence jump"):
+        sched = dgs[:500] + [enc(i, i + 10_000, i * cyc) for i in range(500, n)]
+        emit_row("UDP, a sequence jump", "+10,000 sequence numbers at datagram 500, "
+                 "contiguous cycles", run("jump", sched, 1000), n)
+    if want("UDP, state disk full longer than idle"):
+        emit_row("UDP, state disk full longer than idle", "the state tmpfs full for 20 s "
+                 "from datagram 100, 40 datagrams/s, idle = 4 s",
+                 run("statefull", dgs, 40, fill=(100, 20.0)), n)
+
+    hostile = ["| **hostile** | | | | | | | | | |"]  # (the section's head, with its first row)
+    other, _ = pattern_words(n * cyc, N, hit_prob=0.1, rng=11)  # another stream's words
+    socks = {k: socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for k in ("fpga", "x")}
+    for sk in socks.values():
+        sk.bind(("127.0.0.1", 0))
+    peers = f'peers = ["127.0.0.1:{socks["fpga"].getsockname()[1]}"]\n'
+    real = [("fpga", d) for d in dgs]
+
+    def both(name, injected, sched, n_sent, rate=1000, only_peers=False):
+        for with_peers in (True,) if only_peers else (True, False):
+            label = f"{name}, {'peers set' if with_peers else 'no peers'}"
+            if want(label):
+                lines.extend(hostile)
+                hostile.clear()
+                emit_row(label, injected, run(label.replace(",", ""), sched, rate,
+                                              src_extra=peers if with_peers else "",
+                                              outs=socks), n_sent)
+
+    forged = [("x", enc(i, i, i * cyc, w=other, last=False)) for i in range(158)]
+    both("UDP, forged datagrams first", "158 consistent datagrams from another sender, "
+         "before the stream", forged + real, n + 158)
+    spoofed = [("fpga", enc(i, i, i * cyc, w=other, last=False)) for i in range(158)]
+    both("UDP, forged from the FPGA's own address", "158 datagrams (the stream's sequence "
+         "numbers and cycles, other bytes) from its address, before it", spoofed + real,
+         n + 158, only_peers=True)
+    junk = []
+    for d in real:
+        junk += [("x", b"\0" * 1000), d]
+    both("UDP, a junk flood from elsewhere", "1,000 junk datagrams/s interleaved 1:1",
+         junk, 2 * n, rate=2000, only_peers=True)
+    rig = [("x", enc(i, i, i * cyc, w=other, gate=150_000, last=False)) for i in range(n)]
+    both("UDP, an old rig of another gate", "gate 150 ns against 140, interleaved 1:1, "
+         "sending first", [x for pair in zip(rig, real, strict=True) for x in pair], 2 * n)
+    rig = [("x", enc(i, i, i * cyc, w=other, last=False)) for i in range(n)]
+    both("UDP, an identical rig started earlier", "the same gate, 500 datagrams ahead, "
+         "then interleaved 1:1", rig[:500] + [x for pair in zip(rig[500:], real[:500],
+                                                              strict=True) for x in pair]
+         + real[500:], 2 * n)
+    for sk in socks.values():
+        sk.close()
+
+
+def _counted(acc: dict) -> str:
+    """What the accounting counted of a bad day (other senders, conflicts, restarts)."""
+    out = []
+    others = acc.get("other_senders") or {}
+    if others:
+        kept = sum(b["datagrams"] for b in others.values())
+        consistent = sum(b.get("consistent", False) for b in others.values())
+        out.append(f"{kept:,} datagrams of {len(others)} other sender(s) kept out"
+                   f"{f' ({consistent} consistent)' if consistent else ''}")
+    if acc.get("conflicting_datagrams"):
+        out.append(f"{acc['conflicting_datagrams']:,} conflicts")
+    if acc.get("stream_restarts"):
+        out.append("restarts: " + ", ".join(f"{e['event']} at cycle {e['at_cycle']:,}"
+                                             for e in acc["stream_restarts"]))
+    if acc.get("ring_dropped_datagrams"):
+        out.append(f"{acc['ring_dropped_datagrams']:,} dropped by the ring")
+    return "; " + "; ".join(out) if out else ""
+
+
+def _fill_disk(d: Path) -> Path:
+    """Fill the file system of ``d`` to its last byte; the file to delete to free it."""
+    filler = d / "filler"
+    with open(filler, "wb", buffering=0) as fh:
+        for size in (1 << 20, 1 << 12, 1):
+            try:
+                while True:
+                    fh.write(b"\0" * size)
+            except OSError:
+                continue
+    return filler
 
 
 def _journaled_datagrams(journal: Path, run: str) -> int:

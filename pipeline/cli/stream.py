@@ -227,21 +227,37 @@ def stage_source_file(path, pushes, run_id, rate, fmt, firmware, journal, journa
 @click.option("--first-seq", type=click.IntRange(0, 2**32 - 1), default=None,
               help="The sequence number of the run's first datagram, at cycle 0 (default: "
                    "from a quorum of datagrams).")
+@click.option("--peer", "peers", multiple=True,
+              help="A sender whose datagrams are read, HOST or HOST:PORT (repeatable; "
+                   "default: the run locks onto the sender of its reference).")
 @_journal_compression
 @_wire
 @_split
 @_metrics
 @_date
 def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, n_tdc,
-                     reorder_window, max_jump_cycles, gate_ps, first_seq, journal_compression,
-                     split, metrics, date, wire) -> None:
+                     reorder_window, max_jump_cycles, gate_ps, first_seq, peers,
+                     journal_compression, split, metrics, date, wire) -> None:
     """The FPGA's UDP datagrams (docs/streaming.md) in, journaled raw-word batches out.
     Restarted on a run its journal holds, it takes the run up where the journal has it."""
     import signal
     import threading
 
-    from pipeline.stream.udp import MAX_JUMP_CYCLES, REORDER_WINDOW, run_udp_ingest, udp_socket
+    from pipeline.stream.udp import (
+        MAX_JUMP_CYCLES,
+        REORDER_WINDOW,
+        parse_peers,
+        run_udp_ingest,
+        udp_socket,
+    )
 
+    try:
+        parse_peers(peers)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--peer") from None
+    if not peers:
+        err.print("ingest: no --peer ([source] peers): the run locks onto the sender of its "
+                  "reference; a second consistent sender makes it incomplete")
     halt = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: halt.set())
@@ -252,10 +268,13 @@ def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, n_tdc
                            reorder_window=reorder_window or REORDER_WINDOW,
                            max_jump_cycles=max_jump_cycles or MAX_JUMP_CYCLES,
                            gate_ps=gate_ps, first_seq=first_seq,
-                           sparse=wire == "sparse")
+                           sparse=wire == "sparse", peers=list(peers) or None)
     err.print(f"ingest: {stats.datagrams} datagrams, {stats.words:,} words, "
               f"{stats.lost_datagrams} lost, {stats.duplicates} duplicates, {stats.late} "
-              f"late, {stats.gap_cycles} cycles in gaps, rejected {dict(stats.rejected)}")
+              f"late, {stats.gap_cycles} cycles in gaps, rejected {dict(stats.rejected)}, "
+              f"{stats.ring_dropped} dropped by the ring, {stats.conflicts} conflicting, "
+              f"{len(stats.resets)} stream restart(s), other senders "
+              f"{stats.senders.fields()['other_senders'] if stats.senders else {}}")
 
 
 @stage.command("histogram")
@@ -513,7 +532,7 @@ def status(state, watch, as_json) -> None:
         raise click.ClickException(f"{path}: no status (is a daemon running with --state "
                                    f"{state}?)")
     if as_json:
-        click.echo(path.read_text())
+        click.echo(path.read_text().rstrip())  # (padded: see write_status_file)
         return
     # piped: no wrapped columns; markup off: stage names and reasons are printed as they are
     con = Console(width=None if sys.stdout.isatty() else 160, markup=False)

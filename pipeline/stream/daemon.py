@@ -49,6 +49,8 @@ starts, as are the state directory and the resources: ``pipeline.stream.state``)
     bind = "127.0.0.1:9000"      # udp: where to listen, idle (s) to end the run;
     gate_ps = 140000             # udp: the run's gate and its first datagram's sequence
     first_seq = 0                # number (else a quorum of agreeing datagrams sets them)
+    peers = ["192.168.1.10"]     # udp: the senders read, HOST or HOST:PORT (else the run
+                                 # locks onto the sender of its reference)
     file = "run.ptu"             # file: a PTU T3 or LinoSPAD2 file, rate (records/s),
                                  # format (default: from the content), firmware; one
                                  # histogram worker, one measurement, no [range]
@@ -204,7 +206,8 @@ def build(topo: Topology) -> list[Proc]:
                       "--n-tdc", topo.n_tdc,
                       *(x for k in ("reorder_window", "max_jump_cycles", "gate_ps",
                                       "first_seq") if k in src
-                        for x in (f"--{k.replace('_', '-')}", src[k])))
+                        for x in (f"--{k.replace('_', '-')}", src[k])),
+                      *(x for p in src.get("peers") or () for x in ("--peer", p)))
     procs.append(Proc("source", argv, []))
     return procs
 
@@ -299,6 +302,7 @@ class Supervisor:
         self._spans = None
         self.forged_heartbeats = 0
         self._status_failing = False
+        self._paused: set[str] = set()  #: stages paused at the last status (logged)
         self._status_msg: bytes | None = None  #: the last status, for the status PUB
         args = view_args(topo)  # the web page's server ([view]), beside the graph
         self.view = None if args is None else Sidecar(
@@ -496,11 +500,16 @@ class Supervisor:
                 "stages": stages, "queue_depth": depth}
 
     def _write_status(self, extra: dict | None = None) -> None:
+        status = {**self.status(), **(extra or {})}
+        paused = status.get("paused") or {}
+        for name in sorted(set(paused) ^ self._paused):  # a full disk is said, in the log
+            self.log(f"{name}: paused ({paused[name]})" if name in paused else
+                     f"{name}: resumed")
+        self._paused = set(paused)
         try:
-            text = json.dumps({**self.status(), **(extra or {})}, indent=1, default=str)
+            text = json.dumps(status, indent=1, default=str)
             self._status_msg = text.encode()
-            with atomic_path(self.topo.state / "status.json") as tmp:
-                tmp.write_text(text)
+            write_status_file(self.topo.state / "status.json", text)
         except OSError as exc:  # a full state disk must not kill the supervisor
             if not self._status_failing:
                 self.log(f"status.json not written: {exc}")
@@ -620,6 +629,33 @@ class Supervisor:
         return result
 
 
+STATUS_SLACK = 8192  #: status.json's padding: room to be rewritten in place on a full disk
+
+
+def write_status_file(path: Path, text: str) -> None:
+    """status.json, replaced atomically, padded with spaces (JSON ignores them) so that on
+    a full state disk, when no new file can be made, it is rewritten in place within the
+    blocks it already has: the status a full disk makes ("paused") is never hidden behind
+    the last one written before it."""
+    try:
+        with atomic_path(path) as tmp:
+            tmp.write_text(text + "\n" + " " * STATUS_SLACK)
+        return
+    except OSError as exc:
+        from pipeline.stream.journal import is_disk_full
+
+        if not is_disk_full(exc):
+            raise
+        fd = os.open(path, os.O_WRONLY | os.O_NOFOLLOW)
+        try:
+            size = os.fstat(fd).st_size
+            if len(text) + 1 > size:
+                raise
+            os.pwrite(fd, (text + "\n").ljust(size).encode(), 0)
+        finally:
+            os.close(fd)
+
+
 # ------------------------------------------------------------------ the run's verdict
 
 #: The daemon's exit status per end state (``interrupted``: 128 + the signal).
@@ -642,9 +678,25 @@ def problems(result: dict) -> list[str]:
         if rec.get(key):
             out.append(f"{len(rec[key])} measurement(s) {what}: [measurement, first TDC] "
                        f"{rec[key][:8]}")
-    if acc.get("words_in_gaps", 0) or acc.get("lost_datagrams", 0):
+    if acc.get("words_in_gaps", 0) or acc.get("lost_datagrams", 0) or acc.get(
+            "ring_dropped_datagrams", 0):
         out.append(f"input lost before the journal: {acc.get('lost_datagrams', 0):,} "
-                   f"datagrams, {acc.get('words_in_gaps', 0):,} words in gaps")
+                   f"datagrams, {acc.get('words_in_gaps', 0):,} words in gaps, "
+                   f"{acc.get('ring_dropped_datagrams', 0):,} datagrams dropped by the "
+                   f"ingest's full ring")
+    if acc.get("conflicting_datagrams", 0):
+        out.append(f"{acc['conflicting_datagrams']:,} conflicting datagram(s): a sequence "
+                   f"number and cycle taken before came again with other bytes")
+    if acc.get("stream_restarts"):
+        out.append(f"the UDP stream restarted {len(acc['stream_restarts'])} time(s) (an FPGA "
+                   f"reset or a sequence jump; journaled, measured on in a new segment): "
+                   f"{[(e['event'], e['at_cycle']) for e in acc['stream_restarts'][:4]]}")
+    second = sorted(n for n, b in (acc.get("other_senders") or {}).items()
+                    if b.get("consistent"))
+    if second and not acc.get("peers"):
+        out.append(f"a second sender sent a consistent stream: {', '.join(second)}; the run "
+                   f"took {acc.get('sender')}'s (set [source] peers to say which is the "
+                   f"run's)")
     return out
 
 

@@ -226,7 +226,8 @@ class JournalWriter:
         entry = {"first_word": int(first_word), "segment": self.segment,
                  "offset": self.offset, "words": int(n), **(extra or {}), **fields}
         step = len(blob) if self.enc else n
-        seg_at, index_at = self.fh.tell(), self.index.tell()
+        # where the files end (not tell(): after a cut-back write the position is past it)
+        seg_at, index_at = (os.fstat(f.fileno()).st_size for f in (self.fh, self.index))
         try:
             _write_all(self.fh.fileno(), blob)
             _write_all(self.index.fileno(), (json.dumps(entry) + "\n").encode())
@@ -234,6 +235,7 @@ class JournalWriter:
             for fh, at in ((self.fh, seg_at), (self.index, index_at)):
                 try:
                     os.ftruncate(fh.fileno(), at)
+                    os.lseek(fh.fileno(), at, os.SEEK_SET)
                 except OSError:
                     pass
             raise

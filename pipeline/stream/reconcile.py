@@ -258,6 +258,12 @@ def accounting(topo: Topology, metrics: dict[str, dict], reconciled: dict | None
               "lost_datagrams": src.get("lost_datagrams", 0),
               "duplicate_datagrams": src.get("duplicates", 0),
               "late_datagrams": src.get("late", 0),
+              # (UDP) received but never journaled: the ring was full (the journal too slow)
+              "ring_dropped_datagrams": src.get("ring_dropped", 0),
+              "conflicting_datagrams": src.get("conflicts", 0),
+              "stream_restarts": src.get("resets", []),
+              **({"sender": src.get("sender"), "peers": src.get("peers"),
+                  "other_senders": src["other_senders"]} if "other_senders" in src else {}),
               "quarantine_dropped": {name: m["quarantine_dropped"] for name, m in
                                      metrics.items() if m.get("quarantine_dropped")},
               "checkpoints_discarded": {name: m["checkpoints_discarded"] for name, m in

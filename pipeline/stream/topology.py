@@ -132,6 +132,9 @@ class SourceSection(_Section):
                                 "in ps, 1e3..1e7 (leave out: from a quorum of datagrams)")
     first_seq: int | None = Field(None, ge=0, le=2**32 - 1, description="the run's first "
                                   "datagram sequence, 0..2^32-1 (leave out: from a quorum)")
+    peers: list[str] | None = Field(None, description='udp: the senders whose datagrams '
+                                    'are read, "HOST" or "HOST:PORT" (leave out: the run '
+                                    'locks onto the sender of its reference)')
     file: str | None = Field(None, description="a PTU T3 or LinoSPAD2 file replayed")
     format: str | None = Field(None, description="the file's format (leave out: read from "
                                "its content)")
@@ -145,7 +148,7 @@ class SourceSection(_Section):
 SOURCE_KEYS = {"sim": ("scene", "cycles", "seed", "chip_seed", "rate", "wire"),
                "capture": ("capture", "rate", "repeat", "wire"),
                "udp": ("bind", "idle", "n_tdc", "reorder_window", "max_jump_cycles", "gate_ps",
-                       "first_seq", "wire"),
+                       "first_seq", "wire", "peers"),
                "file": ("file", "format", "firmware", "rate")}
 
 
@@ -388,6 +391,15 @@ def _check_source_keys(src: dict, where: str, problems: list[str]) -> bool:
         if not host or not port.isdigit() or not 1 <= int(port) <= 65535:
             problems.append(f"{where} [source] bind = {bind!r}: use HOST:PORT, port "
                             "1..65535 (e.g. 127.0.0.1:9000)")
+    if kind == "udp" and src.get("peers") is not None:
+        from pipeline.stream.udp.senders import parse_peers
+
+        try:
+            if not parse_peers(src["peers"]):
+                raise ValueError("peers = []: no sender would be read (leave the key out "
+                                 "to lock onto the reference's sender)")
+        except ValueError as exc:
+            problems.append(f"{where} [source] {exc}")
     return True
 
 

@@ -1,14 +1,9 @@
-"""The ingest: the FPGA's UDP datagrams in, journaled raw-word batches out.
+"""The ingest's loop: a socket in, journaled raw-word batches out (three threads).
 
-Binds 127.0.0.1 unless told otherwise. Every datagram is accounted for: taken (its words
-journaled to capture segments before they are passed on), a duplicate (counted, dropped),
-late (it came after its reorder window closed: counted and quarantined), or rejected by
-reason and quarantined. UDP reorders and duplicates, so datagrams are reassembled by first
-cycle in a bounded reorder window and each cycle is journaled once, in order; cycles no
-datagram brought are a gap (counted), and sequence numbers never seen are lost datagrams.
-Every header field is bounded against the run: a cycle or sequence number beyond the
-window (``max_jump_cycles``, ``max_jump_datagrams``), another TDC count or gate, is a
-rejected datagram, never a gap to fill.
+Every datagram is accounted for: taken (its words journaled to capture segments before they
+are passed on), a duplicate (counted, dropped), late (it came after its reorder window
+closed: counted and quarantined), or rejected by reason and quarantined. Every header field
+is bounded against the run: another TDC count or gate is a rejected datagram.
 """
 
 from __future__ import annotations
@@ -18,7 +13,7 @@ import select
 import socket
 import threading
 import time
-from collections import Counter, deque
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,135 +23,26 @@ import zmq
 from pipeline.stream import datagram, wire
 from pipeline.stream.journal import JournalWriter
 from pipeline.stream.stage import Quarantine, _socket, connect, end_context, own_context
+from pipeline.stream.udp.order import (
+    MAX_JUMP_CYCLES,
+    MAX_JUMP_DATAGRAMS,
+    REORDER_WINDOW,
+    Reassembler,
+)
+from pipeline.stream.udp.reference import QUORUM, QUORUM_HOLD, Reference
+from pipeline.stream.udp.resume import resume_state
+from pipeline.stream.udp.senders import Senders, parse_peers, sender_name
 from schemas.words import RAW_WORDS
 
 BATCH_WORDS = 1 << 18  # 1 MiB messages
-REORDER_WINDOW = 64            #: datagrams held to put reordered ones back in place
 REORDER_LINGER_S = 0.5         #: after the last datagram, wait this long for stragglers
-MAX_JUMP_CYCLES = 1 << 20      #: a datagram this far past the run's newest cycle is refused
-MAX_JUMP_DATAGRAMS = 1 << 16   #: ... and this far in sequence number
 GATE_PS = (1_000, 10_000_000)  #: a gate outside 1 ns .. 10 us is not a gate
 RING_DATAGRAMS = 4096          #: received, not yet journaled (<= 256 MiB of datagrams)
 RX_BATCH = 64                  #: datagrams one hand-off to the ring carries at most
 FLUSH_S = 0.01                 #: a partial batch is journaled and sent after this long
 SEND_QUEUE = 64                #: journaled messages waiting for a slow stage downstream
-QUORUM = 3                     #: datagrams that must agree before they set the reference
-QUORUM_HOLD = 256              #: candidates held while no quorum is reached
 RCVBUF_BYTES = 64 << 20        #: the kernel's buffer: ~0.4 s of 40 M words/s off the CPU
-
-
-def _signed32(d: int) -> int:
-    d &= 0xFFFFFFFF
-    return d - (1 << 32) if d >= 1 << 31 else d
-
-
-def max_cycles(n_tdc: int) -> int:
-    """The most cycles one datagram of ``n_tdc`` TDCs can hold (a UDP payload)."""
-    return max(1, (datagram.MAX_PAYLOAD - datagram.HEADER.size) // (4 * n_tdc))
-
-
-def consistent(ds: int, dc: int, n_tdc: int) -> bool:
-    """Can two datagrams of one stream be ``ds`` sequence numbers and ``dc`` cycles apart?
-    Every datagram holds at least one cycle and at most a UDP payload's, so the cycles
-    between them are within [|ds|, |ds| max_cycles], on the same side."""
-    if ds == 0:
-        return dc == 0
-    if ds < 0:
-        ds, dc = -ds, -dc
-    return ds <= dc <= ds * max_cycles(n_tdc)
-
-
-class Reference:
-    """The run's reference (its gate, TDC count, and where sequence numbers and cycles
-    stand), never taken from whichever datagram comes first: from the configuration
-    (``gate_ps``, ``n_tdc``, ``first_seq``: the run's first datagram is ``first_seq`` at
-    cycle 0), from the journal of the run a restarted ingest resumes (``anchor``: the newest
-    journaled datagram's sequence number and first cycle), or from a quorum: ``quorum``
-    datagrams with the same gate and TDC count whose sequence numbers and cycles could
-    belong to one stream (:func:`consistent`), and that agree with the configuration and the
-    anchor. Until then datagrams are held (at most QUORUM_HOLD: beyond, the oldest is a
-    stray); when the quorum forms, the held datagrams that agree with it are taken in their
-    arrival order, the others are strays (counted, quarantined)."""
-
-    def __init__(self, quorum: int = QUORUM, n_tdc: int | None = None,
-                 gate_ps: int | None = None, anchor: tuple[int, int] | None = None):
-        self.quorum, self.n_tdc, self.gate_ps, self.anchor = quorum, n_tdc, gate_ps, anchor
-        self.held: list[tuple[datagram.Datagram, bytes]] = []
-
-    def _fits(self, d: datagram.Datagram) -> bool:
-        if (self.n_tdc is not None and d.n_tdc != self.n_tdc) or (
-                self.gate_ps is not None and d.t_laser_win_ps != self.gate_ps):
-            return False
-        if self.anchor is None:
-            return True
-        seq, cycle = self.anchor
-        return consistent(_signed32(d.seq - seq), d.first_cycle - cycle, d.n_tdc)
-
-    @staticmethod
-    def agree(a: datagram.Datagram, b: datagram.Datagram) -> bool:
-        return (a.n_tdc == b.n_tdc and a.t_laser_win_ps == b.t_laser_win_ps
-                and consistent(_signed32(b.seq - a.seq), b.first_cycle - a.first_cycle,
-                               a.n_tdc))
-
-    def offer(self, d: datagram.Datagram, data: bytes) -> tuple[list | None, list]:
-        """Hold ``d``: ``(taken, strays)``, ``taken`` None while no quorum has formed, else
-        the held datagrams (``(d, data)``) that agree with it, in arrival order."""
-        strays = []
-        if not self._fits(d):
-            return None, [(d, data)]
-        self.held.append((d, data))
-        # distinct datagrams: a stray sent three times is not a quorum
-        group = {c[0].seq for c in self.held if self.agree(d, c[0])}
-        if len(group) >= self.quorum:
-            return self._fix(d)
-        if len(self.held) > QUORUM_HOLD:
-            strays.append(self.held.pop(0))
-        return None, strays
-
-    def settle(self) -> tuple[list, list]:
-        """The stream's end without a quorum: the largest group that agrees (the earliest of
-        equals) is the run's; the rest are strays."""
-        if not self.held:
-            return [], []
-        best = max(self.held, key=lambda c: len({o[0].seq for o in self.held
-                                                  if self.agree(c[0], o[0])}))
-        return self._fix(best[0])
-
-    def _fix(self, d: datagram.Datagram) -> tuple[list, list]:
-        taken = [c for c in self.held if self.agree(d, c[0])]
-        strays = [c for c in self.held if not self.agree(d, c[0])]
-        self.held = []
-        self.n_tdc, self.gate_ps = d.n_tdc, d.t_laser_win_ps
-        return taken, strays
-
-
-def resume_state(journal: str | Path, run: str) -> dict | None:
-    """Where a restarted ingest takes the run up (from the journal's index: each chunk, a
-    batch of consecutive datagrams, records their unwrapped sequence numbers: ``seq`` the
-    highest, ``seq_cycle`` its first cycle, ``seq_lo`` the lowest, ``datagrams`` how many;
-    a chunk of one datagram, as an ingest before batches wrote them, has ``seq`` alone), or
-    None for a run not yet journaled by a
-    UDP ingest: ``next_cycle`` (the end of the journaled stream), ``seq_lo``/``seq_hi``,
-    ``taken`` (datagrams journaled), ``late`` (datagrams that came too late, counted by the
-    ingest that journaled the last chunk), ``anchor`` (the newest datagram's sequence number
-    and first cycle), ``gap_cycles``, ``n_tdc`` and ``gate_ps`` (the run's meta)."""
-    from pipeline.stream.journal import _entries, run_meta
-
-    entries = [e for e in _entries(Path(journal) / f"{run}.index.jsonl")
-               if "first_word" in e]
-    meta = run_meta(journal, run)
-    seqs = [e for e in entries if "seq" in e]
-    if not seqs or "n_tdc" not in meta:
-        return None
-    n = int(meta["n_tdc"])
-    top = max(seqs, key=lambda e: e["seq"])
-    end = max(e["first_word"] + e["words"] for e in entries)
-    return {"next_cycle": end // n, "seq_lo": min(e.get("seq_lo", e["seq"]) for e in seqs),
-            "seq_hi": top["seq"], "taken": sum(int(e.get("datagrams", 1)) for e in seqs),
-            "late": int(seqs[-1].get("late", 0)),
-            "anchor": (top["seq"], top.get("seq_cycle", top["first_word"] // n)),
-            "gap_cycles": end // n - sum(e["words"] for e in entries) // n, "n_tdc": n,
-            "gate_ps": round(float(meta["t_laser_win_ns"]) * 1000)}
+BREAK_QUORUM = 8               #: datagrams that must agree before a new stream is a reset
 
 
 @dataclass
@@ -176,6 +62,10 @@ class IngestStats:
     paused_s: float = 0.0     #: time intake waited for a full disk
     unjournaled_words: int = 0  #: taken, but a stop came while the disk was full
     messages: int = 0
+    conflicts: int = 0        #: a sequence number and cycle taken before, with other bytes
+    #: the FPGA restarted its stream (or its sequence numbers jumped): each a new segment
+    resets: list = field(default_factory=list)
+    senders: Senders | None = None  #: the run's sender and the others, kept out
     journal: list[str] = field(default_factory=list)  #: segment files written
 
     def fields(self) -> dict:
@@ -186,7 +76,9 @@ class IngestStats:
                 "quarantine_dropped": self.quarantine_dropped,
                 "ring_dropped": self.ring_dropped, "deferred_messages": self.deferred_messages,
                 "deferred_words": self.deferred_words, "paused_s": round(self.paused_s, 1),
-                "unjournaled_words": self.unjournaled_words}
+                "unjournaled_words": self.unjournaled_words, "conflicts": self.conflicts,
+                "resets": list(self.resets),
+                **(self.senders.fields() if self.senders is not None else {})}
 
 
 def udp_socket(address: str = "127.0.0.1:0") -> socket.socket:
@@ -203,129 +95,6 @@ def udp_socket(address: str = "127.0.0.1:0") -> socket.socket:
     s.bind((host, int(port)))
     return s
 
-
-class Reassembler:
-    """Datagrams in arrival order in, runs of whole cycles in stream order out.
-
-    Holds up to ``window`` datagrams keyed by first cycle; the one that continues the stream
-    is released at once. When the window is full, the hole before the oldest held datagram
-    is given up as a gap (its cycles counted) and the stream moves on. Sequence numbers are
-    unwrapped (32-bit) against the newest seen; the lost count is the span of sequence
-    numbers minus those taken.
-    """
-
-    def __init__(self, window: int = REORDER_WINDOW, max_jump_cycles: int = MAX_JUMP_CYCLES,
-                 max_jump_datagrams: int = MAX_JUMP_DATAGRAMS):
-        if window < 1:
-            raise ValueError(f"reorder window must be >= 1 datagram, found {window}")
-        self.window, self.max_jump_cycles = window, max_jump_cycles
-        self.max_jump_datagrams = max_jump_datagrams
-        self.held: dict[int, tuple[int, datagram.Datagram]] = {}  # first cycle -> (seq, d)
-        self.next_cycle = 0          #: cycles before this are journaled or given up
-        self.newest_cycle = 0        #: end of the newest datagram accepted
-        self.seq_lo = self.seq_hi = None  # unwrapped span of accepted sequence numbers
-        self.seqs_seen = 0  # taken or late: received, whatever became of it
-        self.recent: deque = deque(maxlen=4 * window)  # (seq, first cycle) released
-        self.recent_set: set = set()
-        self.gap_cycles = 0
-        self.newest: tuple[int, int] | None = None  #: (seq, first cycle) of the newest taken
-
-    def resume(self, state: dict) -> None:
-        """Take the run up where the journal has it (:func:`resume_state`)."""
-        self.next_cycle = self.newest_cycle = state["next_cycle"]
-        self.seq_lo, self.seq_hi = state["seq_lo"], state["seq_hi"]
-        self.seqs_seen = state["taken"] + state["late"]
-        self.gap_cycles = state["gap_cycles"]
-        self.newest = state["anchor"]
-
-    def rejoin(self, seq: int, first_cycle: int) -> None:
-        """The stream went on while this ingest was down: a quorum of datagrams consistent
-        with the journal's newest says where it is now. The cycles in between are a gap and
-        their datagrams lost (the sequence span counts them), however long the outage."""
-        seq = self._unwrap(seq)
-        if first_cycle > self.next_cycle:
-            self.gap_cycles += first_cycle - self.next_cycle
-            self.next_cycle = self.newest_cycle = first_cycle
-        if self.seq_hi is not None and seq - 1 > self.seq_hi:
-            self.seq_hi = seq - 1  # (their sequence numbers are a span never received)
-
-    def _unwrap(self, seq: int) -> int:
-        if self.seq_hi is None:
-            return seq
-        d = (seq - self.seq_hi) & 0xFFFFFFFF
-        return self.seq_hi + (d - (1 << 32) if d >= 1 << 31 else d)
-
-    def lost(self) -> int:
-        if self.seq_hi is None:
-            return 0
-        return max(0, self.seq_hi - self.seq_lo + 1 - self.seqs_seen)
-
-    def offer(self, d: datagram.Datagram) -> tuple[str, list]:
-        """Take one checked datagram: ``("taken" | "duplicate" | "late", released)``,
-        ``released`` the datagrams now in stream order. Out-of-window fields raise
-        DatagramError."""
-        seq = self._unwrap(d.seq)
-        if self.seq_hi is not None and abs(seq - self.seq_hi) > self.max_jump_datagrams:
-            raise datagram.DatagramError("seq_out_of_window", f"sequence {d.seq} is "
-                                         f"{seq - self.seq_hi:+d} from the newest")
-        if d.first_cycle - max(self.newest_cycle, self.next_cycle) > self.max_jump_cycles:
-            raise datagram.DatagramError("cycle_out_of_window", f"first cycle {d.first_cycle}"
-                                         f" is beyond the run's newest {self.newest_cycle} "
-                                         f"+ {self.max_jump_cycles}")
-        if self.newest is not None and not consistent(seq - self.newest[0], d.first_cycle
-                                                      - self.newest[1], d.n_tdc):
-            raise datagram.DatagramError("inconsistent", f"sequence {d.seq} at first cycle "
-                                         f"{d.first_cycle} cannot follow the run's newest, "
-                                         f"{self.newest[0]} at {self.newest[1]}")
-        key = (seq, d.first_cycle)
-        if key in self.recent_set or (d.first_cycle in self.held
-                                      and self.held[d.first_cycle][0] == seq):
-            return "duplicate", []
-        if d.first_cycle < self.next_cycle:
-            if self.seq_lo is not None and self.seq_lo <= seq <= self.seq_hi:
-                self.seqs_seen += 1  # it came (too late): not a lost datagram
-            return "late", []
-        if d.first_cycle in self.held:
-            raise datagram.DatagramError("conflict", f"cycle {d.first_cycle} again with "
-                                         f"sequence {d.seq}, held with another")
-        self.held[d.first_cycle] = (seq, d)
-        self.seqs_seen += 1
-        self.seq_lo = seq if self.seq_lo is None else min(self.seq_lo, seq)
-        self.seq_hi = seq if self.seq_hi is None else max(self.seq_hi, seq)
-        self.newest_cycle = max(self.newest_cycle, d.first_cycle + d.n_cycles)
-        if self.newest is None or seq > self.newest[0]:
-            self.newest = (seq, d.first_cycle)
-        out = self._release()
-        while len(self.held) > self.window:  # the window is full: give up the hole
-            out += self._skip()
-        return "taken", out
-
-    def _release(self) -> list:
-        out = []
-        while self.next_cycle in self.held:
-            seq, d = self.held.pop(self.next_cycle)
-            out.append((seq, d))
-            if len(self.recent) == self.recent.maxlen:
-                self.recent_set.discard(self.recent[0])
-            self.recent.append((seq, d.first_cycle))
-            self.recent_set.add((seq, d.first_cycle))
-            self.next_cycle += d.n_cycles
-        return out
-
-    def _skip(self) -> list:
-        first = min(self.held)
-        self.gap_cycles += first - self.next_cycle
-        self.next_cycle = first
-        return self._release()
-
-    def drain(self) -> list:
-        """The run's end: release everything held, the holes counted as gaps."""
-        out = []
-        while self.held:
-            out += self._skip()
-        return out
-
-
 def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "udp",
                    journal: str | Path | None = None, segment_words: int = 1 << 24,
                    quarantine: str | Path | None = None, stop: threading.Event | None = None,
@@ -339,7 +108,9 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                    ring_datagrams: int = RING_DATAGRAMS, send_queue: int = SEND_QUEUE,
                    gate_ps: int | None = None, first_seq: int | None = None,
                    quorum: int = QUORUM, rx_batch: int = RX_BATCH,
-                   flush_s: float = FLUSH_S, sparse: bool = False) -> IngestStats:
+                   flush_s: float = FLUSH_S, sparse: bool = False,
+                   peers: list[str] | None = None,
+                   break_quorum: int = BREAK_QUORUM) -> IngestStats:
     """Receive until a datagram flagged last (and the reorder window is settled), ``stop``,
     or ``idle_s`` without data.
 
@@ -351,6 +122,10 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     (default: $TCSPC_TOKEN_FILE). ``gate_ps``, ``first_seq``: the run's gate and first
     sequence number, when the configuration knows them; otherwise the reference comes from
     a ``quorum`` of datagrams that agree (:class:`Reference`), never from the first one.
+    ``peers``: the senders (``HOST`` or ``HOST:PORT``) whose datagrams are read; without,
+    the run locks onto the sender of its reference (:mod:`.senders`). ``break_quorum``:
+    datagrams of the run's sender that agree with each other but not with the stream
+    before they are taken as the FPGA's restarted stream (a new segment of the run).
 
     With a journal that already holds the run (a restarted ingest), the run is taken up
     where the journal has it (:func:`resume_state`): its sequence numbers, cycles, gate and
@@ -389,15 +164,22 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     beat = Metrics(metrics, "source", ctx, token=token)
     date = date or dt.date.today().isoformat()
     stop = stop or threading.Event()
-    stats = IngestStats()
+    senders = Senders(parse_peers(peers), quorum)
+    stats = IngestStats(senders=senders)
     reasm = Reassembler(reorder_window, max_jump_cycles, max_jump_datagrams)
     resumed = resume_state(journal, run) if journal is not None else None
     ref = Reference(quorum, n_tdc, gate_ps)
     if resumed is not None:  # a restarted ingest: the journal is the truth
         reasm.resume(resumed)
         stats.late = resumed["late"]
+        stats.ring_dropped, stats.conflicts = resumed["ring_dropped"], resumed["conflicts"]
+        stats.resets = resumed["resets"]
         n_tdc, gate_ps = resumed["n_tdc"], resumed["gate_ps"]
-        ref = Reference(quorum, n_tdc, gate_ps, anchor=resumed["anchor"])
+        ref = Reference(quorum, n_tdc, gate_ps, anchor=resumed["device_anchor"])
+        # (the sender is locked again by the quorum that agrees with the journal: an FPGA
+        # may send from another port after a reset of its own)
+        for name in resumed["second_senders"]:
+            senders.others[name] = {"datagrams": 0, "consistent": True}
     elif first_seq is not None and n_tdc is not None and gate_ps is not None:
         # the configuration fixes the reference: the run's first datagram, at cycle 0
         reasm.seq_lo, reasm.seq_hi = first_seq, first_seq - 1
@@ -410,6 +192,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     ring_fill, ring_lock = [0], threading.Lock()
     sendq: queue.Queue = queue.Queue(maxsize=send_queue)
     halt_rx, abort_tx = threading.Event(), threading.Event()
+    last_rx = [time.monotonic()]  # when the run's sender(s) last sent: idle is since then
 
     def receiver():
         # what is ready, read at once (up to rx_batch; recvmmsg's batching, in Python):
@@ -428,11 +211,17 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             items = []
             try:
                 while len(items) < rx_batch:
-                    items.append(sock.recv(size))
+                    data, addr = sock.recvfrom(size)
+                    if senders.admits(addr):
+                        items.append((data, addr))
+                    else:  # another sender: named and counted, never in the ring
+                        senders.note(addr, data)
             except BlockingIOError:
                 pass
             except OSError:
                 closed = True  # the socket was closed under us: the run is over
+            if items:
+                last_rx[0] = time.monotonic()
             with ring_lock:
                 room = max(0, ring_datagrams - ring_fill[0])
                 if len(items) > room:
@@ -466,6 +255,8 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     writer: JournalWriter | None = None
     idle = 0.0
     last_end = None   # the cycle after the datagram flagged last, once it came
+    breaks: Reference | None = None  # datagrams held as the start of a restarted stream
+    events: list[dict] = []  # stream events for the next chunk's index line
 
     encoder = RawWordsEncoder()
     splitter = None  # (made at the first batch: a run's n_tdc may come from the stream)
@@ -484,7 +275,17 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         pending, pending_seqs, pending_first, pending_words = [], [], None, 0
         top = max(seqs)
         extra = {"seq": top[0], "seq_cycle": top[1], "seq_lo": min(seqs)[0],
-                 "datagrams": len(seqs), "late": stats.late}
+                 "datagrams": len(seqs), "late": stats.late,
+                 "ring_dropped": stats.ring_dropped, "conflicts": stats.conflicts}
+        if senders.locked is not None:
+            extra["sender"] = sender_name(senders.locked)
+        if senders.second_stream():  # (a restarted ingest must not forget them)
+            extra["second_senders"] = senders.second_stream()
+        if reasm.seg != (0, 0):  # device -> run offsets of a restarted stream
+            extra["seg"] = list(reasm.seg)
+        if events:
+            extra["events"] = events[:]
+            events.clear()
         whole = cut = None
         if sparse:  # one pass: the journal's frame and the messages are made from it
             whole, cut = sparse_parts(words, first, n_tdc, split)
@@ -561,13 +362,31 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
 
     def reject(reason: str, detail: str, data: bytes):
         stats.rejected[reason] += 1
+        if reason == "conflict":  # the stream contradicts itself: the run is incomplete
+            stats.conflicts += 1
         try:
             quar.put(reason, data, detail=detail)
         except OSError:
             quar.dropped += 1  # a full disk: counted, not kept
         stats.quarantine_dropped = quar.dropped
 
-    def offer(d: datagram.Datagram, data: bytes) -> None:
+    def offer(d: datagram.Datagram, data: bytes, addr=None) -> None:
+        # the run's axes; a datagram that could start another stream is held for a quorum
+        nonlocal breaks
+        t = reasm.translate(d)
+        if not reasm.breaks(t):
+            stream(t, data)
+            return
+        if breaks is None:
+            breaks = Reference(break_quorum, n_tdc, gate_ps)
+        group, strays = breaks.offer(d, data, addr)
+        for sd, sdata, _ in strays:  # not a new stream: judged against the run's
+            stream(reasm.translate(sd), sdata)
+        if group is not None:
+            breaks = None
+            restart(group)
+
+    def stream(d: datagram.Datagram, data: bytes) -> None:
         nonlocal last_end
         try:
             verdict, released = reasm.offer(d)
@@ -576,6 +395,10 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             return
         if verdict == "duplicate":
             stats.duplicates += 1
+            return
+        if verdict == "conflict":
+            reject("conflict", f"sequence {d.seq} at cycle {d.first_cycle} again, with "
+                               f"other bytes than the datagram taken", data)
             return
         if verdict == "late":
             stats.late += 1
@@ -587,26 +410,63 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         if d.last:
             last_end = d.first_cycle + d.n_cycles
 
+    def restart(group: list) -> None:
+        # ``break_quorum`` datagrams of one sender agree with each other, not with the
+        # stream: the FPGA restarted it (its sequence numbers back, with or without its
+        # cycle counter) or its sequence numbers jumped with the cycles going on. The old
+        # stream is released, the event journaled, the new one put after it on the run's
+        # axes: a new segment, measured on. Anything else is judged as the run's datagram.
+        a = min(group, key=lambda c: c[0].seq)[0]
+        at = reasm.translate(a)
+        behind = reasm._unwrap(at.seq) < reasm.newest[0]
+        goes_on = at.first_cycle >= reasm.next_cycle  # the cycle counter was not reset
+        if not behind and not goes_on:
+            for sd, sdata, _ in group:
+                stream(reasm.translate(sd), sdata)
+            return
+        for r in reasm.drain():
+            take(r)
+        flush()
+        base = first_seq or 0
+        if not behind or a.seq - base > QUORUM_HOLD:
+            base = a.seq  # (where it restarted from is unknown: nothing counted lost)
+        end = reasm.next_cycle
+        reasm.new_segment(reasm.seq_hi + 1 - base, reasm.seg[1] if goes_on else end)
+        event = {"event": "fpga_restart" if behind else "sequence_jump",
+                 "cycle_counter": "continued" if goes_on else "restarted",
+                 "device_seq": a.seq, "device_cycle": a.first_cycle, "at_cycle": end,
+                 "seq_offset": reasm.seg[0], "cycle_offset": reasm.seg[1],
+                 "t": round(time.time(), 3)}
+        stats.resets.append(event)
+        events.append(event)
+        print(f"ingest: the stream restarted ({event['event']}, cycle counter "
+              f"{event['cycle_counter']}) at sequence {a.seq}, cycle {a.first_cycle}: a new "
+              f"segment from the run's cycle {end}", flush=True)
+        for sd, sdata, _ in group:
+            stream(reasm.translate(sd), sdata)
+
     def stray(d: datagram.Datagram, data: bytes) -> None:
         reject("stray", f"sequence {d.seq}, first cycle {d.first_cycle}, {d.n_tdc} TDCs, "
                         f"gate {d.t_laser_win_ps} ps: not the run's stream", data)
 
     def fix(group: list) -> None:
-        # the reference is fixed: the held datagrams that agree go in, in arrival order
+        # the reference is fixed: the held datagrams that agree go in, in arrival order;
+        # their sender is the run's (without peers, every other is kept out from now)
         nonlocal ref, n_tdc, gate_ps, last_end
         if not group:
             return
         n_tdc, gate_ps = group[0][0].n_tdc, group[0][0].t_laser_win_ps
+        senders.lock(group[0][2])
         if resumed is not None:
-            first = min(group, key=lambda c: c[0].first_cycle)[0]
+            first = reasm.translate(min(group, key=lambda c: c[0].first_cycle)[0])
             reasm.rejoin(first.seq, first.first_cycle)
         ref = None
         if last_end == -1:
             last_end = None
-        for gd, gdata in group:
-            offer(gd, gdata)
+        for gd, gdata, gaddr in group:
+            offer(gd, gdata, gaddr)
 
-    def intake(data: bytes) -> None:
+    def intake(data: bytes, addr) -> None:
         # one datagram, checked against the run (one at a time: a batch's headers read by
         # numpy at once measured slower than struct's per header at every batch size)
         nonlocal last_end
@@ -625,8 +485,8 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             reject(exc.reason, str(exc), data)
             return
         if ref is not None:  # no reference yet: held until a quorum agrees
-            group, strays = ref.offer(d, data)
-            for sd, sdata in strays:
+            group, strays = ref.offer(d, data, addr)
+            for sd, sdata, _ in strays:
                 stray(sd, sdata)
             if group is None:
                 if d.last and ref.held:
@@ -634,7 +494,8 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                 return
             fix(group)
             return
-        offer(d, data)
+        senders.lock(addr)  # (a configured reference: its first datagram's sender)
+        offer(d, data, addr)
 
     def complete() -> bool:  # the last datagram and everything before it are in
         return (last_end is not None and last_end >= 0 and reasm.next_cycle >= last_end
@@ -647,18 +508,19 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             beat.beat(state="running", **stats.fields())
             if last_end == -1 and idle >= linger_s and ref is not None:
                 group, strays = ref.settle()  # a run of fewer datagrams than the quorum
-                for sd, sdata in strays:
+                for sd, sdata, _ in strays:
                     stray(sd, sdata)
                 last_end = None
                 fix(group)
             if complete():
                 break
-            waited = time.monotonic()
             try:
                 batch = ring.get(timeout=flush_s if pending else 0.2)
             except queue.Empty:
                 flush()  # a partial batch waits no longer than flush_s
-                idle += time.monotonic() - waited
+                # idle: since the run's sender last sent (the time this thread spent
+                # waiting on its own journal, a full disk, is not idle: the ring held on)
+                idle = time.monotonic() - last_rx[0] if not ring_fill[0] else 0.0
                 if reasm.held and idle >= linger_s:  # a quiet stream: nothing will fill
                     for r in reasm.drain():         # the holes; hold no words back
                         take(r)
@@ -671,19 +533,28 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             with ring_lock:
                 ring_fill[0] -= len(batch)
             idle = 0.0
-            stats.datagrams += len(batch)
-            for k, data in enumerate(batch):
+            for k, (data, addr) in enumerate(batch):
+                if not senders.admits(addr):  # (the lock came after the receiver read it)
+                    senders.note(addr, data)
+                    continue
+                stats.datagrams += 1
                 if complete():  # the rest came after the run's end: counted, not taken
-                    stats.rejected["after_end"] += len(batch) - k
+                    rest = sum(senders.admits(a) for _, a in batch[k + 1:])
+                    stats.datagrams += rest
+                    stats.rejected["after_end"] += 1 + rest
                     break
-                intake(data)
+                intake(data, addr)
             if pending and time.monotonic() - pending_t0 >= flush_s:
                 flush()
         if ref is not None:  # the run's end without a quorum: the largest group agreeing
             group, strays = ref.settle()
-            for sd, sdata in strays:
+            for sd, sdata, _ in strays:
                 stray(sd, sdata)
             fix(group)
+        if breaks is not None:  # no new stream formed: each judged as the run's datagram
+            for sd, sdata, _ in breaks.held:
+                stream(reasm.translate(sd), sdata)
+            breaks = None
         for r in reasm.drain():
             take(r)
         flush()
@@ -703,7 +574,9 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             "run": run, "seq": stats.messages, "step": "ingest", "words": stats.words,
             "datagrams": stats.datagrams, "lost_datagrams": stats.lost_datagrams,
             "duplicates": stats.duplicates, "late": stats.late,
-            "gap_cycles": stats.gap_cycles, "rejected": dict(stats.rejected)}
+            "gap_cycles": stats.gap_cycles, "rejected": dict(stats.rejected),
+            "conflicts": stats.conflicts, "ring_dropped": stats.ring_dropped,
+            "resets": len(stats.resets)}
         try:  # a stage downstream that takes nothing for a minute is given up on: the
             # daemon ends it, and it fetches the words it lacks from the journal
             sendq.put([wire.encode(stop_head, None, token) for _ in txs], timeout=60)
