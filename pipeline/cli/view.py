@@ -94,6 +94,11 @@ def view(config, state, out, calibration, run_id, port, bind, layout, geometry, 
     except OSError as exc:
         raise click.ClickException(f"cannot listen on {bind}:{port}: {exc.strerror or exc} "
                                    "(another `tcspc view`? use --port)") from None
+    # a stop from here on ends the loop cleanly (before view.url exists: a SIGTERM that
+    # follows it must find the handler, not the default action)
+    loop = server.io_loop
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: loop.add_callback_from_signal(loop.stop))
     where = write_url(state, url) if state.exists() else None
     # the token is a secret: printed (to a log, under the daemon) only when no 0600 file
     # could hold it
@@ -103,9 +108,6 @@ def view(config, state, out, calibration, run_id, port, bind, layout, geometry, 
     err.print(f"tcspc view: open {shown} (state {state}, datasets {out}, calibration "
               f"{calibration or 'none'}){f'; URL in {where}' if where else ''}; Ctrl-C stops",
               highlight=False, soft_wrap=True)
-    loop = server.io_loop
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: loop.add_callback_from_signal(loop.stop))
     if open_browser:
         import webbrowser
 
