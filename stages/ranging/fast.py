@@ -9,7 +9,7 @@ import numpy as np
 
 from stages.models.tcspc import FWHM_PER_SIGMA
 from stages.ranging._numba import numba
-from stages.ranging.detection import _detection, bin_of
+from stages.ranging.detection import _detect, _detection, bin_of
 from stages.ranging.gauss_table import _cdf_pdf_numpy
 from stages.ranging.histograms import Estimate, Histograms
 from stages.ranging.validation import validated
@@ -29,6 +29,10 @@ if numba is not None:
 #: In photon-starving light one step does; at M = 5 the centroid of the piled-up peak is
 #: a poor start and 2-4 are needed.
 SCORING_STEPS = 6
+#: the least signal a fit keeps, in counts over the cycles (a thousandth of a count: a
+#: floor of 1e-9 a cycle was 1 000x the row's counts where a file gives no cycles and
+#: its stand-in is 1e12 x the row's total, issue 34.3)
+_M_FLOOR = 1e-3
 _CONVERGED = 0.5
 _RESIDUAL = 0.2
 
@@ -140,7 +144,8 @@ def _score_steps_numpy(counts, edges, valid, r, C, peak, bg, t, kw, inv_s, steps
     w_in = np.where(ok, edges[R, win + 1] - edges[R, win], 0.0).sum(1)
     r0 = np.maximum(r[rows, lo], hits + 1.0)
     share = ndtr_((edges[rows, hi] - t) * inv_s) - ndtr_((edges[rows, lo] - t) * inv_s)
-    m = np.maximum((-np.log1p(-hits / r0) - bg * w_in) / np.maximum(share, 0.5), 1e-9)
+    floor = _M_FLOOR / np.maximum(r[:, 0], 1.0)  # (the cycles)
+    m = np.maximum((-np.log1p(-hits / r0) - bg * w_in) / np.maximum(share, 0.5), floor)
     sig = np.full(n_pix, np.inf)
     active = np.ones(n_pix, bool)
     for step in range(steps):
@@ -165,7 +170,7 @@ def _score_steps_numpy(counts, edges, valid, r, C, peak, bg, t, kw, inv_s, steps
         st = np.clip((i11 * s0 - i01 * s1) / d, -step_cap, step_cap)
         sm = (i00 * s1 - i01 * s0) / d
         t = np.where(active, t + st, t)
-        m = np.where(active, np.minimum(np.maximum(np.maximum(m + sm, 0.5 * m), 1e-9), 2.0 * m),
+        m = np.where(active, np.minimum(np.maximum(np.maximum(m + sm, 0.5 * m), floor), 2.0 * m),
                      m)
         ast = np.abs(st)
         settled = (ast < _CONVERGED * sig) | (ast * (ast + sig) * inv_s < _RESIDUAL * sig)
@@ -330,7 +335,8 @@ if numba is not None:
             r0 = max(r[lo], hits + 1.0)
             share = (_cdf_pdf((edges[p, hi] - t) * inv_s)[0]
                      - _cdf_pdf((edges[p, lo] - t) * inv_s)[0])
-            m = max((-math.log1p(-hits / r0) - bg * w_in) / max(share, 0.5), 1e-9)
+            floor = _M_FLOOR / max(cyc, 1.0)
+            m = max((-math.log1p(-hits / r0) - bg * w_in) / max(share, 0.5), floor)
             for _s in range(steps):
                 if _s > 0:  # re-centre on the new estimate
                     cb, lo, hi = _window_at(edges[p], cb, t, kw)
@@ -360,7 +366,7 @@ if numba is not None:
                 st = min(max((i11 * s0 - i01 * s1) / det, -step_cap), step_cap)
                 sm = (i00 * s1 - i01 * s0) / det
                 t += st
-                m = min(max(m + sm, 0.5 * m, 1e-9), 2.0 * m)  # at most a factor 2 a step
+                m = min(max(m + sm, 0.5 * m, floor), 2.0 * m)  # at most a factor 2 a step
                 ast = abs(st)
                 settled = (ast < _CONVERGED * sig
                            or ast * (ast + sig) * inv_s < _RESIDUAL * sig)
@@ -402,7 +408,8 @@ def fast(h: Histograms, sigma_s: float, p_fa: float = 1e-3, compiled: bool | Non
     """
     compiled = (numba is not None) if compiled is None else compiled
     args, bin_s = _fast_args(h, sigma_s, p_fa)
-    t, _, m, bg, det, sig = (_fast_numba if compiled else _fast_numpy)(*args)
+    t, peak, m, bg, _, sig = (_fast_numba if compiled else _fast_numpy)(*args)
+    det = _detect(h, peak, bg, p_fa, t, sigma_s)
     return Estimate(t, sig, np.full(t.size, FWHM_PER_SIGMA * sigma_s), m * h.cycles,
                     bg * bin_s * h.cycles, det, "fast")
 

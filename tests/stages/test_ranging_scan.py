@@ -1,0 +1,123 @@
+"""Detection by the scan statistic (issue 34.9), tried from outside: histograms from an
+independent generator (1 024 bins of 80 ps, a Gaussian pulse of 440 ps FWHM, S signal
+photons, B background photons over the window), the false-alarm rate against a binomial
+bound of p_fa, and the detection probability against the plain test "most counts in any
+6-bin window" at a threshold measured on background alone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.special import ndtr
+
+from stages.ranging import Histograms, estimate, numba
+from stages.ranging.detection import _detect, scan_bins, scan_pvalue, scan_threshold
+
+N, BIN, FWHM = 1024, 80e-12, 440e-12
+SIG = FWHM / (2 * np.sqrt(2 * np.log(2)))
+
+
+def histograms(rng, n, s, b, cycles=None):
+    """n histograms: a pulse of s photons (Poisson) at a uniform time away from the
+    ends, b background photons (Poisson) spread over the window; ``cycles`` None is a
+    file without cycles (the stand-in: 1e12 x the row's total, as the generic reader)."""
+    e = np.arange(N + 1) * BIN
+    t0 = rng.uniform(100 * BIN, (N - 100) * BIN, n)
+    mu = s * np.diff(ndtr((e[None, :] - t0[:, None]) / SIG), axis=1) + b / N
+    c = rng.poisson(mu).astype(np.float64)
+    cyc = (np.maximum(c.sum(1), 1) * 1e12 if cycles is None else np.full(n, float(cycles)))
+    return Histograms(c, np.broadcast_to(e, (n, N + 1)).copy(), cyc,
+                      np.ones_like(c, bool)), t0
+
+
+def window_max(c, k=6):
+    cs = np.concatenate([np.zeros((c.shape[0], 1)), np.cumsum(c, axis=1)], axis=1)
+    return (cs[:, k:] - cs[:, :-k]).max(axis=1)
+
+
+def measured_threshold(rng, b, p_fa=1e-3, n=20_000):
+    """The least count of the 6-bin window test whose rate on background alone is at most
+    p_fa (measured, as the issue's reference test)."""
+    m0 = window_max(histograms(rng, n, 0, b)[0].counts)
+    return next(c for c in range(1, 1000) if np.mean(m0 >= c) <= p_fa)
+
+
+@pytest.mark.parametrize("mu, k, m", [(0.05, 6, 1019), (0.3, 7, 1018), (3.0, 7, 400),
+                                      (40.0, 3, 3000), (0.2, 1, 1000)])
+def test_scan_bound_holds_and_is_tight(mu, k, m):
+    """The scan p-value bounds the simulated probability that background alone reaches
+    the threshold in some window, and is within 30 % of it (p_fa 1e-2: measurable)."""
+    rng = np.random.default_rng(int(mu * 100) + k)
+    n_bins = m + k - 1
+    x = rng.poisson(mu / k, (20_000, n_bins))
+    sim = window_max(x, k)
+    thr = scan_threshold(mu, k, m, 1e-2)
+    rate = np.mean(sim >= thr)
+    bound = float(scan_pvalue(np.array([thr]), np.array([mu]), k, np.array([m]))[0])
+    assert rate <= bound + 3 * np.sqrt(bound / 20_000)
+    assert bound <= 1e-2
+    # one count lower is above p_fa, and the bound is not loose: the simulated rate is
+    # at least 70 % of it where it can be measured
+    low = float(scan_pvalue(np.array([thr - 1]), np.array([mu]), k, np.array([m]))[0])
+    assert low > 1e-2 or thr - 1 <= 0
+    if bound > 2e-3:
+        assert rate >= 0.7 * bound - 3 * np.sqrt(bound / 20_000)
+
+
+@pytest.mark.skipif(numba is None, reason="numba not installed")
+def test_compiled_scan_agrees_with_numpy():
+    from stages.ranging.detection import _scan_p
+    from stages.ranging.fast import _fast_args, _fast_numba
+
+    t = np.arange(0, 60.0)
+    for mu, k, m in [(0.01, 7, 1000.0), (3.3, 7, 1000.0), (30.0, 2, 50.0), (900.0, 9, 4000.0)]:
+        want = scan_pvalue(t, np.full(t.size, mu), k, np.full(t.size, m))
+        got = np.array([_scan_p(x, mu, k, m) for x in t])
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-300)
+    rng = np.random.default_rng(3)
+    for s, b, cyc in [(10, 50, 1e5), (3, 2, None), (1000, 5000, 3000), (0, 0.5, None)]:
+        h, _ = histograms(rng, 1500, s, b, cyc)
+        a, _ = _fast_args(h, SIG, 1e-3)
+        t_s, peak, _, bg, _, _ = _fast_numba(*a)
+        for p_fa in (1e-3, 0.05, 0.5):
+            np.testing.assert_array_equal(
+                _detect(h, peak, bg, p_fa, t_s, SIG, compiled=True),
+                _detect(h, peak, bg, p_fa, t_s, SIG, compiled=False))
+
+
+@pytest.mark.parametrize("estimator", ["fast", "ml", "matched", "centroid", "gaussfit"])
+@pytest.mark.parametrize("b", [0.1, 2.0, 50.0, 1000.0])
+@pytest.mark.parametrize("cycles", [None, 1e5])
+def test_false_alarms_within_the_binomial_bound(estimator, b, cycles):
+    """Background-only histograms of the independent generator at p_fa 0.05 and 1e-3:
+    histograms called detected within a 3-sigma binomial bound of p_fa."""
+    rng = np.random.default_rng(int(b * 10) + (cycles is None))
+    n = 300 if estimator == "gaussfit" else 2000
+    h, _ = histograms(rng, n, 0, b, cycles)
+    for p_fa in (0.05, 1e-3):
+        r = estimate(h, SIG, estimator, p_fa)
+        bound = n * p_fa + 3 * np.sqrt(n * p_fa * (1 - p_fa)) + 1
+        assert int(np.sum(r.detected)) <= bound, (p_fa, int(np.sum(r.detected)))
+
+
+@pytest.mark.parametrize("s, b", [(10, 2), (10, 50), (5, 10), (2, 2)])
+@pytest.mark.parametrize("estimator", ["fast", "ml"])
+def test_detection_probability_against_the_window_test(s, b, estimator):
+    """The issue's grid: P_d at p_fa 1e-3 (a detection within 2 FWHM of the truth) of ml
+    and fast, cycles given or not, against the 6-bin window test whose threshold is
+    measured on background alone with the background known (an oracle the estimators do
+    not have: they estimate it from the histogram): within 2.5 points of it on the same
+    histograms (measured: -1.2 to +0.8), where the single-bin test was 45-75 points below."""
+    rng = np.random.default_rng(s * 100 + b)
+    thr = measured_threshold(rng, b)
+    for cycles in (None, 1e5):
+        h, t0 = histograms(rng, 3000, s, b, cycles)
+        ref = np.mean(window_max(h.counts) >= thr)
+        r = estimate(h, SIG, estimator, 1e-3)
+        pd = np.mean(r.detected & (np.abs(r.t_s - t0) < 2 * FWHM))
+        assert pd >= ref - 0.025, (cycles, pd, ref)
+
+
+def test_window_is_three_sigma():
+    assert scan_bins(SIG, BIN) == 7 and scan_bins(0.2e-9, 0.2e-9) == 3
+    assert scan_bins(1e-12, 1e-9) == 1
