@@ -65,6 +65,8 @@ class DistanceCalibration:
     response: Response | None = None
     cycles: float | None = None
     pileup: str = "none (the file gives no cycles)"
+    #: measurements the truth file names that the histograms file does not have
+    missing: list[str] = field(default_factory=list)
     measurements: list[str] = field(default_factory=list)
     distances_m: list[float] = field(default_factory=list)
     path: str = ""
@@ -393,6 +395,8 @@ def calibrate_distance(path: str | Path, truth_csv: str | Path,
     meas = [m for m in read_generic(path) if m.name in names]
     if not meas:
         raise CalibrationError(f"{truth_csv}: names no measurement of {path}")
+    # (a truth row naming no measurement of the file was skipped silently: counted, named)
+    missing = sorted(names - {m.name for m in meas})
     tdc = meas[0].tdc[~meas[0].reference]
     for m in meas:
         if not np.array_equal(m.tdc[~m.reference], tdc):
@@ -424,9 +428,16 @@ def calibrate_distance(path: str | Path, truth_csv: str | Path,
         c = mid.cycles[r] if np.isfinite(mid.cycles[r]) else cycles
         return response_from_counts(mid.counts[r], nominal, source, c)
 
+    cal.missing = missing
     cal.response = response(None)
-    if fit_pileup and all(not np.isfinite(m.cycles).any() for m in meas) and np.unique(
-            cal.distances_m).size >= 3:
+    if any(np.isfinite(m.cycles).any() for m in meas):
+        cal.pileup = "Coates, with the file's cycles (none fitted)"
+    elif not fit_pileup:
+        cal.pileup = "none (not fitted: asked so)"
+    elif np.unique(cal.distances_m).size < 3:
+        cal.pileup = ("none (the file gives no cycles; an effective pulse count needs >= 3 "
+                      "distances to fit)")
+    else:
         cal.cycles, cal.pileup = _fit_cycles(meas, dist, cal.response, p_fa)
         cal.response = response(cal.cycles)  # its shape without the pile-up
     cal.returns_response = _returns_response(meas, cal, p_fa)
@@ -483,6 +494,7 @@ def _fit_cycles(meas, dist, response, p_fa) -> tuple[float | None, str]:
     grid = np.log(_CYCLE_GRID)
     scores = np.array([rms(x) for x in grid])
     best, best_rms = None, rms(None)
+    none_rms = best_rms
     i = int(np.nanargmin(scores))
     if scores[i] < best_rms:  # refined between the grid's neighbours (a smooth minimum)
         lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
@@ -492,8 +504,35 @@ def _fit_cycles(meas, dist, response, p_fa) -> tuple[float | None, str]:
         best, best_rms = float(np.exp(x)) * top, v
     if best is None:
         return None, "none (no effective pulse count improved the fit)"
+    # one more parameter enters only on an F test of the residuals at PILEUP_ALPHA: every
+    # row's line has 2 parameters; a count fitted to noise took 1.1-2.2e4 pulses on
+    # files without pile-up and hid a second surface (issue 34.2)
+    n = int(np.isfinite(_fit_rows([measurement_times(m, "ml", p_fa, response)
+                                   for m in meas], dist)[2]).sum())
+    dof = n - 2 * dist.shape[1] - 1
+    p = _f_test(none_rms, best_rms, n, dof)
+    why = (f"residual RMS {none_rms * 1e3:.3f} -> {best_rms * 1e3:.3f} mm, F test "
+           f"p = {p:.2g} on {n} residuals")
+    if not p < PILEUP_ALPHA:
+        return None, (f"none (the best effective pulse count, {best:.4g}, is not "
+                      f"significant at {PILEUP_ALPHA:g}: {why})")
     return best, (f"Coates with {best:.4g} effective pulses per histogram, fitted on the "
-                  f"calibration (residual RMS {best_rms * 1e3:.3f} mm)")
+                  f"calibration ({why} < {PILEUP_ALPHA:g})")
+
+
+#: the significance at which a calibration models pile-up (an effective pulse count)
+PILEUP_ALPHA = 0.01
+
+
+def _f_test(rms0: float, rms1: float, n: int, dof: int) -> float:
+    """P-value of one added parameter lowering the residuals' RMS from rms0 to rms1 over n
+    residuals (dof left with it): F = (RSS0 - RSS1) / (RSS1 / dof) against F(1, dof)."""
+    from scipy.stats import f
+
+    if dof < 1 or not (rms1 > 0) or not np.isfinite(rms0):
+        return 1.0
+    rss0, rss1 = n * rms0 ** 2, n * rms1 ** 2
+    return float(f.sf(max(rss0 - rss1, 0.0) / (rss1 / dof), 1, dof))
 
 
 def range_generic(path: str | Path, calibration: DistanceCalibration | None = None,

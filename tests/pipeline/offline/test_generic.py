@@ -389,3 +389,64 @@ def test_a_file_the_calibration_does_not_fit_is_refused_in_one_line(tmf):
     assert DistanceCalibration.load(old).reference is True
     r = tcspc("range", noref, "--calibration", d / "cal", "--out", d / "x.parquet")
     assert r.returncode != 0 and r.stderr.count("\n") <= 2 and "reference channel" in r.stderr
+
+
+@pytest.mark.parametrize("cols, args, words", [
+    ({"bin_width_ps": [BIN_PS, 0.0]}, ["--delay-ps", "0"], "row 1: bin_width_ps"),
+    ({"bin_width_ps": [BIN_PS, float("nan")]}, ["--delay-ps", "0"], "row 1: bin_width_ps"),
+    ({"cycles": [1000, 3]}, ["--delay-ps", "0"], "row 1: cycles 3 is fewer"),
+    ({"cycles": [1000, 0]}, ["--delay-ps", "0"], "cycles"),
+    ({}, ["--delay-ps", "0", "--irf-ps", "1e9"], "no wider"),
+    ({}, ["--delay-ps", "0", "--max-returns", "3", "--estimator", "gaussfit"], "returns"),
+])
+def test_every_bad_input_of_range_exits_2_in_one_line(tmp_path, cols, args, words):
+    """Issue 34.8: bad input or configuration exits 2 (docs/design.md), one line."""
+    f = _write(tmp_path / "bad.parquet", [[0, 5, 9, 1] * 10, [1, 4, 8, 2] * 10], **cols)
+    r = tcspc("range", f, *args, "--out", tmp_path / "r.parquet")
+    assert r.returncode == 2 and words in r.stderr, (r.returncode, r.stderr)
+    assert len([x for x in r.stderr.splitlines() if x.strip()]) == 1, r.stderr
+
+
+def test_calibrate_distance_says_what_it_modelled_and_names_missing_truth(tmp_path):
+    """A file that gives its cycles is not "a file that gives no cycles"; a truth row
+    naming no measurement of the file is counted and named; a chip calibration on generic
+    histograms and an empty truth file exit 2 in one line."""
+    rng = np.random.default_rng(5)
+    rows, truth = [], ["measurement,distance_m"]
+    for i, d in enumerate((0.3, 0.6, 0.9)):
+        rows += [_returns(rng, 2000 + 2 * d / C_LIGHT * 1e12, 20_000)] * 2
+        truth.append(f"m{i},{d}")
+    truth.append("nowhere,1.5")
+    (tmp_path / "truth.csv").write_text("\n".join(truth) + "\n")
+    meas = [f"m{i // 2}" for i in range(6)]
+    f = _write(tmp_path / "h.parquet", rows, measurement=meas, tdc=[0, 1] * 3,
+               cycles=[10 ** 7] * 6)
+    r = tcspc("calibrate", "distance", f, "--truth", tmp_path / "truth.csv", "--out",
+              tmp_path / "cal")
+    assert r.returncode == 0, r.stderr
+    assert "the file's cycles" in r.stderr and "gives no cycles" not in r.stderr
+    assert "1 measurement(s) not in" in r.stderr and "nowhere" in r.stderr
+    (tmp_path / "empty.csv").write_text("")
+    r = tcspc("calibrate", "distance", f, "--truth", tmp_path / "empty.csv", "--out",
+              tmp_path / "cal2")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    chip = tmp_path / "chip"
+    chip.mkdir()
+    r = tcspc("range", f, "--calibration", chip, "--out", tmp_path / "r.parquet")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_no_pile_up_is_fitted_where_the_data_has_none(tmp_path):
+    """Issue 34.2: histograms without pile-up and without cycles, at three distances: the
+    effective pulse count enters only on its F test (p < 0.01), and the output says why."""
+    rng = np.random.default_rng(11)
+    rows, meas, truth = [], [], ["measurement,distance_m"]
+    for i, d in enumerate((0.3, 0.6, 0.9)):
+        for _ in range(8):
+            rows.append(_returns(rng, 2000 + 2 * d / C_LIGHT * 1e12, 3_000))
+            meas.append(f"m{i}")
+        truth.append(f"m{i},{d}")
+    (tmp_path / "truth.csv").write_text("\n".join(truth) + "\n")
+    f = _write(tmp_path / "h.parquet", rows, measurement=meas, tdc=list(range(8)) * 3)
+    cal = calibrate_distance(f, tmp_path / "truth.csv", estimators=("ml",))
+    assert cal.cycles is None and cal.pileup.startswith("none"), cal.pileup
