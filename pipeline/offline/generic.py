@@ -42,6 +42,7 @@ from stages.ranging.irf import (
 )
 from stages.ranging.multi import select_rows
 from stages.ranging.multi_irf import PerGroup, merge_rows
+from stages.ranging.width import response_from_data
 
 CALIBRATION_FILE = "distance_calibration.json"
 #: the key of a fit made with a Gaussian by an estimator that takes a measured response
@@ -239,6 +240,7 @@ class _First:
     single: object           #: its single-return estimator, a function of Histograms
     est: Estimate            #: of the rows ``~m.reference``
     origin: float
+    sigma: float = float("nan")  #: the Gaussian's sigma (a measured response's FWHM's)
 
 
 def _first(m: Measurement, estimator, p_fa, response, sigma_s, cycles) -> _First:
@@ -256,18 +258,28 @@ def _first(m: Measurement, estimator, p_fa, response, sigma_s, cycles) -> _First
         def single(hh):
             return fit_response(hh, response, estimator, p_fa)
         used = response.source
+        sigma = response.sigma_s
     else:
-        sigma = sigma_s or (response.sigma_s if response is not None else m.bin_width_s)
+        how = "given"
+        if sigma_s is None and response is None:
+            # measured on the returns (one bin was taken: ml's 2-sigma coverage 0.59-0.84
+            # on a response 2.3 bins wide, issue 34.5)
+            sigma, how = response_from_data(h)
+            sigma = max(sigma, m.bin_width_s / np.sqrt(12.0))
+        else:
+            sigma = sigma_s or response.sigma_s
 
         def single(hh):
             return estimate(hh, sigma, estimator, p_fa)
-        used = f"Gaussian, sigma {sigma * 1e12:.1f} ps"
+        used = f"Gaussian, sigma {sigma * 1e12:.1f} ps" + ("" if how == "given" else
+                                                            f" ({how})")
     est = single(h)
     origin = 0.0
     if ref.size:
         origin = est.t_s[ref[0]] if est.detected[ref[0]] else np.nan
     keep = ~m.reference
-    return _First(m, cyc, pileup, bright, used, single, select_rows(est, keep), origin)
+    return _First(m, cyc, pileup, bright, used, single, select_rows(est, keep), origin,
+                  sigma)
 
 
 def measurements_times(ms: list[Measurement], estimator: str = "ml", p_fa: float = 1e-3,
@@ -283,10 +295,15 @@ def measurements_times(ms: list[Measurement], estimator: str = "ml", p_fa: float
     if max_returns == 1:
         return [Times(f.m.tdc[~f.m.reference], f.est, f.est.t_s - f.origin, f.used,
                       f.pileup, f.bright[~f.m.reference]) for f in firsts]
-    if returns_response is None:
-        raise CalibrationError("several returns a row need the returns' measured "
-                               "response (a calibration from `tcspc calibrate distance`)")
     out: list[Times | None] = [None] * len(firsts)
+    if returns_response is None:  # a Gaussian response (--irf-ps, --delay-ps): its masks
+        for i, f in enumerate(firsts):
+            r = np.flatnonzero(~f.m.reference)
+            found = estimate_returns(_histograms(f.m, f.cyc, r), f.sigma, estimator, p_fa,
+                                     max_returns)
+            out[i] = Times(f.m.tdc[r][found.pixel], found, found.t_s - f.origin, f.used,
+                           f.pileup, f.bright[r][found.pixel])
+        return out
     for batch in _batches(firsts):
         fs = [firsts[i] for i in batch]
         rows = [np.flatnonzero(~f.m.reference) for f in fs]
@@ -556,12 +573,12 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
     response = calibration.response if calibration is not None else None
     returns_response = calibration.returns_response if calibration is not None else None
     if max_returns is None:
-        max_returns = MAX_RETURNS if returns_response is not None else 1
-    if max_returns > 1 and returns_response is None:
+        max_returns = MAX_RETURNS if returns_response is not None or zero is not None else 1
+    if max_returns > 1 and calibration is not None and returns_response is None:
         raise CalibrationError(
             f"--max-returns {max_returns}: several returns a row need the returns' measured "
-            "response, which a calibration from `tcspc calibrate distance` holds"
-            + (" (this one predates it: calibrate again)" if calibration is not None else ""))
+            "response, which a calibration from `tcspc calibrate distance` holds (this one "
+            "predates it: calibrate again)")
     crosstalk = 0
     key = estimator
     if calibration is not None:
@@ -578,6 +595,18 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
         zt = measurement_times(z, estimator, p_fa, response, sigma_s, cycles)
         zero_delay = dict(zip(zt.tdc.tolist(), np.where(zt.est.detected, zt.t_s, np.nan),
                               strict=True))
+        if max_returns > 1 and np.asarray(zt.est.detected).any():
+            # the zero file's returns, aligned and averaged: the returns' response, tail
+            # and all, as a calibration's (issue 34.1)
+            zh = _histograms(z, _cycles(z, cycles)[0], np.flatnonzero(~z.reference))
+            returns_response = response_from_returns(
+                zh, np.where(zt.est.detected, zt.est.t_s, np.nan),
+                f"the returns of the zero-distance file {zero}, aligned and averaged")
+            if sigma_s is None:  # the same shape times the zero and the file
+                response = returns_response
+                zt = measurement_times(z, estimator, p_fa, response, None, cycles)
+                zero_delay = dict(zip(zt.tdc.tolist(), np.where(zt.est.detected, zt.t_s,
+                                                                np.nan), strict=True))
     tables, info = [], {}
     meas = read_generic(path)
     for m in meas:
@@ -625,7 +654,11 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
                               "than the effective pulses: their own total used instead")
     if max_returns > 1:
         info["returns"] = (f"up to {max_returns} a row, each found one's model "
-                           f"{returns_response.source} (its tail included)")
+                           + (f"{returns_response.source} (its tail included)"
+                              if returns_response is not None else
+                              "the Gaussian response (its tails masked; a real response's "
+                              "longer tail may be found as a surface: --zero or a "
+                              "calibration measure it)"))
     if crosstalk:
         info["crosstalk"] = (f"{crosstalk} further return(s) within the response's FWHM of "
                              "the zero left out (the sensor's own crosstalk)")

@@ -252,13 +252,9 @@ def _detect(h: Histograms, peak, bg_rate, p_fa, t_s=None, sigma_s=None, compiled
                            k, float(p_fa))
     else:
         det = _detection(h.counts, h.valid, h.at_risk, h.widths, at, bg_rate, p_fa, scan=k)
-    # an estimate on a masked bin (under the reset peak's mask: the return is there, its
-    # flank outside the mask may hold nothing) keeps the tested bin's test
-    under = ~np.asarray(h.valid, bool)[np.arange(at.size), at]
-    if k > 1 and under.any():
-        rows = np.flatnonzero(under)
-        det[rows] = _detection(h.counts[rows], h.valid[rows], h.at_risk[rows],
-                               h.widths[rows], at[rows], np.asarray(bg_rate)[rows], p_fa)
+    # (an estimate on masked bins is tested on the valid bins of its windows only: the
+    # single-bin test took a masked bin's counts, the reset peak's or a found return's,
+    # and a further return searched beside a masked one was "detected" in 22 % of rows)
     return det
 
 
