@@ -371,6 +371,10 @@ def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, g
             check_delay(delay_ps, "--delay-ps")
     except ValueError as exc:
         raise instruments.BadInput(str(exc)) from exc
+    from pipeline.offline.ranging import SIGMA_NOTE
+
+    if estimator in SIGMA_NOTE:
+        warn(SIGMA_NOTE[estimator] + " (ml and fast's cover)")
     fmt = instruments.detect(capture, fmt)
     if fmt == "histograms" and instruments.is_generic(capture):
         # several returns need the returns' measured response (tail and all), which a

@@ -566,7 +566,7 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
     with a calibration that holds its returns' measured response, else 1; more than one
     without it is refused). A further return within the response's FWHM of the zero is
     left out (the sensor's own crosstalk, its cover glass) and counted in ``info``."""
-    from pipeline.offline.ranging import behind_zero, ranges_table
+    from pipeline.offline.ranging import SIGMA_NOTE, behind_zero, ranges_table
     from stages.ranging.multi import MAX_RETURNS
 
     cycles = calibration.cycles if calibration is not None else None
@@ -668,6 +668,8 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
             b"tcspc.returns": info.get("returns", "one a row").encode()}
     if calibration is not None:
         meta[b"tcspc.calibration"] = calibration.path.encode()
+    if estimator in SIGMA_NOTE:
+        meta[b"tcspc.sigma"] = SIGMA_NOTE[estimator].encode()
     return table.replace_schema_metadata(meta), info
 
 

@@ -9,13 +9,13 @@ import numpy as np
 
 from stages.models.tcspc import FWHM_PER_SIGMA
 from stages.ranging._numba import numba
-from stages.ranging.detection import _detect, _detection, bin_of
+from stages.ranging.detection import _detection, bin_of, scan_bins
 from stages.ranging.gauss_table import _cdf_pdf_numpy
 from stages.ranging.histograms import Estimate, Histograms
 from stages.ranging.validation import validated
 
 if numba is not None:
-    from stages.ranging.detection import _poisson_tail
+    from stages.ranging.detection import _poisson_tail, _scan_p
     from stages.ranging.gauss_table import _cdf_pdf
 
 
@@ -64,7 +64,7 @@ def _fast_args(h: Histograms, sigma_s: float, p_fa: float, steps: int = SCORING_
     kb, kc, kw = _fast_params(bin_s, sigma_s)
     return (counts, edges, np.ascontiguousarray(h.valid),
             np.ascontiguousarray(h.cycles, np.float64), kb, kc, float(p_fa), kw,
-            1.0 / sigma_s, steps, sigma_s), bin_s
+            1.0 / sigma_s, steps, sigma_s, scan_bins(sigma_s, bin_s)), bin_s
 
 
 def _coarse_to_fine_numpy(S):
@@ -81,7 +81,8 @@ def _coarse_to_fine_numpy(S):
     return np.where((m + 1 < n) & (right > bv), m + 1, best)
 
 
-def _fast_numpy(counts, edges, valid, cycles, kb, kc, p_fa, kw, inv_s, steps, step_cap):
+def _fast_numpy(counts, edges, valid, cycles, kb, kc, p_fa, kw, inv_s, steps, step_cap,
+                scan=1):
     """The fast estimator on whole arrays (the compiled kernel's twin, tested equal)."""
     n_pix, n = counts.shape
     rows = np.arange(n_pix)
@@ -115,7 +116,8 @@ def _fast_numpy(counts, edges, valid, cycles, kb, kc, p_fa, kw, inv_s, steps, st
                  0.5 * (edges[rows, peak] + edges[rows, peak + 1]))
     t, m, sig = _score_steps_numpy(counts, edges, valid, r, C, peak, bg, t, kw, inv_s, steps,
                                    step_cap)
-    det = _detection(counts, valid, r, widths, bin_of(edges, t, peak), bg, p_fa, RW[:, -1])
+    det = _detection(counts, valid, r, widths, bin_of(edges, t, peak), bg, p_fa, RW[:, -1],
+                     scan)
     return t, peak, m, bg, det, sig
 
 
@@ -241,7 +243,8 @@ if numba is not None:
         return best
 
     @numba.njit(cache=True, nogil=True)
-    def _fast_numba(counts, edges, valid, cycles, kb, kc, p_fa, kw, inv_s, steps, step_cap):
+    def _fast_numba(counts, edges, valid, cycles, kb, kc, p_fa, kw, inv_s, steps, step_cap,
+                    scan=1):
         """Two passes per histogram: prefix sums (at-risk cycles, valid counts and
         cycle-seconds at risk), then the boxed excess's maximum; everything else comes from
         the prefix sums or the window around the peak (the centroid in +-2 sigma, then
@@ -374,16 +377,31 @@ if numba is not None:
                     break
             t_out[p] = t
             sig_out[p] = sig
-            # tested_bin: the valid bin of most counts of the estimate's bin (bin_of) and
-            # its neighbours
             q = _window_at(edges[p], cb, t, kw)[0] if math.isfinite(t) else peak
-            for j in (q - 1, q + 1):
-                if 0 <= j < n and valid[p, j] and (not valid[p, q]
-                                                   or counts[p, j] > counts[p, q]):
-                    q = j
             bgd = max(bg, 1.0 / max(RW[n], 1e-300))  # _detection's floor: one count
-            b = max(r[q], 0.0) * -np.expm1(-bgd * (edges[p, q + 1] - edges[p, q]))
-            det_out[p] = _poisson_tail(counts[p, q], b) <= p_fa / max(nv, 1)
+            if scan > 1:  # _scan_detect's test, from this kernel's running sums
+                k = min(scan, n)
+                best = 0
+                top = -1.0
+                for s in range(max(q - k, 0), min(q + 1, n - k) + 1):
+                    if C[s + k] - C[s] > top:
+                        top = C[s + k] - C[s]
+                        best = s
+                mu = 0.0
+                for j in range(best, best + k):
+                    if valid[p, j]:
+                        mu += max(r[j], 0.0) * -math.expm1(-bgd * (edges[p, j + 1]
+                                                                 - edges[p, j]))
+                mpos = max(min(nv + k - 1, n - k + 1), 1)
+                det_out[p] = _scan_p(top, mu, k, float(mpos)) <= p_fa
+            else:  # tested_bin: the valid bin of most counts of the estimate's bin and
+                # its neighbours
+                for j in (q - 1, q + 1):
+                    if 0 <= j < n and valid[p, j] and (not valid[p, q]
+                                                       or counts[p, j] > counts[p, q]):
+                        q = j
+                b = max(r[q], 0.0) * -np.expm1(-bgd * (edges[p, q + 1] - edges[p, q]))
+                det_out[p] = _poisson_tail(counts[p, q], b) <= p_fa / max(nv, 1)
             tot_out[p] = m
             bg_out[p] = bg
             peak_out[p] = peak
@@ -408,8 +426,7 @@ def fast(h: Histograms, sigma_s: float, p_fa: float = 1e-3, compiled: bool | Non
     """
     compiled = (numba is not None) if compiled is None else compiled
     args, bin_s = _fast_args(h, sigma_s, p_fa)
-    t, peak, m, bg, _, sig = (_fast_numba if compiled else _fast_numpy)(*args)
-    det = _detect(h, peak, bg, p_fa, t, sigma_s)
+    t, _, m, bg, det, sig = (_fast_numba if compiled else _fast_numpy)(*args)
     return Estimate(t, sig, np.full(t.size, FWHM_PER_SIGMA * sigma_s), m * h.cycles,
                     bg * bin_s * h.cycles, det, "fast")
 

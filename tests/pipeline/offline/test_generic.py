@@ -495,3 +495,35 @@ def test_no_pile_up_is_fitted_where_the_data_has_none(tmp_path):
     f = _write(tmp_path / "h.parquet", rows, measurement=meas, tdc=list(range(8)) * 3)
     cal = calibrate_distance(f, tmp_path / "truth.csv", estimators=("ml",))
     assert cal.cycles is None and cal.pileup.startswith("none"), cal.pileup
+
+
+def test_a_file_too_big_to_range_is_refused_up_front_in_one_line(tmp_path):
+    """Issue 34.7: the counts' size is read from the parquet's metadata and refused before
+    anything is read when ranging would not fit in memory (here: a budget of 10 kB)."""
+    from pipeline.io.generic import BYTES_PER_VALUE, check_size
+
+    f = _write(tmp_path / "h.parquet", [[1] * 100] * 3)
+    check_size(f, available=300 * BYTES_PER_VALUE)  # fits
+    with pytest.raises(SchemaMismatch, match=r"3 rows holding 300 count values need .* "
+                                             r"split the file"):
+        check_size(f, available=10_000)
+
+
+def test_a_row_number_the_ranges_cannot_carry_is_refused_naming_the_row(tmp_path):
+    f = _write(tmp_path / "h.parquet", [[1, 2, 3]] * 2, tdc=[0, 70_000])
+    with pytest.raises(SchemaMismatch, match=r"row 1: tdc must be 0..65535, found 70000"):
+        read_generic(f)
+
+
+def test_an_estimator_whose_sigma_does_not_cover_says_so(tmp_path):
+    """Issue 34.5: matched, centroid and gaussfit say in the output (stderr and the
+    ranges' metadata) that their sigma does not cover; ml and fast say nothing."""
+    rng = np.random.default_rng(4)
+    f = _write(tmp_path / "h.parquet", [_returns(rng, 3000.0, 2_000)] * 2)
+    for est, covers in (("centroid", False), ("ml", True)):
+        out = tmp_path / f"r-{est}.parquet"
+        r = tcspc("range", f, "--delay-ps", "1000", "--out", out, "--estimator", est)
+        assert r.returncode == 0, r.stderr
+        meta = pq.read_schema(out).metadata or {}
+        assert ("does not cover" in r.stderr) != covers
+        assert (b"tcspc.sigma" in meta) != covers
