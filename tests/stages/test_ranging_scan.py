@@ -134,7 +134,7 @@ def tailed_response(tail=0.08, bin_s=BIN):
 
 
 @pytest.mark.parametrize("b", [0.1 * N, 2.0, 20.0 * N])
-@pytest.mark.parametrize("cycles", [None, 1e6])
+@pytest.mark.parametrize("cycles", [None, pytest.param(1e6, marks=pytest.mark.slow)])
 def test_measured_response_false_alarms_within_the_bound(b, cycles):
     """ml and matched with a measured response (the calibrate-distance path) on
     background-only histograms: within the binomial bound at p_fa 1e-3, 1e-2 and 0.05
