@@ -455,8 +455,15 @@ def calibrate_distance(path: str | Path, truth_csv: str | Path,
         cal.pileup = ("none (the file gives no cycles; an effective pulse count needs >= 3 "
                       "distances to fit)")
     else:
-        cal.cycles, cal.pileup = _fit_cycles(meas, dist, cal.response, p_fa)
-        cal.response = response(cal.cycles)  # its shape without the pile-up
+        p_deficit = _background_deficit(meas, cal.response)
+        if not p_deficit < PILEUP_ALPHA:
+            cal.pileup = (f"none (the background behind the returns is not below the one "
+                          f"before them: p = {p_deficit:.2g}, not < {PILEUP_ALPHA:g})")
+        else:
+            cal.cycles, cal.pileup = _fit_cycles(meas, dist, cal.response, p_fa)
+            cal.pileup += (f"; background behind the returns below the one before, "
+                           f"p = {p_deficit:.2g}")
+            cal.response = response(cal.cycles)  # its shape without the pile-up
     cal.returns_response = _returns_response(meas, cal, p_fa)
     runs = [(name, None) for name in estimators] + [
         (name + GAUSSIAN, cal.response.sigma_s) for name in estimators
@@ -539,6 +546,35 @@ def _fit_cycles(meas, dist, response, p_fa) -> tuple[float | None, str]:
 
 #: the significance at which a calibration models pile-up (an effective pulse count)
 PILEUP_ALPHA = 0.01
+
+
+def _background_deficit(meas: list[Measurement], response: Response) -> float:
+    """P-value of "no pile-up" from the data themselves: a first-photon histogram's
+    background behind a return is thinned by the cycles the return took, so behind the
+    returns (beyond 4 spans of the response after each row's fullest bin) it is below the
+    one before them (2 spans ahead). Under no pile-up and a flat background, a row's counts
+    there split binomially by the bins' numbers: the sum over the rows against its mean and
+    variance, one-sided (a normal tail; a diffusion tail behind a return only adds counts,
+    which keeps it conservative). 1 where the rows hold no background to test."""
+    from scipy.special import ndtr
+
+    lo, hi = response.span
+    num = mean = var = 0.0
+    for m in meas:
+        c = m.counts[~m.reference]
+        n = c.shape[1]
+        j = np.arange(n)[None, :]
+        k = np.argmax(c, axis=1)[:, None]
+        before, after = j < k - 2 * lo, j > k + 4 * hi
+        nb, na = (c * before).sum(1), (c * after).sum(1)
+        share = after.sum(1) / np.maximum(before.sum(1) + after.sum(1), 1)
+        tot = nb + na
+        num += na.sum()
+        mean += (tot * share).sum()
+        var += (tot * share * (1 - share)).sum()
+    if var <= 0:
+        return 1.0
+    return float(ndtr((num - mean) / np.sqrt(var)))
 
 
 def _f_test(rms0: float, rms1: float, n: int, dof: int) -> float:
