@@ -164,3 +164,33 @@ def test_measured_response_detects_what_the_gaussian_does():
     a = fit_response(h, tailed_response(0.0), "ml", 1e-3)
     g = estimate(h, SIG, "fast", 1e-3)
     assert np.mean(a.detected) >= np.mean(g.detected) - 0.03 > 0.8
+
+
+def test_a_bin_of_1e12_counts_is_a_return_with_a_sane_sigma():
+    """Issue 34.6: every estimator detects a bin of 1e12 counts, in that bin, with a
+    sigma below the response's (gaussfit's covariance gave 8.7-252 m)."""
+    rng = np.random.default_rng(0)
+    e = np.arange(401) * BIN
+    c = rng.poisson(1.0, (3, 400)).astype(np.float64)
+    c[:, 200] += 1e12
+    h = Histograms(c, np.broadcast_to(e, (3, 401)).copy(), c.sum(1) * 1e12,
+                   np.ones(c.shape, bool))
+    for name in ("fast", "ml", "matched", "centroid", "gaussfit"):
+        r = estimate(h, SIG, name, 1e-3)
+        assert r.detected.all(), name
+        assert np.all(np.abs(r.t_s - 200.5 * BIN) < BIN), name
+        assert np.all(r.sigma_s <= SIG), (name, r.sigma_s)
+
+
+def test_a_return_beyond_the_window_is_not_placed_inside_it_unflagged():
+    """Issue 34.6: a return centred 1.5 sigma past the last bin: fast and ml withdraw it
+    (outside the window), the others flag it at the window's edge."""
+    rng = np.random.default_rng(1)
+    e = np.arange(401) * BIN
+    t0 = 400 * BIN + 1.5 * SIG
+    c = rng.poisson(2000 * np.diff(ndtr((e - t0) / SIG)) + 0.5, (20, 400)).astype(float)
+    h = Histograms(c, np.broadcast_to(e, (20, 401)).copy(), c.sum(1) * 1e12,
+                   np.ones(c.shape, bool))
+    for name in ("fast", "ml", "matched", "centroid", "gaussfit"):
+        r = estimate(h, SIG, name, 1e-3)
+        assert np.all(~r.detected | (r.flag != "")), name
