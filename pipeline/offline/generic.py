@@ -644,50 +644,52 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
                 zero_delay = dict(zip(zt.tdc.tolist(), np.where(zt.est.detected, zt.t_s,
                                                                 np.nan), strict=True))
     tables, info = [], {}
-    meas = read_generic(path)
-    for m in meas:
-        if calibration is not None:
-            calibration.check_layout(m, path)
-        elif zero is not None and bool(np.any(m.reference)) != bool(np.any(z.reference)):
-            raise CalibrationError(
-                f"{path}: measurement {m.name} has {'a' if m.reference.any() else 'no'} "
-                f"reference channel, the zero-distance file {zero} "
-                f"{'has' if z.reference.any() else 'has not'} (times are measured from the "
-                "reference's return when there is one)")
-    for m, tm in zip(meas, measurements_times(meas, estimator, p_fa, response, sigma_s, cycles,
-                                              max_returns, returns_response), strict=True):
-        scale = np.ones(tm.tdc.size)
-        if calibration is not None:
-            delay, scale = calibration.row_fit(key, tm.tdc)
-        elif zero_delay is not None:
-            delay = np.array([zero_delay.get(int(t), np.nan) for t in tm.tdc])
-        else:
-            delay = np.full(tm.tdc.size, float(delay_s))
-        d = C_LIGHT / 2 * (tm.t_s * scale - delay)
-        sig = np.asarray(tm.est.sigma_s, float) * scale * C_LIGHT / 2
-        # a row without a delay or a finite time is not detected (its flag says why); a
-        # return before the zero is flagged as the chip's is (NaN distance, not detected)
-        # (sigma on the real time axis, carried with the rows that behind_zero keeps)
-        est = dataclasses.replace(tm.est, detected=np.asarray(tm.est.detected, bool)
-                                  & np.isfinite(d) & np.isfinite(sig),
-                                  sigma_s=np.asarray(tm.est.sigma_s, float) * scale)
-        est, d = behind_zero(est, d)
-        if max_returns > 1:
-            est, d, n_x = _without_crosstalk(est, d)
-            crosstalk += n_x
-        sig = np.asarray(est.sigma_s, float) * C_LIGHT / 2
-        t = ranges_table(m.name, est, d, sig)
-        tdc = tm.tdc if est.pixel is None else m.tdc[~m.reference][est.pixel]
-        t = t.set_column(t.schema.get_field_index("tdc"), t.schema.field("tdc"),
-                         pa.array(tdc, t.schema.field("tdc").type))
-        tables.append(t)
-        info = {"response": tm.response + (
-            " (the measured response's FWHM: its calibration residuals were smaller than "
-            "the measured shape's)" if key != estimator and key == calibration.preferred(
-                estimator) else ""), "pileup": tm.pileup}
-        if tm.bright.any():
-            info["bright"] = (f"{int(tm.bright.sum())} row(s) of {m.name} hold more counts "
-                              "than the effective pulses: their own total used instead")
+    for meas in _row_batches(path):
+        for m in meas:
+            if calibration is not None:
+                calibration.check_layout(m, path)
+            elif zero is not None and bool(np.any(m.reference)) != bool(np.any(z.reference)):
+                raise CalibrationError(
+                    f"{path}: measurement {m.name} has {'a' if m.reference.any() else 'no'} "
+                    f"reference channel, the zero-distance file {zero} "
+                    f"{'has' if z.reference.any() else 'has not'} (times are measured from "
+                    "the reference's return when there is one)")
+        times = measurements_times(meas, estimator, p_fa, response, sigma_s, cycles,
+                                   max_returns, returns_response)
+        for m, tm in zip(meas, times, strict=True):
+            scale = np.ones(tm.tdc.size)
+            if calibration is not None:
+                delay, scale = calibration.row_fit(key, tm.tdc)
+            elif zero_delay is not None:
+                delay = np.array([zero_delay.get(int(t), np.nan) for t in tm.tdc])
+            else:
+                delay = np.full(tm.tdc.size, float(delay_s))
+            d = C_LIGHT / 2 * (tm.t_s * scale - delay)
+            sig = np.asarray(tm.est.sigma_s, float) * scale * C_LIGHT / 2
+            # a row without a delay or a finite time is not detected (its flag says why); a
+            # return before the zero is flagged as the chip's is (NaN distance, not detected)
+            # (sigma on the real time axis, carried with the rows that behind_zero keeps)
+            est = dataclasses.replace(tm.est, detected=np.asarray(tm.est.detected, bool)
+                                      & np.isfinite(d) & np.isfinite(sig),
+                                      sigma_s=np.asarray(tm.est.sigma_s, float) * scale)
+            est, d = behind_zero(est, d)
+            if max_returns > 1:
+                est, d, n_x = _without_crosstalk(est, d)
+                crosstalk += n_x
+            sig = np.asarray(est.sigma_s, float) * C_LIGHT / 2
+            t = ranges_table(m.name, est, d, sig)
+            tdc = tm.tdc if est.pixel is None else m.tdc[~m.reference][est.pixel]
+            t = t.set_column(t.schema.get_field_index("tdc"), t.schema.field("tdc"),
+                             pa.array(tdc, t.schema.field("tdc").type))
+            tables.append(t)
+            info = {"response": tm.response + (
+                " (the measured response's FWHM: its calibration residuals were smaller "
+                "than the measured shape's)" if key != estimator
+                and key == calibration.preferred(estimator) else ""), "pileup": tm.pileup}
+            if tm.bright.any():
+                info["bright"] = (f"{int(tm.bright.sum())} row(s) of {m.name} hold more "
+                                  "counts than the effective pulses: their own total used "
+                                  "instead")
     if max_returns > 1:
         info["returns"] = (f"up to {max_returns} a row, each found one's model "
                            + (f"{returns_response.source} (its tail included)"
@@ -707,6 +709,32 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
     if estimator in SIGMA_NOTE:
         meta[b"tcspc.sigma"] = SIGMA_NOTE[estimator].encode()
     return table.replace_schema_metadata(meta), info
+
+
+#: count values a batch of rows of a big file holds (x ~64 bytes when ranged: ~0.5 GB)
+BATCH_VALUES = 1 << 23
+
+
+def _row_batches(path):
+    """The file's measurements, in batches of rows with at most :data:`BATCH_VALUES`
+    count values when it has more and no reference channel (a reference row times its
+    measurement's other rows, so such a file is read whole, within the memory check of
+    :func:`pipeline.io.generic.check_size`); a measurement may then span batches, each
+    part ranged alone (the rows are independent, the response measured on each part's
+    returns where none is given). Issue 34.7: 10^5 x 4 096 took 14-23 GB read whole."""
+    f = pq.ParquetFile(path)
+    md = f.metadata
+    names = [md.schema.column(j).path for j in range(md.num_columns)]
+    cols = [j for j, n in enumerate(names) if n.split(".")[0] == "counts"]
+    values = sum(md.row_group(g).column(j).num_values for g in range(md.num_row_groups)
+                 for j in cols)
+    ref = "reference" in f.schema_arrow.names
+    if values <= BATCH_VALUES or ref or not md.num_rows:
+        yield read_generic(path)
+        return
+    rows = max(1, int(BATCH_VALUES // max(values / md.num_rows, 1)))
+    for batch in f.iter_batches(batch_size=rows):
+        yield read_generic(path, pa.Table.from_batches([batch]))
 
 
 def _without_crosstalk(est: Estimate, d):

@@ -149,7 +149,8 @@ def _detection(counts, valid, at_risk, widths, peak, bg_rate, p_fa, exposure=Non
                              axis=1)[:, -1]
     rate = np.maximum(bg_rate, 1.0 / np.maximum(exposure, 1e-300))
     if scan > 1:
-        return scan_pvalue(*_scan_stat(counts, valid, at_risk, widths, peak, rate, scan)) <= p_fa
+        return scan_pvalue(*_scan_stat(counts, valid, at_risk, widths, peak, rate,
+                                       scan)) <= p_fa
     q = tested_bin(counts, valid, peak)
     b = np.maximum(at_risk[rows, q], 0.0) * -np.expm1(-rate * widths[rows, q])
     n_bins = np.maximum(np.asarray(valid).sum(axis=1), 1)
@@ -159,7 +160,8 @@ def _detection(counts, valid, at_risk, widths, peak, bg_rate, p_fa, exposure=Non
 def scan_bins(sigma_s: float, bin_s: float) -> int:
     """The detection window in bins: 3 sigma of the response (the width that maximises
     a Gaussian return's share over the square root of the background it holds is ~2.8
-    sigma; 3 did best of 2-3.8 on the issue-34 grid, where the sub-bin phase spreads the peak), at least one bin."""
+    sigma; 3 did best of 2-3.8 on the issue-34 grid, where the sub-bin phase spreads the
+    peak), at least one bin."""
     return max(1, int(round(3.0 * sigma_s / bin_s))) if bin_s > 0 else 1
 
 

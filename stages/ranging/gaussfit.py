@@ -43,7 +43,8 @@ def gaussfit(h: Histograms, sigma_s: float, p_fa: float = 1e-3):
         except (RuntimeError, ValueError, TypeError, OptimizeWarning):  # (TypeError: < 4 bins)
             out[i] = h.centres[i, p], sigma_s, sigma_s
     sig_counts = np.full(peak.size, np.nan)
+    det = _detect(h, peak, bg, p_fa, sigma_s=sigma_s)
     return Estimate(out[:, 0], out[:, 1], FWHM_PER_SIGMA * out[:, 2], sig_counts,
-                    bg * h.bin_s * h.cycles, _detect(h, peak, bg, p_fa, sigma_s=sigma_s), "gaussfit")
+                    bg * h.bin_s * h.cycles, det, "gaussfit")
 
 

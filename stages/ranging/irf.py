@@ -250,10 +250,11 @@ def _fit(h: Histograms, response: Response, estimator: str, p_fa: float) -> Esti
     t_s = h.edges_s[rows, 0] + shift * bin_s
     peak = np.clip(np.rint(shift).astype(np.int64), 0, n - 1)
     # detection against the estimators' background (a mean over the gate away from the
-    # return, without the bins that stand out), not the fit's local one: that is clipped at 0 and, on a handful of
-    # counts in the response's span, was 0 in most rows at 0.1 counts a bin (ml called
-    # 21-434 of 2 000 background-only rows at p_fa 1e-3-0.05, issue 34.4); the window
-    # of the scan statistic as the Gaussian estimators' at the response's FWHM
+    # return, without the bins that stand out), not the fit's local one: that is clipped
+    # at 0 and, on a handful of counts in the response's span, was 0 in most rows at 0.1
+    # counts a bin (ml called 21-434 of 2 000 background-only rows at p_fa 1e-3-0.05,
+    # issue 34.4); the window of the scan statistic as the Gaussian estimators' at the
+    # response's FWHM
     away = h.valid & ((kk < peak[:, None] - 2 * lo) | (kk > peak[:, None] + 2 * hi))
     rate = _background(h.lam, h.widths, away, h.at_risk)
     bg = rate * h.cycles * bin_s
