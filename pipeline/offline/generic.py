@@ -42,7 +42,7 @@ from stages.ranging.irf import (
 )
 from stages.ranging.multi import select_rows
 from stages.ranging.multi_irf import PerGroup, merge_rows
-from stages.ranging.width import response_from_data
+from stages.ranging.width import response_from_data, return_fwhm
 
 CALIBRATION_FILE = "distance_calibration.json"
 #: the key of a fit made with a Gaussian by an estimator that takes a measured response
@@ -274,6 +274,10 @@ def _first(m: Measurement, estimator, p_fa, response, sigma_s, cycles) -> _First
         used = f"Gaussian, sigma {sigma * 1e12:.1f} ps" + ("" if how == "given" else
                                                             f" ({how})")
     est = single(h)
+    if used.startswith("Gaussian"):  # the return's measured width, not the response's:
+        # a merged pair of surfaces is then wider than one (issue 34.5; a measured
+        # response's tail would widen its second moment, so there the response's is kept)
+        est = dataclasses.replace(est, fwhm_s=return_fwhm(h, est.t_s, sigma))
     origin = 0.0
     if ref.size:
         origin = est.t_s[ref[0]] if est.detected[ref[0]] else np.nan

@@ -591,3 +591,19 @@ def test_a_big_file_is_ranged_in_row_batches_with_the_same_results(tmp_path, mon
     for col in ("tdc", "distance_m", "sigma_m", "detected"):
         np.testing.assert_array_equal(parts.column(col).to_numpy(),
                                       whole.column(col).to_numpy())
+
+
+def test_a_merged_pair_of_surfaces_is_wider_than_one(tmp_path):
+    """Issue 34.5: with one return a row and a Gaussian response, fwhm_m is the return's
+    measured width: two surfaces 1 width apart (merged into one return) come out wider
+    than the response, a single surface as wide as it (it was always the response's)."""
+    rng = np.random.default_rng(12)
+    sig = 440e-12 / 2.3548200450309493
+    widths = {}
+    for sep in (0.0, 1.0):
+        c, _, _ = _two_surfaces(rng, 100, sep, share=0.5)
+        f = _write(tmp_path / f"h{sep}.parquet", c, bin_width_ps=[80.0] * 100)
+        table, _ = range_generic(f, delay_s=0.0, sigma_s=sig)
+        widths[sep] = np.nanmedian(table.column("fwhm_m").to_numpy()) * 2 / C_LIGHT
+    assert abs(widths[0.0] / 440e-12 - 1) < 0.1, widths
+    assert widths[1.0] > 1.3 * 440e-12, widths
