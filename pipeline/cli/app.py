@@ -498,7 +498,9 @@ def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero
 
         if isinstance(exc, TcspcError):  # (main prints ours)
             raise
-        raise click.ClickException(str(exc)) from exc
+        from pipeline.cli.instruments import BadInput
+
+        raise BadInput(str(exc)) from exc
 
 
 def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
@@ -515,7 +517,11 @@ def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, g
                 raise ValueError(f"--delay-ps must be finite, found {delay_ps}")
             check_delay(delay_ps, "--delay-ps")
     except ValueError as exc:
-        raise click.BadParameter(str(exc)) from exc
+        raise instruments.BadInput(str(exc)) from exc
+    from pipeline.offline.ranging import SIGMA_NOTE
+
+    if estimator in SIGMA_NOTE:
+        warn(SIGMA_NOTE[estimator] + " (ml and fast's cover)")
     fmt = instruments.detect(capture, fmt, histograms=True)
     if fmt == "histograms" and instruments.is_generic(capture):
         # several returns need the returns' measured response (tail and all), which a

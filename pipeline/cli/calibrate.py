@@ -166,7 +166,12 @@ def distance(histograms, truth, out, p_fa, overwrite) -> None:
     try:
         cal = calibrate_distance(histograms, truth, p_fa=p_fa)
     except (CalibrationError, ValueError) as exc:
-        raise click.ClickException(str(exc)) from None
+        from pipeline.cli.instruments import BadInput
+
+        raise BadInput(str(exc)) from None
+    if cal.missing:
+        warn(f"{truth}: {len(cal.missing)} measurement(s) not in {histograms}, left out: "
+             f"{', '.join(cal.missing[:8])}" + (" ..." if len(cal.missing) > 8 else ""), err)
     cal.save(out)
     err.print(f"{len(cal.measurements)} measurement(s) at "
               f"{', '.join(f'{d:.4g}' for d in sorted(set(cal.distances_m)))} m; "

@@ -71,7 +71,7 @@ def range_generic(path: str, out: str, calibration, delay_ps, zero, gate, estima
                                   zero, None if irf_ps is None else irf_ps * 1e-12,
                                   estimator, p_fa, max_returns=max_returns)
     except (CalibrationError, ValueError) as exc:
-        raise click.ClickException(str(exc)) from None
+        raise BadInput(str(exc)) from None
     write_ranges(table, out)
     if not quiet:
         err.print(f"instrument response: {info['response']}; pile-up: {info['pileup']}",
@@ -110,6 +110,12 @@ EXIT_TRUNCATED = 3
 
 class Truncated(Incomplete):
     """An input file cut short (exit 3, :data:`EXIT_TRUNCATED`)."""
+
+
+class BadInput(click.ClickException):
+    """A file or an option that no result can come from: one line, exit 2 (docs/design.md;
+    a plain ClickException exits 1)."""
+    exit_code = 2
 
 
 def _check_truncated(path: str, out: str, summary, allow: bool) -> None:
@@ -267,18 +273,18 @@ def range_instrument(path: str, fmt: str, out: str, delay_ps, zero, gate, estima
     if zero is not None:
         delay, zsigma = measured_delay(ztable, sigma, estimator, p_fa, g)
         if ztable.num_rows != table.num_rows:
-            raise click.ClickException(f"{zero} has {ztable.num_rows} channels, {path} "
+            raise BadInput(f"{zero} has {ztable.num_rows} channels, {path} "
                                        f"{table.num_rows}")
         if sigma is None and np.isfinite(zsigma).any():
             sigma = float(np.nanmedian(zsigma))
         how = f"measured on {zero} ({int(np.isfinite(delay).sum())} of {delay.size} channels)"
         if not np.isfinite(delay).any():
-            raise click.ClickException(f"{zero}: no return detected on any channel, no delay")
+            raise BadInput(f"{zero}: no return detected on any channel, no delay")
         response = zero_response(ztable, delay, str(zero), g)
         wz = np.nanmedian(ztable.column("bin_width_ps").to_numpy())
         w = np.nanmedian(table.column("bin_width_ps").to_numpy())
         if abs(wz / w - 1) > 0.01:
-            raise click.ClickException(f"{zero} has {wz:g} ps bins, {path} {w:g} ps: the zero "
+            raise BadInput(f"{zero} has {wz:g} ps bins, {path} {w:g} ps: the zero "
                                        "file must be taken at the same resolution")
     else:
         delay = np.full(table.num_rows, delay_ps * 1e-12)

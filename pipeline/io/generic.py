@@ -51,7 +51,9 @@ def read_generic(path: str | Path, table: pa.Table | None = None) -> list[Measur
     missing column, an unknown instrument, a null or ragged counts list, a negative or
     non-finite count, a bin width that is not a positive finite number, or negative cycles.
     """
-    table = pq.read_table(path) if table is None else table
+    if table is None:
+        check_size(path)
+        table = pq.read_table(path)
     missing = [c for c in REQUIRED if c not in table.column_names]
     if missing:
         raise SchemaMismatch(f"{path}: generic histograms need the columns {list(REQUIRED)}"
@@ -74,6 +76,8 @@ def read_generic(path: str | Path, table: pa.Table | None = None) -> list[Measur
     for i in range(table.num_rows):
         if names[i] is None or tdc[i] is None:
             raise _bad(path, i, "measurement and tdc must not be null")
+        if not 0 <= tdc[i] <= MAX_TDC:  # (the ranges' tdc column is uint16)
+            raise _bad(path, i, f"tdc must be 0..{MAX_TDC}, found {tdc[i]}")
         if lengths[i] is None or lengths[i] < 3:
             raise _bad(path, i, f"counts must be a list of >= 3 bins, found "
                        f"{'null' if lengths[i] is None else lengths[i]}")
@@ -113,6 +117,38 @@ def read_generic(path: str | Path, table: pa.Table | None = None) -> list[Measur
     if not out:
         raise SchemaMismatch(f"{path}: no rows")
     return out
+
+
+#: the largest row number (``tdc``) the ranges can carry (their column is uint16)
+MAX_TDC = 65535
+#: bytes of memory that ranging takes per count value (measured on 10^5 x 4 096 bins:
+#: 14-23 GB, 34-56 bytes a value, issue 34.7), with room
+BYTES_PER_VALUE = 64
+
+
+def check_size(path: str | Path, available: int | None = None) -> None:
+    """Refuse, in one line and before reading, a file whose counts would not fit in memory
+    once ranged (a 147 KB parquet of 10^4 rows x 10^5 bins reached 3.4 GB and died in
+    Arrow; 10^5 x 4 096 took the machine's memory): the values from the parquet's own
+    metadata, against the memory available (``available`` bytes; default the system's)."""
+    import os
+
+    md = pq.ParquetFile(path).metadata
+    names = [md.schema.column(j).path for j in range(md.num_columns)]
+    cols = [j for j, n in enumerate(names) if n.split(".")[0] == "counts"]
+    values = sum(md.row_group(g).column(j).num_values for g in range(md.num_row_groups)
+                 for j in cols)
+    if available is None:
+        try:
+            available = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (ValueError, OSError, AttributeError):  # (no sysconf: not checked)
+            return
+    need = values * BYTES_PER_VALUE
+    if need > available:
+        raise SchemaMismatch(
+            f"{path}: {md.num_rows:,} rows holding {values:,} count values need ~"
+            f"{need / 2 ** 30:.1f} GiB to range, {available / 2 ** 30:.1f} GiB available: "
+            "split the file by measurement (each part is ranged alone)")
 
 
 def is_generic(path: str | Path) -> bool:

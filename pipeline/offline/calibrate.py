@@ -351,7 +351,12 @@ def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: 
     reasons[np.asarray(est.signal_counts, np.float64) < DELAY_MIN_COUNTS] = (
         f"under {DELAY_MIN_COUNTS} return counts (a return under the reset peak, or too "
         "dim)")
-    reasons[~np.asarray(est.detected, bool)] = "no return detected at the false-alarm rate"
+    # (a return under the reset peak's mask is not detected on the valid bins beside it:
+    # where it sits is the reason where its counts say a return is there)
+    reasons[~np.asarray(est.detected, bool) & ~(
+        (at > np.floor(axis.x_t) - RESET_MASK - reach)
+        & (np.asarray(est.signal_counts, np.float64) >= DELAY_MIN_COUNTS))] = (
+        "no return detected at the false-alarm rate")
     # the polynomial away from the light it was fitted at is a guess (0.7 ns of delay at
     # 0.8 detections a cycle on a fit over 0.02-0.69): only the capture's reset peak helps
     if axis.note:

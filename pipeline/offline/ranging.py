@@ -83,6 +83,17 @@ def range_state(state: HistogramState, calibration: Calibration, window_s: float
 
 
 #: the flag of a return before the zero
+#: what an estimator's sigma is worth, where it is not the Fisher information's (ml and
+#: fast: 2-sigma coverage 0.95-0.97 from outside, docs/ranging.md): said in `range`'s
+#: output and the ranges' metadata (``tcspc.sigma``), issue 34.5
+SIGMA_NOTE = {
+    "matched": "matched's sigma (the response's over the root of the counts, background "
+               "left out) does not cover: 2-sigma coverage 0.81-0.90 measured",
+    "centroid": "centroid's sigma (the second moment's) does not cover: 2-sigma coverage "
+                "0.34-0.91 measured, less with more counts",
+    "gaussfit": "gaussfit's sigma (curve_fit's covariance) does not cover: 2-sigma "
+                "coverage 0.25-0.94 measured, 0 under pile-up"}
+
 BEHIND_ZERO = "before the zero (the delay is beyond the return)"
 #: how many of its own sigmas an estimate may fall before the zero and still be a target
 #: at the zero (the delay's own capture ranges to 0 +- sigma: half of it lands below 0)

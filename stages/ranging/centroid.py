@@ -26,6 +26,6 @@ def centroid(h: Histograms, sigma_s: float, p_fa: float = 1e-3, n_hw: int | None
     var = (s * (h.centres[rows, idx] - t[:, None]) ** 2).sum(1) / np.maximum(tot, 1e-300)
     sig = np.sqrt(np.maximum(var, sigma_s ** 2 / 4) / np.maximum(tot, 1.0))
     return Estimate(t, sig, np.full(t.size, FWHM_PER_SIGMA * sigma_s), tot,
-                    bg * h.bin_s * h.cycles, _detect(h, peak, bg, p_fa, t), "centroid")
+                    bg * h.bin_s * h.cycles, _detect(h, peak, bg, p_fa, t, sigma_s), "centroid")
 
 

@@ -9,13 +9,13 @@ import numpy as np
 
 from stages.models.tcspc import FWHM_PER_SIGMA
 from stages.ranging._numba import numba
-from stages.ranging.detection import _detection, bin_of
+from stages.ranging.detection import _detection, bin_of, scan_bins
 from stages.ranging.gauss_table import _cdf_pdf_numpy
 from stages.ranging.histograms import Estimate, Histograms
 from stages.ranging.validation import validated
 
 if numba is not None:
-    from stages.ranging.detection import _poisson_tail
+    from stages.ranging.detection import _poisson_tail, _scan_p
     from stages.ranging.gauss_table import _cdf_pdf
 
 
@@ -29,6 +29,10 @@ if numba is not None:
 #: In photon-starving light one step does; at M = 5 the centroid of the piled-up peak is
 #: a poor start and 2-4 are needed.
 SCORING_STEPS = 6
+#: the least signal a fit keeps, in counts over the cycles (a thousandth of a count: a
+#: floor of 1e-9 a cycle was 1 000x the row's counts where a file gives no cycles and
+#: its stand-in is 1e12 x the row's total, issue 34.3)
+_M_FLOOR = 1e-3
 _CONVERGED = 0.5
 _RESIDUAL = 0.2
 
@@ -60,7 +64,7 @@ def _fast_args(h: Histograms, sigma_s: float, p_fa: float, steps: int = SCORING_
     kb, kc, kw = _fast_params(bin_s, sigma_s)
     return (counts, edges, np.ascontiguousarray(h.valid),
             np.ascontiguousarray(h.cycles, np.float64), kb, kc, float(p_fa), kw,
-            1.0 / sigma_s, steps, sigma_s), bin_s
+            1.0 / sigma_s, steps, sigma_s, scan_bins(sigma_s, bin_s)), bin_s
 
 
 def _coarse_to_fine_numpy(S):
@@ -77,7 +81,8 @@ def _coarse_to_fine_numpy(S):
     return np.where((m + 1 < n) & (right > bv), m + 1, best)
 
 
-def _fast_numpy(counts, edges, valid, cycles, kb, kc, p_fa, kw, inv_s, steps, step_cap):
+def _fast_numpy(counts, edges, valid, cycles, kb, kc, p_fa, kw, inv_s, steps, step_cap,
+                scan=1):
     """The fast estimator on whole arrays (the compiled kernel's twin, tested equal)."""
     n_pix, n = counts.shape
     rows = np.arange(n_pix)
@@ -111,7 +116,8 @@ def _fast_numpy(counts, edges, valid, cycles, kb, kc, p_fa, kw, inv_s, steps, st
                  0.5 * (edges[rows, peak] + edges[rows, peak + 1]))
     t, m, sig = _score_steps_numpy(counts, edges, valid, r, C, peak, bg, t, kw, inv_s, steps,
                                    step_cap)
-    det = _detection(counts, valid, r, widths, bin_of(edges, t, peak), bg, p_fa, RW[:, -1])
+    det = _detection(counts, valid, r, widths, bin_of(edges, t, peak), bg, p_fa, RW[:, -1],
+                     scan)
     return t, peak, m, bg, det, sig
 
 
@@ -140,7 +146,8 @@ def _score_steps_numpy(counts, edges, valid, r, C, peak, bg, t, kw, inv_s, steps
     w_in = np.where(ok, edges[R, win + 1] - edges[R, win], 0.0).sum(1)
     r0 = np.maximum(r[rows, lo], hits + 1.0)
     share = ndtr_((edges[rows, hi] - t) * inv_s) - ndtr_((edges[rows, lo] - t) * inv_s)
-    m = np.maximum((-np.log1p(-hits / r0) - bg * w_in) / np.maximum(share, 0.5), 1e-9)
+    floor = _M_FLOOR / np.maximum(r[:, 0], 1.0)  # (the cycles)
+    m = np.maximum((-np.log1p(-hits / r0) - bg * w_in) / np.maximum(share, 0.5), floor)
     sig = np.full(n_pix, np.inf)
     active = np.ones(n_pix, bool)
     for step in range(steps):
@@ -165,7 +172,7 @@ def _score_steps_numpy(counts, edges, valid, r, C, peak, bg, t, kw, inv_s, steps
         st = np.clip((i11 * s0 - i01 * s1) / d, -step_cap, step_cap)
         sm = (i00 * s1 - i01 * s0) / d
         t = np.where(active, t + st, t)
-        m = np.where(active, np.minimum(np.maximum(np.maximum(m + sm, 0.5 * m), 1e-9), 2.0 * m),
+        m = np.where(active, np.minimum(np.maximum(np.maximum(m + sm, 0.5 * m), floor), 2.0 * m),
                      m)
         ast = np.abs(st)
         settled = (ast < _CONVERGED * sig) | (ast * (ast + sig) * inv_s < _RESIDUAL * sig)
@@ -236,7 +243,8 @@ if numba is not None:
         return best
 
     @numba.njit(cache=True, nogil=True)
-    def _fast_numba(counts, edges, valid, cycles, kb, kc, p_fa, kw, inv_s, steps, step_cap):
+    def _fast_numba(counts, edges, valid, cycles, kb, kc, p_fa, kw, inv_s, steps, step_cap,
+                    scan=1):
         """Two passes per histogram: prefix sums (at-risk cycles, valid counts and
         cycle-seconds at risk), then the boxed excess's maximum; everything else comes from
         the prefix sums or the window around the peak (the centroid in +-2 sigma, then
@@ -330,7 +338,8 @@ if numba is not None:
             r0 = max(r[lo], hits + 1.0)
             share = (_cdf_pdf((edges[p, hi] - t) * inv_s)[0]
                      - _cdf_pdf((edges[p, lo] - t) * inv_s)[0])
-            m = max((-math.log1p(-hits / r0) - bg * w_in) / max(share, 0.5), 1e-9)
+            floor = _M_FLOOR / max(cyc, 1.0)
+            m = max((-math.log1p(-hits / r0) - bg * w_in) / max(share, 0.5), floor)
             for _s in range(steps):
                 if _s > 0:  # re-centre on the new estimate
                     cb, lo, hi = _window_at(edges[p], cb, t, kw)
@@ -360,7 +369,7 @@ if numba is not None:
                 st = min(max((i11 * s0 - i01 * s1) / det, -step_cap), step_cap)
                 sm = (i00 * s1 - i01 * s0) / det
                 t += st
-                m = min(max(m + sm, 0.5 * m, 1e-9), 2.0 * m)  # at most a factor 2 a step
+                m = min(max(m + sm, 0.5 * m, floor), 2.0 * m)  # at most a factor 2 a step
                 ast = abs(st)
                 settled = (ast < _CONVERGED * sig
                            or ast * (ast + sig) * inv_s < _RESIDUAL * sig)
@@ -368,16 +377,31 @@ if numba is not None:
                     break
             t_out[p] = t
             sig_out[p] = sig
-            # tested_bin: the valid bin of most counts of the estimate's bin (bin_of) and
-            # its neighbours
             q = _window_at(edges[p], cb, t, kw)[0] if math.isfinite(t) else peak
-            for j in (q - 1, q + 1):
-                if 0 <= j < n and valid[p, j] and (not valid[p, q]
-                                                   or counts[p, j] > counts[p, q]):
-                    q = j
             bgd = max(bg, 1.0 / max(RW[n], 1e-300))  # _detection's floor: one count
-            b = max(r[q], 0.0) * -np.expm1(-bgd * (edges[p, q + 1] - edges[p, q]))
-            det_out[p] = _poisson_tail(counts[p, q], b) <= p_fa / max(nv, 1)
+            if scan > 1:  # _scan_detect's test, from this kernel's running sums
+                k = min(scan, n)
+                best = 0
+                top = -1.0
+                for s in range(max(q - k, 0), min(q + 1, n - k) + 1):
+                    if C[s + k] - C[s] > top:
+                        top = C[s + k] - C[s]
+                        best = s
+                mu = 0.0
+                for j in range(best, best + k):
+                    if valid[p, j]:
+                        mu += max(r[j], 0.0) * -math.expm1(-bgd * (edges[p, j + 1]
+                                                                 - edges[p, j]))
+                mpos = max(min(nv + k - 1, n - k + 1), 1)
+                det_out[p] = _scan_p(top, mu, k, float(mpos)) <= p_fa
+            else:  # tested_bin: the valid bin of most counts of the estimate's bin and
+                # its neighbours
+                for j in (q - 1, q + 1):
+                    if 0 <= j < n and valid[p, j] and (not valid[p, q]
+                                                       or counts[p, j] > counts[p, q]):
+                        q = j
+                b = max(r[q], 0.0) * -np.expm1(-bgd * (edges[p, q + 1] - edges[p, q]))
+                det_out[p] = _poisson_tail(counts[p, q], b) <= p_fa / max(nv, 1)
             tot_out[p] = m
             bg_out[p] = bg
             peak_out[p] = peak

@@ -33,11 +33,18 @@ def gaussfit(h: Histograms, sigma_s: float, p_fa: float = 1e-3):
                     p0=(max(y.max() - np.median(y), 1.0), h.centres[i, p], sigma_s,
                         np.median(y)),
                     sigma=np.sqrt(np.maximum(y, 1.0)), maxfev=2000)
-            out[i] = popt[1], np.sqrt(max(pcov[1, 1], 0.0)), abs(popt[2])
+            width = abs(popt[2])
+            sd = np.sqrt(max(pcov[1, 1], 0.0))
+            if not (0.25 * h.bin_s <= width <= x[-1] - x[0] + h.bin_s and sd <= width):
+                # a peak in one bin has no width to fit: its covariance gave sigmas of
+                # metres to kilometres (issue 34.6); NaN fails the test too
+                raise ValueError
+            out[i] = popt[1], sd, width
         except (RuntimeError, ValueError, TypeError, OptimizeWarning):  # (TypeError: < 4 bins)
             out[i] = h.centres[i, p], sigma_s, sigma_s
     sig_counts = np.full(peak.size, np.nan)
+    det = _detect(h, peak, bg, p_fa, sigma_s=sigma_s)
     return Estimate(out[:, 0], out[:, 1], FWHM_PER_SIGMA * out[:, 2], sig_counts,
-                    bg * h.bin_s * h.cycles, _detect(h, peak, bg, p_fa), "gaussfit")
+                    bg * h.bin_s * h.cycles, det, "gaussfit")
 
 

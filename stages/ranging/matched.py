@@ -32,6 +32,6 @@ def matched(h: Histograms, sigma_s: float, p_fa: float = 1e-3):
     sig_counts = np.where(win & h.valid, lam - bg[:, None] * w, 0).sum(1) * h.cycles
     sig = sigma_s / np.sqrt(np.maximum(sig_counts, 1.0))
     return Estimate(t, sig, np.full(t.size, FWHM_PER_SIGMA * sigma_s), sig_counts,
-                    bg * h.bin_s * h.cycles, _detect(h, peak, bg, p_fa, t), "matched")
+                    bg * h.bin_s * h.cycles, _detect(h, peak, bg, p_fa, t, sigma_s), "matched")
 
 

@@ -11,7 +11,7 @@ from scipy.special import ndtr
 from stages.models.tcspc import FWHM_PER_SIGMA, SQRT2PI
 from stages.ranging._numba import numba
 from stages.ranging.detection import _detect
-from stages.ranging.fast import _fast_args, _fast_numpy
+from stages.ranging.fast import _M_FLOOR, _fast_args, _fast_numpy
 from stages.ranging.histograms import Estimate, Histograms
 from stages.ranging.validation import validated
 
@@ -60,7 +60,7 @@ def ml(h: Histograms, sigma_s: float, p_fa: float = 1e-3, iterations: int = 30,
     else:
         t0, sig, m, bg, peak = _ml_numpy(*args, k, sigma_s, iterations, step_tol)
     return Estimate(t0, sig, np.full(t0.size, FWHM_PER_SIGMA * sigma_s), m * h.cycles,
-                    bg * h.bin_s * h.cycles, _detect(h, peak, bg, p_fa, t0), "ml")
+                    bg * h.bin_s * h.cycles, _detect(h, peak, bg, p_fa, t0, sigma_s), "ml")
 
 
 def _ml_numpy(counts_all, widths, centres, valid_all, cycles, t_start, peak, bg, k, sigma_s,
@@ -78,7 +78,8 @@ def _ml_numpy(counts_all, widths, centres, valid_all, cycles, t_start, peak, bg,
     bgw = bg[:, None] * w
     hw = np.where(valid, counts, 0).sum(1)
     r0 = np.maximum(r[:, 0], hw + 1)
-    m = np.maximum(-np.log1p(-hw / r0) - bg * np.where(valid, w, 0).sum(1), 1e-9)
+    floor = _M_FLOOR / np.maximum(cycles, 1.0)
+    m = np.maximum(-np.log1p(-hw / r0) - bg * np.where(valid, w, 0).sum(1), floor)
     t0 = t_start.copy()
 
     def model(t0, m):
@@ -93,7 +94,9 @@ def _ml_numpy(counts_all, widths, centres, valid_all, cycles, t_start, peak, bg,
                         0.0).sum(1)
 
     def info_score(m, lam, za, zb, dphi):
-        lam_c = np.maximum(lam, 1e-300)
+        # (a bin of no intensity, no background: cycles / expm1(1e-300) overflowed to inf
+        # where the file gives no cycles, and inf x 0 made sigma NaN; 1e-200 keeps it finite)
+        lam_c = np.maximum(lam, 1e-200)
         em1 = np.expm1(lam_c)
         sl = np.where(valid, counts / em1 - (r - counts), 0.0)
         il = np.where(valid, r / em1, 0.0)
@@ -113,7 +116,7 @@ def _ml_numpy(counts_all, widths, centres, valid_all, cycles, t_start, peak, bg,
         sm = np.where(ok, (i00 * s1 - i01 * s0) / np.where(det > 0, det, 1), 0.0)
         scale = np.ones(n_pix)
         for _ in range(8):  # halve the step where the likelihood does not improve
-            nt, nm = t0 + scale * st, np.maximum(m + scale * sm, 1e-12)
+            nt, nm = t0 + scale * st, np.maximum(m + scale * sm, 1e-3 * floor)
             nlam, nza, nzb, ndp = model(nt, nm)
             nll = loglik(nlam)
             better = nll >= ll - 1e-12
@@ -175,7 +178,8 @@ if numba is not None:
                     hw += cnt[i]
                     wsum += hi_e[i] - lo_e[i]
             r0 = max(rr[0], hw + 1)
-            m = max(-math.log1p(-hw / r0) - bg[p] * wsum, 1e-9)
+            floor = _M_FLOOR / max(cycles[p], 1.0)
+            m = max(-math.log1p(-hw / r0) - bg[p] * wsum, floor)
             t0 = t_start[p]
             ll = _ml_ll(t0, m, bg[p], lo_e, hi_e, cnt, rr, ok, sigma_s, pa, pb)
             active = True
@@ -194,7 +198,7 @@ if numba is not None:
                 nt, nm, nll = t0, m, ll
                 for _h in range(8):
                     nt = t0 + scale * st
-                    nm = max(m + scale * sm, 1e-12)
+                    nm = max(m + scale * sm, 1e-3 * floor)
                     nll = _ml_ll(nt, nm, bg[p], lo_e, hi_e, cnt, rr, ok, sigma_s, qa, qb)
                     if nll >= ll - 1e-12:
                         better = True
@@ -260,7 +264,7 @@ if numba is not None:
             za = (lo_e[i] - t0) / sigma_s
             zb = (hi_e[i] - t0) / sigma_s
             dphi = pb[i] - pa[i]
-            lam = max(m * dphi + bg * (hi_e[i] - lo_e[i]), 1e-300)
+            lam = max(m * dphi + bg * (hi_e[i] - lo_e[i]), 1e-200)
             em1 = math.expm1(lam)
             sl = cnt[i] / em1 - (rr[i] - cnt[i])
             il = rr[i] / em1

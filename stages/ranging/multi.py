@@ -109,7 +109,10 @@ def _beyond_tails(sub: Histograms, t_s, found_t, found_m, sigma_s, bg_rate, p_fa
         lam = lam + np.nan_to_num(m * (ndtr((hi - t) / sigma_s) - ndtr((lo - t) / sigma_s)))
     b = np.maximum(sub.at_risk[rows, q], 0.0) * -np.expm1(-lam)
     n_bins = np.maximum(np.asarray(sub.valid).sum(axis=1), 1)
-    return poisson_tail(sub.counts[rows, q], b) <= p_fa / n_bins
+    # (an estimate that slid into a found return's mask, its bin and neighbours masked,
+    # was tested on a masked bin's count, the found return's own: not a surface)
+    return (poisson_tail(sub.counts[rows, q], b) <= p_fa / n_bins) & np.asarray(
+        sub.valid, bool)[rows, q]
 
 
 _NUMERIC = ("t_s", "sigma_s", "fwhm_s", "signal_counts", "background_per_bin")

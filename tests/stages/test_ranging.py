@@ -249,27 +249,28 @@ def test_issue_case_0_34_counts_a_bin_at_p_fa_1e_3():
 
 @pytest.mark.parametrize("b", [1e-3, 0.34, 1.0, 100.0])
 def test_signal_below_the_threshold_is_not_detected_above_it_is(b):
-    """A flat background of b counts a bin (laid out evenly, so its estimate is b) and one
-    bin above it: not detected below the threshold (for b = 100 an excess of 0.15 b, the
-    signal below the background), detected a few counts above it."""
-    from stages.ranging import detection_threshold
+    """A flat background of b counts a bin (laid out evenly, so its estimate is b) and a
+    return of sigma one bin: not detected when the detection window's most counts are
+    below the scan statistic's threshold (for b = 100 an excess of a fraction of the
+    background), detected a few counts above it."""
+    from stages.ranging.detection import scan_bins, scan_threshold
 
     n_bins = 3000
-    thr = float(detection_threshold(b, 1e-3, n_bins))
+    k = scan_bins(SG, B)
     flat = np.zeros(n_bins)
     if b >= 1:
         flat[:] = b
     else:
         flat[::int(round(1 / b))] = 1.0
+    thr = scan_threshold(k * b, k, n_bins, 1e-3)
     counts = np.tile(flat, (2, 1))
-    # a return of sigma one bin (the peak search boxes +-1.5 sigma), its middle bin below
-    # the threshold in row 0, above it in row 1
-    shape = np.exp(-0.5 * np.arange(-2, 3) ** 2)
-    counts[0, 1499:1504] = np.floor(b + 0.3 * shape * (thr - b)) + (b < 1)
-    counts[1, 1499:1504] = np.floor(b + shape * (thr - b + 3 + np.sqrt(thr)))
+    excess = np.array([thr - 2 - k * b, thr + 2 + np.sqrt(thr) - k * b])
+    shape = np.exp(-0.5 * np.arange(-1, 2) ** 2)
+    counts[:, 1500:1503] += np.floor(excess[:, None] * shape / shape.sum())
+    counts[:, 1501] += np.floor(excess) - np.floor(excess[:, None] * shape / shape.sum()).sum(1)
     h = Histograms(counts, np.tile(np.arange(n_bins + 1) * B, (2, 1)), np.full(2, 1e9),
                    np.ones_like(counts, bool))
-    for estimator in ("fast", "ml"):
+    for estimator in ("fast", "ml", "matched", "centroid"):
         r = estimate(h, SG, estimator, 1e-3)
         assert not r.detected[0] and r.detected[1], estimator
 

@@ -57,8 +57,9 @@ def test_a_bad_histogram_or_argument_is_a_one_line_error(tmp_path, case, counts,
                                                          args, words):
     hist = write(tmp_path / "h.parquet", counts, width)
     res, _ = run(tmp_path, hist, "--delay-ps", "1000", *args)
-    assert res.exit_code != 0 and words in res.output, res.output
-    assert "Traceback" not in res.output
+    # exit 2: bad input (docs/design.md), in one line
+    assert res.exit_code == 2 and words in res.output, res.output
+    assert "Traceback" not in res.output and len(res.output.strip().splitlines()) == 1
 
 
 def test_inconsistent_rows_are_flagged_not_detected(tmp_path):
