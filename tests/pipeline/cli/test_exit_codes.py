@@ -121,9 +121,6 @@ CASES = [
                                   "--p-fa", "2"], "p_fa"),
     ("tcspc range", 2, lambda f: ["range", f.cap, "--out", f.hist_out,
                                   "--calibration", f.dir], "not replaced"),
-    ("tcspc range", 2, lambda f: ["range", f.generic, "--out", f.new("r.parquet"),
-                                  "--delay-ps", "1000", "--max-returns", "3"],
-     "calibrate distance"),
     # the estimators' checks at the door (docs/ranging.md; the hard cases of
     # test_cli_range_hard.py, each held here at its status)
     ("tcspc range", 2, lambda f: ["range", f.hand(0.0), "--out", f.new("r.parquet"),

@@ -128,7 +128,8 @@ def test_several_returns_without_a_calibration_use_the_gaussian_masks(tmp_path):
     r = tcspc("range", f, "--delay-ps", "1000", "--out", tmp_path / "r.parquet",
               "--max-returns", "3")
     assert r.returncode == 0 and "Gaussian response (its tails masked" in r.stderr, r.stderr
-    r = tcspc("range", f, "--delay-ps", "1000", "--out", tmp_path / "r.parquet")
+    r = tcspc("range", f, "--delay-ps", "1000", "--out", tmp_path / "r.parquet",
+              "--overwrite")
     assert r.returncode == 0, r.stderr
     assert pl.read_parquet(tmp_path / "r.parquet")["return_index"].max() == 0
 
