@@ -19,9 +19,10 @@ import signal
 import sys
 import tomllib
 import zoneinfo
-from pathlib import Path
 
 import click
+
+from pipeline.io.limits import FileTooLarge, load_toml
 
 #: name -> "module:function"; the modules are imported on use (Prefect is slow to import).
 FLOWS = {
@@ -155,9 +156,11 @@ def read_serve_config(path: str | None, **cli) -> dict:
     where = path or "<default serve config>"
     if path:
         try:
-            raw = tomllib.loads(Path(path).read_text())
+            raw = load_toml(path, "serve config")
         except FileNotFoundError:
             raise click.BadParameter(f"{path}: serve config not found") from None
+        except (FileTooLarge, OSError, UnicodeDecodeError) as exc:
+            raise click.BadParameter(str(exc)) from None
         except tomllib.TOMLDecodeError as exc:
             raise click.BadParameter(f"{path}: not valid TOML: {exc}") from None
     else:

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 
 import click
 
 from pipeline.cli.console import err
+from pipeline.io.limits import load_toml
 
 
 def _from_config(config: str | None) -> dict:
@@ -17,7 +17,7 @@ def _from_config(config: str | None) -> dict:
     from pipeline.stream.topology import load_topology
 
     topo = load_topology(config, writable=False)  # (the page only reads)
-    raw = tomllib.loads(Path(config).read_text())
+    raw = load_toml(config, "topology file")  # (load_topology read it already)
     cal = (topo.range or {}).get("calibration") or topo.histogram.get("calibration")
     return {"state": str(topo.state), "out": str(topo.sink["out"]), "calibration": cal,
             "run": (raw.get("daemon") or {}).get("run"), **(topo.view or {})}

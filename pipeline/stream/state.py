@@ -62,11 +62,40 @@ def open_nofollow(path: Path, flags: int, mode: int = 0o600) -> int:
         raise
 
 
-def _make_private(state: Path) -> None:
+def check_ancestors(path: Path, label: str = "state directory") -> None:
+    """Refuse ``path`` when a folder above it could be renamed or replaced by another
+    account: one owned by a user other than root or this one, or writable by others
+    without the sticky bit (/tmp's mode 1777 is fine: nobody may rename what is ours
+    there). Such a folder's owner could swap the whole directory mid-run."""
+    uid = os.geteuid()
+    p = Path(os.path.abspath(path)).parent
+    for d in (p, *p.parents):
+        try:
+            st = os.stat(d)
+        except FileNotFoundError:
+            continue  # (made by us: mkdir below)
+        if st.st_uid not in (0, uid):
+            raise StateError(f"{path}: inside {d}, which uid {st.st_uid} owns (it could "
+                             f"swap the {label} mid-run); refused: use a folder of your own")
+        if st.st_mode & 0o022 and not st.st_mode & stat.S_ISVTX:
+            raise StateError(f"{path}: inside {d}, which others may write (mode "
+                             f"{stat.S_IMODE(st.st_mode):o}, no sticky bit: they could swap "
+                             f"the {label} mid-run); refused")
+
+
+def make_private(state: Path, label: str = "state directory") -> None:
+    """``state`` created 0700, or an existing one taken only when this user owns it and
+    others may not write it (then made 0700), its folders above checked
+    (:func:`check_ancestors`)."""
+    check_ancestors(state, label)
+    _make_private(state, label)
+
+
+def _make_private(state: Path, label: str = "state directory") -> None:
     uid = os.geteuid()
     if state.is_symlink() and os.lstat(state).st_uid != uid:
         raise StateError(f"{state}: a symbolic link owned by uid {os.lstat(state).st_uid}, "
-                         "not by this user; refused as a state directory")
+                         f"not by this user; refused as a {label}")
     try:
         st = os.stat(state)
     except FileNotFoundError:
@@ -77,18 +106,18 @@ def _make_private(state: Path) -> None:
             pass
         st = os.stat(state)
     if not stat.S_ISDIR(st.st_mode):
-        raise StateError(f"{state}: not a directory; refused as a state directory")
+        raise StateError(f"{state}: not a directory; refused as a {label}")
     if st.st_uid != uid:
         raise StateError(f"{state}: owned by uid {st.st_uid}, not by this user (uid {uid}); "
-                         "refused as a state directory")
+                         f"refused as a {label}")
     if st.st_mode & 0o022:
         raise StateError(f"{state}: group- or world-writable (mode "
-                         f"{stat.S_IMODE(st.st_mode):o}); refused as a state directory "
+                         f"{stat.S_IMODE(st.st_mode):o}); refused as a {label} "
                          "(`chmod 700` it if it is yours)")
     os.chmod(state, 0o700)
 
 
-def _refuse_links(state: Path) -> None:
+def refuse_links(state: Path) -> None:
     """Every symbolic link, or entry of another user, in the state tree (one error)."""
     uid, bad = os.geteuid(), []
     for root, dirs, files in os.walk(state):
@@ -111,7 +140,7 @@ def open_state(state: str | Path) -> StateLock:
     import fcntl
 
     state = Path(state)
-    _make_private(state)
+    make_private(state)
     path = state / LOCK_NAME
     fd = open_nofollow(path, os.O_RDWR | os.O_CREAT, 0o600)
     try:
@@ -126,7 +155,7 @@ def open_state(state: str | Path) -> StateLock:
     os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
     lock = StateLock(path, fd)
     try:
-        _refuse_links(state)
+        refuse_links(state)
     except StateError:
         lock.release()
         raise
