@@ -162,6 +162,95 @@ def open_state(state: str | Path) -> StateLock:
     return lock
 
 
+# ------------------------------------------------------------------------ output tree
+def _check_dir_stat(st: os.stat_result, where, label: str) -> None:
+    uid = os.geteuid()
+    if not stat.S_ISDIR(st.st_mode):
+        raise StateError(f"{where}: not a directory (a link or a file where the {label} "
+                         "has a folder); refused")
+    if st.st_uid != uid:
+        raise StateError(f"{where}: owned by uid {st.st_uid}, not by this user (uid {uid}); "
+                         f"refused in the {label}")
+    if st.st_mode & 0o022:
+        raise StateError(f"{where}: group- or world-writable (mode "
+                         f"{stat.S_IMODE(st.st_mode):o}); refused in the {label} (others "
+                         "could plant links or swap files there; `chmod go-w` it)")
+
+
+def check_output_dir(out: str | Path, label: str = "output directory") -> None:
+    """The output tree taken as the state directory is (issue 36): made if missing, then
+    refused unless this user owns it, others may not write it, it is no symbolic link,
+    no folder above it belongs to another account, and no entry at its top (a dataset's
+    folder, ``accounting``) is a link or another user's. Datasets may stay readable by
+    others (0755): only writing is kept to the owner."""
+    out = Path(out)
+    check_ancestors(out, label)
+    out.mkdir(parents=True, exist_ok=True)
+    _check_dir_stat(os.lstat(out), out, label)
+    with os.scandir(out) as it:
+        for e in it:
+            st = e.stat(follow_symlinks=False)
+            if stat.S_ISLNK(st.st_mode):
+                raise StateError(f"{e.path}: a symbolic link in the {label}; refused "
+                                 "(the daemon writes its datasets and accounting itself)")
+            if stat.S_ISDIR(st.st_mode):
+                _check_dir_stat(st, e.path, label)
+
+
+def write_under(root: str | Path, rel: str | Path, data: bytes | memoryview,
+                label: str = "output directory") -> Path:
+    """Write ``data`` to ``root/rel`` atomically without following a link anywhere: each
+    folder opened from its checked parent's descriptor (``O_NOFOLLOW``, made 0755 when
+    missing, refused when not this user's or writable by others), the bytes written to an
+    ``O_EXCL | O_NOFOLLOW`` temporary, fsynced and renamed in that folder. A link or a
+    file planted at the temporary's or a folder's name is refused, never followed."""
+    root, rel = Path(root), Path(rel)
+    flags = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC
+    try:
+        fd = os.open(root, flags)
+    except OSError as exc:
+        raise StateError(f"{root}: cannot open the {label}: {exc.strerror}") from None
+    try:
+        _check_dir_stat(os.fstat(fd), root, label)
+        where = root
+        for part in rel.parts[:-1]:
+            where = where / part
+            try:
+                os.mkdir(part, 0o755, dir_fd=fd)
+            except FileExistsError:
+                pass
+            try:
+                sub = os.open(part, flags, dir_fd=fd)
+            except OSError as exc:
+                raise StateError(f"{where}: cannot open a folder of the {label} "
+                                 f"({exc.strerror}; a link is never followed)") from None
+            os.close(fd)
+            fd = sub
+            _check_dir_stat(os.fstat(fd), where, label)
+        name = rel.name
+        tmp = f".{name}.tmp-{os.getpid()}-{os.urandom(4).hex()}"
+        try:
+            out = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW
+                          | os.O_CLOEXEC, 0o644, dir_fd=fd)
+        except OSError as exc:
+            raise StateError(f"{where / tmp}: cannot create a temporary in the {label}: "
+                             f"{exc.strerror}") from None
+        try:
+            view = memoryview(data).cast("B")
+            while view.nbytes:
+                view = view[os.write(out, view):]
+            os.fsync(out)
+        except BaseException:
+            os.close(out)
+            os.unlink(tmp, dir_fd=fd)
+            raise
+        os.close(out)
+        os.replace(tmp, name, src_dir_fd=fd, dst_dir_fd=fd)  # (a link at name: replaced)
+        return root / rel
+    finally:
+        os.close(fd)
+
+
 # ------------------------------------------------------------------------ resources
 def _probe(family: int, kind: int, host: str, port: int) -> str | None:
     """Why (host, port) cannot be bound, or None when it can (the probe is closed)."""
@@ -231,6 +320,10 @@ def check_resources(topo) -> None:
             problems.append(f"view: cannot listen on {bind}:{port} ([view] port): {why} "
                             "(another `tcspc view`? another port, or port = 0 for any)")
     out = Path(topo.sink["out"])
+    try:
+        check_output_dir(out, "[sink] out")
+    except StateError as exc:
+        problems.append(f"sink: {exc}")
     try:
         out.mkdir(parents=True, exist_ok=True)
         fd = os.open(out / f".tcspc-probe-{os.getpid()}", os.O_WRONLY | os.O_CREAT
