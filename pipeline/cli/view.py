@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import click
@@ -38,7 +39,7 @@ def _from_config(config: str | None) -> dict:
 @click.option("--port", type=click.IntRange(0, 65535), default=None,
               help="TCP port (0: any free one)  [default: 5006]")
 @click.option("--bind", default=None,
-              help="Address to listen on; any but loopback puts a token in the URL  "
+              help="Address to listen on (the URL carries a token on every address)  "
                    "[default: 127.0.0.1]")
 @click.option("--layout", default=None,
               help="The array as COLUMNSxROWS, TDC t at column t % COLUMNS  [default: 16x8 "
@@ -86,11 +87,11 @@ def view(config, state, out, calibration, run_id, port, bind, layout, open_brows
         raise click.ClickException(f"cannot listen on {bind}:{port}: {exc.strerror or exc} "
                                    "(another `tcspc view`? use --port)") from None
     where = write_url(state, url) if state.exists() else None
-    # the token is a secret: printed (to a log, under the daemon) only when no 0600 file
-    # could hold it
+    # the token is a secret: in the 0600 file, and printed whole once, to the operator's
+    # terminal (never to a log under the daemon) or where no 0600 file could hold it
     shown = url.split("?token=")[0] + "?token=(in " + str(where) + ")" \
         if where and "?token=" in url else url
-    click.echo(shown, nl=True)
+    click.echo(url if sys.stdout.isatty() else shown, nl=True)
     err.print(f"tcspc view: open {shown} (state {state}, datasets {out}, calibration "
               f"{calibration or 'none'}){f'; URL in {where}' if where else ''}; Ctrl-C stops",
               highlight=False, soft_wrap=True)
