@@ -81,17 +81,18 @@ def list_cmd() -> None:
 @click.option("-p", "--param", "params", multiple=True, metavar="KEY=VALUE",
               help="A flow parameter (JSON value), e.g. -p cycles=100000 -p lux=[500,2000].")
 @click.option("--dask", "dask_address", metavar="[ADDRESS]", is_flag=False, flag_value="local",
-              help="Fan tasks out over the Dask cluster at ADDRESS (tcp://HOST:8786), or "
-                   "over a local cluster of one worker process per core with no ADDRESS.")
-def run_cmd(name, params, dask_address) -> None:
+              help="Fan tasks out over the Dask cluster at ADDRESS (tls://HOST:8786, with "
+                   "the TLS files of Dask's configuration), or over a private local "
+                   "cluster (TLS, credentials made for this run) with no ADDRESS.")
+@click.option("--dask-insecure", is_flag=True,
+              help="Take a --dask ADDRESS without TLS (anyone who reaches it runs code as "
+                   "its workers' user).")
+def run_cmd(name, params, dask_address, dask_insecure) -> None:
     """Run flow NAME now and print its summary as JSON."""
     fl = load(name)
     kwargs = parse_params(params, fl.fn)
     if dask_address:
-        from prefect_dask import DaskTaskRunner
-
-        fl = fl.with_options(task_runner=DaskTaskRunner() if dask_address == "local"
-                             else DaskTaskRunner(address=dask_address))
+        fl = fl.with_options(task_runner=dask_runner(dask_address, dask_insecure))
     check_params(fl, kwargs, "-p")
     api = os.environ.get("PREFECT_API_URL") or "Prefect's embedded ephemeral API"
     click.echo(f"running {name} on {api}", err=True)
@@ -102,6 +103,30 @@ def run_cmd(name, params, dask_address) -> None:
                err=True)
     if state.name == "Refused":  # completed, but nothing published: say so to scripts
         sys.exit(REFUSED_EXIT)
+
+
+def dask_runner(address: str, insecure: bool = False):
+    """The Dask task runner of ``--dask [ADDRESS]``. A local cluster is private: its
+    scheduler and workers speak TLS with credentials made in memory for this run
+    (``Security.temporary()``: a CA and a certificate no file holds), so another account
+    that finds its port cannot submit a function (which would run as this user). A remote
+    ADDRESS must be tls:// with Dask's TLS configuration (``distributed.comm.tls``: CA,
+    client certificate and key), else it is refused unless ``insecure``."""
+    from distributed import Security
+    from prefect_dask import DaskTaskRunner
+
+    if address == "local":
+        return DaskTaskRunner(cluster_kwargs={"security": Security.temporary(),
+                                              "dashboard_address": None})
+    sec = Security()  # (from Dask's configuration)
+    if address.startswith("tls://") and sec.tls_ca_file and sec.tls_client_cert:
+        return DaskTaskRunner(address=address, client_kwargs={"security": sec})
+    if not insecure:
+        raise click.UsageError(
+            f"--dask {address}: not a tls:// address with Dask's TLS configuration "
+            "(distributed.comm.tls.ca-file and client cert/key): anyone who reaches it "
+            "could run code as its workers' user; configure TLS, or pass --dask-insecure")
+    return DaskTaskRunner(address=address)
 
 
 #: `tcspc flow run`'s exit status when a campaign refused its candidate
