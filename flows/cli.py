@@ -19,6 +19,7 @@ import signal
 import sys
 import tomllib
 import zoneinfo
+from pathlib import Path
 
 import click
 
@@ -127,6 +128,23 @@ def dask_runner(address: str, insecure: bool = False):
             "(distributed.comm.tls.ca-file and client cert/key): anyone who reaches it "
             "could run code as its workers' user; configure TLS, or pass --dask-insecure")
     return DaskTaskRunner(address=address)
+
+
+def _private_tmp() -> Path:
+    """A temporary directory of this user's own (PREFECT_HOME/tmp, 0700, checked as the
+    daemon's state is), made the process's and its children's: Prefect's Runner puts its
+    storage at TMP/runner_storage, a fixed name another account could create first in a
+    shared /tmp."""
+    import tempfile
+
+    from prefect.settings import PREFECT_HOME
+
+    from pipeline.stream.state import make_private
+
+    tmp = Path(PREFECT_HOME.value()).expanduser() / "tmp"
+    make_private(tmp, "temporary directory")
+    os.environ["TMPDIR"] = tempfile.tempdir = str(tmp)
+    return tmp
 
 
 #: `tcspc flow run`'s exit status when a campaign refused its candidate
@@ -304,19 +322,38 @@ def deployments(config: dict) -> list:
                    "Default without a file: 0 2 * * *.")
 @click.option("--sweep-cron", default=None, help="Schedule the distance sweep too (cron).")
 @click.option("--out", default=None, help="Where the runs write (default: data).")
-def serve_cmd(config_path, calibration_cron, sweep_cron, out) -> None:
+@click.option("--root", "roots", multiple=True, type=click.Path(file_okay=False),
+              help="A folder a served run may write under (repeat; default: --out). A run "
+                   "created on the server with an out elsewhere is refused.")
+@click.option("--unauthenticated", is_flag=True,
+              help="Serve through a Prefect server without PREFECT_API_AUTH_STRING (only "
+                   "where no other account can reach its port).")
+def serve_cmd(config_path, calibration_cron, sweep_cron, out, roots, unauthenticated) -> None:
     """Serve the flows as deployments with schedules until Ctrl-C or SIGTERM (either stops
     scheduling and cancels a run in flight, which leaves the published calibration
-    as it was)."""
+    as it was). Anyone who can reach the Prefect server can create runs: its API needs
+    authentication (docs/flows.md, "A shared host"), and served runs write only under the
+    roots."""
     config = read_serve_config(config_path, out=out, calibration_cron=calibration_cron,
                                sweep_cron=sweep_cron)
-    if not os.environ.get("PREFECT_API_URL"):
-        from prefect.settings import PREFECT_API_URL
+    from prefect.settings import PREFECT_API_AUTH_STRING, PREFECT_API_URL
 
-        if not PREFECT_API_URL.value():
-            raise click.ClickException(
-                "schedules need a Prefect server: start one with `prefect server start` and "
-                "set PREFECT_API_URL=http://127.0.0.1:4200/api (`tcspc flow run` needs none)")
+    if not os.environ.get("PREFECT_API_URL") and not PREFECT_API_URL.value():
+        raise click.ClickException(
+            "schedules need a Prefect server: start one with `prefect server start` and "
+            "set PREFECT_API_URL=http://127.0.0.1:4200/api (`tcspc flow run` needs none)")
+    if not PREFECT_API_AUTH_STRING.value() and not unauthenticated:
+        raise click.UsageError(
+            "PREFECT_API_AUTH_STRING is not set: any account that reaches the Prefect "
+            "server could create runs with its own paths, read past runs and cancel them; "
+            "start the server with PREFECT_SERVER_API_AUTH_STRING=USER:PASSWORD and set "
+            "PREFECT_API_AUTH_STRING to the same here (docs/flows.md, \"A shared host\"), "
+            "or pass --unauthenticated")
+    from flows.common import ROOTS_ENV
+
+    roots = [str(Path(r).resolve()) for r in (roots or [config.get("out", "data")])]
+    os.environ[ROOTS_ENV] = os.pathsep.join(roots)  # (the served runs' processes inherit it)
+    _private_tmp()
     deps = deployments(config)
     from prefect.runner import Runner
 
