@@ -23,6 +23,8 @@ from pathlib import Path
 
 import click
 
+from pipeline.io.limits import FileTooLarge, load_toml
+
 #: name -> "module:function"; the modules are imported on use (Prefect is slow to import).
 FLOWS = {
     "calibration_campaign": "flows.calibration:calibration_campaign",
@@ -92,17 +94,18 @@ def list_cmd() -> None:
 @click.option("-p", "--param", "params", multiple=True, metavar="KEY=VALUE",
               help="A flow parameter (JSON value), e.g. -p cycles=100000 -p lux=[500,2000].")
 @click.option("--dask", "dask_address", metavar="[ADDRESS]", is_flag=False, flag_value="local",
-              help="Fan tasks out over the Dask cluster at ADDRESS (tcp://HOST:8786), or "
-                   "over a local cluster of one worker process per core with no ADDRESS.")
-def run_cmd(name, params, dask_address) -> None:
+              help="Fan tasks out over the Dask cluster at ADDRESS (tls://HOST:8786, with "
+                   "the TLS files of Dask's configuration), or over a private local "
+                   "cluster (TLS, credentials made for this run) with no ADDRESS.")
+@click.option("--dask-insecure", is_flag=True,
+              help="Take a --dask ADDRESS without TLS (anyone who reaches it runs code as "
+                   "its workers' user).")
+def run_cmd(name, params, dask_address, dask_insecure) -> None:
     """Run flow NAME now and print its summary as JSON."""
     fl = load(name)
     kwargs = parse_params(params, fl.fn)
     if dask_address:
-        from prefect_dask import DaskTaskRunner
-
-        fl = fl.with_options(task_runner=DaskTaskRunner() if dask_address == "local"
-                             else DaskTaskRunner(address=dask_address))
+        fl = fl.with_options(task_runner=dask_runner(dask_address, dask_insecure))
     check_params(fl, kwargs, "-p")
     api = os.environ.get("PREFECT_API_URL") or "Prefect's embedded ephemeral API"
     click.echo(f"running {name} on {api}", err=True)
@@ -113,6 +116,47 @@ def run_cmd(name, params, dask_address) -> None:
                err=True)
     if state.name == "Refused":  # completed, but nothing published: say so to scripts
         sys.exit(REFUSED_EXIT)
+
+
+def dask_runner(address: str, insecure: bool = False):
+    """The Dask task runner of ``--dask [ADDRESS]``. A local cluster is private: its
+    scheduler and workers speak TLS with credentials made in memory for this run
+    (``Security.temporary()``: a CA and a certificate no file holds), so another account
+    that finds its port cannot submit a function (which would run as this user). A remote
+    ADDRESS must be tls:// with Dask's TLS configuration (``distributed.comm.tls``: CA,
+    client certificate and key), else it is refused unless ``insecure``."""
+    from distributed import Security
+    from prefect_dask import DaskTaskRunner
+
+    if address == "local":
+        return DaskTaskRunner(cluster_kwargs={"security": Security.temporary(),
+                                              "dashboard_address": None})
+    sec = Security()  # (from Dask's configuration)
+    if address.startswith("tls://") and sec.tls_ca_file and sec.tls_client_cert:
+        return DaskTaskRunner(address=address, client_kwargs={"security": sec})
+    if not insecure:
+        raise click.UsageError(
+            f"--dask {address}: not a tls:// address with Dask's TLS configuration "
+            "(distributed.comm.tls.ca-file and client cert/key): anyone who reaches it "
+            "could run code as its workers' user; configure TLS, or pass --dask-insecure")
+    return DaskTaskRunner(address=address)
+
+
+def _private_tmp() -> Path:
+    """A temporary directory of this user's own (PREFECT_HOME/tmp, 0700, checked as the
+    daemon's state is), made the process's and its children's: Prefect's Runner puts its
+    storage at TMP/runner_storage, a fixed name another account could create first in a
+    shared /tmp."""
+    import tempfile
+
+    from prefect.settings import PREFECT_HOME
+
+    from pipeline.stream.state import make_private
+
+    tmp = Path(PREFECT_HOME.value()).expanduser() / "tmp"
+    make_private(tmp, "temporary directory")
+    os.environ["TMPDIR"] = tempfile.tempdir = str(tmp)
+    return tmp
 
 
 #: `tcspc flow run`'s exit status when a campaign refused its candidate
@@ -167,9 +211,11 @@ def read_serve_config(path: str | None, **cli) -> dict:
     where = path or "<default serve config>"
     if path:
         try:
-            raw = tomllib.loads(Path(path).read_text())
+            raw = load_toml(path, "serve config")
         except FileNotFoundError:
             raise click.BadParameter(f"{path}: serve config not found") from None
+        except (FileTooLarge, OSError, UnicodeDecodeError) as exc:
+            raise click.BadParameter(str(exc)) from None
         except tomllib.TOMLDecodeError as exc:
             raise click.BadParameter(f"{path}: not valid TOML: {exc}") from None
     else:
@@ -288,19 +334,38 @@ def deployments(config: dict) -> list:
                    "Default without a file: 0 2 * * *.")
 @click.option("--sweep-cron", default=None, help="Schedule the distance sweep too (cron).")
 @click.option("--out", default=None, help="Where the runs write (default: data).")
-def serve_cmd(config_path, calibration_cron, sweep_cron, out) -> None:
+@click.option("--root", "roots", multiple=True, type=click.Path(file_okay=False),
+              help="A folder a served run may write under (repeat; default: --out). A run "
+                   "created on the server with an out elsewhere is refused.")
+@click.option("--unauthenticated", is_flag=True,
+              help="Serve through a Prefect server without PREFECT_API_AUTH_STRING (only "
+                   "where no other account can reach its port).")
+def serve_cmd(config_path, calibration_cron, sweep_cron, out, roots, unauthenticated) -> None:
     """Serve the flows as deployments with schedules until Ctrl-C or SIGTERM (either stops
     scheduling and cancels a run in flight, which leaves the published calibration
-    as it was)."""
+    as it was). Anyone who can reach the Prefect server can create runs: its API needs
+    authentication (docs/flows.md, "A shared host"), and served runs write only under the
+    roots."""
     config = read_serve_config(config_path, out=out, calibration_cron=calibration_cron,
                                sweep_cron=sweep_cron)
-    if not os.environ.get("PREFECT_API_URL"):
-        from prefect.settings import PREFECT_API_URL
+    from prefect.settings import PREFECT_API_AUTH_STRING, PREFECT_API_URL
 
-        if not PREFECT_API_URL.value():
-            raise click.ClickException(
-                "schedules need a Prefect server: start one with `prefect server start` and "
-                "set PREFECT_API_URL=http://127.0.0.1:4200/api (`tcspc flow run` needs none)")
+    if not os.environ.get("PREFECT_API_URL") and not PREFECT_API_URL.value():
+        raise click.ClickException(
+            "schedules need a Prefect server: start one with `prefect server start` and "
+            "set PREFECT_API_URL=http://127.0.0.1:4200/api (`tcspc flow run` needs none)")
+    if not PREFECT_API_AUTH_STRING.value() and not unauthenticated:
+        raise click.UsageError(
+            "PREFECT_API_AUTH_STRING is not set: any account that reaches the Prefect "
+            "server could create runs with its own paths, read past runs and cancel them; "
+            "start the server with PREFECT_SERVER_API_AUTH_STRING=USER:PASSWORD and set "
+            "PREFECT_API_AUTH_STRING to the same here (docs/flows.md, \"A shared host\"), "
+            "or pass --unauthenticated")
+    from flows.common import ROOTS_ENV
+
+    roots = [str(Path(r).resolve()) for r in (roots or [config.get("out", "data")])]
+    os.environ[ROOTS_ENV] = os.pathsep.join(roots)  # (the served runs' processes inherit it)
+    _private_tmp()
     deps = deployments(config)
     from prefect.runner import Runner
 

@@ -191,9 +191,35 @@ def simulate(scene: dict, cycles: int, cache_dir: str, seed: int = 0,
     return str(path)
 
 
+#: set by `tcspc flow serve` (its ``roots``): the folders a served run may use, joined by
+#: os.pathsep; a run's paths elsewhere are refused (anyone who can create a run on the
+#: server chooses its parameters)
+ROOTS_ENV = "TCSPC_FLOW_ROOTS"
+
+
+class OutsideRoots(TcspcError, ValueError):
+    """A served flow run's path outside the roots its operator configured."""
+
+
+def check_roots(**paths) -> None:
+    """Refuse (one line naming the parameter) any of ``paths`` (name=path, None skipped)
+    that does not resolve under a root of $TCSPC_FLOW_ROOTS; nothing when it is unset (a
+    run started by `tcspc flow run`: the operator's own command line)."""
+    roots = [Path(r).resolve() for r in os.environ.get(ROOTS_ENV, "").split(os.pathsep) if r]
+    if not roots:
+        return
+    for name, path in paths.items():
+        if path is not None and not any(Path(path).resolve().is_relative_to(r)
+                                        for r in roots):
+            raise OutsideRoots(f"{name} = {str(path)!r}: outside the roots this server "
+                               f"takes paths under ({', '.join(map(str, roots))}); refused")
+
+
 def new_run_dir(out: str | Path, flow: str) -> Path:
     """``OUT/runs/<UTC time>-<random>``: one directory per run, never reused. ``flow.txt``
-    names the flow and the Prefect flow run that wrote it."""
+    names the flow and the Prefect flow run that wrote it. A served run's ``out`` outside
+    the configured roots is refused (:func:`check_roots`)."""
+    check_roots(out=out)
     stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
     run = Path(out) / "runs" / f"{stamp}-{secrets.token_hex(3)}"
     run.mkdir(parents=True)

@@ -71,3 +71,22 @@ def mirror16():
         acc.update(w)
     st = acc.snapshot()
     return st, chip.window_truth(sim.light, sm.window_s)[0], sm.window_s
+
+
+@pytest.fixture(scope="session")
+def other_account():
+    """A second local account (uid), for attacks by another user of a shared host: created
+    with useradd when the tests run as root (removed at the end), else the tests skip."""
+    import pwd
+    import shutil
+    import subprocess
+
+    if os.geteuid() != 0 or not shutil.which("useradd"):
+        pytest.skip("needs root and useradd to create a second local account")
+    name = f"tcspct{os.getpid() % 100000}"
+    subprocess.run(["useradd", "--no-create-home", "--shell", "/usr/sbin/nologin", name],
+                   check=True, capture_output=True)
+    try:
+        yield pwd.getpwnam(name).pw_uid
+    finally:
+        subprocess.run(["userdel", name], capture_output=True)

@@ -16,7 +16,11 @@ from pipeline.cli.console import err
 
 
 @click.group()
-def stage() -> None:
+@click.option("--insecure", is_flag=True, envvar="TCSPC_INSECURE",
+              help="Let a stage on tcp:// run without the run's token and CURVE keys "
+                   "($TCSPC_TOKEN_FILE, $TCSPC_CURVE_DIR): anyone who reaches the port may "
+                   "then send it messages.")
+def stage(insecure) -> None:
     """Run one stage of the stream alone (the graph can span processes and hosts)."""
     from pipeline.cli.app import _one_blas_thread
 
@@ -56,6 +60,37 @@ _wire = click.option(
 REPLAY_BATCH_WORDS = 1 << 20
 
 
+def _secure(*endpoints) -> None:
+    """Refuse a tcp:// endpoint without the run's token and CURVE keys (any host or account
+    that reaches the port could feed the stage forged words or a stop) unless --insecure."""
+    import os
+
+    from pipeline.stream.curve import CURVE_ENV
+    from pipeline.stream.wire import TOKEN_ENV
+
+    ctx = click.get_current_context()
+    if ctx.parent is not None and ctx.parent.params.get("insecure"):
+        return
+    tcp = [e for e in endpoints if e and str(e).startswith("tcp://")]
+    missing = [f"${v}" for v in (TOKEN_ENV, CURVE_ENV) if not os.environ.get(v)]
+    if tcp and missing:
+        raise click.UsageError(
+            f"{tcp[0]}: a tcp:// endpoint without {' and '.join(missing)}: anyone who "
+            "reaches the port could send this stage messages; set them (`tcspc stage plan` "
+            "writes both) or pass `tcspc stage --insecure ...`")
+
+
+def _run_id(ctx, param, value):
+    """--run: a run id becomes a directory name (journal, checkpoints): 1..64 of
+    [A-Za-z0-9._-], never '.' or '..'."""
+    from pipeline.stream.wire import ID_PATTERN, run_id_from
+
+    if value is not None and not ID_PATTERN.fullmatch(value):
+        raise click.BadParameter(f"{value!r}: use 1..64 of [A-Za-z0-9._-], not '.' or '..' "
+                                 f"(it becomes a directory name), e.g. {run_id_from(value)!r}")
+    return value
+
+
 def _compression(name: str) -> str | None:
     return None if name == "none" else name
 
@@ -84,7 +119,7 @@ def _skip_journaled(batches, journal, run_id):
 @_push
 @click.option("--seed", default=0, show_default=True)
 @click.option("--chip-seed", default=1, show_default=True)
-@click.option("--run", "run_id", default="sim", show_default=True)
+@click.option("--run", "run_id", default="sim", show_default=True, callback=_run_id)
 @click.option("--rate", type=float, default=None, help="Words per second (default: max).")
 @click.option("--journal", type=click.Path(), default=None,
               help="Journal the words here before sending them.")
@@ -96,6 +131,7 @@ def _skip_journaled(batches, journal, run_id):
 def stage_source_sim(scene_path, cycles, pushes, seed, chip_seed, run_id, rate, journal,
                      journal_compression, split, metrics, date, wire) -> None:
     """The simulator as a source: raw-word batches of SCENE_PATH."""
+    _secure(*pushes, metrics)
     from pipeline.offline.simulate import make_simulator
     from pipeline.stream.journal import JournalWriter
     from pipeline.stream.stage import run_source
@@ -117,7 +153,8 @@ def stage_source_sim(scene_path, cycles, pushes, seed, chip_seed, run_id, rate, 
 @stage.command("source-capture")
 @click.argument("capture", type=click.Path())
 @_push
-@click.option("--run", "run_id", default=None, help="Run id (default: the capture's name)")
+@click.option("--run", "run_id", default=None, help="Run id (default: the capture's name)",
+              callback=_run_id)
 @click.option("--rate", type=float, default=None, help="Words per second (default: max).")
 @click.option("--journal", type=click.Path(), default=None,
               help="Journal the words here before sending them.")
@@ -131,6 +168,7 @@ def stage_source_sim(scene_path, cycles, pushes, seed, chip_seed, run_id, rate, 
 def stage_source_capture(capture, pushes, run_id, rate, journal, journal_compression, split,
                          metrics, date, repeat, wire) -> None:
     """Replay a capture into the stream, at a chosen rate or as fast as it is taken."""
+    _secure(*pushes, metrics)
     from pipeline.io.capture import Capture
     from pipeline.stream.journal import JournalWriter
     from pipeline.stream.stage import run_source
@@ -163,7 +201,8 @@ def stage_source_capture(capture, pushes, run_id, rate, journal, journal_compres
 @stage.command("source-file")
 @click.argument("path", type=click.Path(exists=True, dir_okay=False))
 @_push
-@click.option("--run", "run_id", default=None, help="Run id (default: the file's name)")
+@click.option("--run", "run_id", default=None, help="Run id (default: the file's name)",
+              callback=_run_id)
 @click.option("--rate", type=float, default=None,
               help="Records per second (default: as fast as they are taken).")
 @click.option("--format", "fmt", type=click.Choice(["ptu", "linospad2"]), default=None,
@@ -180,6 +219,7 @@ def stage_source_file(path, pushes, run_id, rate, fmt, firmware, journal, journa
                       split, metrics, date) -> None:
     """Replay an instrument's file (PTU T3, LinoSPAD2) into the stream: its raw records, in
     order, as one run; the histogram worker decodes them (``--instrument-file``)."""
+    _secure(*pushes, metrics)
     from pipeline.io.formats import (
         instrument_timing_ns,
         instrument_truncation,
@@ -209,7 +249,7 @@ def stage_source_file(path, pushes, run_id, rate, fmt, firmware, journal, journa
 @click.option("--bind", "bind_addr", default="127.0.0.1:9000", show_default=True,
               help="host:port to listen on (127.0.0.1 unless you choose otherwise)")
 @_push
-@click.option("--run", "run_id", default="udp", show_default=True)
+@click.option("--run", "run_id", default="udp", show_default=True, callback=_run_id)
 @click.option("--journal", type=click.Path(), default=None,
               help="Directory for the raw words as capture segments (written before "
                    "they are passed on).")
@@ -240,6 +280,7 @@ def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, n_tdc
                      journal_compression, split, metrics, date, wire) -> None:
     """The FPGA's UDP datagrams (docs/streaming.md) in, journaled raw-word batches out.
     Restarted on a run its journal holds, it takes the run up where the journal has it."""
+    _secure(*pushes, metrics)
     import signal
     import threading
 
@@ -293,7 +334,8 @@ def stage_ingest_udp(bind_addr, pushes, run_id, journal, quarantine, idle, n_tdc
               help="Checkpoint file: restored at start, saved after every batch.")
 @click.option("--journal", type=click.Path(), default=None,
               help="The source's journal directory, to fill gaps after a restart.")
-@click.option("--run", "run_id", default=None, help="Run id of the journal to read.")
+@click.option("--run", "run_id", default=None, help="Run id of the journal to read.",
+              callback=_run_id)
 @_metrics
 @click.option("--name", default="histogram", show_default=True, help="Name in metrics.")
 @_date
@@ -309,6 +351,7 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
                     bounds_path, quarantine, checkpoint, journal, run_id, metrics, name, date,
                     senders, instrument_file, fmt, firmware) -> None:
     """Per-TDC histograms of the word stream, per measurement or at the end of the run."""
+    _secure(pull, push, metrics)
     from pipeline.io.caldir import read_bounds
     from pipeline.stream.fanout import parse_range, worker_reader
     from pipeline.stream.journal import read_range, run_end, run_meta
@@ -389,6 +432,7 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
 def stage_range(pull, push, calibration, estimator, max_returns, workers, quarantine, metrics,
                 senders) -> None:
     """Ranges of each measurement's histograms with a calibration (eq. 5.4)."""
+    _secure(pull, push, metrics)
     from pipeline.io.caldir import load_calibration
     from pipeline.offline.ranging import RangeCore
     from pipeline.stream.stage import run_stage
@@ -412,6 +456,7 @@ def stage_range(pull, push, calibration, estimator, max_returns, workers, quaran
 @_accept
 def stage_sink(pull, out, quarantine, workers, pointcloud, geometry, metrics, senders) -> None:
     """Parquet datasets (histograms, ranges), Hive-partitioned by date and run."""
+    _secure(pull, metrics)
     from pipeline.stream.stage import ParquetSink, run_stage
 
     cloud = None
@@ -443,6 +488,7 @@ def plan(config, run_id, out, overwrite) -> None:
     import shlex
 
     from pipeline.stream.daemon import build, run_token
+    from pipeline.stream.state import make_private, refuse_links
     from pipeline.stream.topology import load_topology
     from pipeline.stream.wire import TOKEN_ENV
 
@@ -458,6 +504,9 @@ def plan(config, run_id, out, overwrite) -> None:
 
     for name, _ in stages:  # (the output policy: docs/design.md "Outputs")
         check_output(Path(out) / f"{name}.env", overwrite=overwrite)
+    # the daemon's checks: 0700, ours, no links, no other account's folder above it
+    make_private(topo.state)
+    refuse_links(topo.state)
     for d in ("logs", "journal", f"checkpoints/{topo.run}"):
         (topo.state / d).mkdir(parents=True, exist_ok=True)
     token, _ = run_token(topo.state, topo.run)

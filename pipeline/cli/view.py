@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-import tomllib
+import sys
 from pathlib import Path
 
 import click
 
 from pipeline.cli.console import err
+from pipeline.io.limits import load_toml
 
 
 def _from_config(config: str | None) -> dict:
@@ -17,7 +18,7 @@ def _from_config(config: str | None) -> dict:
     from pipeline.stream.topology import load_topology
 
     topo = load_topology(config, writable=False)  # (the page only reads)
-    raw = tomllib.loads(Path(config).read_text())
+    raw = load_toml(config, "topology file")  # (load_topology read it already)
     cal = (topo.range or {}).get("calibration") or topo.histogram.get("calibration")
     return {"state": str(topo.state), "out": str(topo.sink["out"]), "calibration": cal,
             "run": (raw.get("daemon") or {}).get("run"), **(topo.view or {})}
@@ -38,7 +39,7 @@ def _from_config(config: str | None) -> dict:
 @click.option("--port", type=click.IntRange(0, 65535), default=None,
               help="TCP port (0: any free one)  [default: 5006]")
 @click.option("--bind", default=None,
-              help="Address to listen on; any but loopback puts a token in the URL  "
+              help="Address to listen on (the URL carries a token on every address)  "
                    "[default: 127.0.0.1]")
 @click.option("--layout", default=None,
               help="The array as COLUMNSxROWS, TDC t at column t % COLUMNS  [default: 16x8 "
@@ -100,11 +101,11 @@ def view(config, state, out, calibration, run_id, port, bind, layout, geometry, 
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: loop.add_callback_from_signal(loop.stop))
     where = write_url(state, url) if state.exists() else None
-    # the token is a secret: printed (to a log, under the daemon) only when no 0600 file
-    # could hold it
+    # the token is a secret: in the 0600 file, and printed whole once, to the operator's
+    # terminal (never to a log under the daemon) or where no 0600 file could hold it
     shown = url.split("?token=")[0] + "?token=(in " + str(where) + ")" \
         if where and "?token=" in url else url
-    click.echo(shown, nl=True)
+    click.echo(url if sys.stdout.isatty() else shown, nl=True)
     err.print(f"tcspc view: open {shown} (state {state}, datasets {out}, calibration "
               f"{calibration or 'none'}){f'; URL in {where}' if where else ''}; Ctrl-C stops",
               highlight=False, soft_wrap=True)

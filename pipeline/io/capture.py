@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.io.buffers import aligned_empty
+from pipeline.io.limits import MAX_CONFIG_BYTES, FileTooLarge, read_bounded
 from schemas.errors import CaptureError
 from stages.codec import MARKER_MASK, MARKER_VALUE, MAX_TDC
 
@@ -142,9 +143,12 @@ class Capture:
             raise CaptureError(f"{self.json_path}: sidecar not found (every NAME.bin needs "
                                "a NAME.json beside it)")
         try:
-            raw = json.loads(self.json_path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise CaptureError(f"{self.json_path}: sidecar is not valid JSON: {exc}") from exc
+            raw = json.loads(read_bounded(self.json_path, MAX_CONFIG_BYTES, "sidecar"))
+        except FileTooLarge as exc:
+            raise CaptureError(str(exc)) from None
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
+            raise CaptureError(f"{self.json_path}: sidecar is not valid JSON: "
+                               f"{str(exc) or 'nested too deeply'}") from None
         self.meta = CaptureMeta.from_dict(raw, str(self.json_path))
         if self.meta.truth is not None:  # (large arrays beside it, read when asked for)
             self.meta = replace(self.meta,

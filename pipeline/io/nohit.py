@@ -152,6 +152,10 @@ def _build():
 #: more TDCs than a frame may name (the chip's addresses are 8 bits): a header saying more
 #: is damaged, and is refused before its pattern is built
 MAX_TDC = 1 << 20
+#: the most words a frame may hold: a frame is one batch (the daemon's are at most a few
+#: MiB) and a header claiming more is refused before its mask or words are allocated (a
+#: 16 KB file claiming 2^32 words must not take gigabytes: zstd expands zeros ~32 000-fold)
+MAX_FRAME_WORDS = 1 << 26
 
 
 def decode(content: bytes | memoryview, first_word: int | None = None,
@@ -169,6 +173,9 @@ def decode(content: bytes | memoryview, first_word: int | None = None,
         raise FrameError(f"n_tdc {frame_tdc} in the frame header"
                          + (f", the sidecar says {n_tdc}" if n_tdc is not None else ""))
     n_tdc = frame_tdc
+    if n > MAX_FRAME_WORDS:
+        raise FrameError(f"the frame header claims {n} words, more than a frame may hold "
+                         f"({MAX_FRAME_WORDS})")
     if words is not None and n != words:
         raise FrameError(f"the frame holds {n} words, the index says {words}")
     if first_word is not None and first != first_word:
@@ -220,7 +227,12 @@ class FrameReader:
         magic, _, n, _ = HEADER.unpack(head)
         if magic != MAGIC:
             raise FrameError(f"not a zstd-nohit frame (magic {magic!r})")
+        if n > MAX_FRAME_WORDS:
+            raise FrameError(f"the frame header claims {n} words, more than a frame may hold "
+                             f"({MAX_FRAME_WORDS})")
         mask = self._exact(-(-n // 8))
+        if len(mask) < -(-n // 8):
+            raise FrameError(f"a frame of {n} words cut short inside its mask")
         k = int(np.count_nonzero(np.unpackbits(np.frombuffer(mask, np.uint8), count=n,
                                                bitorder="little").view(bool)))
         others = self._exact(4 * k)

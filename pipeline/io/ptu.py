@@ -71,6 +71,11 @@ _FIXED = {TY_EMPTY8, TY_BOOL8, TY_INT8, TY_BITSET64, TY_COLOR8, TY_FLOAT8, TY_TD
 #: TDateTime is days since this instant (Delphi's epoch)
 _DELPHI_EPOCH = dt.datetime(1899, 12, 30, tzinfo=dt.UTC)
 _TAG = struct.Struct("<32siIQ")
+#: the most bytes one tag's data may hold, and the most tags a header may hold: PicoQuant's
+#: headers are tens of KiB; a length beyond these is refused before it is read (a sparse
+#: file of 12 KB on disk may claim a 1 GiB string)
+MAX_TAG_BYTES = 1 << 24
+MAX_TAGS = 1 << 16
 
 
 class PtuError(TcspcError, ValueError):
@@ -224,11 +229,17 @@ def read_header(path: str | os.PathLike) -> PtuHeader:
             name = "".join(c if c.isprintable() else f"\\x{ord(c):02x}" for c in name)
             key = f"{name}({idx})" if idx >= 0 else name
             data = b""
+            if len(tags) >= MAX_TAGS:
+                raise PtuError(f"{where}: more than {MAX_TAGS} tags before Header_End "
+                               "(corrupt header?)")
             if typ in _VARIABLE:
                 start = offset + _TAG.size
                 if value > size - start:
                     raise PtuError(f"{where}: tag {key} at byte {offset} declares {value} "
                                    f"bytes of data, past the end of the file ({size} bytes)")
+                if value > MAX_TAG_BYTES:
+                    raise PtuError(f"{where}: tag {key} at byte {offset} declares {value} "
+                                   f"bytes of data, more than a tag may hold ({MAX_TAG_BYTES})")
                 data = fh.read(value)
                 offset = start + value
             elif typ in _FIXED:

@@ -340,6 +340,8 @@ class Supervisor:
             from pipeline.stream.curve import CURVE_ENV
 
             env[CURVE_ENV] = str(self.curve_dir)
+        else:  # ([daemon] curve = false: the operator's choice, which a stage refuses alone)
+            env["TCSPC_INSECURE"] = "1"
         p.started_at = time.time()
         # its own process group: a Ctrl-C at the terminal reaches the daemon only, which
         # stops the graph in order (the source first, the rest drain)

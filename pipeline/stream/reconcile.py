@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from pipeline.io.atomic import atomic_path
 from pipeline.stream.topology import Topology, tdc_ranges
 
 
@@ -38,6 +37,7 @@ def reconcile(topo: Topology) -> dict:
     cycles = total // n
     mc = topo.histogram.get("measurement_cycles") or max(cycles, 1)
     n_meas = max(1, -(-cycles // mc))
+    by_m = topo.histogram.get("measurement_cycles") is not None  # (parts' names: stages.stream)
     out = Path(topo.sink["out"])
     have_h = _dataset_parts(out, "histograms", topo.run)
     have_r = _dataset_parts(out, "ranges", topo.run) if topo.range else None
@@ -62,7 +62,9 @@ def reconcile(topo: Topology) -> dict:
             if (k, a) in have_h and (have_r is None or (k, a) in have_r):
                 # every part is compared with the journal, not only the missing ones
                 cyc = _words_in(spans, k * mc * n, min((k + 1) * mc, cycles) * n) // n
-                why = _part_problem(have_h[(k, a)], b - a, cyc) if check else None
+                why = _part_problem(have_h[(k, a)], b - a, cyc,
+                                    (f"{topo.run}-m{k:06d}" if by_m else topo.run, a)
+                                    ) if check else None
                 why = why or (_unreadable(have_r[(k, a)]) if have_r is not None else None)
                 if why is None:
                     continue
@@ -147,10 +149,12 @@ def _unreadable(path: Path) -> tuple[Path, str] | None:
     return None
 
 
-def _part_problem(path: Path, n_tdc: int, cycles: int) -> tuple[Path, str] | None:
+def _part_problem(path: Path, n_tdc: int, cycles: int,
+                  ident: tuple[str, int] | None = None) -> tuple[Path, str] | None:
     """Why a histograms part does not match the journal (None: it does): unreadable, or
     not every TDC of its range with the cycles (and so the words) the journal holds for
-    its measurement (a measurement written partial by a stop, or short)."""
+    its measurement (a measurement written partial by a stop, or short), or (``ident``:
+    the measurement's name and first TDC) another measurement's or range's rows."""
     import numpy as np
     import pyarrow.parquet as pq
 
@@ -158,7 +162,7 @@ def _part_problem(path: Path, n_tdc: int, cycles: int) -> tuple[Path, str] | Non
 
     cols = [f"n_{c}" for c in WORD_CLASSES]
     try:
-        t = pq.read_table(path, columns=["cycles", *cols])
+        t = pq.read_table(path, columns=["cycles", "measurement", "tdc", *cols])
     except Exception as exc:  # noqa: BLE001
         return path, f"unreadable: {type(exc).__name__}: {exc}"
     got = np.asarray(t.column("cycles"), np.int64)
@@ -168,6 +172,13 @@ def _part_problem(path: Path, n_tdc: int, cycles: int) -> tuple[Path, str] | Non
         return path, (f"{t.num_rows} TDCs, {span} cycles and {words:,} words; the journal "
                       f"holds {cycles:,} cycles, {cycles * n_tdc:,} words for its {n_tdc} "
                       "TDCs")
+    if ident is not None:
+        names = set(t.column("measurement").to_pylist())
+        tdcs = np.asarray(t.column("tdc"), np.int64)
+        if names != {ident[0]} or not np.array_equal(tdcs, np.arange(n_tdc) + ident[1]):
+            return path, (f"rows of {sorted(names)[:2]}, TDCs {int(tdcs.min())}.."
+                          f"{int(tdcs.max())}; the file's name says measurement "
+                          f"{ident[0]}, TDCs {ident[1]}..{ident[1] + n_tdc - 1}")
     return None
 
 
@@ -272,8 +283,10 @@ def accounting(topo: Topology, metrics: dict[str, dict], reconciled: dict | None
               "measurements_files": len(parts)}
     if bounds is not None:
         result["artifact_bounds"] = bounds
-    path = out / "accounting" / f"run={topo.run}.json"
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(result, indent=1))
+    from pipeline.stream.state import write_under
+
+    # (from OUT's descriptor: a link planted at OUT/accounting is refused, not followed)
+    path = write_under(out, f"accounting/run={topo.run}.json",
+                       json.dumps(result, indent=1).encode())
     result["path"] = str(path)
     return result

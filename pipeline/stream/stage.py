@@ -23,6 +23,7 @@ import zmq
 from pipeline.io.atomic import atomic_path
 from pipeline.stream import wire
 from pipeline.stream.metrics import Metrics
+from pipeline.stream.state import write_under
 from schemas.errors import Rejected, TcspcError
 from schemas.outputs import HISTOGRAMS, RANGES
 
@@ -669,8 +670,10 @@ class ParquetSink:
                 {k: header[k] for k in ("partial", "cycles", "words") if k in header}).encode()
         if meta:
             table = table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
-        with atomic_path(path) as tmp:
-            pq.write_table(table, tmp)
+        buf = pa.BufferOutputStream()
+        pq.write_table(table, buf)
+        # (from the output root's descriptor: no link followed, no temporary planted)
+        write_under(self.out, path.relative_to(self.out), buf.getvalue())
         self.files += 1
         self.last = path
         if self.cloud is not None and header.get("schema") == RANGES.name:

@@ -62,11 +62,40 @@ def open_nofollow(path: Path, flags: int, mode: int = 0o600) -> int:
         raise
 
 
-def _make_private(state: Path) -> None:
+def check_ancestors(path: Path, label: str = "state directory") -> None:
+    """Refuse ``path`` when a folder above it could be renamed or replaced by another
+    account: one owned by a user other than root or this one, or writable by others
+    without the sticky bit (/tmp's mode 1777 is fine: nobody may rename what is ours
+    there). Such a folder's owner could swap the whole directory mid-run."""
+    uid = os.geteuid()
+    p = Path(os.path.abspath(path)).parent
+    for d in (p, *p.parents):
+        try:
+            st = os.stat(d)
+        except FileNotFoundError:
+            continue  # (made by us: mkdir below)
+        if st.st_uid not in (0, uid):
+            raise StateError(f"{path}: inside {d}, which uid {st.st_uid} owns (it could "
+                             f"swap the {label} mid-run); refused: use a folder of your own")
+        if st.st_mode & 0o022 and not st.st_mode & stat.S_ISVTX:
+            raise StateError(f"{path}: inside {d}, which others may write (mode "
+                             f"{stat.S_IMODE(st.st_mode):o}, no sticky bit: they could swap "
+                             f"the {label} mid-run); refused")
+
+
+def make_private(state: Path, label: str = "state directory") -> None:
+    """``state`` created 0700, or an existing one taken only when this user owns it and
+    others may not write it (then made 0700), its folders above checked
+    (:func:`check_ancestors`)."""
+    check_ancestors(state, label)
+    _make_private(state, label)
+
+
+def _make_private(state: Path, label: str = "state directory") -> None:
     uid = os.geteuid()
     if state.is_symlink() and os.lstat(state).st_uid != uid:
         raise StateError(f"{state}: a symbolic link owned by uid {os.lstat(state).st_uid}, "
-                         "not by this user; refused as a state directory")
+                         f"not by this user; refused as a {label}")
     try:
         st = os.stat(state)
     except FileNotFoundError:
@@ -77,18 +106,18 @@ def _make_private(state: Path) -> None:
             pass
         st = os.stat(state)
     if not stat.S_ISDIR(st.st_mode):
-        raise StateError(f"{state}: not a directory; refused as a state directory")
+        raise StateError(f"{state}: not a directory; refused as a {label}")
     if st.st_uid != uid:
         raise StateError(f"{state}: owned by uid {st.st_uid}, not by this user (uid {uid}); "
-                         "refused as a state directory")
+                         f"refused as a {label}")
     if st.st_mode & 0o022:
         raise StateError(f"{state}: group- or world-writable (mode "
-                         f"{stat.S_IMODE(st.st_mode):o}); refused as a state directory "
+                         f"{stat.S_IMODE(st.st_mode):o}); refused as a {label} "
                          "(`chmod 700` it if it is yours)")
     os.chmod(state, 0o700)
 
 
-def _refuse_links(state: Path) -> None:
+def refuse_links(state: Path) -> None:
     """Every symbolic link, or entry of another user, in the state tree (one error)."""
     uid, bad = os.geteuid(), []
     for root, dirs, files in os.walk(state):
@@ -111,7 +140,7 @@ def open_state(state: str | Path) -> StateLock:
     import fcntl
 
     state = Path(state)
-    _make_private(state)
+    make_private(state)
     path = state / LOCK_NAME
     fd = open_nofollow(path, os.O_RDWR | os.O_CREAT, 0o600)
     try:
@@ -126,11 +155,100 @@ def open_state(state: str | Path) -> StateLock:
     os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
     lock = StateLock(path, fd)
     try:
-        _refuse_links(state)
+        refuse_links(state)
     except StateError:
         lock.release()
         raise
     return lock
+
+
+# ------------------------------------------------------------------------ output tree
+def _check_dir_stat(st: os.stat_result, where, label: str) -> None:
+    uid = os.geteuid()
+    if not stat.S_ISDIR(st.st_mode):
+        raise StateError(f"{where}: not a directory (a link or a file where the {label} "
+                         "has a folder); refused")
+    if st.st_uid != uid:
+        raise StateError(f"{where}: owned by uid {st.st_uid}, not by this user (uid {uid}); "
+                         f"refused in the {label}")
+    if st.st_mode & 0o022:
+        raise StateError(f"{where}: group- or world-writable (mode "
+                         f"{stat.S_IMODE(st.st_mode):o}); refused in the {label} (others "
+                         "could plant links or swap files there; `chmod go-w` it)")
+
+
+def check_output_dir(out: str | Path, label: str = "output directory") -> None:
+    """The output tree taken as the state directory is (issue 36): made if missing, then
+    refused unless this user owns it, others may not write it, it is no symbolic link,
+    no folder above it belongs to another account, and no entry at its top (a dataset's
+    folder, ``accounting``) is a link or another user's. Datasets may stay readable by
+    others (0755): only writing is kept to the owner."""
+    out = Path(out)
+    check_ancestors(out, label)
+    out.mkdir(parents=True, exist_ok=True)
+    _check_dir_stat(os.lstat(out), out, label)
+    with os.scandir(out) as it:
+        for e in it:
+            st = e.stat(follow_symlinks=False)
+            if stat.S_ISLNK(st.st_mode):
+                raise StateError(f"{e.path}: a symbolic link in the {label}; refused "
+                                 "(the daemon writes its datasets and accounting itself)")
+            if stat.S_ISDIR(st.st_mode):
+                _check_dir_stat(st, e.path, label)
+
+
+def write_under(root: str | Path, rel: str | Path, data: bytes | memoryview,
+                label: str = "output directory") -> Path:
+    """Write ``data`` to ``root/rel`` atomically without following a link anywhere: each
+    folder opened from its checked parent's descriptor (``O_NOFOLLOW``, made 0755 when
+    missing, refused when not this user's or writable by others), the bytes written to an
+    ``O_EXCL | O_NOFOLLOW`` temporary, fsynced and renamed in that folder. A link or a
+    file planted at the temporary's or a folder's name is refused, never followed."""
+    root, rel = Path(root), Path(rel)
+    flags = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC
+    try:
+        fd = os.open(root, flags)
+    except OSError as exc:
+        raise StateError(f"{root}: cannot open the {label}: {exc.strerror}") from None
+    try:
+        _check_dir_stat(os.fstat(fd), root, label)
+        where = root
+        for part in rel.parts[:-1]:
+            where = where / part
+            try:
+                os.mkdir(part, 0o755, dir_fd=fd)
+            except FileExistsError:
+                pass
+            try:
+                sub = os.open(part, flags, dir_fd=fd)
+            except OSError as exc:
+                raise StateError(f"{where}: cannot open a folder of the {label} "
+                                 f"({exc.strerror}; a link is never followed)") from None
+            os.close(fd)
+            fd = sub
+            _check_dir_stat(os.fstat(fd), where, label)
+        name = rel.name
+        tmp = f".{name}.tmp-{os.getpid()}-{os.urandom(4).hex()}"
+        try:
+            out = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW
+                          | os.O_CLOEXEC, 0o644, dir_fd=fd)
+        except OSError as exc:
+            raise StateError(f"{where / tmp}: cannot create a temporary in the {label}: "
+                             f"{exc.strerror}") from None
+        try:
+            view = memoryview(data).cast("B")
+            while view.nbytes:
+                view = view[os.write(out, view):]
+            os.fsync(out)
+        except BaseException:
+            os.close(out)
+            os.unlink(tmp, dir_fd=fd)
+            raise
+        os.close(out)
+        os.replace(tmp, name, src_dir_fd=fd, dst_dir_fd=fd)  # (a link at name: replaced)
+        return root / rel
+    finally:
+        os.close(fd)
 
 
 # ------------------------------------------------------------------------ resources
@@ -202,6 +320,10 @@ def check_resources(topo) -> None:
             problems.append(f"view: cannot listen on {bind}:{port} ([view] port): {why} "
                             "(another `tcspc view`? another port, or port = 0 for any)")
     out = Path(topo.sink["out"])
+    try:
+        check_output_dir(out, "[sink] out")
+    except StateError as exc:
+        problems.append(f"sink: {exc}")
     try:
         out.mkdir(parents=True, exist_ok=True)
         fd = os.open(out / f".tcspc-probe-{os.getpid()}", os.O_WRONLY | os.O_CREAT

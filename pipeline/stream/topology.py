@@ -12,6 +12,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from pipeline.io.limits import FileTooLarge, capped, load_toml
 from schemas.errors import TcspcError
 from stages.codec import MAX_TDC
 
@@ -247,9 +248,13 @@ def load_topology(path: str | Path | None, run: str | None = None,
     where = str(path) if path else "<default topology>"
     if path:
         try:
-            raw = tomllib.loads(Path(path).read_text())
+            raw = load_toml(path, "topology file")
         except FileNotFoundError:
             raise TopologyError(f"{path}: topology file not found") from None
+        except FileTooLarge as exc:
+            raise TopologyError(str(exc)) from None
+        except OSError as exc:
+            raise TopologyError(f"{path}: cannot read: {exc.strerror}") from None
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise TopologyError(f"{path}: not valid TOML: {exc}") from None
     else:
@@ -318,7 +323,7 @@ def load_topology(path: str | Path | None, run: str | None = None,
         if ep is not None:
             _check_endpoint(ep, where, label, problems)
     if problems:
-        raise TopologyError("\n".join(dict.fromkeys(problems)))
+        raise TopologyError(capped(problems))
     view = secs["view"]
     return Topology(where, state, run, d.restarts, metrics, d.hwm, src, hist, rng, sink,
                     n_tdc, d.journal_keep_gb, d.journal_compression,

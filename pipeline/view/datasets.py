@@ -11,13 +11,16 @@ the next measurements by name.
 from __future__ import annotations
 
 import json
+import os
 import re
+import stat
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from pipeline.io.limits import read_bounded
 from schemas.constants import WORD_CLASSES
 
 PART = re.compile(r"part-(\d{6,})-t(\d{3,})\.parquet$")
@@ -99,7 +102,7 @@ class RunIndex:
         end = 0
         for f in self.firsts:
             p = self.path("histograms", k, f)
-            if f != end or not p.exists():
+            if f != end or not _part_ok(p):
                 return False
             end = f + pq.read_metadata(p).num_rows
         return self.n_tdc is None or end == self.n_tdc
@@ -112,7 +115,7 @@ class RunIndex:
         k = (self.have[schema][-1] + 1) if self.have[schema] else 0
         misses = 0
         while misses <= LOOK_AHEAD:
-            if all(self.path(schema, k, f).exists() for f in self.firsts):
+            if all(_part_ok(self.path(schema, k, f)) for f in self.firsts):
                 self.have[schema].append(k)
                 misses = 0
             else:
@@ -125,11 +128,28 @@ class RunIndex:
     def files(self, schema: str, k: int) -> list[Path]:
         if schema not in self.dirs:
             return []
-        return [p for f in self.firsts if (p := self.path(schema, k, f)).exists()]
+        return [p for f in self.firsts if _part_ok(p := self.path(schema, k, f))]
 
     @property
     def latest(self) -> int | None:
         return self.have["histograms"][-1] if self.have["histograms"] else None
+
+
+#: the largest dataset part the page reads (a sink's part is a measurement of one worker's
+#: TDCs: KiB to a few MiB); a bigger one, or a FIFO or device, is not read
+MAX_PART_BYTES = 1 << 28
+
+
+def _part_ok(p: Path) -> bool:
+    """A regular file (no link, no FIFO that would block the server for every viewer) of at
+    most MAX_PART_BYTES."""
+    import stat
+
+    try:
+        st = os.lstat(p)
+    except OSError:
+        return False
+    return stat.S_ISREG(st.st_mode) and st.st_size <= MAX_PART_BYTES
 
 
 @dataclass(frozen=True)
@@ -236,9 +256,13 @@ class Tally:
         """Words journaled so far (the new lines of ``RUN.index.jsonl`` only)."""
         path = Path(journal) / f"{run}.index.jsonl"
         try:
-            with open(path, "rb") as fh:
+            # (a regular file only, read in bounded steps: a FIFO would block the server)
+            fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOFOLLOW)
+            with os.fdopen(fd, "rb") as fh:
+                if not stat.S_ISREG(os.fstat(fd).st_mode):
+                    return
                 fh.seek(self._offset)
-                data = fh.read()
+                data = fh.read(MAX_PART_BYTES)
         except OSError:
             return
         end = data.rfind(b"\n") + 1  # a line being written is read next time
@@ -263,7 +287,7 @@ class Tally:
 def read_accounting(out: str | Path, run: str) -> dict | None:
     """``OUT/accounting/run=RUN.json``, written when the run ended (None before)."""
     try:
-        return json.loads((Path(out) / "accounting" / f"run={run}.json").read_text())
+        return json.loads(read_bounded(Path(out) / "accounting" / f"run={run}.json"))
     except (OSError, ValueError):
         return None
 

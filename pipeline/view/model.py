@@ -186,8 +186,12 @@ class ViewModel:
         return tr
 
     def run_known(self, run: str) -> bool:
-        return any(r["run"] == run for r in self.runs) or \
-            run == (self.status or {}).get("run")
+        """A run id found under the datasets or the daemon's (a directory name, never a
+        path: ID_PATTERN)."""
+        from pipeline.stream.wire import ID_PATTERN
+
+        return isinstance(run, str) and bool(ID_PATTERN.fullmatch(run)) and (
+            any(r["run"] == run for r in self.runs) or run == (self.status or {}).get("run"))
 
     @property
     def calibration(self):

@@ -207,7 +207,9 @@ class Page:
 
     # ------------------------------------------------------------------ callbacks
     def _on_run(self, attr, old, new):
-        if new and new != self.run and new != NO_RUN:
+        # (the value comes from the websocket: only a run found under the datasets or the
+        # daemon's is taken, never a path: `../..` reached another run's files before)
+        if new and new != self.run and new != NO_RUN and self.m.run_known(new):
             self.run, self.tdc = new, None
             self.follow.active = True
             self.shown["sensor_at"] = 0.0  # drawn now, not at the next 2 s

@@ -2,13 +2,15 @@
 bokeh wheel itself (no CDN, no internet), the model refreshed once a second on its event
 loop, and ``/alive`` for the page to notice the server is gone.
 
-Loopback by default; bound to any other address, every route needs the ``token`` of the
-URL in ``STATE/view.url`` (mode 0600): the page, ``/alive``, Bokeh's ``/ws``, ``/metadata``
-and ``/autoload.js`` (an auth provider: the token in the query, or the HttpOnly, SameSite
-cookie the page's first load sets, which the browser sends on the websocket too), so a Bokeh
-session id seen in a page does not join its session without the token; the websocket's
-Origin must name this host (its names and addresses, or ``$BOKEH_ALLOW_WS_ORIGIN``). Only
-Bokeh's own static JavaScript is served without it.
+Loopback by default; on any address, loopback included (every local account can reach a
+loopback port), every route needs the ``token`` of the URL in ``STATE/view.url`` (mode
+0600): the page, ``/alive``, Bokeh's ``/ws``, ``/metadata`` and ``/autoload.js`` (an auth
+provider: the token in the query, or the HttpOnly, SameSite cookie the page's first load
+sets, which the browser sends on the websocket too), so a Bokeh session id seen in a page
+does not join its session without the token. Every such request's ``Host`` must name an
+address the page serves (a DNS-rebound name is refused) and the websocket's ``Origin`` must
+be one of them too, whatever ``Sec-Fetch-Site`` says (its names and addresses, or
+``$BOKEH_ALLOW_WS_ORIGIN``). Only Bokeh's own static JavaScript is served without them.
 """
 
 from __future__ import annotations
@@ -54,8 +56,8 @@ def write_url(state: Path, url: str) -> Path | None:
 
 def make_server(model, port: int = 5006, bind: str = "127.0.0.1", token: str | None = None,
                 refresh_ms: int = 1000):
-    """A started (not yet looping) Bokeh server for ``model``; ``token`` None on loopback
-    (one is made for any other address). Returns ``(server, url)``."""
+    """A started (not yet looping) Bokeh server for ``model``; ``token`` None: one is made
+    (on loopback too). Returns ``(server, url)``."""
 
     from bokeh.application import Application
     from bokeh.application.handlers.function import FunctionHandler
@@ -65,24 +67,23 @@ def make_server(model, port: int = 5006, bind: str = "127.0.0.1", token: str | N
 
     from pipeline.view.page import make_document
 
-    if token is None and not is_loopback(bind):
-        token = secrets.token_urlsafe(24)
-    auth = None if token is None else TokenAuth(token)
+    token = token or secrets.token_urlsafe(24)
+    port = port or _free_port(bind)
+    origins = ws_origins(bind, port)
+    auth = TokenAuth(token, origins)
 
     class Alive(RequestHandler):
         def get(self):
-            if auth is not None and auth.user(self) is None:
+            if auth.user(self) is None:
                 self.set_status(403)
                 return
             self.set_header("Cache-Control", "no-store")
             self.write(json.dumps({"ok": True, "updated": model.updated}))
 
-    port = port or _free_port(bind)
     server = Server({"/": Application(FunctionHandler(make_document(model, token)))},
-                    port=port, address=bind, allow_websocket_origin=ws_origins(bind, port),
+                    port=port, address=bind, allow_websocket_origin=origins,
                     extra_patterns=[("/alive", Alive)], check_unused_sessions_milliseconds=5000,
-                    unused_session_lifetime_milliseconds=15000,
-                    **({"auth_provider": auth} if auth is not None else {}))
+                    unused_session_lifetime_milliseconds=15000, auth_provider=auth)
     server.start()
     model.warm()
     model.refresh()
@@ -106,10 +107,12 @@ def _token_auth_class():
 
     class _TokenAuth(AuthProvider):
         """Bokeh's hook on every session route (page, /ws, /metadata, /autoload.js): the
-        user is known when the request carries the token, in the query or the cookie."""
+        user is known when the request names a served address in its Host (and, on the
+        websocket, in its Origin) and carries the token, in the query or the cookie."""
 
-        def __init__(self, token: str):
+        def __init__(self, token: str, hosts: list[str]):
             self.token = token
+            self.hosts = {h.lower() for h in hosts}
             super().__init__()
 
         @property
@@ -126,7 +129,17 @@ def _token_auth_class():
 
         def user(self, handler):
             import hmac
+            from urllib.parse import urlparse
 
+            hosts = self.hosts | {h.strip().lower() for h in os.environ.get(
+                "BOKEH_ALLOW_WS_ORIGIN", "").split(",") if h.strip()}
+            if handler.request.host.lower() not in hosts:
+                return None  # (DNS rebinding: a name of the attacker's for our address)
+            if isinstance(handler, WebSocketHandler) or \
+                    handler.request.headers.get("Upgrade", "").lower() == "websocket":
+                origin = handler.request.headers.get("Origin", "")
+                if urlparse(origin).netloc.lower() not in hosts:
+                    return None  # (tornado skips its check when Origin equals Host)
             query = handler.get_argument("token", None)
             for got in (query, handler.get_cookie(COOKIE)):
                 if got and hmac.compare_digest(got.encode(), self.token.encode()):
@@ -140,9 +153,10 @@ def _token_auth_class():
     return _TokenAuth
 
 
-def TokenAuth(token: str):  # noqa: N802 - a class made on first use (bokeh is heavy)
-    """The auth provider that asks every session route for ``token``."""
-    return _token_auth_class()(token)
+def TokenAuth(token: str, hosts: list[str]):  # noqa: N802 - made on first use (bokeh)
+    """The auth provider that asks every session route for ``token`` and a Host (and a
+    websocket's Origin) among ``hosts`` (``host:port``)."""
+    return _token_auth_class()(token, hosts)
 
 
 def ws_origins(bind: str, port: int) -> list[str]:

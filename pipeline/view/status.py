@@ -16,6 +16,8 @@ from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
+from pipeline.io.limits import read_bounded
+
 #: A running daemon's status older than this means the daemon stopped writing it.
 STALE_S = 5.0
 #: Heartbeats (one a second) this close are one heartbeat seen in two status records.
@@ -27,7 +29,7 @@ PUB_FRESH_S = 2.5
 def read_status(state: str | Path) -> dict | None:
     """``STATE/status.json``, or None when there is none (or it cannot be read)."""
     try:
-        return json.loads((Path(state) / "status.json").read_text())
+        return json.loads(read_bounded(Path(state) / "status.json"))
     except (OSError, ValueError):
         return None
 

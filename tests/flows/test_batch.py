@@ -59,7 +59,7 @@ def test_a_dask_cluster_of_two_processes_gives_the_serial_runs_files(harness, in
     assert serial["files"] == 4 and serial["failed"] == 0
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                       dashboard_address=None) as cluster:
-        res = CliRunner().invoke(cli, ["flow", "run", "batch", "--dask",
+        res = CliRunner().invoke(cli, ["flow", "run", "batch", "--dask-insecure", "--dask",
                                        cluster.scheduler_address, "-p", f"inputs={inputs}",
                                        "-p", f"out={tmp_path / 'dask'}"])
         assert res.exit_code == 0, res.output

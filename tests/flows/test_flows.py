@@ -193,7 +193,7 @@ def test_a_sweep_fans_out_over_a_dask_cluster(harness, tmp_path):
 
     with LocalCluster(n_workers=1, threads_per_worker=2, processes=False,
                       dashboard_address=None) as cluster:
-        res = CliRunner().invoke(cli, ["flow", "run", "speed_vs_error", "--dask",
+        res = CliRunner().invoke(cli, ["flow", "run", "speed_vs_error", "--dask-insecure", "--dask",
                                        cluster.scheduler_address, "-p", f"out={tmp_path}",
                                        "-p", "pixels=10", "-p", "m=[1.0]", "-p",
                                        "cycles=[1000]", "-p", "sbr=[100.0]"])

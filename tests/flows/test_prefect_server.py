@@ -155,7 +155,8 @@ def test_the_served_schedule_runs_and_ctrl_c_stops_it(server, tmp_path_factory):
                    'tags = ["bench-test"]\n[calibration.parameters]\nn_pixels = 4\n'
                    'cycles = 150000\ndelay_cycles = 100000\ninl_rms = 1.0\n'
                    'lux = [100, 400, 1200, 2500, 3500]\n')
-    serve = subprocess.Popen([*TCSPC, "flow", "serve", "--config", str(cfg)], env=server,
+    serve = subprocess.Popen([*TCSPC, "flow", "serve", "--unauthenticated", "--config", str(cfg)],
+                             env=server,
                              cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                              text=True)
     try:
