@@ -102,6 +102,7 @@ def list_cmd() -> None:
                    "its workers' user).")
 def run_cmd(name, params, dask_address, dask_insecure) -> None:
     """Run flow NAME now and print its summary as JSON."""
+    _private_embedded_api()
     fl = load(name)
     kwargs = parse_params(params, fl.fn)
     if dask_address:
@@ -140,6 +141,21 @@ def dask_runner(address: str, insecure: bool = False):
             "(distributed.comm.tls.ca-file and client cert/key): anyone who reaches it "
             "could run code as its workers' user; configure TLS, or pass --dask-insecure")
     return DaskTaskRunner(address=address)
+
+
+def _private_embedded_api() -> None:
+    """Without PREFECT_API_URL a run uses Prefect's embedded API on a loopback port, which
+    any local account can reach: it read past runs' parameters and logs there and set a
+    running flow to Cancelling. The embedded server and its clients (this process and
+    the processes it starts) then share a random HTTP basic-auth secret made for this
+    command (set before Prefect is imported, which reads its settings once)."""
+    import secrets
+
+    if os.environ.get("PREFECT_API_URL") or os.environ.get("PREFECT_API_AUTH_STRING") \
+            or "prefect" in sys.modules:  # (a test harness's, or a caller's own API)
+        return
+    secret = f"tcspc:{secrets.token_urlsafe(24)}"
+    os.environ["PREFECT_API_AUTH_STRING"] = os.environ["PREFECT_SERVER_API_AUTH_STRING"] = secret
 
 
 def _private_tmp() -> Path:

@@ -185,7 +185,10 @@ def check_output_dir(out: str | Path, label: str = "output directory") -> None:
     others (0755): only writing is kept to the owner."""
     out = Path(out)
     check_ancestors(out, label)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise StateError(f"{out}: cannot make the {label}: {exc.strerror}") from None
     _check_dir_stat(os.lstat(out), out, label)
     with os.scandir(out) as it:
         for e in it:
@@ -205,6 +208,7 @@ def write_under(root: str | Path, rel: str | Path, data: bytes | memoryview,
     ``O_EXCL | O_NOFOLLOW`` temporary, fsynced and renamed in that folder. A link or a
     file planted at the temporary's or a folder's name is refused, never followed."""
     root, rel = Path(root), Path(rel)
+    root.mkdir(parents=True, exist_ok=True)  # (then checked as every folder below it)
     flags = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC
     try:
         fd = os.open(root, flags)

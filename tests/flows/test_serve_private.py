@@ -69,3 +69,39 @@ def test_a_private_tmp_made_by_another_account_is_refused(tmp_path, monkeypatch,
     with temporary_settings({PREFECT_HOME: str(tmp_path / "home")}):
         with pytest.raises(StateError, match=f"owned by uid {other_account}"):
             _private_tmp()
+
+
+def test_flow_run_makes_its_embedded_api_private(tmp_path):
+    """Before: during a plain `tcspc flow run`, another account read past runs from the
+    embedded API and cancelled the running flow. Now the embedded server asks for a secret
+    made for the command: an unauthenticated request gets 401 while the flow runs."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent("""
+        import os, urllib.request, urllib.error
+        from flows.cli import _private_embedded_api
+        _private_embedded_api()
+        from prefect import flow
+
+        @flow
+        def probe():
+            from prefect.client.orchestration import get_client
+            url = str(get_client(sync_client=True).api_url).rstrip("/")
+            req = urllib.request.Request(url + "/flow_runs/filter", data=b"{}",
+                                         headers={"Content-Type": "application/json"})
+            try:
+                urllib.request.urlopen(req, timeout=10)
+                return "open"
+            except urllib.error.HTTPError as e:
+                return str(e.code)
+
+        print("probe:", probe())
+    """)
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith(("PREFECT_API_URL", "PREFECT_API_AUTH", "PREFECT_SERVER_API"))}
+    env["PREFECT_HOME"] = str(tmp_path / "home")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=300, env=env)
+    assert "probe: 401" in r.stdout, (r.stdout[-300:], r.stderr[-600:])
