@@ -139,3 +139,12 @@ def test_sidecar_fifo_and_size(tmp_path):
     with pytest.raises(CaptureError, match="more than a sidecar may hold"):
         Capture(tmp_path / "c.bin")
 
+
+
+def test_deep_toml_scene_is_one_line(tmp_path):
+    from stages.models.scene import SceneError, load_scene
+
+    path = tmp_path / "deep.toml"
+    path.write_text("a = " + "[" * 100_000 + "]" * 100_000 + "\n")
+    with pytest.raises(SceneError, match="nested too deeply"):
+        load_scene(path)
