@@ -14,7 +14,7 @@ import tomllib
 
 from schemas.errors import TcspcError
 
-#: a configuration file (a topology, a scene, a serve config, a sidecar): real ones are a
+#: a configuration file (a topology, a serve config, the page's JSON): real ones are a
 #: few KiB
 MAX_CONFIG_BYTES = 1 << 20
 #: problems listed in one error; the rest are counted in its last line

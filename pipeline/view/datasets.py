@@ -287,7 +287,8 @@ class Tally:
 def read_accounting(out: str | Path, run: str) -> dict | None:
     """``OUT/accounting/run=RUN.json``, written when the run ended (None before)."""
     try:
-        return json.loads(read_bounded(Path(out) / "accounting" / f"run={run}.json"))
+        # (a week-long run's lists of rebuilt parts can pass 1 MiB: 64 MiB at most)
+        return json.loads(read_bounded(Path(out) / "accounting" / f"run={run}.json", 64 << 20))
     except (OSError, ValueError):
         return None
 

@@ -182,6 +182,8 @@ def load_scene(path: str | Path) -> Scene:
                          "file (see scenes/street.toml)") from None
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{path}: not valid TOML: {exc}") from exc
+    except RecursionError:  # (tomllib recurses per level of nesting)
+        raise SceneError(f"{path}: arrays or tables nested too deeply to read") from None
     return scene_from_dict(raw, str(path))
 
 

@@ -124,8 +124,9 @@ def test_unknown_key_flood_is_capped(tmp_path):
 
 
 def test_sidecar_fifo_and_size(tmp_path):
-    """A sidecar that is a named pipe or 2 MiB is refused without blocking or reading it."""
-    from pipeline.io.capture import Capture
+    """A sidecar that is a named pipe or over 64 MiB is refused without blocking or reading
+    it."""
+    from pipeline.io.capture import MAX_SIDECAR_BYTES, Capture
     from schemas.errors import CaptureError
 
     (tmp_path / "c.bin").write_bytes(b"\0" * 32)
@@ -133,7 +134,17 @@ def test_sidecar_fifo_and_size(tmp_path):
     with pytest.raises(CaptureError, match="sidecar not found"):
         Capture(tmp_path / "c.bin")
     os.unlink(tmp_path / "c.json")
-    (tmp_path / "c.json").write_text(" " * (2 << 20))
+    with open(tmp_path / "c.json", "wb") as fh:  # (sparse)
+        fh.truncate(MAX_SIDECAR_BYTES + 1)
     with pytest.raises(CaptureError, match="more than a sidecar may hold"):
         Capture(tmp_path / "c.bin")
 
+
+
+def test_deep_toml_scene_is_one_line(tmp_path):
+    from stages.models.scene import SceneError, load_scene
+
+    path = tmp_path / "deep.toml"
+    path.write_text("a = " + "[" * 100_000 + "]" * 100_000 + "\n")
+    with pytest.raises(SceneError, match="nested too deeply"):
+        load_scene(path)
