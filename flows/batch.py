@@ -30,7 +30,7 @@ from pathlib import Path
 from prefect import flow, task
 from prefect.cache_policies import NO_CACHE
 
-from flows.common import new_run_dir
+from flows.common import check_roots, new_run_dir
 
 OPS = ("histogram", "calibrate", "range")
 
@@ -196,6 +196,7 @@ def batch(inputs: str = "data/captures", op: str = "histogram", out: str = "data
     as ``tcspc histogram`` and ``tcspc range`` take them."""
     if op not in OPS:
         raise ValueError(f"batch: op must be one of {', '.join(OPS)}, found {op!r}")
+    check_roots(out=out, inputs=inputs, calibration=calibration)  # (a served run: roots)
     files = discover(inputs)
     if not files:
         raise ValueError(f"batch: no capture or instrument file in {inputs}")

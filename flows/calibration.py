@@ -40,6 +40,7 @@ from flows.common import (
     PositiveFloat,
     PositiveInt,
     Stored,
+    check_roots,
     clean_leftovers,
     content_key,
     exclusive,
@@ -340,6 +341,7 @@ def calibration_campaign(out: str = "data/calibration", lux: LuxLevels | None = 
     up to ``wait_s``. The cache keeps ``cache_max_gb`` at most, entries unused for
     ``cache_max_age_days`` dropped."""
     log = get_run_logger()
+    check_roots(out=out, captures=captures, journal=journal)  # (a served run: its roots)
     cache = Path(out) / "cache"
     with exclusive(out, wait_s, log) as dead:
         for rec in dead:

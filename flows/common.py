@@ -215,11 +215,12 @@ def check_roots(**paths) -> None:
                                f"takes paths under ({', '.join(map(str, roots))}); refused")
 
 
-def new_run_dir(out: str | Path, flow: str) -> Path:
+def new_run_dir(out: str | Path, flow: str, **inputs) -> Path:
     """``OUT/runs/<UTC time>-<random>``: one directory per run, never reused. ``flow.txt``
-    names the flow and the Prefect flow run that wrote it. A served run's ``out`` outside
-    the configured roots is refused (:func:`check_roots`)."""
-    check_roots(out=out)
+    names the flow and the Prefect flow run that wrote it. A served run's ``out`` or any of
+    its ``inputs`` (parameter name=path, None skipped) outside the configured roots is
+    refused (:func:`check_roots`) before anything is read or written."""
+    check_roots(out=out, **inputs)
     stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
     run = Path(out) / "runs" / f"{stamp}-{secrets.token_hex(3)}"
     run.mkdir(parents=True)

@@ -158,7 +158,8 @@ def distance_sweep(out: str = "data/sweeps", calibration: str | None = None,
     (its sink's ``out``) with ``runs`` mapping each run id to the distance it measured.
     The capture cache is bounded as the campaign's (``cache_max_gb``, ``_age_days``)."""
     log = get_run_logger()
-    run = new_run_dir(out, "distance_sweep")
+    run = new_run_dir(out, "distance_sweep", calibration=calibration, captures=captures,
+                      stream=stream)
     if stream is not None:
         return _from_stream(run, stream, runs or {}, log)
     if calibration is None:

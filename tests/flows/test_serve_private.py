@@ -32,6 +32,25 @@ def test_a_served_run_outside_the_roots_is_refused(tmp_path, monkeypatch):
         new_run_dir(mine / ".." / "theirs", "distance_sweep")
     assert not theirs.exists()
     assert new_run_dir(mine / "sweeps", "distance_sweep").is_dir()
+    # every path a served run reads is held to the roots too (issue 36: another account's
+    # run named the operator's stream and wrote its ranges where that account reads them)
+    with pytest.raises(OutsideRoots, match="stream = "):
+        new_run_dir(mine / "sweeps", "distance_sweep", stream=theirs / "stream")
+    with pytest.raises(OutsideRoots, match="calibration = "):
+        new_run_dir(mine / "sweeps", "distance_sweep", calibration="/etc")
+    assert new_run_dir(mine / "sweeps", "distance_sweep", stream=mine / "stream",
+                       calibration=None).is_dir()
+
+
+def test_a_served_batch_reads_nothing_outside_the_roots(tmp_path, monkeypatch):
+    from flows.batch import batch
+    from flows.common import ROOTS_ENV, OutsideRoots
+
+    mine = tmp_path / "mine"
+    monkeypatch.setenv(ROOTS_ENV, str(mine))
+    with pytest.raises(OutsideRoots, match="inputs = "):
+        batch.fn(inputs=str(tmp_path / "theirs"), out=str(mine / "batch"))
+    assert not (mine / "batch").exists()
 
 
 def test_the_runner_storage_is_private(tmp_path, monkeypatch):
