@@ -282,6 +282,8 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill
     w, why = _dead_widths(w, dead, measured, pm, peak)
     if why:
         return why
+    if OWN_TOP:
+        w = _own_top_widths(h, at_risk, w, top, hi, scale, dead)
     bound, tau_t, _ = peak(w)
     if not np.isfinite(tau_t):
         return None
@@ -303,6 +305,65 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill
     inl[beyond] = np.nan
     err = x_t * INL_RMS_FACTOR / np.sqrt(max(h[interior].sum(), 1.0))
     return lsb, x_t, width, inl, err
+
+
+#: Codes whose upper boundary lies this many LSB or more below tau = T are measured by the
+#: test's own counts (the reset peak's Gaussian tail and the light's blurred end taken off,
+#: as :func:`fit_reset_peak` models them); :func:`width_variance` gives them a variance.
+OWN_CLEAR_LSB = 2.5
+#: Whether the last codes below the reset peak are measured so (issue 33); before, they
+#: took the other tests' widths or the phase mean: a dimmer capture's window ends there.
+OWN_TOP = True
+
+
+def _own_top_widths(h, at_risk, w, top, hi, scale, dead, rounds: int = 2):
+    """``w`` (interior-LSB units) with the codes above ``hi`` (the interior's last) that
+    lie clear of the reset peak measured from this test's own counts: each code's width
+    solves ``h_j = R_j (1 - exp(-u share_j)) + A (Phi(z_j+1) - Phi(z_j))`` (its light up to
+    where it ends at T, blurred, and the reset peak's tail), going up from ``hi`` (every
+    boundary is the sum of the widths below), with (P, s, A) the reset peak fitted over
+    the boundaries; fitted again after, ``rounds`` times."""
+    from scipy.special import ndtr
+
+    def phi(z):
+        return np.exp(-0.5 * z * z) / np.sqrt(2 * np.pi)
+
+    def share(lo, up, P, s):  # the part of [lo, up) before T, blurred by s
+        ya, yb = (P - lo) / s, (P - up) / s
+        return s * ((ya * ndtr(ya) + phi(ya)) - (yb * ndtr(yb) + phi(yb)))
+
+    w = w.copy()
+    grid = np.linspace(0.0, 3.0, 601)  # candidate widths, 0.005 apart, refined below
+    for _ in range(rounds):
+        bound = np.concatenate([[0.0], np.cumsum(w)])
+        P, s, A = (float(v[0]) for v in fit_reset_peak(
+            h[None], at_risk[None], bound[None], np.array([top]), np.array([scale])))
+        if not (np.isfinite(P) and np.isfinite(s)):
+            return w  # no peak to take off
+        lo = bound[hi + 1]
+        for j in range(hi + 1, w.size):
+            if dead[j] or h[j] <= 0 or at_risk[j] <= h[j]:
+                break
+
+            def resid(c, j=j, lo=lo, P=P, s=s, A=A):
+                up = lo + c
+                return (at_risk[j] * -np.expm1(-scale * share(lo, up, P, s))
+                        + A * (ndtr((up - P) / s) - ndtr((lo - P) / s)) - h[j])
+
+            r = resid(grid)
+            k = int(np.argmax(r >= 0)) if np.any(r >= 0) else -1
+            if k <= 0:
+                break
+            a, b = grid[k - 1], grid[k]
+            for _ in range(30):  # bisection: the model rises with the width
+                m = 0.5 * (a + b)
+                a, b = (m, b) if resid(m) < 0 else (a, m)
+            c = 0.5 * (a + b)
+            if lo + c > P - OWN_CLEAR_LSB:
+                break
+            w[j] = c
+            lo += c
+    return w
 
 
 #: A run of zero-count codes between two codes of at least this many counts is dead
@@ -415,7 +476,9 @@ def width_variance(hits: np.ndarray, cycles: np.ndarray, density: DensityResult,
         per_rw = density.width_lsb / -np.log1p(-h / r)   # LSB per unit of r w
         var = _coates_var(h, r) * per_rw ** 2
     k = np.arange(N_CODES)[None, :]
-    inside = (k < np.floor(density.x_t)[:, None] - EDGE_MARGIN - 1) & density.ok[:, None]
+    last = (np.floor(density.x_t - OWN_CLEAR_LSB) if OWN_TOP
+            else np.floor(density.x_t) - EDGE_MARGIN - 1)
+    inside = (k < last[:, None]) & density.ok[:, None]
     measured = inside & (h > 0)
     var = np.where(measured & np.isfinite(var) & (var > 0), var, np.nan)
     for t in np.flatnonzero(np.asarray(density.ok, bool)):
@@ -457,6 +520,11 @@ def _coates_var(h, r):
         return h / (r * (r - h))
 
 
+#: Whether the codes a test cannot measure are pulled toward its whole-window phase mean
+#: (before issue 33). The pull is a bias on a chip whose DNL is not the phase pattern.
+PHASE_PULL = False
+
+
 def _refill(w, edge, interior, phase_mean, stat_var, f_w, f_var, combine=False,
             loose=None):
     """The edge codes' widths (``w``, interior-LSB units, where ``phase_mean`` (8,) already
@@ -480,7 +548,10 @@ def _refill(w, edge, interior, phase_mean, stat_var, f_w, f_var, combine=False,
     v_pm = max(spread, 1e-8)
     use = edge & np.isfinite(f) & np.isfinite(fv) & (fv > 0)
     out = w.copy()
-    out[use] = (w[use] / v_pm + f[use] / fv[use]) / (1 / v_pm + 1 / fv[use])
+    if PHASE_PULL:
+        out[use] = (w[use] / v_pm + f[use] / fv[use]) / (1 / v_pm + 1 / fv[use])
+    else:
+        out[use] = f[use]
     if loose is not None:
         out[use & loose] = f[use & loose]
     if combine:
