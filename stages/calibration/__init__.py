@@ -7,7 +7,8 @@ One idea a room, every name importable from ``stages.calibration`` as before:
 - :mod:`.density`: the density test (sections 3.2, 5.1): widths, DNL, INL, LSB;
 - :mod:`.tracking`: the LSB measured online from a range capture's background;
 - :mod:`.lsb_light`: LSB against light (eq. 5.1);
-- :mod:`.timescale`: code to time at a capture's light, delay and distance (eqs. 5.3, 5.4).
+- :mod:`.timescale`: code to time at a capture's light, delay and distance (eqs. 5.3, 5.4);
+- :mod:`.plan`: the density tests to take, planned from the zero-distance capture.
 
 Setting a name here (a test's ``monkeypatch.setattr(cal, "TRACK_MAX_SIGMA_PS", 1.0)``)
 sets it in the room that uses it too, as it did when this was one module.
@@ -19,6 +20,7 @@ import types
 from stages.calibration import (  # the rooms themselves, for _Rooms
     density,
     lsb_light,
+    plan,
     reset_peak,
     second_stage,
     timescale,
@@ -29,6 +31,7 @@ from stages.calibration.density import (  # noqa: F401
     DEAD_LL,
     DEAD_XT_CODES,
     INL_RMS_FACTOR,
+    LOCAL_CODES,
     OWN_CLEAR_LSB,
     OWN_TOP,
     PHASE_MIN_SHARE,
@@ -55,6 +58,12 @@ from stages.calibration.lsb_light import (  # noqa: F401
     RowSplines,
     _spline_rows,
     fit_lsb,
+)
+from stages.calibration.plan import (  # noqa: F401
+    DEFAULT_LEVELS,
+    Plan,
+    plan_tests,
+    zero_geometry,
 )
 from stages.calibration.reset_peak import (  # noqa: F401
     EDGE_MARGIN,
@@ -106,7 +115,7 @@ class _Rooms(types.ModuleType):
     holds that name, so the rooms read it as one module's globals did."""
 
     def __setattr__(self, name, value):
-        for room in (reset_peak, second_stage, density, tracking, lsb_light, timescale):
+        for room in (reset_peak, second_stage, density, tracking, lsb_light, timescale, plan):
             if name in vars(room):
                 setattr(room, name, value)
         super().__setattr__(name, value)

@@ -63,7 +63,7 @@ def test_codes_under_the_reset_peak_take_the_dimmer_tests_widths_unpulled(seed, 
 
     top, below = errors()
     assert top < 1e-3 and below < 2e-3, (top, below)
-    monkeypatch.setattr(cal, "PHASE_PULL", True)  # the method before: biased
+    monkeypatch.setattr(cal, "PHASE_PULL", "window")  # the method before: biased
     top_pulled, below_pulled = errors()
     assert top_pulled > 0.02 and below_pulled > 10 * below, (top_pulled, below_pulled)
 
@@ -111,3 +111,40 @@ def test_noisy_campaign_table_error_is_its_counting():
 
     low, high = axis_error_ps(1e6), axis_error_ps(1.6e7)
     assert high < 0.5 * low and high < 40, (low, high)
+
+
+def _zero_capture_hits(chip, light=0.01, cycles=2e6, code=200, seed=0):
+    """A dim zero-distance capture: uniform light and a return at ``code``."""
+    h = expected_density_hits(chip, light, cycles, T)
+    k = np.arange(190, 211)
+    h[:, k] += cycles * 0.02 * np.exp(-0.5 * ((k - code) / 1.5) ** 2)[None] / 3.76
+    return np.random.default_rng(seed).poisson(h)
+
+
+def test_the_plan_keeps_the_levels_adds_the_zeros_light_and_spends_the_budget():
+    """The plan holds the LSB fit's levels and the zero capture's light, its cycles sum to
+    at most the budget, every test keeps its minimum share; more budget, smaller expected
+    delay error (as 1/sqrt); the dim tests that alone measure the top of the zero's window
+    get more than the minimum."""
+    chip, _ = random_chip(2, n_tdc=N, ranges=REAL_CHIP_RANGES)
+    h = _zero_capture_hits(chip)
+    small, big = (cal.plan_tests(h, np.full(N, 2e6), b) for b in (4e6, 1.6e7))
+    assert set(cal.DEFAULT_LEVELS) <= {round(float(x), 6) for x in small.lights}
+    assert np.isclose(small.zero_light, cal.light_level(h, np.full(N, 2e6)))
+    assert small.cycles.sum() <= 4e6 and small.cycles.min() >= 0.05 * 4e6 - 1
+    assert np.all(np.abs(small.return_code - 200) <= 1)
+    assert np.all(np.abs(small.x_t0 - chip.window_truth(0.01, T)[1]) < 2)
+    ratio = small.delay_error_ps / big.delay_error_ps
+    assert np.allclose(ratio, 2.0, rtol=0.1), ratio
+    dimmest = int(np.argmin(small.lights))
+    assert small.cycles[dimmest] > 0.1 * 4e6
+    js = small.to_json()
+    assert [t["cycles"] for t in js["tests"]] == small.cycles.tolist()
+    assert len(js["expected_delay_error_ps"]) == N
+
+
+def test_a_zero_capture_without_a_return_has_no_expected_delay_error():
+    chip, _ = random_chip(2, n_tdc=N, ranges=REAL_CHIP_RANGES)
+    h = np.random.default_rng(0).poisson(expected_density_hits(chip, 0.05, 2e6, T))
+    p = cal.plan_tests(h, np.full(N, 2e6), 4e6)
+    assert np.all(np.isnan(p.delay_error_ps)) and np.all(np.isnan(p.return_code))
