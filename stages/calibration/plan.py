@@ -90,9 +90,10 @@ def zero_geometry(hits: np.ndarray, cycles) -> tuple[float, np.ndarray, np.ndarr
 def plan_tests(hits: np.ndarray, cycles, budget: float, window_s: float = 80e-9,
                levels=DEFAULT_LEVELS, window_share: float = 0.8) -> Plan:
     """The density tests to take within ``budget`` cycles, planned from a zero-distance
-    capture's histograms (``hits`` (n_tdc, 512), ``cycles``): the LSB fit's ``levels`` and
-    one test at the zero capture's light (its window ends where the zero's does), their
-    cycles spent where the delay's counting variance falls most (module text).
+    capture's histograms (``hits`` (n_tdc, 512), ``cycles``): the LSB fit's ``levels``, and
+    a test at the zero capture's light (its window ends where the zero's does) where its
+    cycles lower the variance, the cycles spent where the delay's counting variance falls
+    most (module text).
     ``window_share``: the share of a density test's STARTs in the window (the rest is the
     reset peak; 0.8 for a 20 ns reset period before an 80 ns window)."""
     n0, x_t0, k_p = zero_geometry(hits, cycles)
@@ -118,9 +119,13 @@ def plan_tests(hits: np.ndarray, cycles, budget: float, window_s: float = 80e-9,
         return v.sum(axis=1)
 
     n_tests = lights.size
-    c = np.full(n_tests, MIN_SHARE * budget)
+    # the LSB fit's levels keep their share; the test at the zero's light gets cycles only
+    # where they lower the variance (a code measured with few counts is worse than one
+    # continued by the phase pattern)
+    is_level = np.isin(np.round(lights, 6), np.round(np.asarray(levels, np.float64), 6))
+    c = np.where(is_level, MIN_SHARE * budget, 0.0)
     if c.sum() > budget:
-        c[:] = budget / n_tests
+        c = np.where(is_level, budget / is_level.sum(), 0.0)
     step = max((budget - c.sum()) / STEPS, 0.0)
     for _ in range(STEPS if step > 0 else 0):  # greedy: convex in the cycles
         base = np.nanmean(np.where(np.isfinite(variance(c)), variance(c), 1e300))
@@ -131,6 +136,9 @@ def plan_tests(hits: np.ndarray, cycles, budget: float, window_s: float = 80e-9,
             v = variance(d)
             gains.append(base - np.nanmean(np.where(np.isfinite(v), v, 1e300)))
         c[int(np.argmax(gains))] += step
+    keep = is_level | (c > 0)
+    lights, c, measured = lights[keep], c[keep], measured[keep]
+    p = p[keep]
     cyc = np.floor(c).astype(np.int64)
     lsb_ps = window_s / np.maximum(x_t0, 1.0) * 1e12  # the window over the code span
     err = np.sqrt(variance(cyc.astype(np.float64))) * lsb_ps
