@@ -1,4 +1,4 @@
-"""``tcspc calibrate density|lsb|delay`` (docs/design.md "Command line")."""
+"""``tcspc calibrate density|lsb|plan|delay`` (docs/design.md "Command line")."""
 
 from __future__ import annotations
 
@@ -103,6 +103,45 @@ def lsb(captures, out, plot, inl_rms, overwrite) -> None:
         from pipeline.report.figures import lsb_figure
 
         lsb_figure(n, lsbs, fit, plot)
+    err.print(f"wrote {out}")
+
+
+@calibrate.command(short_help="The density tests to take, planned from a zero-distance "
+                              "capture.")
+@click.argument("zero", type=click.Path())
+@click.option("--cycles-budget", required=True, type=click.FloatRange(min=1e4),
+              help="Cycles all the density tests may take together.")
+@click.option("--out", required=True, type=click.Path(dir_okay=False),
+              help="The plan as JSON: {\"tests\": [{\"light\": X, \"cycles\": N}, ...]}.")
+@_overwrite
+def plan(zero, cycles_budget, out, overwrite) -> None:
+    """The density tests to take, planned from a zero-distance capture ZERO: the LSB fit's
+    light levels (and one at ZERO's light where it helps), the budget spent where the
+    delay's counting error comes from (docs/calibration.md). Prints the delay error per
+    TDC it expects from counting."""
+    import json
+    from pathlib import Path
+
+    from pipeline.offline.calibrate import density_histograms
+
+    check_out(out, overwrite=overwrite)
+    cap = Capture(zero)
+    state, _ = density_histograms(cap)
+    p = cal.plan_tests(state.hits, state.cycles, cycles_budget, cap.meta.window_ns * 1e-9)
+    Path(out).write_text(json.dumps(p.to_json(), indent=1) + "\n")
+    for n, c in zip(p.lights, p.cycles, strict=True):
+        err.print(f"density test at {n:.4g} detections/pixel/cycle: {int(c):,} cycles",
+                  highlight=False)
+    e = p.delay_error_ps
+    if np.isfinite(e).any():
+        err.print(f"expected delay error from counting: {np.nanmedian(e):.1f} ps median, "
+                  f"{np.nanmax(e):.1f} ps worst (TDC {int(np.nanargmax(e))}); per TDC: "
+                  + " ".join(f"{v:.0f}" if np.isfinite(v) else "-" for v in e),
+                  highlight=False)
+    missing = np.flatnonzero(~np.isfinite(e))
+    if missing.size:
+        warn(f"no return found on TDC(s) {missing[:12].tolist()} of {zero}: no delay "
+             "error expected for them", err)
     err.print(f"wrote {out}")
 
 

@@ -200,7 +200,8 @@ def make_chip(n_tdc: int = 128, rng: np.random.Generator | int | None = 0, *,
               n_min_range=(12, 28), width_range=(110, 150), d2nd_dnl: float = 0.0,
               dead_codes: int = 0, lsb_quad_ps: float = 0.0, reset_ns: float | None = None,
               reset_offset_ps: float = 0.0, reset_jitter_ps: float = 0.0,
-              d2nd_in_time: bool = False) -> Chip:
+              d2nd_in_time: bool = False, dnl_random_lsb: float = 0.04,
+              bow_lsb: float = 1.2) -> Chip:
     """A chip with the thesis's characteristics, drawn from ``rng``.
 
     ``inl_scale = 0`` gives an ideal TDC (uniform codes); ``artifact_rate = 0`` none.
@@ -226,6 +227,10 @@ def make_chip(n_tdc: int = 128, rng: np.random.Generator | int | None = 0, *,
       (its 8 phases as wide as the first stage's INL makes them, PDM where phase 4 starts
       in time), not ``(phase + frac) / 8`` (every phase an eighth of the block, so a
       narrow phase's eighth of D2nd codes is sparse: the default, kept for its bytes).
+    - ``dnl_random_lsb``: the random part of every code's DNL (rms, before ``inl_scale``;
+      the INL is its running sum, pinned at both ends); real chips have 0.05-0.1 LSB.
+    - ``bow_lsb``: the largest amplitude of the slow INL bow (a half sine over the codes,
+      amplitude drawn in +-this); real chips bow by a few LSB.
 
     Examples
     --------
@@ -240,8 +245,8 @@ def make_chip(n_tdc: int = 128, rng: np.random.Generator | int | None = 0, *,
     k = np.arange(N_CODES + 1)
     scale = inl_scale * rng.uniform(0.7, 1.0, n_tdc)[:, None]
     periodic = _PATTERN8[k % 8] - _PATTERN8[0]
-    bow = 1.2 * np.sin(np.pi * k / N_CODES)[None, :] * rng.uniform(-1, 1, n_tdc)[:, None]
-    rand = np.cumsum(rng.normal(0, 0.04, (n_tdc, N_CODES + 1)), axis=1)
+    bow = bow_lsb * np.sin(np.pi * k / N_CODES)[None, :] * rng.uniform(-1, 1, n_tdc)[:, None]
+    rand = np.cumsum(rng.normal(0, dnl_random_lsb, (n_tdc, N_CODES + 1)), axis=1)
     rand -= np.linspace(0, 1, N_CODES + 1)[None, :] * rand[:, -1:]  # pinned at both ends
     inl = scale * (periodic[None, :] + bow + rand)
     inl -= inl[:, :1]
@@ -388,6 +393,14 @@ ZOO_RANGES = {
     "d2nd_in_time": (1, 1),              # 1: the second stage measures time (physical)
 }
 
+#: What real chips have and :data:`ZOO_RANGES` leaves at the thesis's chip (issue 33): a
+#: random DNL of 0.05-0.1 LSB per code, a slow INL bow of a few LSB. ``random_chip(seed,
+#: ranges=REAL_CHIP_RANGES)`` draws them from a stream of their own, so every other knob of
+#: a seed is what :data:`ZOO_RANGES` draws.
+REAL_CHIP_RANGES = {"dnl_random_lsb": (0.05, 0.1), "bow_lsb": (2.0, 4.0)}
+#: Knobs drawn only when ``ranges`` names them (their own stream; else make_chip's default).
+EXTRA_KNOBS = ("dnl_random_lsb", "bow_lsb")
+
 
 def random_chip(seed: int | np.random.Generator, n_tdc: int = 16,
                 ranges: dict | None = None) -> tuple[Chip, dict]:
@@ -401,6 +414,7 @@ def random_chip(seed: int | np.random.Generator, n_tdc: int = 16,
     (4, True)
     """
     r = {**ZOO_RANGES, **(ranges or {})}
+    extra = {name: r.pop(name) for name in EXTRA_KNOBS if name in r}
     rng = np.random.default_rng(seed)
 
     def draw(name):
@@ -413,6 +427,9 @@ def random_chip(seed: int | np.random.Generator, n_tdc: int = 16,
     k["width_lo"] = min(k["width_lo"], N_CODES_2ND - 2 - (k["n_min_lo"] + 16) - 40 + 1)
     codes = np.sort(rng.choice(np.arange(8, 330), k["n_artifact_codes"], replace=False))
     k["artifact_codes"] = codes.tolist()
+    # a seed's own stream for them (a generator given as the seed draws them itself)
+    own = np.random.default_rng([int(seed), 33]) if isinstance(seed, int | np.integer) else rng
+    k.update({name: float(own.uniform(*extra[name])) for name in EXTRA_KNOBS if name in extra})
     c = k["lsb_centre_ps"]
     chip = make_chip(
         n_tdc, rng, lsb_range_ps=(c - k["lsb_spread_ps"] / 2, c + k["lsb_spread_ps"] / 2),
@@ -422,5 +439,6 @@ def random_chip(seed: int | np.random.Generator, n_tdc: int = 16,
         width_range=(k["width_lo"], k["width_lo"] + 40), d2nd_dnl=k["d2nd_dnl"],
         dead_codes=k["dead_codes"], lsb_quad_ps=k["lsb_quad_ps"], reset_ns=k["reset_ns"],
         reset_offset_ps=k["reset_offset_ps"], reset_jitter_ps=k["reset_jitter_ps"],
-        d2nd_in_time=bool(k["d2nd_in_time"]))
+        d2nd_in_time=bool(k["d2nd_in_time"]),
+        **{name: k[name] for name in EXTRA_KNOBS if name in k})
     return chip, k

@@ -439,7 +439,9 @@ def test_inl_from_all_tests_and_the_table_beyond_the_window():
         return np.median([np.sqrt(np.mean((r.inl_lsb[t] - inl_t[t])[k < x_t[t] - 1] ** 2))
                           for t in range(N)])
 
-    assert rms(both[0]) < 0.8 * rms(alone[0]), (rms(both[0]), rms(alone[0]))
+    # (0.85: the codes under the kept test's reset peak take the other tests' widths alone,
+    # unpulled toward the phase mean since issue 33; their noise is common to both tables)
+    assert rms(both[0]) < 0.85 * rms(alone[0]), (rms(both[0]), rms(alone[0]))
     # beyond the kept test's x_T: finite where the dimmest test measured, and true there
     dim_x = tests[3][0]
     x_dim = cal.density_test(dim_x.hits, dim_x.cycles, 80e-9).x_t

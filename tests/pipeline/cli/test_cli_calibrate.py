@@ -301,3 +301,22 @@ def test_a_campaign_with_no_calibrated_tdc_exits_non_zero_and_writes_nothing(tmp
     assert r.exit_code != 0
     assert "no TDC calibrated" in r.output and "dead or dark" in r.output
     assert not (tmp_path / "cal").exists()
+
+
+def test_calibrate_plan_from_a_zero_capture(tmp_path):
+    """`calibrate plan ZERO.bin --cycles-budget N --out PLAN.json`: the tests to take (the
+    levels and the zero's light), cycles within the budget, the expected delay error per
+    TDC printed; a missing capture is refused before any work."""
+    zbin, _ = zero_distance(tmp_path, "z", 100.0, 0.0015, 500.0, cycles=100_000)
+    res = run("calibrate", "plan", str(zbin), "--cycles-budget", "4e6", "--out",
+              str(tmp_path / "plan.json"))
+    plan = json.loads((tmp_path / "plan.json").read_text())
+    assert 4 <= len(plan["tests"]) <= 5
+    assert sum(t["cycles"] for t in plan["tests"]) <= 4e6
+    assert all(t["light"] > 0 and t["cycles"] > 0 for t in plan["tests"])
+    assert "expected delay error from counting" in res.output
+    assert len(plan["expected_delay_error_ps"]) == 8
+    bad = run("calibrate", "plan", str(tmp_path / "none.bin"), "--cycles-budget", "4e6",
+              "--out", str(tmp_path / "p2.json"), ok=False)
+    assert bad.exit_code == 2 and "capture not found" in bad.output, bad.output
+    assert not (tmp_path / "p2.json").exists()

@@ -93,6 +93,13 @@ CASES = [
      "free on"),
     ("tcspc pattern", 2, lambda f: ["pattern", f.cap], "exists; give --overwrite"),
     ("tcspc schema", 2, lambda f: ["schema", "--bogus"], "No such option"),
+    # calibrate plan: the zero capture, the budget, the output
+    ("tcspc calibrate plan", 2, lambda f: ["calibrate", "plan", f.missing, "--cycles-budget",
+                                           "1e6", "--out", f.new("p.json")], "capture not found"),
+    ("tcspc calibrate plan", 2, lambda f: ["calibrate", "plan", f.cap, "--cycles-budget",
+                                           "10", "--out", f.new("p.json")], "--cycles-budget"),
+    ("tcspc calibrate plan", 2, lambda f: ["calibrate", "plan", f.cap, "--cycles-budget",
+                                           "1e6", "--out", f.ranges], "exists; give --overwrite"),
     # export: the geometry, the format, the output (tests/pipeline/io/test_pointcloud.py)
     ("tcspc export", 2, lambda f: ["export", f.ranges, "--geometry", "nowhere.toml",
                                    "--out", f.new("p.las")], "nowhere.toml"),

@@ -1,0 +1,162 @@
+"""Where a zoo chip's delay error comes from (issue 33): the delay RMS each part of the
+calibration chain costs, before and after the changes of issue 33, and with the density
+tests ``calibrate plan`` chooses.
+
+A chip of the zoo with what real chips have (``random_chip(seed, ranges=REAL_CHIP_RANGES)``:
+random DNL 0.05-0.1 LSB a code, a bow of 2-4 LSB); four density tests of ``--cycles`` each
+at 0.02-0.3 detections a pixel a cycle, and a zero-distance capture dimmer than all of them
+(``--zero-light``, its return at code ``--return-code``). The density tests are expected
+histograms (:func:`stages.simulator.expected.expected_density_hits`), noise-free or Poisson
+draws of them: noise-free, what is left is the method's bias. The delay's error from the
+time axis is the axis' error at the return's code at the zero's light; each row substitutes
+the truth for one part at a time:
+
+- the INL table (the LSB at the zero's light true): whole, and with the true widths put in
+  the codes above the brightest test's window, and past the last code any test measured;
+- the LSB(n) interpolation at the zero's light (the table true, the fit's LSB).
+
+The peak's time on the zero capture is not simulated here (its own counting: ~4 ps in the
+issue's measurement).
+
+    python benchmarks/calibration_bias.py [--seeds 1 2 3] [--tdcs 16] [--cycles 1e6]
+        [--budget 4e6] [--zero-light 0.01]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from stages import calibration as cal  # noqa: E402
+from stages.simulator.chip import REAL_CHIP_RANGES, random_chip  # noqa: E402
+from stages.simulator.expected import expected_density_hits  # noqa: E402
+
+T = 80e-9
+LEVELS = (0.02, 0.05, 0.1, 0.3)
+#: the method before issue 33, and after
+METHODS = {"before": {"PHASE_PULL": "window", "OWN_TOP": False, "CONTINUE_CODES": 10**6},
+           "after": {"PHASE_PULL": "", "OWN_TOP": True, "CONTINUE_CODES": 64}}
+
+
+def use(method: str) -> None:
+    for name, value in METHODS[method].items():
+        setattr(cal, name, value)
+
+
+def campaign(chip, lights, cycles, rng):
+    """The INL test (the brightest, filled and combined from the others) and the LSB fit."""
+    c = [np.full(chip.n_tdc, float(n)) for n in cycles]
+    hits = [expected_density_hits(chip, n, k[0], T) for n, k in zip(lights, c, strict=True)]
+    if rng is not None:
+        hits = [rng.poisson(h).astype(np.float64) for h in hits]
+    res = [cal.density_test(h, k, T) for h, k in zip(hits, c, strict=True)]
+    i = int(np.argmax(lights))
+    tests = [(res[j], cal.width_variance(hits[j], c[j], res[j])) for j in range(len(lights))
+             if j != i]
+    best = cal.density_test(hits[i], c[i], T, fill=cal.fill_from(tests, res[i]), combine=True)
+    n = np.array([float(np.mean(r.detections_per_cycle)) for r in res])
+    fit = cal.fit_lsb(n, np.column_stack([r.lsb_s * 1e12 for r in res]))
+    return best, fit, res
+
+
+def axis_error_ps(chip, best, n0, code, lsb_s=None, bounds=None):
+    """The time axis' error at boundary ``code`` at light ``n0`` (per TDC, ps)."""
+    lsb_w = chip.window_truth(n0, T)[0] if lsb_s is None else lsb_s
+    b = cal.code_bounds(best) if bounds is None else bounds
+    tau = b * cal.scale_at_light(best, lsb_w, T, bounds=b)[:, None]
+    return (tau - chip.boundaries_s(n0))[:, code] * 1e12
+
+
+def with_true_widths(chip, best, light, codes_from):
+    """``best``'s boundaries with the chip's widths (at ``light``, in its units) from code
+    ``codes_from`` (per TDC) on."""
+    lsb, x, inl = chip.window_truth(light, T)
+    b = cal.code_bounds(best)
+    true = chip.boundaries_s(light) / lsb[:, None]
+    k = np.arange(513)[None, :]
+    start = np.clip(np.asarray(codes_from, int), 1, 512)[:, None]
+    at = np.take_along_axis(b, start, axis=1) - np.take_along_axis(true, start, axis=1)
+    return np.where(k >= start, true + at, b)
+
+
+def rows_for(chip, lights, cycles, n0, code, rng):
+    best, fit, res = campaign(chip, lights, cycles, rng)
+    bright = res[int(np.argmax(lights))]
+    out = {"INL table": axis_error_ps(chip, best, n0, code)}
+    above = np.floor(bright.x_t - cal.EDGE_MARGIN - 1)
+    out["  codes above the brightest test's window (true there)"] = out["INL table"] - \
+        axis_error_ps(chip, best, n0, code, bounds=with_true_widths(
+            chip, best, float(np.mean(bright.detections_per_cycle)), above))
+    last = np.array([np.flatnonzero(np.isfinite(r))[-1] + 1 for r in best.inl_lsb])
+    out["  table past the last measured code (true there)"] = out["INL table"] - \
+        axis_error_ps(chip, best, n0, code, bounds=with_true_widths(
+            chip, best, float(np.mean(bright.detections_per_cycle)), last))
+    lsb_fit = fit.lsb_ps(n0) * 1e-12
+    true_b = with_true_widths(chip, best, float(np.mean(bright.detections_per_cycle)),
+                              np.zeros(chip.n_tdc))
+    out["LSB(n) at the zero's light (table true)"] = axis_error_ps(
+        chip, best, n0, code, lsb_s=lsb_fit, bounds=true_b)
+    return out
+
+
+def rms(v):
+    v = np.concatenate(v)
+    return float(np.sqrt(np.nanmean(v ** 2)))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    ap.add_argument("--tdcs", type=int, default=16)
+    ap.add_argument("--cycles", type=float, default=1e6)
+    ap.add_argument("--budget", type=float, default=4e6)
+    ap.add_argument("--zero-light", type=float, default=0.01)
+    ap.add_argument("--return-code", type=int, default=200)
+    a = ap.parse_args()
+    table: dict = {}
+    for method in METHODS:
+        use(method)
+        for noisy in (False, True):
+            for seed in a.seeds:
+                chip, _ = random_chip(seed, n_tdc=a.tdcs, ranges=REAL_CHIP_RANGES)
+                rng = np.random.default_rng(seed) if noisy else None
+                rows = rows_for(chip, LEVELS, [a.cycles] * len(LEVELS), a.zero_light,
+                                a.return_code, rng)
+                for name, v in rows.items():
+                    table.setdefault(name, {}).setdefault((method, noisy), []).append(v)
+    # the planned campaign, after: the same budget as calibrate plan spends it
+    use("after")
+    planned = {False: [], True: []}
+    for seed in a.seeds:
+        chip, _ = random_chip(seed, n_tdc=a.tdcs, ranges=REAL_CHIP_RANGES)
+        zero = expected_density_hits(chip, a.zero_light, 2e6, T)
+        k = np.arange(a.return_code - 10, a.return_code + 11)
+        zero[:, k] += 2e6 * 0.002 * np.exp(-0.5 * ((k - a.return_code) / 1.5) ** 2)[None] / 3.76
+        zero = np.random.default_rng(seed).poisson(zero)
+        plan = cal.plan_tests(zero, np.full(a.tdcs, 2e6), a.budget, T)
+        for noisy in (False, True):
+            rng = np.random.default_rng(seed) if noisy else None
+            planned[noisy].append(rows_for(chip, list(plan.lights), list(plan.cycles),
+                                           a.zero_light, a.return_code, rng)["INL table"])
+        print(f"seed {seed}: plan {[(round(float(n), 4), int(c)) for n, c in zip(plan.lights, plan.cycles, strict=True)]}, "  # noqa: E501
+              f"expected {np.nanmedian(plan.delay_error_ps):.0f} ps")
+    print(f"\nDelay RMS (ps) each part costs, real-chip zoo seeds {a.seeds}, {a.tdcs} TDCs, "
+          f"tests at {LEVELS} x {a.cycles:.0e} cycles, zero at {a.zero_light}, return at code "
+          f"{a.return_code}\n")
+    print("| part of the chain | before, noise-free | before, noisy | after, noise-free "
+          "| after, noisy |")
+    print("|---|---|---|---|---|")
+    for name, cols in table.items():
+        print(f"| {name} | " + " | ".join(f"{rms(cols[(m, n)]):.1f}" for m in METHODS
+                                          for n in (False, True)) + " |")
+    print(f"| INL table, the {a.budget:.0e} cycles as `calibrate plan` spends them | | | "
+          f"{rms(planned[False]):.1f} | {rms(planned[True]):.1f} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,51 @@
+"""Expected (noise-free) histograms of a density test on a chip: what a capture of
+uniform light would hold on average, without the counting noise.
+
+A calibration method tested on these must give the chip's truth: whatever error is left is
+the method's bias, not statistics (issue 33). The model is the simulator's: a START is the
+first photon of the cycle; one in the reset period is the window's beginning (tau = T, plus
+the chip's offset), one in the window is at ``tau = T - t``; every START is blurred by the
+TDC's Gaussian jitter (the reset period's by :meth:`Chip.reset_jitter_s`) and falls in the
+code whose boundaries (``chip.boundaries_s``) hold it, below code 0 into code 0, beyond
+the last boundary into the last code. Artifacts and dark counts are left out.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.special import ndtr
+
+from schemas.constants import N_CODES
+from stages.simulator.chip import Chip
+
+#: Steps of the window's time per LSB in the integral over the STARTs' times.
+STEPS_PER_LSB = 40
+
+
+def expected_density_hits(chip: Chip, light: float, cycles: float, window_s: float = 80e-9,
+                          reset_ns: float | None = None) -> np.ndarray:
+    """(n_tdc, 512) expected counts of a density test of ``cycles`` cycles at ``light``
+    detections per pixel per cycle (eq. 5.1's n: every START, reset peak included, over
+    the cycles), the chip's LSB at that light."""
+    reset_s = (chip.reset_ns if chip.reset_ns is not None
+               else (20.0 if reset_ns is None else reset_ns)) * 1e-9
+    # the photon rate giving ``light`` STARTs a cycle over the reset period and the window
+    rate = -np.log1p(-min(float(light), 1 - 1e-12)) / (reset_s + window_s)
+    bounds = chip.boundaries_s(light)                       # (n_tdc, 513)
+    jit = chip.jitter_s(light)
+    jit_r = chip.reset_jitter_s(light)
+    reset_mass = -np.expm1(-rate * reset_s)
+    lsb = float(np.median(chip.lsb_ps(light))) * 1e-12
+    n_steps = int(np.ceil(window_s / lsb * STEPS_PER_LSB))
+    t = (np.arange(n_steps) + 0.5) * (window_s / n_steps)   # tau, midpoints over [0, T]
+    # density of the first START at tau (no photon in the reset period nor at higher tau)
+    dens = np.exp(-rate * reset_s) * rate * np.exp(-rate * (window_s - t)) * (window_s / n_steps)
+    out = np.empty((chip.n_tdc, N_CODES))
+    tau_reset = window_s + chip.reset_offset_ps * 1e-12
+    for i in range(chip.n_tdc):  # once per TDC; the inner work is vectorised
+        b = bounds[i, 1:N_CODES]                            # the inner boundaries
+        cdf = (ndtr((b[:, None] - t[None, :]) / jit[i]) @ dens
+               + reset_mass * ndtr((b - tau_reset) / jit_r[i]))
+        total = dens.sum() + reset_mass
+        out[i] = np.diff(np.concatenate([[0.0], cdf, [total]]))
+    return np.clip(out, 0.0, None) * float(cycles)
