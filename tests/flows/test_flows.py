@@ -568,3 +568,22 @@ def test_serve_reads_its_config(tmp_path):
         cfg.write_text(text)
         with pytest.raises(click.UsageError, match=says):
             deployments(read_serve_config(str(cfg)))
+
+
+def test_pruning_keeps_the_newest_versions_by_their_own_time_not_mtime(tmp_path):
+    """#39.2: versions copied from the cache carry old mtimes (the newest looks oldest
+    here); pruning keeps the KEEP_VERSIONS newest by the stamp in their name, and the live
+    one always."""
+    from flows.calibration import KEEP_VERSIONS, publish, version_time
+
+    cand = tmp_path / "cand"
+    cand.mkdir()
+    (cand / "meta.json").write_text('{"created": "2026-12-04T20:00:00+00:00"}')
+    stamps = [f"20261204T20{h}000Z-abc{h}" for h in range(8)]
+    for i, s in enumerate(stamps):
+        publish.fn(str(cand), str(tmp_path / "out"), s)
+        os.utime(tmp_path / "out" / "versions" / s, (1e9 - i * 1e5, 1e9 - i * 1e5))
+    kept = sorted(p.name for p in (tmp_path / "out" / "versions").iterdir())
+    assert kept == stamps[-KEEP_VERSIONS:]
+    assert (tmp_path / "out" / "current").resolve().name == stamps[-1]
+    assert version_time(cand) == "20261204T200000Z"  # no stamp in the name: meta's created
