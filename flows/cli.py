@@ -235,8 +235,9 @@ def describe_cron(cron: str) -> str:
 def deployments(config: dict) -> list:
     """The deployments ``serve`` publishes for a :func:`read_serve_config` config, named
     for what they are: the campaign on a cron ("128px daily at 02:00"), one campaign at a
-    time (a deployment concurrency limit of 1: a run due while one is running waits its
-    turn); flows without a cron "on demand". Parameters are checked now."""
+    time (a deployment concurrency limit of 1 that cancels a run due while one is running:
+    after a downtime, one catch-up run, not one per missed fire); flows without a cron "on
+    demand". Parameters are checked now."""
     out = config.get("out", "data")
     defaults = {"calibration_campaign": {"out": f"{out}/calibration"},
                 "distance_sweep": {"out": f"{out}/sweeps",
@@ -257,8 +258,14 @@ def deployments(config: dict) -> list:
                 ("calibration_campaign", "distance_sweep") and not params.get("captures")
                 else "")
         name = body.get("name") or f"{what}{describe_cron(body['cron'])}"
-        kw = {"concurrency_limit": 1} if flow_name == "calibration_campaign" else {}
+        from prefect.client.schemas.objects import (ConcurrencyLimitConfig,
+                                                    ConcurrencyLimitStrategy)
         from prefect.schedules import Cron
+
+        # one run at a time; a run due while one runs is cancelled, not queued: after a
+        # downtime the Late runs Prefect kept scheduling start together and one runs (#39.6)
+        kw = {"concurrency_limit": ConcurrencyLimitConfig(
+            limit=1, collision_strategy=ConcurrencyLimitStrategy.CANCEL_NEW)}
 
         deps.append(fl.to_deployment(
             name, schedules=[Cron(body["cron"], timezone=body.get("timezone", "UTC"))],

@@ -80,7 +80,11 @@ def figures(g: pl.DataFrame, v: pl.DataFrame, run: str) -> list[str]:
     return [str(a), str(b)]
 
 
-@flow(name="performance_prediction")
+#: a prediction that runs longer is failed by Prefect (a hang: not Running forever)
+PREDICTION_TIMEOUT_S = 2 * 3600
+
+
+@flow(name="performance_prediction", timeout_seconds=PREDICTION_TIMEOUT_S)
 def performance_prediction(out: str = "data/performance",
                            distances: list[float] | None = None,
                            configs: list[int] | None = None,

@@ -36,7 +36,11 @@ def cells(m: float, cycles: int, sbrs: list[float], pixels: int, seed: int,
     return rows
 
 
-@flow(name="speed_vs_error")
+#: a grid that runs longer is failed by Prefect (a hang: not Running forever)
+SPEED_TIMEOUT_S = 2 * 3600
+
+
+@flow(name="speed_vs_error", timeout_seconds=SPEED_TIMEOUT_S)
 def speed_vs_error(out: str = "data/speed_vs_error", m: list[float] | None = None,
                    cycles: list[int] | None = None, sbr: list[float] | None = None,
                    pixels: int = 200, estimators: list[str] | None = None,

@@ -551,7 +551,10 @@ def test_serve_reads_its_config(tmp_path):
                               "cycles": 250000, "n_pixels": 64}
     assert cal.schedules[0].schedule.cron == "30 1 * * *"
     assert cal.schedules[0].schedule.timezone == "Europe/Berlin"
+    # #39.6: one at a time, and a run due meanwhile (a downtime's Late runs) cancelled
     assert cal.concurrency_limit == 1
+    assert cal.concurrency_options.collision_strategy.value == "CANCEL_NEW"
+    assert deps["distance_sweep"].concurrency_options.collision_strategy.value == "CANCEL_NEW"
     assert deps["distance_sweep"].name == "128px Sundays at 04:00"
     assert deps["speed_vs_error"].name == "on demand" and not deps["speed_vs_error"].schedules
     # the command line overrides the file
@@ -587,3 +590,13 @@ def test_pruning_keeps_the_newest_versions_by_their_own_time_not_mtime(tmp_path)
     assert kept == stamps[-KEEP_VERSIONS:]
     assert (tmp_path / "out" / "current").resolve().name == stamps[-1]
     assert version_time(cand) == "20261204T200000Z"  # no stamp in the name: meta's created
+
+
+def test_every_flow_has_a_timeout():
+    """#39.6: a hung batch, prediction or grid (every Dask worker dead) ends Failed by
+    Prefect's timeout, never Running forever."""
+    from flows.cli import FLOWS, load
+
+    for name in FLOWS:
+        if name != "smoke":
+            assert load(name).timeout_seconds and load(name).timeout_seconds <= 12 * 3600, name
