@@ -41,9 +41,36 @@ def load(name: str):
 
 
 def parse_params(items: tuple[str, ...], fn) -> dict:
-    """``key=value`` pairs; values are JSON where they parse (numbers, lists, true/false),
-    else strings. Unknown keys are an error naming the flow's parameters."""
+    """``key=value`` pairs; values are JSON where they parse (numbers, lists, true/false)
+    and the parameter's type takes them, else the string as typed (``-p delay_run=0`` is
+    the run named "0" where the parameter is a string). Unknown keys are an error naming
+    the flow's parameters."""
+    import typing
+
+    from pydantic import TypeAdapter, ValidationError
+
     known = inspect.signature(fn).parameters
+    try:
+        hints = typing.get_type_hints(fn, include_extras=True)
+    except (NameError, TypeError):  # pragma: no cover - an annotation that does not resolve
+        hints = {}
+
+    def typed(key: str, value: str):
+        try:
+            parsed = json.loads(value)
+        except json.JSONDecodeError:
+            return value
+        if key not in hints or isinstance(parsed, str):
+            return parsed
+        adapter = TypeAdapter(hints[key])
+        for candidate in (parsed, value):
+            try:
+                adapter.validate_python(candidate)
+                return candidate
+            except ValidationError:
+                pass
+        return parsed  # check_params names what is wrong with it
+
     out = {}
     for item in items:
         key, sep, value = item.partition("=")
@@ -52,10 +79,7 @@ def parse_params(items: tuple[str, ...], fn) -> dict:
         if key not in known:
             raise click.BadParameter(f"{key!r} is not a parameter of {fn.__name__}; "
                                      f"parameters: {', '.join(known)}")
-        try:
-            out[key] = json.loads(value)
-        except json.JSONDecodeError:
-            out[key] = value
+        out[key] = typed(key, value)
     return out
 
 

@@ -600,3 +600,20 @@ def test_every_flow_has_a_timeout():
     for name in FLOWS:
         if name != "smoke":
             assert load(name).timeout_seconds and load(name).timeout_seconds <= 12 * 3600, name
+
+
+def test_parameters_are_parsed_the_way_a_user_types_them():
+    """#39.7: ``-p delay_run=0`` is the run named "0" (a string parameter), numbers stay
+    numbers where the type is numeric, lists are JSON; a bad value is still refused."""
+    import click
+
+    from flows.cli import check_params, load, parse_params
+
+    fl = load("calibration_campaign")
+    got = parse_params(("delay_run=0", "cycles=1000", "lux=[1,2,3,4]", "force=true",
+                        "density_runs=[\"123\"]"), fl.fn)
+    assert got == {"delay_run": "0", "cycles": 1000, "lux": [1, 2, 3, 4], "force": True,
+                   "density_runs": ["123"]}
+    check_params(fl, got, "-p")
+    with pytest.raises(click.UsageError, match="cycles"):
+        check_params(fl, parse_params(("cycles=-1",), fl.fn), "-p")
