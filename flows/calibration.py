@@ -315,11 +315,15 @@ def publish_artifacts(out: str, outcome: str, verdict_text: str, report_md: str,
 
 
 def _slug(out: str) -> str:
-    """An artifact key for a calibration directory (lowercase letters, digits, dashes)."""
-    import re
+    """An artifact key and event resource id for a calibration directory (lowercase
+    letters, digits, dashes): its last three path parts to read, and 8 hex digits of the
+    whole resolved path, so ``benchA/data/calibration`` and ``benchB/data/calibration``
+    (or two long paths alike at their end) never share one."""
+    import hashlib
 
-    name = "-".join(Path(out).resolve().parts[-2:]).lower()
-    return ("calibration-" + re.sub(r"[^a-z0-9]+", "-", name)).strip("-")[:60]
+    where = str(Path(out).resolve())
+    name = re.sub(r"[^a-z0-9]+", "-", "-".join(Path(where).parts[-3:]).lower()).strip("-")
+    return f"calibration-{name[:38].strip('-')}-{hashlib.sha256(where.encode()).hexdigest()[:8]}"
 
 
 def _announce(outcome: str, out: str, summary: dict) -> None:

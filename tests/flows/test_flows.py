@@ -617,3 +617,17 @@ def test_parameters_are_parsed_the_way_a_user_types_them():
     check_params(fl, got, "-p")
     with pytest.raises(click.UsageError, match="cycles"):
         check_params(fl, parse_params(("cycles=-1",), fl.fn), "-p")
+
+
+def test_two_benches_get_distinct_artifact_keys_and_resource_ids(tmp_path):
+    """#39.5: benchA/data/calibration and benchB/data/calibration, or two long paths alike
+    at their end, never share an artifact key (nor the event's resource id made of it)."""
+    import re
+
+    from flows.calibration import _slug
+
+    keys = {_slug(str(tmp_path / b / "data" / "calibration")) for b in ("benchA", "benchB")}
+    keys |= {_slug(str(tmp_path / ("x" * 50 + b) / "data" / "calibration")) for b in "ab"}
+    assert len(keys) == 4
+    assert all(re.fullmatch(r"[a-z0-9-]{1,60}", k) for k in keys)
+    assert _slug(str(tmp_path / "benchA" / "data" / "calibration")) in keys  # stable
