@@ -631,3 +631,35 @@ def test_two_benches_get_distinct_artifact_keys_and_resource_ids(tmp_path):
     assert len(keys) == 4
     assert all(re.fullmatch(r"[a-z0-9-]{1,60}", k) for k in keys)
     assert _slug(str(tmp_path / "benchA" / "data" / "calibration")) in keys  # stable
+
+
+def test_a_run_prefect_already_marked_crashed_has_its_running_tasks_marked_too():
+    """#39.5: serve's runner marks its killed child Crashed but leaves the task that was
+    running Running; the next campaign's clean-up marks that task Crashed as well."""
+    from prefect import task
+    from prefect.states import Crashed, Running
+
+    from flows.common import mark_crashed
+
+    @task(name="fit INL and LSB")
+    def fit():
+        return 1
+
+    with _client() as c:
+        f = c.create_flow_run(flow=_flow_for_crash_test(), state=Running())
+        t = c.create_task_run(fit, f.id, dynamic_key="0", state=Running())
+        c.set_flow_run_state(f.id, Crashed(message="killed"), force=True)
+        assert mark_crashed(str(f.id), "its process died")
+        assert c.read_task_run(t.id).state.type.value == "CRASHED"
+        assert c.read_flow_run(f.id).state.message == "killed"  # its own word kept
+        assert not mark_crashed(str(f.id), "again")  # nothing left to mark
+
+
+def _flow_for_crash_test():
+    from prefect import flow
+
+    @flow(name="crash-test")
+    def crash_test():
+        return None
+
+    return crash_test
