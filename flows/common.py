@@ -22,7 +22,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from prefect import get_run_logger, task
 from prefect.cache_policies import NO_CACHE, CachePolicy
@@ -35,8 +35,11 @@ from pipeline.offline.simulate import simulate_capture
 from pipeline.report.report import write_report
 from schemas.errors import TcspcError
 from stages.models.scene import scene_from_dict
+from stages.ranging import ESTIMATORS
 
 ROOT = Path(__file__).resolve().parents[1]
+#: a range estimator's name as a flow parameter: an unknown one is refused before the run
+Estimator = Literal[ESTIMATORS]  # type: ignore[valid-type]
 SCENES = ROOT / "scenes"
 
 # Parameter types: Prefect validates a flow's parameters against its signature before the

@@ -663,3 +663,24 @@ def _flow_for_crash_test():
         return None
 
     return crash_test
+
+
+@pytest.mark.parametrize("name, param, word", [
+    ("batch", "op=bogus", "op"), ("performance_prediction", "runs=-1", "runs"),
+    ("performance_prediction", "configs=[99]", "configs"),
+    ("speed_vs_error", "pixels=0", "pixels"),
+    ("speed_vs_error", 'estimators=["nope"]', "estimators"),
+    ("distance_sweep", "estimator=bogus", "estimator")])
+def test_a_bad_parameter_is_refused_before_a_run_in_one_line_exit_2(name, param, word):
+    """#39.7: what made a run and a long traceback is one line naming the parameter, exit
+    2, and no flow run (the check comes before the flow is called)."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-c", "from pipeline.cli.app import main; main()",
+                        "flow", "run", name, "-p", param], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 2, r.stderr
+    errs = [ln for ln in r.stderr.splitlines() if ln.startswith("Error")]
+    assert len(errs) == 1 and f"{word}" in errs[0], r.stderr
+    assert "Traceback" not in r.stderr and "running " not in r.stderr  # no run created
