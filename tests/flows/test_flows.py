@@ -130,8 +130,11 @@ def test_performance_prediction(harness, tmp_path):
     assert v["predicted"][2] < 0.05 and v["measured"][2] < 0.2
     again = performance_prediction(**kw)  # seeded: the same numbers
     assert pl.read_parquet(Path(again["run"]) / "verification.parquet").equals(v)
-    with pytest.raises(ValueError, match="Table 2.2 has 1..8"):
-        performance_prediction(out=str(tmp_path), configs=[9])
+    from prefect.exceptions import ParameterTypeError
+
+    with pytest.raises(ParameterTypeError, match="configs.0: Input should be less than or "
+                       "equal to 8"):
+        performance_prediction(out=str(tmp_path), configs=[9])  # refused by its type
 
 
 def test_speed_vs_error(harness, tmp_path):
