@@ -27,6 +27,8 @@ import json
 import time
 from pathlib import Path
 
+from typing import Literal
+
 from prefect import flow, task
 from prefect.cache_policies import NO_CACHE
 
@@ -186,8 +188,13 @@ def process(path: str, fmt: str, op: str, dest: str, calibration: str | None = N
     return row
 
 
-@flow(name="batch")
-def batch(inputs: str = "data/captures", op: str = "histogram", out: str = "data/batch",
+#: a batch that runs longer is failed by Prefect (all Dask workers dead: not Running forever)
+BATCH_TIMEOUT_S = 6 * 3600
+
+
+@flow(name="batch", timeout_seconds=BATCH_TIMEOUT_S)
+def batch(inputs: str = "data/captures",
+          op: Literal["histogram", "calibrate", "range"] = "histogram", out: str = "data/batch",
           calibration: str | None = None, delay_ps: float | None = None) -> dict:
     """Histogram, calibrate or range (``op``) every capture and instrument file in a directory.
 

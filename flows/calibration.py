@@ -22,7 +22,9 @@ place, whole. The run ends in a state named for its outcome, ``Published`` or ``
 
 from __future__ import annotations
 
+import datetime as dt
 import json
+import re
 import shutil
 from pathlib import Path
 from typing import Annotated
@@ -171,6 +173,19 @@ def verdict(candidate: str, current: str) -> list[str]:
     return quality(candidate).worse_than(theirs)
 
 
+def version_time(p: Path) -> str:
+    """When a version was made, by its own record, as a sortable UTC stamp: the run's stamp in
+    its name (``20261204T205400Z-…``, ``before-…`` too), else meta.json's ``created``. Not
+    the mtime: ``copytree`` copies that from the cache, so a new version can look old."""
+    if m := re.search(r"(\d{8}T\d{6}Z)", p.name):
+        return m.group(1)
+    try:
+        created = json.loads((p / "meta.json").read_text())["created"]
+        return dt.datetime.fromisoformat(created).astimezone(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
+    except (OSError, ValueError, KeyError, TypeError):
+        return ""  # no time of its own: the oldest
+
+
 @task(retries=2, retry_delay_seconds=1, cache_policy=NO_CACHE)
 def publish(candidate: str, out: str, version: str) -> str:
     """Copy the candidate to ``versions/<version>`` and point ``current`` at it in one
@@ -184,7 +199,7 @@ def publish(candidate: str, out: str, version: str) -> str:
     if old is not None:  # an older layout's directory: kept as a version
         old.rename(versions / f"before-{version}")
     live = current.resolve()
-    for p in sorted(versions.iterdir(), key=lambda p: p.stat().st_mtime)[:-KEEP_VERSIONS]:
+    for p in sorted(versions.iterdir(), key=version_time)[:-KEEP_VERSIONS]:
         if p.resolve() != live and not p.name.startswith("."):
             shutil.rmtree(p, ignore_errors=True)
     return str(current)
@@ -301,11 +316,15 @@ def publish_artifacts(out: str, outcome: str, verdict_text: str, report_md: str,
 
 
 def _slug(out: str) -> str:
-    """An artifact key for a calibration directory (lowercase letters, digits, dashes)."""
-    import re
+    """An artifact key and event resource id for a calibration directory (lowercase
+    letters, digits, dashes): its last three path parts to read, and 8 hex digits of the
+    whole resolved path, so ``benchA/data/calibration`` and ``benchB/data/calibration``
+    (or two long paths alike at their end) never share one."""
+    import hashlib
 
-    name = "-".join(Path(out).resolve().parts[-2:]).lower()
-    return ("calibration-" + re.sub(r"[^a-z0-9]+", "-", name)).strip("-")[:60]
+    where = str(Path(out).resolve())
+    name = re.sub(r"[^a-z0-9]+", "-", "-".join(Path(where).parts[-3:]).lower()).strip("-")
+    return f"calibration-{name[:38].strip('-')}-{hashlib.sha256(where.encode()).hexdigest()[:8]}"
 
 
 def _announce(outcome: str, out: str, summary: dict) -> None:

@@ -43,9 +43,36 @@ def load(name: str):
 
 
 def parse_params(items: tuple[str, ...], fn) -> dict:
-    """``key=value`` pairs; values are JSON where they parse (numbers, lists, true/false),
-    else strings. Unknown keys are an error naming the flow's parameters."""
+    """``key=value`` pairs; values are JSON where they parse (numbers, lists, true/false)
+    and the parameter's type takes them, else the string as typed (``-p delay_run=0`` is
+    the run named "0" where the parameter is a string). Unknown keys are an error naming
+    the flow's parameters."""
+    import typing
+
+    from pydantic import TypeAdapter, ValidationError
+
     known = inspect.signature(fn).parameters
+    try:
+        hints = typing.get_type_hints(fn, include_extras=True)
+    except (NameError, TypeError):  # pragma: no cover - an annotation that does not resolve
+        hints = {}
+
+    def typed(key: str, value: str):
+        try:
+            parsed = json.loads(value)
+        except json.JSONDecodeError:
+            return value
+        if key not in hints or isinstance(parsed, str):
+            return parsed
+        adapter = TypeAdapter(hints[key])
+        for candidate in (parsed, value):
+            try:
+                adapter.validate_python(candidate)
+                return candidate
+            except ValidationError:
+                pass
+        return parsed  # check_params names what is wrong with it
+
     out = {}
     for item in items:
         key, sep, value = item.partition("=")
@@ -54,10 +81,7 @@ def parse_params(items: tuple[str, ...], fn) -> dict:
         if key not in known:
             raise click.BadParameter(f"{key!r} is not a parameter of {fn.__name__}; "
                                      f"parameters: {', '.join(known)}")
-        try:
-            out[key] = json.loads(value)
-        except json.JSONDecodeError:
-            out[key] = value
+        out[key] = typed(key, value)
     return out
 
 
@@ -309,8 +333,9 @@ def describe_cron(cron: str) -> str:
 def deployments(config: dict) -> list:
     """The deployments ``serve`` publishes for a :func:`read_serve_config` config, named
     for what they are: the campaign on a cron ("128px daily at 02:00"), one campaign at a
-    time (a deployment concurrency limit of 1: a run due while one is running waits its
-    turn); flows without a cron "on demand". Parameters are checked now."""
+    time (a deployment concurrency limit of 1 that cancels a run due while one is running:
+    after a downtime, one catch-up run, not one per missed fire); flows without a cron "on
+    demand". Parameters are checked now."""
     out = config.get("out", "data")
     defaults = {"calibration_campaign": {"out": f"{out}/calibration"},
                 "distance_sweep": {"out": f"{out}/sweeps",
@@ -331,8 +356,14 @@ def deployments(config: dict) -> list:
                 ("calibration_campaign", "distance_sweep") and not params.get("captures")
                 else "")
         name = body.get("name") or f"{what}{describe_cron(body['cron'])}"
-        kw = {"concurrency_limit": 1} if flow_name == "calibration_campaign" else {}
+        from prefect.client.schemas.objects import (ConcurrencyLimitConfig,
+                                                    ConcurrencyLimitStrategy)
         from prefect.schedules import Cron
+
+        # one run at a time; a run due while one runs is cancelled, not queued: after a
+        # downtime the Late runs Prefect kept scheduling start together and one runs (#39.6)
+        kw = {"concurrency_limit": ConcurrencyLimitConfig(
+            limit=1, collision_strategy=ConcurrencyLimitStrategy.CANCEL_NEW)}
 
         deps.append(fl.to_deployment(
             name, schedules=[Cron(body["cron"], timezone=body.get("timezone", "UTC"))],

@@ -22,7 +22,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from prefect import get_run_logger, task
 from prefect.cache_policies import NO_CACHE, CachePolicy
@@ -35,8 +35,11 @@ from pipeline.offline.simulate import simulate_capture
 from pipeline.report.report import write_report
 from schemas.errors import TcspcError
 from stages.models.scene import scene_from_dict
+from stages.ranging import ESTIMATORS
 
 ROOT = Path(__file__).resolve().parents[1]
+#: a range estimator's name as a flow parameter: an unknown one is refused before the run
+Estimator = Literal[ESTIMATORS]  # type: ignore[valid-type]
 SCENES = ROOT / "scenes"
 
 # Parameter types: Prefect validates a flow's parameters against its signature before the
@@ -329,8 +332,10 @@ def _read_holder(fd: int) -> dict:
 
 def mark_crashed(run_id: str, why: str) -> bool:
     """Mark the flow run ``run_id`` and its unfinished task runs Crashed (when the API
-    still shows them running: a process killed outright never says so itself). True when
-    something was marked."""
+    still shows them running: a process killed outright never says so itself). A flow run
+    Prefect already marked final (``serve``'s runner marks its killed child Crashed) still
+    has its task runs marked: they would show Running forever. True when something was
+    marked."""
     if not run_id:
         return False
     from uuid import UUID
@@ -345,15 +350,19 @@ def mark_crashed(run_id: str, why: str) -> bool:
             fr = client.read_flow_run(UUID(run_id))
         except (ObjectNotFound, ValueError):
             return False
-        if fr.state is None or fr.state.is_final():
+        if fr.state is None:
             return False
+        marked = False
         tasks = client.read_task_runs(flow_run_filter=FlowRunFilter(id={"any_": [fr.id]}),
                                       task_run_filter=TaskRunFilter())
         for t in tasks:
             if t.state is not None and not t.state.is_final():
                 client.set_task_run_state(t.id, Crashed(message=why), force=True)
-        client.set_flow_run_state(fr.id, Crashed(message=why), force=True)
-    return True
+                marked = True
+        if not fr.state.is_final():
+            client.set_flow_run_state(fr.id, Crashed(message=why), force=True)
+            marked = True
+    return marked
 
 
 _LEFTOVER = re.compile(r"^\..+\.(tmp|old)-(\d+)$|^\..+\.link-[0-9a-f]+$")

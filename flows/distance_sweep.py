@@ -20,6 +20,7 @@ from prefect.cache_policies import NO_CACHE
 from pydantic import Field
 
 from flows.common import (
+    Estimator,
     NonNegativeInt,
     PositiveFloat,
     PositiveInt,
@@ -146,7 +147,7 @@ SWEEP_TIMEOUT_S = 12 * 3600
       flow_run_name=run_namer("sweep", {"stream": "on stream", "captures": "on captures"}))
 def distance_sweep(out: str = "data/sweeps", calibration: str | None = None,
                    distances: Annotated[list[PositiveFloat], Field(min_length=1)] | None = None,
-                   cycles: PositiveInt = 20_000, estimator: str = "ml",
+                   cycles: PositiveInt = 20_000, estimator: Estimator = "ml",
                    n_pixels: PositiveInt = 128, chip_seed: NonNegativeInt = 1,
                    seed: NonNegativeInt = 100, captures: str | None = None,
                    stream: str | None = None, runs: dict[str, float] | None = None,

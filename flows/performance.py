@@ -11,8 +11,12 @@ from pathlib import Path
 
 import numpy as np
 import polars as pl
+from typing import Annotated
+
 from prefect import flow, task
 from prefect.cache_policies import INPUTS, TASK_SOURCE
+
+from pydantic import Field, NonNegativeInt, PositiveInt
 
 from flows.common import new_run_dir, report
 from pipeline.report.report import markdown_table
@@ -80,13 +84,21 @@ def figures(g: pl.DataFrame, v: pl.DataFrame, run: str) -> list[str]:
     return [str(a), str(b)]
 
 
-@flow(name="performance_prediction")
+#: a prediction that runs longer is failed by Prefect (a hang: not Running forever)
+PREDICTION_TIMEOUT_S = 2 * 3600
+
+
+#: a configuration of Table 2.2 (1-based), as a parameter
+Config = Annotated[int, Field(ge=1, le=len(TABLE_2_2))]
+
+
+@flow(name="performance_prediction", timeout_seconds=PREDICTION_TIMEOUT_S)
 def performance_prediction(out: str = "data/performance",
                            distances: list[float] | None = None,
-                           configs: list[int] | None = None,
-                           verify_configs: list[int] | None = None,
-                           verify_distances: list[float] | None = None, runs: int = 200,
-                           seed: int = 0) -> dict:
+                           configs: list[Config] | None = None,
+                           verify_configs: list[Config] | None = None,
+                           verify_distances: list[float] | None = None, runs: PositiveInt = 200,
+                           seed: NonNegativeInt = 0) -> dict:
     """Table 2.2's P against distance (all eight configurations unless ``configs``), and for
     ``verify_configs`` the prediction beside ``runs`` simulated range detections per distance.
     """

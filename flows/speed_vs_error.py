@@ -14,7 +14,9 @@ import numpy as np
 import polars as pl
 from prefect import flow, task
 
-from flows.common import new_run_dir, report
+from pydantic import NonNegativeInt, PositiveInt
+
+from flows.common import Estimator, new_run_dir, report
 from pipeline.report.figures import speed_error_figure
 from pipeline.report.report import markdown_table, speed_error_summary
 from stages.ranging import ESTIMATORS
@@ -36,11 +38,15 @@ def cells(m: float, cycles: int, sbrs: list[float], pixels: int, seed: int,
     return rows
 
 
-@flow(name="speed_vs_error")
+#: a grid that runs longer is failed by Prefect (a hang: not Running forever)
+SPEED_TIMEOUT_S = 2 * 3600
+
+
+@flow(name="speed_vs_error", timeout_seconds=SPEED_TIMEOUT_S)
 def speed_vs_error(out: str = "data/speed_vs_error", m: list[float] | None = None,
                    cycles: list[int] | None = None, sbr: list[float] | None = None,
-                   pixels: int = 200, estimators: list[str] | None = None,
-                   seed: int = 2024) -> dict:
+                   pixels: PositiveInt = 200, estimators: list[Estimator] | None = None,
+                   seed: NonNegativeInt = 2024) -> dict:
     """Speed against error of the range estimators over a grid (the range issue's by
     default: M 0.01-5, cycles 1e3-1e5, SBR 0.01-100, three places in the window)."""
     run = new_run_dir(out, "speed_vs_error")

@@ -44,8 +44,12 @@ def read_tdc_table(caldir: str | os.PathLike):
         except json.JSONDecodeError as exc:
             raise CalibrationError(f"{meta_path}: not valid JSON: {exc}") from exc
         CALIBRATION_TDC.check_version(str(meta.get("schema_version", "1.0")), str(meta_path))
-    # tables of version 1.0 lack the "ok" column: validate what 1.0 had
-    table = pq.ParquetFile(path).read()  # (read_table imports pyarrow.dataset: 60 ms)
+    # (read_table imports pyarrow.dataset: 60 ms)
+    return _validated_tdc(pq.ParquetFile(path).read(), path)
+
+
+def _validated_tdc(table, path: Path):
+    """tables of version 1.0 lack the "ok" column: validate what 1.0 had"""
     try:
         CALIBRATION_TDC.check_metadata(table.schema.metadata, str(path))
         spec = CALIBRATION_TDC
@@ -86,23 +90,59 @@ def sha256(path: Path, chunk: int = 1 << 22) -> str:
     return h.hexdigest()
 
 
+#: the files whose bytes make a calibration's identity (:func:`calibration_id`)
+CAL_FILES = ("tdc.parquet", "inl.parquet", "meta.json")
+
+
+def _snapshot(caldir: Path, attempts: int = 3) -> tuple[Path, dict]:
+    """The bytes of every file of one version, read through ``caldir`` resolved once: a
+    ``current`` link swapped by a publish while we read never mixes two versions. A version
+    pruned between the resolve and the reads is retried through the link."""
+    for _ in range(attempts):
+        real = Path(os.path.realpath(caldir))
+        try:
+            return real, {name: (real / name).read_bytes() for name in CAL_FILES
+                          if name != "meta.json" or (real / name).is_file()}
+        except FileNotFoundError:
+            continue
+    missing = "tdc.parquet" if not (caldir / "tdc.parquet").is_file() else "inl.parquet"
+    what = ("not a calibration directory (no tdc.parquet)" if missing == "tdc.parquet"
+            else "no inl.parquet (not a density-test calibration)")
+    raise CalibrationError(f"{caldir}: {what}")
+
+
+def calibration_id(files: dict) -> str:
+    """A calibration's identity: the SHA-256 (first 16 hex digits) of its files' names and
+    bytes, the same wherever the directory is copied; recorded by every output made with it."""
+    h = hashlib.sha256()
+    for name in sorted(files):
+        h.update(f"{name}\0{len(files[name])}\0".encode())
+        h.update(files[name])
+    return h.hexdigest()[:16]
+
+
 def load_calibration(caldir: str | os.PathLike) -> Calibration:
-    """The whole calibration directory, validated, as one immutable object."""
+    """The whole calibration directory, validated, as one immutable object. A link
+    (``current``) is resolved once and every file read from that version; ``path`` is the
+    version's own directory and ``meta["calibration_id"]`` its identity."""
     caldir = Path(caldir)
-    tdc = read_tdc_table(caldir)
-    inl_path = caldir / "inl.parquet"
-    if not inl_path.is_file():
-        raise CalibrationError(f"{caldir}: no inl.parquet (not a density-test calibration)")
-    inl = pq.ParquetFile(inl_path).read()
+    real, files = _snapshot(caldir)
+    meta_path = real / "meta.json"
+    try:
+        meta = json.loads(files["meta.json"]) if "meta.json" in files else {}
+    except json.JSONDecodeError as exc:
+        raise CalibrationError(f"{meta_path}: not valid JSON: {exc}") from exc
+    CALIBRATION_TDC.check_version(str(meta.get("schema_version", "1.0")), str(meta_path))
+    tdc = _validated_tdc(pq.ParquetFile(pa.BufferReader(files["tdc.parquet"])).read(),
+                         real / "tdc.parquet")
+    inl_path = real / "inl.parquet"
+    inl = pq.ParquetFile(pa.BufferReader(files["inl.parquet"])).read()
     try:
         validate(inl, CALIBRATION_INL, str(inl_path), allow_extra=True)
     except (SchemaMismatch, SchemaVersionError) as exc:
         raise CalibrationError(str(exc)) from exc
-    meta_path = caldir / "meta.json"
-    try:
-        meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
-    except json.JSONDecodeError as exc:
-        raise CalibrationError(f"{meta_path}: not valid JSON: {exc}") from exc
+    meta = {**meta, "calibration_id": calibration_id(files)}
+    caldir = real
     n = tdc.num_rows
     if inl.num_rows != n * N_CODES:
         raise CalibrationError(f"{inl_path}: {inl.num_rows} rows, {n} TDCs x {N_CODES} codes "
@@ -181,7 +221,7 @@ def save_calibration(calibration: Calibration, out: str | os.PathLike,
         recorded = [{"path": str(p), "sha256": sha256(Path(p))} for p in sources]
     meta = {
         **{k: v for k, v in c.meta.items() if k not in ("lsb_poly_x", "lsb_residual_ps",
-                                                         "delay")},
+                                                         "delay", "calibration_id")},
         "schema_version": CALIBRATION_TDC.version, "software": software_version(),
         "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "sources": recorded,

@@ -205,6 +205,8 @@ def range_capture(capture: str | Path, calibration: Calibration, out: str | Path
     table = ranges_table(cap.name, est, d, s)
     table = table.replace_schema_metadata({**table.schema.metadata,
                                            b"tcspc.calibration": calibration.path.encode(),
+                                           b"tcspc.calibration_id": str(calibration.meta.get(
+                                               "calibration_id", "")).encode(),
                                            b"tcspc.capture": str(cap.bin_path).encode(),
                                            **({b"tcspc.truncated": b"True"}
                                               if cap.truncated else {})})

@@ -90,8 +90,10 @@ def test_a_file_that_fails_is_named_and_fails_the_run_after_the_others(harness, 
         batch(str(d), out=str(tmp_path / "out"))
     run = next((tmp_path / "out" / "runs").iterdir())
     assert [p.name for p in (run / "histogram").iterdir()] == ["test_data_2212b.dat.parquet"]
-    with pytest.raises(ValueError, match="op must be one of"):
-        batch(str(d), op="fold", out=str(tmp_path / "out"))
+    from prefect.exceptions import ParameterTypeError
+
+    with pytest.raises(ParameterTypeError, match="op: Input should be 'histogram'"):
+        batch(str(d), op="fold", out=str(tmp_path / "out"))  # refused by its type
 
 
 def test_calibrate_and_range_a_directory(harness, inputs, caldir, tmp_path):

@@ -130,8 +130,11 @@ def test_performance_prediction(harness, tmp_path):
     assert v["predicted"][2] < 0.05 and v["measured"][2] < 0.2
     again = performance_prediction(**kw)  # seeded: the same numbers
     assert pl.read_parquet(Path(again["run"]) / "verification.parquet").equals(v)
-    with pytest.raises(ValueError, match="Table 2.2 has 1..8"):
-        performance_prediction(out=str(tmp_path), configs=[9])
+    from prefect.exceptions import ParameterTypeError
+
+    with pytest.raises(ParameterTypeError, match="configs.0: Input should be less than or "
+                       "equal to 8"):
+        performance_prediction(out=str(tmp_path), configs=[9])  # refused by its type
 
 
 def test_speed_vs_error(harness, tmp_path):
@@ -552,7 +555,10 @@ def test_serve_reads_its_config(tmp_path):
                               "cycles": 250000, "n_pixels": 64}
     assert cal.schedules[0].schedule.cron == "30 1 * * *"
     assert cal.schedules[0].schedule.timezone == "Europe/Berlin"
+    # #39.6: one at a time, and a run due meanwhile (a downtime's Late runs) cancelled
     assert cal.concurrency_limit == 1
+    assert cal.concurrency_options.collision_strategy.value == "CANCEL_NEW"
+    assert deps["distance_sweep"].concurrency_options.collision_strategy.value == "CANCEL_NEW"
     assert deps["distance_sweep"].name == "128px Sundays at 04:00"
     assert deps["speed_vs_error"].name == "on demand" and not deps["speed_vs_error"].schedules
     # the command line overrides the file
@@ -569,3 +575,116 @@ def test_serve_reads_its_config(tmp_path):
         cfg.write_text(text)
         with pytest.raises(click.UsageError, match=says):
             deployments(read_serve_config(str(cfg)))
+
+
+def test_pruning_keeps_the_newest_versions_by_their_own_time_not_mtime(tmp_path):
+    """#39.2: versions copied from the cache carry old mtimes (the newest looks oldest
+    here); pruning keeps the KEEP_VERSIONS newest by the stamp in their name, and the live
+    one always."""
+    from flows.calibration import KEEP_VERSIONS, publish, version_time
+
+    cand = tmp_path / "cand"
+    cand.mkdir()
+    (cand / "meta.json").write_text('{"created": "2026-12-04T20:00:00+00:00"}')
+    stamps = [f"20261204T20{h}000Z-abc{h}" for h in range(8)]
+    for i, s in enumerate(stamps):
+        publish.fn(str(cand), str(tmp_path / "out"), s)
+        os.utime(tmp_path / "out" / "versions" / s, (1e9 - i * 1e5, 1e9 - i * 1e5))
+    kept = sorted(p.name for p in (tmp_path / "out" / "versions").iterdir())
+    assert kept == stamps[-KEEP_VERSIONS:]
+    assert (tmp_path / "out" / "current").resolve().name == stamps[-1]
+    assert version_time(cand) == "20261204T200000Z"  # no stamp in the name: meta's created
+
+
+def test_every_flow_has_a_timeout():
+    """#39.6: a hung batch, prediction or grid (every Dask worker dead) ends Failed by
+    Prefect's timeout, never Running forever."""
+    from flows.cli import FLOWS, load
+
+    for name in FLOWS:
+        if name != "smoke":
+            assert load(name).timeout_seconds and load(name).timeout_seconds <= 12 * 3600, name
+
+
+def test_parameters_are_parsed_the_way_a_user_types_them():
+    """#39.7: ``-p delay_run=0`` is the run named "0" (a string parameter), numbers stay
+    numbers where the type is numeric, lists are JSON; a bad value is still refused."""
+    import click
+
+    from flows.cli import check_params, load, parse_params
+
+    fl = load("calibration_campaign")
+    got = parse_params(("delay_run=0", "cycles=1000", "lux=[1,2,3,4]", "force=true",
+                        "density_runs=[\"123\"]"), fl.fn)
+    assert got == {"delay_run": "0", "cycles": 1000, "lux": [1, 2, 3, 4], "force": True,
+                   "density_runs": ["123"]}
+    check_params(fl, got, "-p")
+    with pytest.raises(click.UsageError, match="cycles"):
+        check_params(fl, parse_params(("cycles=-1",), fl.fn), "-p")
+
+
+def test_two_benches_get_distinct_artifact_keys_and_resource_ids(tmp_path):
+    """#39.5: benchA/data/calibration and benchB/data/calibration, or two long paths alike
+    at their end, never share an artifact key (nor the event's resource id made of it)."""
+    import re
+
+    from flows.calibration import _slug
+
+    keys = {_slug(str(tmp_path / b / "data" / "calibration")) for b in ("benchA", "benchB")}
+    keys |= {_slug(str(tmp_path / ("x" * 50 + b) / "data" / "calibration")) for b in "ab"}
+    assert len(keys) == 4
+    assert all(re.fullmatch(r"[a-z0-9-]{1,60}", k) for k in keys)
+    assert _slug(str(tmp_path / "benchA" / "data" / "calibration")) in keys  # stable
+
+
+def test_a_run_prefect_already_marked_crashed_has_its_running_tasks_marked_too():
+    """#39.5: serve's runner marks its killed child Crashed but leaves the task that was
+    running Running; the next campaign's clean-up marks that task Crashed as well."""
+    from prefect import task
+    from prefect.states import Crashed, Running
+
+    from flows.common import mark_crashed
+
+    @task(name="fit INL and LSB")
+    def fit():
+        return 1
+
+    with _client() as c:
+        f = c.create_flow_run(flow=_flow_for_crash_test(), state=Running())
+        t = c.create_task_run(fit, f.id, dynamic_key="0", state=Running())
+        c.set_flow_run_state(f.id, Crashed(message="killed"), force=True)
+        assert mark_crashed(str(f.id), "its process died")
+        assert c.read_task_run(t.id).state.type.value == "CRASHED"
+        assert c.read_flow_run(f.id).state.message == "killed"  # its own word kept
+        assert not mark_crashed(str(f.id), "again")  # nothing left to mark
+
+
+def _flow_for_crash_test():
+    from prefect import flow
+
+    @flow(name="crash-test")
+    def crash_test():
+        return None
+
+    return crash_test
+
+
+@pytest.mark.parametrize("name, param, word", [
+    ("batch", "op=bogus", "op"), ("performance_prediction", "runs=-1", "runs"),
+    ("performance_prediction", "configs=[99]", "configs"),
+    ("speed_vs_error", "pixels=0", "pixels"),
+    ("speed_vs_error", 'estimators=["nope"]', "estimators"),
+    ("distance_sweep", "estimator=bogus", "estimator")])
+def test_a_bad_parameter_is_refused_before_a_run_in_one_line_exit_2(name, param, word):
+    """#39.7: what made a run and a long traceback is one line naming the parameter, exit
+    2, and no flow run (the check comes before the flow is called)."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-c", "from pipeline.cli.app import main; main()",
+                        "flow", "run", name, "-p", param], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 2, r.stderr
+    errs = [ln for ln in r.stderr.splitlines() if ln.startswith("Error")]
+    assert len(errs) == 1 and f"{word}" in errs[0], r.stderr
+    assert "Traceback" not in r.stderr and "running " not in r.stderr  # no run created

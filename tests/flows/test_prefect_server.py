@@ -192,3 +192,34 @@ def test_the_served_schedule_runs_and_ctrl_c_stops_it(server, tmp_path_factory):
     runs = _api(server, "POST", "/flow_runs/filter", {
         "deployments": {"id": {"any_": [mine[0]["id"]]}}})
     assert not [r for r in runs if r["state"]["type"] in ("RUNNING", "PENDING")]
+
+
+def test_a_downtimes_late_runs_make_one_catch_up_run(server, tmp_path):
+    """#39.6: the served campaign's deployment as `deployments()` builds it, on a real
+    server; three Late runs of it start together (what `serve` does on restart): the first
+    gets the slot, the others end Cancelled instead of running back to back."""
+    sys.path.insert(0, str(ROOT))
+    from flows.cli import deployments, read_serve_config
+
+    (dep,) = [d for d in deployments(read_serve_config(None, out=str(tmp_path)))
+              if d.flow_name == "calibration_campaign"]
+    flow_id = _api(server, "POST", "/flows/", {"name": "calibration_campaign"})["id"]
+    dep_id = _api(server, "POST", "/deployments/", {
+        "name": "catch-up", "flow_id": flow_id, "concurrency_limit": dep.concurrency_limit,
+        "concurrency_options": {
+            "collision_strategy": dep.concurrency_options.collision_strategy.value}})["id"]
+    late = {"type": "SCHEDULED", "name": "Late",
+            "state_details": {"scheduled_time": "2026-01-01T02:00:00Z"}}
+    runs = [_api(server, "POST", f"/deployments/{dep_id}/create_flow_run", {"state": late})
+            ["id"] for _ in range(3)]
+
+    def to(run, kind):
+        return _api(server, "POST", f"/flow_runs/{run}/set_state",
+                    {"state": {"type": kind}})
+
+    assert to(runs[0], "PENDING")["status"] == "ACCEPT"
+    assert to(runs[0], "RUNNING")["status"] == "ACCEPT"
+    for r in runs[1:]:
+        to(r, "PENDING")
+        assert _api(server, "GET", f"/flow_runs/{r}")["state"]["type"] == "CANCELLED"
+    assert _api(server, "GET", f"/flow_runs/{runs[0]}")["state"]["type"] == "RUNNING"

@@ -89,3 +89,46 @@ def test_the_object_is_read_only(tmp_path):
     with pytest.raises(AttributeError):
         c.path = "elsewhere"
     assert isinstance(c, Calibration)
+
+
+def test_a_reader_never_mixes_two_versions_while_current_is_swapped(tmp_path):
+    """#39.1: ``current`` swapped between two chips (4 and 6 TDCs, different light) while
+    loads run: every load is one whole version, named by its own directory and identity."""
+    import shutil
+    import threading
+
+    from pipeline.io.atomic import point_link
+
+    chips = {}
+    for name, n, light in (("a", 4, 0.3), ("b", 6, 0.5)):
+        write_caldir(tmp_path / "versions" / name, density(n, light), second(n), [])
+        chips[name] = load_calibration(tmp_path / "versions" / name)
+    ids = {c.meta["calibration_id"]: (c.n_tdc, c.density_light) for c in chips.values()}
+    assert len(ids) == 2  # two contents, two identities
+    shutil.copytree(tmp_path / "versions" / "a", tmp_path / "copy")
+    assert load_calibration(tmp_path / "copy").meta["calibration_id"] == \
+        chips["a"].meta["calibration_id"]  # the identity is the content, not the place
+    current = tmp_path / "current"
+    point_link(current, tmp_path / "versions" / "a")
+    stop, swaps = threading.Event(), [0]
+
+    def publisher():
+        while not stop.is_set():
+            point_link(current, tmp_path / "versions" / "ab"[swaps[0] % 2])
+            swaps[0] += 1
+
+    t = threading.Thread(target=publisher)
+    t.start()
+    seen = set()
+    try:
+        for _ in range(150):
+            c = load_calibration(current)
+            assert ids[c.meta["calibration_id"]] == (c.n_tdc, c.density_light)
+            assert c.density.inl_lsb.shape == (c.n_tdc, 512)
+            assert c.path == str((tmp_path / "versions" / ("a" if c.n_tdc == 4 else "b"))
+                                 .resolve())
+            seen.add(c.n_tdc)
+    finally:
+        stop.set()
+        t.join()
+    assert seen == {4, 6} and swaps[0] > 150

@@ -2,6 +2,7 @@
 (the reference engine), through the chip's words, its calibration and `range`."""
 
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 
 from pipeline.io.caldir import load_calibration
@@ -24,8 +25,11 @@ def test_a_wall_behind_a_pane_is_ranged_through_the_chip(tmp_path, caldir):
                      "surface": "mirror"}],
         "ambient": [{"kind": "lux", "lux": 500.0}]})
     simulate_capture(scene, 60_000, tmp_path / "pane", seed=4)  # reference: two surfaces
-    table, _ = range_capture(tmp_path / "pane", load_calibration(caldir),
-                             tmp_path / "r.parquet", "ml", max_returns=3)
+    calib = load_calibration(caldir)
+    table, _ = range_capture(tmp_path / "pane", calib, tmp_path / "r.parquet", "ml",
+                             max_returns=3)
+    meta = pq.read_schema(tmp_path / "r.parquet").metadata  # #39.1: the output names it
+    assert meta[b"tcspc.calibration_id"].decode() == calib.meta["calibration_id"] != ""
     tdc = np.asarray(table.column("tdc"))
     det = np.asarray(table.column("detected"))
     d = np.asarray(table.column("distance_m"))
