@@ -685,6 +685,6 @@ def test_a_bad_parameter_is_refused_before_a_run_in_one_line_exit_2(name, param,
                         "flow", "run", name, "-p", param], capture_output=True, text=True,
                        timeout=120)
     assert r.returncode == 2, r.stderr
-    errs = [ln for ln in r.stderr.splitlines() if ln.startswith("Error")]
+    errs = [ln for ln in r.stderr.splitlines() if ln.lower().startswith("error")]
     assert len(errs) == 1 and f"{word}" in errs[0], r.stderr
     assert "Traceback" not in r.stderr and "running " not in r.stderr  # no run created

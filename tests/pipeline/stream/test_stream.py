@@ -125,7 +125,11 @@ def test_udp_ingest_accounts_for_every_datagram(tmp_path):
     assert s.datagrams == 39 + 2
     forwarded = np.concatenate([w for _, w in got])
     assert np.array_equal(forwarded, np.concatenate(sent_words))
-    assert got[1][0] == 8 * 32 * 128  # the batch after the gap starts at its first word
+    # the batch after the gap starts at its first word (how the datagrams before it are
+    # batched depends on their timing: a loaded machine flushes more, smaller batches)
+    firsts = [f for f, _ in got]
+    assert 8 * 32 * 128 in firsts
+    assert all(not (f < 8 * 32 * 128 < f + w.size) for f, w in got)
     assert stopped["words"] == forwarded.size and stopped["lost_datagrams"] == 1
     from pipeline.stream.journal import read_range, run_end
 
