@@ -128,6 +128,7 @@ class Proc:
     last_received: tuple | None = None
     terminated: bool = False
     started_at: float = 0.0
+    frozen: int = 0   #: times SIGKILLed for missing its heartbeat deadline (then restarted)
 
 
 def _tcspc(*args) -> list[str]:
@@ -345,6 +346,7 @@ class Supervisor:
     def _check(self) -> bool:
         """One supervision step; True when the graph has finished."""
         now = time.time()
+        self._kill_frozen(now)
         for p in self.procs:
             if p.finished or p.popen is None:
                 continue
@@ -409,6 +411,38 @@ class Supervisor:
                      f"{self.topo.restart_window_s:.0f} s)")
         return all(p.finished for p in self.procs)
 
+    def _silence(self, p: Proc, now: float) -> tuple[float, str]:
+        """How long live stage ``p`` has sent no heartbeat, and its last reported state. A
+        stage reports from its own loop, also while it waits on a full consumer ("blocked")
+        or a full disk ("paused"): only a stage that stopped running stops reporting. One
+        not heard from yet (this process) is starting up: counted from ``STARTUP_S``."""
+        m = self.metrics.get(p.name, {})
+        if m.get("pid") == p.popen.pid and "t" in m:
+            return now - m["t"], str(m.get("state", "running"))
+        return now - p.started_at - STARTUP_S, "starting"
+
+    def _kill_frozen(self, now: float) -> None:
+        """Heartbeat deadline: a live stage silent for ``heartbeat_deadline_s`` is frozen
+        (SIGSTOPped, wedged in a call): a SIGTERM never reaches it, so it is SIGKILLed, and
+        the restart path restarts it (counted in its restarts and in ``frozen``). The stages
+        waiting on it keep reporting "blocked" and are left alone."""
+        deadline = self.topo.heartbeat_deadline_s
+        for p in self.procs:
+            if p.finished or p.popen is None or p.restart_at is not None \
+                    or p.popen.poll() is not None:
+                continue
+            silent, state = self._silence(p, now)
+            if silent <= deadline or state == "finished":
+                continue
+            p.frozen += 1
+            self.log(f"{p.name}: no heartbeat for {silent:.1f} s (deadline {deadline:.0f} s, "
+                     f"last state {state}, pid {p.popen.pid}): frozen; SIGKILL and restart")
+            try:
+                os.kill(p.popen.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass  # it ended meanwhile: the restart path sees its exit
+            p.popen.wait()
+
     def shutdown(self) -> None:
         """Graceful stop: the source first (it ends the run cleanly), the rest drain."""
         src = self.by_name["source"]
@@ -472,12 +506,16 @@ class Supervisor:
             alive = p.popen is not None and p.popen.poll() is None
             stages[p.name] = {
                 "pid": p.popen.pid if p.popen else None, "alive": alive,
-                "finished": p.finished, "restarts": p.restarts,
+                "finished": p.finished, "restarts": p.restarts, "frozen": p.frozen,
                 "heartbeat_age_s": round(now - m["t"], 2) if "t" in m else None,
                 "health": ("finished" if p.finished else
                            "restarting" if p.restart_at is not None else
                            "paused" if alive and m.get("state") == "paused" else
                            "down" if not alive else
+                           "frozen" if ("t" in m and now - m["t"] >
+                                        self.topo.heartbeat_deadline_s) else
+                           "waiting" if "t" in m and now - m["t"] < 5
+                           and m.get("state") == "blocked" else
                            "ok" if "t" in m and now - m["t"] < 5 else "silent"),
                 **{k: v for k, v in m.items() if k not in ("stage", "pid", "t")}}
         depth = {}
@@ -593,6 +631,7 @@ class Supervisor:
         result = {"run": self.topo.run, "failed": self.failed,
                   "interrupted": self.interrupted,
                   "restarts": {p.name: p.restarts for p in self.procs if p.restarts},
+                  "frozen": {p.name: p.frozen for p in self.procs if p.frozen},
                   "journal_segments_pruned": self.pruned}
         if not self.failed:
             try:
