@@ -110,6 +110,10 @@ from pipeline.stream.topology import (
 )
 from pipeline.stream.wire import TOKEN_ENV
 
+#: After a signal to the daemon, a stage whose upstream ended gets this long to stop by
+#: itself before its SIGTERM (the whole stop stays within ~3 s)
+STOP_GRACE_S = 0.5
+
 # ------------------------------------------------------------------------- the graph
 
 
@@ -290,6 +294,7 @@ class Supervisor:
         self.procs = build(topo)
         self.by_name = {p.name: p for p in self.procs}
         self.stop = threading.Event()
+        self.ended = threading.Event()  #: the graph has ended: the collector stops
         self.interrupted: str | None = None  #: the signal that stopped the run (SIGINT, ..)
         self.metrics: dict[str, dict] = {}
         self.started = time.time()
@@ -359,7 +364,8 @@ class Supervisor:
                     m = self.metrics.get(p.name, {})
                     heard = m.get("pid") == p.popen.pid
                     got = (m.get("received"), m.get("words_total")) if heard else None
-                    starting = not heard and now - p.started_at < STARTUP_S
+                    starting = (not heard and now - p.started_at < STARTUP_S
+                                and not self.stop.is_set())  # (a stop: nothing to wait on)
                     # a stage paused on a full disk is waiting, not stuck: ended now, what
                     # it holds would be written by the reconciliation onto the same disk
                     paused = heard and m.get("state") == "paused"
@@ -367,10 +373,11 @@ class Supervisor:
                             or paused:
                         p.upstream_done_at = now  # still working: not stuck
                         p.last_received = got
-                    if now - p.upstream_done_at > GRACE_S and not p.terminated:
+                    grace = self._grace()
+                    if now - p.upstream_done_at > grace and not p.terminated:
                         # its stop was lost with a killed process: let it drain and finish
                         self.log(f"{p.name}: upstream finished and nothing taken for "
-                                 f"{GRACE_S:.0f} s; SIGTERM (it drains, then finishes)")
+                                 f"{grace:g} s; SIGTERM (it drains, then finishes)")
                         p.popen.send_signal(signal.SIGTERM)
                         p.terminated = True
                 continue
@@ -386,7 +393,8 @@ class Supervisor:
                 # (a SIGTERM we sent that landed as the process was already exiting, past
                 # its handler, still means "finished as asked")
                 p.finished = True
-                self.log(f"{p.name}: finished")
+                self.log(f"{p.name}: " + (f"stopped ({self.interrupted})" if self.interrupted
+                                          else "finished"))
                 continue
             if self.stop.is_set() and p.name == "source":
                 p.finished = True  # shutting down: the run ends here, no new source
@@ -410,6 +418,11 @@ class Supervisor:
                      f"({len(p.restart_times)} of {self.topo.restarts} in "
                      f"{self.topo.restart_window_s:.0f} s)")
         return all(p.finished for p in self.procs)
+
+    def _grace(self) -> float:
+        """How long a stage whose upstream finished may take nothing before its SIGTERM:
+        ``GRACE_S``, or ``STOP_GRACE_S`` once the daemon is stopping (a stop in <= 3 s)."""
+        return STOP_GRACE_S if self.stop.is_set() else GRACE_S
 
     def _silence(self, p: Proc, now: float) -> tuple[float, str]:
         """How long live stage ``p`` has sent no heartbeat, and its last reported state. A
@@ -470,7 +483,7 @@ class Supervisor:
         bind(sub, self.topo.metrics)
         pub, sent = status_pub(ctx, self.topo.state, self.log), None
         try:
-            while not self.stop.is_set():
+            while not self.ended.is_set():  # (after a stop too: the stages still report)
                 if pub is not None and self._status_msg is not sent:
                     sent = self._status_msg  # (this thread owns the PUB socket)
                     try:
@@ -627,6 +640,7 @@ class Supervisor:
             if self.failed:
                 self.kill_all()
             self.stop.set()
+            self.ended.set()
             collector.join(timeout=2)
         result = {"run": self.topo.run, "failed": self.failed,
                   "interrupted": self.interrupted,
