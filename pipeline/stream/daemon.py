@@ -376,7 +376,7 @@ class Supervisor:
                     grace = self._grace()
                     if now - p.upstream_done_at > grace and not p.terminated:
                         # its stop was lost with a killed process: let it drain and finish
-                        self.log(f"{p.name}: upstream finished and nothing taken for "
+                        self.log(f"{p.name}: upstream ended and nothing taken for "
                                  f"{grace:g} s; SIGTERM (it drains, then finishes)")
                         p.popen.send_signal(signal.SIGTERM)
                         p.terminated = True
