@@ -31,6 +31,8 @@ starts, as are the state directory and the resources: ``pipeline.stream.state``)
                                  # a weekend is restarted every time)
     restart_backoff_s = 0.5      # wait before a restart, doubling with each restart in
     restart_backoff_max_s = 30   # the window, up to this
+    heartbeat_deadline_s = 60    # a live stage with no heartbeat this long is frozen
+                                 # (SIGSTOPped, wedged): SIGKILLed, restarted, counted
     journal_keep_gb = 50         # prune the oldest consumed segments beyond this (default:
                                  # keep all; a week-long run needs a bound)
     journal_compression = "zstd-nohit" # (default: ~7 % of the raw bytes in photon-starving
