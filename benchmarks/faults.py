@@ -188,6 +188,13 @@ def sim_scenarios(tmp: Path, lines: list[str], only=None) -> None:
              lambda s: (wait_words(s, 6e5), kill(s, "sink"), wait_words(s, 1.4e6),
                         kill(s, "source")))
 
+    def freeze(s):  # SIGSTOP, never SIGCONT: only the daemon's heartbeat deadline helps
+        wait_words(s, 1e6)
+        os.kill(s.by_name["histogram-1"].popen.pid, signal.SIGSTOP)
+
+    scenario("frozen worker", "SIGSTOP histogram-1 at 1 M words, never continued "
+             "(heartbeat_deadline_s = 5)", freeze, extra="heartbeat_deadline_s = 5")
+
     def torn_checkpoint(s):
         wait_words(s, 1e6)
         p = s.by_name["histogram-1"].popen

@@ -31,6 +31,8 @@ starts, as are the state directory and the resources: ``pipeline.stream.state``)
                                  # a weekend is restarted every time)
     restart_backoff_s = 0.5      # wait before a restart, doubling with each restart in
     restart_backoff_max_s = 30   # the window, up to this
+    heartbeat_deadline_s = 60    # a live stage with no heartbeat this long is frozen
+                                 # (SIGSTOPped, wedged): SIGKILLed, restarted, counted
     journal_keep_gb = 50         # prune the oldest consumed segments beyond this (default:
                                  # keep all; a week-long run needs a bound)
     journal_compression = "zstd-nohit" # (default: ~7 % of the raw bytes in photon-starving
@@ -112,6 +114,10 @@ from pipeline.stream.topology import (
 )
 from pipeline.stream.wire import TOKEN_ENV
 
+#: After a signal to the daemon, a stage whose upstream ended gets this long to stop by
+#: itself before its SIGTERM (the whole stop stays within ~3 s)
+STOP_GRACE_S = 0.5
+
 # ------------------------------------------------------------------------- the graph
 
 
@@ -130,6 +136,7 @@ class Proc:
     last_received: tuple | None = None
     terminated: bool = False
     started_at: float = 0.0
+    frozen: int = 0   #: times SIGKILLed for missing its heartbeat deadline (then restarted)
 
 
 def _tcspc(*args) -> list[str]:
@@ -293,6 +300,7 @@ class Supervisor:
         self.procs = build(topo)
         self.by_name = {p.name: p for p in self.procs}
         self.stop = threading.Event()
+        self.ended = threading.Event()  #: the graph has ended: the collector stops
         self.interrupted: str | None = None  #: the signal that stopped the run (SIGINT, ..)
         self.metrics: dict[str, dict] = {}
         self.started = time.time()
@@ -352,6 +360,7 @@ class Supervisor:
     def _check(self) -> bool:
         """One supervision step; True when the graph has finished."""
         now = time.time()
+        self._kill_frozen(now)
         for p in self.procs:
             if p.finished or p.popen is None:
                 continue
@@ -364,7 +373,8 @@ class Supervisor:
                     m = self.metrics.get(p.name, {})
                     heard = m.get("pid") == p.popen.pid
                     got = (m.get("received"), m.get("words_total")) if heard else None
-                    starting = not heard and now - p.started_at < STARTUP_S
+                    starting = (not heard and now - p.started_at < STARTUP_S
+                                and not self.stop.is_set())  # (a stop: nothing to wait on)
                     # a stage paused on a full disk is waiting, not stuck: ended now, what
                     # it holds would be written by the reconciliation onto the same disk
                     paused = heard and m.get("state") == "paused"
@@ -372,10 +382,11 @@ class Supervisor:
                             or paused:
                         p.upstream_done_at = now  # still working: not stuck
                         p.last_received = got
-                    if now - p.upstream_done_at > GRACE_S and not p.terminated:
+                    grace = self._grace()
+                    if now - p.upstream_done_at > grace and not p.terminated:
                         # its stop was lost with a killed process: let it drain and finish
-                        self.log(f"{p.name}: upstream finished and nothing taken for "
-                                 f"{GRACE_S:.0f} s; SIGTERM (it drains, then finishes)")
+                        self.log(f"{p.name}: upstream ended and nothing taken for "
+                                 f"{grace:g} s; SIGTERM (it drains, then finishes)")
                         p.popen.send_signal(signal.SIGTERM)
                         p.terminated = True
                 continue
@@ -391,7 +402,8 @@ class Supervisor:
                 # (a SIGTERM we sent that landed as the process was already exiting, past
                 # its handler, still means "finished as asked")
                 p.finished = True
-                self.log(f"{p.name}: finished")
+                self.log(f"{p.name}: " + (f"stopped ({self.interrupted})" if self.interrupted
+                                          else "finished"))
                 continue
             if self.stop.is_set() and p.name == "source":
                 p.finished = True  # shutting down: the run ends here, no new source
@@ -415,6 +427,43 @@ class Supervisor:
                      f"({len(p.restart_times)} of {self.topo.restarts} in "
                      f"{self.topo.restart_window_s:.0f} s)")
         return all(p.finished for p in self.procs)
+
+    def _grace(self) -> float:
+        """How long a stage whose upstream finished may take nothing before its SIGTERM:
+        ``GRACE_S``, or ``STOP_GRACE_S`` once the daemon is stopping (a stop in <= 3 s)."""
+        return STOP_GRACE_S if self.stop.is_set() else GRACE_S
+
+    def _silence(self, p: Proc, now: float) -> tuple[float, str]:
+        """How long live stage ``p`` has sent no heartbeat, and its last reported state. A
+        stage reports from its own loop, also while it waits on a full consumer ("blocked")
+        or a full disk ("paused"): only a stage that stopped running stops reporting. One
+        not heard from yet (this process) is starting up: counted from ``STARTUP_S``."""
+        m = self.metrics.get(p.name, {})
+        if m.get("pid") == p.popen.pid and "t" in m:
+            return now - m["t"], str(m.get("state", "running"))
+        return now - p.started_at - STARTUP_S, "starting"
+
+    def _kill_frozen(self, now: float) -> None:
+        """Heartbeat deadline: a live stage silent for ``heartbeat_deadline_s`` is frozen
+        (SIGSTOPped, wedged in a call): a SIGTERM never reaches it, so it is SIGKILLed, and
+        the restart path restarts it (counted in its restarts and in ``frozen``). The stages
+        waiting on it keep reporting "blocked" and are left alone."""
+        deadline = self.topo.heartbeat_deadline_s
+        for p in self.procs:
+            if p.finished or p.popen is None or p.restart_at is not None \
+                    or p.popen.poll() is not None:
+                continue
+            silent, state = self._silence(p, now)
+            if silent <= deadline or state == "finished":
+                continue
+            p.frozen += 1
+            self.log(f"{p.name}: no heartbeat for {silent:.1f} s (deadline {deadline:.0f} s, "
+                     f"last state {state}, pid {p.popen.pid}): frozen; SIGKILL and restart")
+            try:
+                os.kill(p.popen.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass  # it ended meanwhile: the restart path sees its exit
+            p.popen.wait()
 
     def shutdown(self) -> None:
         """Graceful stop: the source first (it ends the run cleanly), the rest drain."""
@@ -443,7 +492,7 @@ class Supervisor:
         bind(sub, self.topo.metrics)
         pub, sent = status_pub(ctx, self.topo.state, self.log), None
         try:
-            while not self.stop.is_set():
+            while not self.ended.is_set():  # (after a stop too: the stages still report)
                 if pub is not None and self._status_msg is not sent:
                     sent = self._status_msg  # (this thread owns the PUB socket)
                     try:
@@ -479,12 +528,16 @@ class Supervisor:
             alive = p.popen is not None and p.popen.poll() is None
             stages[p.name] = {
                 "pid": p.popen.pid if p.popen else None, "alive": alive,
-                "finished": p.finished, "restarts": p.restarts,
+                "finished": p.finished, "restarts": p.restarts, "frozen": p.frozen,
                 "heartbeat_age_s": round(now - m["t"], 2) if "t" in m else None,
                 "health": ("finished" if p.finished else
                            "restarting" if p.restart_at is not None else
                            "paused" if alive and m.get("state") == "paused" else
                            "down" if not alive else
+                           "frozen" if ("t" in m and now - m["t"] >
+                                        self.topo.heartbeat_deadline_s) else
+                           "waiting" if "t" in m and now - m["t"] < 5
+                           and m.get("state") == "blocked" else
                            "ok" if "t" in m and now - m["t"] < 5 else "silent"),
                 **{k: v for k, v in m.items() if k not in ("stage", "pid", "t")}}
         depth = {}
@@ -601,10 +654,12 @@ class Supervisor:
             if self.failed:
                 self.kill_all()
             self.stop.set()
+            self.ended.set()
             collector.join(timeout=2)
         result = {"run": self.topo.run, "failed": self.failed,
                   "interrupted": self.interrupted,
                   "restarts": {p.name: p.restarts for p in self.procs if p.restarts},
+                  "frozen": {p.name: p.frozen for p in self.procs if p.frozen},
                   "journal_segments_pruned": self.pruned}
         if not self.failed:
             try:

@@ -544,6 +544,9 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
                               sent=seq, words=sent)
         for tx, frames in zip(txs, msgs, strict=True):
             tb = time.perf_counter()
+            while not tx.poll(200, zmq.POLLOUT):  # a consumer behind: waiting, alive (the
+                beat.beat(state="blocked", sent=seq, words=sent,  # daemon's deadline)
+                          blocked_s=round(blocked + time.perf_counter() - tb, 3))
             tx.send_multipart(frames)
             blocked += time.perf_counter() - tb
         pending = None

@@ -45,6 +45,7 @@ class Topology:
     restart_backoff_max_s: float = 30.0
     curve: str | bool = "auto"
     view: dict | None = None   #: [view]: the web page beside the graph (None: no page)
+    heartbeat_deadline_s: float = 60.0  #: a live stage silent this long is frozen: SIGKILL
 
     def endpoints(self) -> list[str]:
         """Every endpoint of the graph (for the CURVE decision)."""
@@ -106,6 +107,9 @@ class DaemonSection(_Section):
                                   "at once)")
     restart_backoff_max_s: float = Field(30.0, ge=0, description="the longest backoff, s")
     curve: Literal["auto"] | bool = Field("auto", description='"auto", true or false')
+    heartbeat_deadline_s: float = Field(60.0, ge=2, description="a live stage that sends no "
+                                     "heartbeat for this long is frozen: SIGKILLed and "
+                                     "restarted, s, >= 2")
 
 
 class SourceSection(_Section):
@@ -328,7 +332,7 @@ def load_topology(path: str | Path | None, run: str | None = None,
     return Topology(where, state, run, d.restarts, metrics, d.hwm, src, hist, rng, sink,
                     n_tdc, d.journal_keep_gb, d.journal_compression,
                     d.restart_window_s, d.restart_backoff_s, d.restart_backoff_max_s,
-                    curve=d.curve,
+                    curve=d.curve, heartbeat_deadline_s=d.heartbeat_deadline_s,
                     view=None if view is None else view.model_dump(exclude_none=True))
 
 

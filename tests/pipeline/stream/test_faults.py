@@ -7,6 +7,7 @@ import json
 import os
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -485,3 +486,49 @@ def test_a_full_state_disk_pauses_intake_and_the_run_resumes(tmp_path, tmpfs, re
     acc = res["accounting"]
     assert acc["balanced"] and acc["words_in"] == CYCLES * N
     assert json.loads((state / "status.json").read_text())["state"] == "finished"
+
+
+def test_a_frozen_worker_is_named_killed_and_restarted(tmp_path, reference):
+    """Issue 38.4: a histogram worker SIGSTOPped mid-run (and never continued) sends no
+    heartbeat; after the deadline the daemon names it (not the source and the sink waiting
+    on it), SIGKILLs it (a SIGTERM never reaches a stopped process) and restarts it: the
+    run ends in bounded time with the clean run's data. On main it hung for ever."""
+    from pipeline.stream.daemon import Supervisor
+    from pipeline.stream.topology import load_topology
+
+    path = topology(tmp_path, cycles=CYCLES, rate=1.5e6)
+    path.write_text(path.read_text().replace("restarts = 3",
+                                             "restarts = 3\nheartbeat_deadline_s = 4"))
+    topo = load_topology(path, "fz")
+    lines: list[str] = []
+    sup = Supervisor(topo, log=lines.append)
+    result: dict = {}
+    t = threading.Thread(target=lambda: result.update(sup.run()))
+    t0 = time.monotonic()
+    t.start()
+    stopped, health = None, {}
+    while time.monotonic() - t0 < 60 and stopped is None:
+        p = sup.by_name["histogram-1"].popen
+        if sup.metrics.get("source", {}).get("words", 0) >= 600_000 and p.poll() is None:
+            stopped = p.pid
+            os.kill(stopped, signal.SIGSTOP)
+        time.sleep(0.05)
+    assert stopped is not None, "the source never got going"
+    while time.monotonic() - t0 < 60 and sup.by_name["histogram-1"].frozen == 0:
+        st = sup.status()["stages"]
+        if (st["histogram-1"]["heartbeat_age_s"] or 0) >= 2.5 and not health:
+            health = {n: (s["health"], s["heartbeat_age_s"]) for n, s in st.items()}
+        time.sleep(0.1)
+    t.join(timeout=120)
+    assert not t.is_alive(), "daemon did not finish"
+    assert time.monotonic() - t0 < 120
+    named = [x for x in lines if "no heartbeat" in x]
+    assert len(named) == 1 and named[0].startswith("histogram-1: "), lines
+    assert f"pid {stopped}" in named[0]
+    # while it is silent, the source behind it reports, "waiting" (not "silent")
+    assert health["source"][0] == "waiting" and health["source"][1] < 2, health
+    assert result["frozen"] == {"histogram-1": 1}
+    assert result["restarts"] == {"histogram-1": 1}
+    assert sup.by_name["histogram-1"].exit_codes[0] == -signal.SIGKILL
+    assert result["failed"] is None and result["accounting"]["balanced"]
+    _same(_histograms(tmp_path / "out", "fz"), reference)
