@@ -26,7 +26,6 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-
 from typing import Literal
 
 from prefect import flow, task

@@ -356,8 +356,7 @@ def deployments(config: dict) -> list:
                 ("calibration_campaign", "distance_sweep") and not params.get("captures")
                 else "")
         name = body.get("name") or f"{what}{describe_cron(body['cron'])}"
-        from prefect.client.schemas.objects import (ConcurrencyLimitConfig,
-                                                    ConcurrencyLimitStrategy)
+        from prefect.client.schemas.objects import ConcurrencyLimitConfig, ConcurrencyLimitStrategy
         from prefect.schedules import Cron
 
         # one run at a time; a run due while one runs is cancelled, not queued: after a

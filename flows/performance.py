@@ -8,14 +8,12 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import polars as pl
-from typing import Annotated
-
 from prefect import flow, task
 from prefect.cache_policies import INPUTS, TASK_SOURCE
-
 from pydantic import Field, NonNegativeInt, PositiveInt
 
 from flows.common import new_run_dir, report

@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 from prefect import flow, task
-
 from pydantic import NonNegativeInt, PositiveInt
 
 from flows.common import Estimator, new_run_dir, report

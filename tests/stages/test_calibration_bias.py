@@ -123,9 +123,9 @@ def _zero_capture_hits(chip, light=0.01, cycles=2e6, code=200, seed=0):
 
 def test_the_plan_keeps_the_levels_adds_the_zeros_light_and_spends_the_budget():
     """The plan holds the LSB fit's levels (and the zero capture's light where its cycles
-    help), its cycles sum to at most the budget, every level keeps its minimum share; more budget, smaller expected
-    delay error (as 1/sqrt); the dim tests that alone measure the top of the zero's window
-    get more than the minimum."""
+    help), its cycles sum to at most the budget, every level keeps its minimum share; more
+    budget, smaller expected delay error (as 1/sqrt); the dim tests that alone measure the
+    top of the zero's window get more than the minimum."""
     chip, _ = random_chip(2, n_tdc=N, ranges=REAL_CHIP_RANGES)
     h = _zero_capture_hits(chip)
     small, big = (cal.plan_tests(h, np.full(N, 2e6), b) for b in (4e6, 1.6e7))
