@@ -267,7 +267,9 @@ class RangeCore:
         head = {**header, "schema": RANGES.name, "version": RANGES.version,
                 "step": self.step_id,
                 "detected": int(np.sum(est.detected & (est.return_index == 0))),
-                **({"calibration_note": note} if note else {})}
+                **({"calibration_note": note} if note else {}),
+                **({"calibration_id": self.calibration.meta["calibration_id"]}
+                   if self.calibration.meta.get("calibration_id") else {})}
         self.ranged += 1
         out = [(head, b) for b in table.to_batches()]
         return ([(header, batch)] if self.forward else []) + out

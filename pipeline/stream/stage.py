@@ -671,6 +671,8 @@ class ParquetSink:
             # (the stream stopped inside it) is replaced when the rest arrives
             meta[b"tcspc.measurement"] = json.dumps(
                 {k: header[k] for k in ("partial", "cycles", "words") if k in header}).encode()
+        if header.get("calibration_id"):  # ranges: the calibration's identity (issue 39)
+            meta[b"tcspc.calibration_id"] = str(header["calibration_id"]).encode()
         if meta:
             table = table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
         buf = pa.BufferOutputStream()

@@ -539,3 +539,26 @@ def test_without_numba_the_range_stage_gives_the_same_ranges(measurements, calib
     assert np.array_equal(np.isfinite(got["t"]), np.isfinite(want["t_s"]))
     assert np.all(np.abs(got["t"] - want["t_s"])[ok] <= ML_SIGMAS * want["sigma_s"][ok])
     np.testing.assert_allclose(got["fwhm"], want["fwhm_s"], rtol=ML_RTOL)
+
+
+def test_the_range_stages_ranges_name_the_calibration_by_its_identity(measurements,
+                                                                      calibration, tmp_path):
+    """Issue 39: the daemon's ranges record the calibration's identity (its header, then
+    the sink's parquet metadata), as `tcspc range`'s do."""
+    import pyarrow.parquet as pq
+
+    from pipeline.offline.ranging import RangeCore
+    from pipeline.stream.stage import ParquetSink
+
+    states, window_s = measurements
+    core = RangeCore(calibration, "ml", forward_histograms=False)
+    header = {"run": "r1", "measurement": "m1", "window_ns": window_s * 1e9,
+              "t_laser_win_ns": 140.0, "date": "2026-12-05", "seq": 0}
+    out = core.process(header, states[0][1].to_table("m1").to_batches()[0])
+    head, batch = out[0]
+    assert head["calibration_id"] == calibration.meta["calibration_id"] != ""
+    sink = ParquetSink(tmp_path)
+    sink.process(head, batch)
+    (written,) = (tmp_path / "ranges").rglob("*.parquet")
+    meta = pq.ParquetFile(written).schema_arrow.metadata
+    assert meta[b"tcspc.calibration_id"].decode() == calibration.meta["calibration_id"]
