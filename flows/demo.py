@@ -100,8 +100,8 @@ def run_story(out: str | Path = "data", cycles: int = 100_000,
         con.print(f"{k}: {v}")
     con.print(f"every check passed: {ok}")
     con.print(f"look at it live: tcspc view --state {out / 'daemon'} --out {out / 'stream'} "
-              f"--calibration {out / 'calibration' / 'current'}  (then open "
-              "http://127.0.0.1:5006/)", highlight=False, soft_wrap=True)
+              f"--calibration {out / 'calibration' / 'current'}  (then open the URL it prints, "
+              "with its token: http://127.0.0.1:5006/?token=...)", highlight=False, soft_wrap=True)
     summary = {**checks, "calibration": cal["current"], "ranges": rows, "ok": ok, **paths}
     (out / "demo.json").write_text(json.dumps(summary, indent=1, default=str))
     return summary
