@@ -426,5 +426,7 @@ def test_ctrl_c_at_any_moment_stops_the_daemon_within_seconds(tmp_path, at):
     out, err = p.communicate(timeout=120)
     took = time.monotonic() - t0
     assert took <= 6.0, (took, err)
-    assert p.returncode == 130, err
+    # 130, as a shell shows it: exit(130), or (a signal before Python's own handler took
+    # over, at 0.5 s) death by SIGINT, which the shell reports as 128 + 2 = 130 too
+    assert p.returncode in (130, -signal.SIGINT), err
     assert "finished" not in err, err
