@@ -41,6 +41,10 @@ class Calibration:
     irf_sigma_s: float | None   #: the instrument response measured at zero distance
     meta: dict                  #: meta.json: provenance, the density test's light, ...
     path: str = ""              #: where it was loaded from ("" for one not saved yet)
+    #: (n_tdc, 512) variance (LSB^2) of every code width, the table's counting noise
+    #: (issue 33.3, :mod:`stages.calibration.uncertainty`); None for a calibration made
+    #: before it (its ranges' sigma is then the fit's alone)
+    width_var_lsb2: np.ndarray | None = None
     #: what depends on the calibration only (its TDC ranges, boundaries, splines), built on
     #: first use: a live range stage reads them for every measurement
     _cache: dict = dataclasses.field(default_factory=dict, init=False, repr=False,
@@ -150,7 +154,8 @@ class Calibration:
             second=cal.SecondStage(*(np.asarray(getattr(self.second, f))[sl]
                                      for f in ("n_min", "n_max", "n_th", "pdm")),
                                    tuple(self.second.reasons[sl])),
-            lsb_fit=fit, delay_s=self.delay_s[sl], delay_reasons=self.delay_reasons[sl])
+            lsb_fit=fit, delay_s=self.delay_s[sl], delay_reasons=self.delay_reasons[sl],
+            width_var_lsb2=None if self.width_var_lsb2 is None else self.width_var_lsb2[sl])
 
     def with_delay(self, delay_s: np.ndarray, reasons, irf_sigma_s: float,
                    delay_meta: dict) -> Calibration:

@@ -466,11 +466,15 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
                    "background (docs/ranging.md); needs --delay-ps and --irf-ps.")
 @click.option("--geometry", default=None,
               help="With --spatial: the array's layout (docs/geometry.md).")
+@click.option("--force", is_flag=True,
+              help="A tcspc capture whose code-density pattern is not the --calibration's "
+                   "chip's: range it anyway, every row flagged (without it: nothing "
+                   "written, exit 2; docs/calibration.md).")
 @_format
 @_overwrite
 @_quiet
 def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
-              max_returns, allow_truncated, spatial, geometry, fmt, overwrite,
+              max_returns, allow_truncated, spatial, geometry, force, fmt, overwrite,
               quiet) -> None:
     """Distance per pixel (eq. 5.4) with uncertainty and a detection decision.
 
@@ -492,7 +496,7 @@ def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero
                           max_returns, quiet, calibration=calibration, zero=zero, gate=gate)
             return
         _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
-               max_returns, fmt, quiet, allow_truncated)
+               max_returns, fmt, quiet, allow_truncated, force)
     except ValueError as exc:  # an argument or a histogram the estimators refuse: one line
         from schemas.errors import TcspcError
 
@@ -504,7 +508,7 @@ def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero
 
 
 def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
-           max_returns, fmt, quiet, allow_truncated=False) -> None:
+           max_returns, fmt, quiet, allow_truncated=False, force=False) -> None:
     from pipeline.cli import instruments
     from stages.ranging.validation import check_delay, check_p_fa, check_sigma
 
@@ -523,6 +527,9 @@ def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, g
     if estimator in SIGMA_NOTE:
         warn(SIGMA_NOTE[estimator] + " (ml and fast's cover)")
     fmt = instruments.detect(capture, fmt, histograms=True)
+    if force and fmt != "tcspc":
+        raise click.UsageError("--force is for a tcspc capture with --calibration (its chip "
+                               "check); not for a " + fmt + " file")
     if fmt == "histograms" and instruments.is_generic(capture):
         # several returns need the returns' measured response (tail and all), which a
         # calibration from `calibrate distance` holds: 3 by default with one, else 1
@@ -561,9 +568,10 @@ def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, g
         warn(cap.truncated + " (--allow-truncated: ranged anyway, flagged tcspc.truncated)")
     table, note = range_capture(cap, calib, out, estimator,
                                 None if irf_ps is None else irf_ps * 1e-12, p_fa,
-                                max_returns or 3)
+                                max_returns or 3, force=force)
     if note:
         warn(note)
+    _warn_chip(table)
     if not quiet:
         import polars as pl
 
@@ -587,6 +595,19 @@ def _not_for_instruments(fmt: str, **given) -> None:
     used = [k.replace("_", "-") for k, v in given.items() if v]
     if used:
         raise click.UsageError(f"--{', --'.join(used)}: not for a {fmt} file")
+
+
+def _warn_chip(table) -> None:
+    """Say what the chip check found where the rows carry it (--force, a TDC alone)."""
+    import json
+
+    chk = json.loads((table.schema.metadata or {}).get(b"tcspc.chip_check", b"{}"))
+    if chk.get("verdict") == "mismatch":
+        warn(f"--force: the capture is not the calibration's chip ({chk['summary']}); "
+             "every row flagged")
+    elif chk.get("disagree"):
+        warn(f"TDC(s) {chk['disagree']}: code-density pattern not the calibration's "
+             "(their rows flagged)")
 
 
 def _warn_no_delay(calib) -> None:

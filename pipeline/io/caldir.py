@@ -90,6 +90,10 @@ def sha256(path: Path, chunk: int = 1 << 22) -> str:
     return h.hexdigest()
 
 
+#: inl.parquet's column of each code width's standard error (LSB), from the calibration's
+#: counts (issue 33.3); absent in calibrations made before it
+WIDTH_SIGMA = "width_sigma_lsb"
+
 #: the files whose bytes make a calibration's identity (:func:`calibration_id`)
 CAL_FILES = ("tdc.parquet", "inl.parquet", "meta.json")
 
@@ -182,8 +186,9 @@ def load_calibration(caldir: str | os.PathLike) -> Calibration:
                          else np.asarray(levels, np.float64))
     delay = np.asarray(col("delay_ps"), np.float64) * 1e-12
     dm = meta.get("delay", {})
+    var = (grid(WIDTH_SIGMA) ** 2 if WIDTH_SIGMA in inl.column_names else None)
     return Calibration(density, second, fit, delay, tuple(dm.get("reasons", ())),
-                       dm.get("irf_sigma_s"), meta, str(caldir))
+                       dm.get("irf_sigma_s"), meta, str(caldir), width_var_lsb2=var)
 
 
 def save_calibration(calibration: Calibration, out: str | os.PathLike,
@@ -215,6 +220,8 @@ def save_calibration(calibration: Calibration, out: str | os.PathLike,
         "dnl_lsb": pa.array(np.ravel(density.dnl_lsb)),
         "inl_lsb": pa.array(np.ravel(density.inl_lsb)),
     }, schema=CALIBRATION_INL.schema)
+    if c.width_var_lsb2 is not None:  # a column beyond the 1.0 schema: older readers skip it
+        inl = inl.append_column(WIDTH_SIGMA, pa.array(np.ravel(np.sqrt(c.width_var_lsb2))))
     if sources is None:
         recorded = c.meta.get("sources", [])
     else:

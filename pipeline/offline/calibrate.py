@@ -14,6 +14,7 @@ from pipeline.io.caldir import load_calibration, save_calibration
 from pipeline.io.capture import Capture
 from schemas.errors import CalibrationError
 from stages import calibration as cal
+from stages.calibration import uncertainty
 from stages.calibration_set import Calibration, time_axis
 from stages.histogram import HistogramAccumulator
 
@@ -119,11 +120,12 @@ def density_from_capture(capture: Capture, inl_rms_lsb: float | None = 0.3,
 
 def write_caldir(out: str | Path, density: cal.DensityResult, second: cal.SecondStage,
                  sources: list[Path], lsb_fit: cal.LsbFit | None = None,
-                 extra: dict | None = None) -> Path:
+                 extra: dict | None = None, width_var=None) -> Path:
     """A new calibration (a density test, and the LSB against light where fitted, no delay
-    yet) saved to ``out`` atomically (a failure leaves the old one in place)."""
+    yet) saved to ``out`` atomically (a failure leaves the old one in place).
+    ``width_var``: the variance of every code width (:func:`table_variance`)."""
     calibration = Calibration(density, second, lsb_fit, np.full(density.n_tdc, np.nan), (),
-                              None, dict(extra or {}))
+                              None, dict(extra or {}), width_var_lsb2=width_var)
     return save_calibration(calibration, out, sources)
 
 
@@ -145,15 +147,32 @@ def lsb_campaign(captures: list, out: str | Path, inl_rms_lsb: float = 0.5,
     # a strong artifact for part of the block; dim tests give an LSB, not an INL
     tests = campaign_histograms(caps)
     window_s = caps[0].meta.window_ns * 1e-9
+    var: dict = {}
     best, second, fit, n, lsbs, i_best = lsb_from_states(
-        tests, window_s, inl_rms_lsb, names=[c.bin_path.name for c in caps], log=log)
+        tests, window_s, inl_rms_lsb, names=[c.bin_path.name for c in caps], log=log,
+        variance=var)
     sources = [p for c in caps for p in getattr(c, "paths", [c.bin_path])]
-    write_caldir(out, best, second, sources, lsb_fit=fit)
+    write_caldir(out, best, second, sources, lsb_fit=fit, width_var=var.get("width_var"))
     return best, fit, n, lsbs
 
 
+def table_variance(state, own: cal.DensityResult, others: list,
+                   final: cal.DensityResult) -> np.ndarray:
+    """(n_tdc, 512) variance (LSB^2) of every code width of ``final`` (the kept test
+    ``own``, of histograms ``state``, filled and combined from ``others`` as
+    :func:`refilled` does): each test's counting (:func:`stages.calibration.width_variance`)
+    combined by inverse variance; the codes no test measured take the random DNL's
+    variance about the phase pattern (:func:`stages.calibration.uncertainty.table_var`)."""
+    mine = cal.width_variance(state.hits, state.cycles, own, state.artifacts)
+    tests = [(r, cal.width_variance(st.hits, st.cycles, r, st.artifacts)) for st, r in others]
+    fill = cal.fill_from(tests, own)[1] if tests else None
+    var = uncertainty.table_var(final.width_lsb, mine, fill)
+    return np.where(np.asarray(final.ok, bool)[:, None], var, np.nan)
+
+
 def lsb_from_states(tests: list, window_s: float, inl_rms_lsb: float = 0.5,
-                    names: list[str] | None = None, log=None, combine: bool = True):
+                    names: list[str] | None = None, log=None, combine: bool = True,
+                    variance: dict | None = None):
     """:func:`lsb_campaign` on histograms: ``tests`` a list of ``(state, second)`` pairs
     (:func:`density_histograms` of each density test). Returns ``(density, second, fit,
     n, lsbs, i_best)``: the density test kept for the INL (filled from the others), its
@@ -164,7 +183,9 @@ def lsb_from_states(tests: list, window_s: float, inl_rms_lsb: float = 0.5,
     falls by about sqrt(all hits / its hits) (0.100 -> 0.052 LSB RMS over six tests in
     ``benchmarks/range_accuracy.py``), and beyond the kept test's window the table goes
     on over the codes dimmer tests measured (the time axis at their light reads x_T
-    there)."""
+    there). ``variance``: a dict that receives ``"width_var"``, the variance of every code
+    width of the density test returned (:func:`table_variance`), for
+    :func:`write_caldir`."""
     names = names or [f"test {i}" for i in range(len(tests))]
     results = []
     for name, (state, second) in zip(names, tests, strict=True):
@@ -219,6 +240,8 @@ def lsb_from_states(tests: list, window_s: float, inl_rms_lsb: float = 0.5,
             log(f"INL from {names[i_best]}; the codes under its reset peak also "
                 f"from the {len(others)} other test(s)")
     best = best.flagged(no_fit, [w or "no LSB in some density test" for w in why])
+    if variance is not None:
+        variance["width_var"] = table_variance(tests[i_best][0], results[i_best], others, best)
     if log and not best.ok.all():
         log(f"{int((~best.ok).sum())} TDC(s) flagged: " + "; ".join(
             f"{t}: {best.reasons[t]}" for t in np.flatnonzero(~best.ok)[:8]))
@@ -401,8 +424,43 @@ def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: 
         "scale_from_reset_peak": int(np.sum(source == "reset peak")),
         "lsb_spread_ps": [None if not np.isfinite(v) else round(float(v), 1)
                           for v in np.where(source == "reset peak", np.nan, spread_ps)],
-        "tdcs_with_delay": int(np.isfinite(d).sum())})
+        "tdcs_with_delay": int(np.isfinite(d).sum()),
+        **delay_uncertainty(calib, at, axis, est.sigma_s, spread, d)})
     return calib
+
+
+def _listed(v, digits: int) -> list:
+    return [None if not np.isfinite(x) else round(float(x), digits)
+            for x in np.asarray(v, np.float64)]
+
+
+def delay_uncertainty(calib: Calibration, at, axis, peak_sigma_s, spread, delay) -> dict:
+    """The delay's standard error per TDC (issue 33.3), for meta.json's ``delay``: the
+    zero capture's peak (its fit's sigma), the table's counting noise over the codes the
+    delay spans (:func:`stages.calibration.uncertainty.table_sigma_s` at the return's
+    code ``at`` on the capture's ``axis``) and the time scale's (the LSB interpolation's
+    spread where the axis is the polynomial's), in quadrature; with what a range needs to
+    take the codes it shares with the delay together (``uncertainty``)."""
+    tau = np.asarray(axis.scale, np.float64) * _bound_at_codes(calib, at)
+    rel = np.where(np.asarray(axis.source) == "reset peak", 0.0,
+                   uncertainty.scale_rel_sigma(spread))
+    if calib.width_var_lsb2 is None:
+        table = np.zeros(calib.n_tdc)
+    else:
+        table = uncertainty.table_sigma_s(calib.width_var_lsb2, at, axis.x_t, axis.scale)
+    total = np.sqrt(np.asarray(peak_sigma_s, np.float64) ** 2 + table ** 2 + (rel * tau) ** 2)
+    total = np.where(np.isfinite(delay), total, np.nan)
+    return {"delay_sigma_ps": _listed(total * 1e12, 3),
+            "uncertainty": {"return_code": _listed(at, 4), "x_t": _listed(axis.x_t, 4),
+                            "scale_s": _listed(axis.scale, 18),
+                            "scale_rel_sigma": _listed(rel, 9),
+                            "table_sigma_ps": _listed(table * 1e12, 3),
+                            "from_table": calib.width_var_lsb2 is not None}}
+
+
+def _bound_at_codes(calib: Calibration, x) -> np.ndarray:
+    """The table's boundary (its units) at fractional codes ``x`` (NaN stays NaN)."""
+    return cal._bound_at(calib.code_bounds, x)
 
 
 @dataclass(frozen=True)

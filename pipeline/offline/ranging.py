@@ -79,7 +79,50 @@ def range_state(state: HistogramState, calibration: Calibration, window_s: float
     est, distance = behind_zero(est, distance)
     note = "; ".join(n for n in (axis.note, *notes,
                                  _unresolved(calib, state, axis, est, window_s)) if n)
-    return est, distance, est.sigma_s * C_LIGHT / 2, note
+    cal_s = calibration_sigma_s(calibration, calib, state, axis, est, window_s)
+    sigma_s = np.asarray(est.sigma_s, np.float64)
+    sigma_s = np.where(np.isfinite(cal_s), np.hypot(sigma_s, cal_s), sigma_s)
+    return est, distance, sigma_s * C_LIGHT / 2, note
+
+
+def calibration_sigma_s(calibration: Calibration, calib: Calibration, state, axis,
+                        est: Estimate, window_s: float) -> np.ndarray:
+    """Per row of ``est``, the standard error (s) the calibration itself puts on its
+    range's time (issue 33.3), NaN where the calibration does not say (one made before it):
+    the table's counting noise over the codes between the return (at this light) and the
+    delay's return (at the zero's), taken together so the codes both span cancel
+    (:func:`stages.calibration.uncertainty.range_sigma_s`); the zero capture's peak fit;
+    and the time scale's at both lights (the LSB interpolation's spread). ``calib``: the
+    rows of ``calibration`` the state covers."""
+    from stages.calibration import uncertainty
+
+    u = calibration.meta.get("delay", {}).get("uncertainty")
+    px = est.pixel if est.pixel is not None else np.arange(state.n_tdc)
+    n = np.size(est.t_s)
+    if not u or calib.width_var_lsb2 is None:
+        return np.full(n, np.nan)
+    rows = state.tdc_offset + px
+
+    def stored(key):
+        return np.array([np.nan if v is None else v for v in u[key]], np.float64)[rows]
+
+    x0, xr0, s0, rel0 = (stored(k) for k in ("return_code", "x_t", "scale_s",
+                                              "scale_rel_sigma"))
+    peak0 = np.array([np.nan if v is None else v for v in
+                      calibration.meta["delay"].get("sigma_ps", [None] * calibration.n_tdc)],
+                     np.float64)[rows] * 1e-12
+    tau = window_s - np.asarray(est.t_s, np.float64)
+    x = _codes_of(tau, axis.tau_edges_s[px], np.isfinite(tau))
+    table = uncertainty.range_sigma_s(calib.width_var_lsb2[px], x, axis.x_t[px],
+                                      axis.scale[px], x0, xr0, s0)
+    light = cal.light_level(state.hits, state.cycles)
+    spread, _ = cal.scale_spread(calib.density, calib.lsb_fit, window_s, light,
+                                 calib.scale_splines(window_s))
+    rel = np.where(np.asarray(axis.source)[px] == "reset peak", 0.0,
+                   uncertainty.scale_rel_sigma(spread[px]))
+    tau0 = s0 * cal._bound_at(calib.code_bounds[px], x0)
+    return np.sqrt(table ** 2 + np.nan_to_num(peak0) ** 2 + (rel * tau) ** 2
+                   + np.nan_to_num(rel0 * tau0) ** 2)
 
 
 #: the flag of a return before the zero
@@ -185,13 +228,89 @@ def ranges_table(measurement: str, est: Estimate, distance_m: np.ndarray,
     }, schema=RANGES.schema)
 
 
+#: The flag of every row ranged with ``--force`` on a capture whose code-density pattern
+#: is not the calibration's chip's, and of a TDC that alone disagrees (issue 33.4).
+CHIP_MISMATCH = "calibration of another chip (code-density pattern; ranged with --force)"
+TDC_MISMATCH = "this TDC's code-density pattern is not the calibration's"
+#: A TDC of a matching capture is flagged alone where its own excess is over this many
+#: sigmas (and its widths differ by more than a chip's drift): one in ~3.5 million by
+#: chance, so 128 TDCs flag none falsely.
+TDC_FLAG_SIGMAS = 5.0
+
+
+def return_codes(calibration: Calibration, state: HistogramState, est: Estimate,
+                 window_s: float) -> np.ndarray:
+    """(n_tdc, 512) bool: the codes of every return ``est`` detected, to its response's
+    reach each side (3 sigmas of the calibration's instrument response, else of the
+    return's own width, and 3 codes): not the capture's uniform light."""
+    axis = time_axis(calibration.rows(state.tdc_offset, state.tdc_offset + state.n_tdc),
+                     state.hits, state.cycles, window_s)
+    out = np.zeros(state.hits.shape, bool)
+    px = est.pixel if est.pixel is not None else np.arange(state.n_tdc)
+    det = np.asarray(est.detected, bool)
+    tau = window_s - np.asarray(est.t_s, np.float64)
+    code = _codes_of(tau, axis.tau_edges_s[px], det)
+    with np.errstate(invalid="ignore"):
+        lsb = window_s / axis.x_t[px]
+        width = (np.full(px.size, calibration.irf_sigma_s) if calibration.irf_sigma_s
+                 else np.asarray(est.fwhm_s, np.float64) / 2.3548)
+        reach = 3 * np.nan_to_num(width, nan=2 * np.nanmedian(lsb)) / lsb + 3
+    k = np.arange(state.hits.shape[1])
+    for p, c, r in zip(px[det], code[det], reach[det], strict=True):
+        if np.isfinite(c) and np.isfinite(r):
+            out[p] |= np.abs(k + 0.5 - c) <= r
+    return out
+
+
+def check_capture_chip(calibration: Calibration, state: HistogramState, est: Estimate,
+                       window_s: float):
+    """:func:`stages.calibration.chip_check.check_chip` of a capture's histograms against
+    the calibration's widths (and their variance), its returns left out."""
+    from stages.calibration.chip_check import check_chip
+
+    rows = slice(state.tdc_offset, state.tdc_offset + state.n_tdc)
+    var = None if calibration.width_var_lsb2 is None else calibration.width_var_lsb2[rows]
+    return check_chip(state.hits, state.cycles, calibration.density.width_lsb[rows], var,
+                      exclude=return_codes(calibration, state, est, window_s))
+
+
+def mismatch_message(capture, calibration: Calibration, check, tdc_offset: int = 0) -> str:
+    """The one line of a refusal: which TDCs disagree, and the pooled evidence."""
+    bad = np.flatnonzero(check.disagree) + tdc_offset
+    named = ", ".join(str(t) for t in bad[:12]) + (", ..." if bad.size > 12 else "")
+    return (f"capture {capture} does not match calibration {calibration.path} "
+            f"({calibration.meta.get('calibration_id', '')}): "
+            + (f"TDCs {named} ({bad.size} of {check.n_tdc})" if bad.size else
+               f"no TDC alone, {int(check.tdc_ok.sum())} TDCs pooled")
+            + f"; {check.summary()}; --force ranges it anyway, its rows flagged")
+
+
+def _flag_rows(est: Estimate, rows: np.ndarray, why: str) -> Estimate:
+    """``est`` with ``why`` added to the flag of the rows ``rows`` (bool per row)."""
+    if not np.any(rows):
+        return est
+    n = np.size(est.t_s)
+    flag = np.array(est.flag if est.flag is not None else [""] * n, dtype=object)
+    flag[rows] = [f"{f}; {why}" if f else why for f in flag[rows]]
+    return dataclasses.replace(est, flag=flag)
+
+
 def range_capture(capture: str | Path, calibration: Calibration, out: str | Path,
                   estimator: str = "ml", sigma_s: float | None = None,
-                  p_fa: float = 1e-3, max_returns: int = 1) -> tuple[pa.Table, str]:
+                  p_fa: float = 1e-3, max_returns: int = 1, force: bool = False,
+                  check_chip: bool = True) -> tuple[pa.Table, str]:
     """Range a whole capture, up to ``max_returns`` returns a pixel (``tcspc range``: 3 by
     default; 1 here, a row a TDC, for the flows that aggregate per TDC); returns the
     ranges table and the note of :func:`range_state`. ``capture``: a path, or an open
-    :class:`Capture` (one read to its last whole cycle is flagged ``tcspc.truncated``)."""
+    :class:`Capture` (one read to its last whole cycle is flagged ``tcspc.truncated``).
+
+    With ``check_chip``, the capture's code-density pattern is checked against the
+    calibration's (:func:`check_capture_chip`, issue 33.4) before anything is written:
+    another chip's calibration raises CalibrationError naming the TDCs that disagree,
+    unless ``force``, which ranges it with every row flagged ``CHIP_MISMATCH``; a TDC
+    that alone disagrees in a capture that matches is flagged ``TDC_MISMATCH``; a capture
+    too dim to tell is ranged, with a note. The verdict is in the metadata
+    (``tcspc.chip_check``)."""
     cap = capture if isinstance(capture, Capture) else Capture(capture)
     if calibration.n_tdc != cap.meta.n_tdc:
         raise CalibrationError(f"{calibration.path}: calibrates {calibration.n_tdc} TDCs, "
@@ -199,11 +318,35 @@ def range_capture(capture: str | Path, calibration: Calibration, out: str | Path
     acc = HistogramAccumulator(cap.meta.n_tdc, calibration.bounds)
     for first, words in cap.iter_chunks():
         acc.update(words, first)
-    est, d, s, note = range_state(acc.snapshot(), calibration, cap.meta.window_ns * 1e-9,
+    state = acc.snapshot()
+    window_s = cap.meta.window_ns * 1e-9
+    est, d, s, note = range_state(state, calibration, window_s,
                                   cap.meta.t_laser_win_ns * 1e-9, estimator, sigma_s, p_fa,
                                   max_returns=max_returns)
+    verdict = {}
+    if check_chip:
+        chk = check_capture_chip(calibration, state, est, window_s)
+        px = est.pixel if est.pixel is not None else np.arange(state.n_tdc)
+        verdict = {"verdict": chk.verdict, "summary": chk.summary()}
+        if chk.verdict == "mismatch":
+            if not force:
+                raise CalibrationError(mismatch_message(cap.bin_path, calibration, chk))
+            est = _flag_rows(est, np.ones(px.size, bool), CHIP_MISMATCH)
+            verdict["disagree"] = np.flatnonzero(chk.disagree).tolist()
+        else:
+            alone = chk.disagree_at(TDC_FLAG_SIGMAS)
+            est = _flag_rows(est, alone[px], TDC_MISMATCH)
+            verdict["disagree"] = np.flatnonzero(alone).tolist()
+            if chk.verdict == "undecided":
+                note = "; ".join(n for n in (note, (
+                    "chip not checked: too few background counts to tell the calibration's "
+                    f"chip from another ({chk.summary()})")) if n)
     table = ranges_table(cap.name, est, d, s)
+    import json
+
     table = table.replace_schema_metadata({**table.schema.metadata,
+                                           **({b"tcspc.chip_check": json.dumps(
+                                               verdict).encode()} if verdict else {}),
                                            b"tcspc.calibration": calibration.path.encode(),
                                            b"tcspc.calibration_id": str(calibration.meta.get(
                                                "calibration_id", "")).encode(),

@@ -27,25 +27,49 @@ def expected_density_hits(chip: Chip, light: float, cycles: float, window_s: flo
     """(n_tdc, 512) expected counts of a density test of ``cycles`` cycles at ``light``
     detections per pixel per cycle (eq. 5.1's n: every START, reset peak included, over
     the cycles), the chip's LSB at that light."""
+    return expected_hits(chip, light, cycles, window_s, reset_ns=reset_ns)
+
+
+def expected_hits(chip: Chip, light: float, cycles: float, window_s: float = 80e-9,
+                  signal=None, tau_s=None, pulse_sigma_s: float = 0.0,
+                  reset_ns: float | None = None) -> np.ndarray:
+    """(n_tdc, 512) expected counts of a capture of ``cycles`` cycles: uniform light of
+    ``light`` detections per pixel per cycle (as :func:`expected_density_hits`: the
+    ambient light alone) and, where ``signal`` (n_tdc,) is given, a return of that many
+    signal detections per cycle at ``tau_s`` (n_tdc,), a Gaussian pulse of
+    ``pulse_sigma_s`` (the TDC's jitter comes on top), with its pile-up. The chip's LSB is
+    the one at the capture's own light (every START over the TDCs and the cycles)."""
     reset_s = (chip.reset_ns if chip.reset_ns is not None
                else (20.0 if reset_ns is None else reset_ns)) * 1e-9
     # the photon rate giving ``light`` STARTs a cycle over the reset period and the window
     rate = -np.log1p(-min(float(light), 1 - 1e-12)) / (reset_s + window_s)
-    bounds = chip.boundaries_s(light)                       # (n_tdc, 513)
-    jit = chip.jitter_s(light)
-    jit_r = chip.reset_jitter_s(light)
-    reset_mass = -np.expm1(-rate * reset_s)
+    n = chip.n_tdc
+    m = np.zeros(n) if signal is None else np.broadcast_to(np.asarray(signal, float), (n,))
+    t0 = np.zeros(n) if tau_s is None else np.broadcast_to(np.asarray(tau_s, float), (n,))
+    ps = max(float(pulse_sigma_s), 1e-15)
     lsb = float(np.median(chip.lsb_ps(light))) * 1e-12
     n_steps = int(np.ceil(window_s / lsb * STEPS_PER_LSB))
     t = (np.arange(n_steps) + 0.5) * (window_s / n_steps)   # tau, midpoints over [0, T]
-    # density of the first START at tau (no photon in the reset period nor at higher tau)
-    dens = np.exp(-rate * reset_s) * rate * np.exp(-rate * (window_s - t)) * (window_s / n_steps)
-    out = np.empty((chip.n_tdc, N_CODES))
+    dt = window_s / n_steps
+    reset_mass = -np.expm1(-rate * reset_s)
+    # density of the first START at tau (no photon in the reset period nor at higher tau:
+    # those come first)
+    dens = np.empty((n, n_steps))
+    for i in range(n):
+        above = (rate * (window_s - t)
+                 + m[i] * (ndtr((window_s - t0[i]) / ps) - ndtr((t - t0[i]) / ps)))
+        r = rate + m[i] * np.exp(-0.5 * ((t - t0[i]) / ps) ** 2) / (ps * np.sqrt(2 * np.pi))
+        dens[i] = np.exp(-rate * reset_s) * r * np.exp(-above) * dt
+    n_light = float(np.mean(dens.sum(axis=1) + reset_mass))
+    bounds = chip.boundaries_s(n_light)                     # (n_tdc, 513)
+    jit = chip.jitter_s(n_light)
+    jit_r = chip.reset_jitter_s(n_light)
+    out = np.empty((n, N_CODES))
     tau_reset = window_s + chip.reset_offset_ps * 1e-12
-    for i in range(chip.n_tdc):  # once per TDC; the inner work is vectorised
+    for i in range(n):  # once per TDC; the inner work is vectorised
         b = bounds[i, 1:N_CODES]                            # the inner boundaries
-        cdf = (ndtr((b[:, None] - t[None, :]) / jit[i]) @ dens
+        cdf = (ndtr((b[:, None] - t[None, :]) / jit[i]) @ dens[i]
                + reset_mass * ndtr((b - tau_reset) / jit_r[i]))
-        total = dens.sum() + reset_mass
+        total = dens[i].sum() + reset_mass
         out[i] = np.diff(np.concatenate([[0.0], cdf, [total]]))
     return np.clip(out, 0.0, None) * float(cycles)

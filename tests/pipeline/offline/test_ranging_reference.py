@@ -359,7 +359,8 @@ def test_range_state_gives_the_earlier_results(measurements, calibration,
     assert any(np.isfinite(r["fwhm_s"][r["return_index"] > 0]).any() for r in new)
     fresh = Calibration(calibration.density, calibration.second, calibration.lsb_fit,
                         calibration.delay_s, calibration.delay_reasons,
-                        calibration.irf_sigma_s, calibration.meta, calibration.path)
+                        calibration.irf_sigma_s, calibration.meta, calibration.path,
+                        width_var_lsb2=calibration.width_var_lsb2)
     with monkeypatch.context() as m:
         patch_earlier(m, ref_ml_kernel)
         old = [_run(fresh, st, window_s, estimator=estimator, max_returns=k, in_situ=situ)

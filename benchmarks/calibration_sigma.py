@@ -1,0 +1,149 @@
+"""Whether a range's ``sigma_m`` covers its error on chips we did not tune to (issue 33.3),
+and whether another chip's calibration is refused (issue 33.4).
+
+A chip of the zoo with what real chips have (``random_chip(seed, ranges=REAL_CHIP_RANGES)``:
+random DNL 0.05-0.1 LSB a code, a bow of 2-4 LSB) is calibrated the way ``tcspc calibrate
+lsb`` and ``calibrate delay`` do it (``lsb_from_states``, ``delay_from_state``) on Poisson
+draws of expected histograms (:func:`stages.simulator.expected.expected_hits`: four
+density tests at 0.02-0.3 detections a pixel a cycle, a zero-distance capture dimmer than
+all of them), then ranges targets anywhere in the window (``range_state``, as ``tcspc
+range``) against the truth: the share of errors within 2 ``sigma_m``.
+
+    python benchmarks/calibration_sigma.py [--seeds 1 2 3 4] [--tdcs 16] [--ranges 6]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipeline.offline.calibrate import delay_from_state, lsb_from_states  # noqa: E402
+from pipeline.offline.ranging import range_state  # noqa: E402
+from schemas.constants import HIT, N_CLASSES, NO_HIT  # noqa: E402
+from stages import calibration as cal  # noqa: E402
+from stages.calibration_set import Calibration  # noqa: E402
+from stages.histogram import HistogramState  # noqa: E402
+from stages.simulator.chip import REAL_CHIP_RANGES, random_chip  # noqa: E402
+from stages.simulator.expected import expected_hits  # noqa: E402
+
+T = 80e-9
+C = 299_792_458.0
+LEVELS = (0.02, 0.05, 0.1, 0.3)
+PULSE_SIGMA_S = 80e-12
+GATE_S = 100e-9  #: T_laser-win of the zero capture
+#: ... and of the range captures: 40 ns later, so a target anywhere in the window is at
+#: 0-12 m (the zero's return at tau 40 ns)
+RANGE_GATE_S = GATE_S + 40e-9
+
+
+def state_of(hits: np.ndarray, cycles: float) -> HistogramState:
+    """A histogram state holding ``hits`` (n_tdc, 512) over ``cycles`` cycles a TDC."""
+    h = np.asarray(hits).astype(np.uint64)
+    classes = np.zeros((N_CLASSES, h.shape[0]), np.uint64)
+    classes[HIT] = h.sum(axis=1)
+    classes[NO_HIT] = np.uint64(cycles) - classes[HIT]
+    return HistogramState(h, classes, int(classes.sum()))
+
+
+def capture(chip, light, cycles, rng, signal=None, tau_s=None) -> HistogramState:
+    """A Poisson draw of a capture's expected histograms."""
+    h = expected_hits(chip, light, cycles, T, signal=signal, tau_s=tau_s,
+                      pulse_sigma_s=PULSE_SIGMA_S)
+    return state_of(rng.poisson(h), cycles)
+
+
+def chip_of(seed: int, n_tdc: int):
+    return random_chip(seed, n_tdc=n_tdc, ranges=REAL_CHIP_RANGES)[0]
+
+
+def second_of(chip) -> cal.SecondStage:
+    """The chip's own artifact bounds (the histograms here hold no artifact words)."""
+    return cal.SecondStage(chip.n_min, chip.n_max, chip.n_th, chip.n_th, ())
+
+
+def calibrate(chip, seed: int, density_cycles: float = 1e6, zero_light: float = 0.01,
+              zero_cycles: float = 2e6, zero_m: float = 0.02, zero_tau_s: float = 40e-9,
+              levels=LEVELS) -> Calibration:
+    """The chip's calibration (LSB campaign and delay) from captures drawn with ``seed``;
+    the true delay is ``GATE_S - zero_tau_s``."""
+    rng = np.random.default_rng([seed, 5])
+    second = second_of(chip)
+    tests = [(capture(chip, n, density_cycles, rng), second) for n in levels]
+    var: dict = {}
+    best, second, fit, *_ = lsb_from_states(tests, T, inl_rms_lsb=2.0, variance=var)
+    calib = Calibration(best, second, fit, np.full(chip.n_tdc, np.nan), (), None, {},
+                        width_var_lsb2=var["width_var"])
+    zero = capture(chip, zero_light, zero_cycles, rng, np.full(chip.n_tdc, zero_m),
+                   np.full(chip.n_tdc, zero_tau_s))
+    return delay_from_state(calib, zero, T, GATE_S)
+
+
+@dataclass
+class Ranged:
+    error_m: np.ndarray
+    sigma_m: np.ndarray
+    stat_sigma_m: np.ndarray
+
+
+def range_targets(chip, calib: Calibration, seed: int, n_ranges: int = 6,
+                  cycles: float = 5e4, light=(0.02, 0.2), m=(0.02, 0.2),
+                  zero_tau_s: float = 40e-9) -> Ranged:
+    """Ranges of ``n_ranges`` captures, every TDC a target anywhere in the window (tau
+    4-74 ns) at a light and a signal drawn log-uniform in ``light`` and ``m``."""
+    rng = np.random.default_rng([seed, 7])
+    err, sig, stat = [], [], []
+    n = chip.n_tdc
+    for _ in range(n_ranges):
+        lt = float(np.exp(rng.uniform(*np.log(light))))
+        tau = rng.uniform(4e-9, 74e-9, n)
+        sig_m = np.exp(rng.uniform(*np.log(m), n))
+        st = capture(chip, lt, cycles, rng, sig_m, tau)
+        est, d, s, _ = range_state(st, calib, T, RANGE_GATE_S)
+        # eq. 5.4 with the delay GATE - tau0
+        truth = C / 2 * (RANGE_GATE_S - GATE_S + zero_tau_s - tau)
+        first = (est.return_index == 0) if est.return_index is not None else np.ones(n, bool)
+        px = est.pixel[first] if est.pixel is not None else np.arange(n)
+        ok = np.asarray(est.detected, bool)[first] & (truth[px] >= 0)
+        err.append((d[first] - truth[px])[ok])
+        sig.append(s[first][ok])
+        stat.append((np.asarray(est.sigma_s, np.float64)[first] * C / 2)[ok])
+    return Ranged(np.concatenate(err), np.concatenate(sig), np.concatenate(stat))
+
+
+def coverage(r: Ranged, k: float = 2.0) -> float:
+    return float(np.mean(np.abs(r.error_m) <= k * r.sigma_m))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4])
+    ap.add_argument("--tdcs", type=int, default=16)
+    ap.add_argument("--ranges", type=int, default=6)
+    a = ap.parse_args()
+    all_r = []
+    for seed in a.seeds:
+        chip = chip_of(seed, a.tdcs)
+        calib = calibrate(chip, seed)
+        r = range_targets(chip, calib, seed, a.ranges)
+        all_r.append(r)
+        dsig = np.asarray(calib.meta["delay"]["delay_sigma_ps"], dtype=float)
+        stat = coverage(Ranged(r.error_m, r.stat_sigma_m, r.stat_sigma_m))
+        print(f"seed {seed}: {r.error_m.size} targets, error "
+              f"{np.sqrt(np.mean(r.error_m ** 2)) * 100:.2f} cm RMS, median sigma_m "
+              f"{np.median(r.sigma_m) * 100:.2f} cm (statistical "
+              f"{np.median(r.stat_sigma_m) * 100:.2f}), 2-sigma coverage {coverage(r):.3f} "
+              f"(statistical alone {stat:.3f}), delay sigma median {np.nanmedian(dsig):.1f} ps")
+    r = Ranged(*(np.concatenate([getattr(x, f) for x in all_r])
+                 for f in ("error_m", "sigma_m", "stat_sigma_m")))
+    print(f"all: {r.error_m.size} targets, 2-sigma coverage {coverage(r):.3f}, 1-sigma "
+          f"{coverage(r, 1.0):.3f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,123 @@
+"""Calibration, its own uncertainty (issue 33.3): how far the time axis a calibration gives
+can be off from its counts alone, stored with it and added to every range's sigma.
+
+The axis at a light is ``tau(x) = T B(x) / B(x_ref)`` (:func:`.timescale.scale_at_light`:
+the code boundaries ``B`` scaled so that tau = T falls at ``x_ref``, the light's x_T).
+Every code width ``w_j`` of the table is measured with a variance ``v_j``: the binomial
+count of Coates' estimate (:func:`.density.width_variance`), combined over the density
+tests by inverse variance as the widths are. The widths are independent, so a time's error
+is linear in theirs: ``dtau(x) = scale (dB(x) - (x / x_ref) dB(x_ref))`` with
+``dB(x) = sum over j < x of dw_j``, and its variance is ``sum_j a_j^2 v_j`` with
+``a_j = scale ([j < x] - (x / x_ref) [j < x_ref])`` (``[j < x]`` the share of code j below
+x). A range is the difference of two such times, its return's at the range's light and
+the zero capture's return at the zero's light (the delay, eq. 5.3): the codes both share
+cancel, so the two are taken together (:func:`range_sigma_s`), not in quadrature.
+
+Codes no test measured (the table continued past its last measured code with the phase
+pattern, :func:`.timescale.code_bounds`) have the variance of the random DNL about the
+pattern (:func:`pattern_var`): what the pattern cannot know.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from schemas.constants import N_CODES
+
+#: Codes below the last measured one over which :func:`pattern_var` measures the scatter
+#: of the widths about the 8-code phase pattern (as ``timescale.CONTINUE_CODES``).
+PATTERN_CODES = 64
+
+
+def combined_var(*variances) -> np.ndarray:
+    """The variance of the inverse-variance mean of independent estimates (NaN or inf:
+    not measured by that one); NaN where none measured."""
+    inv = np.zeros(np.shape(variances[0]))
+    for v in variances:
+        v = np.asarray(v, np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv += np.where(np.isfinite(v) & (v > 0), 1.0 / v, 0.0)
+    with np.errstate(divide="ignore"):
+        return np.where(inv > 0, 1.0 / inv, np.nan)
+
+
+def pattern_var(widths: np.ndarray, width_var: np.ndarray) -> np.ndarray:
+    """(n_tdc,) variance of a width the table did not measure: the scatter of the
+    ``PATTERN_CODES`` last measured widths about their phase means (code mod 8), less
+    what their own counting explains; 0 where nothing was measured."""
+    w = np.asarray(widths, np.float64)
+    v = np.asarray(width_var, np.float64)
+    out = np.zeros(w.shape[0])
+    k = np.arange(w.shape[1])
+    for t in range(w.shape[0]):  # per TDC, once per calibration
+        fin = np.flatnonzero(np.isfinite(w[t]))
+        if fin.size < 16:
+            continue
+        sel = fin[-PATTERN_CODES:]
+        ph = k[sel] % 8
+        mean = np.array([w[t, sel[ph == p]].mean() if np.any(ph == p) else np.nan
+                         for p in range(8)])
+        resid = w[t, sel] - mean[ph]
+        stat = v[t, sel]
+        own = float(np.mean(stat[np.isfinite(stat)])) if np.isfinite(stat).any() else 0.0
+        out[t] = max(float(np.nanmean(resid ** 2)) - own, 0.0)
+    return out
+
+
+def table_var(widths: np.ndarray, own_var: np.ndarray, fill_var=None) -> np.ndarray:
+    """(n_tdc, 512) variance (LSB^2) of every code width of a calibration's table, all
+    finite for a calibrated TDC: the kept test's own (``own_var``, from
+    :func:`.density.width_variance`) and the other tests' (``fill_var``, from
+    :func:`.density.fill_from`) combined by inverse variance, as the widths are; the codes
+    neither measured take :func:`pattern_var`."""
+    v = combined_var(own_var, *(() if fill_var is None else (fill_var,)))
+    pv = pattern_var(widths, v)
+    return np.where(np.isfinite(v), v, pv[:, None])
+
+
+def _below(x) -> np.ndarray:
+    """(n, 512): the share of each code j below fractional code ``x`` (n,)."""
+    j = np.arange(N_CODES)[None, :]
+    return np.clip(np.asarray(x, np.float64)[:, None] - j, 0.0, 1.0)
+
+
+def time_coefficients(x, x_ref, scale) -> np.ndarray:
+    """(n, 512) ``a_j``: seconds of tau at code ``x`` per unit of error in width j, on an
+    axis that puts tau = T at ``x_ref`` with ``scale`` seconds per unit; 0 where any of
+    them is NaN."""
+    x, x_ref, scale = (np.asarray(a, np.float64) for a in (x, x_ref, scale))
+    good = np.isfinite(x) & np.isfinite(x_ref) & np.isfinite(scale) & (x_ref > 0)
+    x, x_ref, scale = (np.where(good, a, 1.0) for a in (x, x_ref, scale))
+    a = scale[:, None] * (_below(x) - (x / x_ref)[:, None] * _below(x_ref))
+    return np.where(good[:, None], a, 0.0)
+
+
+def _sum_var(a, width_var, good) -> np.ndarray:
+    v = np.nan_to_num(np.asarray(width_var, np.float64), nan=0.0)
+    return np.where(good, np.sqrt(np.sum(a * a * v, axis=1)), np.nan)
+
+
+def table_sigma_s(width_var, x, x_ref, scale) -> np.ndarray:
+    """(n,) standard error (s) of tau at code ``x`` from the table's widths."""
+    good = np.isfinite(np.asarray(x, np.float64)) & np.isfinite(np.asarray(scale, np.float64))
+    return _sum_var(time_coefficients(x, x_ref, scale), width_var, good)
+
+
+def range_sigma_s(width_var, x, x_ref, scale, x0, x_ref0, scale0) -> np.ndarray:
+    """(n,) standard error (s) of a range's time ``tau(x) - tau0(x0)`` from the table: its
+    return at code ``x`` on its axis (``x_ref``, ``scale``) against the delay's return at
+    ``x0`` on the zero capture's (``x_ref0``, ``scale0``); the codes both span cancel."""
+    a = (time_coefficients(x, x_ref, scale) - time_coefficients(x0, x_ref0, scale0))
+    good = np.isfinite(np.asarray(x, np.float64)) & np.isfinite(np.asarray(x0, np.float64))
+    return _sum_var(a, width_var, good)
+
+
+def scale_rel_sigma(spread, fit_residual_rel=None) -> np.ndarray:
+    """(n,) relative standard error of the time scale at a light: the spread of two
+    interpolations of the density tests' scales (:func:`.timescale.scale_spread`, where the
+    levels leave the LSB against light unresolved) and the LSB fit's relative residual
+    where it has one (more levels than a cubic's four); 0 where neither says."""
+    s = np.nan_to_num(np.asarray(spread, np.float64), nan=0.0)
+    if fit_residual_rel is None:
+        return s
+    return np.hypot(s, np.nan_to_num(np.asarray(fit_residual_rel, np.float64), nan=0.0))
