@@ -116,6 +116,29 @@ def range_targets(chip, calib: Calibration, seed: int, n_ranges: int = 6,
     return Ranged(np.concatenate(err), np.concatenate(sig), np.concatenate(stat))
 
 
+def save_chip_calibration(chip, seed: int, out: Path) -> Path:
+    """:func:`calibrate` of ``chip`` saved as a calibration directory at ``out``."""
+    from pipeline.io.caldir import save_calibration
+
+    return save_calibration(calibrate(chip, seed), out, [])
+
+
+def simulated_capture(chip, out: Path, lux: float = 2500.0, cycles: int = 100_000,
+                      seed: int = 3, reflectivity: float = 0.002) -> Path:
+    """A capture of ``chip`` written by the simulator (``tcspc simulate``'s engine): ambient
+    light of ``lux`` (2500: ~0.3 detections a pixel a cycle) and a mirror at 3 m on every
+    pixel."""
+    from pipeline.offline.simulate import simulate_capture
+    from stages.models.scene import Ambient, Gate, Scene, Sensor, Target
+
+    scene = Scene("capture", sensor=Sensor(n_pixels=chip.n_tdc, hot_pixels=()),
+                  gate=Gate(140.0, 100.0),
+                  targets=(Target((0, chip.n_tdc - 1), 3.0, reflectivity, "mirror"),),
+                  ambient=(Ambient(lux=lux),))
+    simulate_capture(scene, cycles, out, chip=chip, seed=seed)
+    return out
+
+
 def coverage(r: Ranged, k: float = 2.0) -> float:
     return float(np.mean(np.abs(r.error_m) <= k * r.sigma_m))
 

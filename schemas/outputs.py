@@ -65,7 +65,13 @@ RANGES = SchemaSpec("ranges", "2.0", (
     field("measurement", pa.string(), "", "name of the measurement"),
     field("tdc", pa.uint16(), "", "TDC address (0-based)"),
     field("distance_m", pa.float64(), "m", "estimated distance (eq. 5.4)"),
-    field("sigma_m", pa.float64(), "m", "one-sigma uncertainty of distance_m"),
+    field("sigma_m", pa.float64(), "m", "one-sigma uncertainty of distance_m: the fit's "
+          "(its counts' Fisher information) and, ranged with a chip calibration that stores "
+          "its own uncertainty (docs/calibration.md), the calibration's in quadrature: the "
+          "code widths' counting noise over the codes between this return and the delay's "
+          "zero-distance return, the delay's peak fit and the time scale's interpolation "
+          "between the density tests' lights; the fit's alone otherwise (an instrument's "
+          "file, generic histograms, a calibration made before issue 33)"),
     field("fwhm_m", pa.float64(), "m", "measured FWHM of the return: the second moment of "
           "its pile-up-corrected counts above the background (NaN: none above it); 1.0 "
           "files carry the instrument response's FWHM here"),

@@ -13,10 +13,11 @@ chi-square, and the RMS width difference its excess over the counting stands for
 chip's second-stage bounds n_min, n_max from a range capture were found unreliable; the
 widths are measured from every background count.)
 
-The capture is another chip's where, pooled over its TDCs, the chi-square's excess is over
-``REFUSE_SIGMAS`` of its spread and the RMS width difference over ``SAME_CHIP_MAX_LSB`` (a
-tiny model error over many counts, a DNL drifting with conditions, is no other chip: the
-zoo's chips differ by 0.1-0.2 LSB RMS a code). Where the counts could not see a
+The capture is another chip's where, pooled over its TDCs, the chi-square's excess is
+``REFUSE_SIGMAS`` of its spread beyond what widths differing by ``SAME_CHIP_MAX_LSB`` RMS
+would give: a model error or a DNL drifting with conditions smaller than that is no other
+chip however many counts show it (a return firing in most cycles left ~0.03-0.06 LSB; the
+zoo's chips differ by 0.11-0.17 LSB RMS a code). Where the counts could not see a
 difference of ``DNL_DIFF_LSB`` at ``DECIDE_SIGMAS`` the check is undecided (a dim
 capture: too few background counts a code), and passes with a warning.
 """
@@ -38,16 +39,18 @@ DNL_DIFF_LSB = 0.1
 DECIDE_SIGMAS = 10.0
 #: Another chip's: a pooled excess over this many sigmas ...
 REFUSE_SIGMAS = 6.0
-#: ... and an RMS width difference over this (LSB a code).
-SAME_CHIP_MAX_LSB = 0.04
-#: A TDC is named as disagreeing where its own excess is over this many sigmas and its own
-#: RMS width difference over ``SAME_CHIP_MAX_LSB``.
+#: ... beyond this RMS width difference (LSB a code): what the same chip may show.
+SAME_CHIP_MAX_LSB = 0.05
+#: A TDC is named as disagreeing where its own excess beyond ``SAME_CHIP_MAX_LSB`` is over
+#: this many sigmas.
 TDC_SIGMAS = 3.0
 #: A code this many sigmas above the calibration's pattern is a return (never a DNL): it
 #: and ``RETURN_REACH`` codes each side are left out.
 RETURN_Z, RETURN_REACH = 6.0, 4
-#: ... and so are three adjacent codes whose mean is this many sigmas above it (a dim
-#: return; a DNL differs code by code, alternating with the 8-code pattern)
+#: ... and so are 3, 8 or 24 adjacent codes whose sum is this many of its sigmas above
+#: it (a dim return; a bright one's tail, tens of codes where a return that fires in most
+#: cycles is thousands of times the background a code): another chip's widths differ code
+#: by code, with the 8-code pattern summing to ~0
 CLUSTER_Z = 4.0
 
 
@@ -60,37 +63,40 @@ class ChipCheck:
     dof: np.ndarray       #: its degrees of freedom (codes used - 1), 0 where none
     excess: np.ndarray    #: chi2 less the counting's share (per TDC)
     spread: np.ndarray    #: sqrt(2 dof): the chi-square's own sigma
-    power: np.ndarray     #: the excess widths ``DNL_DIFF_LSB`` apart would give
     rate2: np.ndarray     #: sum of r^2 / var over the codes (the excess per LSB^2)
     tdc_ok: np.ndarray    #: TDCs with codes to compare
 
-    def _pooled(self, rows=None):
-        sel = self.tdc_ok if rows is None else rows
+    def _beyond(self, diff_lsb: float) -> np.ndarray:
+        """Per TDC, the excess beyond what widths ``diff_lsb`` apart would give."""
+        return self.excess - diff_lsb ** 2 * self.rate2
+
+    def _pooled_sigmas(self, values) -> float:
+        sel = self.tdc_ok
         sd = float(np.sqrt(np.sum(self.spread[sel] ** 2)))
-        return (float(np.sum(self.excess[sel])) / sd if sd > 0 else 0.0,
-                float(np.sum(self.power[sel])) / sd if sd > 0 else 0.0,
-                float(np.sum(self.excess[sel]) / max(np.sum(self.rate2[sel]), 1e-300)))
+        return float(np.sum(np.asarray(values)[sel])) / sd if sd > 0 else 0.0
 
     @property
     def excess_sigmas(self) -> float:
         """The pooled chi-square's excess in its own sigmas."""
-        return self._pooled()[0]
+        return self._pooled_sigmas(self.excess)
+
+    @property
+    def beyond_sigmas(self) -> float:
+        """The pooled excess beyond ``SAME_CHIP_MAX_LSB``, in sigmas."""
+        return self._pooled_sigmas(self._beyond(SAME_CHIP_MAX_LSB))
 
     @property
     def power_sigmas(self) -> float:
-        """The pooled excess a difference of ``DNL_DIFF_LSB`` would give, in sigmas."""
-        return self._pooled()[1]
+        """What :attr:`beyond_sigmas` would be for widths ``DNL_DIFF_LSB`` apart."""
+        return self._pooled_sigmas((DNL_DIFF_LSB ** 2 - SAME_CHIP_MAX_LSB ** 2) * self.rate2)
 
     @property
     def width_diff_lsb(self) -> float:
         """The RMS width difference (LSB a code) the pooled excess stands for (0 where
         the counting explains it all)."""
-        return float(np.sqrt(max(self._pooled()[2], 0.0)))
-
-    @property
-    def tdc_width_diff_lsb(self) -> np.ndarray:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.sqrt(np.clip(self.excess / self.rate2, 0.0, None))
+        sel = self.tdc_ok
+        d2 = float(np.sum(self.excess[sel])) / max(float(np.sum(self.rate2[sel])), 1e-300)
+        return float(np.sqrt(max(d2, 0.0)))
 
     @property
     def n_tdc(self) -> int:
@@ -98,34 +104,32 @@ class ChipCheck:
 
     @property
     def disagree(self) -> np.ndarray:
-        """The TDCs that disagree on their own (``TDC_SIGMAS``, ``SAME_CHIP_MAX_LSB``)."""
+        """The TDCs that disagree on their own (``TDC_SIGMAS``)."""
         return self.disagree_at(TDC_SIGMAS)
 
     def disagree_at(self, sigmas: float) -> np.ndarray:
-        """The TDCs whose own excess is over ``sigmas`` and whose widths differ by more
-        than ``SAME_CHIP_MAX_LSB``."""
+        """The TDCs whose own excess beyond ``SAME_CHIP_MAX_LSB`` is over ``sigmas``."""
         with np.errstate(divide="ignore", invalid="ignore"):
-            z = self.excess / self.spread
-        return self.tdc_ok & (z > sigmas) & (self.tdc_width_diff_lsb > SAME_CHIP_MAX_LSB)
+            z = self._beyond(SAME_CHIP_MAX_LSB) / self.spread
+        return self.tdc_ok & (z > sigmas)
 
     @property
     def verdict(self) -> str:
         """"mismatch" (another chip's calibration), "match", or "undecided" (too few
         background counts to see another chip: a dim capture)."""
-        z, power, _ = self._pooled()
-        if z > REFUSE_SIGMAS and self.width_diff_lsb > SAME_CHIP_MAX_LSB:
+        if self.beyond_sigmas > REFUSE_SIGMAS:
             return "mismatch"
-        return "match" if power >= DECIDE_SIGMAS else "undecided"
+        return "match" if self.power_sigmas >= DECIDE_SIGMAS else "undecided"
 
     def summary(self) -> str:
-        return (f"code-density pattern: {self.excess_sigmas:.1f} sigma excess over "
-                f"{int(self.tdc_ok.sum())} TDCs, RMS width difference "
-                f"{self.width_diff_lsb:.3f} LSB (could see {DNL_DIFF_LSB} at "
-                f"{self.power_sigmas:.1f} sigma)")
+        return (f"code widths {self.width_diff_lsb:.3f} LSB RMS from the calibration's over "
+                f"{int(self.tdc_ok.sum())} TDCs ({self.beyond_sigmas:.1f} sigma beyond "
+                f"{SAME_CHIP_MAX_LSB} LSB; {DNL_DIFF_LSB} LSB would show at "
+                f"{self.power_sigmas:.1f})")
 
 
 def check_chip(hits: np.ndarray, cycles, widths: np.ndarray, width_var=None,
-               exclude: np.ndarray | None = None, rounds: int = 3) -> ChipCheck:
+               exclude: np.ndarray | None = None, rounds: int = 6) -> ChipCheck:
     """:class:`ChipCheck` of a capture's histograms ``hits`` (n_tdc, 512) over ``cycles``
     against a calibration's code ``widths`` (n_tdc, 512, LSB; NaN where not measured) and
     their variances ``width_var`` (LSB^2; None: taken as exact). ``exclude``: codes to
@@ -155,8 +159,12 @@ def check_chip(hits: np.ndarray, cycles, widths: np.ndarray, width_var=None,
 
     for _ in range(rounds):  # the returns left out, and the rate again without them
         r, var, z = residuals(use)
-        near = (z + np.roll(z, 1, axis=1) + np.roll(z, -1, axis=1)) / np.sqrt(3)
-        hot = (z > RETURN_Z) | (near > CLUSTER_Z)
+        hot = z > RETURN_Z
+        for span in (3, 8, 24):  # a dim return's codes, a bright one's tail
+            run = np.cumsum(np.concatenate([np.zeros((z.shape[0], 1)), z], axis=1), axis=1)
+            lo = np.clip(np.arange(N_CODES) - span // 2, 0, N_CODES)
+            hi = np.clip(lo + span, 0, N_CODES)
+            hot |= (run[:, hi] - run[:, lo]) / np.sqrt(span) > CLUSTER_Z
         if not hot.any():
             break
         spread = np.zeros_like(hot)
@@ -170,5 +178,4 @@ def check_chip(hits: np.ndarray, cycles, widths: np.ndarray, width_var=None,
     dof = np.maximum(m - 1, 0).astype(np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         rate2 = np.where(good, r[:, None] ** 2 / var, 0.0).sum(1)
-    return ChipCheck(chi2, dof, chi2 - dof, np.sqrt(2 * dof), rate2 * DNL_DIFF_LSB ** 2,
-                     rate2, dof > 0)
+    return ChipCheck(chi2, dof, chi2 - dof, np.sqrt(2 * dof), rate2, dof > 0)

@@ -138,6 +138,11 @@ CASES = [
                                   "--delay-ps", "1000", "--irf-ps", "1e9"], "no wider"),
     ("tcspc range", 2, lambda f: ["range", f.hand(16.0), "--out", f.new("r.parquet"),
                                   "--delay-ps", "nan"], "--delay-ps must be finite"),
+    ("tcspc range", 2, lambda f: ["range", f.other_chip()[0], "--out", f.new("r.parquet"),
+                                  "--calibration", f.other_chip()[1]],
+     "does not match calibration"),
+    ("tcspc range", 2, lambda f: ["range", T3, "--out", f.new("r.parquet"), "--delay-ps", "0",
+                                  "--force"], "--force is for a tcspc capture"),
     ("tcspc range", 3, lambda f: ["range", f.cut_ptu, "--out", f.new("r.parquet"),
                                   "--delay-ps", "1000"], "nothing written"),
     ("tcspc calibrate delay", 2, lambda f: ["calibrate", "delay", f.cap, "--out", f.dir],
@@ -278,6 +283,21 @@ def f(tmp_path_factory):
             schema=HISTOGRAMS.schema), path)
         return path
 
+    made_pair: list = []
+
+    def other_chip() -> tuple[Path, Path]:
+        """A capture of one zoo chip and a calibration of another (made on first use)."""
+        if not made_pair:
+            from benchmarks.calibration_sigma import (
+                chip_of,
+                save_chip_calibration,
+                simulated_capture,
+            )
+
+            made_pair.extend([simulated_capture(chip_of(2, 8), d / "chip2.bin"),
+                              save_chip_calibration(chip_of(1, 8), 1, d / "chip1cal")])
+        return made_pair[0], made_pair[1]
+
     ns = SimpleNamespace(
         cap=d / "cap.bin", cut=d / "cut.bin", cut_ptu=d / "cut.ptu", png=d / "pic.png",
         png_out=d / "out.png", empty_parquet=d / "empty.parquet", dir=d / "adir",
@@ -286,7 +306,7 @@ def f(tmp_path_factory):
         empty_csv=d / "empty.csv", scene=d / "scene.toml", bad_scene=d / "bad.toml",
         bad_topology=d / "bad_topology.toml", missing=d / "missing.bin",
         under_file=d / "afile" / "x.parquet", busy_port=busy.getsockname()[1],
-        new=lambda name: d / f"new{next(made)}" / name, hand=hand)
+        new=lambda name: d / f"new{next(made)}" / name, hand=hand, other_chip=other_chip)
     yield ns
     busy.close()
 
