@@ -10,6 +10,7 @@ all of them), then ranges targets anywhere in the window (``range_state``, as ``
 range``) against the truth: the share of errors within 2 ``sigma_m``.
 
     python benchmarks/calibration_sigma.py [--seeds 1 2 3 4] [--tdcs 16] [--ranges 6]
+        [--chip-check]
 """
 
 from __future__ import annotations
@@ -143,12 +144,49 @@ def coverage(r: Ranged, k: float = 2.0) -> float:
     return float(np.mean(np.abs(r.error_m) <= k * r.sigma_m))
 
 
+def chip_table(seeds, n_tdc: int) -> None:
+    """The chip check (issue 33.4) of captures of every chip in ``seeds`` against the first
+    chip's calibration and its recalibration from other noise draws: per light and cycles,
+    the verdict, the RMS width difference and the pooled excess beyond a chip's drift."""
+    from pipeline.offline.ranging import check_capture_chip
+
+    first = chip_of(seeds[0], n_tdc)
+    cals = {"same chip": calibrate(first, seeds[0]),
+            "same chip recalibrated": calibrate(first, seeds[0] + 100)}
+    print(f"\nChip check, calibration of chip {seeds[0]} ({n_tdc} TDCs), a return of 0.05 "
+          "on every pixel:\n")
+    print("| capture | light | cycles | calibration | verdict | width difference (LSB) | "
+          "sigmas beyond 0.05 LSB | 0.1 LSB would show at |")
+    print("|---|---|---|---|---|---|---|---|")
+    for light in (0.005, 0.02, 0.05, 0.2):
+        for cycles in (5e4, 2e5):
+            for seed in seeds:
+                rng = np.random.default_rng([seed, int(light * 1e4), int(cycles)])
+                chip = chip_of(seed, n_tdc)
+                st = capture(chip, light, cycles, rng, np.full(n_tdc, 0.05),
+                             rng.uniform(5e-9, 70e-9, n_tdc))
+                for name, c in cals.items():
+                    if seed != seeds[0] and name != "same chip":
+                        continue
+                    est, *_ = range_state(st, c, T, RANGE_GATE_S, max_returns=3)
+                    ck = check_capture_chip(c, st, est, T)
+                    print(f"| chip {seed} | {light} | {cycles:.0e} | "
+                          f"{name if seed == seeds[0] else 'another chip'} | {ck.verdict} | "
+                          f"{ck.width_diff_lsb:.3f} | {ck.beyond_sigmas:.1f} | "
+                          f"{ck.power_sigmas:.1f} |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4])
     ap.add_argument("--tdcs", type=int, default=16)
     ap.add_argument("--ranges", type=int, default=6)
+    ap.add_argument("--chip-check", action="store_true",
+                    help="the chip check's table instead (issue 33.4)")
     a = ap.parse_args()
+    if a.chip_check:
+        chip_table(a.seeds, a.tdcs)
+        return
     all_r = []
     for seed in a.seeds:
         chip = chip_of(seed, a.tdcs)

@@ -112,7 +112,7 @@ def calibration_sigma_s(calibration: Calibration, calib: Calibration, state, axi
                       calibration.meta["delay"].get("sigma_ps", [None] * calibration.n_tdc)],
                      np.float64)[rows] * 1e-12
     tau = window_s - np.asarray(est.t_s, np.float64)
-    x = _codes_of(tau, axis.tau_edges_s[px], np.isfinite(tau))
+    x = uncertainty.codes_at(tau, axis.tau_edges_s[px])
     table = uncertainty.range_sigma_s(calib.width_var_lsb2[px], x, axis.x_t[px],
                                       axis.scale[px], x0, xr0, s0)
     light = cal.light_level(state.hits, state.cycles)
@@ -265,11 +265,14 @@ def return_codes(calibration: Calibration, state: HistogramState, est: Estimate,
 def check_capture_chip(calibration: Calibration, state: HistogramState, est: Estimate,
                        window_s: float):
     """:func:`stages.calibration.chip_check.check_chip` of a capture's histograms against
-    the calibration's widths (and their variance), its returns left out."""
+    the calibration's widths (and their variance; from its INL error where it stores
+    none), its returns left out."""
+    from stages.calibration import uncertainty
     from stages.calibration.chip_check import check_chip
 
     rows = slice(state.tdc_offset, state.tdc_offset + state.n_tdc)
-    var = None if calibration.width_var_lsb2 is None else calibration.width_var_lsb2[rows]
+    var = (uncertainty.width_var_from_inl_error(calibration.density)
+           if calibration.width_var_lsb2 is None else calibration.width_var_lsb2)[rows]
     return check_chip(state.hits, state.cycles, calibration.density.width_lsb[rows], var,
                       exclude=return_codes(calibration, state, est, window_s))
 

@@ -35,8 +35,9 @@ from stages.calibration.timescale import light_end
 #: The RMS width difference (LSB a code) a capture must be able to see to decide: two real
 #: chips' random DNL (0.05-0.1 LSB each) differ by at least about this.
 DNL_DIFF_LSB = 0.1
-#: ... as this many sigmas of the pooled chi-square's excess.
-DECIDE_SIGMAS = 10.0
+#: ... as this many sigmas beyond ``SAME_CHIP_MAX_LSB`` (the zoo's other chips showed 1.3-2.7x
+#: what 0.1 LSB gives).
+DECIDE_SIGMAS = 6.0
 #: Another chip's: a pooled excess over this many sigmas ...
 REFUSE_SIGMAS = 6.0
 #: ... beyond this RMS width difference (LSB a code): what the same chip may show.

@@ -75,6 +75,33 @@ def table_var(widths: np.ndarray, own_var: np.ndarray, fill_var=None) -> np.ndar
     return np.where(np.isfinite(v), v, pv[:, None])
 
 
+def codes_at(tau_s, tau_edges_s) -> np.ndarray:
+    """(n,) fractional codes of times ``tau_s`` (n,) on each row's axis ``tau_edges_s``
+    (n, 513), linear within a code; NaN for a NaN time or axis."""
+    e = np.asarray(tau_edges_s, np.float64)
+    t = np.asarray(tau_s, np.float64)
+    with np.errstate(invalid="ignore"):
+        k = np.clip((e <= t[:, None]).sum(axis=1) - 1, 0, e.shape[1] - 2)
+    r = np.arange(e.shape[0])
+    lo, hi = e[r, k], e[r, k + 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = k + np.clip((t - lo) / (hi - lo), 0.0, 1.0)
+    return np.where(np.isfinite(t) & np.isfinite(lo) & np.isfinite(hi), x, np.nan)
+
+
+def width_var_from_inl_error(density) -> np.ndarray:
+    """(n_tdc, 512) a width variance for a calibration that stores none (made before issue
+    33, or by one density test): the density test's statistical INL error, ``x_T
+    sqrt(1/6) / sqrt(H)`` LSB RMS (:data:`.density.INL_RMS_FACTOR`), gives its hits H, and
+    a code's width has the variance of its count, about ``x_T / H`` LSB^2."""
+    err = np.asarray(density.inl_error_lsb, np.float64)
+    x_t = np.asarray(density.x_t, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        v = 6.0 * err ** 2 / x_t
+    return np.broadcast_to(np.where(np.isfinite(v), v, np.nan)[:, None],
+                           (v.size, N_CODES)).copy()
+
+
 def _below(x) -> np.ndarray:
     """(n, 512): the share of each code j below fractional code ``x`` (n,)."""
     j = np.arange(N_CODES)[None, :]

@@ -9,6 +9,7 @@ Pairs of zoo chips with what real chips have (``REAL_CHIP_RANGES``), calibrated 
 Poisson draws of expected histograms with a return on every pixel (strong ones included:
 a return firing in most cycles), and through the CLI as the simulator writes them."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -67,6 +68,16 @@ def test_the_same_chip_recalibrated_passes(cals, light, cycles, m):
         assert not ck.disagree_at(TDC_FLAG_SIGMAS).any(), (key, ck.summary())
         if light * cycles >= 1.5e5:
             assert ck.verdict == "match", (key, ck.summary())
+
+
+def test_a_calibration_without_its_width_variance_is_checked_too(cals):
+    """A calibration made before issue 33 (or by one density test) stores no width
+    variance: its INL error stands for it, so its own counting is not taken for another
+    chip's widths (a bright capture of the same chip passes, another chip's is refused)."""
+    old = dataclasses.replace(cals[1], width_var_lsb2=None)
+    same = _check(old, 1, 0.3, 5e5, seed=1)
+    assert same.verdict == "match" and same.beyond_sigmas < 3, same.summary()
+    assert _check(old, 2, 0.3, 5e5, seed=1).verdict == "mismatch"
 
 
 @pytest.mark.parametrize("chip_seed", [1, 2])
