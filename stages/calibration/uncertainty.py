@@ -139,12 +139,10 @@ def range_sigma_s(width_var, x, x_ref, scale, x0, x_ref0, scale0) -> np.ndarray:
     return _sum_var(a, width_var, good)
 
 
-def scale_rel_sigma(spread, fit_residual_rel=None) -> np.ndarray:
+def scale_rel_sigma(spread) -> np.ndarray:
     """(n,) relative standard error of the time scale at a light: the spread of two
-    interpolations of the density tests' scales (:func:`.timescale.scale_spread`, where the
-    levels leave the LSB against light unresolved) and the LSB fit's relative residual
-    where it has one (more levels than a cubic's four); 0 where neither says."""
-    s = np.nan_to_num(np.asarray(spread, np.float64), nan=0.0)
-    if fit_residual_rel is None:
-        return s
-    return np.hypot(s, np.nan_to_num(np.asarray(fit_residual_rel, np.float64), nan=0.0))
+    interpolations of the density tests' scales (:func:`.timescale.scale_spread`: where
+    the levels leave the LSB against light unresolved, they part). The LSB points are
+    interpolated through, not fitted (no residual to take); their own counting is in the
+    widths' (the scale is T over a boundary of the table). 0 where not interpolated."""
+    return np.nan_to_num(np.asarray(spread, np.float64), nan=0.0)
