@@ -99,8 +99,10 @@ def _calibrate(path: str, fmt: str, dest: Path) -> dict:
         from pipeline.offline.calibrate import density_from_capture, write_caldir
 
         cap = Capture(path)
-        res, second = density_from_capture(cap, inl_rms_lsb=None)
-        out = write_caldir(dest / cap.name, res, second, [cap.bin_path])
+        var: dict = {}
+        res, second = density_from_capture(cap, inl_rms_lsb=None, variance=var)
+        out = write_caldir(dest / cap.name, res, second, [cap.bin_path],
+                           width_var=var.get("width_var"))
         return {"output": str(out), "records": cap.n_words, "rows": int(res.ok.sum()),
                 "note": f"{int((~res.ok).sum())} TDCs flagged" if not res.ok.all() else ""}
     if fmt == "ptu":

@@ -53,12 +53,17 @@ CALIBRATION_TDC = SchemaSpec("calibration_tdc", "1.1", (
     field("ok", pa.bool_(), "", "false for a dead or dark TDC (flagged, excluded)"),
 ))
 
-CALIBRATION_INL = SchemaSpec("calibration_inl", "1.0", (
+CALIBRATION_INL = SchemaSpec("calibration_inl", "1.1", (
     field("tdc", pa.uint16(), "", "TDC address (0-based)"),
     field("code", pa.uint16(), "LSB", "first-stage code D1st"),
     field("width_lsb", pa.float64(), "LSB", "code bin width from the density test"),
     field("dnl_lsb", pa.float64(), "LSB", "differential non-linearity"),
     field("inl_lsb", pa.float64(), "LSB", "integral non-linearity"),
+    # 1.1: the calibration's own uncertainty (issue 33.3); 1.0 files lack it
+    field("width_sigma_lsb", pa.float64(), "LSB", "standard error of width_lsb from the "
+          "calibration's counts (the density tests' combined; where no test measured the "
+          "code, the random DNL about the phase pattern); null where not known",
+          nullable=True),
 ))
 
 RANGES = SchemaSpec("ranges", "2.0", (

@@ -73,8 +73,10 @@ def density(capture, out, plot, fill, inl_rms, overwrite) -> None:
     _check_outs(out, plot, overwrite)
     cap = Capture(capture)
     others = [Capture(p) for p in fill]
-    res, second = density_from_capture(cap, inl_rms, fill=others)
-    write_caldir(out, res, second, [cap.bin_path] + [c.bin_path for c in others])
+    var: dict = {}
+    res, second = density_from_capture(cap, inl_rms, fill=others, variance=var)
+    write_caldir(out, res, second, [cap.bin_path] + [c.bin_path for c in others],
+                 width_var=var.get("width_var"))
     _report(res, second)
     if plot:
         from pipeline.report.figures import density_figure

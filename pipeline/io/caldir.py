@@ -91,7 +91,7 @@ def sha256(path: Path, chunk: int = 1 << 22) -> str:
 
 
 #: inl.parquet's column of each code width's standard error (LSB), from the calibration's
-#: counts (issue 33.3); absent in calibrations made before it
+#: counts (calibration_inl 1.1, issue 33.3); null where not known, absent in 1.0 files
 WIDTH_SIGMA = "width_sigma_lsb"
 
 #: the files whose bytes make a calibration's identity (:func:`calibration_id`)
@@ -141,8 +141,12 @@ def load_calibration(caldir: str | os.PathLike) -> Calibration:
                          real / "tdc.parquet")
     inl_path = real / "inl.parquet"
     inl = pq.ParquetFile(pa.BufferReader(files["inl.parquet"])).read()
+    spec = CALIBRATION_INL
+    if WIDTH_SIGMA not in inl.column_names:  # a 1.0 table: no uncertainty stored
+        spec = type(spec)(spec.name, "1.0", tuple(f for f in spec.fields
+                                                   if f.name != WIDTH_SIGMA))
     try:
-        validate(inl, CALIBRATION_INL, str(inl_path), allow_extra=True)
+        validate(inl, spec, str(inl_path), allow_extra=True)
     except (SchemaMismatch, SchemaVersionError) as exc:
         raise CalibrationError(str(exc)) from exc
     meta = {**meta, "calibration_id": calibration_id(files)}
@@ -186,7 +190,9 @@ def load_calibration(caldir: str | os.PathLike) -> Calibration:
                          else np.asarray(levels, np.float64))
     delay = np.asarray(col("delay_ps"), np.float64) * 1e-12
     dm = meta.get("delay", {})
-    var = (grid(WIDTH_SIGMA) ** 2 if WIDTH_SIGMA in inl.column_names else None)
+    var = None
+    if WIDTH_SIGMA in inl.column_names and inl.column(WIDTH_SIGMA).null_count < inl.num_rows:
+        var = grid(WIDTH_SIGMA) ** 2
     return Calibration(density, second, fit, delay, tuple(dm.get("reasons", ())),
                        dm.get("irf_sigma_s"), meta, str(caldir), width_var_lsb2=var)
 
@@ -219,9 +225,9 @@ def save_calibration(calibration: Calibration, out: str | os.PathLike,
         "width_lsb": pa.array(np.ravel(density.width_lsb)),
         "dnl_lsb": pa.array(np.ravel(density.dnl_lsb)),
         "inl_lsb": pa.array(np.ravel(density.inl_lsb)),
+        WIDTH_SIGMA: (pa.nulls(n * N_CODES, pa.float64()) if c.width_var_lsb2 is None
+                      else pa.array(np.ravel(np.sqrt(c.width_var_lsb2)))),
     }, schema=CALIBRATION_INL.schema)
-    if c.width_var_lsb2 is not None:  # a column beyond the 1.0 schema: older readers skip it
-        inl = inl.append_column(WIDTH_SIGMA, pa.array(np.ravel(np.sqrt(c.width_var_lsb2))))
     if sources is None:
         recorded = c.meta.get("sources", [])
     else:

@@ -85,26 +85,30 @@ def refilled(state, res: cal.DensityResult, others: list, window_s: float,
 
 
 def density_from_capture(capture: Capture, inl_rms_lsb: float | None = 0.3,
-                         progress=None, fill: list | tuple = ()
+                         progress=None, fill: list | tuple = (), variance: dict | None = None
                          ) -> tuple[cal.DensityResult, cal.SecondStage]:
     """Run a density test on a uniform-light capture (two passes: second stage, then D1st).
 
     ``fill``: captures of density tests at other light (dimmer: their reset peaks ~10
     codes higher at half the light) that measure the codes under this one's reset peak
     (see :func:`refilled`). Raises CalibrationError when the capture is too small for
-    ``inl_rms_lsb`` (None: no check), saying how many cycles are needed.
+    ``inl_rms_lsb`` (None: no check), saying how many cycles are needed. ``variance``: a
+    dict that receives ``"width_var"`` (:func:`table_variance`), for :func:`write_caldir`.
     """
     # one set of bounds for this test and its fills (the chip's, campaign_second_stage)
     (state, second), *rest = campaign_histograms([capture, *fill], progress)
     window_s = capture.meta.window_ns * 1e-9
-    res = checked(state, cal.density_test(state.hits, state.cycles, window_s,
-                                          artifacts=state.artifacts), second)
+    own = res = checked(state, cal.density_test(state.hits, state.cycles, window_s,
+                                                artifacts=state.artifacts), second)
+    others = []
     if fill:
         others = [(st, checked(st, cal.density_test(st.hits, st.cycles, window_s,
                                                     artifacts=st.artifacts), second))
                   for st, _ in rest]
         res = refilled(state, res, others, window_s)
         res = checked(state, res, second)
+    if variance is not None:
+        variance["width_var"] = table_variance(state, own, others, res)
     if inl_rms_lsb is not None:
         worst = np.nanmax(np.where(res.ok, res.inl_error_lsb, np.nan)) if res.ok.any() else np.inf
         if not np.isfinite(worst) or worst > inl_rms_lsb:

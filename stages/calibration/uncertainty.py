@@ -44,7 +44,8 @@ def combined_var(*variances) -> np.ndarray:
 def pattern_var(widths: np.ndarray, width_var: np.ndarray) -> np.ndarray:
     """(n_tdc,) variance of a width the table did not measure: the scatter of the
     ``PATTERN_CODES`` last measured widths about their phase means (code mod 8), less
-    what their own counting explains; 0 where nothing was measured."""
+    what their own counting explains, and never less than the phase means' own counting;
+    0 where nothing was measured."""
     w = np.asarray(widths, np.float64)
     v = np.asarray(width_var, np.float64)
     out = np.zeros(w.shape[0])
@@ -60,7 +61,8 @@ def pattern_var(widths: np.ndarray, width_var: np.ndarray) -> np.ndarray:
         resid = w[t, sel] - mean[ph]
         stat = v[t, sel]
         own = float(np.mean(stat[np.isfinite(stat)])) if np.isfinite(stat).any() else 0.0
-        out[t] = max(float(np.nanmean(resid ** 2)) - own, 0.0)
+        # never below the phase means' own counting (a mean of sel.size / 8 widths)
+        out[t] = max(float(np.nanmean(resid ** 2)) - own, own * 8 / sel.size)
     return out
 
 

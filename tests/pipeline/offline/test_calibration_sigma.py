@@ -66,8 +66,9 @@ def test_time_sigma_is_the_scatter_of_the_axis_over_width_errors():
 
 def test_the_calibration_stores_its_uncertainty(calibrated, tmp_path):
     """Every code width has a finite standard error on calibrated TDCs, kept by the
-    calibration directory (inl.parquet's extra column); the delay's sigma is in meta.json
-    with the table's part; a calibration made before (no column) still loads."""
+    calibration directory (inl.parquet 1.1's width_sigma_lsb); the delay's sigma is in
+    meta.json with the table's part; one without (null) and a 1.0 table (no column) load
+    without it."""
     chip, calib = calibrated
     assert np.all(np.isfinite(calib.width_var_lsb2[calib.ok]))
     assert np.all(calib.width_var_lsb2[calib.ok] > 0)
@@ -82,7 +83,10 @@ def test_the_calibration_stores_its_uncertainty(calibrated, tmp_path):
     save_calibration(old, tmp_path / "old", [])
     import pyarrow.parquet as pq
 
-    assert WIDTH_SIGMA not in pq.read_table(tmp_path / "old" / "inl.parquet").column_names
+    inl = pq.read_table(tmp_path / "old" / "inl.parquet")
+    assert inl.column(WIDTH_SIGMA).null_count == inl.num_rows
+    assert load_calibration(tmp_path / "old").width_var_lsb2 is None
+    pq.write_table(inl.drop_columns([WIDTH_SIGMA]), tmp_path / "old" / "inl.parquet")
     assert load_calibration(tmp_path / "old").width_var_lsb2 is None
 
 
@@ -151,3 +155,24 @@ def test_the_delays_sigma_grows_with_the_codes_it_spans(calibrated):
     assert np.median(t_hi) > 1.3 * np.median(t_lo), (t_lo, t_hi)
     assert np.all(np.isfinite(lo.delay_s)) and np.all(np.isfinite(hi.delay_s))
     assert abs(np.nanmedian(lo.delay_s) - (GATE_S - 10e-9)) < 300e-12
+
+
+def test_one_density_test_stores_its_width_variance_too(tmp_path):
+    """`calibrate density` (one test): each width's variance is its own counting where it
+    measured the code, the random DNL's about the phase pattern where it did not (under
+    its reset peak); it falls as 1 / cycles."""
+    from benchmarks.calibration_sigma import simulated_capture
+    from pipeline.io.capture import Capture
+    from pipeline.offline.calibrate import density_from_capture
+
+    chip = chip_of(3, N)
+    out = {}
+    for cycles in (100_000, 400_000):
+        var: dict = {}
+        cap = simulated_capture(chip, tmp_path / f"d{cycles}.bin", lux=2500.0, cycles=cycles,
+                                reflectivity=0.0)
+        res, _ = density_from_capture(Capture(cap), inl_rms_lsb=None, variance=var)
+        v = var["width_var"]
+        assert np.all(np.isfinite(v[res.ok])) and np.all(v[res.ok] > 0)
+        out[cycles] = np.median(v[res.ok][:, 50:300])
+    assert 3 < out[100_000] / out[400_000] < 5, out
