@@ -137,9 +137,11 @@ def run_cmd(name, params, dask_address, dask_insecure) -> None:
     state = fl(**kwargs, return_state=True)
     result = state.result()  # a failed run raises its error here
     click.echo(json.dumps(result, indent=1, default=str))
-    click.echo(f"{name}: {state.name}" + (f" ({state.message})" if state.message else ""),
-               err=True)
-    if state.name == "Refused":  # completed, but nothing published: say so to scripts
+    outcome = f" {result['outcome']}" if isinstance(result, dict) and "outcome" in result else ""
+    click.echo(f"{name}: {state.name}{outcome}" + (f" ({state.message})" if state.message
+                                                   else ""), err=True)
+    if isinstance(result, dict) and result.get("outcome") == "refused":
+        # completed, but nothing published: say so to scripts
         sys.exit(REFUSED_EXIT)
 
 

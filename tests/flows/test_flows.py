@@ -297,7 +297,10 @@ def test_the_outcome_is_a_named_state_with_its_run_linked_everywhere(campaign):
         fr = c.read_flow_run(fr_id)
         arts = c.read_artifacts(flow_run_filter=FlowRunFilter(id={"any_": [fr.id]}),
                                 artifact_filter=ArtifactFilter())
-    assert fr.state.name == "Published" and fr.state.is_completed()
+    # Completed by type and name (#39.4): the verdict in the result, the tag and the event
+    assert fr.state.name == "Completed" and fr.state.is_completed()
+    assert "tcspc:published" in fr.tags and r["outcome"] == "published"
+    assert r["rule"] == "first"
     assert fr.name.startswith("campaign 20") and fr.name.endswith(f" {SMALL_CAL['n_pixels']}px")
     # the run id in the published calibration's meta.json and in summary.json
     meta = json.loads((out / "versions" / Path(r["run"]).name / "meta.json").read_text())
@@ -314,16 +317,19 @@ def test_the_outcome_is_a_named_state_with_its_run_linked_everywhere(campaign):
     assert rows["TDCs calibrated"]["current"] is None  # the first: nothing to replace
 
 
-def test_a_refused_candidate_ends_in_its_own_state(campaign):
+def test_a_refused_candidate_ends_completed_with_the_verdict_in_result_and_tag(campaign):
     from flows.calibration import calibration_campaign
 
     out, _ = campaign
     state = calibration_campaign(out=str(out), **{**SMALL_CAL, "cycles": 40_000,
                                                   "inl_rms": 5.0, "seed": 7},
                                  return_state=True)
-    assert state.name == "Refused" and state.is_completed()
+    assert state.name == "Completed" and state.is_completed()
     r = state.result()
-    assert not r["published"] and r["refused_because"]
+    assert not r["published"] and r["refused_because"] and r["outcome"] == "refused"
+    assert r["rule"] == "quality" and r["age_h"] < 1  # young: the quality rule holds
+    with _client() as c:
+        assert "tcspc:refused" in c.read_flow_run(r["flow_run"]["id"]).tags
     assert "Not published" in state.message
     # the comparison now has the calibration it would have replaced
     assert r["figures"]["TDCs calibrated"] == SMALL_CAL["n_pixels"]
@@ -342,12 +348,13 @@ def test_a_current_that_cannot_be_read_is_not_replaced_unexamined(captured, tmp_
     res = CliRunner().invoke(cli, ["flow", "run", "calibration_campaign", "-p", f"out={out}",
                                    "-p", f"captures={captured}", "-p", "inl_rms=1.0"])
     assert res.exit_code == 3, res.output
-    assert "calibration_campaign: Refused" in res.output
+    assert "calibration_campaign: Completed refused" in res.output
     assert "cannot be read" in json.loads(res.stdout)["refused_because"][0]
     assert (out / "current" / "tdc.parquet").read_bytes() == b"left by hand"
     forced = calibration_campaign(out=str(out), captures=str(captured), inl_rms=1.0,
                                   force=True, return_state=True)
-    assert forced.name == "Published" and forced.result()["forced"]
+    assert forced.name == "Completed" and forced.result()["forced"]
+    assert forced.result()["rule"] == "forced"
     # the old directory was exchanged for a link in one step, and kept as a version
     assert (out / "current").is_symlink() and (out / "current" / "meta.json").is_file()
     assert any(p.name.startswith("before-") for p in (out / "versions").iterdir())
@@ -414,7 +421,7 @@ def _state_after_the_next_campaign(captured, out, run_id):
 
     state = calibration_campaign(out=str(out), captures=str(captured), inl_rms=1.0,
                                  return_state=True)
-    assert state.name == "Published"
+    assert state.name == "Completed" and state.result()["published"]
     with _client() as c:
         return c.read_flow_run(run_id).state
 

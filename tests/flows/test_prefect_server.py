@@ -124,7 +124,7 @@ def test_a_killed_run_is_marked_crashed_and_the_rerun_resumes(server, tmp_path_f
     assert not [t for t in _task_states(server, dead["id"]).values()
                 if t in ("Running", "Pending")]
     (new,) = [r for r in runs.values() if r["id"] != dead["id"]]
-    assert new["state"]["name"] == "Published"
+    assert new["state"]["name"] == "Completed" and "tcspc:published" in new["tags"]
     states = _task_states(server, new["id"])
     sims = [s for name, s in states.items() if name.startswith("simulate ")]
     assert len(sims) == 6 and set(sims) == {"Cached"}, states  # resumed, not redone
@@ -170,7 +170,8 @@ def test_the_served_schedule_runs_and_ctrl_c_stops_it(server, tmp_path_factory):
             if mine:
                 runs = _api(server, "POST", "/flow_runs/filter", {
                     "deployments": {"id": {"any_": [mine[0]["id"]]}}})
-                done = next((r for r in runs if r["state"]["name"] == "Published"), None)
+                done = next((r for r in runs if r["state"]["name"] == "Completed"
+                             and "tcspc:published" in r["tags"]), None)
             time.sleep(2)
         assert "bench-test" in mine[0]["tags"] and "calibration" in mine[0]["tags"]
         # a run with a broken parameter is refused at creation, naming it
