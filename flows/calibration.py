@@ -57,8 +57,8 @@ from flows.common import (
     report,
     run_namer,
     scene_dict,
-    simulate,
     show_waiting,
+    simulate,
     simulated,
     tag_run,
     touch,
@@ -163,8 +163,8 @@ def measure_delay(capture, fit_dir: str, cache_dir: str) -> dict:
 MAX_AGE_H = 7 * 24.0
 #: ... or when the chip's LSB has drifted this far from it (median TDC, ps) ...
 MAX_LSB_DRIFT_PS = 0.5
-#: ... or its delay this far (median TDC, ps)
-MAX_DELAY_DRIFT_PS = 50.0
+#: ... or its delay this far (median TDC, ps: ~1.5 cm of range)
+MAX_DELAY_DRIFT_PS = 100.0
 #: a worse candidate that replaces an old or drifted one must calibrate this share of the
 #: TDCs the current one does (and reach the campaign's inl_rms, and have a delay where the
 #: current one has)
@@ -172,12 +172,18 @@ MIN_TDC_SHARE = 0.9
 
 
 def calibration_age_h(caldir: str | Path, now: dt.datetime | None = None) -> float | None:
-    """Hours since a calibration was made (meta.json's ``created``, else its version's
-    stamp); None when it records no time."""
-    stamp = version_time(Path(caldir).resolve())
-    if not stamp:
-        return None
-    made = dt.datetime.strptime(stamp, "%Y%m%dT%H%M%SZ").replace(tzinfo=dt.UTC)
+    """Hours since a calibration was made: meta.json's ``created`` (when its fit was
+    computed, from captures no younger), else its version's stamp; None when it records
+    no time."""
+    real = Path(caldir).resolve()
+    try:
+        made = dt.datetime.fromisoformat(json.loads((real / "meta.json").read_text())["created"])
+        made = made if made.tzinfo else made.replace(tzinfo=dt.UTC)
+    except (OSError, ValueError, KeyError, TypeError):
+        stamp = version_time(real)
+        if not stamp:
+            return None
+        made = dt.datetime.strptime(stamp, "%Y%m%dT%H%M%SZ").replace(tzinfo=dt.UTC)
     return ((now or dt.datetime.now(dt.UTC)) - made).total_seconds() / 3600
 
 
@@ -185,8 +191,10 @@ def drift_ps(candidate: str | Path, current: str | Path) -> dict:
     """How far the chip moved from the current calibration, by this campaign's own
     measurements: the LSB the density tests measured at their light levels against what
     the current calibration gives at those levels, and the delay measured now against
-    its delay; each the median over the TDCs both calibrate of the per-TDC absolute
-    difference (ps; NaN where either lacks it)."""
+    its delay; each the size of the median over the TDCs both calibrate of the per-TDC
+    difference (ps; NaN where either lacks it): a shift of the chip, which temperature
+    and supply move as a whole, not one TDC's scatter (a delay is measured per TDC to a
+    fraction of an LSB: two fits of one capture differ by ~150 ps per TDC)."""
     new, cur = load_calibration(candidate), load_calibration(current)
     both = new.ok & cur.ok
     lsb = float("nan")
@@ -194,8 +202,8 @@ def drift_ps(candidate: str | Path, current: str | Path) -> dict:
             and both.any():
         now = new.lsb_fit.points_ps()  # (TDC, level)
         then = np.column_stack([cur.lsb_fit.lsb_ps(float(n)) for n in new.lsb_fit.levels])
-        lsb = over_finite(np.median, np.nanmedian(np.abs(now - then), axis=1)[both])
-    delay = over_finite(np.median, np.abs(new.delay_s - cur.delay_s)[both] * 1e12)
+        lsb = abs(over_finite(np.median, np.nanmedian(now - then, axis=1)[both]))
+    delay = abs(over_finite(np.median, (new.delay_s - cur.delay_s)[both] * 1e12))
     return {"lsb": lsb, "delay": delay}
 
 
@@ -267,7 +275,8 @@ def verdict(candidate: str, current: str, inl_rms: float = 0.5, max_age_h: float
         if not short:
             return {**out, "rule": rule, "why": f"{reason}: replaced although the candidate "
                     f"is worse ({'; '.join(worse)}), being within the absolute limits"}
-        return {**out, "publish": False, "rule": rule, "worse": worse + short,
+        return {**out, "publish": False, "rule": rule,
+                "worse": worse + [w for w in short if w not in worse],
                 "why": f"{reason}, but the candidate is not within the absolute limits "
                        f"({'; '.join(short)})"}
     return {**out, "publish": False, "rule": "quality",
@@ -660,6 +669,7 @@ def report_markdown(text: str, run: Path) -> str:
         png = run / m.group(2)
         if not png.is_file() or "/" in m.group(2):
             return m.group(0)
-        return f"![{m.group(1)}](data:image/png;base64,{base64.b64encode(png.read_bytes()).decode()})"
+        data = base64.b64encode(png.read_bytes()).decode()
+        return f"![{m.group(1)}](data:image/png;base64,{data})"
 
     return re.sub(r"!\[([^\]]*)\]\(([^)\s]+\.png)\)", embed, text)

@@ -224,3 +224,79 @@ def test_a_downtimes_late_runs_make_one_catch_up_run(server, tmp_path):
         to(r, "PENDING")
         assert _api(server, "GET", f"/flow_runs/{r}")["state"]["type"] == "CANCELLED"
     assert _api(server, "GET", f"/flow_runs/{runs[0]}")["state"]["type"] == "RUNNING"
+
+
+#: Prefect's documented "detect zombie flows" automation's trigger: a flow run that sent a
+#: heartbeat is a zombie unless one of these follows within 90 s
+ZOMBIE_EXPECT = {"prefect.flow-run.heartbeat", "prefect.flow-run.Completed",
+                 "prefect.flow-run.Failed", "prefect.flow-run.Cancelled",
+                 "prefect.flow-run.Crashed"}
+
+
+def _poll_events(env, prefix: str, keep, wait_s: float = 60) -> list[dict]:
+    deadline = time.monotonic() + wait_s
+    while True:
+        ev = _api(env, "POST", "/events/filter", {"filter": {
+            "event": {"prefix": [prefix]},
+            "occurred": {"since": "2020-01-01T00:00:00Z"}}, "limit": 50})["events"]
+        mine = [e for e in ev if keep(e)]
+        if mine or time.monotonic() > deadline:
+            return mine
+        time.sleep(1)
+
+
+def test_the_lab_automations_exist_and_a_refusal_fires_its_own(server, tmp_path):
+    """#39.4: `tcspc flow automations --create` makes the three on a real server (again:
+    replaced, not doubled); a refused campaign ends Completed with the verdict in its tag,
+    result and event, and that event fires the refused automation (the server's
+    prefect.automation.triggered), not the crashed one; the run's state event is
+    prefect.flow-run.Completed, which Prefect's zombie automation expects."""
+    out = tmp_path / "cal"
+    cmd = [*TCSPC, "flow", "automations", "--create", "--out", str(out), "--stale-hours", "2"]
+    for _ in range(2):
+        made = subprocess.run(cmd, env=server, cwd=ROOT, capture_output=True, text=True)
+        assert made.returncode == 0, made.stderr
+    autos = {a["name"].split(" (")[0]: a for a in _api(server, "POST", "/automations/filter",
+                                                        {})}
+    assert set(autos) == {"tcspc campaign refused", "tcspc campaign crashed",
+                          "tcspc calibration stale"}
+    assert len(_api(server, "POST", "/automations/filter", {})) == 3
+    stale = autos["tcspc calibration stale"]["trigger"]
+    assert stale["posture"] == "Proactive" and stale["within"] == 7200
+    zombie = _api(server, "POST", "/automations/", {
+        "name": "Crash zombie flows", "trigger": {
+            "type": "event", "posture": "Proactive", "after": ["prefect.flow-run.heartbeat"],
+            "expect": sorted(ZOMBIE_EXPECT), "for_each": ["prefect.resource.id"],
+            "match": {"prefect.resource.id": ["prefect.flow-run.*"]}, "threshold": 1,
+            "within": 90}, "actions": [{"type": "do-nothing"}]})["id"]
+    # a current calibration that cannot be read: the campaign refuses (the quickest refusal)
+    (out / "current").mkdir(parents=True)
+    (out / "current" / "tdc.parquet").write_bytes(b"left by hand")
+    proc = _campaign(server, out)
+    stdout, err = proc.communicate(timeout=600)
+    assert proc.returncode == 3, err
+    result = json.loads(stdout)
+    assert result["outcome"] == "refused" and result["rule"] == "unreadable"
+    (run,) = _runs(server)
+    assert run["state"]["type"] == "COMPLETED" and run["state"]["name"] == "Completed"
+    assert "tcspc:refused" in run["tags"]
+    (ev,) = _events(server, str(out))
+    assert ev["event"] == "tcspc.calibration.refused" and ev["payload"]["rule"] == "unreadable"
+    fired = _poll_events(server, "prefect.automation.triggered",
+                         lambda e: e["resource"]["prefect.resource.id"].endswith(
+                             autos["tcspc campaign refused"]["id"]))
+    assert fired, "the refused automation did not fire"
+    crashed = autos["tcspc campaign crashed"]["id"]
+    assert not [e for e in _poll_events(server, "prefect.automation.triggered", lambda e: True, 0)
+                if e["resource"]["prefect.resource.id"].endswith(crashed)]
+    states = _poll_events(server, "prefect.flow-run.", lambda e: e["resource"][
+        "prefect.resource.id"] == f"prefect.flow-run.{run['id']}")
+    names = {e["event"] for e in states}
+    assert "prefect.flow-run.Completed" in names
+    assert not names - {"prefect.flow-run.Pending", "prefect.flow-run.Running",
+                        "prefect.flow-run.heartbeat", "prefect.flow-run.Completed"}, names
+    # the zombie automation, past its 90 s after the run's last heartbeat, did not fire
+    time.sleep(100)
+    assert not [e for e in _poll_events(server, "prefect.automation.triggered",
+                                        lambda e: True, 0)
+                if e["resource"]["prefect.resource.id"].endswith(zombie)]
