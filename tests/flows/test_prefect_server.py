@@ -103,6 +103,11 @@ def _campaign(env, out, *extra):
 
 def test_a_killed_run_is_marked_crashed_and_the_rerun_resumes(server, tmp_path_factory):
     out = tmp_path_factory.mktemp("killed") / "cal"
+    made = subprocess.run([*TCSPC, "flow", "automations", "--create", "--out", str(out)],
+                          env=server, cwd=ROOT, capture_output=True, text=True)
+    assert made.returncode == 0, made.stderr
+    crashed = next(a["id"] for a in _api(server, "POST", "/automations/filter", {})
+                   if a["name"].startswith("tcspc campaign crashed"))
     proc = _campaign(server, out)
     deadline = time.monotonic() + 300
     # kill -9 once the fit is under way: it starts when all six captures are made and
@@ -134,11 +139,22 @@ def test_a_killed_run_is_marked_crashed_and_the_rerun_resumes(server, tmp_path_f
     (pub,) = _events(server, str(out))
     assert pub["event"] == "tcspc.calibration.published"
     assert pub["resource"]["prefect.resource.name"] == str(out.resolve())
+    # the dead run marked Crashed fired the lab's crashed automation (#39.4)
+    assert _poll_events(server, "prefect.automation.triggered",
+                        lambda e: e["resource"]["prefect.resource.id"].endswith(crashed))
 
 
 def test_two_campaigns_started_at_once_take_turns(server, tmp_path_factory):
     out = tmp_path_factory.mktemp("overlap") / "cal"
     a, b = _campaign(server, out), _campaign(server, out)
+    # the one waiting for the lock says so (#39.5): a Running state named AwaitingLock
+    deadline, waiting = time.monotonic() + 300, []
+    while not waiting and time.monotonic() < deadline and (a.poll() is None
+                                                           or b.poll() is None):
+        waiting = _api(server, "POST", "/flow_runs/filter", {
+            "flow_runs": {"state": {"name": {"any_": ["AwaitingLock"]}}}})
+        time.sleep(0.5)
+    assert len(waiting) == 1 and waiting[0]["state"]["type"] == "RUNNING"
     results = [p.communicate(timeout=900) for p in (a, b)]
     assert a.returncode == 0 and b.returncode == 0, results
     assert sum("waiting for run" in err for _, err in results) == 1
@@ -256,11 +272,14 @@ def test_the_lab_automations_exist_and_a_refusal_fires_its_own(server, tmp_path)
     for _ in range(2):
         made = subprocess.run(cmd, env=server, cwd=ROOT, capture_output=True, text=True)
         assert made.returncode == 0, made.stderr
-    autos = {a["name"].split(" (")[0]: a for a in _api(server, "POST", "/automations/filter",
-                                                        {})}
-    assert set(autos) == {"tcspc campaign refused", "tcspc campaign crashed",
-                          "tcspc calibration stale"}
-    assert len(_api(server, "POST", "/automations/filter", {})) == 3
+    sys.path.insert(0, str(ROOT))
+    from flows.calibration import _slug
+
+    mine = [a for a in _api(server, "POST", "/automations/filter", {})
+            if a["name"].endswith(f"({_slug(str(out))})")]
+    autos = {a["name"].split(" (")[0]: a for a in mine}
+    assert len(mine) == 3 and set(autos) == {
+        "tcspc campaign refused", "tcspc campaign crashed", "tcspc calibration stale"}
     stale = autos["tcspc calibration stale"]["trigger"]
     assert stale["posture"] == "Proactive" and stale["within"] == 7200
     zombie = _api(server, "POST", "/automations/", {
@@ -277,7 +296,7 @@ def test_the_lab_automations_exist_and_a_refusal_fires_its_own(server, tmp_path)
     assert proc.returncode == 3, err
     result = json.loads(stdout)
     assert result["outcome"] == "refused" and result["rule"] == "unreadable"
-    (run,) = _runs(server)
+    run = _api(server, "GET", f"/flow_runs/{result['flow_run']['id']}")
     assert run["state"]["type"] == "COMPLETED" and run["state"]["name"] == "Completed"
     assert "tcspc:refused" in run["tags"]
     (ev,) = _events(server, str(out))
