@@ -147,18 +147,19 @@ def test_a_killed_run_is_marked_crashed_and_the_rerun_resumes(server, tmp_path_f
 def test_two_campaigns_started_at_once_take_turns(server, tmp_path_factory):
     out = tmp_path_factory.mktemp("overlap") / "cal"
     a, b = _campaign(server, out), _campaign(server, out)
-    # the one waiting for the lock says so (#39.5): a Running state named AwaitingLock
-    deadline, waiting = time.monotonic() + 300, []
-    while not waiting and time.monotonic() < deadline and (a.poll() is None
-                                                           or b.poll() is None):
-        waiting = _api(server, "POST", "/flow_runs/filter", {
-            "flow_runs": {"state": {"name": {"any_": ["AwaitingLock"]}}}})
-        time.sleep(0.5)
-    assert len(waiting) == 1 and waiting[0]["state"]["type"] == "RUNNING"
     results = [p.communicate(timeout=900) for p in (a, b)]
     assert a.returncode == 0 and b.returncode == 0, results
     assert sum("waiting for run" in err for _, err in results) == 1
     outs = [json.loads(o) for o, _ in results]
+    # the one that waited for the lock said so (#39.5): a Running state named AwaitingLock
+    # in its history, then Running, then Completed
+    hist = {o["flow_run"]["id"]: [(st["type"], st["name"]) for st in sorted(_api(
+        server, "GET", f"/flow_run_states/?flow_run_id={o['flow_run']['id']}"),
+        key=lambda st: st["timestamp"])] for o in outs}
+    waited = [h for h in hist.values() if ("RUNNING", "AwaitingLock") in h]
+    assert len(waited) == 1, hist
+    assert waited[0][-3:] == [("RUNNING", "AwaitingLock"), ("RUNNING", "Running"),
+                              ("COMPLETED", "Completed")], hist
     assert all(o["published"] for o in outs)
     assert len(list((out / "versions").iterdir())) == 2
     assert (out / "current").is_symlink() and (out / "current" / "meta.json").is_file()
@@ -314,6 +315,16 @@ def test_the_lab_automations_exist_and_a_refusal_fires_its_own(server, tmp_path)
     assert "prefect.flow-run.Completed" in names
     assert not names - {"prefect.flow-run.Pending", "prefect.flow-run.Running",
                         "prefect.flow-run.heartbeat", "prefect.flow-run.Completed"}, names
+    # captures that cannot reach the INL asked (#39.5): a refusal too, with its event
+    proc = _campaign(server, out, "-p", "inl_rms=0.01")
+    stdout, err = proc.communicate(timeout=600)
+    assert proc.returncode == 3, err
+    assert json.loads(stdout)["rule"] == "quality"
+    deadline = time.monotonic() + 30
+    while len(evs := _events(server, str(out))) < 2 and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert sorted(e["payload"]["rule"] for e in evs) == ["quality", "unreadable"]
+    assert all(e["event"] == "tcspc.calibration.refused" for e in evs)
     # the zombie automation, past its 90 s after the run's last heartbeat, did not fire
     time.sleep(100)
     assert not [e for e in _poll_events(server, "prefect.automation.triggered",
