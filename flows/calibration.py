@@ -15,9 +15,11 @@ Layout under ``out`` (default ``data/calibration``)::
     .lock.wait-PID             a campaign waiting for it
 
 A run that fails at any step (or refuses its candidate) leaves the old calibration in
-place, whole. The run ends in a state named for its outcome, ``Published`` or ``Refused``
-(both Completed), and emits the event ``tcspc.calibration.published`` or
-``tcspc.calibration.refused`` for automations.
+place, whole. The run ends Completed (type and name: Prefect's own automations key on
+``prefect.flow-run.Completed``) whether it publishes or refuses; the verdict is in its
+result (``outcome``, ``rule``, ``why``, ``refused_because``), a tag on the run
+(``tcspc:published`` / ``tcspc:refused``) and the event ``tcspc.calibration.published`` or
+``tcspc.calibration.refused`` for automations (:mod:`flows.automations` creates a lab's).
 """
 
 from __future__ import annotations
@@ -55,8 +57,10 @@ from flows.common import (
     report,
     run_namer,
     scene_dict,
+    show_waiting,
     simulate,
     simulated,
+    tag_run,
     touch,
 )
 from pipeline.io.atomic import atomic_path, point_link
@@ -155,22 +159,129 @@ def measure_delay(capture, fit_dir: str, cache_dir: str) -> dict:
     return {"dir": str(where), **json.loads((where / "delay.json").read_text())}
 
 
+#: the current calibration is replaced by a worse candidate past this age (hours) ...
+MAX_AGE_H = 7 * 24.0
+#: ... or when the chip's LSB has drifted this far from it (median TDC, ps) ...
+MAX_LSB_DRIFT_PS = 0.5
+#: ... or its delay this far (median TDC, ps: ~1.5 cm of range)
+MAX_DELAY_DRIFT_PS = 100.0
+#: a worse candidate that replaces an old or drifted one must calibrate this share of the
+#: TDCs the current one does (and reach the campaign's inl_rms, and have a delay where the
+#: current one has)
+MIN_TDC_SHARE = 0.9
+
+
+def calibration_age_h(caldir: str | Path, now: dt.datetime | None = None) -> float | None:
+    """Hours since a calibration was made: meta.json's ``created`` (when its fit was
+    computed, from captures no younger), else its version's stamp; None when it records
+    no time."""
+    real = Path(caldir).resolve()
+    try:
+        made = dt.datetime.fromisoformat(json.loads((real / "meta.json").read_text())["created"])
+        made = made if made.tzinfo else made.replace(tzinfo=dt.UTC)
+    except (OSError, ValueError, KeyError, TypeError):
+        stamp = version_time(real)
+        if not stamp:
+            return None
+        made = dt.datetime.strptime(stamp, "%Y%m%dT%H%M%SZ").replace(tzinfo=dt.UTC)
+    return ((now or dt.datetime.now(dt.UTC)) - made).total_seconds() / 3600
+
+
+def drift_ps(candidate: str | Path, current: str | Path) -> dict:
+    """How far the chip moved from the current calibration, by this campaign's own
+    measurements: the LSB the density tests measured at their light levels against what
+    the current calibration gives at those levels, and the delay measured now against
+    its delay; each the size of the median over the TDCs both calibrate of the per-TDC
+    difference (ps; NaN where either lacks it): a shift of the chip, which temperature
+    and supply move as a whole, not one TDC's scatter (a delay is measured per TDC to a
+    fraction of an LSB: two fits of one capture differ by ~150 ps per TDC)."""
+    new, cur = load_calibration(candidate), load_calibration(current)
+    both = new.ok & cur.ok
+    lsb = float("nan")
+    if new.lsb_fit is not None and cur.lsb_fit is not None and new.lsb_fit.levels is not None \
+            and both.any():
+        now = new.lsb_fit.points_ps()  # (TDC, level)
+        then = np.column_stack([cur.lsb_fit.lsb_ps(float(n)) for n in new.lsb_fit.levels])
+        lsb = abs(over_finite(np.median, np.nanmedian(now - then, axis=1)[both]))
+    delay = abs(over_finite(np.median, (new.delay_s - cur.delay_s)[both] * 1e12))
+    return {"lsb": lsb, "delay": delay}
+
+
+def within_limits(candidate: str | Path, current: str | Path, inl_rms: float) -> list[str]:
+    """Why the candidate is not good enough to replace anything on its own (empty: it
+    is): fewer than MIN_TDC_SHARE of the current calibration's TDCs, an INL error over
+    ``inl_rms``, no delay where the current one has one."""
+    mine, theirs = quality(candidate), quality(current)
+    why = []
+    if mine.tdcs_ok < MIN_TDC_SHARE * theirs.tdcs_ok:
+        why.append(f"calibrates {mine.tdcs_ok} TDCs, under {MIN_TDC_SHARE:.0%} of the "
+                   f"current one's {theirs.tdcs_ok}")
+    if not mine.inl_error_lsb <= inl_rms:
+        why.append(f"INL error {mine.inl_error_lsb:.3f} LSB RMS over the limit {inl_rms}")
+    if theirs.has_delay and not mine.has_delay:
+        why.append("has no delay measurement, the current one has")
+    return why
+
+
 @task(cache_policy=NO_CACHE)
-def verdict(candidate: str, current: str) -> list[str]:
-    """Why the candidate is worse than the current calibration (empty: publish it). There
-    being none is the only case for publishing unexamined; a ``current`` that cannot be
-    read (no meta.json, a dangling link) is a reason to refuse, for a person to look at."""
+def verdict(candidate: str, current: str, inl_rms: float = 0.5, max_age_h: float = MAX_AGE_H,
+            max_lsb_drift_ps: float = MAX_LSB_DRIFT_PS,
+            max_delay_drift_ps: float = MAX_DELAY_DRIFT_PS,
+            now: dt.datetime | None = None) -> dict:
+    """Publish the candidate or not, and by which rule (``rule``; ``why`` in words):
+
+    - ``first``: there is no current calibration;
+    - ``unreadable``: the current one cannot be read (no meta.json, a dangling link):
+      refused, for a person to look at;
+    - ``quality``: the candidate is not worse than the current one: published;
+    - ``age`` / ``drift``: it is worse, but the current one is older than ``max_age_h``
+      or the chip drifted from it (LSB past ``max_lsb_drift_ps``, delay past
+      ``max_delay_drift_ps``, as this campaign measured them), and the candidate is
+      within the absolute limits (:func:`within_limits`): published;
+    - ``quality`` again: worse, and the current one still young and in place: refused.
+
+    ``worse`` lists how the candidate is worse (what a refusal gives as its reasons)."""
     cur = Path(current)
+    out = {"publish": True, "rule": "first", "worse": [], "age_h": None,
+           "drift_ps": {"lsb": None, "delay": None},
+           "why": "no current calibration: the first is published"}
     if not cur.exists() and not cur.is_symlink():
-        return []
+        return out
     try:
         if not (cur / "meta.json").is_file():
             raise CalibrationError(f"{cur}: no meta.json")
         theirs = quality(cur)
     except (CalibrationError, OSError, ValueError) as exc:  # (pyarrow's: ValueError)
-        return [f"the current calibration cannot be read ({exc}); not replaced "
-                "automatically (force=true publishes after a look)"]
-    return quality(candidate).worse_than(theirs)
+        why = (f"the current calibration cannot be read ({exc}); not replaced "
+               "automatically (force=true publishes after a look)")
+        return {**out, "publish": False, "rule": "unreadable", "worse": [why], "why": why}
+    worse = quality(candidate).worse_than(theirs)
+    age = calibration_age_h(cur, now)
+    drift = drift_ps(candidate, cur)
+    out.update(worse=worse, age_h=age, drift_ps={k: _num(v) for k, v in drift.items()})
+    aged = f"{age:.1f} h old" if age is not None else "of unknown age"
+    moved = (f"LSB drift {drift['lsb']:.3f} ps (limit {max_lsb_drift_ps:g}), delay drift "
+             f"{drift['delay']:.1f} ps (limit {max_delay_drift_ps:g})")
+    if not worse:
+        return {**out, "rule": "quality", "why": f"not worse than the current calibration "
+                f"({aged}; {moved})"}
+    old = age is not None and age > max_age_h
+    drifted = drift["lsb"] > max_lsb_drift_ps or drift["delay"] > max_delay_drift_ps  # NaN: no
+    if old or drifted:
+        short = within_limits(candidate, cur, inl_rms)
+        rule = "drift" if drifted else "age"
+        reason = (f"the chip drifted from the current calibration ({moved})" if drifted else
+                  f"the current calibration is {aged} (limit {max_age_h:g} h)")
+        if not short:
+            return {**out, "rule": rule, "why": f"{reason}: replaced although the candidate "
+                    f"is worse ({'; '.join(worse)}), being within the absolute limits"}
+        return {**out, "publish": False, "rule": rule,
+                "worse": worse + [w for w in short if w not in worse],
+                "why": f"{reason}, but the candidate is not within the absolute limits "
+                       f"({'; '.join(short)})"}
+    return {**out, "publish": False, "rule": "quality",
+            "why": f"worse than the current calibration ({'; '.join(worse)}), which is "
+                   f"{aged} (limit {max_age_h:g} h) and in place ({moved})"}
 
 
 def version_time(p: Path) -> str:
@@ -331,10 +442,13 @@ def _announce(outcome: str, out: str, summary: dict) -> None:
     """``tcspc.calibration.published`` / ``.refused``: what automations trigger on."""
     from prefect.events import emit_event
 
-    emit_event(event=f"tcspc.calibration.{outcome.lower()}",
+    emit_event(event=f"tcspc.calibration.{outcome}",
                resource={"prefect.resource.id": f"tcspc.calibration.{_slug(out)}",
                          "prefect.resource.name": str(Path(out).resolve())},
-               payload={"refused_because": summary["refused_because"],
+               related=[{"prefect.resource.id": f"prefect.tag.tcspc:{outcome}",
+                         "prefect.resource.role": "tag"}],
+               payload={"outcome": outcome, "rule": summary["rule"], "why": summary["why"],
+                        "refused_because": summary["refused_because"],
                         "forced": summary["forced"], "run": summary["run"],
                         "quality": summary["quality"]})
 
@@ -350,19 +464,28 @@ def calibration_campaign(out: str = "data/calibration", lux: LuxLevels | None = 
                          density_runs: list[str] | None = None, delay_run: str | None = None,
                          force: bool = False, cache_max_gb: PositiveFloat = 20.0,
                          cache_max_age_days: PositiveFloat = 30.0,
-                         wait_s: NonNegativeFloat = 3600.0) -> dict:
+                         wait_s: NonNegativeFloat = 3600.0,
+                         max_age_h: PositiveFloat = MAX_AGE_H,
+                         max_lsb_drift_ps: PositiveFloat = MAX_LSB_DRIFT_PS,
+                         max_delay_drift_ps: PositiveFloat = MAX_DELAY_DRIFT_PS) -> dict:
     """Calibrate the chip: density tests at ``lux`` levels, the zero-distance delay, then
     publish to ``out/current`` unless the candidate is worse than what is there (``force``
     publishes anyway). Runs on the simulator unless ``captures`` names a directory of
     density captures and one delay capture, or ``journal`` a running daemon's journal
     (``STATE/journal``) with the runs it recorded under uniform light (``density_runs``)
     and at zero distance (``delay_run``). One campaign at a time per ``out``: another waits
-    up to ``wait_s``. The cache keeps ``cache_max_gb`` at most, entries unused for
-    ``cache_max_age_days`` dropped."""
+    up to ``wait_s`` (its state named AwaitingLock meanwhile). A worse candidate replaces
+    a current calibration older than ``max_age_h`` or one the chip drifted from (LSB past
+    ``max_lsb_drift_ps``, delay past ``max_delay_drift_ps``) when it is within the
+    absolute limits (:func:`verdict`). The run ends Completed either way; the verdict is
+    in its result (``outcome``, ``rule``, ``refused_because``), its tag
+    (``tcspc:published`` / ``tcspc:refused``) and the ``tcspc.calibration.*`` event. The
+    cache keeps ``cache_max_gb`` at most, entries unused for ``cache_max_age_days``
+    dropped."""
     log = get_run_logger()
     check_roots(out=out, captures=captures, journal=journal)  # (a served run: its roots)
     cache = Path(out) / "cache"
-    with exclusive(out, wait_s, log) as dead:
+    with exclusive(out, wait_s, log, on_wait=show_waiting) as dead:
         for rec in dead:
             how = "waiting for" if rec.get("waiting") else "holding"
             if mark_crashed(rec["id"], f"its process (pid {rec.get('pid')} on "
@@ -371,15 +494,21 @@ def calibration_campaign(out: str = "data/calibration", lux: LuxLevels | None = 
         clean_leftovers(out, cache, Path(out) / "versions", log=log)
         summary, used = _campaign(out, str(cache), lux, cycles, delay_cycles, n_pixels,
                                   chip_seed, seed, inl_rms, captures, journal, density_runs,
-                                  delay_run, force, log)
+                                  delay_run, force, log,
+                                  limits=dict(inl_rms=inl_rms, max_age_h=max_age_h,
+                                              max_lsb_drift_ps=max_lsb_drift_ps,
+                                              max_delay_drift_ps=max_delay_drift_ps))
         prune_cache(cache, cache_max_gb, cache_max_age_days, keep=used, log=log)
-    outcome = "Published" if summary["published"] else "Refused"
-    _announce(outcome, out, summary)
-    return Completed(name=outcome, message=summary["verdict"], data=summary)
+    # Completed by type and name (Prefect's own automations key on prefect.flow-run.Completed);
+    # the verdict in the result, a tag and the event
+    tag_run(f"tcspc:{summary['outcome']}")
+    _announce(summary["outcome"], out, summary)
+    return Completed(message=summary["verdict"], data=summary)
 
 
 def _campaign(out, cache, lux, cycles, delay_cycles, n_pixels, chip_seed, seed, inl_rms,
-              captures, journal, density_runs, delay_run, force, log) -> tuple[dict, set]:
+              captures, journal, density_runs, delay_run, force, log,
+              limits: dict) -> tuple[dict, set]:
     run = new_run_dir(out, "calibration_campaign")
     if journal:
         from pipeline.stream.journal import JournalCapture
@@ -403,16 +532,23 @@ def _campaign(out, cache, lux, cycles, delay_cycles, n_pixels, chip_seed, seed, 
                                                         jobs))
         source = (f"simulator: chip seed {chip_seed}, {n_pixels} pixels, {cycles:,} cycles at "
                   f"{lux} lux, delay {delay_cycles:,} cycles")
+    used = {Path(c).parent.name for c in (*density_caps, delay_cap)
+            if not hasattr(c, "paths") and Path(c).parent.parent == Path(cache)}
+    current = str(Path(out) / "current")
     fit_args = ([c if hasattr(c, "paths") else str(c) for c in density_caps], inl_rms, cache)
-    fit = fit_lsb(*fit_args)
+    try:
+        fit = fit_lsb(*fit_args)
+    except CalibrationError as exc:  # the captures cannot give the quality asked: a refusal
+        log.warning("candidate NOT published: %s", exc)
+        for name in used:
+            touch(Path(cache) / name)
+        return _unfit(out, run, source, current, density_caps, delay_cap, str(exc)), used
     fit = remade_if_gone(fit, fit["dir"], fit_lsb, *fit_args)
     delay_args = (delay_cap if hasattr(delay_cap, "paths") else str(delay_cap), fit["dir"],
                   cache)
     delay = measure_delay(*delay_args)
     delay = remade_if_gone(delay, delay["dir"], measure_delay, *delay_args)
-    used = {Path(fit["dir"]).name, Path(delay["dir"]).name} | {
-        Path(c).parent.name for c in (*density_caps, delay_cap) if not hasattr(c, "paths")
-        and Path(c).parent.parent == Path(cache)}
+    used |= {Path(fit["dir"]).name, Path(delay["dir"]).name}
     for name in used:
         touch(Path(cache) / name)
     delay_ns, no_delay = delay["delay_ns"], delay["no_delay"]
@@ -426,15 +562,16 @@ def _campaign(out, cache, lux, cycles, delay_cycles, n_pixels, chip_seed, seed, 
     delay_text = (f"delay {np.nanmin(delay_ns):.4f}..{np.nanmax(delay_ns):.4f} ns"
                   if not no_delay else f"no delay ({no_delay})")
     pngs = plots(candidate, fit, str(run))
-    current = str(Path(out) / "current")
     compare = comparison(candidate, current)
-    worse = verdict(candidate, current)
-    published = force or not worse
+    v = verdict(candidate, current, **limits)
+    worse = v["worse"]
+    published = force or v["publish"]
     if published:
         publish(candidate, out, run.name)
-        log.info("published %s", current)
+        log.info("published %s (%s: %s)", current, "forced" if not v["publish"] else
+                 v["rule"], v["why"])
     else:
-        log.warning("candidate NOT published (worse than %s): %s", current, "; ".join(worse))
+        log.warning("candidate NOT published (%s): %s", v["rule"], v["why"])
     truth_text, truth = _truth_check(density_caps, delay_cap, fit, delay_ns)
     tests = pl.DataFrame({"capture": [_label(c) for c in density_caps],
                           "detections_per_pixel_per_cycle": fit["n"],
@@ -445,12 +582,15 @@ def _campaign(out, cache, lux, cycles, delay_cycles, n_pixels, chip_seed, seed, 
     tests.write_parquet(run / "tests.parquet")
     q = quality(candidate)
     flagged = flagged_tdcs(candidate)
-    verdict_text = ("Published to `current`." if published and not worse else
-                    "Published to `current` (forced) although: " + "; ".join(worse)
-                    if published else "**Not published**: " + "; ".join(worse)
-                    + ". The current calibration stays in place.")
+    forced = published and not v["publish"]
+    verdict_text = ("Published to `current` (forced) although: " + "; ".join(worse)
+                    if forced else f"Published to `current` (rule {v['rule']}): {v['why']}."
+                    if published else f"**Not published** (rule {v['rule']}): {v['why']}. "
+                    "The current calibration stays in place.")
     summary = {"run": str(run), "flow_run": info, "candidate": candidate, "current": current,
-               "published": published, "forced": bool(published and worse),
+               "published": published, "outcome": "published" if published else "refused",
+               "rule": "forced" if forced else v["rule"], "why": v["why"],
+               "age_h": v["age_h"], "drift_ps": v["drift_ps"], "forced": bool(forced),
                "refused_because": [] if published else worse, "overruled": worse if published
                else [], "verdict": verdict_text.replace("*", ""), "quality": q.__dict__,
                "figures": {r["figure"]: r["candidate"] for r in compare},
@@ -463,9 +603,7 @@ def _campaign(out, cache, lux, cycles, delay_cycles, n_pixels, chip_seed, seed, 
     sections = [
         ("Source", source),
         ("Verdict", verdict_text),
-        ("Against the current calibration", markdown_table(pl.DataFrame(
-            compare, schema={"figure": pl.String, "candidate": pl.Float64,
-                             "current": pl.Float64}))),
+        ("Against the current calibration", _compare_md(compare)),
         ("Flagged TDCs", markdown_table(pl.DataFrame(flagged)) if flagged else "None."),
         ("Density tests", markdown_table(tests.drop("capture"))),
         ("Quality", f"TDCs calibrated: {q.tdcs_ok}; median INL statistical error "
@@ -475,9 +613,63 @@ def _campaign(out, cache, lux, cycles, delay_cycles, n_pixels, chip_seed, seed, 
         ("Plots", "\n".join(f"![{Path(p).stem}]({Path(p).name})" for p in pngs)),
         ("Flow run", f"{info['name']} ({info['id']})"),
     ]
+    _finish(out, run, summary, sections, compare, flagged)
+    return summary, used
+
+
+def _compare_md(compare: list[dict]) -> str:
+    return markdown_table(pl.DataFrame(compare, schema={
+        "figure": pl.String, "candidate": pl.Float64, "current": pl.Float64}))
+
+
+def _finish(out: str, run: Path, summary: dict, sections: list, compare: list[dict],
+            flagged: list[dict]) -> None:
+    """The run's report.md and summary.json, and the same where the Prefect UI shows them."""
     rep = report(str(run / "report.md"), "Calibration campaign", sections)
     summary["report"] = rep
     (run / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
-    publish_artifacts(out, "Published" if published else "Refused", summary["verdict"],
-                      Path(rep).read_text(), compare, flagged)
-    return summary, used
+    publish_artifacts(out, summary["outcome"].capitalize(), summary["verdict"],
+                      report_markdown(Path(rep).read_text(), run), compare, flagged)
+
+
+def _unfit(out: str, run: Path, source: str, current: str, density_caps: list, delay_cap,
+           why: str) -> dict:
+    """The summary of a campaign whose captures could not give a candidate of the quality
+    asked (the INL check): a refusal with its reason, the current calibration's figures,
+    the report and artifacts as any refusal has."""
+    try:
+        theirs = figures_of(current)
+    except (CalibrationError, OSError, ValueError):
+        theirs = {}
+    compare = [{"figure": k, "candidate": None, "current": _num(v)} for k, v in theirs.items()]
+    text = (f"**Not published** (rule quality): the captures give no candidate: {why}. The "
+            "current calibration stays in place.")
+    summary = {"run": str(run), "flow_run": flow_run_info(), "candidate": None,
+               "current": current, "published": False, "outcome": "refused",
+               "rule": "quality", "why": why, "age_h": None,
+               "drift_ps": {"lsb": None, "delay": None}, "forced": False,
+               "refused_because": [why], "overruled": [], "verdict": text.replace("*", ""),
+               "quality": None, "figures": {}, "flagged_tdcs": [], "delay_ns": None,
+               "no_delay": "", "plots": [], "truth": {},
+               "captures": {"density": [_label(c) for c in density_caps],
+                            "delay": _label(delay_cap)}}
+    sections = [("Source", source), ("Verdict", text),
+                ("The current calibration", _compare_md(compare) if compare else "None."),
+                ("Flow run", f"{summary['flow_run']['name']} ({summary['flow_run']['id']})")]
+    _finish(out, run, summary, sections, compare, [])
+    return summary
+
+
+def report_markdown(text: str, run: Path) -> str:
+    """The report for the Prefect UI: its figures (``![x](x.png)``, files beside report.md
+    that the UI cannot reach) embedded as data: URIs, so the artifact shows them."""
+    import base64
+
+    def embed(m: re.Match) -> str:
+        png = run / m.group(2)
+        if not png.is_file() or "/" in m.group(2):
+            return m.group(0)
+        data = base64.b64encode(png.read_bytes()).decode()
+        return f"![{m.group(1)}](data:image/png;base64,{data})"
+
+    return re.sub(r"!\[([^\]]*)\]\(([^)\s]+\.png)\)", embed, text)

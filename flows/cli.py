@@ -132,14 +132,17 @@ def run_cmd(name, params, dask_address, dask_insecure) -> None:
     if dask_address:
         fl = fl.with_options(task_runner=dask_runner(dask_address, dask_insecure))
     check_params(fl, kwargs, "-p")
+    check_inputs(name, fl.fn, kwargs)
     api = os.environ.get("PREFECT_API_URL") or "Prefect's embedded ephemeral API"
     click.echo(f"running {name} on {api}", err=True)
     state = fl(**kwargs, return_state=True)
     result = state.result()  # a failed run raises its error here
     click.echo(json.dumps(result, indent=1, default=str))
-    click.echo(f"{name}: {state.name}" + (f" ({state.message})" if state.message else ""),
-               err=True)
-    if state.name == "Refused":  # completed, but nothing published: say so to scripts
+    outcome = f" {result['outcome']}" if isinstance(result, dict) and "outcome" in result else ""
+    click.echo(f"{name}: {state.name}{outcome}" + (f" ({state.message})" if state.message
+                                                   else ""), err=True)
+    if isinstance(result, dict) and result.get("outcome") == "refused":
+        # completed, but nothing published: say so to scripts
         sys.exit(REFUSED_EXIT)
 
 
@@ -201,6 +204,22 @@ def _private_tmp() -> Path:
 
 #: `tcspc flow run`'s exit status when a campaign refused its candidate
 REFUSED_EXIT = 3
+
+
+#: each flow's parameters that name an input that must exist when the run starts
+INPUTS = {"batch": ("inputs", "calibration"), "calibration_campaign": ("captures", "journal"),
+          "distance_sweep": ("calibration", "captures", "stream")}
+
+
+def check_inputs(name: str, fn, params: dict) -> None:
+    """Refuse a run (one line, exit 2, before it is created) whose input parameter (given
+    with -p or its default) names a path that does not exist."""
+    sig = inspect.signature(fn).parameters
+    for key in INPUTS.get(name, ()):
+        value = params.get(key, sig[key].default)
+        if isinstance(value, str) and not Path(value).exists():
+            how = "-p" if key in params else "default"
+            raise click.UsageError(f"{how} {key}={value}: no such file or directory")
 
 
 def check_params(fl, params: dict, where: str) -> None:
@@ -427,3 +446,34 @@ def serve_cmd(config_path, calibration_cron, sweep_cron, out, roots, unauthentic
 
     asyncio.run(runner.start())
     click.echo("serve stopped", err=True)
+
+
+@flow.command("automations")
+@click.option("--create", "do_create", is_flag=True,
+              help="Create them on the Prefect server (PREFECT_API_URL), each replacing any "
+                   "of the same name; without it, print them as JSON.")
+@click.option("--out", default=None, type=click.Path(file_okay=False),
+              help="The calibration directory they watch (default: every one).")
+@click.option("--stale-hours", type=click.FloatRange(min=1), default=None,
+              help="Hours without a published calibration that make it stale (default "
+                   "180: a week and a half-day).")
+@click.option("--notify", default=None, type=click.UUID, metavar="BLOCK_ID",
+              help="A notification block's document id to send each through (default: "
+                   "they fire without sending).")
+def automations_cmd(do_create, out, stale_hours, notify) -> None:
+    """The automations a lab wants on its campaigns: a campaign refused, a campaign crashed
+    (or failed, or timed out), a calibration stale (none published for --stale-hours)."""
+    from flows.automations import STALE_H, create, lab_automations
+
+    autos = lab_automations(out, STALE_H if stale_hours is None else stale_hours, notify)
+    if not do_create:
+        click.echo(json.dumps([a.model_dump(mode="json") for a in autos], indent=1))
+        return
+    from prefect.settings import PREFECT_API_URL
+
+    if not os.environ.get("PREFECT_API_URL") and not PREFECT_API_URL.value():
+        raise click.ClickException(
+            "automations live on a Prefect server: set PREFECT_API_URL (e.g. "
+            "http://127.0.0.1:4200/api)")
+    for name, aid in create(autos):
+        click.echo(f"created {name}: {aid}")

@@ -259,13 +259,16 @@ def flow_run_info() -> dict:
 # ---- one campaign at a time; what a killed run leaves behind ------------------------------
 
 @contextlib.contextmanager
-def exclusive(out: str | Path, wait_s: float, log=None) -> Iterator[list[dict]]:
+def exclusive(out: str | Path, wait_s: float, log=None,
+              on_wait: Callable[[bool], None] | None = None) -> Iterator[list[dict]]:
     """Hold ``OUT/.lock`` (an advisory file lock, which the kernel releases when its holder
     dies, even by ``kill -9``), waiting up to ``wait_s`` for another run to finish. Yields
     the records (flow run id, name, pid, host) of the runs that died here without ending,
     for the caller to mark Crashed: the previous holder when it died holding the lock, and
     runs killed while they waited for it (a waiter says so in ``OUT/.lock.wait-PID`` while
-    it waits). Raises :class:`FlowBusy` naming the holder on timeout."""
+    it waits). ``on_wait(True)`` is called when the wait starts, ``on_wait(False)`` when
+    it ends (to show the run waiting, not Running). Raises :class:`FlowBusy` naming the
+    holder on timeout."""
     path = Path(out) / ".lock"
     path.parent.mkdir(parents=True, exist_ok=True)
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
@@ -288,9 +291,13 @@ def exclusive(out: str | Path, wait_s: float, log=None) -> Iterator[list[dict]]:
                     if log:
                         log.info("waiting for run %s (pid %s) to release %s",
                                  holder.get("name", "?"), holder.get("pid", "?"), out)
+                    if on_wait:
+                        on_wait(True)
                     said = True
                 time.sleep(0.2)
         waiting.unlink(missing_ok=True)
+        if said and on_wait:
+            on_wait(False)
         before = _read_holder(fd)
         dead = ([before] if before.get("id") else []) + _dead_waiters(path, me["host"])
         os.ftruncate(fd, 0)
@@ -303,6 +310,45 @@ def exclusive(out: str | Path, wait_s: float, log=None) -> Iterator[list[dict]]:
     finally:
         waiting.unlink(missing_ok=True)
         os.close(fd)  # releases the lock
+
+
+#: the name of the (Running) state a flow run shows while it waits for the lock
+AWAITING_LOCK = "AwaitingLock"
+
+
+def show_waiting(waiting: bool) -> None:
+    """The current flow run's state named ``AwaitingLock`` while it waits for an output
+    directory's lock, back to ``Running`` when it holds it (both of type Running: the
+    run is alive and counts against its timeout; the name says what it does). Outside a
+    flow run, or when the API refuses, nothing."""
+    from prefect.client.schemas.objects import StateType
+    from prefect.runtime import flow_run
+    from prefect.states import State
+
+    if not flow_run.id:
+        return
+    from prefect import get_client
+
+    name = AWAITING_LOCK if waiting else "Running"
+    with contextlib.suppress(Exception), get_client(sync_client=True) as client:
+        client.set_flow_run_state(flow_run.id, State(
+            type=StateType.RUNNING, name=name,
+            message="waiting for another run to release the output directory's lock"
+            if waiting else None), force=True)
+
+
+def tag_run(*tags: str) -> None:
+    """Add ``tags`` to the current flow run (what the UI filters on and automations match
+    as ``prefect.tag.<tag>``); outside a flow run, nothing."""
+    from prefect.runtime import flow_run
+
+    if not flow_run.id:
+        return
+    from prefect import get_client
+
+    with get_client(sync_client=True) as client:
+        fr = client.read_flow_run(flow_run.id)
+        client.update_flow_run(fr.id, tags=sorted({*fr.tags, *tags}))
 
 
 def _dead_waiters(lock: Path, host: str) -> list[dict]:

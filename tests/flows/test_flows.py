@@ -297,7 +297,10 @@ def test_the_outcome_is_a_named_state_with_its_run_linked_everywhere(campaign):
         fr = c.read_flow_run(fr_id)
         arts = c.read_artifacts(flow_run_filter=FlowRunFilter(id={"any_": [fr.id]}),
                                 artifact_filter=ArtifactFilter())
-    assert fr.state.name == "Published" and fr.state.is_completed()
+    # Completed by type and name (#39.4): the verdict in the result, the tag and the event
+    assert fr.state.name == "Completed" and fr.state.is_completed()
+    assert "tcspc:published" in fr.tags and r["outcome"] == "published"
+    assert r["rule"] == "first"
     assert fr.name.startswith("campaign 20") and fr.name.endswith(f" {SMALL_CAL['n_pixels']}px")
     # the run id in the published calibration's meta.json and in summary.json
     meta = json.loads((out / "versions" / Path(r["run"]).name / "meta.json").read_text())
@@ -306,6 +309,15 @@ def test_the_outcome_is_a_named_state_with_its_run_linked_everywhere(campaign):
     kinds = {a.key.rsplit("-", 1)[1]: a for a in arts}
     assert set(kinds) == {"report", "figures", "flagged"}
     assert kinds["report"].type == "markdown" and "Published" in kinds["report"].description
+    # the report's figures are in the artifact itself (the UI cannot reach the run's files)
+    import base64
+    import re
+
+    pngs = re.findall(r"!\[(\w+)\]\(data:image/png;base64,([A-Za-z0-9+/=]+)\)",
+                      kinds["report"].data)
+    assert {name for name, _ in pngs} == {"density", "lsb"}
+    for name, data in pngs:
+        assert base64.b64decode(data) == (Path(r["run"]) / f"{name}.png").read_bytes()
     rows = {row["figure"]: row for row in json.loads(kinds["figures"].data)}
     assert rows["TDCs calibrated"]["candidate"] == SMALL_CAL["n_pixels"]
     for fig in ("INL RMS, median TDC (LSB)", "DNL RMS, median TDC (LSB)",
@@ -314,16 +326,19 @@ def test_the_outcome_is_a_named_state_with_its_run_linked_everywhere(campaign):
     assert rows["TDCs calibrated"]["current"] is None  # the first: nothing to replace
 
 
-def test_a_refused_candidate_ends_in_its_own_state(campaign):
+def test_a_refused_candidate_ends_completed_with_the_verdict_in_result_and_tag(campaign):
     from flows.calibration import calibration_campaign
 
     out, _ = campaign
     state = calibration_campaign(out=str(out), **{**SMALL_CAL, "cycles": 40_000,
                                                   "inl_rms": 5.0, "seed": 7},
                                  return_state=True)
-    assert state.name == "Refused" and state.is_completed()
+    assert state.name == "Completed" and state.is_completed()
     r = state.result()
-    assert not r["published"] and r["refused_because"]
+    assert not r["published"] and r["refused_because"] and r["outcome"] == "refused"
+    assert r["rule"] == "quality" and r["age_h"] < 1  # young: the quality rule holds
+    with _client() as c:
+        assert "tcspc:refused" in c.read_flow_run(r["flow_run"]["id"]).tags
     assert "Not published" in state.message
     # the comparison now has the calibration it would have replaced
     assert r["figures"]["TDCs calibrated"] == SMALL_CAL["n_pixels"]
@@ -342,12 +357,13 @@ def test_a_current_that_cannot_be_read_is_not_replaced_unexamined(captured, tmp_
     res = CliRunner().invoke(cli, ["flow", "run", "calibration_campaign", "-p", f"out={out}",
                                    "-p", f"captures={captured}", "-p", "inl_rms=1.0"])
     assert res.exit_code == 3, res.output
-    assert "calibration_campaign: Refused" in res.output
+    assert "calibration_campaign: Completed refused" in res.output
     assert "cannot be read" in json.loads(res.stdout)["refused_because"][0]
     assert (out / "current" / "tdc.parquet").read_bytes() == b"left by hand"
     forced = calibration_campaign(out=str(out), captures=str(captured), inl_rms=1.0,
                                   force=True, return_state=True)
-    assert forced.name == "Published" and forced.result()["forced"]
+    assert forced.name == "Completed" and forced.result()["forced"]
+    assert forced.result()["rule"] == "forced"
     # the old directory was exchanged for a link in one step, and kept as a version
     assert (out / "current").is_symlink() and (out / "current" / "meta.json").is_file()
     assert any(p.name.startswith("before-") for p in (out / "versions").iterdir())
@@ -414,7 +430,7 @@ def _state_after_the_next_campaign(captured, out, run_id):
 
     state = calibration_campaign(out=str(out), captures=str(captured), inl_rms=1.0,
                                  return_state=True)
-    assert state.name == "Published"
+    assert state.name == "Completed" and state.result()["published"]
     with _client() as c:
         return c.read_flow_run(run_id).state
 
@@ -674,7 +690,12 @@ def _flow_for_crash_test():
     ("performance_prediction", "configs=[99]", "configs"),
     ("speed_vs_error", "pixels=0", "pixels"),
     ("speed_vs_error", 'estimators=["nope"]', "estimators"),
-    ("distance_sweep", "estimator=bogus", "estimator")])
+    ("distance_sweep", "estimator=bogus", "estimator"),
+    ("batch", "inputs=/nonexistent/captures", "inputs=/nonexistent/captures"),
+    ("calibration_campaign", "captures=/nonexistent/caps", "captures"),
+    ("calibration_campaign", "journal=/nonexistent/journal", "journal"),
+    ("distance_sweep", "calibration=/nonexistent/cal", "calibration"),
+    ("distance_sweep", "stream=/nonexistent/stream", "no such file")])
 def test_a_bad_parameter_is_refused_before_a_run_in_one_line_exit_2(name, param, word):
     """#39.7: what made a run and a long traceback is one line naming the parameter, exit
     2, and no flow run (the check comes before the flow is called)."""
@@ -688,3 +709,108 @@ def test_a_bad_parameter_is_refused_before_a_run_in_one_line_exit_2(name, param,
     errs = [ln for ln in r.stderr.splitlines() if ln.lower().startswith("error")]
     assert len(errs) == 1 and f"{word}" in errs[0], r.stderr
     assert "Traceback" not in r.stderr and "running " not in r.stderr  # no run created
+
+
+def test_a_candidate_that_fails_the_inl_check_is_a_refusal_with_its_report(captured, tmp_path):
+    """#39.5: the captures cannot reach the INL asked: not a Failed run but a refusal, with
+    its reason, report, summary and artifacts, and exit 3 from the command line."""
+    from click.testing import CliRunner
+    from prefect.client.schemas.filters import ArtifactFilter, FlowRunFilter
+
+    from pipeline.cli.app import cli
+
+    out = tmp_path / "cal"
+    res = CliRunner().invoke(cli, ["flow", "run", "calibration_campaign", "-p", f"out={out}",
+                                   "-p", f"captures={captured}", "-p", "inl_rms=0.01"])
+    assert res.exit_code == 3, res.output
+    r = json.loads(res.stdout)
+    assert r["outcome"] == "refused" and r["rule"] == "quality" and not r["published"]
+    assert "INL error" in r["refused_because"][0] and "> 0.01" in r["why"]
+    assert "calibration_campaign: Completed refused" in res.output
+    assert not (out / "current").exists()
+    run = Path(r["run"])
+    assert "Not published" in (run / "report.md").read_text()
+    assert json.loads((run / "summary.json").read_text())["outcome"] == "refused"
+    with _client() as c:
+        fr = c.read_flow_run(r["flow_run"]["id"])
+        arts = c.read_artifacts(flow_run_filter=FlowRunFilter(id={"any_": [fr.id]}),
+                                artifact_filter=ArtifactFilter())
+    assert fr.state.name == "Completed" and "tcspc:refused" in fr.tags
+    assert {a.key.rsplit("-", 1)[1] for a in arts} == {"report", "figures", "flagged"}
+
+
+def test_a_run_waiting_for_the_lock_says_so(captured, tmp_path):
+    """#39.5: a campaign waiting on its directory's lock shows a Running-type state named
+    AwaitingLock (not plain Running for up to wait_s), then Running, then Completed."""
+    from prefect.client.schemas.filters import FlowRunFilter
+
+    from flows.calibration import calibration_campaign
+    from flows.common import AWAITING_LOCK, exclusive
+
+    out = tmp_path / "cal"
+    states = []
+    with exclusive(out, 0):
+        t = threading.Thread(target=lambda: states.append(calibration_campaign(
+            out=str(out), captures=str(captured), inl_rms=1.0, wait_s=60,
+            return_state=True)))
+        t.start()
+        deadline, waiting = time.monotonic() + 60, []
+        while not waiting and time.monotonic() < deadline:
+            with _client() as c:
+                waiting = c.read_flow_runs(flow_run_filter=FlowRunFilter(
+                    state={"name": {"any_": [AWAITING_LOCK]}}))
+            time.sleep(0.3)
+        assert len(waiting) == 1 and waiting[0].state.type.value == "RUNNING"
+    t.join(120)
+    (state,) = states
+    assert state.name == "Completed" and state.result()["published"]
+    with _client() as c:
+        assert c.read_flow_run(waiting[0].id).state.name == "Completed"
+
+
+def test_nightly_refusals_end_in_a_publish_once_the_current_calibration_is_old(captured,
+                                                                              tmp_path):
+    """#39.3: one long campaign, then shorter nightly ones (worse INL): refused while the
+    long one is young, published by the age rule once it is older than max_age_h (time
+    passing: its meta.json's `created` moved back), the report saying which rule won."""
+    from flows.calibration import calibration_campaign
+
+    out = tmp_path / "cal"
+    first = calibration_campaign(out=str(out), captures=str(captured), inl_rms=5.0,
+                                 max_age_h=24)
+    assert first["rule"] == "first"
+    nightly = {**SMALL_CAL, "cycles": 80_000, "inl_rms": 5.0, "max_age_h": 24}
+    for _ in range(2):
+        r = calibration_campaign(out=str(out), **nightly)
+        assert r["outcome"] == "refused" and r["rule"] == "quality", r["why"]
+        assert r["drift_ps"]["lsb"] < 0.5 and r["age_h"] < 1  # the same chip, young
+    meta = out / "current" / "meta.json"
+    m = json.loads(meta.read_text())
+    m["created"] = "2020-01-01T00:00:00+00:00"
+    meta.write_text(json.dumps(m))
+    r = calibration_campaign(out=str(out), **nightly)
+    assert r["outcome"] == "published" and r["rule"] == "age", r["why"]
+    assert r["overruled"] and not r["forced"]  # what the age rule overruled
+    assert "replaced although the candidate is worse" in r["why"]
+    assert "rule age" in (Path(r["run"]) / "report.md").read_text()
+    assert r["age_h"] > 24
+
+
+def test_a_drifted_chip_is_recalibrated_by_a_worse_candidate(campaign, tmp_path):
+    """#39.3: a candidate worse in quality but of a chip that moved (another chip: its
+    LSBs and delays differ) replaces a young current calibration by the drift rule; with
+    the drift limits wide, the quality rule refuses it."""
+    from flows.calibration import calibration_campaign, verdict
+
+    out, _ = campaign
+    other = calibration_campaign(out=str(tmp_path / "other"), **{
+        **SMALL_CAL, "cycles": 80_000, "inl_rms": 5.0, "chip_seed": 2})
+    v = verdict.fn(other["candidate"], str(out / "current"), inl_rms=5.0)
+    assert v["publish"] and v["rule"] == "drift" and v["worse"], v
+    assert v["drift_ps"]["lsb"] > 0.5 or v["drift_ps"]["delay"] > 50
+    wide = verdict.fn(other["candidate"], str(out / "current"), inl_rms=5.0,
+                      max_lsb_drift_ps=1e9, max_delay_drift_ps=1e9)
+    assert not wide["publish"] and wide["rule"] == "quality"
+    strict = verdict.fn(other["candidate"], str(out / "current"), inl_rms=0.01)
+    assert not strict["publish"] and strict["rule"] == "drift"  # not within the limits
+    assert any("over the limit" in w for w in strict["worse"])

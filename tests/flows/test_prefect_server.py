@@ -103,6 +103,11 @@ def _campaign(env, out, *extra):
 
 def test_a_killed_run_is_marked_crashed_and_the_rerun_resumes(server, tmp_path_factory):
     out = tmp_path_factory.mktemp("killed") / "cal"
+    made = subprocess.run([*TCSPC, "flow", "automations", "--create", "--out", str(out)],
+                          env=server, cwd=ROOT, capture_output=True, text=True)
+    assert made.returncode == 0, made.stderr
+    crashed = next(a["id"] for a in _api(server, "POST", "/automations/filter", {})
+                   if a["name"].startswith("tcspc campaign crashed"))
     proc = _campaign(server, out)
     deadline = time.monotonic() + 300
     # kill -9 once the fit is under way: it starts when all six captures are made and
@@ -124,7 +129,7 @@ def test_a_killed_run_is_marked_crashed_and_the_rerun_resumes(server, tmp_path_f
     assert not [t for t in _task_states(server, dead["id"]).values()
                 if t in ("Running", "Pending")]
     (new,) = [r for r in runs.values() if r["id"] != dead["id"]]
-    assert new["state"]["name"] == "Published"
+    assert new["state"]["name"] == "Completed" and "tcspc:published" in new["tags"]
     states = _task_states(server, new["id"])
     sims = [s for name, s in states.items() if name.startswith("simulate ")]
     assert len(sims) == 6 and set(sims) == {"Cached"}, states  # resumed, not redone
@@ -134,15 +139,37 @@ def test_a_killed_run_is_marked_crashed_and_the_rerun_resumes(server, tmp_path_f
     (pub,) = _events(server, str(out))
     assert pub["event"] == "tcspc.calibration.published"
     assert pub["resource"]["prefect.resource.name"] == str(out.resolve())
+    # the dead run marked Crashed fired the lab's crashed automation (#39.4)
+    assert _poll_events(server, "prefect.automation.triggered",
+                        lambda e: e["resource"]["prefect.resource.id"].endswith(crashed))
 
 
 def test_two_campaigns_started_at_once_take_turns(server, tmp_path_factory):
     out = tmp_path_factory.mktemp("overlap") / "cal"
-    a, b = _campaign(server, out), _campaign(server, out)
+    sys.path.insert(0, str(ROOT))
+    from flows.common import exclusive
+
+    # the lock held here until both wait for it (two processes' start-up times differ by
+    # more than a small campaign lasts on a loaded machine: they might never overlap)
+    with exclusive(out, 0):
+        a, b = _campaign(server, out), _campaign(server, out)
+        deadline = time.monotonic() + 300
+        while len(list(out.glob(".lock.wait-*"))) < 2:
+            assert a.poll() is None and b.poll() is None, (a.communicate(), b.communicate())
+            assert time.monotonic() < deadline, "the campaigns never waited"
+            time.sleep(0.2)
     results = [p.communicate(timeout=900) for p in (a, b)]
     assert a.returncode == 0 and b.returncode == 0, results
-    assert sum("waiting for run" in err for _, err in results) == 1
+    assert all("waiting for run" in err for _, err in results)
     outs = [json.loads(o) for o, _ in results]
+    # a run waiting for the lock says so (#39.5): a Running state named AwaitingLock in
+    # its history, then Running once it holds the lock, then Completed
+    for o in outs:
+        hist = [(st["type"], st["name"]) for st in sorted(_api(
+            server, "GET", f"/flow_run_states/?flow_run_id={o['flow_run']['id']}"),
+            key=lambda st: st["timestamp"])]
+        assert hist[-3:] == [("RUNNING", "AwaitingLock"), ("RUNNING", "Running"),
+                             ("COMPLETED", "Completed")], hist
     assert all(o["published"] for o in outs)
     assert len(list((out / "versions").iterdir())) == 2
     assert (out / "current").is_symlink() and (out / "current" / "meta.json").is_file()
@@ -170,7 +197,8 @@ def test_the_served_schedule_runs_and_ctrl_c_stops_it(server, tmp_path_factory):
             if mine:
                 runs = _api(server, "POST", "/flow_runs/filter", {
                     "deployments": {"id": {"any_": [mine[0]["id"]]}}})
-                done = next((r for r in runs if r["state"]["name"] == "Published"), None)
+                done = next((r for r in runs if r["state"]["name"] == "Completed"
+                             and "tcspc:published" in r["tags"]), None)
             time.sleep(2)
         assert "bench-test" in mine[0]["tags"] and "calibration" in mine[0]["tags"]
         # a run with a broken parameter is refused at creation, naming it
@@ -223,3 +251,92 @@ def test_a_downtimes_late_runs_make_one_catch_up_run(server, tmp_path):
         to(r, "PENDING")
         assert _api(server, "GET", f"/flow_runs/{r}")["state"]["type"] == "CANCELLED"
     assert _api(server, "GET", f"/flow_runs/{runs[0]}")["state"]["type"] == "RUNNING"
+
+
+#: Prefect's documented "detect zombie flows" automation's trigger: a flow run that sent a
+#: heartbeat is a zombie unless one of these follows within 90 s
+ZOMBIE_EXPECT = {"prefect.flow-run.heartbeat", "prefect.flow-run.Completed",
+                 "prefect.flow-run.Failed", "prefect.flow-run.Cancelled",
+                 "prefect.flow-run.Crashed"}
+
+
+def _poll_events(env, prefix: str, keep, wait_s: float = 60) -> list[dict]:
+    deadline = time.monotonic() + wait_s
+    while True:
+        ev = _api(env, "POST", "/events/filter", {"filter": {
+            "event": {"prefix": [prefix]},
+            "occurred": {"since": "2020-01-01T00:00:00Z"}}, "limit": 50})["events"]
+        mine = [e for e in ev if keep(e)]
+        if mine or time.monotonic() > deadline:
+            return mine
+        time.sleep(1)
+
+
+def test_the_lab_automations_exist_and_a_refusal_fires_its_own(server, tmp_path):
+    """#39.4: `tcspc flow automations --create` makes the three on a real server (again:
+    replaced, not doubled); a refused campaign ends Completed with the verdict in its tag,
+    result and event, and that event fires the refused automation (the server's
+    prefect.automation.triggered), not the crashed one; the run's state event is
+    prefect.flow-run.Completed, which Prefect's zombie automation expects."""
+    out = tmp_path / "cal"
+    cmd = [*TCSPC, "flow", "automations", "--create", "--out", str(out), "--stale-hours", "2"]
+    for _ in range(2):
+        made = subprocess.run(cmd, env=server, cwd=ROOT, capture_output=True, text=True)
+        assert made.returncode == 0, made.stderr
+    sys.path.insert(0, str(ROOT))
+    from flows.calibration import _slug
+
+    mine = [a for a in _api(server, "POST", "/automations/filter", {})
+            if a["name"].endswith(f"({_slug(str(out))})")]
+    autos = {a["name"].split(" (")[0]: a for a in mine}
+    assert len(mine) == 3 and set(autos) == {
+        "tcspc campaign refused", "tcspc campaign crashed", "tcspc calibration stale"}
+    stale = autos["tcspc calibration stale"]["trigger"]
+    assert stale["posture"] == "Proactive" and stale["within"] == 7200
+    zombie = _api(server, "POST", "/automations/", {
+        "name": "Crash zombie flows", "trigger": {
+            "type": "event", "posture": "Proactive", "after": ["prefect.flow-run.heartbeat"],
+            "expect": sorted(ZOMBIE_EXPECT), "for_each": ["prefect.resource.id"],
+            "match": {"prefect.resource.id": ["prefect.flow-run.*"]}, "threshold": 1,
+            "within": 90}, "actions": [{"type": "do-nothing"}]})["id"]
+    # a current calibration that cannot be read: the campaign refuses (the quickest refusal)
+    (out / "current").mkdir(parents=True)
+    (out / "current" / "tdc.parquet").write_bytes(b"left by hand")
+    proc = _campaign(server, out)
+    stdout, err = proc.communicate(timeout=600)
+    assert proc.returncode == 3, err
+    result = json.loads(stdout)
+    assert result["outcome"] == "refused" and result["rule"] == "unreadable"
+    run = _api(server, "GET", f"/flow_runs/{result['flow_run']['id']}")
+    assert run["state"]["type"] == "COMPLETED" and run["state"]["name"] == "Completed"
+    assert "tcspc:refused" in run["tags"]
+    (ev,) = _events(server, str(out))
+    assert ev["event"] == "tcspc.calibration.refused" and ev["payload"]["rule"] == "unreadable"
+    fired = _poll_events(server, "prefect.automation.triggered",
+                         lambda e: e["resource"]["prefect.resource.id"].endswith(
+                             autos["tcspc campaign refused"]["id"]))
+    assert fired, "the refused automation did not fire"
+    crashed = autos["tcspc campaign crashed"]["id"]
+    assert not [e for e in _poll_events(server, "prefect.automation.triggered", lambda e: True, 0)
+                if e["resource"]["prefect.resource.id"].endswith(crashed)]
+    states = _poll_events(server, "prefect.flow-run.", lambda e: e["resource"][
+        "prefect.resource.id"] == f"prefect.flow-run.{run['id']}")
+    names = {e["event"] for e in states}
+    assert "prefect.flow-run.Completed" in names
+    assert not names - {"prefect.flow-run.Pending", "prefect.flow-run.Running",
+                        "prefect.flow-run.heartbeat", "prefect.flow-run.Completed"}, names
+    # captures that cannot reach the INL asked (#39.5): a refusal too, with its event
+    proc = _campaign(server, out, "-p", "inl_rms=0.01")
+    stdout, err = proc.communicate(timeout=600)
+    assert proc.returncode == 3, err
+    assert json.loads(stdout)["rule"] == "quality"
+    deadline = time.monotonic() + 30
+    while len(evs := _events(server, str(out))) < 2 and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert sorted(e["payload"]["rule"] for e in evs) == ["quality", "unreadable"]
+    assert all(e["event"] == "tcspc.calibration.refused" for e in evs)
+    # the zombie automation, past its 90 s after the run's last heartbeat, did not fire
+    time.sleep(100)
+    assert not [e for e in _poll_events(server, "prefect.automation.triggered",
+                                        lambda e: True, 0)
+                if e["resource"]["prefect.resource.id"].endswith(zombie)]

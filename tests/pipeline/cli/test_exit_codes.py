@@ -203,6 +203,8 @@ CASES = [
      "--distance"),
     ("tcspc flow list", 2, lambda f: ["flow", "list", "--bogus"], "No such option"),
     ("tcspc flow run", 2, lambda f: ["flow", "run", "no-such-flow"], "no-such-flow"),
+    ("tcspc flow automations", 2, lambda f: ["flow", "automations", "--stale-hours", "0"],
+     "--stale-hours"),
     ("tcspc flow serve", 2, lambda f: ["flow", "serve", "--calibration-cron", "every day"],
      "every day"),
     ("tcspc demo", 2, lambda f: ["demo", "--cycles", "0"], "--cycles"),
