@@ -289,6 +289,12 @@ class Supervisor:
 
         self.lock = open_state(topo.state)
         try:
+            from pipeline.stream.runrecord import take
+
+            # a resume: the run's partition, refused if what a measurement is changed
+            self.record = take(topo)
+            if self.record.get("state") == "finished":
+                return  # a finished run started again: run() says so, nothing is redone
             check_resources(topo)
             # what the run's words are classified with, said at start (the capture's own
             # bounds are estimated here, before any stage starts)
@@ -626,7 +632,13 @@ class Supervisor:
     # -------------------------------------------------------------- run
     def run(self) -> dict:
         from pipeline.stream.journal import reopen
+        from pipeline.stream.runrecord import end
 
+        if self.record.get("state") == "finished":
+            self.log(f"run {self.topo.run}: already finished; its accounting stands "
+                     f"(see {self.topo.state / 'runs' / (self.topo.run + '.json')})")
+            self.lock.release()
+            return {**self.record["result"], "already_finished": True}
         if reopen(self.topo.state / "journal", self.topo.run):  # before any stage starts
             self.log(f"run {self.topo.run}: resuming after an earlier stop")
         collector = threading.Thread(target=self._collect, daemon=True)
@@ -682,6 +694,10 @@ class Supervisor:
                             **({"journal_corrupt_words": corrupt} if corrupt else {})})
         if self.view is not None:
             self.view.end()
+        try:
+            end(self.topo, result)
+        except OSError as exc:  # (a full state disk: the run's result is still printed)
+            self.log(f"run {self.topo.run}: its record not updated ({exc})")
         self.lock.release()
         return result
 
