@@ -743,9 +743,13 @@ def problems(result: dict) -> list[str]:
     if not rec.get("checked", False):
         out.append(f"reconciliation skipped: {rec.get('why', 'not run')}")
     if acc and not acc.get("balanced", False):
+        diff = acc['words_in'] - acc['classified'] - acc['withheld']
+        why = ("journaled words in no part: a measurement missing" if diff > 0 else
+               "the parts hold more words than the journal: a measurement counted twice or "
+               "a part of another topology beside the run's")
         out.append(f"unbalanced: words journaled {acc['words_in']:,} != classified "
                    f"{acc['classified']:,} + withheld {acc['withheld']:,} (difference "
-                   f"{acc['words_in'] - acc['classified'] - acc['withheld']:+,})")
+                   f"{diff:+,}: {why})")
     for key, what in (("unrecoverable", "unrecoverable (their journal words were pruned)"),
                       ("corrupt", "withheld (a corrupt journal chunk)")):
         if rec.get(key):

@@ -39,3 +39,15 @@ def test_a_resume_on_another_date_keeps_the_run_partition(tmp_path):
     later.date = "2099-01-01"  # the next local date
     take(later)
     assert later.date == topo.date
+
+
+def test_unbalanced_says_why():
+    from pipeline.stream.daemon import problems
+
+    rec = {"checked": True}
+    extra = problems({"reconciled": rec, "accounting": {
+        "balanced": False, "words_in": 100, "classified": 132, "withheld": 0}})
+    assert "difference -32: the parts hold more words than the journal" in extra[0]
+    missing = problems({"reconciled": rec, "accounting": {
+        "balanced": False, "words_in": 100, "classified": 36, "withheld": 0}})
+    assert "difference +64: journaled words in no part" in missing[0]
