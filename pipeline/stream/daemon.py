@@ -684,6 +684,15 @@ class Supervisor:
                 self.failed = f"reconciling the run failed: {type(exc).__name__}: {exc}"
                 result["failed"] = self.failed
                 self.log(self.failed)
+        else:  # a failed run: what was done and what is missing is written all the same
+            try:
+                result["accounting"] = accounting(self.topo, self.metrics, None, self.bounds)
+                acc = result["accounting"]
+                self.log(f"run {self.topo.run}: failed; {acc['classified']:,} of "
+                         f"{acc['words_in']:,} journaled words in the datasets "
+                         f"({acc['path']})")
+            except Exception as exc:
+                self.log(f"run {self.topo.run}: no accounting ({type(exc).__name__}: {exc})")
         result["problems"] = [] if self.failed else problems(result)
         result["state"] = run_state(result)
         for line in result["problems"]:

@@ -51,3 +51,17 @@ def test_unbalanced_says_why():
     missing = problems({"reconciled": rec, "accounting": {
         "balanced": False, "words_in": 100, "classified": 36, "withheld": 0}})
     assert "difference +64: journaled words in no part" in missing[0]
+
+
+def test_a_failed_run_writes_its_accounting(tmp_path):
+    import json
+
+    from tests.pipeline.stream.test_daemon import _kill_when_running
+
+    topo = topology(tmp_path, cycles=400_000, rate=2_000_000)
+    topo.write_text(topo.read_text().replace("restarts = 3", "restarts = 0"))
+    result, _ = run_daemon(topo, "f1", during=lambda s: _kill_when_running(
+        s, "histogram-1", 20_000 * 64))
+    assert result["failed"] and result["state"] == "failed"
+    acc = json.loads((tmp_path / "out" / "accounting" / "run=f1.json").read_text())
+    assert acc["words_in"] > 0 and acc["classified"] <= acc["words_in"]
