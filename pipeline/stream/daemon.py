@@ -289,6 +289,12 @@ class Supervisor:
 
         self.lock = open_state(topo.state)
         try:
+            from pipeline.stream.runrecord import take
+
+            # a resume: the run's partition, refused if what a measurement is changed
+            self.record = take(topo)
+            if self.record.get("state") == "finished":
+                return  # a finished run started again: run() says so, nothing is redone
             check_resources(topo)
             # what the run's words are classified with, said at start (the capture's own
             # bounds are estimated here, before any stage starts)
@@ -626,7 +632,13 @@ class Supervisor:
     # -------------------------------------------------------------- run
     def run(self) -> dict:
         from pipeline.stream.journal import reopen
+        from pipeline.stream.runrecord import end
 
+        if self.record.get("state") == "finished":
+            self.log(f"run {self.topo.run}: already finished; its accounting stands "
+                     f"(see {self.topo.state / 'runs' / (self.topo.run + '.json')})")
+            self.lock.release()
+            return {**self.record["result"], "already_finished": True}
         if reopen(self.topo.state / "journal", self.topo.run):  # before any stage starts
             self.log(f"run {self.topo.run}: resuming after an earlier stop")
         collector = threading.Thread(target=self._collect, daemon=True)
@@ -672,6 +684,15 @@ class Supervisor:
                 self.failed = f"reconciling the run failed: {type(exc).__name__}: {exc}"
                 result["failed"] = self.failed
                 self.log(self.failed)
+        else:  # a failed run: what was done and what is missing is written all the same
+            try:
+                result["accounting"] = accounting(self.topo, self.metrics, None, self.bounds)
+                acc = result["accounting"]
+                self.log(f"run {self.topo.run}: failed; {acc['classified']:,} of "
+                         f"{acc['words_in']:,} journaled words in the datasets "
+                         f"({acc['path']})")
+            except Exception as exc:
+                self.log(f"run {self.topo.run}: no accounting ({type(exc).__name__}: {exc})")
         result["problems"] = [] if self.failed else problems(result)
         result["state"] = run_state(result)
         for line in result["problems"]:
@@ -682,6 +703,10 @@ class Supervisor:
                             **({"journal_corrupt_words": corrupt} if corrupt else {})})
         if self.view is not None:
             self.view.end()
+        try:
+            end(self.topo, result)
+        except OSError as exc:  # (a full state disk: the run's result is still printed)
+            self.log(f"run {self.topo.run}: its record not updated ({exc})")
         self.lock.release()
         return result
 
@@ -727,9 +752,13 @@ def problems(result: dict) -> list[str]:
     if not rec.get("checked", False):
         out.append(f"reconciliation skipped: {rec.get('why', 'not run')}")
     if acc and not acc.get("balanced", False):
+        diff = acc['words_in'] - acc['classified'] - acc['withheld']
+        why = ("journaled words in no part: a measurement missing" if diff > 0 else
+               "the parts hold more words than the journal: a measurement counted twice or "
+               "a part of another topology beside the run's")
         out.append(f"unbalanced: words journaled {acc['words_in']:,} != classified "
                    f"{acc['classified']:,} + withheld {acc['withheld']:,} (difference "
-                   f"{acc['words_in'] - acc['classified'] - acc['withheld']:+,})")
+                   f"{diff:+,}: {why})")
     for key, what in (("unrecoverable", "unrecoverable (their journal words were pruned)"),
                       ("corrupt", "withheld (a corrupt journal chunk)")):
         if rec.get(key):

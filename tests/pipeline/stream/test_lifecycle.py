@@ -237,7 +237,7 @@ def test_a_run_that_does_not_balance_is_never_finished():
         "words_in_gaps": 0}}
     p = problems(short)
     assert p == ["unbalanced: words journaled 4,800,000 != classified 4,000,000 + withheld 0 "
-                 "(difference +800,000)"]
+                 "(difference +800,000: journaled words in no part: a measurement missing)"]
     res = {**short, "problems": p}
     assert run_state(res) == "incomplete" and exit_code(res) == 3
     skipped = {"reconciled": {"checked": False, "why": "the journal has no end"}}
