@@ -223,7 +223,8 @@ def run(config: set, base: Calibration, chip, plan, ranges, r_light, n_density, 
         calib = dataclasses.replace(calib, density=true_inl_density(calib.density, chip,
                                                                     n_density))
     if "lsb" in config:
-        fields = {f.name: getattr(calib, f.name) for f in dataclasses.fields(Calibration)}
+        fields = {f.name: getattr(calib, f.name) for f in dataclasses.fields(Calibration)
+                  if f.init}  # (not the built-on-use cache)
         calib = _TrueLsb(**{**fields, "lsb_fit": None}, chip=chip, lights=lights)
     if "delay" in config:
         calib = dataclasses.replace(calib, delay_s=np.full(chip.n_tdc, args.delay_ns * 1e-9),
