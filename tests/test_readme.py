@@ -133,9 +133,13 @@ def test_readme_commands_run_in_order(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     import polars as pl
 
-    # every pixel of the street's targets is detected, and no other
+    # every pixel of the street's targets is detected; the unlit ones only at the stated
+    # false-alarm rate (P_fa 1e-3 a pixel: 68 unlit pixels give 0.07 a run on average and
+    # 3 or more with probability 5e-5; the chain's empty street gave 1 of 2 048 on 16 seeds)
     targets = tomllib.loads((ROOT / "scenes" / "street.toml").read_text())["targets"]
-    lit = sorted(p for t in targets for p in range(t["pixels"][0], t["pixels"][1] + 1))
+    lit = {p for t in targets for p in range(t["pixels"][0], t["pixels"][1] + 1)}
     ranges = pl.read_parquet(tmp_path / "out" / "ranges.parquet")
-    assert sorted(ranges.filter(pl.col("detected"))["tdc"].to_list()) == lit
+    found = set(ranges.filter(pl.col("detected"))["tdc"].to_list())
+    assert lit <= found, sorted(lit - found)
+    assert len(found - lit) <= 2, sorted(found - lit)
     assert list((tmp_path / "out" / "stream" / "ranges").rglob("*.parquet"))

@@ -330,7 +330,10 @@ def test_codes_under_the_reset_peak_filled_from_a_test_at_another_light():
     assert np.all(rb.x_t > ra.x_t + 8)  # dimmer: a smaller LSB, T at a higher code
     vb = cal.width_variance(b.hits, b.cycles, rb)
     k = np.arange(512)
-    assert np.all(np.isnan(vb[k[None, :] >= np.floor(rb.x_t)[:, None] - cal.EDGE_MARGIN - 1]))
+    # a test measures its own codes up to OWN_CLEAR_LSB below its reset peak's T
+    top = (np.floor(rb.x_t - cal.OWN_CLEAR_LSB) if cal.OWN_TOP
+           else np.floor(rb.x_t) - cal.EDGE_MARGIN - 1)
+    assert np.all(np.isnan(vb[k[None, :] >= top[:, None]]))
     filled = cal.density_test(a.hits, a.cycles, 80e-9, fill=cal.fill_from([(rb, vb)], ra))
     truth = caps[0].truth["chip"]
     inl_t, x_t = np.array(truth["inl_window_lsb"]), np.array(truth["x_t"])
