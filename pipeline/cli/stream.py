@@ -437,11 +437,14 @@ def stage_range(pull, push, calibration, estimator, max_returns, workers, quaran
     from pipeline.offline.ranging import RangeCore
     from pipeline.stream.stage import run_stage
 
-    core = RangeCore(load_calibration(calibration), estimator, max_returns=max_returns)
+    core = RangeCore(load_calibration(calibration), estimator, max_returns=max_returns,
+                     warn=lambda m: err.print(f"range: warning: {m}", highlight=False))
     stats = run_stage(core, pull, push, quarantine=quarantine, expect_stops=workers,
                       metrics=metrics, name="range", senders=list(senders) or None)
     err.print(f"range: {core.ranged} measurements ranged; rejected {dict(stats.rejected)}"
-              + (f"; calibration notes {core.notes}" if core.notes else ""), highlight=False)
+              + (f"; calibration notes {core.notes}" if core.notes else "")
+              + (f"; chip check {core.chip_checks}" if core.chip_checks else ""),
+              highlight=False)
 
 
 @stage.command("sink")

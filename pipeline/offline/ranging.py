@@ -230,7 +230,7 @@ def ranges_table(measurement: str, est: Estimate, distance_m: np.ndarray,
 
 #: The flag of every row ranged with ``--force`` on a capture whose code-density pattern
 #: is not the calibration's chip's, and of a TDC that alone disagrees (issue 33.4).
-CHIP_MISMATCH = "calibration of another chip (code-density pattern; ranged with --force)"
+CHIP_MISMATCH = "calibration of another chip (code-density pattern)"
 TDC_MISMATCH = "this TDC's code-density pattern is not the calibration's"
 #: A TDC of a matching capture is flagged alone where its own excess is over this many
 #: sigmas (and its widths differ by more than a chip's drift): one in ~3.5 million by
@@ -298,6 +298,33 @@ def _flag_rows(est: Estimate, rows: np.ndarray, why: str) -> Estimate:
     return dataclasses.replace(est, flag=flag)
 
 
+#: The range stage checks its first measurement and every this many after it against the
+#: calibration's chip (:class:`RangeCore`).
+CHIP_RECHECK = 20
+
+UNDECIDED = ("chip not checked: too few background counts to tell the calibration's "
+             "chip from another")
+
+
+def chip_checked(calibration: Calibration, state: HistogramState, est: Estimate,
+                 window_s: float):
+    """:func:`check_capture_chip` and its flags: every row ``CHIP_MISMATCH`` where the
+    capture is another chip's, else the rows of a TDC that alone disagrees
+    ``TDC_MISMATCH``. Returns the flagged estimate, the verdict for the metadata or a
+    message header, and the check."""
+    chk = check_capture_chip(calibration, state, est, window_s)
+    px = est.pixel if est.pixel is not None else np.arange(state.n_tdc)
+    verdict = {"verdict": chk.verdict, "summary": chk.summary()}
+    if chk.verdict == "mismatch":
+        est = _flag_rows(est, np.ones(px.size, bool), CHIP_MISMATCH)
+        bad = chk.disagree
+    else:
+        bad = chk.disagree_at(TDC_FLAG_SIGMAS)
+        est = _flag_rows(est, bad[px], TDC_MISMATCH)
+    verdict["disagree"] = (np.flatnonzero(bad) + state.tdc_offset).tolist()
+    return est, verdict, chk
+
+
 def range_capture(capture: str | Path, calibration: Calibration, out: str | Path,
                   estimator: str = "ml", sigma_s: float | None = None,
                   p_fa: float = 1e-3, max_returns: int = 1, force: bool = False,
@@ -328,22 +355,11 @@ def range_capture(capture: str | Path, calibration: Calibration, out: str | Path
                                   max_returns=max_returns)
     verdict = {}
     if check_chip:
-        chk = check_capture_chip(calibration, state, est, window_s)
-        px = est.pixel if est.pixel is not None else np.arange(state.n_tdc)
-        verdict = {"verdict": chk.verdict, "summary": chk.summary()}
-        if chk.verdict == "mismatch":
-            if not force:
-                raise CalibrationError(mismatch_message(cap.bin_path, calibration, chk))
-            est = _flag_rows(est, np.ones(px.size, bool), CHIP_MISMATCH)
-            verdict["disagree"] = np.flatnonzero(chk.disagree).tolist()
-        else:
-            alone = chk.disagree_at(TDC_FLAG_SIGMAS)
-            est = _flag_rows(est, alone[px], TDC_MISMATCH)
-            verdict["disagree"] = np.flatnonzero(alone).tolist()
-            if chk.verdict == "undecided":
-                note = "; ".join(n for n in (note, (
-                    "chip not checked: too few background counts to tell the calibration's "
-                    f"chip from another ({chk.summary()})")) if n)
+        est, verdict, chk = chip_checked(calibration, state, est, window_s)
+        if chk.verdict == "mismatch" and not force:
+            raise CalibrationError(mismatch_message(cap.bin_path, calibration, chk))
+        if chk.verdict == "undecided":
+            note = "; ".join(n for n in (note, UNDECIDED + f" ({chk.summary()})") if n)
     table = ranges_table(cap.name, est, d, s)
     import json
 
@@ -371,7 +387,8 @@ class RangeCore:
 
     def __init__(self, calibration: Calibration, estimator: str = "ml",
                  window_ns: float = 80.0, step_id: str = "range",
-                 forward_histograms: bool = True, max_returns: int = MAX_RETURNS):
+                 forward_histograms: bool = True, max_returns: int = MAX_RETURNS,
+                 check_chip: bool = True, warn=None):
         if not calibration.has_delay:  # fail at start, not on the first message
             raise CalibrationError(f"{calibration.path}: no delay (run `tcspc calibrate "
                                    "delay` on a zero-distance capture first)")
@@ -380,6 +397,13 @@ class RangeCore:
         self.step_id, self.forward = step_id, forward_histograms
         self.ranged = 0
         self.notes: dict[str, int] = {}  #: what the calibration said, and how often
+        #: each measurement's code-density pattern against the calibration's chip
+        #: (:func:`chip_checked`): verdict -> measurements; another chip's rows are flagged
+        #: ``CHIP_MISMATCH`` (a stream is never refused mid-run: its data are kept) and
+        #: ``warn`` is told once
+        self.check_chip, self.warn = check_chip, warn
+        self.chip_checks: dict[str, int] = {}
+        self._unchecked = 0  #: measurements since the last check (after a match)
         self._warm_up()
 
     def _warm_up(self) -> None:
@@ -409,11 +433,28 @@ class RangeCore:
         if note:  # light outside the LSB fit: counted, and in the ranges' header
             self.notes[note] = self.notes.get(note, 0) + 1
         name = str(header.get("measurement", header["run"]))
+        chip = None
+        # a chip does not change within a run: the first measurement and every
+        # CHIP_RECHECK-th are checked (the check costs about as much as ranging), every one
+        # once a mismatch was seen
+        self._unchecked += 1
+        if self.check_chip and (not self.chip_checks
+                                or self.chip_checks.get("mismatch", 0) > 0
+                                or self._unchecked >= CHIP_RECHECK):
+            self._unchecked = 0
+            est, _, chk = chip_checked(self.calibration, state, est, window_s)
+            chip = chk.verdict
+            if chip == "mismatch" and not self.chip_checks.get(chip) and self.warn:
+                self.warn(mismatch_message(f"measurement {name}", self.calibration, chk,
+                                           state.tdc_offset).replace(
+                    "--force ranges it anyway", "ranged anyway"))
+            self.chip_checks[chip] = self.chip_checks.get(chip, 0) + 1
         table = ranges_table(name, est, d, s, state.tdc_offset)
         head = {**header, "schema": RANGES.name, "version": RANGES.version,
                 "step": self.step_id,
                 "detected": int(np.sum(est.detected & (est.return_index == 0))),
                 **({"calibration_note": note} if note else {}),
+                **({"chip_check": chip} if chip else {}),
                 **({"calibration_id": self.calibration.meta["calibration_id"]}
                    if self.calibration.meta.get("calibration_id") else {})}
         self.ranged += 1

@@ -157,3 +157,27 @@ def test_force_is_refused_where_there_is_no_chip_to_check(files, capsys):
     code, err = _range(["range", t3, "--delay-ps", "0", "--out", files["d"] / "x.parquet",
                         "--force"], capsys)
     assert code == 2 and "--force is for a tcspc capture" in err, err
+
+
+def test_the_range_stage_flags_another_chips_measurements(cals):
+    """The daemon's range stage checks each measurement as `tcspc range` checks a capture;
+    a stream is not refused mid-run (its data are kept): another chip's rows are all
+    flagged, the operator warned once, every verdict counted; the same chip's are not."""
+    from pipeline.offline.ranging import CHIP_MISMATCH, RangeCore
+
+    told: list[str] = []
+    core = RangeCore(cals[1], "ml", forward_histograms=False, warn=told.append)
+    flags = {}
+    for chip_seed, seed in ((2, 5), (2, 6), (1, 7)):
+        rng = np.random.default_rng(seed)
+        st = capture(chip_of(chip_seed, N), 0.3, 5e5, rng, np.full(N, 0.05),
+                     rng.uniform(3e-9, 77e-9, N))
+        header = {"run": "r", "measurement": f"m{seed}", "window_ns": T * 1e9,
+                  "t_laser_win_ns": RANGE_GATE_S * 1e9}
+        ((head, batch),) = core.process(header, st.to_table(f"m{seed}").to_batches()[0])
+        flags[seed] = (head["chip_check"], batch.column("flag").to_pylist())
+    assert flags[5][0] == flags[6][0] == "mismatch"
+    assert all(CHIP_MISMATCH in f for f in flags[5][1] + flags[6][1])
+    assert flags[7][0] == "match" and not any(CHIP_MISMATCH in f for f in flags[7][1])
+    assert core.chip_checks == {"mismatch": 2, "match": 1}
+    assert len(told) == 1 and "measurement m5 does not match" in told[0], told
