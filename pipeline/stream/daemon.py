@@ -7,9 +7,10 @@ hand across hosts. The supervisor
 
 - starts the stages (sink first, source last), logs each to ``STATE/logs/NAME.log``;
 - restarts a stage that dies, after an exponential backoff (``restart_backoff_s`` doubling
-  per restart in the window, up to ``restart_backoff_max_s``), at most ``restarts`` times
-  per stage in any ``restart_window_s``: the source resumes after what its journal holds,
-  a histogram worker from its checkpoint and the journal;
+  per restart not yet earned back, up to ``restart_backoff_max_s``), within a restart
+  budget that is a rate (``pipeline.stream.budget``: ``restarts`` back to back, one earned
+  back per ``restart_refill_s``): the source resumes after what its journal holds, a
+  histogram worker from its checkpoint and the journal;
 - ends a stage whose upstream has finished but whose stop message was lost with a killed
   process (SIGTERM: it drains what is in flight, then finishes);
 - collects the stages' heartbeats (PUB/SUB) into ``STATE/status.json`` once a second, for
@@ -25,12 +26,12 @@ starts, as are the state directory and the resources: ``pipeline.stream.state``)
     [daemon]
     state = "data/daemon"        # journal/, checkpoints/, quarantine/, logs/, status.json
     run = "street"               # run id (default: the source's name and the UTC time)
-    restarts = 10                # per stage in any restart_window_s; one more death in the
-                                 # window and the daemon stops the graph and fails
-    restart_window_s = 600       # the budget's window (a stage that dies once an hour for
-                                 # a weekend is restarted every time)
-    restart_backoff_s = 0.5      # wait before a restart, doubling with each restart in
-    restart_backoff_max_s = 30   # the window, up to this
+    restarts = 10                # a stage's restart budget: 10 back to back; a death with
+                                 # the budget spent stops the graph and fails the run
+    restart_refill_s = 60        # one restart earned back per 60 s (a stage dying once a
+                                 # minute for a week is restarted every time)
+    restart_backoff_s = 0.5      # wait before a restart, doubling with each restart not
+    restart_backoff_max_s = 30   # yet earned back, up to this
     heartbeat_deadline_s = 60    # a live stage with no heartbeat this long is frozen
                                  # (SIGSTOPped, wedged): SIGKILLed, restarted, counted
     journal_keep_gb = 50         # prune the oldest consumed segments beyond this (default:
@@ -129,7 +130,7 @@ class Proc:
     popen: subprocess.Popen | None = None
     restarts: int = 0
     finished: bool = False
-    restart_times: list[float] = field(default_factory=list)  #: within the budget window
+    budget: object = None   #: its RestartBudget (made at its first death)
     restart_at: float | None = None   #: a restart waiting out its backoff
     exit_codes: list[int] = field(default_factory=list)
     upstream_done_at: float | None = None
@@ -415,24 +416,30 @@ class Supervisor:
                 p.finished = True  # shutting down: the run ends here, no new source
                 self.log(f"{p.name}: ended (exit {code}) during shutdown")
                 continue
-            p.restart_times = [t for t in p.restart_times
-                               if now - t < self.topo.restart_window_s]
-            if len(p.restart_times) >= self.topo.restarts:
-                self.failed = (f"{p.name} died (exit {code}) {len(p.restart_times) + 1} "
-                               f"times within {self.topo.restart_window_s:.0f} s; giving up "
+            budget = self._budget(p)  # a token bucket: a rate (pipeline.stream.budget)
+            spent = budget.spent()
+            if not budget.take():
+                self.failed = (f"{p.name} died (exit {code}) with its restart budget spent "
+                               f"({budget.describe()}; {p.restarts} restarts); giving up "
                                f"(see {self.topo.state / 'logs' / (p.name + '.log')})")
                 self.log(self.failed)
                 return True
             backoff = min(self.topo.restart_backoff_max_s,
-                          self.topo.restart_backoff_s * 2 ** len(p.restart_times))
-            p.restart_times.append(now)
+                          self.topo.restart_backoff_s * 2 ** spent)
             p.restarts += 1
             p.terminated, p.upstream_done_at = False, None
             p.restart_at = now + backoff
             self.log(f"{p.name}: died (exit {code}); restart {p.restarts} in {backoff:.1f} s "
-                     f"({len(p.restart_times)} of {self.topo.restarts} in "
-                     f"{self.topo.restart_window_s:.0f} s)")
+                     f"({budget.available():.1f} of {budget.burst} left, one more every "
+                     f"{budget.refill_s:g} s)")
         return all(p.finished for p in self.procs)
+
+    def _budget(self, p: Proc):
+        from pipeline.stream.budget import RestartBudget
+
+        if p.budget is None:
+            p.budget = RestartBudget(self.topo.restarts, self.topo.restart_refill_s)
+        return p.budget
 
     def _grace(self) -> float:
         """How long a stage whose upstream finished may take nothing before its SIGTERM:
