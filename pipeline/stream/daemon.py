@@ -248,27 +248,13 @@ def run_token(state: Path, run: str) -> tuple[Path, str]:
     """The run's token: random, in ``STATE/tokens/RUN.token`` (mode 0600, its directory
     0700), made once per run and kept (a restarted daemon's stages and the old ones agree).
     Every stage puts it in the headers it sends and checks it in those it takes."""
-    import secrets
+    from pipeline.stream.exporter import secret_token
 
     d = state / "tokens"
     d.mkdir(parents=True, exist_ok=True)
     os.chmod(d, 0o700)
     path = d / f"{run}.token"
-    from pipeline.stream.state import open_nofollow
-
-    try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    except FileExistsError:
-        with os.fdopen(open_nofollow(path, os.O_RDONLY), "r") as fh:
-            os.fchmod(fh.fileno(), 0o600)
-            token = fh.read().strip()
-        if len(token) >= 32:
-            return path, token
-        fd = open_nofollow(path, os.O_WRONLY | os.O_TRUNC)  # empty or cut short: anew
-    token = secrets.token_hex(32)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(token + "\n")
-    return path, token
+    return path, secret_token(path)
 
 
 def check_record(rec: dict, token: str | None) -> bool:
@@ -297,6 +283,10 @@ class Supervisor:
             if self.record.get("state") == "finished":
                 return  # a finished run started again: run() says so, nothing is redone
             check_resources(topo)
+            from pipeline.stream.opsview import OpsView
+
+            # totals, metrics server ([metrics]), systemd notifications (issue 38.8)
+            self.ops = OpsView(topo, log)
             # what the run's words are classified with, said at start (the capture's own
             # bounds are estimated here, before any stage starts)
             self.bounds = ensure_bounds(topo, log)
@@ -519,6 +509,7 @@ class Supervisor:
                             self.forged_heartbeats += 1  # no token: not one of ours
                             continue
                         rec.pop("token", None)
+                        self.ops.totals.observe(rec)  # (run totals: a new pid folds in)
                         prev = self.metrics.get(rec["stage"])
                         if prev and prev.get("pid") == rec.get("pid"):
                             dt_s = max(rec["t"] - prev["t"], 1e-6)
@@ -569,6 +560,7 @@ class Supervisor:
 
     def _write_status(self, extra: dict | None = None) -> None:
         status = {**self.status(), **(extra or {})}
+        self.ops.update(self, status)  # totals saved; metrics; systemd's STATUS=
         paused = status.get("paused") or {}
         for name in sorted(set(paused) ^ self._paused):  # a full disk is said, in the log
             self.log(f"{name}: paused ({paused[name]})" if name in paused else
@@ -668,8 +660,10 @@ class Supervisor:
                     if self.view is not None:
                         self.view.keep()
                     last = time.time()
+                self.ops.tick(self)  # WATCHDOG=1 (only while this loop runs); READY=1
                 time.sleep(self.poll_s)
         finally:
+            self.ops.stopping()
             if self.failed:
                 self.kill_all()
             self.stop.set()
@@ -679,21 +673,24 @@ class Supervisor:
                   "interrupted": self.interrupted,
                   "restarts": {p.name: p.restarts for p in self.procs if p.restarts},
                   "frozen": {p.name: p.frozen for p in self.procs if p.frozen},
-                  "journal_segments_pruned": self.pruned}
+                  "journal_segments_pruned": self.pruned,
+                  "totals": self.ops.totals.totals(self.procs)}  # (across daemon restarts)
         if not self.failed:
             try:
                 result["reconciled"] = reconcile(self.topo)
                 for part in result["reconciled"].get("rebuilt", []):
                     self.log(f"rebuilt from the journal: {part['file']} ({part['why']})")
-                result["accounting"] = accounting(self.topo, self.metrics,
-                                                  result["reconciled"], self.bounds)
+                result["accounting"] = accounting(  # (rejections: the run's totals)
+                    self.topo, self.ops.totals.merged(self.metrics), result["reconciled"],
+                    self.bounds)
             except Exception as exc:  # the run must end with a state, never "running"
                 self.failed = f"reconciling the run failed: {type(exc).__name__}: {exc}"
                 result["failed"] = self.failed
                 self.log(self.failed)
         else:  # a failed run: what was done and what is missing is written all the same
             try:
-                result["accounting"] = accounting(self.topo, self.metrics, None, self.bounds)
+                result["accounting"] = accounting(
+                    self.topo, self.ops.totals.merged(self.metrics), None, self.bounds)
                 acc = result["accounting"]
                 self.log(f"run {self.topo.run}: failed; {acc['classified']:,} of "
                          f"{acc['words_in']:,} journaled words in the datasets "
