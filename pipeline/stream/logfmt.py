@@ -23,7 +23,7 @@ import sys
 _STAGE = re.compile(r"^(source|sink|range|view|histogram-\d+): ")
 _ERROR = ("giving up", "failed", "no accounting")
 _WARNING = ("died", "frozen", "paused", "not written", "not bound", "incomplete",
-            "unbalanced", "lost", "interrupted", "SIGTERM", "rebuilt", "withheld",
+            "unbalanced", "lost", "nothing taken", "rebuilt", "withheld",
             "restarted", "problem", "not updated", "ended (exit")
 
 
