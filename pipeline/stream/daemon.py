@@ -291,6 +291,8 @@ class Supervisor:
             # bounds are estimated here, before any stage starts)
             self.bounds = ensure_bounds(topo, log)
         except Exception:
+            if getattr(self, "ops", None) is not None:
+                self.ops.close()  # (its port: nothing was started)
             self.lock.release()
             raise
         log(f"artifact bounds: {self.bounds}")

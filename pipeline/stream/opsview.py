@@ -57,3 +57,9 @@ class OpsView:
     def stopping(self) -> None:
         self.notifier.ready()  # (a run that ended before every stage reported)
         self.notifier.stopping("the graph has ended: reconciling")
+
+    def close(self) -> None:
+        """The metrics server and the notify socket (the CLI's exit does the same)."""
+        if self.exporter is not None:
+            self.exporter.close()
+        self.notifier.close()
