@@ -615,13 +615,15 @@ def _status_table(st: dict):
     for col in ("stage", "health", "pid", "restarts", "received", "sent", "M words/s",
                 "queue", "blocked s", "rejected"):
         t.add_column(col)
+    tot = st.get("totals") or {}  # the run's restarts and rejections, across daemons
+    totals, rejected = tot.get("restarts") or {}, tot.get("rejected") or {}
     for name, s in st["stages"].items():
         rate = s.get("rate_words_s")
-        t.add_row(name, s["health"], str(s.get("pid")), str(s["restarts"]),
+        t.add_row(name, s["health"], str(s.get("pid")), str(totals.get(name, s["restarts"])),
                   str(s.get("received", "")), str(s.get("sent", "")),
                   f"{rate / 1e6:.1f}" if rate is not None else "",
                   str(st["queue_depth"].get(name, "")), str(s.get("blocked_s", "")),
-                  str(s.get("rejected") or ""))
+                  str(rejected.get(name) or s.get("rejected") or ""))
     return t
 
 

@@ -294,6 +294,12 @@ def test_restarts_and_rejections_are_run_totals_across_a_daemon_restart(tmp_path
                                           ("stage", "histogram-0"))] == 2
         assert m["tcspc_daemon_starts_total"][()] == 2
         assert m["tcspc_words_in_total"][()] == second["accounting"]["words_in"]
+        # `tcspc status` shows the run's restarts and rejections, not this daemon's (0)
+        st = subprocess.run([sys.executable, "-m", "pipeline.cli", "status", "--state",
+                             str(tmp_path / "state")], capture_output=True, text=True,
+                            timeout=60)
+        row = [x.split("│") for x in st.stdout.splitlines() if "histogram-0" in x][0]
+        assert row[4].strip() == "1" and "'bad_token': 2" in row[10], st.stdout
     finally:
         sup2.ops.exporter.close()
 
