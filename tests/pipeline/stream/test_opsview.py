@@ -58,6 +58,13 @@ def test_metrics_of_a_finished_run_equal_its_accounting(tmp_path, daemon_helpers
             assert e.value.code == 401
         m = scrape(url, token)
         assert m == scrape(url, token, query=True)
+        # OpenMetrics when the scraper asks for it (the library's negotiation, behind ours)
+        req = urllib.request.Request(url, headers={
+            "Authorization": f"Bearer {token}", "Accept": "application/openmetrics-text"})
+        with urllib.request.urlopen(req, timeout=10) as resp:
+            assert resp.headers["Content-Type"].startswith("application/openmetrics-text")
+            om = resp.read().decode()
+        assert om.endswith("# EOF\n") and "tcspc_words_in_total " in om
         words = m["tcspc_words_in_total"][()]
         assert words == result["accounting"]["words_in"] == 40_000 * daemon_helpers.N
         names = {dict(k)["stage"] for k in m["tcspc_stage_restarts_total"]}
