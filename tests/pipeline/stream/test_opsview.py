@@ -332,3 +332,73 @@ def test_run_totals_fold_a_stage_restart_and_reload(tmp_path):
                    "rejected": {"sink": {"bad_token": 3, "bad_header": 1}},
                    "quarantine_dropped": {"sink": 2}}
     assert RunTotals(tmp_path, "other").totals()["daemon_starts"] == 1
+
+
+def test_a_udp_runs_datagrams_and_rejections_in_the_metrics_equal_its_accounting(tmp_path):
+    """A UDP run with a datagram lost and 24 bad ones (bad magic, truncated, garbage): the
+    metrics' words in, datagrams accepted and lost, and rejections by reason are the
+    accounting's numbers."""
+    from pipeline.stream import datagram
+    from pipeline.stream.daemon import Supervisor
+    from pipeline.stream.topology import load_topology
+    from stages.testpattern import pattern_words
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    (tmp_path / "udp.toml").write_text(f"""
+[daemon]
+state = "{tmp_path / 'state'}"
+[source]
+kind = "udp"
+bind = "127.0.0.1:{port}"
+n_tdc = 128
+idle = 20
+[histogram]
+workers = 2
+measurement_cycles = 256
+artifacts = "count-as-hits"
+[sink]
+out = "{tmp_path / 'out'}"
+[metrics]
+port = 0
+""")
+    sup = Supervisor(load_topology(tmp_path / "udp.toml", "u"), log=lambda m: None)
+    result = {}
+    import threading
+
+    t = threading.Thread(target=lambda: result.update(sup.run()))
+    t.start()
+    try:
+        deadline = time.time() + 60
+        while "source" not in sup.metrics and time.time() < deadline:
+            time.sleep(0.1)  # the ingest is listening once it beats
+        words, _ = pattern_words(40 * 32, 128, hit_prob=0.1, rng=2)
+        out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        rng = np.random.default_rng(0)
+        for i in range(40):
+            chunk = words[i * 32 * 128:(i + 1) * 32 * 128]
+            if i != 7:  # (7: lost on the way)
+                out.sendto(datagram.encode(chunk, i, i * 32, 128, 140_000, last=(i == 39)),
+                           ("127.0.0.1", port))
+            if i % 5 == 0:
+                junk = datagram.encode(chunk, 99, 0, 128, 140_000)
+                for bad in (b"NOPE" + junk[4:], junk[:100], rng.bytes(64)):
+                    out.sendto(bad, ("127.0.0.1", port))
+            time.sleep(0.003)
+        out.close()
+        t.join(timeout=240)
+        assert not t.is_alive()
+        acc = result["accounting"]
+        token = (tmp_path / "state" / "metrics.token").read_text().strip()
+        m = scrape(sup.ops.exporter.url, token)
+        assert m["tcspc_words_in_total"][()] == acc["words_in"] == 39 * 32 * 128
+        assert m["tcspc_datagrams_lost_total"][()] == acc["lost_datagrams"] == 1
+        assert m["tcspc_datagrams_accepted_total"][()] == 39
+        rejected = {dict(k)["reason"]: v for k, v in m["tcspc_rejected_total"].items()
+                    if dict(k)["stage"] == "source"}
+        assert rejected == acc["rejected_messages"]["source"]
+        assert sum(rejected.values()) == 8 * 3
+    finally:
+        t.join(timeout=240)
+        sup.ops.exporter.close()
