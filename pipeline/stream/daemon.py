@@ -81,8 +81,15 @@ starts, as are the state directory and the resources: ``pipeline.stream.state``)
     bind = "127.0.0.1"           # daemon): loopback by default, a token in the URL
     layout = "16x8"              # elsewhere (STATE/view.url); the array's columns x rows
 
+    [metrics]                    # leave out: none; with it, Prometheus metrics on this port
+    port = 9108                  # (127.0.0.1, or host = ...; a bearer token from
+                                 # STATE/metrics.token): pipeline.stream.exporter
+    [log]
+    format = "json"              # JSON lines (ts, level, stage, msg); default "text"
+
 The daemon publishes each status it writes on ``ipc://STATE/sock/status`` (PUB) for the
-web page (``pipeline.stream.sidecar``).
+web page (``pipeline.stream.sidecar``). Under systemd (``Type=notify``) it sends READY=1,
+WATCHDOG=1 from its supervision loop, STATUS= and STOPPING=1 (``pipeline.stream.notify``).
 
 Endpoints default to ``ipc://STATE/sock/NAME``; give ``endpoint`` (or ``endpoints``, one
 per worker) in a section to use ``tcp://`` instead.

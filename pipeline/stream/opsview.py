@@ -15,6 +15,7 @@ class OpsView:
         self.totals = RunTotals(topo.state, topo.run)
         self.notifier = Notifier()
         self.exporter = None
+        self.failing = False  #: the last update failed (said once in the log)
         cfg = topo.exporter
         if cfg is not None:
             host, port = cfg.get("host", "127.0.0.1"), int(cfg.get("port", 0))
@@ -39,7 +40,17 @@ class OpsView:
 
     def update(self, sup, status: dict) -> None:
         """Each status written (once a second, and at the end): totals saved, the metrics'
-        snapshot, systemd's STATUS line."""
+        snapshot, systemd's STATUS line. The operator's view never stops a run: a failure
+        here is logged once and the run goes on."""
+        try:
+            self._update(sup, status)
+            self.failing = False
+        except Exception as exc:  # noqa: BLE001 - a monitoring aid must not end the run
+            if not self.failing:
+                self.log(f"metrics not updated: {type(exc).__name__}: {exc}")
+            self.failing = True
+
+    def _update(self, sup, status: dict) -> None:
         totals = self.totals.save(sup.procs)
         status["totals"] = totals
         if self.exporter is not None:

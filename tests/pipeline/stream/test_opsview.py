@@ -402,3 +402,25 @@ port = 0
     finally:
         t.join(timeout=240)
         sup.ops.exporter.close()
+
+
+def test_a_failing_operators_view_is_logged_once_and_never_stops_the_run(tmp_path,
+                                                                        daemon_helpers):
+    from types import SimpleNamespace
+
+    from pipeline.stream.opsview import OpsView
+    from pipeline.stream.topology import load_topology
+
+    topo = load_topology(daemon_helpers.topology(tmp_path), "f")
+    lines = []
+    ops = OpsView(topo, lines.append)
+
+    def broken(procs=()):
+        raise RuntimeError("boom")
+
+    ops.totals.save = broken
+    sup = SimpleNamespace(procs=[], metrics={})
+    for _ in range(3):
+        ops.update(sup, {"state": "running", "stages": {}})
+    assert lines == ["metrics not updated: RuntimeError: boom"]
+    ops.close()
