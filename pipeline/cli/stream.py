@@ -532,7 +532,11 @@ def plan(config, run_id, out, overwrite) -> None:
               help="Topology TOML (default: the street scene through 2 workers; every "
                    "key: docs/operations.md, \"Every key of a topology\").")
 @click.option("--run", "run_id", default=None, help="Run id (default: from the config).")
-def daemon(config, run_id) -> None:
+@click.option("--log-json", is_flag=True, help="Log as JSON lines (ts, level, stage, msg) "
+              "instead of text (also [log] format = \"json\").")
+@click.option("--unit", "print_unit", is_flag=True, help="Print a systemd unit (Type=notify, "
+              "a watchdog) that runs this daemon with this --config, and exit.")
+def daemon(config, run_id, log_json, print_unit) -> None:
     """Start the stream graph under a supervisor that restarts crashed stages; on exit,
     reconcile the datasets with the journal and write the run's accounting. Exit 0: the run
     finished, every word in; 1: failed; 3: incomplete (unbalanced, a measurement withheld,
@@ -541,11 +545,17 @@ def daemon(config, run_id) -> None:
     import signal
 
     from pipeline.stream.daemon import Supervisor, exit_code
+    from pipeline.stream.logfmt import daemon_log
     from pipeline.stream.topology import load_topology
 
+    if print_unit:
+        from pipeline.stream.systemd import daemon_unit
+
+        click.echo(daemon_unit(config, run_id), nl=False)
+        return
     topo = load_topology(config, run_id)
-    sup = Supervisor(topo, log=lambda m: err.print(f"daemon: {m}", highlight=False,
-                                                   markup=False))
+    log = daemon_log("json" if log_json else topo.log_format)
+    sup = Supervisor(topo, log=log)
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda signum, _: sup.interrupt(signum))
     result = sup.run()
@@ -555,16 +565,13 @@ def daemon(config, run_id) -> None:
     words = (result.get("accounting") or {}).get("words_in", 0)
     state = result["state"]
     if state == "interrupted":
-        err.print(f"daemon: run {topo.run} interrupted ({result['interrupted']}) after "
-                  f"{words:,} words; resume it with `tcspc daemon"
-                  f"{' --config ' + str(config) if config else ''} --run {topo.run}`",
-                  highlight=False, markup=False)
+        log(f"run {topo.run} interrupted ({result['interrupted']}) after "
+            f"{words:,} words; resume it with `tcspc daemon"
+            f"{' --config ' + str(config) if config else ''} --run {topo.run}`")
     elif state == "incomplete":
-        err.print(f"daemon: run {topo.run} incomplete: " + "; ".join(result["problems"]),
-                  highlight=False, markup=False)
+        log(f"run {topo.run} incomplete: " + "; ".join(result["problems"]))
     elif state == "finished":
-        err.print(f"daemon: run {topo.run} finished: {words:,} words, balanced",
-                  highlight=False, markup=False)
+        log(f"run {topo.run} finished: {words:,} words, balanced")
     sys.exit(exit_code(result))
 
 
@@ -611,13 +618,15 @@ def _status_table(st: dict):
     for col in ("stage", "health", "pid", "restarts", "received", "sent", "M words/s",
                 "queue", "blocked s", "rejected"):
         t.add_column(col)
+    tot = st.get("totals") or {}  # the run's restarts and rejections, across daemons
+    totals, rejected = tot.get("restarts") or {}, tot.get("rejected") or {}
     for name, s in st["stages"].items():
         rate = s.get("rate_words_s")
-        t.add_row(name, s["health"], str(s.get("pid")), str(s["restarts"]),
+        t.add_row(name, s["health"], str(s.get("pid")), str(totals.get(name, s["restarts"])),
                   str(s.get("received", "")), str(s.get("sent", "")),
                   f"{rate / 1e6:.1f}" if rate is not None else "",
                   str(st["queue_depth"].get(name, "")), str(s.get("blocked_s", "")),
-                  str(s.get("rejected") or ""))
+                  str(rejected.get(name) or s.get("rejected") or ""))
     return t
 
 

@@ -7,9 +7,10 @@ hand across hosts. The supervisor
 
 - starts the stages (sink first, source last), logs each to ``STATE/logs/NAME.log``;
 - restarts a stage that dies, after an exponential backoff (``restart_backoff_s`` doubling
-  per restart in the window, up to ``restart_backoff_max_s``), at most ``restarts`` times
-  per stage in any ``restart_window_s``: the source resumes after what its journal holds,
-  a histogram worker from its checkpoint and the journal;
+  per restart not yet earned back, up to ``restart_backoff_max_s``), within a restart
+  budget that is a rate (``pipeline.stream.budget``: ``restarts`` back to back, one earned
+  back per ``restart_refill_s``): the source resumes after what its journal holds, a
+  histogram worker from its checkpoint and the journal;
 - ends a stage whose upstream has finished but whose stop message was lost with a killed
   process (SIGTERM: it drains what is in flight, then finishes);
 - collects the stages' heartbeats (PUB/SUB) into ``STATE/status.json`` once a second, for
@@ -25,12 +26,12 @@ starts, as are the state directory and the resources: ``pipeline.stream.state``)
     [daemon]
     state = "data/daemon"        # journal/, checkpoints/, quarantine/, logs/, status.json
     run = "street"               # run id (default: the source's name and the UTC time)
-    restarts = 10                # per stage in any restart_window_s; one more death in the
-                                 # window and the daemon stops the graph and fails
-    restart_window_s = 600       # the budget's window (a stage that dies once an hour for
-                                 # a weekend is restarted every time)
-    restart_backoff_s = 0.5      # wait before a restart, doubling with each restart in
-    restart_backoff_max_s = 30   # the window, up to this
+    restarts = 10                # a stage's restart budget: 10 back to back; a death with
+                                 # the budget spent stops the graph and fails the run
+    restart_refill_s = 60        # one restart earned back per 60 s (a stage dying once a
+                                 # minute for a week is restarted every time)
+    restart_backoff_s = 0.5      # wait before a restart, doubling with each restart not
+    restart_backoff_max_s = 30   # yet earned back, up to this
     heartbeat_deadline_s = 60    # a live stage with no heartbeat this long is frozen
                                  # (SIGSTOPped, wedged): SIGKILLed, restarted, counted
     journal_keep_gb = 50         # prune the oldest consumed segments beyond this (default:
@@ -80,8 +81,15 @@ starts, as are the state directory and the resources: ``pipeline.stream.state``)
     bind = "127.0.0.1"           # daemon): loopback by default, a token in the URL
     layout = "16x8"              # elsewhere (STATE/view.url); the array's columns x rows
 
+    [metrics]                    # leave out: none; with it, Prometheus metrics on this port
+    port = 9108                  # (127.0.0.1, or host = ...; a bearer token from
+                                 # STATE/metrics.token): pipeline.stream.exporter
+    [log]
+    format = "json"              # JSON lines (ts, level, stage, msg); default "text"
+
 The daemon publishes each status it writes on ``ipc://STATE/sock/status`` (PUB) for the
-web page (``pipeline.stream.sidecar``).
+web page (``pipeline.stream.sidecar``). Under systemd (``Type=notify``) it sends READY=1,
+WATCHDOG=1 from its supervision loop, STATUS= and STOPPING=1 (``pipeline.stream.notify``).
 
 Endpoints default to ``ipc://STATE/sock/NAME``; give ``endpoint`` (or ``endpoints``, one
 per worker) in a section to use ``tcp://`` instead.
@@ -129,7 +137,7 @@ class Proc:
     popen: subprocess.Popen | None = None
     restarts: int = 0
     finished: bool = False
-    restart_times: list[float] = field(default_factory=list)  #: within the budget window
+    budget: object = None   #: its RestartBudget (made at its first death)
     restart_at: float | None = None   #: a restart waiting out its backoff
     exit_codes: list[int] = field(default_factory=list)
     upstream_done_at: float | None = None
@@ -247,27 +255,13 @@ def run_token(state: Path, run: str) -> tuple[Path, str]:
     """The run's token: random, in ``STATE/tokens/RUN.token`` (mode 0600, its directory
     0700), made once per run and kept (a restarted daemon's stages and the old ones agree).
     Every stage puts it in the headers it sends and checks it in those it takes."""
-    import secrets
+    from pipeline.stream.exporter import secret_token
 
     d = state / "tokens"
     d.mkdir(parents=True, exist_ok=True)
     os.chmod(d, 0o700)
     path = d / f"{run}.token"
-    from pipeline.stream.state import open_nofollow
-
-    try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    except FileExistsError:
-        with os.fdopen(open_nofollow(path, os.O_RDONLY), "r") as fh:
-            os.fchmod(fh.fileno(), 0o600)
-            token = fh.read().strip()
-        if len(token) >= 32:
-            return path, token
-        fd = open_nofollow(path, os.O_WRONLY | os.O_TRUNC)  # empty or cut short: anew
-    token = secrets.token_hex(32)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(token + "\n")
-    return path, token
+    return path, secret_token(path)
 
 
 def check_record(rec: dict, token: str | None) -> bool:
@@ -296,10 +290,16 @@ class Supervisor:
             if self.record.get("state") == "finished":
                 return  # a finished run started again: run() says so, nothing is redone
             check_resources(topo)
+            from pipeline.stream.opsview import OpsView
+
+            # totals, metrics server ([metrics]), systemd notifications (issue 38.8)
+            self.ops = OpsView(topo, log)
             # what the run's words are classified with, said at start (the capture's own
             # bounds are estimated here, before any stage starts)
             self.bounds = ensure_bounds(topo, log)
         except Exception:
+            if getattr(self, "ops", None) is not None:
+                self.ops.close()  # (its port: nothing was started)
             self.lock.release()
             raise
         log(f"artifact bounds: {self.bounds}")
@@ -415,24 +415,30 @@ class Supervisor:
                 p.finished = True  # shutting down: the run ends here, no new source
                 self.log(f"{p.name}: ended (exit {code}) during shutdown")
                 continue
-            p.restart_times = [t for t in p.restart_times
-                               if now - t < self.topo.restart_window_s]
-            if len(p.restart_times) >= self.topo.restarts:
-                self.failed = (f"{p.name} died (exit {code}) {len(p.restart_times) + 1} "
-                               f"times within {self.topo.restart_window_s:.0f} s; giving up "
+            budget = self._budget(p)  # a token bucket: a rate (pipeline.stream.budget)
+            spent = budget.spent()
+            if not budget.take():
+                self.failed = (f"{p.name} died (exit {code}) with its restart budget spent "
+                               f"({budget.describe()}; {p.restarts} restarts); giving up "
                                f"(see {self.topo.state / 'logs' / (p.name + '.log')})")
                 self.log(self.failed)
                 return True
             backoff = min(self.topo.restart_backoff_max_s,
-                          self.topo.restart_backoff_s * 2 ** len(p.restart_times))
-            p.restart_times.append(now)
+                          self.topo.restart_backoff_s * 2 ** spent)
             p.restarts += 1
             p.terminated, p.upstream_done_at = False, None
             p.restart_at = now + backoff
             self.log(f"{p.name}: died (exit {code}); restart {p.restarts} in {backoff:.1f} s "
-                     f"({len(p.restart_times)} of {self.topo.restarts} in "
-                     f"{self.topo.restart_window_s:.0f} s)")
+                     f"({budget.available():.1f} of {budget.burst} left, one more every "
+                     f"{budget.refill_s:g} s)")
         return all(p.finished for p in self.procs)
+
+    def _budget(self, p: Proc):
+        from pipeline.stream.budget import RestartBudget
+
+        if p.budget is None:
+            p.budget = RestartBudget(self.topo.restarts, self.topo.restart_refill_s)
+        return p.budget
 
     def _grace(self) -> float:
         """How long a stage whose upstream finished may take nothing before its SIGTERM:
@@ -512,6 +518,7 @@ class Supervisor:
                             self.forged_heartbeats += 1  # no token: not one of ours
                             continue
                         rec.pop("token", None)
+                        self.ops.totals.observe(rec)  # (run totals: a new pid folds in)
                         prev = self.metrics.get(rec["stage"])
                         if prev and prev.get("pid") == rec.get("pid"):
                             dt_s = max(rec["t"] - prev["t"], 1e-6)
@@ -562,6 +569,7 @@ class Supervisor:
 
     def _write_status(self, extra: dict | None = None) -> None:
         status = {**self.status(), **(extra or {})}
+        self.ops.update(self, status)  # totals saved; metrics; systemd's STATUS=
         paused = status.get("paused") or {}
         for name in sorted(set(paused) ^ self._paused):  # a full disk is said, in the log
             self.log(f"{name}: paused ({paused[name]})" if name in paused else
@@ -661,8 +669,10 @@ class Supervisor:
                     if self.view is not None:
                         self.view.keep()
                     last = time.time()
+                self.ops.tick(self)  # WATCHDOG=1 (only while this loop runs); READY=1
                 time.sleep(self.poll_s)
         finally:
+            self.ops.stopping()
             if self.failed:
                 self.kill_all()
             self.stop.set()
@@ -672,21 +682,24 @@ class Supervisor:
                   "interrupted": self.interrupted,
                   "restarts": {p.name: p.restarts for p in self.procs if p.restarts},
                   "frozen": {p.name: p.frozen for p in self.procs if p.frozen},
-                  "journal_segments_pruned": self.pruned}
+                  "journal_segments_pruned": self.pruned,
+                  "totals": self.ops.totals.totals(self.procs)}  # (across daemon restarts)
         if not self.failed:
             try:
                 result["reconciled"] = reconcile(self.topo)
                 for part in result["reconciled"].get("rebuilt", []):
                     self.log(f"rebuilt from the journal: {part['file']} ({part['why']})")
-                result["accounting"] = accounting(self.topo, self.metrics,
-                                                  result["reconciled"], self.bounds)
+                result["accounting"] = accounting(  # (rejections: the run's totals)
+                    self.topo, self.ops.totals.merged(self.metrics), result["reconciled"],
+                    self.bounds)
             except Exception as exc:  # the run must end with a state, never "running"
                 self.failed = f"reconciling the run failed: {type(exc).__name__}: {exc}"
                 result["failed"] = self.failed
                 self.log(self.failed)
         else:  # a failed run: what was done and what is missing is written all the same
             try:
-                result["accounting"] = accounting(self.topo, self.metrics, None, self.bounds)
+                result["accounting"] = accounting(
+                    self.topo, self.ops.totals.merged(self.metrics), None, self.bounds)
                 acc = result["accounting"]
                 self.log(f"run {self.topo.run}: failed; {acc['classified']:,} of "
                          f"{acc['words_in']:,} journaled words in the datasets "

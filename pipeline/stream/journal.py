@@ -582,6 +582,7 @@ class IndexSpans:
         self.offset = 0
         self.partial = b""
         self.spans: dict[int, tuple[int, int]] = {}
+        self.words = 0  #: words journaled (as journaled_total)
 
     def update(self) -> dict[int, tuple[int, int]]:
         if not self.path.exists():
@@ -602,4 +603,5 @@ class IndexSpans:
             lo, hi = e["first_word"], e["first_word"] + e["words"]
             a, b = self.spans.get(e["segment"], (lo, hi))
             self.spans[e["segment"]] = (min(a, lo), max(b, hi))
+            self.words += e["words"]
         return self.spans

@@ -46,6 +46,9 @@ class Topology:
     curve: str | bool = "auto"
     view: dict | None = None   #: [view]: the web page beside the graph (None: no page)
     heartbeat_deadline_s: float = 60.0  #: a live stage silent this long is frozen: SIGKILL
+    restart_refill_s: float = 60.0  #: the restart budget earns one back per this long
+    exporter: dict | None = None  #: [metrics]: Prometheus metrics over HTTP (None: off)
+    log_format: str = "text"   #: [log] format: "text" or "json" (JSON lines)
 
     def endpoints(self) -> list[str]:
         """Every endpoint of the graph (for the CURVE decision)."""
@@ -90,8 +93,9 @@ class DaemonSection(_Section):
                     "daemon's own: created 0700)")
     run: str | None = Field(None, description="run id: 1..64 of [A-Za-z0-9._-] (default: the "
                          "source's name and the UTC time)")
-    restarts: int = Field(10, ge=0, description="deaths of one stage restarted per "
-                       "restart_window_s (0: the first death fails the run)")
+    restarts: int = Field(10, ge=0, description="the restart budget: deaths of one stage "
+                       "restarted back to back, one earned back per restart_refill_s (0: the "
+                       "first death fails the run)")
     metrics: str | None = Field(None, description="heartbeat endpoint (default "
                              "ipc://STATE/sock/metrics)")
     hwm: int = Field(4, ge=1, le=1_000_000, description="messages queued per socket, >= 1 (0 "
@@ -101,8 +105,13 @@ class DaemonSection(_Section):
     journal_compression: Literal["zstd-nohit", "zstd", "none"] = Field(
         "zstd-nohit", description="journal segments as zstd frames of the words less their "
         "no-hit pattern, as zstd frames of the words, or raw")
-    restart_window_s: float = Field(600.0, gt=0, description="the restart budget's window, "
-                                 "s, > 0")
+    restart_refill_s: float | None = Field(None, gt=0, description="one restart earned back "
+                                        "per this long, s, > 0 (default 60: 60 deaths an "
+                                        "hour for ever; leave out with restart_window_s: "
+                                        "restart_window_s / restarts)")
+    restart_window_s: float | None = Field(None, gt=0, description="before issue 38 the "
+                                        "budget's window, s: now it sets restart_refill_s "
+                                        "= restart_window_s / restarts")
     restart_backoff_s: float = Field(0.5, ge=0, description="wait before a restart, s (0: "
                                   "at once)")
     restart_backoff_max_s: float = Field(30.0, ge=0, description="the longest backoff, s")
@@ -191,6 +200,20 @@ class SinkSection(_Section):
                                  "(thesis128, tmf8820), a .toml or a .parquet")
 
 
+class MetricsSection(_Section):
+    port: int = Field(..., ge=0, le=65535, description="serve Prometheus metrics on this "
+                      "port, 0..65535 (0: any free port, in STATE/metrics.url; leave the "
+                      "section out: no metrics)")
+    host: str = Field("127.0.0.1", min_length=1, description="the address to listen on (a "
+                      "bearer token from STATE/metrics.token on every address)")
+
+
+class LogSection(_Section):
+    format: Literal["text", "json"] = Field("text", description='"text" (a timestamp, a '
+                                            'level, the line) or "json" (one object a line: '
+                                            'ts, level, stage, msg)')
+
+
 class ViewSection(_Section):
     port: int = Field(5006, ge=0, le=65535, description="0..65535 (0: any free port, in "
                    "STATE/view.url)")
@@ -203,7 +226,8 @@ class ViewSection(_Section):
 
 SECTIONS: dict[str, type[_Section]] = {
     "daemon": DaemonSection, "source": SourceSection, "histogram": HistogramSection,
-    "range": RangeSection, "sink": SinkSection, "view": ViewSection}
+    "range": RangeSection, "sink": SinkSection, "view": ViewSection,
+    "metrics": MetricsSection, "log": LogSection}
 
 
 def _problem(where: str, sec: str, err: dict, model: type[_Section]) -> str:
@@ -328,12 +352,17 @@ def load_topology(path: str | Path | None, run: str | None = None,
             _check_endpoint(ep, where, label, problems)
     if problems:
         raise TopologyError(capped(problems))
-    view = secs["view"]
+    view, exporter, logsec = secs["view"], secs["metrics"], secs["log"]
+    refill = d.restart_refill_s or (d.restart_window_s / max(d.restarts, 1)
+                                    if d.restart_window_s else 60.0)
     return Topology(where, state, run, d.restarts, metrics, d.hwm, src, hist, rng, sink,
                     n_tdc, d.journal_keep_gb, d.journal_compression,
-                    d.restart_window_s, d.restart_backoff_s, d.restart_backoff_max_s,
+                    refill * max(d.restarts, 1), d.restart_backoff_s, d.restart_backoff_max_s,
                     curve=d.curve, heartbeat_deadline_s=d.heartbeat_deadline_s,
-                    view=None if view is None else view.model_dump(exclude_none=True))
+                    view=None if view is None else view.model_dump(exclude_none=True),
+                    restart_refill_s=refill,
+                    exporter=None if exporter is None else exporter.model_dump(),
+                    log_format=(logsec or LogSection()).format)
 
 
 def _check_cloud(sink: dict, where: str, problems: list[str]) -> None:

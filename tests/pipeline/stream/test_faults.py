@@ -241,15 +241,15 @@ def test_a_journal_written_before_checksums_still_reads(tmp_path):
     assert verify(tmp_path, "old")["corrupt_words"] == 400
 
 
-def test_restarts_back_off_exponentially_within_a_budget_per_window(tmp_path):
+def test_restarts_back_off_exponentially_within_a_budget_rate(tmp_path):
     """A stage that dies at once is restarted after 0.05, 0.1, 0.2 s ... and the run fails
-    when it dies more than ``restarts`` times in the window; a stage that dies less often
-    than the window is long is restarted every time."""
+    when it dies more than ``restarts`` times before the budget earns one back; a stage
+    that dies less often than the budget refills is restarted every time."""
     from pipeline.stream.daemon import Proc, Supervisor
     from pipeline.stream.topology import load_topology
 
     topo = load_topology(topology(tmp_path, cycles=1000))
-    topo.restarts, topo.restart_window_s = 3, 30.0
+    topo.restarts, topo.restart_refill_s = 3, 10.0
     topo.restart_backoff_s, topo.restart_backoff_max_s = 0.05, 0.15
     sup = Supervisor(topo, log=lambda m: None, poll_s=0.01)
     starts = []
@@ -262,13 +262,13 @@ def test_restarts_back_off_exponentially_within_a_budget_per_window(tmp_path):
     while not sup._check():
         assert time.monotonic() - t0 < 20
         time.sleep(0.01)
-    assert sup.failed and "4 times within 30 s" in sup.failed
+    assert sup.failed and "restart budget spent (3 at once, one more every 10 s" in sup.failed
     gaps = np.diff(starts)
     assert len(starts) == 4 and die.restarts == 3 and die.exit_codes == [3] * 4
     assert np.all(gaps >= [0.05, 0.1, 0.15]) and np.all(gaps < [1.0, 1.0, 1.0])
 
-    # the same budget over a short window: deaths spread wider than it never exhaust it
-    topo.restart_window_s = 0.3
+    # the same budget refilled fast: deaths spread wider than its refill never exhaust it
+    topo.restart_refill_s = 0.1
     sup2 = Supervisor(topo, log=lambda m: None, poll_s=0.01)
     slow = Proc("y", [sys.executable, "-c", "import sys, time; time.sleep(0.35); "
                       "sys.exit(3)"], [])
