@@ -35,6 +35,9 @@ from pipeline.stream.udp.senders import Senders, parse_peers, sender_name
 from schemas.words import RAW_WORDS
 
 BATCH_WORDS = 1 << 18  # 1 MiB messages
+#: At the run's end, how long to wait for the consumers to hang up (each ends within its
+#: idle_after_s, 2 s, of the journal's end) before lingering over the ones still connected.
+END_WAIT_S = 3.0
 REORDER_LINGER_S = 0.5         #: after the last datagram, wait this long for stragglers
 GATE_PS = (1_000, 10_000_000)  #: a gate outside 1 ns .. 10 us is not a gate
 RING_DATAGRAMS = 4096          #: received, not yet journaled (<= 256 MiB of datagrams)
@@ -110,7 +113,8 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                    quorum: int = QUORUM, rx_batch: int = RX_BATCH,
                    flush_s: float = FLUSH_S, sparse: bool = False,
                    peers: list[str] | None = None,
-                   break_quorum: int = BREAK_QUORUM) -> IngestStats:
+                   break_quorum: int = BREAK_QUORUM,
+                   end_wait_s: float = END_WAIT_S) -> IngestStats:
     """Receive until a datagram flagged last (and the reorder window is settled), ``stop``,
     or ``idle_s`` without data.
 
@@ -154,9 +158,13 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     ctx, own = own_context(context)
     token = token if token is not None else wire.load_token()
     pushes = [push] if isinstance(push, str) else list(push)
-    txs = []
+    # each consumer's connection, watched from before it is made: one that hangs up after
+    # its stop went out has all it will ever take, and nothing is lingered over for it
+    # (_hung_up)
+    txs, monitors = [], []
     for ep in pushes:
         tx = _socket(ctx, zmq.PUSH, 4)
+        monitors.append(tx.get_monitor_socket(zmq.EVENT_CONNECTED | zmq.EVENT_DISCONNECTED))
         connect(tx, ep)
         txs.append(tx)
     if (split is not None and len(split) != len(txs)) or (split is None and len(txs) != 1):
@@ -502,6 +510,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                 and not reasm.held)
 
     gave_up = False  # on a stage downstream that took nothing for a minute (a journal)
+    at_end = None  # the consumers' connections when the run's end was reached
     try:
         while not stop.is_set():
             stats.gap_cycles, stats.lost_datagrams = reasm.gap_cycles, reasm.lost()
@@ -559,6 +568,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             take(r)
         flush()
         stats.gap_cycles, stats.lost_datagrams = reasm.gap_cycles, reasm.lost()
+        at_end = _connections(monitors)  # (before a consumer can end on the end)
         if writer is not None:  # the run's end is on disk before anyone hears of it
             writer.close()
             stats.journal = [str(p) for p in writer.segments]
@@ -577,13 +587,22 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             "gap_cycles": stats.gap_cycles, "rejected": dict(stats.rejected),
             "conflicts": stats.conflicts, "ring_dropped": stats.ring_dropped,
             "resets": len(stats.resets)}
-        try:  # a stage downstream that takes nothing for a minute is given up on: the
-            # daemon ends it, and it fetches the words it lacks from the journal
-            sendq.put([wire.encode(stop_head, None, token) for _ in txs], timeout=60)
-            sendq.put(None, timeout=60)
-        except queue.Full:
-            gave_up = journal is not None
-        tx_thread.join(timeout=0 if gave_up else 60)
+        # a stage downstream that takes nothing for a minute is given up on: the daemon
+        # ends it, and it fetches the words it lacks from the journal. Waiting on it, this
+        # stage reports "blocked" every second: the heartbeat deadline is for the stage
+        # that stopped answering, not for the ones waiting on it
+        t_end = time.monotonic() + 60
+        for item in ([wire.encode(stop_head, None, token) for _ in txs], None):
+            while not gave_up:
+                try:
+                    sendq.put(item, timeout=1.0)
+                    break
+                except queue.Full:
+                    gave_up = journal is not None and time.monotonic() >= t_end
+                    beat.beat(state="blocked", **stats.fields())
+        while not gave_up and tx_thread.is_alive() and time.monotonic() < t_end:
+            tx_thread.join(timeout=1.0)
+            beat.beat(state="blocked", **stats.fields())
         # with a journal, a sender still stuck after that minute is given up on too: its
         # messages are not lingered over for another minute (the stage is ended and reads
         # the journal). Before batches, few and large messages seldom left it stuck.
@@ -601,9 +620,48 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         if writer is not None:
             writer.close()
             stats.journal = [str(p) for p in writer.segments]
+        sent_all = not tx_thread.is_alive() and not gave_up and at_end is not None
+        gone = (_hung_up(monitors, beat, at_end, end_wait_s) if sent_all
+                else [False] * len(txs))
+        for tx, mon, left in zip(txs, monitors, gone, strict=True):
+            tx.disable_monitor()
+            mon.close(linger=0)
+            tx.close(linger=60_000 if sent_all and not left else 0)
         beat.close()
-        for tx in txs:
-            tx.close(linger=60_000 if not tx_thread.is_alive() and not gave_up else 0)
         if own and not tx_thread.is_alive():  # (a sender still stuck keeps its sockets)
             end_context(ctx)
     return stats
+
+
+def _connections(monitors: list, known: list | None = None) -> list:
+    """Each consumer's last connection event (``zmq.EVENT_CONNECTED`` or
+    ``EVENT_DISCONNECTED``; ``known`` where none came since), its monitor read to the end."""
+    from zmq.utils.monitor import recv_monitor_message
+
+    out = list(known) if known is not None else [None] * len(monitors)
+    for i, mon in enumerate(monitors):
+        while mon.poll(0):
+            out[i] = recv_monitor_message(mon)["event"]
+    return out
+
+
+def _hung_up(monitors: list, beat, at_end: list, wait_s: float = END_WAIT_S) -> list[bool]:
+    """Which consumers hung up after the run's end (``at_end``: their connections when the
+    end was journaled, before any stop went out). A consumer ends only on its stop or on
+    the journal's end, after everything before them: one that hung up since has all it
+    will take, and its socket is closed without lingering. (ZeroMQ otherwise waited out the
+    linger for a stop still queued to a consumer that had ended on the journal's end: ~1
+    run in 10 ending on ``idle``, 60 s.) Waits up to ``wait_s`` for the ones still
+    connected (reporting "finished" each second), then leaves them to the linger (which
+    ends as soon as what they were sent is delivered); one not connected at the end
+    (restarting) keeps its stop queued for it."""
+    watch = [ev == zmq.EVENT_CONNECTED for ev in at_end]
+    state = list(at_end)
+    t_end = time.monotonic() + wait_s
+    while True:
+        state = _connections(monitors, state)
+        gone = [w and ev == zmq.EVENT_DISCONNECTED for w, ev in zip(watch, state)]
+        if all(g or not w for g, w in zip(gone, watch)) or time.monotonic() >= t_end:
+            return gone
+        beat.beat(state="finished")
+        time.sleep(0.02)

@@ -60,7 +60,7 @@ class Port:
         self.port = self.sock.getsockname()[1]
         self.journal = tmp_path / "state" / "journal"
         self.res = {}
-        self.kw = {"idle_s": 3, "n_tdc": N_TDC, **kw}
+        self.kw = {"idle_s": 3, "end_wait_s": 0, "n_tdc": N_TDC, **kw}
         self.thread = None
         self.senders = {}
 

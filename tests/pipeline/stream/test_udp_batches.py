@@ -39,7 +39,7 @@ class Ingest:
         sock = udp_socket("127.0.0.1:0")
         self.port = sock.getsockname()[1]
         self.stop, self.res = threading.Event(), {}
-        kw = {"idle_s": 5, "n_tdc": N_TDC, "gate_ps": GATE_PS, **kw}
+        kw = {"idle_s": 5, "end_wait_s": 0, "n_tdc": N_TDC, "gate_ps": GATE_PS, **kw}
         self.thread = threading.Thread(target=lambda: self.res.update(s=run_udp_ingest(
             sock, ep, run="r", journal=journal, quarantine=tmp_path / f"q-{name}",
             context=self.ctx, stop=self.stop, **kw)))
