@@ -42,6 +42,8 @@ WIDTH_FIT = 2.5  # the plane fit's window, +- sigmas of the pulse
 WIDTH_TEST = 2.0  # the pixel's own test window
 BOXES = (1.2, 4.0, 10.0)  # the candidates' time boxes, +- sigmas of the pulse
 CANDIDATES = 4   # surfaces searched for in a window (a pixel keeps up to max_returns)
+PRIOR = 1.0      # the relabelling's weight (nats) of each of the 8 nearest that agree
+SWEEPS = 3       # its ICM sweeps
 
 
 def QUADRANTS(dr, dc):  # noqa: N802
@@ -221,6 +223,10 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> Spatial
     shape = (h, w, nc)
     t_out, sig_out, sig_cnt = np.full(shape, np.nan), np.full(shape, np.inf), np.zeros(shape)
     own, surr, rank = np.zeros(shape, bool), np.zeros(shape, bool), np.zeros(shape)
+    # per candidate, for the relabelling (3b): the plane's slopes (bins a pixel), the
+    # pixel's own counts in its test window and their background
+    slope = np.zeros(shape + (2,))
+    mine_r, bw_r = np.zeros(shape), np.zeros(shape)
 
     def window_sums(tq, half):
         """Counts, sums of bin-time and of its square in tq +- half (bins), background
@@ -296,6 +302,8 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> Spatial
             nquad += (poisson_tail(cnt, bq) <= p_fa) & ((inside * side).sum(-1) > 0)
         quad = nquad == 4
         found = cand_ok[..., r] & np.isfinite(t0)
+        slope[..., r, 0], slope[..., r, 1] = a_s, b_s
+        mine_r[..., r], bw_r[..., r] = mine, beta * (z - a)
         # (a candidate the window does not detect still gives the pixel a distance, as a
         # per-pixel estimator's undetected peak does; it is never detected)
         t_out[..., r] = np.where(np.isfinite(t0), t0 * bin_s + t0_s, np.nan)
@@ -315,6 +323,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> Spatial
                            (rank, -1e9)):
                 arr[..., r] = np.where(same, v, arr[..., r])
     det = own | surr
+    rank = _relabel(t_out, slope, mine_r, bw_r, sig_cnt, rank, det, bin_s, sb, t0_s)
     # detected before not; then by the corner windows that see the surface, then by the
     # pixel's own excess counts, then by the neighbourhood's signal
     key = np.where(det, 1e12, 0.0) + rank
@@ -326,3 +335,38 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> Spatial
     return SpatialEstimate(take(t_out), take(sig_out), take(sig_cnt),
                            np.repeat(beta[..., None], max_returns, -1), take(det),
                            take(own), take(surr))
+
+
+
+
+def _relabel(t_out, slope, mine, bw, sig_cnt, rank, det, bin_s, sb, t0_s):
+    """3b. Which candidate an undetected pixel reports: the one that maximises the pixel's
+    own Poisson log-likelihood ratio (its counts in the test window against its
+    background, the signal per pixel the neighbourhood saw) plus ``PRIOR`` for each of
+    its 8 nearest whose reported time lies on the candidate's plane (within 3 sigma):
+    a few ICM sweeps of a Potts MRF, at a constant cost a pixel. The detected pixels keep
+    their surfaces (and anchor their neighbours); detection itself is unchanged. Every
+    distinct candidate takes part, also one its window does not detect: a surface that is
+    a minority of the window, at an edge, is often one (2 signal and 50 background
+    photons, seed 1: 88 surface pixels > 10 cm off against 127 with the detected ones
+    only; PRIOR 0.5, 1.5 and 2.5: 97, 93 and 107)."""
+    h, w, nc = t_out.shape
+    tb = (t_out - t0_s) / bin_s                               # bins
+    S = 0.95 * np.maximum(sig_cnt, 0.05)
+    llr = np.where(np.isfinite(tb), mine * np.log1p(S / np.maximum(bw, 1e-9)) - S, -np.inf)
+    lab = np.argmax(np.where(det, 1e12, 0.0) + rank, axis=-1)
+    free = ~det.any(-1)
+    tol = 3.0 * sb
+    offs = [(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1) if (i, j) != (0, 0)]
+    for _ in range(SWEEPS):
+        tl = np.take_along_axis(tb, lab[..., None], -1)[..., 0]
+        pad = np.pad(tl, 1, constant_values=np.nan)
+        agree = np.zeros((h, w, nc))
+        for i, j in offs:
+            tq = pad[1 + i:1 + i + h, 1 + j:1 + j + w][..., None]
+            pred = tb + slope[..., 0] * i + slope[..., 1] * j
+            agree += np.abs(tq - pred) < tol
+        u = llr + PRIOR * agree
+        lab = np.where(free, np.argmax(u, -1), lab)
+    chosen = np.arange(nc) == lab[..., None]
+    return np.where(free[..., None] & chosen, 1e11, 0.0) + rank
