@@ -323,7 +323,15 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> Spatial
                            (rank, -1e9)):
                 arr[..., r] = np.where(same, v, arr[..., r])
     det = own | surr
-    rank = _relabel(t_out, slope, mine_r, bw_r, sig_cnt, rank, det, bin_s, sb, t0_s)
+    # one more slot a pixel: a neighbour's plane carried over (3b)
+    def slot(x, v):
+        return np.concatenate([x, np.full(x.shape[:2] + (1,) + x.shape[3:], v, x.dtype)], 2)
+
+    t_out, sig_out, sig_cnt, det, own, surr = (
+        slot(x, v) for x, v in ((t_out, np.nan), (sig_out, np.inf), (sig_cnt, 0.0),
+                                (det, False), (own, False), (surr, False)))
+    rank = _relabel(t_out, sig_out, slot(slope, 0.0), slot(mine_r, 0.0), slot(bw_r, 0.0),
+                    sig_cnt, slot(rank, -1e9), det, P0, beta, bin_s, sb, t0_s)
     # detected before not; then by the corner windows that see the surface, then by the
     # pixel's own excess counts, then by the neighbourhood's signal
     key = np.where(det, 1e12, 0.0) + rank
@@ -339,7 +347,8 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> Spatial
 
 
 
-def _relabel(t_out, slope, mine, bw, sig_cnt, rank, det, bin_s, sb, t0_s):
+def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_s, sb,
+             t0_s):
     """3b. Which candidate an undetected pixel reports: the one that maximises the pixel's
     own Poisson log-likelihood ratio (its counts in the test window against its
     background, the signal per pixel the neighbourhood saw) plus ``PRIOR`` for each of
@@ -349,7 +358,11 @@ def _relabel(t_out, slope, mine, bw, sig_cnt, rank, det, bin_s, sb, t0_s):
     distinct candidate takes part, also one its window does not detect: a surface that is
     a minority of the window, at an edge, is often one (2 signal and 50 background
     photons, seed 1: 88 surface pixels > 10 cm off against 127 with the detected ones
-    only; PRIOR 0.5, 1.5 and 2.5: 97, 93 and 107)."""
+    only; PRIOR 0.5, 1.5 and 2.5: 97, 93 and 107). And, as PatchMatch propagates, each
+    of the 8 nearest's reported plane carried over to the pixel (its last slot, written
+    in place with its sigma and signal): a steep surface's plane fitted from one side
+    of an edge misses the pixel by more than a pulse, its neighbour's does not. Returns
+    the ranking with the chosen candidate of every undetected pixel first."""
     h, w, nc = t_out.shape
     tb = (t_out - t0_s) / bin_s                               # bins
     S = 0.95 * np.maximum(sig_cnt, 0.05)
@@ -358,15 +371,54 @@ def _relabel(t_out, slope, mine, bw, sig_cnt, rank, det, bin_s, sb, t0_s):
     free = ~det.any(-1)
     tol = 3.0 * sb
     offs = [(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1) if (i, j) != (0, 0)]
+    n = P0.shape[-1] - 1
+    half = WIDTH_TEST * sb
+
+    def shifted(x, i, j, v):  # x at the neighbour (r + i, c + j), v outside the image
+        pad = np.pad(x, ((1, 1), (1, 1)) + ((0, 0),) * (x.ndim - 2), constant_values=v)
+        return pad[1 + i:1 + i + h, 1 + j:1 + j + w]
+
+    def agreement(tl, t, sl):  # how many of the 8 nearest lie on the plane (t, sl)
+        got = np.zeros(t.shape)
+        for i, j in offs:
+            pred = t + sl[..., 0] * i + sl[..., 1] * j
+            got += np.abs(shifted(tl, i, j, np.nan)[..., None] - pred) < tol
+        return got
+
     for _ in range(SWEEPS):
         tl = np.take_along_axis(tb, lab[..., None], -1)[..., 0]
-        pad = np.pad(tl, 1, constant_values=np.nan)
-        agree = np.zeros((h, w, nc))
-        for i, j in offs:
-            tq = pad[1 + i:1 + i + h, 1 + j:1 + j + w][..., None]
-            pred = tb + slope[..., 0] * i + slope[..., 1] * j
-            agree += np.abs(tq - pred) < tol
-        u = llr + PRIOR * agree
+        u = llr + PRIOR * agreement(tl, tb, slope)
         lab = np.where(free, np.argmax(u, -1), lab)
+        # the 8 nearest's planes carried over: the best replaces the pixel's last slot
+        tl = np.take_along_axis(tb, lab[..., None], -1)[..., 0]
+        sl = np.take_along_axis(slope, lab[..., None, None], 2)[:, :, 0]
+        sc, sg = (np.take_along_axis(x, lab[..., None], 2)[..., 0] for x in (sig_cnt, sig_out))
+        tp = np.stack([shifted(tl, i, j, np.nan) - shifted(sl[..., 0], i, j, 0.0) * i
+                       - shifted(sl[..., 1], i, j, 0.0) * j for i, j in offs], -1)
+        slp = np.stack([shifted(sl, i, j, 0.0) for i, j in offs], 2)
+        scp = np.stack([shifted(sc, i, j, 0.0) for i, j in offs], -1)
+        sgp = np.stack([shifted(sg, i, j, np.inf) for i, j in offs], -1)
+        ok = np.isfinite(tp)
+        ti = np.where(ok, tp, 0.0)
+        a = np.clip(np.floor(ti - half + 0.5).astype(np.int64), 0, n)
+        z = np.clip(np.floor(ti + half + 0.5).astype(np.int64), 0, n)
+        mp = np.take_along_axis(P0, z, -1) - np.take_along_axis(P0, a, -1)
+        bp = beta[..., None] * (z - a)
+        Sp = 0.95 * np.maximum(scp, 0.05)
+        lp = np.where(ok & (z > a), mp * np.log1p(Sp / np.maximum(bp, 1e-9)) - Sp, -np.inf)
+        up = lp + PRIOR * agreement(tl, ti, slp)
+        k = np.argmax(up, -1)
+        best = np.take_along_axis(up, k[..., None], -1)[..., 0]
+        mine_now = np.take_along_axis(u, lab[..., None], -1)[..., 0]
+        take = free & (best > mine_now)
+        kk = k[..., None]
+        for arr, new in ((tb, tp), (llr, lp), (sig_cnt, scp), (sig_out, sgp)):
+            arr[..., -1] = np.where(take, np.take_along_axis(new, kk, -1)[..., 0],
+                                    arr[..., -1])
+        slope[..., -1, :] = np.where(take[..., None],
+                                     np.take_along_axis(slp, kk[..., None], 2)[:, :, 0],
+                                     slope[..., -1, :])
+        lab = np.where(take, nc - 1, lab)
+    t_out[..., -1] = tb[..., -1] * bin_s + t0_s
     chosen = np.arange(nc) == lab[..., None]
     return np.where(free[..., None] & chosen, 1e11, 0.0) + rank
