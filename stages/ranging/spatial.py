@@ -158,11 +158,18 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> Spatial
         halves = [max(1, int(round(x * sb))) for x in boxes]
 
         def boxed(k):  # counts in [j - k, j + k] (clipped) for every bin j: slices
-            p = np.pad(PA, ((0, 0), (0, 0), (k, k)), mode="edge")
-            return p[..., 2 * k + 1:2 * k + 1 + n] - p[..., :n]
+            if 2 * k + 1 > n:
+                p = np.pad(PA, ((0, 0), (0, 0), (k, k)), mode="edge")
+                return p[..., 2 * k + 1:2 * k + 1 + n] - p[..., :n]
+            out = np.empty((h, w, n))
+            np.subtract(PA[..., 2 * k + 1:], PA[..., :n - 2 * k], out=out[..., k:n - k])
+            np.subtract(PA[..., k + 1:2 * k + 1], PA[..., :1], out=out[..., :k])
+            np.subtract(PA[..., n:], PA[..., n - 2 * k:n - k], out=out[..., n - k:])
+            return out
 
         # the window's background a bin: the mean without the strongest box's region
-        c0 = np.argmax(boxed(halves[0]), axis=-1)
+        first = boxed(halves[0])
+        c0 = np.argmax(first, axis=-1)
         e = int(halves[-1] + 4 * sb)
         a0, z0 = np.clip(c0 - e, 0, n), np.clip(c0 + e + 1, 0, n)
         bgA = (PA[..., n] - between(PA, a0, z0)) / np.maximum(n - (z0 - a0), 1)
@@ -171,7 +178,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> Spatial
         for i, kb in enumerate(halves):
             nb = np.minimum(np.arange(n) + kb + 1, n) - np.maximum(np.arange(n) - kb, 0)
             b = (bgA[..., None] * nb).astype(np.float32)
-            z = (boxed(kb).astype(np.float32) - b) / np.sqrt(b + 1.0)
+            z = ((first if i == 0 else boxed(kb)).astype(np.float32) - b) / np.sqrt(b + 1.0)
             better = z > Z
             np.copyto(Z, z, where=better)
             np.copyto(which, np.int8(i), where=better)
