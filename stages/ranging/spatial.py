@@ -23,8 +23,13 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    pixel in a corner holds a detection at t0 (each at ``p_fa``). A pixel beside an
    object, in empty sky, has a quarter of windows that see only sky, and so no surface
    unless its own photons say so.
+   3b. Which candidate an undetected pixel reports (:func:`_relabel`): a few ICM sweeps
+   of a Potts MRF over its candidates and its 8 nearest's planes carried over, by the
+   pixel's own Poisson likelihood and how many of its 8 nearest lie on each.
 4. sigma: the photons' spread about the plane over their number, through the fit's
-   design (its (0, 0) element), with the background left in the window.
+   design (its (0, 0) element), with the background left in the window, or the fit's
+   sandwich variance, the larger; times Huber's factor for a window centred on its own
+   estimate; plus the ridge's pull on t0 where the neighbours are one-sided.
 
 Up to ``max_returns`` (2) surfaces a pixel, the strongest first.
 """
