@@ -107,15 +107,16 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
     ``counts`` (rows, cols, bins) photon counts (no pile-up: a photon-counting histogram
     or one already corrected), bin j spanning ``t0_s + [j, j + 1) bin_s``; ``sigma_s``
     the pulse's (instrument response's) sigma. ``threads`` > 1 ranges bands of rows at
-    once (numpy releases the GIL), each with ``window + 1`` rows of its neighbours' so the
-    result is the same as in one piece (tested).
+    once (numpy releases the GIL), each with ``window + 1`` rows of its neighbours', then
+    relabels the whole image, so the result is the same as in one piece (tested).
     """
     counts = np.asarray(counts, np.float64)
     _check(counts, bin_s, sigma_s, p_fa, window, max_returns)
     h = counts.shape[0]
     bands = min(max(1, int(threads)), max(1, h // (4 * window + 4)))
     if bands == 1:
-        return _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s)
+        return _finish(_spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s),
+                       max_returns, bin_s, sigma_s / bin_s, t0_s)
     from concurrent.futures import ThreadPoolExecutor
 
     edges = np.linspace(0, h, bands + 1).astype(int)
@@ -125,9 +126,10 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
     with ThreadPoolExecutor(bands) as ex:
         got = list(ex.map(lambda p: _spatial(counts[p[0]:p[3]], bin_s, sigma_s, p_fa, window,
                                              max_returns, t0_s), parts))
-    return SpatialEstimate(*(np.concatenate([getattr(e, f)[a - lo:b - lo]
-                                             for e, (lo, a, b, _) in zip(got, parts, strict=True)])
-                             for f in SpatialEstimate.__dataclass_fields__))
+    fields = tuple(np.concatenate([e[i][a - lo:b - lo]
+                                   for e, (lo, a, b, _) in zip(got, parts, strict=True)])
+                   for i in range(len(got[0])))
+    return _finish(fields, max_returns, bin_s, sigma_s / bin_s, t0_s)
 
 
 def _check(counts, bin_s, sigma_s, p_fa, window, max_returns) -> None:
@@ -145,7 +147,8 @@ def _check(counts, bin_s, sigma_s, p_fa, window, max_returns) -> None:
                          f"{max_returns}")
 
 
-def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> SpatialEstimate:
+def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> tuple:
+    """Steps 1-3 on a band of rows: per pixel and candidate, before the relabelling."""
     h, w, n = counts.shape
     sb = sigma_s / bin_s                     # the pulse's sigma in bins
     P0 = _cumbins(counts)                    # (h, w, n + 1)
@@ -358,9 +361,15 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> Spatial
             for arr, v in ((t_out, np.nan), (own, False), (surr, False), (sig_cnt, 0.0),
                            (rank, -1e9)):
                 arr[..., r] = np.where(same, v, arr[..., r])
-    det = own | surr
-    # one more slot a pixel: a neighbour's plane carried over (3b)
-    def slot(x, v):
+    return t_out, sig_out, sig_cnt, own | surr, own, surr, slope, mine_r, bw_r, rank, beta, P0
+
+
+def _finish(fields, max_returns, bin_s, sb, t0_s) -> SpatialEstimate:
+    """3b and the order of the returns, on the whole image (the relabelling's sweeps
+    reach further than a band's halo)."""
+    t_out, sig_out, sig_cnt, det, own, surr, slope, mine_r, bw_r, rank, beta, P0 = fields
+
+    def slot(x, v):  # one more slot a pixel: a neighbour's plane carried over (3b)
         return np.concatenate([x, np.full(x.shape[:2] + (1,) + x.shape[3:], v, x.dtype)], 2)
 
     t_out, sig_out, sig_cnt, det, own, surr = (
