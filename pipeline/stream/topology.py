@@ -187,6 +187,9 @@ class RangeSection(_Section):
     max_returns: int = Field(3, ge=1, le=16, description="1..16 returns a pixel (0 is not "
                              "'none': leave the section out to range nothing)")
     endpoint: str | None = Field(None, description="its endpoint (leave out: ipc://STATE/sock/NAME)")
+    # issue 35: refused, not ignored: the chip's TDCs each have their own INL time axis
+    spatial: bool = Field(False, description="refused (true): spatial ranging needs one "
+                          "time axis; use `tcspc range --spatial` (docs/ranging.md)")
 
 
 class SinkSection(_Section):
@@ -317,6 +320,11 @@ def load_topology(path: str | Path | None, run: str | None = None,
         if rng.get("estimator", "ml") not in ESTIMATORS:
             problems.append(f"{where} [range] estimator = {rng['estimator']!r}: use one of "
                             f"{ESTIMATORS}")
+        if rng.get("spatial"):
+            problems.append(f"{where} [range] spatial = true: not in the daemon: its "
+                            "histograms are the chip's, each TDC on its own INL time axis, "
+                            "and spatial ranging needs one; range generic histograms with "
+                            "`tcspc range --spatial` (docs/ranging.md)")
     if src is not None and (hist_m is not None or "histogram" not in raw):
         _check_artifacts(src["kind"], hist, where, problems)  # (else [histogram]'s problem)
     for sec, body in (("histogram", hist), ("range", rng or {})):

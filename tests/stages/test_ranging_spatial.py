@@ -63,12 +63,19 @@ def test_two_signal_fifty_background(lindell_2_50):
     best = min(np.sqrt(np.mean(_errors(sc, _per_pixel(counts, name)) ** 2))
                for name in ("fast", "matched"))
     assert best >= 5 * np.sqrt(np.mean(err ** 2)), best
+    # the relabelling (ICM over the candidates and the 8 nearest's planes carried over,
+    # by the pixel's own likelihood and its 8 nearest) keeps the edge pixels on their
+    # surface: 0.9 % > 10 cm off (4.7 % without)
+    assert np.mean(err > 0.1) < 0.02, np.mean(err > 0.1)
+    z = err / (est.sigma_s[..., 0][sc.surface] * C / 2)
+    cover = np.mean(z[det[sc.surface]] < 2)     # 96 % (seed 7)
+    assert 0.92 <= cover <= 0.985, cover
 
 
 def test_edges_stay_edges_and_sigma_covers():
     """At (10, 2): no detected pixel between two surfaces (an edge blurred into a ramp
-    would put pixels there), and the reported sigma covers the error (2 sigma: >= 90 %
-    of the detected pixels)."""
+    would put pixels there), and the reported sigma covers the error (2 sigma: 93-98.5 %
+    of the detected pixels; tuned on seed 1, this is seed 3)."""
     sc = scene()
     est = spatial(histograms(sc, 10, 2, 3), BIN_S, SIGMA_S, 1e-3)
     d = est.t_s[..., 0] * C / 2
@@ -77,7 +84,8 @@ def test_edges_stay_edges_and_sigma_covers():
     assert det[sc.surface].mean() > 0.99
     assert np.mean(err[det[sc.surface]] > 0.05) < 0.002   # a handful of pixels at most
     z = err / (est.sigma_s[..., 0][sc.surface] * C / 2)
-    assert np.mean(z[det[sc.surface]] < 2) >= 0.9
+    cover = np.mean(z[det[sc.surface]] < 2)
+    assert 0.93 <= cover <= 0.985, cover   # about 95 %: neither short nor inflated
     # the second surface of the two-surface pixels is found too
     two = np.isfinite(sc.depth[..., 1])
     both = est.detected[..., 0] & est.detected[..., 1] & two
@@ -99,12 +107,19 @@ def test_empty_sky_invents_nothing():
 
 def test_threads_agree():
     sc = scene(48, 40)
-    counts = histograms(sc, 5, 10, 2)
+    counts = histograms(sc, 2, 50, 2)
     a, b = (spatial(counts, BIN_S, SIGMA_S, threads=t) for t in (1, 2))
     assert np.array_equal(a.detected, b.detected)
     # (float noise through the windows' whole-bin edges: the same up to a bin's rounding)
     det = a.detected
     assert np.allclose(a.t_s[det], b.t_s[det], rtol=0, atol=0.1 * SIGMA_S)
+    # the relabelling runs on the whole image (its sweeps reach further than a band's
+    # halo): the undetected pixels' first return moves only where the float noise above
+    # moved a candidate, 10 of 1,007 here (38 when it ran in bands)
+    first = ~det[..., 0]
+    moved = first & ~np.isclose(a.t_s[..., 0], b.t_s[..., 0], rtol=0, atol=0.1 * SIGMA_S,
+                                equal_nan=True)
+    assert moved.sum() <= 0.015 * first.sum(), (moved.sum(), first.sum())
 
 
 @pytest.mark.parametrize("kw,msg", [

@@ -76,3 +76,33 @@ def test_the_view_lays_the_maps_out_as_the_geometry(tmp_path):
         "daemon": {"state": str(tmp_path / "s")}, "sink": {"out": str(tmp_path / "o")},
         "view": {"geometry": "tmf8820"}})
     assert view_args(topo)[-2:] == ["--geometry", "tmf8820"]
+
+
+def test_the_daemon_refuses_spatial_ranging(tmp_path):
+    """`[range] spatial = true` is refused in one line (exit 2), not ignored: the range
+    stage's histograms are the chip's, each TDC on its own INL time axis, and spatial
+    ranging needs one time axis (docs/ranging.md)."""
+    import subprocess
+    import sys
+
+    cal = tmp_path / "cal"
+    cal.mkdir()
+    (cal / "tdc.parquet").touch()
+    over = {"daemon": {"state": str(tmp_path / "s")}, "sink": {"out": str(tmp_path / "o")},
+            "range": {"calibration": str(cal)}}
+    with pytest.raises(TopologyError, match=r"\[range\] spatial = true: not in the daemon"):
+        load_topology(None, overrides={**over, "range": {"calibration": str(cal),
+                                                         "spatial": True}})
+    assert load_topology(None, overrides=over).range is not None   # without it: fine
+    scene = tmp_path / "small.toml"
+    scene.write_text("")
+    topo = tmp_path / "t.toml"
+    topo.write_text(f"[source]\nkind = 'sim'\nscene = '{scene}'\n[daemon]\nstate = "
+                    f"'{tmp_path / 's'}'\n[sink]\nout = '{tmp_path / 'o'}'\n[range]\n"
+                    f"calibration = '{cal}'\nspatial = true\n")
+    p = subprocess.run([sys.executable, "-m", "pipeline.cli", "daemon", "--config",
+                        str(topo)], capture_output=True, text=True)
+    assert p.returncode == 2
+    lines = [x for x in p.stderr.splitlines() if x.strip()]
+    assert any("[range] spatial = true" in x and "INL time axis" in x for x in lines), lines
+    assert "Traceback" not in p.stderr
