@@ -207,6 +207,55 @@ def drift_ps(candidate: str | Path, current: str | Path) -> dict:
     return {"lsb": lsb, "delay": delay}
 
 
+#: The stream's LSB tracking counts as drift only when beyond the limit by this many of its
+#: standard errors (a median over ~100 TDCs of estimates each good to <= 10 ps).
+STREAM_DRIFT_SIGMAS = 3.0
+#: ... read from the newest this many ranges files ranged with the current calibration.
+STREAM_DRIFT_FILES = 20
+
+
+def stream_drift_ps(current: str | Path, stream_out: str | Path | None,
+                    last: int = STREAM_DRIFT_FILES) -> dict | None:
+    """The LSB drift the daemon's range stage measured against the current calibration
+    (its online tracking, ``tcspc.lsb_drift`` in each ranges file's metadata, issue 39.3):
+    the inverse-variance mean of the newest ``last`` files ranged with this calibration
+    (``tcspc.calibration_id``), its standard error and how many files; None where the
+    stream has none (no ``stream_out``, no ranges with this calibration, or a measurement
+    too dim to track)."""
+    import pyarrow.parquet as pq
+
+    if stream_out is None or not (Path(stream_out) / "ranges").is_dir():
+        return None
+    try:
+        cal_id = load_calibration(current).meta.get("calibration_id")
+    except (CalibrationError, OSError, ValueError):
+        return None
+    if not cal_id:
+        return None
+    files = sorted((Path(stream_out) / "ranges").rglob("*.parquet"),
+                   key=lambda p: p.stat().st_mtime, reverse=True)
+    vals = []
+    for f in files:
+        try:
+            meta = pq.read_schema(f).metadata or {}
+        except (OSError, ValueError):
+            continue
+        if meta.get(b"tcspc.calibration_id", b"").decode() != cal_id \
+                or b"tcspc.lsb_drift" not in meta:
+            continue
+        rec = json.loads(meta[b"tcspc.lsb_drift"])
+        if np.isfinite(rec.get("se_ps", np.inf)) and rec["se_ps"] > 0:
+            vals.append((rec["median_ps"], rec["se_ps"]))
+        if len(vals) >= last:
+            break
+    if not vals:
+        return None
+    m, se = np.array(vals).T
+    w = 1 / se ** 2
+    return {"lsb": float(np.sum(w * m) / np.sum(w)), "se": float(1 / np.sqrt(np.sum(w))),
+            "files": len(vals)}
+
+
 def within_limits(candidate: str | Path, current: str | Path, inl_rms: float) -> list[str]:
     """Why the candidate is not good enough to replace anything on its own (empty: it
     is): fewer than MIN_TDC_SHARE of the current calibration's TDCs, an INL error over
@@ -227,7 +276,7 @@ def within_limits(candidate: str | Path, current: str | Path, inl_rms: float) ->
 def verdict(candidate: str, current: str, inl_rms: float = 0.5, max_age_h: float = MAX_AGE_H,
             max_lsb_drift_ps: float = MAX_LSB_DRIFT_PS,
             max_delay_drift_ps: float = MAX_DELAY_DRIFT_PS,
-            now: dt.datetime | None = None) -> dict:
+            now: dt.datetime | None = None, stream_out: str | None = None) -> dict:
     """Publish the candidate or not, and by which rule (``rule``; ``why`` in words):
 
     - ``first``: there is no current calibration;
@@ -236,14 +285,16 @@ def verdict(candidate: str, current: str, inl_rms: float = 0.5, max_age_h: float
     - ``quality``: the candidate is not worse than the current one: published;
     - ``age`` / ``drift``: it is worse, but the current one is older than ``max_age_h``
       or the chip drifted from it (LSB past ``max_lsb_drift_ps``, delay past
-      ``max_delay_drift_ps``, as this campaign measured them), and the candidate is
-      within the absolute limits (:func:`within_limits`): published;
+      ``max_delay_drift_ps``, as this campaign measured them; or the LSB past its limit
+      by ``STREAM_DRIFT_SIGMAS`` standard errors as the daemon's range stage tracked it,
+      :func:`stream_drift_ps` of ``stream_out``), and the candidate is within the
+      absolute limits (:func:`within_limits`): published;
     - ``quality`` again: worse, and the current one still young and in place: refused.
 
     ``worse`` lists how the candidate is worse (what a refusal gives as its reasons)."""
     cur = Path(current)
     out = {"publish": True, "rule": "first", "worse": [], "age_h": None,
-           "drift_ps": {"lsb": None, "delay": None},
+           "drift_ps": {"lsb": None, "delay": None}, "stream_drift_ps": None,
            "why": "no current calibration: the first is published"}
     if not cur.exists() and not cur.is_symlink():
         return out
@@ -260,13 +311,23 @@ def verdict(candidate: str, current: str, inl_rms: float = 0.5, max_age_h: float
     drift = drift_ps(candidate, cur)
     out.update(worse=worse, age_h=age, drift_ps={k: _num(v) for k, v in drift.items()})
     aged = f"{age:.1f} h old" if age is not None else "of unknown age"
+    stream = stream_drift_ps(cur, stream_out)
+    out["stream_drift_ps"] = stream
     moved = (f"LSB drift {drift['lsb']:.3f} ps (limit {max_lsb_drift_ps:g}), delay drift "
              f"{drift['delay']:.1f} ps (limit {max_delay_drift_ps:g})")
+    if stream is not None:
+        moved += (f"; the stream's LSB tracking {stream['lsb']:+.3f} +- {stream['se']:.3f} ps"
+                  f" over its last {stream['files']} measurements")
+    elif stream_out is not None:
+        moved += "; no LSB tracking in the stream's ranges with this calibration"
+    stream_moved = stream is not None and abs(stream["lsb"]) > max(
+        max_lsb_drift_ps, STREAM_DRIFT_SIGMAS * stream["se"])
     if not worse:
         return {**out, "rule": "quality", "why": f"not worse than the current calibration "
                 f"({aged}; {moved})"}
     old = age is not None and age > max_age_h
-    drifted = drift["lsb"] > max_lsb_drift_ps or drift["delay"] > max_delay_drift_ps  # NaN: no
+    drifted = (drift["lsb"] > max_lsb_drift_ps or drift["delay"] > max_delay_drift_ps
+               or stream_moved)  # NaN: no
     if old or drifted:
         short = within_limits(candidate, cur, inl_rms)
         rule = "drift" if drifted else "age"
@@ -467,7 +528,8 @@ def calibration_campaign(out: str = "data/calibration", lux: LuxLevels | None = 
                          wait_s: NonNegativeFloat = 3600.0,
                          max_age_h: PositiveFloat = MAX_AGE_H,
                          max_lsb_drift_ps: PositiveFloat = MAX_LSB_DRIFT_PS,
-                         max_delay_drift_ps: PositiveFloat = MAX_DELAY_DRIFT_PS) -> dict:
+                         max_delay_drift_ps: PositiveFloat = MAX_DELAY_DRIFT_PS,
+                         stream_out: str | None = None) -> dict:
     """Calibrate the chip: density tests at ``lux`` levels, the zero-distance delay, then
     publish to ``out/current`` unless the candidate is worse than what is there (``force``
     publishes anyway). Runs on the simulator unless ``captures`` names a directory of
@@ -476,8 +538,10 @@ def calibration_campaign(out: str = "data/calibration", lux: LuxLevels | None = 
     and at zero distance (``delay_run``). One campaign at a time per ``out``: another waits
     up to ``wait_s`` (its state named AwaitingLock meanwhile). A worse candidate replaces
     a current calibration older than ``max_age_h`` or one the chip drifted from (LSB past
-    ``max_lsb_drift_ps``, delay past ``max_delay_drift_ps``) when it is within the
-    absolute limits (:func:`verdict`). The run ends Completed either way; the verdict is
+    ``max_lsb_drift_ps``, delay past ``max_delay_drift_ps``; by this campaign's
+    measurements, or the LSB by the online tracking of the daemon whose output is
+    ``stream_out``) when it is within the absolute limits (:func:`verdict`). The run ends
+    Completed either way; the verdict is
     in its result (``outcome``, ``rule``, ``refused_because``), its tag
     (``tcspc:published`` / ``tcspc:refused``) and the ``tcspc.calibration.*`` event. The
     cache keeps ``cache_max_gb`` at most, entries unused for ``cache_max_age_days``
@@ -497,7 +561,8 @@ def calibration_campaign(out: str = "data/calibration", lux: LuxLevels | None = 
                                   delay_run, force, log,
                                   limits=dict(inl_rms=inl_rms, max_age_h=max_age_h,
                                               max_lsb_drift_ps=max_lsb_drift_ps,
-                                              max_delay_drift_ps=max_delay_drift_ps))
+                                              max_delay_drift_ps=max_delay_drift_ps,
+                                              stream_out=stream_out))
         prune_cache(cache, cache_max_gb, cache_max_age_days, keep=used, log=log)
     # Completed by type and name (Prefect's own automations key on prefect.flow-run.Completed);
     # the verdict in the result, a tag and the event
@@ -647,7 +712,7 @@ def _unfit(out: str, run: Path, source: str, current: str, density_caps: list, d
     summary = {"run": str(run), "flow_run": flow_run_info(), "candidate": None,
                "current": current, "published": False, "outcome": "refused",
                "rule": "quality", "why": why, "age_h": None,
-               "drift_ps": {"lsb": None, "delay": None}, "forced": False,
+               "drift_ps": {"lsb": None, "delay": None}, "stream_drift_ps": None, "forced": False,
                "refused_because": [why], "overruled": [], "verdict": text.replace("*", ""),
                "quality": None, "figures": {}, "flagged_tdcs": [], "delay_ns": None,
                "no_delay": "", "plots": [], "truth": {},

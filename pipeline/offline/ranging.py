@@ -377,6 +377,26 @@ def range_capture(capture: str | Path, calibration: Calibration, out: str | Path
     return table, note
 
 
+def lsb_tracking(calibration: Calibration, state: HistogramState, window_s: float,
+                 min_hits: int = 1000) -> dict | None:
+    """The online LSB tracking of one measurement (:func:`stages.calibration.track_lsb`:
+    each TDC's uniform background taken as a density test, its returns masked) against the
+    calibration's LSB at the measurement's light, for the campaign's verdict (issue 39.3):
+    ``median_ps`` of the trusted TDCs' drift, its standard error ``se_ps`` (1.2533 sd /
+    sqrt(n), the median's), ``n`` TDCs, ``light``; None where no TDC had ``min_hits``."""
+    rows = slice(state.tdc_offset, state.tdc_offset + state.n_tdc)
+    light = cal.light_level(state.hits, state.cycles)
+    expected, _ = calibration.lsb_s(light)
+    tr = cal.track_lsb(state.hits, state.cycles, window_s, np.asarray(expected)[rows],
+                       min_hits=min_hits)
+    d = tr.drift_ps[np.isfinite(tr.drift_ps)]
+    if d.size == 0:
+        return None
+    se = 1.2533 * float(np.std(d, ddof=1)) / np.sqrt(d.size) if d.size > 1 else float("inf")
+    return {"median_ps": float(np.median(d)), "se_ps": se, "n": int(d.size),
+            "light": float(light)}
+
+
 class RangeCore:
     """The range stage: each histograms message (a measurement, or a worker's TDC range of
     one) in, its ranges out, the histograms passed on beside them for the sink. Stateless:
@@ -449,12 +469,16 @@ class RangeCore:
                                            state.tdc_offset).replace(
                     "--force ranges it anyway", "ranged anyway"))
             self.chip_checks[chip] = self.chip_checks.get(chip, 0) + 1
+            drift = lsb_tracking(self.calibration, state, window_s)
+        else:
+            drift = None
         table = ranges_table(name, est, d, s, state.tdc_offset)
         head = {**header, "schema": RANGES.name, "version": RANGES.version,
                 "step": self.step_id,
                 "detected": int(np.sum(est.detected & (est.return_index == 0))),
                 **({"calibration_note": note} if note else {}),
                 **({"chip_check": chip} if chip else {}),
+                **({"lsb_drift": drift} if drift else {}),
                 **({"calibration_id": self.calibration.meta["calibration_id"]}
                    if self.calibration.meta.get("calibration_id") else {})}
         self.ranged += 1

@@ -673,6 +673,8 @@ class ParquetSink:
                 {k: header[k] for k in ("partial", "cycles", "words") if k in header}).encode()
         if header.get("calibration_id"):  # ranges: the calibration's identity (issue 39)
             meta[b"tcspc.calibration_id"] = str(header["calibration_id"]).encode()
+        if isinstance(header.get("lsb_drift"), dict):  # ranges: the stream's LSB tracking
+            meta[b"tcspc.lsb_drift"] = json.dumps(header["lsb_drift"]).encode()
         if meta:
             table = table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
         buf = pa.BufferOutputStream()

@@ -814,3 +814,47 @@ def test_a_drifted_chip_is_recalibrated_by_a_worse_candidate(campaign, tmp_path)
     strict = verdict.fn(other["candidate"], str(out / "current"), inl_rms=0.01)
     assert not strict["publish"] and strict["rule"] == "drift"  # not within the limits
     assert any("over the limit" in w for w in strict["worse"])
+
+
+def test_the_streams_lsb_tracking_is_drift_evidence(campaign, tmp_path):
+    """#39.3: a candidate of the same chip, worse and young, is refused on quality; when
+    the daemon's range stage tracked the LSB away from the current calibration (its
+    ranges files' ``tcspc.lsb_drift``, ranged with this calibration) beyond the limit by 3
+    standard errors, the drift rule publishes it, and the verdict says it was the
+    stream's; a tracking within its noise, or of another calibration, does not."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from flows.calibration import calibration_campaign, verdict
+    from pipeline.io.caldir import load_calibration
+
+    out, _ = campaign
+    same = calibration_campaign(out=str(tmp_path / "night"), **{
+        **SMALL_CAL, "cycles": 80_000, "inl_rms": 5.0})
+    current = str(out / "current")
+    cal_id = load_calibration(current).meta["calibration_id"]
+    stream = tmp_path / "stream"
+
+    def ranges(name, median, se, ident=cal_id):
+        part = stream / "ranges" / "date=2026-12-05" / "run=r"
+        part.mkdir(parents=True, exist_ok=True)
+        t = pa.table({"tdc": pa.array([0], pa.uint16())}).replace_schema_metadata({
+            b"tcspc.calibration_id": ident.encode(),
+            b"tcspc.lsb_drift": json.dumps({"median_ps": median, "se_ps": se, "n": 100,
+                                            "light": 0.05}).encode()})
+        pq.write_table(t, part / f"part-{name}.parquet")
+
+    base = verdict.fn(same["candidate"], current, inl_rms=5.0, stream_out=str(stream))
+    assert not base["publish"] and base["rule"] == "quality", base
+    assert base["stream_drift_ps"] is None and "no LSB tracking" in base["why"]
+    ranges("a", 0.8, 0.5)  # past the 0.5 ps limit, but within 3 of its errors
+    noisy = verdict.fn(same["candidate"], current, inl_rms=5.0, stream_out=str(stream))
+    assert not noisy["publish"] and noisy["stream_drift_ps"]["files"] == 1, noisy
+    ranges("b", 2.0, 0.1, ident="another-calibration")  # not this calibration's
+    other = verdict.fn(same["candidate"], current, inl_rms=5.0, stream_out=str(stream))
+    assert not other["publish"] and other["stream_drift_ps"]["files"] == 1
+    ranges("c", 2.0, 0.1)
+    moved = verdict.fn(same["candidate"], current, inl_rms=5.0, stream_out=str(stream))
+    assert moved["publish"] and moved["rule"] == "drift", moved
+    assert moved["stream_drift_ps"]["files"] == 2 and moved["stream_drift_ps"]["lsb"] > 1.5
+    assert "the stream's LSB tracking +1.9" in moved["why"], moved["why"]

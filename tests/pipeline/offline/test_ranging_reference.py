@@ -563,3 +563,29 @@ def test_the_range_stages_ranges_name_the_calibration_by_its_identity(measuremen
     (written,) = (tmp_path / "ranges").rglob("*.parquet")
     meta = pq.ParquetFile(written).schema_arrow.metadata
     assert meta[b"tcspc.calibration_id"].decode() == calibration.meta["calibration_id"]
+
+
+def test_the_range_stage_tracks_the_lsb_for_the_campaigns_verdict(measurements, calibration,
+                                                                  tmp_path):
+    """Issue 39.3: the range stage's online LSB tracking (on the measurements it checks
+    the chip on) goes in the ranges' header and the sink's parquet metadata, where the
+    campaign's verdict reads it (flows.calibration.stream_drift_ps): the same chip under
+    the same conditions has drifted by less than its own noise."""
+    import json
+
+    import pyarrow.parquet as pq
+
+    from pipeline.offline.ranging import RangeCore
+    from pipeline.stream.stage import ParquetSink
+
+    states, window_s = measurements
+    core = RangeCore(calibration, "ml", forward_histograms=False)
+    header = {"run": "r1", "measurement": "m1", "window_ns": window_s * 1e9,
+              "t_laser_win_ns": 140.0, "date": "2026-12-05", "seq": 0}
+    ((head, batch),) = core.process(header, states[0][1].to_table("m1").to_batches()[0])
+    drift = head["lsb_drift"]
+    assert drift["n"] > 0 and abs(drift["median_ps"]) < 4 * drift["se_ps"] + 1.0, drift
+    ParquetSink(tmp_path).process(head, batch)
+    (written,) = (tmp_path / "ranges").rglob("*.parquet")
+    meta = pq.ParquetFile(written).schema_arrow.metadata
+    assert json.loads(meta[b"tcspc.lsb_drift"]) == drift
