@@ -340,3 +340,50 @@ def test_the_lab_automations_exist_and_a_refusal_fires_its_own(server, tmp_path)
     assert not [e for e in _poll_events(server, "prefect.automation.triggered",
                                         lambda e: True, 0)
                 if e["resource"]["prefect.resource.id"].endswith(zombie)]
+
+
+def test_a_nightly_on_a_real_server_reads_the_streams_drift(server, tmp_path):
+    """#39.3 (with #39.2, #39.7) as a lab runs it through `tcspc flow run` on a real
+    server: a first campaign publishes; a shorter nightly one of the same chip, worse and
+    young, is refused on quality (exit 3); once the daemon's ranges with the current
+    calibration record an LSB tracked 2 ps away, the same nightly publishes by the drift
+    rule (exit 0) and says it was the stream's; `current` is the newest of the versions by
+    their own time; the report artifact on the server embeds its figures; a drift limit
+    of -1 is refused before any run (exit 2)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    sys.path.insert(0, str(ROOT))
+    from flows.calibration import _slug, version_time
+    from pipeline.io.caldir import load_calibration
+
+    out, stream = tmp_path / "cal", tmp_path / "stream"
+
+    def run(*extra, code=0):
+        proc = _campaign(server, out, *extra)
+        stdout, err = proc.communicate(timeout=900)
+        assert proc.returncode == code, err[-3000:]
+        return json.loads(stdout) if code != 2 else err
+
+    assert run()["outcome"] == "published"
+    nightly = ("-p", "cycles=80000", "-p", "inl_rms=5.0", "-p", f"stream_out={stream}")
+    refused = run(*nightly, code=3)
+    assert refused["rule"] == "quality" and refused["stream_drift_ps"] is None
+    part = stream / "ranges" / "date=2026-12-05" / "run=r"
+    part.mkdir(parents=True)
+    ident = load_calibration(out / "current").meta["calibration_id"]
+    pq.write_table(pa.table({"tdc": pa.array([0], pa.uint16())}).replace_schema_metadata({
+        b"tcspc.calibration_id": ident.encode(),
+        b"tcspc.lsb_drift": json.dumps({"median_ps": 2.0, "se_ps": 0.1, "n": 4}).encode()}),
+        part / "part-m1.parquet")
+    moved = run(*nightly)
+    assert moved["outcome"] == "published" and moved["rule"] == "drift", moved["why"]
+    assert moved["stream_drift_ps"]["files"] == 1 and "stream's LSB tracking" in moved["why"]
+    versions = sorted((out / "versions").iterdir(), key=version_time)
+    assert (out / "current").resolve() == versions[-1].resolve()
+    arts = _api(server, "POST", "/artifacts/filter",
+                {"artifacts": {"key": {"any_": [f"{_slug(str(out))}-report"]}}})
+    assert arts and all("data:image/png;base64," in a["data"] for a in arts)
+    before = len(_runs(server))
+    err = run("-p", "max_lsb_drift_ps=-1", code=2)
+    assert "max_lsb_drift_ps" in err and len(_runs(server)) == before
