@@ -664,6 +664,8 @@ _LAZY = {  # name: (module, attribute, short help)
               "Run one stage of the stream alone (the graph can span processes and hosts)."),
     "daemon": ("pipeline.cli.stream", "daemon",
                "Start the stream graph under a supervisor that restarts crashed stages."),
+    "reconcile": ("pipeline.cli.stream", "reconcile",
+                  "Finish or check a run offline: datasets against the journal, accounting."),
     "status": ("pipeline.cli.stream", "status",
                "Live view of a running daemon: per-stage health, rates, queues, restarts."),
     "calibrate": ("pipeline.cli.calibrate", "calibrate",

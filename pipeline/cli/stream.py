@@ -576,6 +576,40 @@ def daemon(config, run_id, log_json, print_unit) -> None:
 
 
 @click.command()
+@click.option("--config", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="The run's topology TOML (default: the daemon's default topology).")
+@click.option("--run", "run_id", required=True, help="The run to reconcile.")
+def reconcile(config, run_id) -> None:
+    """Finish or check a run offline, no daemon running: its datasets reconciled with its
+    journal (a measurement missing or partial rebuilt from the journal), its accounting
+    written and printed with what is missing. Run it twice: the same result. Exit 0: the
+    run finished, every word in, balanced; 3: incomplete or interrupted (the problems
+    printed); 2: a daemon holds the state, or no journal of the run."""
+    from pipeline.stream.daemon import reconcile_offline
+    from pipeline.stream.topology import load_topology
+
+    topo = load_topology(config, run_id)
+    result = reconcile_offline(topo)
+    click.echo(json.dumps(result, indent=1))
+    rec, acc = result["reconciled"], result["accounting"]
+    for part in rec.get("rebuilt", []):
+        err.print(f"rebuilt from the journal: {part['file']} ({part['why']})", highlight=False)
+    for m, t in rec.get("recomputed", []):
+        err.print(f"recomputed from the journal: measurement {m}, TDCs from {t} (missing "
+                  "from the datasets)", highlight=False)
+    missing = rec.get("unrecoverable", []) + rec.get("corrupt", [])
+    if missing:
+        err.print(f"missing measurements [measurement, first TDC]: {missing}",
+                  highlight=False)
+    for line in result["notes"] + result["problems"]:
+        err.print(f"run {topo.run}: {line}", highlight=False)
+    err.print(f"run {topo.run} {result['state']}: {acc['classified']:,} of "
+              f"{acc['words_in']:,} journaled words classified in the datasets, "
+              f"{acc['withheld']:,} withheld; accounting {acc['path']}", highlight=False)
+    sys.exit(0 if result["state"] == "finished" else 3)
+
+
+@click.command()
 @click.option("--state", default="data/daemon", show_default=True, type=click.Path(),
               help="The daemon's state directory.")
 @click.option("--watch", type=float, default=None, help="Refresh every this many seconds.")

@@ -824,3 +824,59 @@ def _cloud_args(sink: dict) -> list:
     if not sink.get("pointcloud"):
         return []
     return ["--pointcloud", sink["pointcloud"], "--geometry", sink.get("geometry", "")]
+
+
+def reconcile_offline(topo: Topology) -> dict:
+    """`tcspc reconcile`: finish or check run ``topo.run`` from its journal and datasets
+    with no daemon running (issue 38.7): the datasets reconciled with the journal as the
+    daemon does at a run's end (a measurement missing or partial rebuilt from the
+    journal, one counted twice replaced), the accounting written
+    (``OUT/accounting/run=RUN.json``), the run's record updated. Idempotent: a second call
+    finds nothing to rebuild and writes the same accounting; a daemon killed while
+    reconciling leaves what this finishes. The stages' own counts (datagrams lost,
+    rejections) come from ``status.json`` where it is this run's, and from the run totals
+    the daemon kept; otherwise only the journal against the datasets is checked (said in
+    ``notes``). An interrupted run stays interrupted (resume it with the daemon).
+    Raises StateError while a daemon holds the state, or for a run with no journal."""
+    from pipeline.stream.exporter import RunTotals
+    from pipeline.stream.runrecord import end
+    from pipeline.stream.state import StateError, open_state
+
+    journal = topo.state / "journal"
+    if not (journal / f"{topo.run}.index.jsonl").is_file():
+        raise StateError(f"run {topo.run}: no journal in {journal} (a run of this topology's "
+                         "[daemon] state?)")
+    lock = open_state(topo.state)
+    try:
+        rec = {}
+        try:
+            rec = json.loads((topo.state / "runs" / f"{topo.run}.json").read_text())
+        except (OSError, ValueError):
+            pass  # (a run from before run records: its date from the topology)
+        if rec.get("date"):
+            topo.date = rec["date"]
+        prev = rec.get("result") or {}
+        metrics, notes = {}, []
+        try:
+            status = json.loads((topo.state / "status.json").read_text())
+        except (OSError, ValueError):
+            status = {}
+        if status.get("run") == topo.run and isinstance(status.get("stages"), dict):
+            metrics = {name: dict(st) for name, st in status["stages"].items()}
+        else:
+            notes.append("the stages' counts (datagrams lost, rejections) are not this run's "
+                         "in status.json: only the journal against the datasets is checked")
+        result = {"run": topo.run, "failed": None, "interrupted": prev.get("interrupted"),
+                  "reconciled_offline": True, "restarts": prev.get("restarts", {}),
+                  "frozen": prev.get("frozen", {}), "notes": notes}
+        result["reconciled"] = reconcile(topo)
+        bounds = (prev.get("accounting") or {}).get("artifact_bounds")
+        result["accounting"] = accounting(topo, RunTotals(topo.state, topo.run).merged(
+            metrics), result["reconciled"], bounds)
+        result["problems"] = problems(result)
+        result["state"] = run_state(result)
+        if rec:
+            end(topo, result)
+        return result
+    finally:
+        lock.release()

@@ -65,3 +65,54 @@ def test_a_failed_run_writes_its_accounting(tmp_path):
     assert result["failed"] and result["state"] == "failed"
     acc = json.loads((tmp_path / "out" / "accounting" / "run=f1.json").read_text())
     assert acc["words_in"] > 0 and acc["classified"] <= acc["words_in"]
+
+
+def _reconcile(topo_path, run):
+    return subprocess.run([sys.executable, "-m", "pipeline.cli", "reconcile", "--config",
+                           str(topo_path), "--run", run], capture_output=True, text=True,
+                          timeout=300)
+
+
+def test_reconcile_finishes_a_run_offline_and_again_changes_nothing(tmp_path):
+    """Issue 38.7: `tcspc reconcile RUN` with no daemon running: a measurement missing from
+    the datasets (a daemon killed while reconciling, a part deleted) is rebuilt from the
+    journal, the run balanced and its accounting written (exit 0); run again, nothing is
+    rebuilt and the accounting is the same; a daemon holding the state, or a run with no
+    journal, is refused in one line (exit 2)."""
+    import json
+
+    from pipeline.stream.state import open_state
+
+    topo = topology(tmp_path, cycles=30_000)
+    result, _ = run_daemon(topo, "r1")
+    assert result["state"] == "finished"
+    want = result["accounting"]
+    parts = sorted((tmp_path / "out" / "histograms").rglob("*.parquet"))
+    parts[1].unlink()  # one worker's part of a measurement, gone
+    first = _reconcile(topo, "r1")
+    assert first.returncode == 0, first.stderr
+    assert "recomputed from the journal: measurement 0" in first.stderr, first.stderr
+    assert "r1 finished" in first.stderr
+    got = json.loads(first.stdout)["accounting"]
+    assert got["balanced"] and got["words_in"] == want["words_in"]
+    assert got["classes"] == want["classes"] and parts[1].exists()
+    again = _reconcile(topo, "r1")
+    assert again.returncode == 0 and "from the journal" not in again.stderr, again.stderr
+    assert json.loads(again.stdout)["accounting"]["classes"] == want["classes"]
+    record = json.loads((tmp_path / "state" / "runs" / "r1.json").read_text())
+    assert record["state"] == "finished" and record["result"]["reconciled_offline"]
+    lock = open_state(tmp_path / "state")  # a daemon running on this state
+    try:
+        busy = _reconcile(topo, "r1")
+    finally:
+        lock.release()
+    assert busy.returncode == 2 and "in use by daemon" in busy.stderr, busy.stderr
+    none = _reconcile(topo, "nope")
+    assert none.returncode == 2 and "no journal" in none.stderr, none.stderr
+    assert "Traceback" not in busy.stderr + none.stderr
+    # a journal without its end (a daemon killed mid-run): incomplete, exit 3, said why
+    with open(tmp_path / "state" / "journal" / "r1.index.jsonl", "a") as index:
+        index.write('{"reopen": true}\n')
+    cut = _reconcile(topo, "r1")
+    assert cut.returncode == 3 and "r1 incomplete" in cut.stderr, cut.stderr
+    assert "reconciliation skipped" in cut.stderr
