@@ -88,8 +88,10 @@ RANGES = SchemaSpec("ranges", "2.0", (
     field("return_index", pa.uint8(), "", "the return's rank in its pixel by signal counts "
           "(0 the strongest; every TDC has a row 0, detected or not, and a row k > 0 only "
           "for a detected return)"),
-    field("flag", pa.string(), "", "empty, or why the row is flagged: an input it could not "
-          "use, an estimate outside the window or before the zero, the window's edge"),
+    field("flag", pa.string(), "", "empty, or why the row is flagged (several joined by "
+          "'; '): an input it could not use, an estimate outside the window or before the "
+          "zero, the window's edge, another chip's calibration, a partial measurement (the "
+          "stream ended inside it)"),
 ))
 
 #: The major versions of ``ranges`` this software reads: 1.x (one row a TDC, no

@@ -231,6 +231,9 @@ def ranges_table(measurement: str, est: Estimate, distance_m: np.ndarray,
 #: The flag of every row ranged with ``--force`` on a capture whose code-density pattern
 #: is not the calibration's chip's, and of a TDC that alone disagrees (issue 33.4).
 CHIP_MISMATCH = "calibration of another chip (code-density pattern)"
+#: A stream's measurement that the run ended inside (a stop, an interrupted or failed run):
+#: ranged on what it holds; a resumed run completes it and its ranges replace these.
+PARTIAL = "partial measurement: the run ended inside it"
 TDC_MISMATCH = "this TDC's code-density pattern is not the calibration's"
 #: A TDC of a matching capture is flagged alone where its own excess is over this many
 #: sigmas (and its widths differ by more than a chip's drift): one in ~3.5 million by
@@ -472,6 +475,10 @@ class RangeCore:
             drift = lsb_tracking(self.calibration, state, window_s)
         else:
             drift = None
+        if header.get("partial"):  # the stream ended inside it: its rows say so
+            cyc = header.get("cycles") or [0, 0]
+            est = _flag_rows(est, np.ones(np.size(est.t_s), bool),
+                             f"{PARTIAL} (cycles {cyc[0]}..{cyc[1]})")
         table = ranges_table(name, est, d, s, state.tdc_offset)
         head = {**header, "schema": RANGES.name, "version": RANGES.version,
                 "step": self.step_id,

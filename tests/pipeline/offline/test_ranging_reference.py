@@ -589,3 +589,21 @@ def test_the_range_stage_tracks_the_lsb_for_the_campaigns_verdict(measurements, 
     (written,) = (tmp_path / "ranges").rglob("*.parquet")
     meta = pq.ParquetFile(written).schema_arrow.metadata
     assert json.loads(meta[b"tcspc.lsb_drift"]) == drift
+
+
+def test_a_partial_measurements_ranges_are_flagged(measurements, calibration):
+    """Issue 38.7: a measurement the run ended inside (the histogram worker's ``partial``)
+    is ranged on what it holds, every row flagged as partial with the cycles it covers; a
+    whole one is not."""
+    from pipeline.offline.ranging import PARTIAL, RangeCore
+
+    states, window_s = measurements
+    core = RangeCore(calibration, "ml", forward_histograms=False, check_chip=False)
+    header = {"run": "r1", "measurement": "m1", "window_ns": window_s * 1e9,
+              "t_laser_win_ns": 140.0, "partial": True, "cycles": [20_000, 27_500]}
+    batch = states[0][1].to_table("m1").to_batches()[0]
+    ((_, cut),) = core.process(header, batch)
+    assert all(f.startswith(PARTIAL) and "cycles 20000..27500" in f
+               for f in cut.column("flag").to_pylist())
+    ((_, whole),) = core.process({**header, "partial": False}, batch)
+    assert not any(PARTIAL in f for f in whole.column("flag").to_pylist())
