@@ -195,6 +195,17 @@ def sim_scenarios(tmp: Path, lines: list[str], only=None) -> None:
     scenario("frozen worker", "SIGSTOP histogram-1 at 1 M words, never continued "
              "(heartbeat_deadline_s = 5)", freeze, extra="heartbeat_deadline_s = 5")
 
+    def lost_part(d, topo, res):  # (issue 38.7) a part gone after the run's end: a daemon
+        # killed while it reconciled, a disk under the sink repaired by hand
+        from pipeline.stream.daemon import reconcile_offline
+        from pipeline.stream.topology import load_topology
+
+        sorted((d / "out" / "histograms").rglob("*.parquet"))[1].unlink()
+        return reconcile_offline(load_topology(topo, "r"))
+
+    scenario("a part lost, tcspc reconcile", "a histograms part deleted after the run, then "
+             "`tcspc reconcile` offline", post=lost_part)
+
     def torn_checkpoint(s):
         wait_words(s, 1e6)
         p = s.by_name["histogram-1"].popen
