@@ -10,7 +10,8 @@ from schemas.core import SchemaSpec, field
 HISTOGRAMS = SchemaSpec("histograms", "2.0", (
     field("measurement", pa.string(), "", "name of the measurement (capture or run)"),
     field("tdc", pa.uint16(), "", "TDC address (0-based); for an instrument's file the row it "
-          "histograms: a PTU input channel, a LinoSPAD2 TDC or pixel"),
+          "histograms: a PTU input channel, a LinoSPAD2 TDC or pixel (a generic file, "
+          "written by any tool, may use any integer type for values 0..2^32 - 1)"),
     field("cycles", pa.uint64(), "cycle", "DAQ cycles this TDC was read in (every word at "
           "its position counts, whatever its class); a PTU T3 file: sync periods covered; "
           "LinoSPAD2: acquisition cycles"),
@@ -66,9 +67,11 @@ CALIBRATION_INL = SchemaSpec("calibration_inl", "1.1", (
           nullable=True),
 ))
 
-RANGES = SchemaSpec("ranges", "2.0", (
+RANGES = SchemaSpec("ranges", "3.0", (
     field("measurement", pa.string(), "", "name of the measurement"),
-    field("tdc", pa.uint16(), "", "TDC address (0-based)"),
+    # 3.0: uint32 (a generic file's pixel numbers up to 2^32 - 1, issue 34.7; it was uint16)
+    field("tdc", pa.uint32(), "", "TDC address (0-based); for generic histograms the "
+          "file's row number, 0..2^32 - 1"),
     field("distance_m", pa.float64(), "m", "estimated distance (eq. 5.4)"),
     field("sigma_m", pa.float64(), "m", "one-sigma uncertainty of distance_m: the fit's "
           "(its counts' Fisher information) and, ranged with a chip calibration that stores "
@@ -93,5 +96,6 @@ RANGES = SchemaSpec("ranges", "2.0", (
 ))
 
 #: The major versions of ``ranges`` this software reads: 1.x (one row a TDC, no
-#: return_index or flag) is upgraded on read by :func:`pipeline.io.ranges.read_ranges`.
-RANGES_READS = (1, 2)
+#: return_index or flag) and 2.x (``tdc`` uint16) are upgraded on read by
+#: :func:`pipeline.io.ranges.read_ranges`.
+RANGES_READS = (1, 2, 3)

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import pytest
 from scipy.constants import c as C_LIGHT
@@ -557,9 +558,46 @@ def test_a_file_too_big_to_range_is_refused_up_front_in_one_line(tmp_path):
 
 
 def test_a_row_number_the_ranges_cannot_carry_is_refused_naming_the_row(tmp_path):
-    f = _write(tmp_path / "h.parquet", [[1, 2, 3]] * 2, tdc=[0, 70_000])
-    with pytest.raises(SchemaMismatch, match=r"row 1: tdc must be 0..65535, found 70000"):
+    f = _write(tmp_path / "h.parquet", [[1, 2, 3]] * 2,
+               tdc=pa.array([0, 2 ** 32], pa.int64()))
+    with pytest.raises(SchemaMismatch, match=r"row 1: tdc must be 0..4294967295, "
+                                             r"found 4294967296"):
         read_generic(f)
+    r = tcspc("range", f, "--delay-ps", "0", "--out", tmp_path / "r.parquet")
+    assert r.returncode == 2 and "h.parquet: row 1: tdc must be" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
+
+
+def test_pixel_numbers_up_to_2_to_the_32_range_and_round_trip(tmp_path):
+    """Issue 34.7: a generic file's tdc up to 2^32 - 1 (uint32 in ranges 3.0; it was
+    uint16) is ranged, written, read back and exported with its number."""
+    from pipeline.io.ranges import read_ranges
+    from schemas.outputs import RANGES
+
+    rng = np.random.default_rng(3)
+    big = [4_000_000_000, 2 ** 32 - 1, 7]
+    f = _write(tmp_path / "h.parquet", [_returns(rng, 3000.0, 2_000) for _ in big],
+               tdc=pa.array(big, pa.uint32()))
+    out = tmp_path / "r.parquet"
+    r = tcspc("range", f, "--delay-ps", "1000", "--irf-ps", "100", "--out", out)
+    assert r.returncode == 0, r.stderr
+    assert pq.read_schema(out).field("tdc").type == pa.uint32()
+    t = read_ranges(out)
+    assert t.schema.metadata[b"tcspc.version"] == RANGES.version.encode()
+    got = t.filter(pc.equal(t["return_index"], 0))
+    assert got.column("tdc").to_pylist() == big
+    assert all(got.column("detected").to_pylist())
+    # a 2.x file (tdc uint16) is still read, widened
+    small = t.filter(pc.equal(t["tdc"], 7))
+    old = small.cast(pa.schema([pa.field("tdc", pa.uint16()) if x.name == "tdc" else x
+                                for x in t.schema]))
+    pq.write_table(old.replace_schema_metadata({**t.schema.metadata,
+                                                b"tcspc.version": b"2.0"}),
+                   tmp_path / "old.parquet")
+    back = read_ranges(tmp_path / "old.parquet")
+    assert back.schema.field("tdc").type == pa.uint32()
+    assert back.column("tdc").to_pylist() == [7] * old.num_rows
+    assert back.schema.metadata[b"tcspc.upgraded_from"] == b"2.0"
 
 
 def test_an_estimator_whose_sigma_does_not_cover_says_so(tmp_path):
