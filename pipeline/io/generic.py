@@ -40,17 +40,19 @@ class Measurement:
     bin_width_s: float
 
 
-def _bad(path, row: int, what: str) -> SchemaMismatch:
-    return SchemaMismatch(f"{path}: row {row}: {what}")
-
-
-def read_generic(path: str | Path, table: pa.Table | None = None) -> list[Measurement]:
-    """The measurements of a generic histograms file, in file order.
+def read_generic(path: str | Path, table: pa.Table | None = None,
+                 row_numbers: np.ndarray | None = None) -> list[Measurement]:
+    """The measurements of a generic histograms file, in file order (or of ``table``, a
+    part of it whose rows are the file's ``row_numbers``: the rows an error names).
 
     Raises ``SchemaMismatch`` (a ValueError), one line naming the file and the row, for a
     missing column, an unknown instrument, a null or ragged counts list, a negative or
     non-finite count, a bin width that is not a positive finite number, or negative cycles.
     """
+    def _bad(path, row: int, what: str) -> SchemaMismatch:
+        return SchemaMismatch(f"{path}: row "
+                              f"{row if row_numbers is None else int(row_numbers[row])}: {what}")
+
     if table is None:
         check_size(path)
         table = pq.read_table(path)

@@ -31,7 +31,7 @@ from scipy.constants import c as C_LIGHT
 
 from pipeline.io.atomic import atomic_path
 from pipeline.io.generic import Measurement, read_generic
-from schemas.errors import CalibrationError
+from schemas.errors import CalibrationError, SchemaMismatch
 from stages.ranging import ESTIMATORS, Estimate, Histograms, estimate, estimate_returns
 from stages.ranging.irf import (
     IRF_ESTIMATORS,
@@ -721,24 +721,68 @@ BATCH_VALUES = 1 << 23
 
 def _row_batches(path):
     """The file's measurements, in batches of rows with at most :data:`BATCH_VALUES`
-    count values when it has more and no reference channel (a reference row times its
-    measurement's other rows, so such a file is read whole, within the memory check of
-    :func:`pipeline.io.generic.check_size`); a measurement may then span batches, each
-    part ranged alone (the rows are independent, the response measured on each part's
-    returns where none is given). Issue 34.7: 10^5 x 4 096 took 14-23 GB read whole."""
+    count values when it has more; a measurement may then span batches, each part ranged
+    alone (the rows are independent, the response measured on each part's returns where
+    none is given). A reference row times its measurement's other rows: the reference rows
+    are read first (one pass over the file, batch by batch, keeping only them) and each
+    part of a measurement is ranged with its measurement's reference, as when read whole.
+    Issue 34.7: 10^5 x 4 096 took 14-23 GB read whole. A measurement whose parts differ
+    in bins or bin width is refused as it would be read whole (ragged histograms)."""
+    import pyarrow.compute as pc
+
     f = pq.ParquetFile(path)
     md = f.metadata
     names = [md.schema.column(j).path for j in range(md.num_columns)]
     cols = [j for j, n in enumerate(names) if n.split(".")[0] == "counts"]
     values = sum(md.row_group(g).column(j).num_values for g in range(md.num_row_groups)
                  for j in cols)
-    ref = "reference" in f.schema_arrow.names
-    if values <= BATCH_VALUES or ref or not md.num_rows:
+    if values <= BATCH_VALUES or not md.num_rows:
         yield read_generic(path)
         return
-    rows = max(1, int(BATCH_VALUES // max(values / md.num_rows, 1)))
-    for batch in f.iter_batches(batch_size=rows):
-        yield read_generic(path, pa.Table.from_batches([batch]))
+    size = max(1, int(BATCH_VALUES // max(values / md.num_rows, 1)))
+
+    def batches():
+        first = 0
+        for b in f.iter_batches(batch_size=size):
+            t = pa.Table.from_batches([b])
+            yield t, np.arange(first, first + t.num_rows)
+            first += t.num_rows
+
+    refs = None
+    if "reference" in f.schema_arrow.names:
+        parts, at = [], []
+        for t, rows in batches():
+            is_ref = pc.fill_null(t.column("reference"), False)
+            if pc.any(is_ref).as_py():
+                parts.append(t.filter(is_ref))
+                at.append(rows[np.asarray(is_ref.to_numpy(zero_copy_only=False), bool)])
+        if parts:
+            refs = (pa.concat_tables(parts), np.concatenate(at))
+            read_generic(path, *refs)  # (checked here: a reference alone is not ranged)
+    seen: dict[str, tuple[int, float]] = {}
+    for t, rows in batches():
+        if refs is not None:
+            rest = ~np.asarray(pc.fill_null(t.column("reference"), False).to_numpy(
+                zero_copy_only=False), bool)
+            t, rows = t.filter(pa.array(rest)), rows[rest]
+            if not t.num_rows:
+                continue
+            mine = np.asarray(pc.is_in(refs[0].column("measurement"),
+                                       value_set=pc.unique(t.column("measurement")))
+                              .to_numpy(zero_copy_only=False), bool)
+            t = pa.concat_tables([t, refs[0].filter(pa.array(mine))])
+            rows = np.concatenate([rows, refs[1][mine]])
+        meas = read_generic(path, t, rows)
+        for m in meas:
+            n, w = seen.setdefault(m.name, (m.counts.shape[1], m.bin_width_s))
+            if m.counts.shape[1] != n or abs(m.bin_width_s / w - 1) > 1e-9:
+                r = int(rows[np.flatnonzero(
+                    np.asarray(t.column("measurement").to_pylist(), object) == m.name)[0]])
+                raise SchemaMismatch(
+                    f"{path}: row {r}: measurement {m.name!r} has {m.counts.shape[1]} bins "
+                    f"of {m.bin_width_s * 1e12:g} ps here and {n} of {w * 1e12:g} ps in "
+                    "its earlier rows (ragged histograms)")
+        yield meas
 
 
 def _without_crosstalk(est: Estimate, d):

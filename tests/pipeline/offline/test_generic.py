@@ -633,6 +633,90 @@ def test_a_big_file_is_ranged_in_row_batches_with_the_same_results(tmp_path, mon
                                       whole.column(col).to_numpy())
 
 
+def test_a_file_with_a_reference_channel_is_ranged_in_row_batches_alike(tmp_path,
+                                                                         monkeypatch):
+    """Issue 34.7: a file with a reference channel is read in row batches too (it was read
+    whole): each part of a measurement is ranged with its measurement's reference row,
+    wherever that row lies in the file, and the ranges are the whole file's."""
+    import pipeline.offline.generic as generic
+
+    rng = np.random.default_rng(21)
+    rows, names, ref, tdc = [], [], [], []
+    for k, (name, t_ref) in enumerate((("a", 1500.0), ("b", 2500.0))):
+        block = [_returns(rng, t, 3_000) for t in rng.uniform(4000, 15000, 20)]
+        r_at = 0 if k == 0 else 20  # the reference first in one measurement, last in one
+        block.insert(r_at, _returns(rng, t_ref, 20_000))
+        rows += block
+        names += [name] * 21
+        ref += [j == r_at for j in range(21)]
+        tdc += list(range(21))
+    f = _write(tmp_path / "h.parquet", rows, measurement=names, reference=ref, tdc=tdc)
+    whole, info = range_generic(f, delay_s=0.0, estimator="ml")
+    assert "reference channel" in info["response"], info
+    monkeypatch.setattr(generic, "BATCH_VALUES", 6 * 200)  # 6 rows a batch
+    assert len(list(generic._row_batches(f))) == 7
+    parts, _ = range_generic(f, delay_s=0.0, estimator="ml")
+    assert parts.num_rows == whole.num_rows == 40
+    assert whole.column("detected").to_numpy().all()
+    for col in ("measurement", "tdc", "distance_m", "sigma_m", "detected"):
+        np.testing.assert_array_equal(parts.column(col).to_numpy(zero_copy_only=False),
+                                      whole.column(col).to_numpy(zero_copy_only=False))
+    # a measurement whose rows in a later batch have other bins is refused as it is read
+    # whole (ragged), naming the file's row
+    for j in range(35, 42):  # (5 rows a batch now: 35-39 and 40-41)
+        rows[j] = np.concatenate([rows[j], [0]])
+    g = _write(tmp_path / "g.parquet", rows, measurement=names, tdc=tdc)
+    with pytest.raises(SchemaMismatch, match=r"g.parquet: row 35: measurement 'b' has 201 "
+                                             r"bins .* 200 of 100 ps .*ragged"):
+        range_generic(g, delay_s=0.0, estimator="ml")
+
+
+_PEAK = """
+import resource, sys
+import numpy as np
+import pipeline.offline.generic as g
+g.BATCH_VALUES = int(sys.argv[2])
+before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+table, _ = g.range_generic(sys.argv[1], delay_s=0.0, estimator="fast")
+after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print(table.num_rows, int(np.sum(table.column("detected").to_numpy())), (after - before) // 1024,
+      after // 1024)
+"""
+
+
+def test_a_file_with_a_reference_channel_ranges_in_bounded_memory(tmp_path):
+    """Issue 34.7: 16 384 rows x 1 024 bins (4 measurements, each with its reference row
+    first), ranged in batches of 2^20 count values: its peak memory (ru_maxrss of a fresh
+    process, above what it held before ranging) stays a small multiple of a batch's, where
+    the same file read whole takes ~5 times as much."""
+    rng = np.random.default_rng(5)
+    n_rows, n_bins, per = 16_384, 1_024, 4_096
+    t = np.arange(n_bins)[None, :]
+    centre = rng.uniform(100, 900, n_rows)[:, None]
+    centre[::per] = 30.0  # the reference rows: the zero-distance path
+    counts = rng.poisson(0.05 + 60 * np.exp(-0.5 * ((t - centre) / 2.0) ** 2))
+    counts = pa.ListArray.from_arrays(pa.array(np.arange(n_rows + 1) * n_bins, pa.int32()),
+                                      pa.array(counts.ravel().astype(np.uint32)))
+    f = tmp_path / "big.parquet"
+    pq.write_table(pa.table({
+        "measurement": [f"m{i // per}" for i in range(n_rows)],
+        "tdc": pa.array(np.arange(n_rows) % per, pa.uint32()), "counts": counts,
+        "instrument": ["generic"] * n_rows, "bin_width_ps": [80.0] * n_rows,
+        "reference": np.arange(n_rows) % per == 0}), f)
+    peak = {}
+    for values in (1 << 20, 1 << 30):  # batches of 2^20 values; the file read whole
+        r = subprocess.run([sys.executable, "-c", _PEAK, str(f), str(values)],
+                           capture_output=True, text=True, timeout=120, env=os.environ)
+        assert r.returncode == 0, r.stderr
+        rows, detected, peak[values], total = map(int, r.stdout.split())
+        print(f"batches of {values} values: {peak[values]} MiB above the start, "
+              f"{total} MiB peak")
+        assert rows == n_rows - 4 and detected >= 0.99 * rows, r.stdout
+    # a batch: 2^20 values, ~64 bytes each once ranged (BYTES_PER_VALUE): 64 MiB
+    assert peak[1 << 20] < 200, peak
+    assert peak[1 << 30] > 3 * peak[1 << 20], peak
+
+
 def test_a_merged_pair_of_surfaces_is_wider_than_one(tmp_path):
     """Issue 34.5: with one return a row and a Gaussian response, fwhm_m is the return's
     measured width: two surfaces 1 width apart (merged into one return) come out wider
