@@ -78,8 +78,11 @@ RANGES = SchemaSpec("ranges", "3.0", (
           "its own uncertainty (docs/calibration.md), the calibration's in quadrature: the "
           "code widths' counting noise over the codes between this return and the delay's "
           "zero-distance return, the delay's peak fit and the time scale's interpolation "
-          "between the density tests' lights; the fit's alone otherwise (an instrument's "
-          "file, generic histograms, a calibration made before issue 33)"),
+          "between the density tests' lights; generic histograms ranged with a "
+          "calibration from `calibrate distance`: its row's line (delay and bin width, from "
+          "the calibration returns' sigmas) in quadrature; the fit's alone otherwise (an "
+          "instrument's file, generic histograms with --delay-ps or --zero, a calibration "
+          "made before issue 33 or, for generic histograms, before issue 34)"),
     field("fwhm_m", pa.float64(), "m", "measured FWHM of the return: the second moment of "
           "its pile-up-corrected counts above the background (NaN: none above it); 1.0 "
           "files carry the instrument response's FWHM here"),
