@@ -775,3 +775,10 @@ def test_a_zero_file_gives_the_response_width_to_weak_returns(tmp_path):
     z_ = (t["distance_m"][r0] - d[g.row_of(t, per)[r0]]) / t["sigma_m"][r0]
     assert r0.sum() > 0.95 * n
     assert 0.93 <= np.mean(np.abs(z_) <= 2) <= 0.97, np.mean(np.abs(z_) <= 2)
+
+
+def test_an_irf_wider_than_the_window_names_the_option_and_the_file(tmp_path):
+    f = _write(tmp_path / "h.parquet", [[1, 2, 3, 4]])
+    r = tcspc("range", f, "--delay-ps", "0", "--irf-ps", "1e6", "--out", tmp_path / "r.parquet")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "h.parquet: --irf-ps 1e+06: sigma_s" in r.stderr, r.stderr
