@@ -10,7 +10,8 @@ from schemas.core import SchemaSpec, field
 HISTOGRAMS = SchemaSpec("histograms", "2.0", (
     field("measurement", pa.string(), "", "name of the measurement (capture or run)"),
     field("tdc", pa.uint16(), "", "TDC address (0-based); for an instrument's file the row it "
-          "histograms: a PTU input channel, a LinoSPAD2 TDC or pixel"),
+          "histograms: a PTU input channel, a LinoSPAD2 TDC or pixel (a generic file, "
+          "written by any tool, may use any integer type for values 0..2^32 - 1)"),
     field("cycles", pa.uint64(), "cycle", "DAQ cycles this TDC was read in (every word at "
           "its position counts, whatever its class); a PTU T3 file: sync periods covered; "
           "LinoSPAD2: acquisition cycles"),
@@ -66,17 +67,22 @@ CALIBRATION_INL = SchemaSpec("calibration_inl", "1.1", (
           nullable=True),
 ))
 
-RANGES = SchemaSpec("ranges", "2.0", (
+RANGES = SchemaSpec("ranges", "3.0", (
     field("measurement", pa.string(), "", "name of the measurement"),
-    field("tdc", pa.uint16(), "", "TDC address (0-based)"),
+    # 3.0: uint32 (a generic file's pixel numbers up to 2^32 - 1, issue 34.7; it was uint16)
+    field("tdc", pa.uint32(), "", "TDC address (0-based); for generic histograms the "
+          "file's row number, 0..2^32 - 1"),
     field("distance_m", pa.float64(), "m", "estimated distance (eq. 5.4)"),
     field("sigma_m", pa.float64(), "m", "one-sigma uncertainty of distance_m: the fit's "
           "(its counts' Fisher information) and, ranged with a chip calibration that stores "
           "its own uncertainty (docs/calibration.md), the calibration's in quadrature: the "
           "code widths' counting noise over the codes between this return and the delay's "
           "zero-distance return, the delay's peak fit and the time scale's interpolation "
-          "between the density tests' lights; the fit's alone otherwise (an instrument's "
-          "file, generic histograms, a calibration made before issue 33)"),
+          "between the density tests' lights; generic histograms ranged with a "
+          "calibration from `calibrate distance`: its row's line (delay and bin width, from "
+          "the calibration returns' sigmas) in quadrature; the fit's alone otherwise (an "
+          "instrument's file, generic histograms with --delay-ps or --zero, a calibration "
+          "made before issue 33 or, for generic histograms, before issue 34)"),
     field("fwhm_m", pa.float64(), "m", "measured FWHM of the return: the second moment of "
           "its pile-up-corrected counts above the background (NaN: none above it); 1.0 "
           "files carry the instrument response's FWHM here"),
@@ -95,5 +101,6 @@ RANGES = SchemaSpec("ranges", "2.0", (
 ))
 
 #: The major versions of ``ranges`` this software reads: 1.x (one row a TDC, no
-#: return_index or flag) is upgraded on read by :func:`pipeline.io.ranges.read_ranges`.
-RANGES_READS = (1, 2)
+#: return_index or flag) and 2.x (``tdc`` uint16) are upgraded on read by
+#: :func:`pipeline.io.ranges.read_ranges`.
+RANGES_READS = (1, 2, 3)

@@ -455,7 +455,9 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
                    "and all, is subtracted before the next is searched); 1 on a PTU T3 "
                    "file (more: with --zero its returns are the measured response; with "
                    "--delay-ps only a warning, the search's tails being Gaussian) and on "
-                   "generic histograms without a calibration, which refuse more].")
+                   "generic histograms with --delay-ps (more: Gaussian masks of --irf-ps "
+                   "or of the response measured on the returns); 3 on generic histograms "
+                   "with --zero (its returns are the measured response)].")
 @click.option("--allow-truncated", is_flag=True,
               help="A capture or PTU T3 file (or a --zero file) cut short: range it anyway, "
                    "flagged tcspc.truncated in the output (without it: nothing written, "
@@ -485,7 +487,7 @@ def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero
     Generic histograms (any instrument's, docs/instruments_generic.md) take
     --calibration from `calibrate distance`, --delay-ps or --zero; the output names the
     instrument response and the pile-up correction used (up to 3 returns a row with a
-    calibration, one without).
+    calibration or --zero, one with --delay-ps unless --max-returns asks for more).
     """
     check_out(out, overwrite=overwrite, schema="ranges")
     try:

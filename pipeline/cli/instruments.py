@@ -71,7 +71,12 @@ def range_generic(path: str, out: str, calibration, delay_ps, zero, gate, estima
                                   zero, None if irf_ps is None else irf_ps * 1e-12,
                                   estimator, p_fa, max_returns=max_returns)
     except (CalibrationError, ValueError) as exc:
-        raise BadInput(str(exc)) from None
+        msg = str(exc)
+        if irf_ps is not None and msg.startswith("sigma_s"):  # (name the user's option)
+            msg = f"--irf-ps {irf_ps:g}: {msg}"
+        elif msg.startswith("p_fa"):
+            msg = f"--p-fa {p_fa:g}: {msg}"
+        raise BadInput(f"{path}: {msg}" if str(path) not in msg else msg) from None
     write_ranges(table, out)
     if not quiet:
         err.print(f"instrument response: {info['response']}; pile-up: {info['pileup']}",

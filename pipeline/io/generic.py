@@ -40,17 +40,19 @@ class Measurement:
     bin_width_s: float
 
 
-def _bad(path, row: int, what: str) -> SchemaMismatch:
-    return SchemaMismatch(f"{path}: row {row}: {what}")
-
-
-def read_generic(path: str | Path, table: pa.Table | None = None) -> list[Measurement]:
-    """The measurements of a generic histograms file, in file order.
+def read_generic(path: str | Path, table: pa.Table | None = None,
+                 row_numbers: np.ndarray | None = None) -> list[Measurement]:
+    """The measurements of a generic histograms file, in file order (or of ``table``, a
+    part of it whose rows are the file's ``row_numbers``: the rows an error names).
 
     Raises ``SchemaMismatch`` (a ValueError), one line naming the file and the row, for a
     missing column, an unknown instrument, a null or ragged counts list, a negative or
     non-finite count, a bin width that is not a positive finite number, or negative cycles.
     """
+    def _bad(path, row: int, what: str) -> SchemaMismatch:
+        return SchemaMismatch(f"{path}: row "
+                              f"{row if row_numbers is None else int(row_numbers[row])}: {what}")
+
     if table is None:
         check_size(path)
         table = pq.read_table(path)
@@ -76,7 +78,7 @@ def read_generic(path: str | Path, table: pa.Table | None = None) -> list[Measur
     for i in range(table.num_rows):
         if names[i] is None or tdc[i] is None:
             raise _bad(path, i, "measurement and tdc must not be null")
-        if not 0 <= tdc[i] <= MAX_TDC:  # (the ranges' tdc column is uint16)
+        if not 0 <= tdc[i] <= MAX_TDC:  # (the ranges' tdc column is uint32)
             raise _bad(path, i, f"tdc must be 0..{MAX_TDC}, found {tdc[i]}")
         if lengths[i] is None or lengths[i] < 3:
             raise _bad(path, i, f"counts must be a list of >= 3 bins, found "
@@ -119,8 +121,9 @@ def read_generic(path: str | Path, table: pa.Table | None = None) -> list[Measur
     return out
 
 
-#: the largest row number (``tdc``) the ranges can carry (their column is uint16)
-MAX_TDC = 65535
+#: the largest row number (``tdc``) the ranges can carry (their column is uint32 since
+#: ranges 3.0; it was uint16)
+MAX_TDC = 2 ** 32 - 1
 #: bytes of memory that ranging takes per count value (measured on 10^5 x 4 096 bins:
 #: 14-23 GB, 34-56 bytes a value, issue 34.7), with room
 BYTES_PER_VALUE = 64

@@ -27,7 +27,7 @@ from stages.geometry import Geometry, points
 FORMATS = ("las", "ply", "pcd", "mcap")
 #: the per-point fields besides x, y, z, and their types in every format
 EXTRA = (("intensity", np.float32), ("sigma_m", np.float32), ("distance_m", np.float32),
-         ("return_index", np.uint8), ("tdc", np.uint16), ("row", np.uint16),
+         ("return_index", np.uint8), ("tdc", np.uint32), ("row", np.uint16),
          ("col", np.uint16))
 
 
@@ -103,7 +103,7 @@ def write_las(cl: list[Cloud], path: str | Path) -> int:
         laspy.ExtraBytesParams("sigma_m", np.float32, "1-sigma distance uncertainty m"),
         laspy.ExtraBytesParams("signal_counts", np.float32, "signal detections"),
         laspy.ExtraBytesParams("distance_m", np.float32, "ranged distance m"),
-        laspy.ExtraBytesParams("tdc", np.uint16, "histogram row (TDC)"),
+        laspy.ExtraBytesParams("tdc", np.uint32, "histogram row (TDC)"),
         laspy.ExtraBytesParams("row", np.uint16, "row on the array"),
         laspy.ExtraBytesParams("col", np.uint16, "column on the array")])
     header.scales = np.array([1e-4, 1e-4, 1e-4])
@@ -211,7 +211,8 @@ uint32 offset
 uint8 datatype
 uint32 count
 """
-_POINTFIELD = {np.dtype(np.uint8): 2, np.dtype(np.uint16): 4, np.dtype(np.float32): 7,
+_POINTFIELD = {np.dtype(np.uint8): 2, np.dtype(np.uint16): 4, np.dtype(np.uint32): 6,
+               np.dtype(np.float32): 7,
                np.dtype(np.float64): 8}
 TOPIC = "/tcspc/points"
 

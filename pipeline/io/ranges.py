@@ -17,12 +17,14 @@ def upgrade_ranges(table: pa.Table, where: str = "") -> pa.Table:
 
     1.x: one row a TDC; it becomes its return 0 (``return_index`` 0) with an empty
     ``flag``. Its ``fwhm_m`` stays what it was (the instrument response's FWHM).
+    1.x and 2.x: ``tdc`` uint16 is widened to 3.0's uint32.
     """
     meta, found, major = readable(table, RANGES, RANGES_READS, where)
     if major == 1:
         n = table.num_rows
         table = table.append_column("return_index", pa.array([0] * n, pa.uint8()))
         table = table.append_column("flag", pa.array([""] * n, pa.string()))
+    if major < RANGES.major:
         meta[META_VERSION] = RANGES.version.encode()
         meta[b"tcspc.upgraded_from"] = found.encode()
     rest = [c for c in table.column_names if c not in RANGES.names]

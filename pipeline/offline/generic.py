@@ -31,7 +31,7 @@ from scipy.constants import c as C_LIGHT
 
 from pipeline.io.atomic import atomic_path
 from pipeline.io.generic import Measurement, read_generic
-from schemas.errors import CalibrationError
+from schemas.errors import CalibrationError, SchemaMismatch
 from stages.ranging import ESTIMATORS, Estimate, Histograms, estimate, estimate_returns
 from stages.ranging.irf import (
     IRF_ESTIMATORS,
@@ -150,6 +150,27 @@ class DistanceCalibration:
         delay = np.array([fit["delay_ps"][i] if i >= 0 else np.nan for i in idx], float)
         width = np.array([fit["bin_width_ps"][i] if i >= 0 else np.nan for i in idx], float)
         return np.asarray(delay, float) * 1e-12, np.asarray(width, float) / self.nominal_bin_ps
+
+    def row_sigma_m(self, estimator: str, tdc, d_m) -> np.ndarray:
+        """The calibration's own standard deviation (m) of a distance ``d_m`` ranged on row
+        ``tdc``: its line t = a + b x (d = c/2 (t - a) / b) from the calibration times'
+        sigmas; 0 for a calibration made before it was kept (the fit's sigma alone)."""
+        cov = self.fits[estimator].get("line_cov")
+        if cov is None:
+            return np.zeros(np.shape(d_m))
+        where = {t: i for i, t in enumerate(self.tdc)}
+        idx = np.array([where.get(int(t), -1) for t in tdc], np.int64)
+
+        def col(name, unit):
+            v = np.asarray(cov[name], float) * unit
+            return np.where(idx >= 0, v[np.maximum(idx, 0)], np.nan)
+
+        var_a, cov_ab, var_b = col("a_ps2", 1e-24), col("ab_ps", 1e-12), col("b", 1.0)
+        b = 1.0 / (self.row_fit(estimator, tdc)[1])
+        d = np.asarray(d_m, float)
+        k = C_LIGHT / 2 / b  # d = k (t - a): dd/da = -k, dd/db = -d / b
+        var = k ** 2 * var_a + (d / b) ** 2 * var_b + 2 * k * d / b * cov_ab
+        return np.sqrt(np.clip(np.nan_to_num(var), 0.0, None))
 
 
 def _response_doc(r: Response | None) -> dict | None:
@@ -374,30 +395,42 @@ def read_truth(path: str | Path) -> dict[tuple[str, int | None], float]:
     return out
 
 
-def _fit_line(x, t):
-    """t = a + b x over the finite points: (a, b, residuals in t units); b = 1 when the
-    points hold one distance."""
+def _fit_line(x, t, sd=None):
+    """t = a + b x over the finite points: (a, b, residuals in t units, the covariance of
+    (a, b) as [var a, cov ab, var b]); b = 1 when the points hold one distance. The
+    covariance is that of the unweighted fit given each time's standard deviation ``sd``
+    (the estimator's sigma; NaN where not given)."""
     ok = np.isfinite(t) & np.isfinite(x)
     if ok.sum() == 0:
-        return np.nan, np.nan, np.full(t.shape, np.nan)
+        return np.nan, np.nan, np.full(t.shape, np.nan), [np.nan] * 3
+    var = (np.full(t.shape, np.nan) if sd is None else np.asarray(sd, float) ** 2)[ok]
     if np.unique(x[ok]).size >= 2:
         b, a = np.polyfit(x[ok], t[ok], 1)
+        # (X'X)^-1 X' diag(var) X (X'X)^-1 of the least-squares line
+        X = np.stack([np.ones(ok.sum()), x[ok]], axis=1)
+        g = np.linalg.solve(X.T @ X, X.T)
+        cov = (g * var) @ g.T
+        cov = [cov[0, 0], cov[0, 1], cov[1, 1]]
     else:
         a, b = float(np.mean(t[ok] - x[ok])), 1.0
-    return a, b, np.where(ok, t - a - b * x, np.nan)
+        cov = [float(np.sum(var)) / ok.sum() ** 2, 0.0, 0.0]
+    return a, b, np.where(ok, t - a - b * x, np.nan), [float(c) for c in cov]
 
 
 def _fit_rows(times: list[Times], dist: np.ndarray):
-    """Per row: delay (s), scale (real/nominal), residuals (m) over the measurements."""
+    """Per row: delay (s), scale (real/nominal), residuals (m) over the measurements, and
+    the covariance of the line t = a + b x (s^2, s, 1) from the times' sigmas."""
     t = np.stack([np.where(tm.est.detected, tm.t_s, np.nan) for tm in times])
+    sd = np.stack([np.asarray(tm.est.sigma_s, float) for tm in times])
     x = 2 * dist / C_LIGHT
-    delay, scale, res = [], [], []
+    delay, scale, res, cov = [], [], [], []
     for j in range(t.shape[1]):
-        a, b, r = _fit_line(x[:, j], t[:, j])
+        a, b, r, c = _fit_line(x[:, j], t[:, j], sd[:, j])
         delay.append(a / b)
         scale.append(1.0 / b)
         res.append(r / b * C_LIGHT / 2)
-    return np.array(delay), np.array(scale), np.array(res).T
+        cov.append(c)
+    return np.array(delay), np.array(scale), np.array(res).T, np.array(cov)
 
 
 def _rms(res) -> float:
@@ -476,10 +509,15 @@ def calibrate_distance(path: str | Path, truth_csv: str | Path,
         name = key.removesuffix(GAUSSIAN)
         times = [measurement_times(m, name, p_fa, cal.response, sigma, cal.cycles)
                  for m in meas]
-        delay, scale, res = _fit_rows(times, dist)
+        delay, scale, res, cov = _fit_rows(times, dist)
         cal.fits[key] = {
             "delay_ps": (delay * 1e12).tolist(), "bin_width_ps": (scale * nominal * 1e12)
             .tolist(), "residual_mm": (res * 1e3).tolist(), "rms_mm": _rms(res) * 1e3,
+            # the line t = a + b x's covariance per row from the times' sigmas: ranging
+            # adds it to each distance's sigma (issue 34.5: without it ml and fast covered
+            # 0.87 of the errors with a calibration of 4 targets of 2 000 counts)
+            "line_cov": {"a_ps2": (cov[:, 0] * 1e24).tolist(),
+                         "ab_ps": (cov[:, 1] * 1e12).tolist(), "b": cov[:, 2].tolist()},
             "n_distances": int(np.unique(np.asarray(cal.distances_m)).size),
             "response": times[0].response}
     if not any(np.isfinite(f["delay_ps"]).any() for f in cal.fits.values()):
@@ -635,6 +673,23 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
         zt = measurement_times(z, estimator, p_fa, response, sigma_s, cycles)
         zero_delay = dict(zip(zt.tdc.tolist(), np.where(zt.est.detected, zt.t_s, np.nan),
                               strict=True))
+        zero_note = ""
+        if (max_returns <= 1 and sigma_s is None and response is None
+                and not z.reference.any() and np.asarray(zt.est.detected).any()):
+            # one return a row: the zero file's returns (its strong, known-distance ones)
+            # give the response's width, not the file's own weaker returns: at 100 counts
+            # on 1 a bin those measured it 12 % wide and sigma covered 0.98 (issue 34.5).
+            # (Several: the zero's returns aligned and averaged, below, time both files;
+            # a Gaussian first return beside that model of the found ones resolved none
+            # of two surfaces 1.5 widths apart, where the average resolves most.)
+            zh = _histograms(z, _cycles(z, cycles)[0], np.flatnonzero(~z.reference))
+            s_z, how = response_from_data(zh, np.where(zt.est.detected, zt.est.t_s, np.nan))
+            if how.startswith("measured"):
+                sigma_s = s_z
+                zero_note = f" (measured on the zero-distance file: {how})"
+                zt = measurement_times(z, estimator, p_fa, response, sigma_s, cycles)
+                zero_delay = dict(zip(zt.tdc.tolist(), np.where(zt.est.detected, zt.t_s,
+                                                                np.nan), strict=True))
         if max_returns > 1 and np.asarray(zt.est.detected).any():
             # the zero file's returns, aligned and averaged: the returns' response, tail
             # and all, as a calibration's (issue 34.1)
@@ -669,13 +724,16 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
             else:
                 delay = np.full(tm.tdc.size, float(delay_s))
             d = C_LIGHT / 2 * (tm.t_s * scale - delay)
-            sig = np.asarray(tm.est.sigma_s, float) * scale * C_LIGHT / 2
+            sig_t = np.asarray(tm.est.sigma_s, float) * scale
+            if calibration is not None:  # the calibration line's own, in quadrature
+                sig_t = np.hypot(sig_t, calibration.row_sigma_m(key, tm.tdc, d) * 2 / C_LIGHT)
+            sig = sig_t * C_LIGHT / 2
             # a row without a delay or a finite time is not detected (its flag says why); a
             # return before the zero is flagged as the chip's is (NaN distance, not detected)
             # (sigma on the real time axis, carried with the rows that behind_zero keeps)
             est = dataclasses.replace(tm.est, detected=np.asarray(tm.est.detected, bool)
                                       & np.isfinite(d) & np.isfinite(sig),
-                                      sigma_s=np.asarray(tm.est.sigma_s, float) * scale)
+                                      sigma_s=sig_t)
             est, d = behind_zero(est, d)
             if max_returns > 1:
                 est, d, n_x = _without_crosstalk(est, d)
@@ -686,7 +744,7 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
             t = t.set_column(t.schema.get_field_index("tdc"), t.schema.field("tdc"),
                              pa.array(tdc, t.schema.field("tdc").type))
             tables.append(t)
-            info = {"response": tm.response + (
+            info = {"response": tm.response + (zero_note if zero is not None else "") + (
                 " (the measured response's FWHM: its calibration residuals were smaller "
                 "than the measured shape's)" if key != estimator
                 and key == calibration.preferred(estimator) else ""), "pileup": tm.pileup}
@@ -721,24 +779,68 @@ BATCH_VALUES = 1 << 23
 
 def _row_batches(path):
     """The file's measurements, in batches of rows with at most :data:`BATCH_VALUES`
-    count values when it has more and no reference channel (a reference row times its
-    measurement's other rows, so such a file is read whole, within the memory check of
-    :func:`pipeline.io.generic.check_size`); a measurement may then span batches, each
-    part ranged alone (the rows are independent, the response measured on each part's
-    returns where none is given). Issue 34.7: 10^5 x 4 096 took 14-23 GB read whole."""
+    count values when it has more; a measurement may then span batches, each part ranged
+    alone (the rows are independent, the response measured on each part's returns where
+    none is given). A reference row times its measurement's other rows: the reference rows
+    are read first (one pass over the file, batch by batch, keeping only them) and each
+    part of a measurement is ranged with its measurement's reference, as when read whole.
+    Issue 34.7: 10^5 x 4 096 took 14-23 GB read whole. A measurement whose parts differ
+    in bins or bin width is refused as it would be read whole (ragged histograms)."""
+    import pyarrow.compute as pc
+
     f = pq.ParquetFile(path)
     md = f.metadata
     names = [md.schema.column(j).path for j in range(md.num_columns)]
     cols = [j for j, n in enumerate(names) if n.split(".")[0] == "counts"]
     values = sum(md.row_group(g).column(j).num_values for g in range(md.num_row_groups)
                  for j in cols)
-    ref = "reference" in f.schema_arrow.names
-    if values <= BATCH_VALUES or ref or not md.num_rows:
+    if values <= BATCH_VALUES or not md.num_rows:
         yield read_generic(path)
         return
-    rows = max(1, int(BATCH_VALUES // max(values / md.num_rows, 1)))
-    for batch in f.iter_batches(batch_size=rows):
-        yield read_generic(path, pa.Table.from_batches([batch]))
+    size = max(1, int(BATCH_VALUES // max(values / md.num_rows, 1)))
+
+    def batches():
+        first = 0
+        for b in f.iter_batches(batch_size=size):
+            t = pa.Table.from_batches([b])
+            yield t, np.arange(first, first + t.num_rows)
+            first += t.num_rows
+
+    refs = None
+    if "reference" in f.schema_arrow.names:
+        parts, at = [], []
+        for t, rows in batches():
+            is_ref = pc.fill_null(t.column("reference"), False)
+            if pc.any(is_ref).as_py():
+                parts.append(t.filter(is_ref))
+                at.append(rows[np.asarray(is_ref.to_numpy(zero_copy_only=False), bool)])
+        if parts:
+            refs = (pa.concat_tables(parts), np.concatenate(at))
+            read_generic(path, *refs)  # (checked here: a reference alone is not ranged)
+    seen: dict[str, tuple[int, float]] = {}
+    for t, rows in batches():
+        if refs is not None:
+            rest = ~np.asarray(pc.fill_null(t.column("reference"), False).to_numpy(
+                zero_copy_only=False), bool)
+            t, rows = t.filter(pa.array(rest)), rows[rest]
+            if not t.num_rows:
+                continue
+            mine = np.asarray(pc.is_in(refs[0].column("measurement"),
+                                       value_set=pc.unique(t.column("measurement")))
+                              .to_numpy(zero_copy_only=False), bool)
+            t = pa.concat_tables([t, refs[0].filter(pa.array(mine))])
+            rows = np.concatenate([rows, refs[1][mine]])
+        meas = read_generic(path, t, rows)
+        for m in meas:
+            n, w = seen.setdefault(m.name, (m.counts.shape[1], m.bin_width_s))
+            if m.counts.shape[1] != n or abs(m.bin_width_s / w - 1) > 1e-9:
+                r = int(rows[np.flatnonzero(
+                    np.asarray(t.column("measurement").to_pylist(), object) == m.name)[0]])
+                raise SchemaMismatch(
+                    f"{path}: row {r}: measurement {m.name!r} has {m.counts.shape[1]} bins "
+                    f"of {m.bin_width_s * 1e12:g} ps here and {n} of {w * 1e12:g} ps in "
+                    "its earlier rows (ragged histograms)")
+        yield meas
 
 
 def _without_crosstalk(est: Estimate, d):

@@ -215,7 +215,7 @@ def ranges_table(measurement: str, est: Estimate, distance_m: np.ndarray,
     flag = [""] * n if est.flag is None else [str(f) for f in est.flag]
     return pa.table({
         "measurement": pa.array([measurement] * n, pa.string()),
-        "tdc": pa.array(pixel + tdc_offset, pa.uint16()),
+        "tdc": pa.array(pixel + tdc_offset, pa.uint32()),
         "distance_m": pa.array(distance_m),
         "sigma_m": pa.array(sigma_m),
         "fwhm_m": pa.array(np.asarray(est.fwhm_s, np.float64) * C_LIGHT / 2),

@@ -85,7 +85,7 @@ def range_spatial(path: str | Path, delay_s: float, sigma_s: float, p_fa: float,
         flag = np.where(np.isfinite(dist), "", "no candidate")
         parts.append(pa.table({
             "measurement": pa.array([m.name] * n_i.size, pa.string()),
-            "tdc": pa.array(m.tdc[use][n_i], pa.uint16()),
+            "tdc": pa.array(m.tdc[use][n_i], pa.uint32()),
             "distance_m": dist,
             "sigma_m": est.sigma_s[r, c][n_i, k_i] * C_LIGHT / 2,
             "fwhm_m": np.full(n_i.size, 2.3548200450309493 * sigma_s * C_LIGHT / 2),

@@ -207,7 +207,7 @@ def read_ranges(index: RunIndex, k: int):
         return None
     # (pyarrow reads a small file in ~1 ms; polars' reader costs ~50 ms a call here)
     tables = [pq.read_table(p, use_threads=False) for p in files]
-    df = pl.from_arrow(pa.concat_tables(tables, promote_options="default"))
+    df = pl.from_arrow(pa.concat_tables(tables, promote_options="permissive"))
     if "return_index" in df.columns:  # ranges 2.0: a row per return (1.0: none, all row 0)
         df = df.filter(pl.col("return_index").fill_null(0) == 0)
     return df.sort("tdc")

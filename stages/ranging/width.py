@@ -203,6 +203,38 @@ def return_fwhm(h: Histograms, t_s, sigma_s: float) -> np.ndarray:
     return FWHM_PER_SIGMA * return_sigma(h, t_s, sigma_s)[0]
 
 
+def _pooled_sigma(h: Histograms, t0, s0: float, rows, rounds: int = 6,
+                  k: float = 3.0) -> float:
+    """The response's sigma pooled over the returns of ``rows`` (their times ``t0``, a
+    first sigma ``s0``): the second moment of their counts above the background, signed
+    (a row's own moments clip the background's negative fluctuations, and the median of
+    them was 12 % wide at 100 counts on 1 a bin, 42 % for a response 12 bins wide), each
+    row centred on its own mean, in +-k sigma, the truncation and the bins' width^2 / 12
+    taken out. NaN where the counts do not allow it."""
+    counts, at_risk = np.asarray(h.counts, np.float64)[rows], h.at_risk[rows]
+    lam = -np.log1p(-np.minimum(counts / np.maximum(at_risk, 1.0), 1 - 1e-12))
+    w, valid = h.widths[rows], np.asarray(h.valid, bool)[rows]
+    bg = _background(lam, w, valid, at_risk)
+    cyc = np.broadcast_to(np.asarray(h.cycles, np.float64), h.counts.shape[:1])[rows]
+    e_all = np.where(valid, lam - bg[:, None] * w, 0.0) * cyc[:, None]
+    cen, t, s = h.centres[rows], np.array(t0, np.float64), float(s0)
+    trunc = 1.0 - 2.0 * k * math.exp(-k * k / 2) / math.sqrt(2 * math.pi) / math.erf(
+        k / math.sqrt(2))
+    for _ in range(rounds):
+        half = k * max(s, h.bin_s)
+        for _ in range(2):  # each row's centre: its own mean in the window
+            e = np.where(np.abs(cen - t[:, None]) <= half, e_all, 0.0)
+            tot = e.sum(axis=1)
+            t = np.where(tot > 0, (e * cen).sum(axis=1) / np.where(tot > 0, tot, 1.0), t)
+        e = np.where(np.abs(cen - t[:, None]) <= half, e_all, 0.0)
+        total = e.sum()
+        if not total > 0:
+            return float("nan")
+        var = (e * (cen - t[:, None]) ** 2).sum() / total - h.bin_s ** 2 / 12.0
+        s = math.sqrt(max(var, 0.0) / trunc)
+    return s
+
+
 def response_from_data(h: Histograms, t_s=None) -> tuple[float, str]:
     """The instrument response's sigma (s) when none is given: the median measured sigma
     of the returns with >= :data:`MIN_COUNTS` counts above the background (at ``t_s``, or
@@ -222,5 +254,8 @@ def response_from_data(h: Histograms, t_s=None) -> tuple[float, str]:
     if not strong.any():
         return float(h.bin_s), "one bin (no return of >= 100 counts to measure it on)"
     s = float(np.median(sig[strong]))
+    pooled = _pooled_sigma(h, np.asarray(t_s, np.float64)[strong], s, strong)
+    if np.isfinite(pooled) and 0.5 * s <= pooled <= 1.5 * s:
+        s = pooled
     return max(s, float(h.bin_s) / np.sqrt(12.0)), (
         f"measured on {int(strong.sum())} return(s) of >= {MIN_COUNTS:g} counts")

@@ -30,8 +30,10 @@ def test_design_columns_are_present():
     # histograms 2.0: counts a variable list (512 for the chip, other code counts for the
     # instruments of pipeline/io/ptu.py and linospad2.py); 1.x files are upgraded on read
     assert HISTOGRAMS.schema.field("counts").type == pa.list_(pa.uint64())
-    # ranges 2.0: a row per return (return_index, 0 the strongest) and a flag; 1.x files
-    # are upgraded on read (pipeline/io/ranges.py)
+    # ranges 2.0: a row per return (return_index, 0 the strongest) and a flag; 3.0: tdc
+    # uint32 (pixel numbers up to 2^32 - 1); 1.x and 2.x files are upgraded on read
+    # (pipeline/io/ranges.py)
+    assert RANGES.schema.field("tdc").type == pa.uint32()
     assert RANGES.names == ["measurement", "tdc", "distance_m", "sigma_m", "fwhm_m",
                             "signal_counts", "background_per_bin", "detected", "estimator",
                             "return_index", "flag"]

@@ -158,10 +158,11 @@ def test_ranges_1_0_files_are_upgraded_on_read(tmp_path):
     pq.write_table(old.replace_schema_metadata({META_NAME: b"ranges", META_VERSION: b"1.0"}),
                    tmp_path / "old.parquet")
     t = read_ranges(tmp_path / "old.parquet")
-    assert t.schema.metadata[META_VERSION] == RANGES.version.encode() == b"2.0"
+    assert t.schema.metadata[META_VERSION] == RANGES.version.encode() == b"3.0"
+    assert t.schema.field("tdc").type == pa.uint32()
     assert t.column("return_index").to_pylist() == [0] and t.column("flag").to_pylist() == [""]
     assert t.column("distance_m").to_pylist() == [1.5]
-    pq.write_table(old.replace_schema_metadata({META_NAME: b"ranges", META_VERSION: b"3.0"}),
+    pq.write_table(old.replace_schema_metadata({META_NAME: b"ranges", META_VERSION: b"4.0"}),
                    tmp_path / "new.parquet")
-    with pytest.raises(SchemaVersionError, match="3.0"):
+    with pytest.raises(SchemaVersionError, match="4.0"):
         read_ranges(tmp_path / "new.parquet")

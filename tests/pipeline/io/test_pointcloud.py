@@ -98,7 +98,7 @@ def _read_las(path):
             for k in range(length // 192):
                 d = b[pos + 54 + 192 * k: pos + 54 + 192 * (k + 1)]
                 extra.append((d[4:36].rstrip(b"\0").decode(),
-                              {3: "<u2", 9: "<f4", 10: "<f8"}[d[2]]))
+                              {3: "<u2", 5: "<u4", 9: "<f4", 10: "<f8"}[d[2]]))
         pos += 54 + length
     dt = np.dtype([("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("intensity", "<u2"),
                    ("ret", "u1"), ("flags", "u1"), ("cls", "u1"), ("user", "u1"),
@@ -206,7 +206,7 @@ def test_mcap_organised_clouds_read_by_mcap_ros2(exported):
             assert (msg.height, msg.width, msg.is_dense) == (ROWS, COLS, False)
             assert msg.header.frame_id == "lidar"
             dt = np.dtype({"names": [f.name for f in msg.fields],
-                           "formats": [{2: "u1", 4: "<u2", 7: "<f4", 8: "<f8"}[f.datatype]
+                           "formats": [{2: "u1", 4: "<u2", 6: "<u4", 7: "<f4", 8: "<f8"}[f.datatype]
                                        for f in msg.fields],
                            "offsets": [f.offset for f in msg.fields],
                            "itemsize": msg.point_step})
