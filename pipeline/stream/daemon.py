@@ -415,6 +415,17 @@ class Supervisor:
                 p.finished = True  # shutting down: the run ends here, no new source
                 self.log(f"{p.name}: ended (exit {code}) during shutdown")
                 continue
+            m = self.metrics.get(p.name, {})
+            if p.name == "source" and m.get("pid") == p.popen.pid \
+                    and m.get("state") == "finished":
+                # it had journaled the run's end and sent its stops (it reports "finished"
+                # only after both) and died after, lingering over what it sent: a source
+                # restarted there would take up a run that has ended (a UDP one waits for
+                # datagrams that never come)
+                p.finished = True
+                self.log(f"{p.name}: ended (exit {code}) after it finished the run (its end "
+                         "journaled); not restarted")
+                continue
             budget = self._budget(p)  # a token bucket: a rate (pipeline.stream.budget)
             spent = budget.spent()
             if not budget.take():

@@ -282,6 +282,31 @@ def test_restarts_back_off_exponentially_within_a_budget_rate(tmp_path):
     sup2.kill_all()
 
 
+def test_a_source_killed_after_it_finished_the_run_is_not_restarted(tmp_path):
+    """Issue 38.6: a source that reported "finished" (its end journaled, its stops sent)
+    and was killed while it lingered over what it sent is finished, not restarted into a
+    run that has ended (a UDP ingest restarted there waited for datagrams for ever); one
+    killed before it finished is restarted."""
+    from pipeline.stream.daemon import Proc, Supervisor
+    from pipeline.stream.topology import load_topology
+
+    topo = load_topology(topology(tmp_path, cycles=1000))
+    topo.restart_backoff_s = 0.05
+    for state, restarted in (("finished", False), ("running", True)):
+        logged = []
+        sup = Supervisor(topo, log=logged.append, poll_s=0.01)
+        src = Proc("source", [sys.executable, "-c", "import time; time.sleep(60)"], [])
+        sup.procs, sup.by_name = [src], {"source": src}
+        sup._start(src)
+        sup.metrics["source"] = {"pid": src.popen.pid, "state": state, "t": time.time()}
+        os.kill(src.popen.pid, signal.SIGKILL)
+        src.popen.wait()
+        sup._check()
+        assert src.finished is not restarted and (src.restart_at is not None) is restarted
+        assert any("after it finished the run" in m for m in logged) is not restarted, logged
+        sup.kill_all()
+
+
 def test_forged_and_poisoned_messages_in_a_running_graph_change_nothing(tmp_path, reference):
     """While the graph runs: a forged stop and a forged word batch without the run's token,
     a header lacking first_word with it, a batch from a step that is not upstream, and a
