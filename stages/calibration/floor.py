@@ -46,7 +46,9 @@ def tau_floor_s(tests, widths, code: float, x_t0, window_s: float,
 
     ``tests``: ``(hits, cycles, x_t)`` per density test, ``hits`` (n_tdc, 512) the counts
     it expects (noise-free: :func:`stages.simulator.expected.expected_density_hits`),
-    ``cycles`` (n_tdc,), ``x_t`` (n_tdc,) where its window ends on the code axis.
+    ``cycles`` (n_tdc,), ``x_t`` (n_tdc,) where its window ends on the code axis; a fourth
+    item, (n_tdc, 512) bool, keeps only those codes (a capture with a return: its uniform
+    light measures the codes clear of it).
     ``widths`` (n_tdc, 512): the chip's code widths in any unit (only their ratios count).
     ``unmeasured_sd``: the relative error of the width of a code of the zero's window that
     no test measures (the random DNL about the phase pattern that continues the table, a
@@ -60,12 +62,14 @@ def tau_floor_s(tests, widths, code: float, x_t0, window_s: float,
     known_from = (np.full(n_tdc, np.inf) if known_from is None
                   else np.broadcast_to(np.asarray(known_from, np.float64), (n_tdc,)))
     info = []
-    for hits, cycles, x_t in tests:
+    for hits, cycles, x_t, *usable in tests:
         h = np.asarray(hits, np.float64)
         r = at_risk_by_code(h, cycles)
         k = np.arange(h.shape[1])[None, :]
         measured = (k + 1 <= np.asarray(x_t, np.float64)[:, None] - margin) & (h > 0) \
             & (r > h)
+        if usable:
+            measured &= np.asarray(usable[0], bool)
         with np.errstate(divide="ignore", invalid="ignore"):
             u = -np.log1p(-h / r)
             fisher = r * (r - h) / h          # 1 / var(u), per code

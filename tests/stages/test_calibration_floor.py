@@ -75,3 +75,7 @@ def test_more_tests_lower_it_and_an_unmeasured_code_needs_a_prior():
     # the codes above the bright test's window known: what is left is lower
     part = tau_floor_s(tests, w, 200, x0, T, known_from=np.floor(tests[1][2] - 2.5))
     assert np.all(part < both)
+    # a capture whose codes near a return are left out measures less
+    clear = np.broadcast_to(np.abs(np.arange(512) - 200) > 12, tests[0][0].shape)
+    masked = tau_floor_s([(*tests[0], clear), tests[1]], w, 200, x0, T)
+    assert np.all(masked > both)
