@@ -18,8 +18,20 @@ the truth for one part at a time:
 The peak's time on the zero capture is not simulated here (its own counting: ~4 ps in the
 issue's measurement).
 
+Beside each row, the counting floor (:func:`stages.calibration.floor.tau_floor_s`): the
+Cramér-Rao bound on the same error from the same tests' expected counts, whatever the
+estimator; a code of the zero's window that no test measured counts the chip's random DNL
+as a prior. The rows' floors: the whole table's; what the codes above the brightest test's
+window add to it (in quadrature: the floor less the floor with those widths known); what
+the codes no test measured add (the prior's part). ``--draws`` noisy campaigns a seed (the
+noisy columns' RMS is over all of them: one draw of 8 TDCs is +-15 %).
+
     python benchmarks/calibration_bias.py [--seeds 1 2 3] [--tdcs 16] [--cycles 1e6]
-        [--budget 4e6] [--zero-light 0.01]
+        [--budget 4e6] [--zero-light 0.01] [--draws 1] [--what-if]
+
+``--what-if`` prints only the floor, of the fixed captures and of what would lower it (the
+zero capture's own uniform light counted as a fifth test, clear of its return; more cycles
+in every test), and exits.
 """
 
 from __future__ import annotations
@@ -33,6 +45,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stages import calibration as cal  # noqa: E402
+from stages.calibration.floor import tau_floor_s  # noqa: E402
 from stages.simulator.chip import REAL_CHIP_RANGES, random_chip  # noqa: E402
 from stages.simulator.expected import expected_density_hits  # noqa: E402
 
@@ -124,6 +137,63 @@ def scale_error_ps(chip, best, fit, n0, code, bounds):
     return (bounds[:, code] * scale - chip.boundaries_s(n0)[:, code]) * 1e12
 
 
+def floor_rows(chip, knobs, lights, cycles, n0, code):
+    """The counting floor (ps per TDC) of the rows of :func:`rows_for` that have one."""
+    n_tdc = chip.n_tdc
+    tests = [(expected_density_hits(chip, n, k, T), np.full(n_tdc, float(k)),
+              chip.window_truth(n, T)[1]) for n, k in zip(lights, cycles, strict=True)]
+    widths = np.diff(chip.boundaries_s(n0), axis=1)
+    x_t0 = chip.window_truth(n0, T)[1]
+    sd = float(knobs.get("dnl_random_lsb", 0.1))
+
+    def floor(**kw):
+        return tau_floor_s(tests, widths, code, x_t0, T, **kw) * 1e12
+
+    whole = floor(unmeasured_sd=sd)
+    bright = tests[int(np.argmax(lights))][2]
+    above = floor(unmeasured_sd=0, known_from=np.floor(bright - cal.OWN_CLEAR_LSB))
+    counted = floor(unmeasured_sd=0)
+    return {"INL table": whole,
+            "  codes above the brightest test's window (true there)":
+                np.sqrt(np.maximum(whole ** 2 - above ** 2, 0.0)),
+            "  table past the last measured code (true there)":
+                np.sqrt(np.maximum(whole ** 2 - counted ** 2, 0.0))}
+
+
+def what_if(a) -> None:
+    """The floor of the fixed captures and of what would lower it (``--what-if``)."""
+    from stages.simulator.expected import expected_hits
+
+    out: dict = {}
+    for seed in a.seeds:
+        chip, knobs = random_chip(seed, n_tdc=a.tdcs, ranges=REAL_CHIP_RANGES)
+        n_tdc, n0 = chip.n_tdc, a.zero_light
+        tests = [(expected_density_hits(chip, n, a.cycles, T), np.full(n_tdc, a.cycles),
+                  chip.window_truth(n, T)[1]) for n in LEVELS]
+        widths = np.diff(chip.boundaries_s(n0), axis=1)
+        lsb, x_t0, _ = chip.window_truth(n0, T)
+
+        def floor(tt, x_t0=x_t0, widths=widths, knobs=knobs):
+            return tau_floor_s(tt, widths, a.return_code, x_t0, T,
+                               unmeasured_sd=float(knobs["dnl_random_lsb"])) * 1e12
+
+        out.setdefault("the fixed captures", []).append(floor(tests))
+        clear = np.abs(np.arange(512) - a.return_code) > 12
+        for zc in (1e6, 2e6):
+            z = expected_hits(chip, n0, zc, T, signal=np.full(n_tdc, 0.02),
+                              tau_s=(a.return_code + 0.5) * lsb, pulse_sigma_s=150e-12)
+            out.setdefault(f"+ the zero's own light, {zc:.0e} cycles (return 0.02 a cycle)",
+                           []).append(floor(tests + [(z, np.full(n_tdc, zc), x_t0,
+                                                      np.broadcast_to(clear, z.shape))]))
+        for x in (1.5, 1.7, 2.0):
+            out.setdefault(f"every test's cycles x{x}", []).append(
+                floor([(h * x, c * x, xt) for h, c, xt in tests]))
+    print(f"Counting floor of the delay (ps RMS), seeds {a.seeds}, {a.tdcs} TDCs, zero at "
+          f"{a.zero_light}, return at code {a.return_code}:")
+    for name, v in out.items():
+        print(f"  {name}: {rms(v):.1f}")
+
+
 def rms(v):
     v = np.concatenate(v)
     return float(np.sqrt(np.nanmean(v ** 2)))
@@ -137,45 +207,71 @@ def main() -> None:
     ap.add_argument("--budget", type=float, default=4e6)
     ap.add_argument("--zero-light", type=float, default=0.01)
     ap.add_argument("--return-code", type=int, default=200)
+    ap.add_argument("--draws", type=int, default=1)
+    ap.add_argument("--what-if", action="store_true")
     a = ap.parse_args()
+    if a.what_if:
+        what_if(a)
+        return
     table: dict = {}
+    floors: dict = {}
+    for seed in a.seeds:
+        chip, knobs = random_chip(seed, n_tdc=a.tdcs, ranges=REAL_CHIP_RANGES)
+        for name, v in floor_rows(chip, knobs, LEVELS, [a.cycles] * len(LEVELS),
+                                  a.zero_light, a.return_code).items():
+            floors.setdefault(name, []).append(v)
     for method in METHODS:
         use(method)
         for noisy in (False, True):
             for seed in a.seeds:
                 chip, _ = random_chip(seed, n_tdc=a.tdcs, ranges=REAL_CHIP_RANGES)
-                rng = np.random.default_rng(seed) if noisy else None
-                rows = rows_for(chip, LEVELS, [a.cycles] * len(LEVELS), a.zero_light,
-                                a.return_code, rng)
-                for name, v in rows.items():
-                    table.setdefault(name, {}).setdefault((method, noisy), []).append(v)
+                for d in range(a.draws if noisy else 1):
+                    rng = (None if not noisy else np.random.default_rng(seed) if d == 0
+                           else np.random.default_rng([seed, d]))
+                    rows = rows_for(chip, LEVELS, [a.cycles] * len(LEVELS), a.zero_light,
+                                    a.return_code, rng)
+                    for name, v in rows.items():
+                        table.setdefault(name, {}).setdefault((method, noisy), []).append(v)
     # the planned campaign, after: the same budget as calibrate plan spends it
     use("after")
     planned = {False: [], True: []}
+    planned_floor = []
     for seed in a.seeds:
-        chip, _ = random_chip(seed, n_tdc=a.tdcs, ranges=REAL_CHIP_RANGES)
+        chip, knobs = random_chip(seed, n_tdc=a.tdcs, ranges=REAL_CHIP_RANGES)
         zero = expected_density_hits(chip, a.zero_light, 2e6, T)
         k = np.arange(a.return_code - 10, a.return_code + 11)
         zero[:, k] += 2e6 * 0.002 * np.exp(-0.5 * ((k - a.return_code) / 1.5) ** 2)[None] / 3.76
         zero = np.random.default_rng(seed).poisson(zero)
         plan = cal.plan_tests(zero, np.full(a.tdcs, 2e6), a.budget, T)
+        planned_floor.append(floor_rows(chip, knobs, list(plan.lights), list(plan.cycles),
+                                        a.zero_light, a.return_code)["INL table"])
         for noisy in (False, True):
-            rng = np.random.default_rng(seed) if noisy else None
-            planned[noisy].append(rows_for(chip, list(plan.lights), list(plan.cycles),
-                                           a.zero_light, a.return_code, rng)["INL table"])
+            for d in range(a.draws if noisy else 1):
+                rng = (None if not noisy else np.random.default_rng(seed) if d == 0
+                       else np.random.default_rng([seed, d]))
+                planned[noisy].append(rows_for(chip, list(plan.lights), list(plan.cycles),
+                                               a.zero_light, a.return_code, rng)["INL table"])
         print(f"seed {seed}: plan {[(round(float(n), 4), int(c)) for n, c in zip(plan.lights, plan.cycles, strict=True)]}, "  # noqa: E501
               f"expected {np.nanmedian(plan.delay_error_ps):.0f} ps")
     print(f"\nDelay RMS (ps) each part costs, real-chip zoo seeds {a.seeds}, {a.tdcs} TDCs, "
           f"tests at {LEVELS} x {a.cycles:.0e} cycles, zero at {a.zero_light}, return at code "
-          f"{a.return_code}\n")
+          f"{a.return_code}, {a.draws} noisy draw(s) a seed\n")
     print("| part of the chain | before, noise-free | before, noisy | after, noise-free "
-          "| after, noisy |")
-    print("|---|---|---|---|---|")
+          "| after, noisy | counting floor |")
+    print("|---|---|---|---|---|---|")
     for name, cols in table.items():
+        fl = f"{rms(floors[name]):.1f}" if name in floors else ""
         print(f"| {name} | " + " | ".join(f"{rms(cols[(m, n)]):.1f}" for m in METHODS
-                                          for n in (False, True)) + " |")
+                                          for n in (False, True)) + f" | {fl} |")
     print(f"| INL table, the {a.budget:.0e} cycles as `calibrate plan` spends them | | | "
-          f"{rms(planned[False]):.1f} | {rms(planned[True]):.1f} |")
+          f"{rms(planned[False]):.1f} | {rms(planned[True]):.1f} | {rms(planned_floor):.1f} |")
+    print("\nper seed, the INL table after (noisy) against its floor (ps RMS over the TDCs):")
+    k = len(a.seeds)
+    after = table["INL table"][("after", True)]
+    for i, seed in enumerate(a.seeds):
+        mine = after[i * a.draws:(i + 1) * a.draws]
+        print(f"  seed {seed}: {rms(mine):.1f} measured, floor {rms([floors['INL table'][i]]):.1f}")
+    assert len(after) == k * a.draws
 
 
 if __name__ == "__main__":
