@@ -182,8 +182,10 @@ def what_if(a) -> None:
         for zc in (1e6, 2e6):
             z = expected_hits(chip, n0, zc, T, signal=np.full(n_tdc, 0.02),
                               tau_s=(a.return_code + 0.5) * lsb, pulse_sigma_s=150e-12)
+            # its window ends where its own light (the return's STARTs too) puts x_T
+            x_z = chip.window_truth(cal.light_level(z, np.full(n_tdc, zc)), T)[1]
             out.setdefault(f"+ the zero's own light, {zc:.0e} cycles (return 0.02 a cycle)",
-                           []).append(floor(tests + [(z, np.full(n_tdc, zc), x_t0,
+                           []).append(floor(tests + [(z, np.full(n_tdc, zc), x_z,
                                                       np.broadcast_to(clear, z.shape))]))
         for x in (1.5, 1.7, 2.0):
             out.setdefault(f"every test's cycles x{x}", []).append(
