@@ -31,7 +31,10 @@ noisy columns' RMS is over all of them: one draw of 8 TDCs is +-15 %).
 
 ``--what-if`` prints only the floor, of the fixed captures and of what would lower it (the
 zero capture's own uniform light counted as a fifth test, clear of its return; more cycles
-in every test), and exits.
+in every test), and exits; with it, ``--levels`` sets the tests' lights and ``--our-chip``
+takes our simulator's chip (``make_chip(tdcs, seed)``, random DNL 0.04 LSB) for the zoo's:
+``--our-chip --seeds 4 --levels 0.02 0.06 0.15 0.3 0.5 0.75 --cycles 4e6 --zero-light 0.52
+--return-code 300`` is ``benchmarks/range_accuracy.py``'s campaign and delay.
 """
 
 from __future__ import annotations
@@ -165,11 +168,14 @@ def what_if(a) -> None:
     from stages.simulator.expected import expected_hits
 
     out: dict = {}
+    from stages.simulator.chip import make_chip
+
     for seed in a.seeds:
-        chip, knobs = random_chip(seed, n_tdc=a.tdcs, ranges=REAL_CHIP_RANGES)
+        chip, knobs = ((make_chip(a.tdcs, seed), {"dnl_random_lsb": 0.04}) if a.our_chip
+                       else random_chip(seed, n_tdc=a.tdcs, ranges=REAL_CHIP_RANGES))
         n_tdc, n0 = chip.n_tdc, a.zero_light
         tests = [(expected_density_hits(chip, n, a.cycles, T), np.full(n_tdc, a.cycles),
-                  chip.window_truth(n, T)[1]) for n in LEVELS]
+                  chip.window_truth(n, T)[1]) for n in a.levels]
         widths = np.diff(chip.boundaries_s(n0), axis=1)
         lsb, x_t0, _ = chip.window_truth(n0, T)
 
@@ -182,14 +188,17 @@ def what_if(a) -> None:
         for zc in (1e6, 2e6):
             z = expected_hits(chip, n0, zc, T, signal=np.full(n_tdc, 0.02),
                               tau_s=(a.return_code + 0.5) * lsb, pulse_sigma_s=150e-12)
+            # its window ends where its own light (the return's STARTs too) puts x_T
+            x_z = chip.window_truth(cal.light_level(z, np.full(n_tdc, zc)), T)[1]
             out.setdefault(f"+ the zero's own light, {zc:.0e} cycles (return 0.02 a cycle)",
-                           []).append(floor(tests + [(z, np.full(n_tdc, zc), x_t0,
+                           []).append(floor(tests + [(z, np.full(n_tdc, zc), x_z,
                                                       np.broadcast_to(clear, z.shape))]))
         for x in (1.5, 1.7, 2.0):
             out.setdefault(f"every test's cycles x{x}", []).append(
                 floor([(h * x, c * x, xt) for h, c, xt in tests]))
-    print(f"Counting floor of the delay (ps RMS), seeds {a.seeds}, {a.tdcs} TDCs, zero at "
-          f"{a.zero_light}, return at code {a.return_code}:")
+    print(f"Counting floor of the delay (ps RMS), {'our' if a.our_chip else 'zoo'} chip "
+          f"seeds {a.seeds}, {a.tdcs} TDCs, tests at {tuple(a.levels)} x {a.cycles:.0e} "
+          f"cycles, zero at {a.zero_light}, return at code {a.return_code}:")
     for name, v in out.items():
         print(f"  {name}: {rms(v):.1f}")
 
@@ -209,6 +218,8 @@ def main() -> None:
     ap.add_argument("--return-code", type=int, default=200)
     ap.add_argument("--draws", type=int, default=1)
     ap.add_argument("--what-if", action="store_true")
+    ap.add_argument("--levels", type=float, nargs="+", default=list(LEVELS))
+    ap.add_argument("--our-chip", action="store_true")
     a = ap.parse_args()
     if a.what_if:
         what_if(a)
