@@ -544,15 +544,18 @@ def daemon(config, run_id, log_json, print_unit) -> None:
     (SIGTERM): interrupted, resumable with the same --run."""
     import signal
 
-    from pipeline.stream.daemon import Supervisor, exit_code
-    from pipeline.stream.logfmt import daemon_log
-    from pipeline.stream.topology import load_topology
-
     if print_unit:
         from pipeline.stream.systemd import daemon_unit
 
         click.echo(daemon_unit(config, run_id), nl=False)
         return
+    from pipeline.stream.forkstart import warm_for
+
+    warm_for(config)  # first: the stages' server imports while the daemon does
+    from pipeline.stream.daemon import Supervisor, exit_code
+    from pipeline.stream.logfmt import daemon_log
+    from pipeline.stream.topology import load_topology
+
     topo = load_topology(config, run_id)
     log = daemon_log("json" if log_json else topo.log_format)
     sup = Supervisor(topo, log=log)

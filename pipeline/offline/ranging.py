@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import time
 from pathlib import Path
 
 import numpy as np
@@ -304,6 +305,12 @@ def _flag_rows(est: Estimate, rows: np.ndarray, why: str) -> Estimate:
 #: The range stage checks its first measurement and every this many after it against the
 #: calibration's chip (:class:`RangeCore`).
 CHIP_RECHECK = 20
+#: the LSB tracking (:func:`lsb_tracking`, 0.3-1 CPU-s a measurement of 128 TDCs: a
+#: density test per TDC) runs on a chip-checked measurement at most once per this many
+#: seconds, the first this long after the stage's start: a slow drift needs no more, and
+#: neither the first measurement nor the stage's rate pays for it (issue 38.9)
+LSB_TRACK_EVERY_S = 60.0
+LSB_TRACK_AFTER_S = 10.0
 
 UNDECIDED = ("chip not checked: too few background counts to tell the calibration's "
              "chip from another")
@@ -411,7 +418,9 @@ class RangeCore:
     def __init__(self, calibration: Calibration, estimator: str = "ml",
                  window_ns: float = 80.0, step_id: str = "range",
                  forward_histograms: bool = True, max_returns: int = MAX_RETURNS,
-                 check_chip: bool = True, warn=None):
+                 check_chip: bool = True, warn=None,
+                 track_lsb_every_s: float = LSB_TRACK_EVERY_S,
+                 track_lsb_after_s: float = LSB_TRACK_AFTER_S, clock=time.monotonic):
         if not calibration.has_delay:  # fail at start, not on the first message
             raise CalibrationError(f"{calibration.path}: no delay (run `tcspc calibrate "
                                    "delay` on a zero-distance capture first)")
@@ -427,6 +436,9 @@ class RangeCore:
         self.check_chip, self.warn = check_chip, warn
         self.chip_checks: dict[str, int] = {}
         self._unchecked = 0  #: measurements since the last check (after a match)
+        self.track_every_s, self.clock = track_lsb_every_s, clock
+        #: when the LSB may next be tracked (LSB_TRACK_EVERY_S)
+        self._track_at = clock() + track_lsb_after_s
         self._warm_up()
 
     def _warm_up(self) -> None:
@@ -472,9 +484,10 @@ class RangeCore:
                                            state.tdc_offset).replace(
                     "--force ranges it anyway", "ranged anyway"))
             self.chip_checks[chip] = self.chip_checks.get(chip, 0) + 1
+        drift = None
+        if chip is not None and self.clock() >= self._track_at:
+            self._track_at = self.clock() + self.track_every_s
             drift = lsb_tracking(self.calibration, state, window_s)
-        else:
-            drift = None
         if header.get("partial"):  # the stream ended inside it: its rows say so
             cyc = header.get("cycles") or [0, 0]
             est = _flag_rows(est, np.ones(np.size(est.t_s), bool),

@@ -3,7 +3,9 @@
     source (sim | capture | udp) --TDC ranges--> histogram x workers --> range --> sink
 
 Every stage is its own process (``tcspc stage ...``), so the graph can also be started by
-hand across hosts. The supervisor
+hand across hosts. The daemon forks them from a server that imported their modules once
+(``pipeline.stream.forkstart``; ``[daemon] fork_server = false``: a new interpreter each).
+The supervisor
 
 - starts the stages (sink first, source last), logs each to ``STATE/logs/NAME.log``;
 - restarts a stage that dies, after an exponential backoff (``restart_backoff_s`` doubling
@@ -307,6 +309,7 @@ class Supervisor:
         self.by_name = {p.name: p for p in self.procs}
         self.stop = threading.Event()
         self.ended = threading.Event()  #: the graph has ended: the collector stops
+        self._listening = threading.Event()  #: the collector's SUB is bound
         self.interrupted: str | None = None  #: the signal that stopped the run (SIGINT, ..)
         self.metrics: dict[str, dict] = {}
         self.started = time.time()
@@ -357,6 +360,13 @@ class Supervisor:
         else:  # ([daemon] curve = false: the operator's choice, which a stage refuses alone)
             env["TCSPC_INSECURE"] = "1"
         p.started_at = time.time()
+        if self.topo.fork_server and p.argv[1:3] == ["-m", "pipeline.cli"]:
+            from pipeline.stream.forkstart import StageProcess
+
+            log.close()  # (the stage opens it itself, the same checked way)
+            p.popen = StageProcess(p.argv, env, str(self.topo.state / "logs" /
+                                                    f"{p.name}.log"), p.name)
+            return
         # its own process group: a Ctrl-C at the terminal reaches the daemon only, which
         # stops the graph in order (the source first, the rest drain)
         p.popen = subprocess.Popen(p.argv, stdout=log, stderr=subprocess.STDOUT, env=env,
@@ -512,7 +522,10 @@ class Supervisor:
 
         if self.curve_dir is not None:
             curve.serve(sub, self.curve_dir)
-        bind(sub, self.topo.metrics)
+        try:
+            bind(sub, self.topo.metrics)
+        finally:
+            self._listening.set()
         pub, sent = status_pub(ctx, self.topo.state, self.log), None
         try:
             while not self.ended.is_set():  # (after a stop too: the stages still report)
@@ -662,7 +675,7 @@ class Supervisor:
             self.log(f"run {self.topo.run}: resuming after an earlier stop")
         collector = threading.Thread(target=self._collect, daemon=True)
         collector.start()
-        time.sleep(0.2)
+        self._listening.wait(2.0)  # (the first heartbeats find the collector bound)
         if self.view is not None:
             self._start(self.view.proc)
         for p in self.procs:

@@ -16,6 +16,10 @@ from pipeline.io.limits import FileTooLarge, capped, load_toml
 from schemas.errors import TcspcError
 from stages.codec import MAX_TDC
 
+#: stages.ranging.ESTIMATORS, named here so that checking a topology does not import the
+#: ranging kernels (numba, scipy: 0.5 s of the daemon's start); a test checks they agree
+ESTIMATORS = ("fast", "centroid", "matched", "gaussfit", "ml")
+
 SOURCE_KINDS = ("sim", "capture", "udp", "file")
 GRACE_S = 3.0  # after its upstream finished, a stage gets this long to stop by itself
 STARTUP_S = 60.0  # ... counted from its first heartbeat (a loaded machine's start-up)
@@ -49,6 +53,7 @@ class Topology:
     restart_refill_s: float = 60.0  #: the restart budget earns one back per this long
     exporter: dict | None = None  #: [metrics]: Prometheus metrics over HTTP (None: off)
     log_format: str = "text"   #: [log] format: "text" or "json" (JSON lines)
+    fork_server: bool = True  #: stages forked from a pre-started server (forkstart)
 
     def endpoints(self) -> list[str]:
         """Every endpoint of the graph (for the CURVE decision)."""
@@ -119,6 +124,9 @@ class DaemonSection(_Section):
     heartbeat_deadline_s: float = Field(60.0, ge=2, description="a live stage that sends no "
                                      "heartbeat for this long is frozen: SIGKILLed and "
                                      "restarted, s, >= 2")
+    fork_server: bool = Field(True, description="start the stages as forks of a server "
+                              "that imported their modules once (milliseconds a stage); "
+                              "false: one new interpreter per stage (~0.3 CPU-s each)")
 
 
 class SourceSection(_Section):
@@ -315,8 +323,6 @@ def load_topology(path: str | Path | None, run: str | None = None,
         problems.append(f"{where} [histogram] endpoints: {len(hist['endpoints'])} endpoints "
                         f"for {workers} workers")
     if rng_m is not None:
-        from stages.ranging import ESTIMATORS
-
         if rng.get("estimator", "ml") not in ESTIMATORS:
             problems.append(f"{where} [range] estimator = {rng['estimator']!r}: use one of "
                             f"{ESTIMATORS}")
@@ -370,7 +376,8 @@ def load_topology(path: str | Path | None, run: str | None = None,
                     view=None if view is None else view.model_dump(exclude_none=True),
                     restart_refill_s=refill,
                     exporter=None if exporter is None else exporter.model_dump(),
-                    log_format=(logsec or LogSection()).format)
+                    log_format=(logsec or LogSection()).format,
+                    fork_server=d.fork_server)
 
 
 def _check_cloud(sink: dict, where: str, problems: list[str]) -> None:

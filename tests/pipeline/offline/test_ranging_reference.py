@@ -575,15 +575,28 @@ def test_the_range_stage_tracks_the_lsb_for_the_campaigns_verdict(measurements, 
 
     import pyarrow.parquet as pq
 
-    from pipeline.offline.ranging import RangeCore
+    from pipeline.offline.ranging import (CHIP_RECHECK, LSB_TRACK_AFTER_S, LSB_TRACK_EVERY_S,
+                                          RangeCore)
     from pipeline.stream.stage import ParquetSink
 
     states, window_s = measurements
-    core = RangeCore(calibration, "ml", forward_histograms=False)
+    now = [0.0]
+    core = RangeCore(calibration, "ml", forward_histograms=False, clock=lambda: now[0])
     header = {"run": "r1", "measurement": "m1", "window_ns": window_s * 1e9,
               "t_laser_win_ns": 140.0, "date": "2026-12-05", "seq": 0}
-    ((head, batch),) = core.process(header, states[0][1].to_table("m1").to_batches()[0])
+    hist = states[0][1].to_table("m1").to_batches()[0]
+    # issue 38.9: not on the first measurement (its latency) nor more often than once
+    # a minute (the stage's rate): the first tracking is LSB_TRACK_AFTER_S after the start
+    ((head, _),) = core.process(header, hist)
+    assert head["chip_check"] and "lsb_drift" not in head
+    now[0] = LSB_TRACK_AFTER_S
+    core._unchecked = CHIP_RECHECK  # (the next measurement is checked)
+    ((head, batch),) = core.process(header, hist)
     drift = head["lsb_drift"]
+    now[0] += LSB_TRACK_EVERY_S / 2
+    core._unchecked = CHIP_RECHECK
+    ((again, _),) = core.process(header, hist)
+    assert again["chip_check"] and "lsb_drift" not in again  # (within the minute)
     assert drift["n"] > 0 and abs(drift["median_ps"]) < 4 * drift["se_ps"] + 1.0, drift
     ParquetSink(tmp_path).process(head, batch)
     (written,) = (tmp_path / "ranges").rglob("*.parquet")

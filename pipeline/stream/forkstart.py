@@ -1,0 +1,146 @@
+"""Stage processes forked from a pre-started server, so a stage starts in milliseconds.
+
+A stage started as ``python -m pipeline.cli stage ...`` spends 0.2-0.3 CPU-s importing
+numpy, pyarrow, zmq and its own modules before it binds; five of them starting at once on
+two cores put the first measurement 1.3-1.9 s after the daemon's start (docs/performance.md,
+"Time to the first measurement"). The daemon instead starts one server process when it
+starts (multiprocessing's ``forkserver``: a fresh interpreter, no thread and no ZeroMQ
+context of the daemon's), which imports those modules once, in parallel with the daemon's
+own checks; each stage is then a ``fork()`` of that server running the same command line
+(``pipeline.cli.app.main`` with the stage's arguments), with the same environment, log file,
+process group and death signal as the exec'd process had.
+
+``[daemon] fork_server = false`` goes back to one exec'd interpreter per stage.
+
+What differs from an exec'd stage: its parent is the server (the server ends with the
+daemon, and each stage has SIGKILL as its parent-death signal, so a killed daemon still
+leaves no orphan); ``ps`` shows the server's command line, with the stage's name as the
+process name (``ps -o pid,comm``; ``status.json`` has every stage's pid).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import multiprocessing
+import os
+import signal
+import subprocess
+import sys
+
+#: what the server imports once: the stages' modules (each imports what else it needs)
+PRELOAD = ["numpy", "pyarrow", "pyarrow.ipc", "pyarrow.parquet", "zmq", "zstandard",
+           "pipeline.cli.app", "pipeline.cli.stream", "pipeline.stream.stage",
+           "pipeline.stream.wire", "pipeline.stream.journal", "pipeline.stream.state",
+           "pipeline.stream.daemon", "pipeline.stream.fanout", "pipeline.stream.bounds",
+           "pipeline.stream.udp", "pipeline.stream.curve", "pipeline.stream.rawwire",
+           "pipeline.io.caldir", "pipeline.io.capture", "stages.stream", "stages.nativecode",
+           "asyncio", "glob"]
+#: and with a range stage in the graph: the ranging, its kernels loaded (forkwarm)
+PRELOAD_RANGE = ["pipeline.offline.ranging", "pipeline.stream.forkwarm"]
+#: the range stage's calibration and estimator, for the server's warm-up (forkwarm)
+WARM_ENV = "TCSPC_FORK_WARM_RANGE"
+
+_CTX = None
+
+
+def context(ranging: bool = False):
+    """The forkserver context, its preload set (once per process: the first call's)."""
+    global _CTX
+    if _CTX is None:
+        _CTX = multiprocessing.get_context("forkserver")
+        _CTX.set_forkserver_preload(PRELOAD + (PRELOAD_RANGE if ranging else []))
+    return _CTX
+
+
+def warm(ranging: bool = False) -> None:
+    """Start the server now: it imports while the daemon imports and checks its state."""
+    from multiprocessing import forkserver
+
+    context(ranging)
+    forkserver.ensure_running()
+
+
+def warm_for(config: str | None) -> None:
+    """The daemon's first step: a look at the topology's ``[daemon] fork_server`` and
+    ``[range]`` (the file is checked in full after), and the server started to suit."""
+    import tomllib
+
+    raw: dict = {"range": {}}  # (the embedded default topology ranges)
+    if config:
+        try:
+            with open(config, "rb") as f:
+                raw = tomllib.loads(f.read(1 << 20).decode())
+        except (OSError, ValueError):
+            return  # (load_topology says what is wrong with it)
+    if (raw.get("daemon") or {}).get("fork_server", True) is False:
+        return
+    rng = raw.get("range")
+    if isinstance(rng, dict) and isinstance(rng.get("calibration"), str):
+        # the server loads the range stage's kernels too (pipeline.stream.forkwarm)
+        os.environ[WARM_ENV] = json.dumps({k: rng[k] for k in
+                                           ("calibration", "estimator", "max_returns")
+                                           if k in rng})
+    warm(ranging="range" in raw)
+
+
+class StageProcess:
+    """A stage forked from the server, with the part of ``subprocess.Popen``'s interface
+    the supervisor uses: ``pid``, ``poll``, ``wait``, ``send_signal``, ``kill``."""
+
+    def __init__(self, argv: list[str], env: dict[str, str], log: str, name: str):
+        # argv is the exec form (python -m pipeline.cli ARGS): the child runs ARGS
+        args = argv[3:] if argv[1:3] == ["-m", "pipeline.cli"] else argv
+        self.args = argv
+        self._p = context().Process(target=_run, args=(args, env, log, name), name=name)
+        self._p.start()
+        self.pid: int = self._p.pid
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        if self.returncode is None and not self._p.is_alive():
+            self.returncode = self._p.exitcode
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        self._p.join(timeout)
+        if self.poll() is None:
+            raise subprocess.TimeoutExpired(self.args, timeout)
+        return self.returncode
+
+    def send_signal(self, sig: int) -> None:
+        if self.poll() is None:
+            try:
+                os.kill(self.pid, sig)
+            except ProcessLookupError:
+                pass  # (it ended between the poll and the signal)
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
+
+
+def _run(args: list[str], env: dict[str, str], log: str, name: str) -> None:
+    """In the forked stage: what an exec'd one would have had, then the command."""
+    os.setpgid(0, 0)  # its own process group: a Ctrl-C reaches the daemon only
+    from pipeline.stream.daemon import _PRCTL, _die_with_parent
+    from pipeline.stream.state import open_nofollow
+
+    _die_with_parent()  # (the server is the parent; it ends with the daemon)
+    if _PRCTL is not None:
+        _PRCTL(15, name.encode()[:15])  # PR_SET_NAME: `ps -o comm` names the stage
+    fd = open_nofollow(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT)
+    for target in (1, 2):
+        os.dup2(fd, target)
+    os.close(fd)
+    # unbuffered, as PYTHONUNBUFFERED=1 gives an exec'd stage
+    sys.stdout = io.TextIOWrapper(io.FileIO(1, "w", closefd=False), encoding="utf-8",
+                                  write_through=True, line_buffering=True)
+    sys.stderr = io.TextIOWrapper(io.FileIO(2, "w", closefd=False), encoding="utf-8",
+                                  errors="backslashreplace", write_through=True,
+                                  line_buffering=True)
+    os.environ.clear()
+    os.environ.update(env)
+    sys.argv = ["tcspc", *args]
+    from pipeline.cli.app import main
+
+    main()  # (reads sys.argv; click ends with sys.exit: the exit code stands)

@@ -1,0 +1,113 @@
+"""Issue 38.9: the stages start as forks of a server that imported their modules once
+(pipeline.stream.forkstart), with what an exec'd stage had: its log, its own process
+group, the daemon's environment, its exit code; ``fork_server = false`` exec's them."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from pipeline.stream.forkstart import StageProcess, warm_for
+from tests.pipeline.stream.test_startup import write_topology
+
+
+def _cmd(*args):
+    return [sys.executable, "-m", "pipeline.cli", *args]
+
+
+def test_a_forked_command_has_its_log_group_environment_and_exit_code(tmp_path):
+    log = tmp_path / "x.log"
+    p = StageProcess(_cmd("stage", "--help"), {**os.environ, "TCSPC_PROBE": "7"}, str(log),
+                     "probe")
+    assert p.wait(60) == 0 and p.poll() == 0
+    assert "Usage: tcspc stage" in log.read_text()  # its output in its log, not ours
+    bad = StageProcess(_cmd("stage", "histogram", "--n-tdc", "nope"), dict(os.environ),
+                       str(log), "bad")
+    assert bad.wait(60) == 2  # click's usage error: the exit code stands
+    assert "Invalid value" in log.read_text()
+
+
+def test_a_forked_stage_is_signalled_and_named_like_an_execd_one(tmp_path):
+    """Its own process group (a Ctrl-C at the terminal reaches the daemon only), its
+    name in ``ps -o comm``, and -SIGNAL when killed (the environment it is given: the
+    daemon's test below, whose stages' heartbeats carry the run's token from it)."""
+    log = tmp_path / "p.log"
+    env = dict(os.environ)
+    q = StageProcess([sys.executable, "-m", "pipeline.cli", "stage", "sink", "--pull",
+                      f"ipc://{tmp_path}/in", "--out", str(tmp_path / "out"), "--workers",
+                      "1"], env, str(log), "sink")
+    deadline = time.time() + 30
+    while time.time() < deadline and "sink" not in Path(f"/proc/{q.pid}/comm").read_text():
+        time.sleep(0.05)
+    assert Path(f"/proc/{q.pid}/comm").read_text().strip() == "sink"
+    assert os.getpgid(q.pid) == q.pid != os.getpgid(0)
+    q.send_signal(signal.SIGKILL)
+    assert q.wait(30) == -signal.SIGKILL
+    q.send_signal(signal.SIGTERM)  # (an ended stage: nothing to signal, no error)
+
+
+@pytest.mark.parametrize("fork", [True, False])
+def test_the_daemon_forks_its_stages_or_execs_them(tmp_path, fork):
+    """The same run either way; forked stages are named by their stage and are not the
+    daemon's children (the server's), exec'd ones run their own interpreter."""
+    scene = tmp_path / "small.toml"
+    path = write_topology(tmp_path, source=f'kind = "sim"\nscene = "{scene}"\n'
+                          'cycles = 200000\nrate = 2e6')
+    text = path.read_text().replace("[daemon]\n",
+                                    f"[daemon]\nfork_server = {str(fork).lower()}\n")
+    path.write_text(text)
+    d = subprocess.Popen(_cmd("daemon", "--config", str(path), "--run", "f"),
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    status, seen = tmp_path / "state" / "status.json", {}
+    deadline = time.time() + 90
+    while time.time() < deadline and len(seen) < 3 and d.poll() is None:
+        try:
+            for name, s in json.loads(status.read_text())["stages"].items():
+                pid = s.get("pid")
+                if s.get("alive") and pid and name not in seen:
+                    stat = Path(f"/proc/{pid}/stat").read_text()
+                    seen[name] = (Path(f"/proc/{pid}/comm").read_text().strip(),
+                                  int(stat.rsplit(")", 1)[1].split()[1]))
+        except (OSError, ValueError, KeyError):
+            pass
+        time.sleep(0.05)
+    out, err = d.communicate(timeout=120)
+    assert d.returncode == 0, err[-2000:]
+    res = json.loads(out)
+    assert res["accounting"]["balanced"] and res["accounting"]["words_in"] == 200_000 * 16
+    assert len(seen) == 3, seen  # source, a worker, the sink
+    for name, (comm, ppid) in seen.items():
+        if fork:
+            assert comm == name[:15] and ppid != d.pid, (name, comm, ppid)
+        else:
+            assert comm.startswith("python") and ppid == d.pid, (name, comm, ppid)
+
+
+def test_warm_for_reads_only_what_it_needs_and_never_fails(tmp_path, monkeypatch):
+    """The daemon's first step looks at the topology before it is checked: a missing,
+    unreadable or invalid file starts nothing and raises nothing (load_topology reports
+    it); ``fork_server = false`` starts no server; a [range] with a calibration asks the
+    server to warm the range stage's kernels."""
+    import pipeline.stream.forkstart as fs
+
+    started = []
+    monkeypatch.setattr(fs, "warm", lambda ranging=False: started.append(ranging))
+    monkeypatch.delenv(fs.WARM_ENV, raising=False)
+    warm_for(str(tmp_path / "missing.toml"))
+    (tmp_path / "bad.toml").write_text("[daemon\n")
+    warm_for(str(tmp_path / "bad.toml"))
+    (tmp_path / "off.toml").write_text("[daemon]\nfork_server = false\n[range]\n")
+    warm_for(str(tmp_path / "off.toml"))
+    assert started == []
+    (tmp_path / "on.toml").write_text('[source]\nkind = "sim"\n[range]\n'
+                                      'calibration = "cal"\nestimator = "fast"\n')
+    warm_for(str(tmp_path / "on.toml"))
+    assert started == [True]
+    assert json.loads(os.environ[fs.WARM_ENV]) == {"calibration": "cal", "estimator": "fast"}
