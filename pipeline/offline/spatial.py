@@ -143,7 +143,10 @@ def common_axis(edges_s: np.ndarray, counts: np.ndarray, valid: np.ndarray,
     c = np.where(v, np.asarray(counts, np.float64)[use], 0.0)
     cum = np.zeros(e.shape)
     np.cumsum(c, axis=1, out=cum[:, 1:])
-    # every row's edges shifted past the previous row's: one monotone array, one interp
+    # strictly increasing (a code of no width, a missing code, keeps its counts in the
+    # bin that holds its edge), and every row's edges shifted past the previous row's:
+    # one monotone array, one interp
+    e = e + np.arange(e.shape[1]) * (1e-9 * bin_s)
     span = float(np.nanmax(e) - np.nanmin(e)) + 4 * bin_s
     off = (rows * span)[:, None]
     grid = lo + bin_s * np.arange(nb + 1)

@@ -421,8 +421,11 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
     half = WIDTH_TEST * sb
 
     def shifted(x, i, j, v):  # x at the neighbour (r + i, c + j), v outside the image
-        pad = np.pad(x, ((1, 1), (1, 1)) + ((0, 0),) * (x.ndim - 2), constant_values=v)
-        return pad[1 + i:1 + i + h, 1 + j:1 + j + w]
+        # (slices, not np.pad: its per-call cost was a third of a 1 x 128 line's ranging)
+        out = np.full(x.shape, v, x.dtype)
+        out[max(-i, 0):h - max(i, 0), max(-j, 0):w - max(j, 0)] = \
+            x[max(i, 0):h - max(-i, 0), max(j, 0):w - max(-j, 0)]
+        return out
 
     def agreement(tl, t, sl):  # how many of the 8 nearest lie on the plane (t, sl)
         got = np.zeros(t.shape)
