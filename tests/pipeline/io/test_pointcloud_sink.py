@@ -170,6 +170,14 @@ geometry = "{geom}"
     from plyfile import PlyData
 
     assert len(PlyData.read(str(ply))["vertex"].data) == live["detected"].sum()
+    # the ranges lost: `tcspc reconcile` rebuilds them from the journal, spatially too
+    from pipeline.stream.daemon import reconcile_offline
+
+    (part,) = (tmp_path / "out" / "ranges").rglob("*.parquet")
+    part.unlink()
+    reconcile_offline(load_topology(topo, "sp"))
+    again = pl.read_parquet(tmp_path / "out" / "ranges" / "date=*" / "run=sp" / "*.parquet")
+    assert again.sort(on).equals(live.sort(on))
 
 
 def test_the_topology_checks_spatial_ranging(tmp_path):

@@ -108,3 +108,21 @@ def test_tdcs_without_a_pixel_get_a_flagged_row(tmp_path, caldir):
     ok = first & ~out
     assert est.detected[ok].all() and est.estimator == "spatial"
     assert np.all(np.abs(d[ok] - 1.5) < 3 * s[ok]), (d[ok], s[ok])
+
+
+def test_a_capture_ranged_spatially_needs_a_geometry(tmp_path, caldir):
+    """`tcspc range CAPTURE --calibration C --spatial` without --geometry: one line, exit
+    2, nothing written."""
+    from click.testing import CliRunner
+
+    from pipeline.cli import cli
+    from pipeline.offline.simulate import simulate_capture
+    from stages.models.scene import scene_from_dict
+
+    simulate_capture(scene_from_dict({"name": "e", "sensor": {"n_pixels": 16}}), 200,
+                     tmp_path / "cap", seed=1)
+    out = tmp_path / "r.parquet"
+    res = CliRunner().invoke(cli, ["range", str(tmp_path / "cap"), "--calibration",
+                                   str(caldir), "--spatial", "--out", str(out)])
+    assert res.exit_code == 2, res.output
+    assert "--spatial needs --geometry" in res.output and not out.exists()
