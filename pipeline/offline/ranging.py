@@ -439,6 +439,10 @@ class RangeCore:
         #: image (:func:`pipeline.offline.spatial.range_state_spatial`, issue 35), its
         #: whole frame in one message (the topology has one histogram worker)
         self.spatial = spatial
+        if spatial is not None and not np.any(spatial.index_of(np.arange(calibration.n_tdc))
+                                              >= 0):
+            raise CalibrationError(f"geometry {spatial.name}: no pixel for any of the "
+                                   f"{calibration.n_tdc} TDCs of {calibration.path}")
         if spatial is None:  # (the spatial estimator is numpy only: nothing to load)
             self._warm_up()
 

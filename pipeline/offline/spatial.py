@@ -201,36 +201,42 @@ def range_state_spatial(state, calibration, window_s: float, t_laser_win_s: floa
     edges = h.edges_s - delay[:, None]          # arrival time less the pixel's delay
     use = (idx >= 0) & np.isfinite(delay) & np.all(np.isfinite(edges), axis=1)
     pix = np.flatnonzero(use)
-    bin_s = h.bin_s / SUBBINS
-    counts = h.intensity() * h.cycles[:, None]  # Coates: photons, not first photons
-    common, lo = common_axis(edges, counts, h.valid, use, bin_s)
-    rc = np.stack([np.asarray(geom.row)[idx[pix]], np.asarray(geom.col)[idx[pix]]], 1)
-    hh, ww = rc.max(0) + 1
-    img = np.zeros((hh, ww, common.shape[1]))
-    img[rc[:, 0], rc[:, 1]] = common
-    s = spatial(img, bin_s, sigma_s, p_fa, max_returns=max_returns, t0_s=lo, threads=threads)
+    k = max_returns
+    if pix.size:
+        bin_s = h.bin_s / SUBBINS
+        counts = h.intensity() * h.cycles[:, None]  # Coates: photons, not first photons
+        common, lo = common_axis(edges, counts, h.valid, use, bin_s)
+        rc = np.stack([np.asarray(geom.row)[idx[pix]], np.asarray(geom.col)[idx[pix]]], 1)
+        hh, ww = rc.max(0) + 1
+        img = np.zeros((hh, ww, common.shape[1]))
+        img[rc[:, 0], rc[:, 1]] = common
+        s = spatial(img, bin_s, sigma_s, p_fa, max_returns=k, t0_s=lo, threads=threads)
+    else:  # no TDC to range (none placed, or none with a delay): every row flagged
+        s = None
+        rc = np.zeros((0, 2), np.int64)
     r, c = rc[:, 0], rc[:, 1]
-    k = s.t_s.shape[-1]
     rows = np.zeros((n, k), bool)
     rows[:, 0] = True
     det = np.zeros((n, k), bool)
-    det[pix] = s.detected[r, c]
+    if s is not None:
+        det[pix] = s.detected[r, c]
     rows |= det
     p_i, k_i = np.nonzero(rows)
 
-    def per_tdc(a, fill):
+    def per_tdc(name, fill):
         out = np.full((n, k), fill, np.float64)
-        out[pix] = a[r, c]
+        if s is not None:
+            out[pix] = getattr(s, name)[r, c]
         return out[p_i, k_i]
 
     flag = np.full(n, "", dtype=object)
     flag[~np.isfinite(delay)] = NO_DELAY
     flag[idx < 0] = UNPLACED
-    t_u = per_tdc(s.t_s, np.nan)
-    est = Estimate(t_s=t_u + delay[p_i], sigma_s=per_tdc(s.sigma_s, np.nan),
+    t_u = per_tdc("t_s", np.nan)
+    est = Estimate(t_s=t_u + delay[p_i], sigma_s=per_tdc("sigma_s", np.nan),
                    fwhm_s=np.full(p_i.size, 2.3548200450309493 * sigma_s),
-                   signal_counts=per_tdc(s.signal_counts, 0.0),
-                   background_per_bin=per_tdc(s.background_per_bin, 0.0),
+                   signal_counts=per_tdc("signal_counts", 0.0),
+                   background_per_bin=per_tdc("background_per_bin", 0.0),
                    detected=det[p_i, k_i], estimator="spatial", flag=flag[p_i],
                    return_index=k_i.astype(np.int64), pixel=p_i)
     with np.errstate(invalid="ignore"):

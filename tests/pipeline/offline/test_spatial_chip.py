@@ -126,3 +126,27 @@ def test_a_capture_ranged_spatially_needs_a_geometry(tmp_path, caldir):
                                    str(caldir), "--spatial", "--out", str(out)])
     assert res.exit_code == 2, res.output
     assert "--spatial needs --geometry" in res.output and not out.exists()
+
+
+def test_a_geometry_without_the_chips_tdcs(tmp_path, caldir):
+    """The range stage refuses at start a geometry with no pixel for the calibration's
+    TDCs; a measurement whose TDCs have no pixel has a flagged row each, not an error."""
+    from pipeline.io.caldir import load_calibration
+    from pipeline.io.geometry import load_geometry
+    from pipeline.offline.ranging import RangeCore
+    from pipeline.offline.spatial import range_state_spatial
+    from schemas.errors import CalibrationError
+    from stages.histogram import HistogramAccumulator
+
+    g = tmp_path / "g.toml"
+    g.write_text('name = "far"\n[grid]\nrows = 2\ncols = 2\nfov_h_deg = 8.0\n'
+                 'fov_v_deg = 6.0\nfirst_tdc = 100\n')
+    geom = load_geometry(g)
+    cal = load_calibration(caldir)
+    with pytest.raises(CalibrationError, match="no pixel for any of the 16 TDCs"):
+        RangeCore(cal, spatial=geom)
+    acc = HistogramAccumulator(16, cal.bounds)
+    acc.update(np.zeros(16 * 100, np.uint32), 0)
+    est, d, _, _ = range_state_spatial(acc.snapshot(), cal, 80e-9, 140e-9, geom)
+    assert est.pixel.tolist() == list(range(16)) and not est.detected.any()
+    assert set(est.flag) == {UNPLACED} and np.all(np.isnan(d))
