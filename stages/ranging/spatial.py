@@ -322,6 +322,22 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> tuple:
         res = np.where(pos, s1 - tq * n0, 0.0)
         m_eff = np.maximum(pos.sum(-1), 4)
         var_sand = ((lev * res) ** 2).sum(-1) * m_eff / (m_eff - 3)
+        # the fit's information (the sandwich's bread) is each neighbour's signal, its
+        # expected net count; the positive part that weights the fit credits a
+        # neighbour without signal (across a depth edge, beside sky) with its
+        # background's positive fluctuation, and at an edge those neighbours sit on
+        # one side, where their leverage on t0 is largest. The signed net counts
+        # estimate the information without that bias: both variances again with them,
+        # the larger kept (where the signed matrix is positive definite)
+        Ms = np.einsum("hwm,im,jm->hwij", np.where(inside, n0, 0.0), X, X) + np.eye(3) * 1e-6
+        pd = np.linalg.det(Ms) > 0
+        Msi = np.linalg.inv(np.where(pd[..., None, None], Ms, np.eye(3)))
+        pd &= Msi[..., 0, 0] > 0
+        lev_s = np.einsum("hwi,im->hwm", Msi[..., 0, :], X)
+        var_model = np.where(pd, np.maximum(var_model, var_photon * Msi[..., 0, 0] + var_bg),
+                             var_model)
+        var_sand = np.where(pd, np.maximum(var_sand, ((lev_s * res) ** 2).sum(-1) * m_eff
+                                           / (m_eff - 3)), var_sand)
         # both as if the window were fixed; the fit re-centres it on its own estimate
         # (an M-estimator with psi(u) = u for |u| < c sigma, 0 beyond): Huber's variance
         # E[psi^2] / E[psi']^2 gains the boundary term 2 c phi(c) in E[psi'], a factor
