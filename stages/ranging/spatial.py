@@ -29,7 +29,9 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
 4. sigma: the photons' spread about the plane over their number, through the fit's
    design (its (0, 0) element), with the background left in the window, or the fit's
    sandwich variance, the larger; times Huber's factor for a window centred on its own
-   estimate; plus the ridge's pull on t0 where the neighbours are one-sided.
+   estimate; plus the ridge's pull on t0 where the neighbours are one-sided. Both
+   variances also with the fit's information from the neighbours' signed net counts
+   (a neighbour without signal has none), the larger kept.
 
 Up to ``max_returns`` (2) surfaces a pixel, the strongest first.
 """
