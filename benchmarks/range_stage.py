@@ -9,7 +9,9 @@ Cases: the demo's street measurements and the test pattern's (``stages.testpatte
 3 codes wide, 20 000 cycles, 3 measurements, histogrammed with the calibration's bounds as
 the daemon's worker does); 64 TDCs (one histogram worker's message) and 128 (the two
 workers' messages of a measurement joined), ``max_returns`` 1 and 3, the ``ml`` and
-``fast`` estimators (``--only street`` or ``--only pattern`` for one of the data). Each
+``fast`` estimators (``--only street`` or ``--only pattern`` for one of the data), and
+with ``--spatial`` the range stage's ``[range] spatial = true`` on 128 TDCs (the
+``thesis128`` geometry's line; K 1 and 3; ``--spatial-only``: those cases alone). Each
 case runs in a fresh process per tree, the trees alternating, after one untimed pass
 (numba kernels, caches): best of ``--repeat`` passes over the measurements, in CPU ms per
 measurement (the process's CPU time: on a shared machine a pass's wall time counts the
@@ -81,7 +83,12 @@ for name, ts in sorted(parts.items()):
     words = float(np.mean(cls / np.asarray(t["cycles"], np.float64)))
 if not batches:
     sys.exit(f"{data}: no histograms message of {n_tdc} TDCs ({source})")
-core = RangeCore(cal, estimator, max_returns=k, forward_histograms=False)
+if estimator == "spatial":  # the daemon's [range] spatial = true, the thesis's line
+    from pipeline.io.geometry import load_geometry
+    core = RangeCore(cal, "ml", max_returns=k, forward_histograms=False,
+                     spatial=load_geometry("thesis128"))
+else:
+    core = RangeCore(cal, estimator, max_returns=k, forward_histograms=False)
 
 def one(name, b):
     return core.process({"run": "bench", "measurement": name, "t_laser_win_ns": 20.0,
@@ -173,6 +180,9 @@ def main() -> None:
     ap.add_argument("--tree", action="append", type=Path, required=True)
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--only", choices=("street", "pattern"), default=None)
+    ap.add_argument("--spatial", action="store_true",
+                    help="also [range] spatial = true (128 TDCs, the thesis128 geometry)")
+    ap.add_argument("--spatial-only", action="store_true", help="only those cases")
     ap.add_argument("--parts", action="store_true",
                     help="also the CPU ms a measurement inside the range path's main steps")
     args = ap.parse_args()
@@ -186,8 +196,11 @@ def main() -> None:
           "cycles (last tree) | load |")
     print("|---|---|---|---|" + "---|" * len(trees) + "---|---|---|")
     sources = [args.only] if args.only else ["street", "pattern"]
-    cases = [(src, n, k, e) for src in sources for n in (64, 128) for k in (1, 3)
-             for e in ("ml", "fast")]
+    cases = [] if args.spatial_only else [
+        (src, n, k, e) for src in sources for n in (64, 128) for k in (1, 3)
+        for e in ("ml", "fast")]
+    if args.spatial or args.spatial_only:
+        cases += [(src, 128, k, "spatial") for src in sources for k in (1, 3)]
     with tempfile.TemporaryDirectory() as tmp:
         for source, n_tdc, k, est in cases:
             got, outs = [], []

@@ -463,9 +463,11 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
                    "flagged tcspc.truncated in the output (without it: nothing written, "
                    "exit 3).")
 @click.option("--spatial", is_flag=True,
-              help="Generic histograms as an image (their row/col columns or --geometry): "
-                   "each pixel ranged with its neighbours, for few photons in strong "
-                   "background (docs/ranging.md); needs --delay-ps and --irf-ps.")
+              help="Histograms as an image (generic ones' row/col columns or --geometry; a "
+                   "tcspc capture's TDCs by --geometry, each TDC's calibrated axis mapped "
+                   "onto one): each pixel ranged with its neighbours, for few photons in "
+                   "strong background (docs/ranging.md); generic histograms need "
+                   "--delay-ps and --irf-ps, a capture --calibration.")
 @click.option("--geometry", default=None,
               help="With --spatial: the array's layout (docs/geometry.md).")
 @click.option("--force", is_flag=True,
@@ -491,6 +493,17 @@ def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero
     """
     check_out(out, overwrite=overwrite, schema="ranges")
     try:
+        if (spatial or geometry) and calibration is not None and _is_capture(capture, fmt):
+            # a chip's capture: each TDC's INL axis mapped onto one (docs/ranging.md)
+            if not (spatial and geometry):
+                raise click.UsageError("a tcspc capture's --spatial needs --geometry (its "
+                                       "TDCs' places), and --geometry --spatial")
+            from pipeline.io.geometry import load_geometry
+
+            _range(capture, calibration, out, "spatial", irf_ps, p_fa, delay_ps, zero, gate,
+                   max_returns, fmt, quiet, allow_truncated, force,
+                   spatial=load_geometry(geometry))
+            return
         if spatial or geometry:
             from pipeline.cli.export import range_spatial
 
@@ -509,8 +522,15 @@ def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero
         raise BadInput(str(exc)) from exc
 
 
+def _is_capture(capture, fmt) -> bool:
+    from pipeline.cli import instruments
+
+    return instruments.detect(capture, fmt, histograms=True) == "tcspc"
+
+
 def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, gate,
-           max_returns, fmt, quiet, allow_truncated=False, force=False) -> None:
+           max_returns, fmt, quiet, allow_truncated=False, force=False,
+           spatial=None) -> None:
     from pipeline.cli import instruments
     from stages.ranging.validation import check_delay, check_p_fa, check_sigma
 
@@ -570,7 +590,8 @@ def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, g
         warn(cap.truncated + " (--allow-truncated: ranged anyway, flagged tcspc.truncated)")
     table, note = range_capture(cap, calib, out, estimator,
                                 None if irf_ps is None else irf_ps * 1e-12, p_fa,
-                                max_returns or 3, force=force)
+                                max_returns or (3 if spatial is None else 2), force=force,
+                                spatial=spatial)
     if note:
         warn(note)
     _warn_chip(table)

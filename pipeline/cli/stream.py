@@ -427,18 +427,33 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
               help="Returns (surfaces) a pixel may have.")
 @click.option("--workers", default=1, show_default=True, help="Histogram workers upstream.")
 @click.option("--quarantine", type=click.Path(), default=None)
+@click.option("--spatial", is_flag=True,
+              help="Each measurement ranged with its neighbours as --geometry's image "
+                   "(docs/ranging.md; its whole frame in one message: one worker).")
+@click.option("--geometry", default=None, help="With --spatial: the array's layout.")
 @_metrics
 @_accept
-def stage_range(pull, push, calibration, estimator, max_returns, workers, quarantine, metrics,
-                senders) -> None:
+def stage_range(pull, push, calibration, estimator, max_returns, workers, quarantine,
+                spatial, geometry, metrics, senders) -> None:
     """Ranges of each measurement's histograms with a calibration (eq. 5.4)."""
     _secure(pull, push, metrics)
     from pipeline.io.caldir import load_calibration
     from pipeline.offline.ranging import RangeCore
     from pipeline.stream.stage import run_stage
 
+    geom = None
+    if spatial or geometry:
+        if not (spatial and geometry):
+            raise click.UsageError("--spatial and --geometry go together")
+        if workers != 1 or not 1 <= max_returns <= 4:
+            raise click.UsageError("--spatial: one histogram worker (--workers 1) and "
+                                   "--max-returns 1..4")
+        from pipeline.io.geometry import load_geometry
+
+        geom = load_geometry(geometry)  # checked before the stage starts
     core = RangeCore(load_calibration(calibration), estimator, max_returns=max_returns,
-                     warn=lambda m: err.print(f"range: warning: {m}", highlight=False))
+                     warn=lambda m: err.print(f"range: warning: {m}", highlight=False),
+                     spatial=geom)
     stats = run_stage(core, pull, push, quarantine=quarantine, expect_stops=workers,
                       metrics=metrics, name="range", senders=list(senders) or None)
     err.print(f"range: {core.ranged} measurements ranged; rejected {dict(stats.rejected)}"

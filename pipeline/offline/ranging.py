@@ -338,7 +338,7 @@ def chip_checked(calibration: Calibration, state: HistogramState, est: Estimate,
 def range_capture(capture: str | Path, calibration: Calibration, out: str | Path,
                   estimator: str = "ml", sigma_s: float | None = None,
                   p_fa: float = 1e-3, max_returns: int = 1, force: bool = False,
-                  check_chip: bool = True) -> tuple[pa.Table, str]:
+                  check_chip: bool = True, spatial=None) -> tuple[pa.Table, str]:
     """Range a whole capture, up to ``max_returns`` returns a pixel (``tcspc range``: 3 by
     default; 1 here, a row a TDC, for the flows that aggregate per TDC); returns the
     ranges table and the note of :func:`range_state`. ``capture``: a path, or an open
@@ -350,7 +350,8 @@ def range_capture(capture: str | Path, calibration: Calibration, out: str | Path
     unless ``force``, which ranges it with every row flagged ``CHIP_MISMATCH``; a TDC
     that alone disagrees in a capture that matches is flagged ``TDC_MISMATCH``; a capture
     too dim to tell is ranged, with a note. The verdict is in the metadata
-    (``tcspc.chip_check``)."""
+    (``tcspc.chip_check``). ``spatial``, a Geometry: ranged with the neighbours as its
+    image (:func:`pipeline.offline.spatial.range_state_spatial`; ``estimator`` unused)."""
     cap = capture if isinstance(capture, Capture) else Capture(capture)
     if calibration.n_tdc != cap.meta.n_tdc:
         raise CalibrationError(f"{calibration.path}: calibrates {calibration.n_tdc} TDCs, "
@@ -360,9 +361,16 @@ def range_capture(capture: str | Path, calibration: Calibration, out: str | Path
         acc.update(words, first)
     state = acc.snapshot()
     window_s = cap.meta.window_ns * 1e-9
-    est, d, s, note = range_state(state, calibration, window_s,
-                                  cap.meta.t_laser_win_ns * 1e-9, estimator, sigma_s, p_fa,
-                                  max_returns=max_returns)
+    if spatial is not None:
+        from pipeline.offline.spatial import range_state_spatial
+
+        est, d, s, note = range_state_spatial(state, calibration, window_s,
+                                              cap.meta.t_laser_win_ns * 1e-9, spatial,
+                                              sigma_s, p_fa, max_returns)
+    else:
+        est, d, s, note = range_state(state, calibration, window_s,
+                                      cap.meta.t_laser_win_ns * 1e-9, estimator, sigma_s,
+                                      p_fa, max_returns=max_returns)
     verdict = {}
     if check_chip:
         est, verdict, chk = chip_checked(calibration, state, est, window_s)
@@ -418,7 +426,7 @@ class RangeCore:
     def __init__(self, calibration: Calibration, estimator: str = "ml",
                  window_ns: float = 80.0, step_id: str = "range",
                  forward_histograms: bool = True, max_returns: int = MAX_RETURNS,
-                 check_chip: bool = True, warn=None,
+                 check_chip: bool = True, warn=None, spatial=None,
                  track_lsb_every_s: float = LSB_TRACK_EVERY_S,
                  track_lsb_after_s: float = LSB_TRACK_AFTER_S, clock=time.monotonic):
         if not calibration.has_delay:  # fail at start, not on the first message
@@ -439,7 +447,16 @@ class RangeCore:
         self.track_every_s, self.clock = track_lsb_every_s, clock
         #: when the LSB may next be tracked (LSB_TRACK_EVERY_S)
         self._track_at = clock() + track_lsb_after_s
-        self._warm_up()
+        #: a Geometry: each measurement ranged with its neighbours as that geometry's
+        #: image (:func:`pipeline.offline.spatial.range_state_spatial`, issue 35), its
+        #: whole frame in one message (the topology has one histogram worker)
+        self.spatial = spatial
+        if spatial is not None and not np.any(spatial.index_of(np.arange(calibration.n_tdc))
+                                              >= 0):
+            raise CalibrationError(f"geometry {spatial.name}: no pixel for any of the "
+                                   f"{calibration.n_tdc} TDCs of {calibration.path}")
+        if spatial is None:  # (the spatial estimator is numpy only: nothing to load)
+            self._warm_up()
 
     def _warm_up(self) -> None:
         """Range a made-up measurement of the calibration's first TDCs once, its result
@@ -463,8 +480,15 @@ class RangeCore:
         state = HistogramState.from_table(pa.Table.from_batches([batch]))
         window_s = float(header.get("window_ns", self.window_ns)) * 1e-9
         gate_s = float(header["t_laser_win_ns"]) * 1e-9
-        est, d, s, note = range_state(state, self.calibration, window_s, gate_s,
-                                      self.estimator, max_returns=self.max_returns)
+        if self.spatial is not None:
+            from pipeline.offline.spatial import range_state_spatial
+
+            est, d, s, note = range_state_spatial(state, self.calibration, window_s, gate_s,
+                                                  self.spatial,
+                                                  max_returns=min(self.max_returns, 4))
+        else:
+            est, d, s, note = range_state(state, self.calibration, window_s, gate_s,
+                                          self.estimator, max_returns=self.max_returns)
         if note:  # light outside the LSB fit: counted, and in the ranges' header
             self.notes[note] = self.notes.get(note, 0) + 1
         name = str(header.get("measurement", header["run"]))

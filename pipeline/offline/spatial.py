@@ -103,3 +103,147 @@ def range_spatial(path: str | Path, delay_s: float, sigma_s: float, p_fa: float,
         raise SchemaMismatch(f"{path}: no row to range with --spatial (every row a "
                              "reference channel or without a place)")
     return pa.concat_tables(parts), unplaced
+
+
+#: the common time axis's bin, a fraction of the chip's median LSB (docs/ranging.md
+#: "On the chip"): 2 bins a code, so that a code's counts, spread evenly over its own ps
+#: interval, land on the common bins with little added quantisation
+SUBBINS = 2
+#: the flags of a chip's TDC the spatial ranging leaves out (a row each, not detected)
+UNPLACED = "no pixel in the geometry: not ranged (spatial)"
+NO_DELAY = "no delay: not ranged (spatial)"
+
+
+def common_axis(edges_s: np.ndarray, counts: np.ndarray, valid: np.ndarray,
+                use: np.ndarray, bin_s: float) -> tuple[np.ndarray, float]:
+    """Each used row's histogram on one time axis.
+
+    ``edges_s`` (n, codes + 1) each row's own bin edges (increasing, seconds, already on a
+    shared origin), ``counts`` (n, codes), ``valid`` (n, codes) the codes each row may use
+    (contiguous), ``use`` (n,) bool. The axis runs over the times every used row's valid
+    codes cover, in bins of ``bin_s``; a code's counts are spread evenly over its own
+    interval (the density the code-density test measured it by) and each common bin takes
+    the share of every code its interval overlaps: the rows' cumulative counts, linear
+    within a code, read at the common edges (one ``np.interp`` for all rows). Returns
+    (n_used, bins) counts and the axis's first edge (s)."""
+    e = np.asarray(edges_s, np.float64)[use]
+    v = np.asarray(valid, bool)[use]
+    k = np.arange(v.shape[1])
+    first = np.where(v, k, v.shape[1]).min(1)
+    last = np.where(v, k, -1).max(1) + 1
+    if e.shape[0] == 0 or np.any(last <= first):
+        raise ValueError("spatial ranging: a TDC has no valid code on its time axis")
+    rows = np.arange(e.shape[0])
+    lo = float(np.max(e[rows, first]))
+    hi = float(np.min(e[rows, last]))
+    nb = int(np.floor((hi - lo) / bin_s))
+    if nb < 3:
+        raise ValueError(f"spatial ranging: the TDCs' time axes share {max(hi - lo, 0) * 1e9:.3g}"
+                         " ns, fewer than 3 bins")
+    c = np.where(v, np.asarray(counts, np.float64)[use], 0.0)
+    cum = np.zeros(e.shape)
+    np.cumsum(c, axis=1, out=cum[:, 1:])
+    # strictly increasing (a code of no width, a missing code, keeps its counts in the
+    # bin that holds its edge), and every row's edges shifted past the previous row's:
+    # one monotone array, one interp
+    e = e + np.arange(e.shape[1]) * (1e-9 * bin_s)
+    span = float(np.nanmax(e) - np.nanmin(e)) + 4 * bin_s
+    off = (rows * span)[:, None]
+    grid = lo + bin_s * np.arange(nb + 1)
+    at = np.interp((grid[None, :] + off).ravel(), (e + off).ravel(),
+                   cum.ravel()).reshape(e.shape[0], nb + 1)
+    return np.maximum(np.diff(at, axis=1), 0.0), lo
+
+
+def range_state_spatial(state, calibration, window_s: float, t_laser_win_s: float,
+                        geom: Geometry, sigma_s: float | None = None, p_fa: float = 1e-3,
+                        max_returns: int = 2, threads: int = 1):
+    """:func:`pipeline.offline.ranging.range_state` with the neighbours: a chip's
+    measurement (each TDC on its own INL time axis) laid out as ``geom``'s image and ranged
+    by :func:`stages.ranging.spatial.spatial` (docs/ranging.md "On the chip").
+
+    Each TDC's codes become arrival times on its calibrated axis (INL, the LSB at this
+    light), minus its own delay (eq. 5.3), so that one time means one distance on every
+    pixel; its Coates-corrected counts go onto one axis (:func:`common_axis`). The
+    response is the calibration's (measured at the delay) unless ``sigma_s``. Returns
+    (estimate, distances (m), sigmas (m), note) as ``range_state`` does: a row per TDC
+    (return 0) and one per further detected return; a TDC the geometry has no pixel for,
+    or without a delay, has one row, not detected, flagged."""
+    import dataclasses
+
+    from scipy.constants import c as c_light
+
+    from pipeline.offline import ranging as rg
+    from schemas.errors import CalibrationError
+    from stages import calibration as cal
+    from stages.calibration_set import time_axis
+    from stages.ranging import Estimate, Histograms, response_from_data
+
+    if not calibration.has_delay:
+        raise CalibrationError(f"{calibration.path}: no delay (run `tcspc calibrate delay` "
+                               "on a zero-distance capture first)")
+    try:
+        calib = calibration.rows(state.tdc_offset, state.tdc_offset + state.n_tdc)
+    except ValueError as exc:
+        raise CalibrationError(str(exc)) from exc
+    axis = time_axis(calib, state.hits, state.cycles, window_s)
+    h = Histograms.from_codes(state.hits, axis.tau_edges_s, state.cycles, window_s,
+                              x_t=axis.x_t)
+    notes = [axis.note] if axis.note else []
+    if sigma_s is None:
+        sigma_s = calib.irf_sigma_s
+    if not sigma_s:
+        sigma_s, how = response_from_data(h)
+        notes.append(f"instrument response sigma {sigma_s * 1e12:.1f} ps {how}")
+    n = state.n_tdc
+    delay = np.asarray(calib.delay_s, np.float64)
+    idx = geom.index_of(state.tdc_offset + np.arange(n))
+    edges = h.edges_s - delay[:, None]          # arrival time less the pixel's delay
+    use = (idx >= 0) & np.isfinite(delay) & np.all(np.isfinite(edges), axis=1)
+    pix = np.flatnonzero(use)
+    k = max_returns
+    if pix.size:
+        bin_s = h.bin_s / SUBBINS
+        counts = h.intensity() * h.cycles[:, None]  # Coates: photons, not first photons
+        common, lo = common_axis(edges, counts, h.valid, use, bin_s)
+        rc = np.stack([np.asarray(geom.row)[idx[pix]], np.asarray(geom.col)[idx[pix]]], 1)
+        hh, ww = rc.max(0) + 1
+        img = np.zeros((hh, ww, common.shape[1]))
+        img[rc[:, 0], rc[:, 1]] = common
+        s = spatial(img, bin_s, sigma_s, p_fa, max_returns=k, t0_s=lo, threads=threads)
+    else:  # no TDC to range (none placed, or none with a delay): every row flagged
+        s = None
+        rc = np.zeros((0, 2), np.int64)
+    r, c = rc[:, 0], rc[:, 1]
+    rows = np.zeros((n, k), bool)
+    rows[:, 0] = True
+    det = np.zeros((n, k), bool)
+    if s is not None:
+        det[pix] = s.detected[r, c]
+    rows |= det
+    p_i, k_i = np.nonzero(rows)
+
+    def per_tdc(name, fill):
+        out = np.full((n, k), fill, np.float64)
+        if s is not None:
+            out[pix] = getattr(s, name)[r, c]
+        return out[p_i, k_i]
+
+    flag = np.full(n, "", dtype=object)
+    flag[~np.isfinite(delay)] = NO_DELAY
+    flag[idx < 0] = UNPLACED
+    t_u = per_tdc("t_s", np.nan)
+    est = Estimate(t_s=t_u + delay[p_i], sigma_s=per_tdc("sigma_s", np.nan),
+                   fwhm_s=np.full(p_i.size, 2.3548200450309493 * sigma_s),
+                   signal_counts=per_tdc("signal_counts", 0.0),
+                   background_per_bin=per_tdc("background_per_bin", 0.0),
+                   detected=det[p_i, k_i], estimator="spatial", flag=flag[p_i],
+                   return_index=k_i.astype(np.int64), pixel=p_i)
+    with np.errstate(invalid="ignore"):
+        distance = cal.distance_m(t_laser_win_s, delay[p_i], window_s - est.t_s)
+    est = dataclasses.replace(est, detected=est.detected & np.isfinite(distance))
+    est, distance = rg.behind_zero(est, distance)
+    cal_s = rg.calibration_sigma_s(calibration, calib, state, axis, est, window_s)
+    sig = np.asarray(est.sigma_s, np.float64)
+    sig = np.where(np.isfinite(cal_s), np.hypot(sig, cal_s), sig)
+    return est, distance, sig * c_light / 2, "; ".join(notes)

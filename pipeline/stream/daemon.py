@@ -74,6 +74,8 @@ starts, as are the state directory and the resources: ``pipeline.stream.state``)
     [range]                      # leave out: histograms only
     calibration = "data/calibration/current"
     estimator = "ml"
+    spatial = false              # true: ranged with the neighbours as the geometry's image
+                                 # (geometry = ..., else [sink] geometry; one worker)
 
     [sink]
     out = "data/stream"
@@ -120,6 +122,7 @@ from pipeline.stream.topology import (
     GRACE_S,
     STARTUP_S,
     Topology,
+    spatial_geometry,
     tdc_ranges,
 )
 from pipeline.stream.wire import TOKEN_ENV
@@ -180,7 +183,7 @@ def build(topo: Topology) -> list[Proc]:
             topo.range["calibration"], "--estimator", topo.range.get("estimator", "ml"),
             "--max-returns", topo.range.get("max_returns", 3),
             "--workers", len(ranges), "--quarantine", quar / "range", *m,
-            *accept(*hist_names)),
+            *spatial_args(topo), *accept(*hist_names)),
             [f"histogram-{i}" for i in range(len(ranges))]))
     src = topo.source
     mc = topo.histogram.get("measurement_cycles")
@@ -841,6 +844,12 @@ def exit_code(result: dict) -> int:
 
 
 # ------------------------------------------------------------------ reconcile, accounting
+
+
+def spatial_args(topo: Topology) -> list:
+    """The range stage's spatial options."""
+    g = spatial_geometry(topo)
+    return [] if g is None else ["--spatial", "--geometry", g]
 
 
 def _cloud_args(sink: dict) -> list:

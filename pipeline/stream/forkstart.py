@@ -76,7 +76,8 @@ def warm_for(config: str | None) -> None:
     if (raw.get("daemon") or {}).get("fork_server", True) is False:
         return
     rng = raw.get("range")
-    if isinstance(rng, dict) and isinstance(rng.get("calibration"), str):
+    if isinstance(rng, dict) and isinstance(rng.get("calibration"), str) \
+            and not rng.get("spatial"):  # (the spatial estimator is numpy: nothing to load)
         # the server loads the range stage's kernels too (pipeline.stream.forkwarm)
         os.environ[WARM_ENV] = json.dumps({k: rng[k] for k in
                                            ("calibration", "estimator", "max_returns")

@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from pipeline.stream.topology import Topology, tdc_ranges
+from pipeline.stream.topology import Topology, spatial_geometry, tdc_ranges
 
 
 def _dataset_parts(out: Path, schema: str, run: str) -> dict[tuple[int, int], Path]:
@@ -47,9 +47,13 @@ def reconcile(topo: Topology) -> dict:
         from pipeline.io.caldir import load_calibration
         from pipeline.offline.ranging import RangeCore
 
+        from pipeline.io.geometry import load_geometry
+
+        geom = spatial_geometry(topo)
         ranger = RangeCore(load_calibration(topo.range["calibration"]),
                            topo.range.get("estimator", "ml"),
-                           max_returns=topo.range.get("max_returns", 3))
+                           max_returns=topo.range.get("max_returns", 3),
+                           spatial=load_geometry(geom) if geom else None)
     sink = ParquetSink(out)
     redone, unrecoverable, corrupt_meas, rebuilt = [], [], [], []
     corrupt_chunks: dict[int, list] = {}  # first word -> [first, words, reason]

@@ -195,9 +195,12 @@ class RangeSection(_Section):
     max_returns: int = Field(3, ge=1, le=16, description="1..16 returns a pixel (0 is not "
                              "'none': leave the section out to range nothing)")
     endpoint: str | None = Field(None, description="its endpoint (leave out: ipc://STATE/sock/NAME)")
-    # issue 35: refused, not ignored: the chip's TDCs each have their own INL time axis
-    spatial: bool = Field(False, description="refused (true): spatial ranging needs one "
-                          "time axis; use `tcspc range --spatial` (docs/ranging.md)")
+    # issue 35: each measurement ranged with its neighbours (docs/ranging.md "On the chip")
+    spatial: bool = Field(False, description="true: each measurement ranged with its "
+                          "neighbours as the geometry's image (one histogram worker; "
+                          "max_returns 1..4)")
+    geometry: str | None = Field(None, min_length=1, description="with spatial: the "
+                                 "array's layout (leave out: [sink] geometry)")
 
 
 class SinkSection(_Section):
@@ -326,11 +329,8 @@ def load_topology(path: str | Path | None, run: str | None = None,
         if rng.get("estimator", "ml") not in ESTIMATORS:
             problems.append(f"{where} [range] estimator = {rng['estimator']!r}: use one of "
                             f"{ESTIMATORS}")
-        if rng.get("spatial"):
-            problems.append(f"{where} [range] spatial = true: not in the daemon: its "
-                            "histograms are the chip's, each TDC on its own INL time axis, "
-                            "and spatial ranging needs one; range generic histograms with "
-                            "`tcspc range --spatial` (docs/ranging.md)")
+        if rng.get("spatial") or rng.get("geometry"):
+            _check_spatial(rng, sink, workers, where, problems)
     if src is not None and (hist_m is not None or "histogram" not in raw):
         _check_artifacts(src["kind"], hist, where, problems)  # (else [histogram]'s problem)
     for sec, body in (("histogram", hist), ("range", rng or {})):
@@ -378,6 +378,32 @@ def load_topology(path: str | Path | None, run: str | None = None,
                     exporter=None if exporter is None else exporter.model_dump(),
                     log_format=(logsec or LogSection()).format,
                     fork_server=d.fork_server)
+
+
+def _check_spatial(rng: dict, sink: dict, workers: int, where: str, problems: list) -> None:
+    """``[range] spatial``: a geometry (its own or the sink's), one histogram worker (the
+    estimator needs a measurement's whole frame in one message), 1..4 returns."""
+    if not rng.get("spatial"):
+        problems.append(f"{where} [range] geometry is for spatial = true")
+        return
+    geometry = rng.get("geometry") or sink.get("geometry")
+    if not geometry:
+        problems.append(f"{where} [range] spatial = true needs a geometry: [range] geometry "
+                        "or [sink] geometry (docs/geometry.md)")
+    else:
+        from pipeline.io.geometry import load_geometry
+
+        try:
+            load_geometry(geometry)
+        except ValueError as exc:
+            problems.append(f"{where} [range] geometry = {geometry!r}: {exc}")
+    if workers != 1:
+        problems.append(f"{where} [range] spatial = true: with [histogram] workers = "
+                        f"{workers}; use 1 (a measurement's frame is ranged whole, and a "
+                        "fan-out by TDC range splits it)")
+    if rng.get("max_returns", 3) > 4:
+        problems.append(f"{where} [range] spatial = true: max_returns = "
+                        f"{rng['max_returns']}; use 1..4")
 
 
 def _check_cloud(sink: dict, where: str, problems: list[str]) -> None:
@@ -550,6 +576,14 @@ def default_topology() -> dict:
             "histogram": {"workers": 2, "measurement_cycles": 20_000,
                           "artifacts": "count-as-hits"},
             "sink": {"out": "data/stream"}}
+
+
+def spatial_geometry(topo: Topology) -> str | None:
+    """The geometry the range stage ranges with its neighbours by (``[range] spatial``:
+    its ``geometry``, else the sink's), None without spatial ranging."""
+    if not (topo.range or {}).get("spatial"):
+        return None
+    return topo.range.get("geometry") or topo.sink.get("geometry")
 
 
 def tdc_ranges(topo: Topology) -> list[tuple[int, int]]:

@@ -288,6 +288,8 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill
     if not np.isfinite(tau_t):
         return None
     k = int(np.searchsorted(bound, tau_t, side="right") - 1)
+    if not 0 <= k < w.size:  # the fitted window's end beyond the codes: no x_T here (the
+        return None          # range stage's LSB tracking on the test pattern raised)
     x_t = k + (tau_t - bound[k]) / w[k]
     lsb = window_s / x_t
     # rescale to the window's LSB: B_k (s) = bound * T / tau_t

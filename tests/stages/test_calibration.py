@@ -661,3 +661,20 @@ def test_a_dead_code_is_carried_by_the_fill_from_a_dimmer_test():
         # the table beyond the dead code: each boundary where the chip has it
         err = (res.inl_lsb[t] - inl_t[t])[d - 3:d + 4]
         assert np.all(np.isfinite(err)) and np.abs(err).max() < 0.3, (t, err)
+
+
+def test_lsb_tracking_survives_a_window_end_beyond_the_codes():
+    """The test pattern (a peak and uniform hits over all 512 codes, no reset peak): the
+    reset-peak fit's window end falls beyond the last code on some TDCs, which then have
+    no x_T (left out of the tracking); it raised an IndexError in the range stage's LSB
+    tracking before (benchmarks/range_stage.py's pattern cases)."""
+    from stages.calibration import track_lsb
+    from stages.histogram import HistogramAccumulator
+    from stages.testpattern import pattern_words
+
+    words, _ = pattern_words(20_000, 16, hit_prob=0.05, rng=0)
+    acc = HistogramAccumulator(16)
+    acc.update(words, 0)
+    st = acc.snapshot()
+    tr = track_lsb(st.hits, st.cycles, 80e-9, np.full(16, 206e-12))
+    assert 0 < np.isfinite(tr.drift_ps).sum() < 16
