@@ -195,6 +195,14 @@ def sim_scenarios(tmp: Path, lines: list[str], only=None) -> None:
     scenario("frozen worker", "SIGSTOP histogram-1 at 1 M words, never continued "
              "(heartbeat_deadline_s = 5)", freeze, extra="heartbeat_deadline_s = 5")
 
+    def kill_server(s):  # (issue 38.9) the fork server the stages were forked from
+        wait_words(s, 1e6)
+        stat = Path(f"/proc/{s.by_name['source'].popen.pid}/stat").read_text()
+        os.kill(int(stat.rsplit(")", 1)[1].split()[1]), signal.SIGKILL)
+
+    scenario("kill the fork server", "SIGKILL the stages' fork server at 1 M words "
+             "(every stage dies with it)", kill_server)
+
     def lost_part(d, topo, res):  # (issue 38.7) a part gone after the run's end: a daemon
         # killed while it reconciled, a disk under the sink repaired by hand
         from pipeline.stream.daemon import reconcile_offline

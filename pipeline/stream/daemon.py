@@ -116,6 +116,7 @@ import zmq
 
 from pipeline.io.atomic import atomic_path
 from pipeline.stream.bounds import bounds_file, ensure_bounds
+from pipeline.stream.forkstart import die_with_parent
 from pipeline.stream.reconcile import accounting, reconcile
 from pipeline.stream.sidecar import Sidecar, status_pub, view_args
 from pipeline.stream.topology import (
@@ -232,28 +233,6 @@ def build(topo: Topology) -> list[Proc]:
     return procs
 
 
-def _die_with_parent() -> None:
-    """In a stage (between fork and exec): SIGKILL it when the daemon dies, however the
-    daemon dies, so a killed daemon leaves no orphan writing to the run (a restarted daemon
-    resumes from the journal and the checkpoints, as after any crash). Linux only; the
-    signal follows the thread that started the stage, which lives as long as the run."""
-    # (nothing here may import or take a lock: other threads may hold them at the fork)
-    if _PRCTL is not None:
-        _PRCTL(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    if os.getppid() == 1:  # the daemon died before the prctl: do not start at all
-        os._exit(1)
-
-
-def _load_prctl():
-    import ctypes
-
-    try:
-        return ctypes.CDLL(None).prctl
-    except (OSError, AttributeError):
-        return None  # not Linux: the journal's lock still keeps a second writer out
-
-
-_PRCTL = _load_prctl()
 
 
 def run_token(state: Path, run: str) -> tuple[Path, str]:
@@ -373,7 +352,7 @@ class Supervisor:
         # its own process group: a Ctrl-C at the terminal reaches the daemon only, which
         # stops the graph in order (the source first, the rest drain)
         p.popen = subprocess.Popen(p.argv, stdout=log, stderr=subprocess.STDOUT, env=env,
-                                   preexec_fn=_die_with_parent, process_group=0)
+                                   preexec_fn=die_with_parent, process_group=0)
         log.close()
 
     def _check(self) -> bool:

@@ -24,6 +24,7 @@ import io
 import json
 import multiprocessing
 import os
+import runpy
 import signal
 import subprocess
 import sys
@@ -40,6 +41,30 @@ PRELOAD = ["numpy", "pyarrow", "pyarrow.ipc", "pyarrow.parquet", "zmq", "zstanda
 PRELOAD_RANGE = ["pipeline.offline.ranging", "pipeline.stream.forkwarm"]
 #: the range stage's calibration and estimator, for the server's warm-up (forkwarm)
 WARM_ENV = "TCSPC_FORK_WARM_RANGE"
+
+def die_with_parent() -> None:
+    """In a stage (between fork and exec): SIGKILL it when the daemon dies, however the
+    daemon dies, so a killed daemon leaves no orphan writing to the run (a restarted daemon
+    resumes from the journal and the checkpoints, as after any crash). Linux only; the
+    signal follows the thread that started the stage, which lives as long as the run."""
+    # (nothing here may import or take a lock: other threads may hold them at the fork)
+    if _PRCTL is not None:
+        _PRCTL(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() == 1:  # the daemon died before the prctl: do not start at all
+        os._exit(1)
+
+
+def _load_prctl():
+    import ctypes
+
+    try:
+        return ctypes.CDLL(None).prctl
+    except (OSError, AttributeError):
+        return None  # not Linux: the journal's lock still keeps a second writer out
+
+
+_PRCTL = _load_prctl()
+
 
 _CTX = None
 
@@ -90,10 +115,12 @@ class StageProcess:
     the supervisor uses: ``pid``, ``poll``, ``wait``, ``send_signal``, ``kill``."""
 
     def __init__(self, argv: list[str], env: dict[str, str], log: str, name: str):
-        # argv is the exec form (python -m pipeline.cli ARGS): the child runs ARGS
-        args = argv[3:] if argv[1:3] == ["-m", "pipeline.cli"] else argv
+        # argv is the exec form, python -m MODULE ARGS: the child runs MODULE with ARGS
+        if len(argv) < 3 or argv[1] != "-m":
+            raise ValueError(f"not a `python -m MODULE ...` command line: {argv}")
         self.args = argv
-        self._p = context().Process(target=_run, args=(args, env, log, name), name=name)
+        self._p = context().Process(target=_run, args=(argv[2], argv[3:], env, log, name),
+                                    name=name)
         self._p.start()
         self.pid: int = self._p.pid
         self.returncode: int | None = None
@@ -120,13 +147,12 @@ class StageProcess:
         self.send_signal(signal.SIGKILL)
 
 
-def _run(args: list[str], env: dict[str, str], log: str, name: str) -> None:
+def _run(module: str, args: list[str], env: dict[str, str], log: str, name: str) -> None:
     """In the forked stage: what an exec'd one would have had, then the command."""
     os.setpgid(0, 0)  # its own process group: a Ctrl-C reaches the daemon only
-    from pipeline.stream.daemon import _PRCTL, _die_with_parent
     from pipeline.stream.state import open_nofollow
 
-    _die_with_parent()  # (the server is the parent; it ends with the daemon)
+    die_with_parent()  # (the server is the parent; it ends with the daemon)
     if _PRCTL is not None:
         _PRCTL(15, name.encode()[:15])  # PR_SET_NAME: `ps -o comm` names the stage
     fd = open_nofollow(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT)
@@ -141,7 +167,7 @@ def _run(args: list[str], env: dict[str, str], log: str, name: str) -> None:
                                   line_buffering=True)
     os.environ.clear()
     os.environ.update(env)
-    sys.argv = ["tcspc", *args]
-    from pipeline.cli.app import main
-
-    main()  # (reads sys.argv; click ends with sys.exit: the exit code stands)
+    # what `python -m MODULE ARGS` does, in this process (the daemon's stages:
+    # MODULE = pipeline.cli, whose __main__ ends with sys.exit: the exit code stands)
+    sys.argv = [module, *args]
+    runpy.run_module(module, run_name="__main__", alter_sys=True)

@@ -22,16 +22,17 @@ def _cmd(*args):
     return [sys.executable, "-m", "pipeline.cli", *args]
 
 
-def test_a_forked_command_has_its_log_group_environment_and_exit_code(tmp_path):
+def test_a_forked_command_has_its_log_and_exit_code(tmp_path):
     log = tmp_path / "x.log"
-    p = StageProcess(_cmd("stage", "--help"), {**os.environ, "TCSPC_PROBE": "7"}, str(log),
-                     "probe")
+    p = StageProcess(_cmd("stage", "--help"), dict(os.environ), str(log), "probe")
     assert p.wait(60) == 0 and p.poll() == 0
     assert "Usage: tcspc stage" in log.read_text()  # its output in its log, not ours
     bad = StageProcess(_cmd("stage", "histogram", "--n-tdc", "nope"), dict(os.environ),
                        str(log), "bad")
     assert bad.wait(60) == 2  # click's usage error: the exit code stands
     assert "Invalid value" in log.read_text()
+    with pytest.raises(ValueError, match="python -m MODULE"):
+        StageProcess(["/bin/true"], dict(os.environ), str(log), "x")
 
 
 def test_a_forked_stage_is_signalled_and_named_like_an_execd_one(tmp_path):
@@ -67,11 +68,14 @@ def test_the_daemon_forks_its_stages_or_execs_them(tmp_path, fork):
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     status, seen = tmp_path / "state" / "status.json", {}
     deadline = time.time() + 90
-    while time.time() < deadline and len(seen) < 3 and d.poll() is None:
+    # (read again while the stage lives: status.json has its pid from the fork, before
+    # the stage has named itself)
+    while time.time() < deadline and d.poll() is None and not (
+            len(seen) == 3 and all(c != "python" for c, _ in seen.values())):
         try:
             for name, s in json.loads(status.read_text())["stages"].items():
                 pid = s.get("pid")
-                if s.get("alive") and pid and name not in seen:
+                if s.get("alive") and pid:
                     stat = Path(f"/proc/{pid}/stat").read_text()
                     seen[name] = (Path(f"/proc/{pid}/comm").read_text().strip(),
                                   int(stat.rsplit(")", 1)[1].split()[1]))
@@ -111,3 +115,34 @@ def test_warm_for_reads_only_what_it_needs_and_never_fails(tmp_path, monkeypatch
     warm_for(str(tmp_path / "on.toml"))
     assert started == [True]
     assert json.loads(os.environ[fs.WARM_ENV]) == {"calibration": "cal", "estimator": "fast"}
+
+
+def test_a_killed_fork_server_takes_its_stages_and_the_run_still_ends_exact(tmp_path):
+    """SIGKILL the server the stages were forked from: they die with it (their parent-death
+    signal), the supervisor restarts them from a new server, and the run ends finished,
+    every word once (the source resumes after its journal, the worker from its checkpoint
+    and the journal)."""
+    scene = tmp_path / "small.toml"
+    path = write_topology(tmp_path, source=f'kind = "sim"\nscene = "{scene}"\n'
+                          'cycles = 300000\nrate = 1.5e6')
+    d = subprocess.Popen(_cmd("daemon", "--config", str(path), "--run", "k"),
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    status, server = tmp_path / "state" / "status.json", None
+    deadline = time.time() + 60
+    while time.time() < deadline and server is None:
+        try:
+            st = json.loads(status.read_text())["stages"]
+            if st["source"].get("words", 0) > 5e5:
+                stat = Path(f"/proc/{st['source']['pid']}/stat").read_text()
+                server = int(stat.rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, KeyError):
+            pass
+        time.sleep(0.05)
+    assert server is not None and server != d.pid
+    os.kill(server, signal.SIGKILL)
+    out, err = d.communicate(timeout=180)
+    assert d.returncode == 0, err[-3000:]
+    res = json.loads(out)
+    assert res["restarts"].get("source", 0) >= 1
+    acc = res["accounting"]
+    assert acc["balanced"] and acc["words_in"] == 300_000 * 16 == acc["classified"]
