@@ -73,6 +73,9 @@ def context(ranging: bool = False):
     """The forkserver context, its preload set (once per process: the first call's)."""
     global _CTX
     if _CTX is None:
+        # numpy's OpenBLAS is loaded in the server: one thread, as every `tcspc stage` asks
+        # for before numpy loads (docs/performance.md; a user's own setting is kept)
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
         _CTX = multiprocessing.get_context("forkserver")
         _CTX.set_forkserver_preload(PRELOAD + (PRELOAD_RANGE if ranging else []))
     return _CTX
