@@ -196,9 +196,19 @@ class CpuWatch:
                 # line, or none: named again at the next poll)
                 try:
                     cmd = Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")
+                    comm = Path(f"/proc/{pid}/comm").read_text().strip()
                 except OSError:
                     continue
-                self.names[pid] = _stage_name([c for c in cmd if c])
+                if any("multiprocessing.forkserver" in c for c in cmd):
+                    # the daemon's fork server (pipeline.stream.forkstart), or a stage forked
+                    # from it: named by its process name once it has set it
+                    self.names[pid] = (comm if not comm.startswith("python") else
+                                       "fork server" if pid in kids.get(self.root, [])
+                                       else PROVISIONAL[1])
+                    if self.names[pid].startswith(("source-", "ingest-")):
+                        self.names[pid] = "source"
+                else:
+                    self.names[pid] = _stage_name([c for c in cmd if c])
                 self.samples.setdefault(pid, [(now, 0.0)])  # (born in the window: from 0)
             self.samples[pid].append((now, stats[pid]))
 

@@ -645,7 +645,7 @@ class Supervisor:
 
     # -------------------------------------------------------------- run
     def run(self) -> dict:
-        from pipeline.stream.journal import reopen
+        from pipeline.stream.journal import reopen, stream_ended
         from pipeline.stream.runrecord import end
 
         if self.record.get("state") == "finished":
@@ -653,7 +653,15 @@ class Supervisor:
                      f"(see {self.topo.state / 'runs' / (self.topo.run + '.json')})")
             self.lock.release()
             return {**self.record["result"], "already_finished": True}
-        if reopen(self.topo.state / "journal", self.topo.run):  # before any stage starts
+        if stream_ended(self.topo.state / "journal", self.topo.run):
+            # the source's stream ended and was journaled whole (a daemon killed during its
+            # reconciliation, or after its source's end): nothing more will come, so no
+            # source (a UDP ingest would wait for datagrams for ever); the stages finish
+            # the run from the journal, then it is reconciled as any run
+            self.by_name["source"].finished = True
+            self.log(f"run {self.topo.run}: its source's stream had ended (the journal's "
+                     "end); finishing the run from the journal")
+        elif reopen(self.topo.state / "journal", self.topo.run):  # before any stage starts
             self.log(f"run {self.topo.run}: resuming after an earlier stop")
         collector = threading.Thread(target=self._collect, daemon=True)
         collector.start()
@@ -661,8 +669,10 @@ class Supervisor:
         if self.view is not None:
             self._start(self.view.proc)
         for p in self.procs:
-            self._start(p)
-        self.log(f"run {self.topo.run}: {len(self.procs)} stages started "
+            if not p.finished:
+                self._start(p)
+        self.log(f"run {self.topo.run}: {sum(p.popen is not None for p in self.procs)} "
+                 "stages started "
                  f"({self.topo.workers} histogram workers); state in {self.topo.state}")
         last = 0.0
         try:

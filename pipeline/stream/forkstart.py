@@ -153,6 +153,16 @@ class StageProcess:
 def _run(module: str, args: list[str], env: dict[str, str], log: str, name: str) -> None:
     """In the forked stage: what an exec'd one would have had, then the command."""
     os.setpgid(0, 0)  # its own process group: a Ctrl-C reaches the daemon only
+    # multiprocessing hands each child the write end of the server's keep-alive pipe (so
+    # that it could start processes of its own through the server): a stage holding it
+    # would keep the server alive after the daemon's death, and the server its stages
+    # (their parent-death signal never fires). A stage starts no process: closed.
+    from multiprocessing import forkserver
+
+    alive = getattr(forkserver._forkserver, "_forkserver_alive_fd", None)
+    if alive is not None:
+        os.close(alive)
+        forkserver._forkserver._forkserver_alive_fd = None
     from pipeline.stream.state import open_nofollow
 
     die_with_parent()  # (the server is the parent; it ends with the daemon)

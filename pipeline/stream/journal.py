@@ -263,14 +263,18 @@ class JournalWriter:
         except OSError:  # (derived from the index: a full disk must not stop the journal)
             side.unlink(missing_ok=True)
 
-    def close(self) -> None:
-        """Close the last segment and record the run's end (its total words)."""
+    def close(self, complete: bool = False) -> None:
+        """Close the last segment and record the run's end (its total words);
+        ``complete``: the source's stream ended there (its cycles done, the UDP stream's
+        last datagram or ``idle``), not a stop (a signal, an error), so a daemon started
+        again on the run finishes it from the journal instead of reopening it
+        (:func:`stream_ended`)."""
         self._close_segment()
         total = 0
         for e in _entries(self.dir / f"{self.run}.index.jsonl"):
             total = max(total, e.get("first_word", 0) + e.get("words", 0))
-        _write_all(self.index.fileno(), (json.dumps({"end": True, "words": total}) + "\n"
-                                          ).encode())
+        end = {"end": True, "words": total, **({"complete": True} if complete else {})}
+        _write_all(self.index.fileno(), (json.dumps(end) + "\n").encode())
         self.index.close()
         self._lock.close()  # (the kernel also drops it when a writer dies)
 
@@ -428,6 +432,14 @@ def run_end(directory: str | Path, run: str) -> int | None:
     if entries and entries[-1].get("end"):
         return int(entries[-1]["words"])
     return None
+
+
+def stream_ended(directory: str | Path, run: str) -> bool:
+    """True when ``run``'s journal ends where its source's stream ended (the end line's
+    ``complete``): nothing more will come; a daemon started again finishes the run from
+    the journal (a daemon killed during its reconciliation, a finished UDP run)."""
+    entries = _entries(Path(directory) / f"{run}.index.jsonl")
+    return bool(entries and entries[-1].get("end") and entries[-1].get("complete"))
 
 
 def _reopen_index(fd: int, index: Path) -> None:

@@ -597,7 +597,7 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
             writer.shutdown(wait=True)
             writer = None
         if journal is not None:  # the run's end is on disk before anyone hears of it
-            journal.close()
+            journal.close(complete=not halt.is_set())  # (a signal: a stop, resumable)
             journal = None
         for tx in txs:
             tx.send_multipart(wire.encode({"kind": "stop", "schema": RAW_WORDS.name,

@@ -570,7 +570,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
         stats.gap_cycles, stats.lost_datagrams = reasm.gap_cycles, reasm.lost()
         at_end = _connections(monitors)  # (before a consumer can end on the end)
         if writer is not None:  # the run's end is on disk before anyone hears of it
-            writer.close()
+            writer.close(complete=not stop.is_set())  # (a signal: a stop, resumable)
             stats.journal = [str(p) for p in writer.segments]
             writer = None
         halt_rx.set()

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -146,3 +147,45 @@ def test_a_killed_fork_server_takes_its_stages_and_the_run_still_ends_exact(tmp_
     assert res["restarts"].get("source", 0) >= 1
     acc = res["accounting"]
     assert acc["balanced"] and acc["words_in"] == 300_000 * 16 == acc["classified"]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_a_sigkilled_daemon_takes_its_fork_server_and_stages_with_it(tmp_path):
+    """The daemon SIGKILLed with a UDP source waiting (a source that never ends on its
+    own): the server sees the daemon's end of its pipe close and ends, and every stage
+    with it (their parent-death signal). Before, each forked stage held a copy of that pipe
+    (multiprocessing gives it one), so the server and its stages outlived the daemon."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    path = write_topology(tmp_path, source=f'kind = "udp"\nbind = "127.0.0.1:{port}"\n'
+                          'n_tdc = 16')
+    d = subprocess.Popen(_cmd("daemon", "--config", str(path), "--run", "o"),
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    status, pids = tmp_path / "state" / "status.json", []
+    deadline = time.time() + 60
+    while time.time() < deadline and len(pids) < 3:
+        try:
+            pids = [s["pid"] for s in json.loads(status.read_text())["stages"].values()
+                    if s.get("alive") and s.get("pid")]
+        except (OSError, ValueError, KeyError):
+            pass
+        time.sleep(0.05)
+    assert len(pids) == 3, pids
+    server = int(Path(f"/proc/{pids[0]}/stat").read_text().rsplit(")", 1)[1].split()[1])
+    assert server != d.pid
+    d.kill()
+    d.wait(30)
+    deadline = time.time() + 5
+    while time.time() < deadline and any(_alive(p) for p in [server, *pids]):
+        time.sleep(0.05)
+    left = [p for p in [server, *pids] if _alive(p)]
+    for p in left:  # (no orphan outlives the test either)
+        os.kill(p, signal.SIGKILL)
+    assert not left, "the fork server or its stages outlived the daemon"

@@ -116,3 +116,70 @@ def test_reconcile_finishes_a_run_offline_and_again_changes_nothing(tmp_path):
     cut = _reconcile(topo, "r1")
     assert cut.returncode == 3 and "r1 incomplete" in cut.stderr, cut.stderr
     assert "reconciliation skipped" in cut.stderr
+
+
+def test_a_udp_daemon_killed_after_its_streams_end_finishes_when_started_again(tmp_path):
+    """Issue 38.6: the whole daemon SIGKILLed once its UDP stream's end is journaled (during
+    the stages' drain or its reconciliation): started again on the run, it does not wait for
+    datagrams that will never come (before: for ever, without ``idle``); the journal's end
+    says the stream ended, the stages finish from the journal, and the run ends finished,
+    balanced, every datagram's words in once."""
+    import json
+    import os
+    import signal
+    import socket
+    import time
+
+    from pipeline.stream import datagram
+    from pipeline.stream.journal import stream_ended
+    from stages.testpattern import pattern_words
+
+    n_tdc, n, cyc = 16, 300, 64
+    words, _ = pattern_words(n * cyc, n_tdc, hit_prob=0.2, rng=4)
+    dgs = [datagram.encode(words[i * cyc * n_tdc:(i + 1) * cyc * n_tdc], i, i * cyc, n_tdc,
+                           140_000, last=(i == n - 1)) for i in range(n)]
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    topo = tmp_path / "udp.toml"
+    topo.write_text(f"""
+[daemon]
+state = "{tmp_path / 'state'}"
+[source]
+kind = "udp"
+bind = "127.0.0.1:{port}"
+n_tdc = {n_tdc}
+[histogram]
+workers = 2
+measurement_cycles = 6400
+artifacts = "count-as-hits"
+[sink]
+out = "{tmp_path / 'out'}"
+""")
+    cmd = [sys.executable, "-m", "pipeline.cli", "daemon", "--config", str(topo), "--run", "u"]
+    d = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    status, journal = tmp_path / "state" / "status.json", tmp_path / "state" / "journal"
+    deadline = time.time() + 60
+    while time.time() < deadline and not status.exists():
+        time.sleep(0.05)
+    time.sleep(1.0)  # (the ingest bound)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as out:
+        for data in dgs:
+            out.sendto(data, ("127.0.0.1", port))
+            time.sleep(0.002)
+    deadline = time.time() + 60
+    while time.time() < deadline and not stream_ended(journal, "u"):
+        time.sleep(0.01)
+    assert stream_ended(journal, "u")  # the ingest journaled the stream's end
+    os.kill(d.pid, signal.SIGKILL)  # the daemon, before it is done with the run
+    d.communicate(timeout=30)
+    t0 = time.time()
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert time.time() - t0 < 60
+    assert "its source's stream had ended" in again.stderr
+    res = json.loads(again.stdout)
+    acc = res["accounting"]
+    assert res["state"] == "finished" and acc["balanced"], res["problems"]
+    assert acc["words_in"] == acc["classified"] == words.size
+    assert acc["lost_datagrams"] == 0
