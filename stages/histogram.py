@@ -190,6 +190,11 @@ class HistogramAccumulator:
         if seq is not None:
             self._last_seq = int(seq)
 
+    def class_totals(self) -> np.ndarray:
+        """Words of the measurement being filled by class, (N_CLASSES,) uint64 (a sum
+        over the TDCs' counts: microseconds; for the live metrics)."""
+        return self._class_counts.sum(axis=1)
+
     def reset(self) -> None:
         """Start a new measurement: zero the histograms and counts in place (the tables,
         costly to build, are kept)."""

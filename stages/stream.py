@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 import pyarrow as pa
 
+from schemas.constants import N_CLASSES, WORD_CLASSES
 from schemas.errors import Rejected
 from schemas.outputs import HISTOGRAMS
 from schemas.words import RAW_SPARSE, RAW_WORDS
@@ -63,6 +64,8 @@ class HistogramCore:
         self.backfilled = 0
         self.gap_words = 0
         self.words_total = 0      #: words folded in over the run (restored from checkpoints)
+        #: words by class of the measurements emitted whole by this process
+        self._classes_done = np.zeros(N_CLASSES, np.uint64)
         self.context: dict = dict(context or {})  #: gate and the like, from the headers
         self._out: list = []
 
@@ -133,8 +136,20 @@ class HistogramCore:
         self.emitted += 1
         if keep:
             return
+        self._classes_done += state.class_counts.sum(axis=1).astype(np.uint64)
         self.acc.reset()
         self.measurement += 1
+
+    def words_by_class(self) -> dict[str, int] | None:
+        """Words folded in by this process by class (the measurements it emitted whole and
+        the one being filled, from its checkpoint on): the live metrics' words by class,
+        a counter that starts again with the process (the run's truth is the
+        accounting's). None for an accumulator that does not count classes."""
+        live = getattr(self.acc, "class_totals", None)
+        if live is None:
+            return None
+        tot = self._classes_done + live()
+        return {name: int(tot[i]) for i, name in enumerate(WORD_CLASSES)}
 
     def _take(self) -> list:
         out, self._out = self._out, []

@@ -216,6 +216,15 @@ def _families(snap: dict) -> list:
             if isinstance(m.get(key), (int, float)):
                 fam.add_metric([s], float(m[key]))
         out.append(fam)
+    c = CounterMetricFamily(f"{NS}_stage_words_by_class", "words folded in by class (a "
+                            "histogram worker, this process from its checkpoint on; the "
+                            "run's truth is the accounting's)", labels=["stage", "class"])
+    for s, m in sorted(stages.items()):
+        if isinstance(m.get("classes"), dict):
+            for cls, n in sorted(m["classes"].items()):
+                if isinstance(n, (int, float)):
+                    c.add_metric([s, str(cls)], float(n))
+    out.append(c)
     if "source" in stages and isinstance(src.get("words"), (int, float)):
         c = CounterMetricFamily(f"{NS}_source_words", "words the source sent (this "
                                 "process)")

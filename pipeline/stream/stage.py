@@ -75,6 +75,9 @@ class StageStats:
         for name in ("words_total", "measurement", "gap_words", "backfilled", "duplicates"):
             if hasattr(core, name):
                 out[name] = int(getattr(core, name))
+        by_class = getattr(core, "words_by_class", None)
+        if by_class is not None and (classes := by_class()) is not None:
+            out["classes"] = classes  # (a histogram worker: the live words by class)
         return out
 
 

@@ -77,6 +77,13 @@ def test_metrics_of_a_finished_run_equal_its_accounting(tmp_path, daemon_helpers
         assert m["tcspc_restart_budget_available"][(("stage", "source"),)] == 3.0
         assert m["tcspc_daemon_starts_total"][()] == 1
         assert "tcspc_source_words_total" in m and "tcspc_messages_received_total" in m
+        # the words by class, live from the workers' heartbeats: at the end, the
+        # accounting's classes (issue 38.8)
+        by_class = {}
+        for k, v in m["tcspc_stage_words_by_class_total"].items():
+            cls = dict(k)["class"]
+            by_class[cls] = by_class.get(cls, 0) + v
+        assert by_class == {k: float(v) for k, v in result["accounting"]["classes"].items()}
     finally:
         sup.ops.exporter.close()
 
