@@ -48,9 +48,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stages import calibration as cal  # noqa: E402
+from stages.calibration import uncertainty, zero_test  # noqa: E402
 from stages.calibration.floor import tau_floor_s  # noqa: E402
 from stages.simulator.chip import REAL_CHIP_RANGES, random_chip  # noqa: E402
-from stages.simulator.expected import expected_density_hits  # noqa: E402
+from stages.simulator.expected import expected_density_hits, expected_hits  # noqa: E402
 
 T = 80e-9
 LEVELS = (0.02, 0.05, 0.1, 0.3)
@@ -64,8 +65,10 @@ def use(method: str) -> None:
         setattr(cal, name, value)
 
 
-def campaign(chip, lights, cycles, rng):
-    """The INL test (the brightest, filled and combined from the others) and the LSB fit."""
+def campaign(chip, lights, cycles, rng, zero=None):
+    """The INL test (the brightest, filled and combined from the others), the LSB fit, the
+    tests' own results and the table's width variance; with ``zero`` (``(light, cycles, code)``), the zero capture's uniform light combined
+    into the table as ``calibrate delay`` does it (:func:`with_zero`)."""
     c = [np.full(chip.n_tdc, float(n)) for n in cycles]
     hits = [expected_density_hits(chip, n, k[0], T) for n, k in zip(lights, c, strict=True)]
     if rng is not None:
@@ -74,10 +77,37 @@ def campaign(chip, lights, cycles, rng):
     i = int(np.argmax(lights))
     tests = [(res[j], cal.width_variance(hits[j], c[j], res[j])) for j in range(len(lights))
              if j != i]
-    best = cal.density_test(hits[i], c[i], T, fill=cal.fill_from(tests, res[i]), combine=True)
+    fill = cal.fill_from(tests, res[i])
+    best = cal.density_test(hits[i], c[i], T, fill=fill, combine=True)
     n = np.array([float(np.mean(r.detections_per_cycle)) for r in res])
     fit = cal.fit_lsb(n, np.column_stack([r.lsb_s * 1e12 for r in res]))
-    return best, fit, res
+    var = uncertainty.table_var(best.width_lsb, cal.width_variance(hits[i], c[i], res[i]),
+                                fill[1])
+    if zero is not None:
+        best, var, _ = with_zero(chip, best, var, *zero, rng)
+    return best, fit, res, var
+
+
+#: The zero capture's return (detections a cycle) and pulse in :func:`with_zero`.
+ZERO_SIGNAL, ZERO_PULSE_S = 0.02, 150e-12
+
+
+def with_zero(chip, best, var, light, cycles, code, rng=None):
+    """``best`` (a table, ``var`` its width variance) with a zero capture of ``cycles`` at
+    ``light`` (its return at ``code``, ``ZERO_SIGNAL`` a cycle) combined in
+    (:mod:`stages.calibration.zero_test`, as ``calibrate delay`` does): noise-free, or a
+    Poisson draw with ``rng``. The return is located as the largest count within 20 codes
+    of ``code``, its mask from the pulse's width. Returns the table, its variance and the
+    codes the capture added to per TDC."""
+    lsb = chip.window_truth(light, T)[0]
+    z = expected_hits(chip, light, cycles, T, signal=np.full(chip.n_tdc, ZERO_SIGNAL),
+                      tau_s=(code + 0.5) * lsb, pulse_sigma_s=ZERO_PULSE_S)
+    if rng is not None:
+        z = rng.poisson(z).astype(np.float64)
+    peak = code - 20 + np.argmax(z[:, code - 20:code + 21], axis=1).astype(np.float64)
+    k = np.full(chip.n_tdc, float(cycles))
+    zres, zvar = zero_test.zero_density(z, k, T, zero_test.return_mask(peak, ZERO_PULSE_S / lsb))
+    return zero_test.with_test(best, var, zres, zvar)
 
 
 def axis_error_ps(chip, best, n0, code, lsb_s=None, bounds=None):
@@ -100,10 +130,17 @@ def with_true_widths(chip, best, light, codes_from):
     return np.where(k >= start, true + at, b)
 
 
-def rows_for(chip, lights, cycles, n0, code, rng):
-    best, fit, res = campaign(chip, lights, cycles, rng)
+#: The row of the table with the zero capture counted as a fifth test.
+ZERO_ROW = "INL table, the zero capture a fifth density test"
+
+
+def rows_for(chip, lights, cycles, n0, code, rng, zero_cycles=None):
+    best, fit, res, var = campaign(chip, lights, cycles, rng)
     bright = res[int(np.argmax(lights))]
     out = {"INL table": axis_error_ps(chip, best, n0, code)}
+    if zero_cycles:
+        out[ZERO_ROW] = axis_error_ps(chip, with_zero(chip, best, var, n0, zero_cycles, code,
+                                                      rng)[0], n0, code)
     above = np.floor(bright.x_t - cal.EDGE_MARGIN - 1)
     out["  codes above the brightest test's window (true there)"] = out["INL table"] - \
         axis_error_ps(chip, best, n0, code, bounds=with_true_widths(
@@ -140,7 +177,7 @@ def scale_error_ps(chip, best, fit, n0, code, bounds):
     return (bounds[:, code] * scale - chip.boundaries_s(n0)[:, code]) * 1e12
 
 
-def floor_rows(chip, knobs, lights, cycles, n0, code):
+def floor_rows(chip, knobs, lights, cycles, n0, code, zero_cycles=None):
     """The counting floor (ps per TDC) of the rows of :func:`rows_for` that have one."""
     n_tdc = chip.n_tdc
     tests = [(expected_density_hits(chip, n, k, T), np.full(n_tdc, float(k)),
@@ -156,7 +193,16 @@ def floor_rows(chip, knobs, lights, cycles, n0, code):
     bright = tests[int(np.argmax(lights))][2]
     above = floor(unmeasured_sd=0, known_from=np.floor(bright - cal.OWN_CLEAR_LSB))
     counted = floor(unmeasured_sd=0)
-    return {"INL table": whole,
+    more = {}
+    if zero_cycles:
+        lsb = chip.window_truth(n0, T)[0]
+        z = expected_hits(chip, n0, zero_cycles, T, signal=np.full(n_tdc, ZERO_SIGNAL),
+                          tau_s=(code + 0.5) * lsb, pulse_sigma_s=ZERO_PULSE_S)
+        x_z = chip.window_truth(cal.light_level(z, np.full(n_tdc, zero_cycles)), T)[1]
+        clear = ~zero_test.return_mask(np.full(n_tdc, float(code)), ZERO_PULSE_S / lsb)
+        tests = tests + [(z, np.full(n_tdc, float(zero_cycles)), x_z, clear)]
+        more[ZERO_ROW] = floor(unmeasured_sd=sd)
+    return {"INL table": whole, **more,
             "  codes above the brightest test's window (true there)":
                 np.sqrt(np.maximum(whole ** 2 - above ** 2, 0.0)),
             "  table past the last measured code (true there)":
@@ -217,6 +263,9 @@ def main() -> None:
     ap.add_argument("--zero-light", type=float, default=0.01)
     ap.add_argument("--return-code", type=int, default=200)
     ap.add_argument("--draws", type=int, default=1)
+    ap.add_argument("--zero-cycles", type=float, default=1e6,
+                    help="the zero capture's cycles, for the row that counts it as a fifth "
+                         "density test (0: no such row)")
     ap.add_argument("--what-if", action="store_true")
     ap.add_argument("--levels", type=float, nargs="+", default=list(LEVELS))
     ap.add_argument("--our-chip", action="store_true")
@@ -229,7 +278,7 @@ def main() -> None:
     for seed in a.seeds:
         chip, knobs = random_chip(seed, n_tdc=a.tdcs, ranges=REAL_CHIP_RANGES)
         for name, v in floor_rows(chip, knobs, LEVELS, [a.cycles] * len(LEVELS),
-                                  a.zero_light, a.return_code).items():
+                                  a.zero_light, a.return_code, a.zero_cycles).items():
             floors.setdefault(name, []).append(v)
     for method in METHODS:
         use(method)
@@ -240,7 +289,7 @@ def main() -> None:
                     rng = (None if not noisy else np.random.default_rng(seed) if d == 0
                            else np.random.default_rng([seed, d]))
                     rows = rows_for(chip, LEVELS, [a.cycles] * len(LEVELS), a.zero_light,
-                                    a.return_code, rng)
+                                    a.return_code, rng, a.zero_cycles)
                     for name, v in rows.items():
                         table.setdefault(name, {}).setdefault((method, noisy), []).append(v)
     # the planned campaign, after: the same budget as calibrate plan spends it
