@@ -13,7 +13,11 @@ the truth for one part at a time:
 
 - the INL table (the LSB at the zero's light true): whole, and with the true widths put in
   the codes above the brightest test's window, and past the last code any test measured;
-- the LSB(n) interpolation at the zero's light (the table true, the fit's LSB).
+- the LSB(n) interpolation at the zero's light (the table true, the fit's LSB);
+- the INL table with the zero capture (``--zero-cycles``, its return at ``--return-code``,
+  0.02 a cycle) counted as a fifth density test, as ``calibrate delay`` counts it
+  (:mod:`stages.calibration.zero_test`), on the same draws of the tests; the planned
+  campaign's row counts the plan's zero capture (2e6 cycles) so too.
 
 The peak's time on the zero capture is not simulated here (its own counting: ~4 ps in the
 issue's measurement).
@@ -27,12 +31,13 @@ the codes no test measured add (the prior's part). ``--draws`` noisy campaigns a
 noisy columns' RMS is over all of them: one draw of 8 TDCs is +-15 %).
 
     python benchmarks/calibration_bias.py [--seeds 1 2 3] [--tdcs 16] [--cycles 1e6]
-        [--budget 4e6] [--zero-light 0.01] [--draws 1] [--what-if]
+        [--budget 4e6] [--zero-light 0.01] [--zero-cycles 1e6] [--draws 1] [--what-if]
 
 ``--what-if`` prints only the floor, of the fixed captures and of what would lower it (the
-zero capture's own uniform light counted as a fifth test, clear of its return; more cycles
-in every test), and exits; with it, ``--levels`` sets the tests' lights and ``--our-chip``
-takes our simulator's chip (``make_chip(tdcs, seed)``, random DNL 0.04 LSB) for the zoo's:
+zero capture's own uniform light counted as a fifth test, clear of its return; every
+test's codes up to its own x_T, not 2.5 below it; more cycles in every test), and exits;
+with it, ``--levels`` sets the tests' lights and ``--our-chip`` takes our simulator's chip
+(``make_chip(tdcs, seed)``, random DNL 0.04 LSB) for the zoo's:
 ``--our-chip --seeds 4 --levels 0.02 0.06 0.15 0.3 0.5 0.75 --cycles 4e6 --zero-light 0.52
 --return-code 300`` is ``benchmarks/range_accuracy.py``'s campaign and delay.
 """
@@ -67,8 +72,9 @@ def use(method: str) -> None:
 
 def campaign(chip, lights, cycles, rng, zero=None):
     """The INL test (the brightest, filled and combined from the others), the LSB fit, the
-    tests' own results and the table's width variance; with ``zero`` (``(light, cycles, code)``), the zero capture's uniform light combined
-    into the table as ``calibrate delay`` does it (:func:`with_zero`)."""
+    tests' own results and the table's width variance; with ``zero`` (``(light, cycles,
+    code)``), the zero capture's uniform light combined into the table as ``calibrate
+    delay`` does it (:func:`with_zero`)."""
     c = [np.full(chip.n_tdc, float(n)) for n in cycles]
     hits = [expected_density_hits(chip, n, k[0], T) for n, k in zip(lights, c, strict=True)]
     if rng is not None:
@@ -211,8 +217,6 @@ def floor_rows(chip, knobs, lights, cycles, n0, code, zero_cycles=None):
 
 def what_if(a) -> None:
     """The floor of the fixed captures and of what would lower it (``--what-if``)."""
-    from stages.simulator.expected import expected_hits
-
     out: dict = {}
     from stages.simulator.chip import make_chip
 
@@ -225,20 +229,31 @@ def what_if(a) -> None:
         widths = np.diff(chip.boundaries_s(n0), axis=1)
         lsb, x_t0, _ = chip.window_truth(n0, T)
 
-        def floor(tt, x_t0=x_t0, widths=widths, knobs=knobs):
-            return tau_floor_s(tt, widths, a.return_code, x_t0, T,
+        def floor(tt, x_t0=x_t0, widths=widths, knobs=knobs, margin=cal.OWN_CLEAR_LSB):
+            return tau_floor_s(tt, widths, a.return_code, x_t0, T, margin=margin,
                                unmeasured_sd=float(knobs["dnl_random_lsb"])) * 1e12
 
         out.setdefault("the fixed captures", []).append(floor(tests))
-        clear = np.abs(np.arange(512) - a.return_code) > 12
+        # (issue 33, point 2) every code up to each test's own x_T counted as uniform
+        # light: what the codes under the reset peak's tail could add at most
+        for m in (1.0, 0.0):
+            out.setdefault(f"the fixed captures, each test's codes up to {m:g} below its "
+                           "x_T (the reset peak's tail taken as known)", []).append(
+                floor(tests, margin=m))
+        # the return masked as `calibrate delay` masks it (zero_test.return_mask)
+        clear = ~zero_test.return_mask(np.full(n_tdc, float(a.return_code)),
+                                       ZERO_PULSE_S / lsb)
         for zc in (1e6, 2e6):
-            z = expected_hits(chip, n0, zc, T, signal=np.full(n_tdc, 0.02),
-                              tau_s=(a.return_code + 0.5) * lsb, pulse_sigma_s=150e-12)
+            z = expected_hits(chip, n0, zc, T, signal=np.full(n_tdc, ZERO_SIGNAL),
+                              tau_s=(a.return_code + 0.5) * lsb, pulse_sigma_s=ZERO_PULSE_S)
             # its window ends where its own light (the return's STARTs too) puts x_T
             x_z = chip.window_truth(cal.light_level(z, np.full(n_tdc, zc)), T)[1]
-            out.setdefault(f"+ the zero's own light, {zc:.0e} cycles (return 0.02 a cycle)",
-                           []).append(floor(tests + [(z, np.full(n_tdc, zc), x_z,
-                                                      np.broadcast_to(clear, z.shape))]))
+            five = tests + [(z, np.full(n_tdc, zc), x_z, clear)]
+            out.setdefault(f"+ the zero's own light, {zc:.0e} cycles (return "
+                           f"{ZERO_SIGNAL} a cycle)", []).append(floor(five))
+            if zc == 1e6:
+                out.setdefault("+ the zero's own light, 1e+06 cycles, every test's codes up "
+                               "to its x_T", []).append(floor(five, margin=0.0))
         for x in (1.5, 1.7, 2.0):
             out.setdefault(f"every test's cycles x{x}", []).append(
                 floor([(h * x, c * x, xt) for h, c, xt in tests]))
@@ -303,14 +318,17 @@ def main() -> None:
         zero[:, k] += 2e6 * 0.002 * np.exp(-0.5 * ((k - a.return_code) / 1.5) ** 2)[None] / 3.76
         zero = np.random.default_rng(seed).poisson(zero)
         plan = cal.plan_tests(zero, np.full(a.tdcs, 2e6), a.budget, T)
+        # the plan counts the zero capture's own counts (plan_tests(zero_as_test=True)),
+        # and calibrate delay combines them: the row does too (its 2e6 cycles)
         planned_floor.append(floor_rows(chip, knobs, list(plan.lights), list(plan.cycles),
-                                        a.zero_light, a.return_code)["INL table"])
+                                        a.zero_light, a.return_code, 2e6)[ZERO_ROW])
         for noisy in (False, True):
             for d in range(a.draws if noisy else 1):
                 rng = (None if not noisy else np.random.default_rng(seed) if d == 0
                        else np.random.default_rng([seed, d]))
                 planned[noisy].append(rows_for(chip, list(plan.lights), list(plan.cycles),
-                                               a.zero_light, a.return_code, rng)["INL table"])
+                                               a.zero_light, a.return_code, rng,
+                                               2e6)[ZERO_ROW])
         print(f"seed {seed}: plan {[(round(float(n), 4), int(c)) for n, c in zip(plan.lights, plan.cycles, strict=True)]}, "  # noqa: E501
               f"expected {np.nanmedian(plan.delay_error_ps):.0f} ps")
     print(f"\nDelay RMS (ps) each part costs, real-chip zoo seeds {a.seeds}, {a.tdcs} TDCs, "
@@ -323,7 +341,8 @@ def main() -> None:
         fl = f"{rms(floors[name]):.1f}" if name in floors else ""
         print(f"| {name} | " + " | ".join(f"{rms(cols[(m, n)]):.1f}" for m in METHODS
                                           for n in (False, True)) + f" | {fl} |")
-    print(f"| INL table, the {a.budget:.0e} cycles as `calibrate plan` spends them | | | "
+    print(f"| INL table, the {a.budget:.0e} cycles as `calibrate plan` spends them (and the "
+          f"zero capture's 2e6 counted) | | | "
           f"{rms(planned[False]):.1f} | {rms(planned[True]):.1f} | {rms(planned_floor):.1f} |")
     print("\nper seed, the INL table after (noisy) against its floor (ps RMS over the TDCs):")
     k = len(a.seeds)

@@ -476,8 +476,9 @@ def with_zero_density(calib: Calibration, state, window_s: float, returns, sigma
     if not used.any():
         return calib
     if log:
-        log(f"{name}: its uniform light (the return masked) measured {int(np.median(used[used > 0]))} "
-            f"codes of the table (median) on {int((used > 0).sum())} of {calib.n_tdc} TDCs")
+        log(f"{name}: its uniform light (the return masked) measured "
+            f"{int(np.median(used[used > 0]))} codes of the table (median) on "
+            f"{int((used > 0).sum())} of {calib.n_tdc} TDCs")
     meta = {**calib.meta, "zero_density": [*done, {
         **mark, "codes_used": used.tolist(), "return_mask_sigmas": zero_test.ZERO_CLEAR_SIGMAS}]}
     return dataclasses.replace(calib, density=density, width_var_lsb2=var, meta=meta)
