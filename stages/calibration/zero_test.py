@@ -29,6 +29,8 @@ from stages.calibration.density import DensityResult, density_test, width_varian
 ZERO_CLEAR_SIGMAS, ZERO_CLEAR_CODES = 6.0, 2
 #: Codes both must have measured to bring the capture's widths to the table's units.
 MIN_COMMON = 32
+#: Hits clear of the return a TDC's zero capture needs to count as a density test.
+MIN_UNIFORM_HITS = 1000
 
 
 def return_mask(returns, sigma_codes) -> np.ndarray:
@@ -51,6 +53,10 @@ def zero_density(hits, cycles, window_s: float, exclude, artifacts=None
     codes: the phase mean stands there, nothing measured)."""
     h = np.asarray(hits, np.float64)
     exclude = np.asarray(exclude, bool)
+    # a TDC with little uniform light clear of its return (a zero capture without ambient
+    # light holds its return alone) is not a density test: left out, as a dark TDC
+    lit = np.where(exclude, 0.0, h).sum(axis=1) >= MIN_UNIFORM_HITS
+    h = np.where(lit[:, None], h, 0.0)
     res = density_test(h, cycles, window_s, exclude=exclude, artifacts=artifacts)
     var = width_variance(h, cycles, res, artifacts)
     return res, np.where(exclude, np.nan, var)

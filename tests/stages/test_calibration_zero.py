@@ -73,6 +73,14 @@ def test_zero_capture_widths_are_the_chips_noise_free(seed):
     assert (used > 300).all()
     before, after = axis_error_ps(chip, best, N0, CODE), axis_error_ps(chip, new, N0, CODE)
     assert rms([after]) < rms([before]) + 1.0, (rms([before]), rms([after]))
+    # a zero capture of its return alone (no ambient light) is no density test: unused
+    alone = np.round(expected_hits(chip, 1e-5, 1e6, T, signal=np.full(N, ZERO_SIGNAL),
+                                   tau_s=(CODE + 0.5) * lsb, pulse_sigma_s=ZERO_PULSE_S))
+    with np.errstate(all="raise"):
+        r0, v0 = zero_test.zero_density(alone, np.full(N, 1e6), T, mask)
+    same, _, none = zero_test.with_test(best, tvar, r0, v0)
+    assert not r0.ok.any() and not none.any()
+    np.testing.assert_array_equal(same.width_lsb, best.width_lsb)
     finite = np.isfinite(tvar)  # (1e-3: the units renormalised)
     assert np.all(nvar[finite] <= tvar[finite] * (1 + 1e-3))
 
