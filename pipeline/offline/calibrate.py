@@ -441,8 +441,9 @@ def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: 
 
 
 #: Whether ``calibrate delay`` counts the zero capture's uniform light as one more density
-#: test (:mod:`stages.calibration.zero_test`; issue 33: the delay's counting floor 74 ->
-#: 68 ps RMS on the issue's captures, the chain's error 74.4 -> 65.2).
+#: test (:mod:`stages.calibration.zero_test`; issue 33: on the issue's captures the delay's
+#: counting floor 74.0 -> 68.8 ps RMS, the chain's error 68.7 -> 62.7 on zoo seeds 1-3 and
+#: 81.1 -> 75.5 on 6-8, paired; docs/calibration.md).
 ZERO_AS_TEST = True
 
 
@@ -453,8 +454,9 @@ def with_zero_density(calib: Calibration, state, window_s: float, returns, sigma
     return (at the codes ``returns``, NaN where none was located) masked over
     ``ZERO_CLEAR_SIGMAS`` response sigmas (``sigma_s`` on ``axis``) and its reset peak
     left as a density test leaves it. The same capture is not counted twice (meta.json's
-    ``zero_density`` holds its name and counts); a calibration without a table variance
-    (made before issue 33.3) is returned as it was."""
+    ``zero_density`` lists the captures counted: name, counts, the SHA-256 of their
+    histograms; another zero capture adds its own); a calibration without a table
+    variance (made before issue 33.3) is returned as it was."""
     import hashlib
 
     h = np.asarray(state.hits)
