@@ -240,6 +240,16 @@ def what_if(a) -> None:
             out.setdefault(f"the fixed captures, each test's codes up to {m:g} below its "
                            "x_T (the reset peak's tail taken as known)", []).append(
                 floor(tests, margin=m))
+        # ... and a bound on what those codes can add whatever the model of the reset peak:
+        # the codes under every test's reset peak (2.5 below to 2 above its x_T) known
+        # exactly (an oracle test of 1e9 counts a code there, its own light free)
+        k = np.arange(512)[None, :]
+        peak = np.zeros((n_tdc, 512), bool)
+        for _, _, xt in tests:
+            peak |= (k + 1 > xt[:, None] - cal.OWN_CLEAR_LSB) & (k < xt[:, None] + 2)
+        oracle = (np.where(peak, 1e9, 0.0), np.full(n_tdc, 1e12), np.full(n_tdc, 600.0), peak)
+        out.setdefault("the fixed captures, the codes under every test's reset peak known "
+                       "exactly", []).append(floor(tests + [oracle]))
         # the return masked as `calibrate delay` masks it (zero_test.return_mask)
         clear = ~zero_test.return_mask(np.full(n_tdc, float(a.return_code)),
                                        ZERO_PULSE_S / lsb)
