@@ -13,7 +13,11 @@ the truth for one part at a time:
 
 - the INL table (the LSB at the zero's light true): whole, and with the true widths put in
   the codes above the brightest test's window, and past the last code any test measured;
-- the LSB(n) interpolation at the zero's light (the table true, the fit's LSB).
+- the LSB(n) interpolation at the zero's light (the table true, the fit's LSB);
+- the INL table with the zero capture (``--zero-cycles``, its return at ``--return-code``,
+  0.02 a cycle) counted as a fifth density test, as ``calibrate delay`` counts it
+  (:mod:`stages.calibration.zero_test`), on the same draws of the tests; the planned
+  campaign's row counts the plan's zero capture (2e6 cycles) so too.
 
 The peak's time on the zero capture is not simulated here (its own counting: ~4 ps in the
 issue's measurement).
@@ -27,12 +31,13 @@ the codes no test measured add (the prior's part). ``--draws`` noisy campaigns a
 noisy columns' RMS is over all of them: one draw of 8 TDCs is +-15 %).
 
     python benchmarks/calibration_bias.py [--seeds 1 2 3] [--tdcs 16] [--cycles 1e6]
-        [--budget 4e6] [--zero-light 0.01] [--draws 1] [--what-if]
+        [--budget 4e6] [--zero-light 0.01] [--zero-cycles 1e6] [--draws 1] [--what-if]
 
 ``--what-if`` prints only the floor, of the fixed captures and of what would lower it (the
-zero capture's own uniform light counted as a fifth test, clear of its return; more cycles
-in every test), and exits; with it, ``--levels`` sets the tests' lights and ``--our-chip``
-takes our simulator's chip (``make_chip(tdcs, seed)``, random DNL 0.04 LSB) for the zoo's:
+zero capture's own uniform light counted as a fifth test, clear of its return; every
+test's codes up to its own x_T, not 2.5 below it; more cycles in every test), and exits;
+with it, ``--levels`` sets the tests' lights and ``--our-chip`` takes our simulator's chip
+(``make_chip(tdcs, seed)``, random DNL 0.04 LSB) for the zoo's:
 ``--our-chip --seeds 4 --levels 0.02 0.06 0.15 0.3 0.5 0.75 --cycles 4e6 --zero-light 0.52
 --return-code 300`` is ``benchmarks/range_accuracy.py``'s campaign and delay.
 """
@@ -48,9 +53,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stages import calibration as cal  # noqa: E402
+from stages.calibration import uncertainty, zero_test  # noqa: E402
 from stages.calibration.floor import tau_floor_s  # noqa: E402
 from stages.simulator.chip import REAL_CHIP_RANGES, random_chip  # noqa: E402
-from stages.simulator.expected import expected_density_hits  # noqa: E402
+from stages.simulator.expected import expected_density_hits, expected_hits  # noqa: E402
 
 T = 80e-9
 LEVELS = (0.02, 0.05, 0.1, 0.3)
@@ -64,8 +70,11 @@ def use(method: str) -> None:
         setattr(cal, name, value)
 
 
-def campaign(chip, lights, cycles, rng):
-    """The INL test (the brightest, filled and combined from the others) and the LSB fit."""
+def campaign(chip, lights, cycles, rng, zero=None):
+    """The INL test (the brightest, filled and combined from the others), the LSB fit, the
+    tests' own results and the table's width variance; with ``zero`` (``(light, cycles,
+    code)``), the zero capture's uniform light combined into the table as ``calibrate
+    delay`` does it (:func:`with_zero`)."""
     c = [np.full(chip.n_tdc, float(n)) for n in cycles]
     hits = [expected_density_hits(chip, n, k[0], T) for n, k in zip(lights, c, strict=True)]
     if rng is not None:
@@ -74,10 +83,37 @@ def campaign(chip, lights, cycles, rng):
     i = int(np.argmax(lights))
     tests = [(res[j], cal.width_variance(hits[j], c[j], res[j])) for j in range(len(lights))
              if j != i]
-    best = cal.density_test(hits[i], c[i], T, fill=cal.fill_from(tests, res[i]), combine=True)
+    fill = cal.fill_from(tests, res[i])
+    best = cal.density_test(hits[i], c[i], T, fill=fill, combine=True)
     n = np.array([float(np.mean(r.detections_per_cycle)) for r in res])
     fit = cal.fit_lsb(n, np.column_stack([r.lsb_s * 1e12 for r in res]))
-    return best, fit, res
+    var = uncertainty.table_var(best.width_lsb, cal.width_variance(hits[i], c[i], res[i]),
+                                fill[1])
+    if zero is not None:
+        best, var, _ = with_zero(chip, best, var, *zero, rng)
+    return best, fit, res, var
+
+
+#: The zero capture's return (detections a cycle) and pulse in :func:`with_zero`.
+ZERO_SIGNAL, ZERO_PULSE_S = 0.02, 150e-12
+
+
+def with_zero(chip, best, var, light, cycles, code, rng=None):
+    """``best`` (a table, ``var`` its width variance) with a zero capture of ``cycles`` at
+    ``light`` (its return at ``code``, ``ZERO_SIGNAL`` a cycle) combined in
+    (:mod:`stages.calibration.zero_test`, as ``calibrate delay`` does): noise-free, or a
+    Poisson draw with ``rng``. The return is located as the largest count within 20 codes
+    of ``code``, its mask from the pulse's width. Returns the table, its variance and the
+    codes the capture added to per TDC."""
+    lsb = chip.window_truth(light, T)[0]
+    z = expected_hits(chip, light, cycles, T, signal=np.full(chip.n_tdc, ZERO_SIGNAL),
+                      tau_s=(code + 0.5) * lsb, pulse_sigma_s=ZERO_PULSE_S)
+    if rng is not None:
+        z = rng.poisson(z).astype(np.float64)
+    peak = code - 20 + np.argmax(z[:, code - 20:code + 21], axis=1).astype(np.float64)
+    k = np.full(chip.n_tdc, float(cycles))
+    zres, zvar = zero_test.zero_density(z, k, T, zero_test.return_mask(peak, ZERO_PULSE_S / lsb))
+    return zero_test.with_test(best, var, zres, zvar)
 
 
 def axis_error_ps(chip, best, n0, code, lsb_s=None, bounds=None):
@@ -100,10 +136,17 @@ def with_true_widths(chip, best, light, codes_from):
     return np.where(k >= start, true + at, b)
 
 
-def rows_for(chip, lights, cycles, n0, code, rng):
-    best, fit, res = campaign(chip, lights, cycles, rng)
+#: The row of the table with the zero capture counted as a fifth test.
+ZERO_ROW = "INL table, the zero capture a fifth density test"
+
+
+def rows_for(chip, lights, cycles, n0, code, rng, zero_cycles=None):
+    best, fit, res, var = campaign(chip, lights, cycles, rng)
     bright = res[int(np.argmax(lights))]
     out = {"INL table": axis_error_ps(chip, best, n0, code)}
+    if zero_cycles:
+        out[ZERO_ROW] = axis_error_ps(chip, with_zero(chip, best, var, n0, zero_cycles, code,
+                                                      rng)[0], n0, code)
     above = np.floor(bright.x_t - cal.EDGE_MARGIN - 1)
     out["  codes above the brightest test's window (true there)"] = out["INL table"] - \
         axis_error_ps(chip, best, n0, code, bounds=with_true_widths(
@@ -140,7 +183,7 @@ def scale_error_ps(chip, best, fit, n0, code, bounds):
     return (bounds[:, code] * scale - chip.boundaries_s(n0)[:, code]) * 1e12
 
 
-def floor_rows(chip, knobs, lights, cycles, n0, code):
+def floor_rows(chip, knobs, lights, cycles, n0, code, zero_cycles=None):
     """The counting floor (ps per TDC) of the rows of :func:`rows_for` that have one."""
     n_tdc = chip.n_tdc
     tests = [(expected_density_hits(chip, n, k, T), np.full(n_tdc, float(k)),
@@ -156,7 +199,16 @@ def floor_rows(chip, knobs, lights, cycles, n0, code):
     bright = tests[int(np.argmax(lights))][2]
     above = floor(unmeasured_sd=0, known_from=np.floor(bright - cal.OWN_CLEAR_LSB))
     counted = floor(unmeasured_sd=0)
-    return {"INL table": whole,
+    more = {}
+    if zero_cycles:
+        lsb = chip.window_truth(n0, T)[0]
+        z = expected_hits(chip, n0, zero_cycles, T, signal=np.full(n_tdc, ZERO_SIGNAL),
+                          tau_s=(code + 0.5) * lsb, pulse_sigma_s=ZERO_PULSE_S)
+        x_z = chip.window_truth(cal.light_level(z, np.full(n_tdc, zero_cycles)), T)[1]
+        clear = ~zero_test.return_mask(np.full(n_tdc, float(code)), ZERO_PULSE_S / lsb)
+        tests = tests + [(z, np.full(n_tdc, float(zero_cycles)), x_z, clear)]
+        more[ZERO_ROW] = floor(unmeasured_sd=sd)
+    return {"INL table": whole, **more,
             "  codes above the brightest test's window (true there)":
                 np.sqrt(np.maximum(whole ** 2 - above ** 2, 0.0)),
             "  table past the last measured code (true there)":
@@ -165,8 +217,6 @@ def floor_rows(chip, knobs, lights, cycles, n0, code):
 
 def what_if(a) -> None:
     """The floor of the fixed captures and of what would lower it (``--what-if``)."""
-    from stages.simulator.expected import expected_hits
-
     out: dict = {}
     from stages.simulator.chip import make_chip
 
@@ -179,20 +229,41 @@ def what_if(a) -> None:
         widths = np.diff(chip.boundaries_s(n0), axis=1)
         lsb, x_t0, _ = chip.window_truth(n0, T)
 
-        def floor(tt, x_t0=x_t0, widths=widths, knobs=knobs):
-            return tau_floor_s(tt, widths, a.return_code, x_t0, T,
+        def floor(tt, x_t0=x_t0, widths=widths, knobs=knobs, margin=cal.OWN_CLEAR_LSB):
+            return tau_floor_s(tt, widths, a.return_code, x_t0, T, margin=margin,
                                unmeasured_sd=float(knobs["dnl_random_lsb"])) * 1e12
 
         out.setdefault("the fixed captures", []).append(floor(tests))
-        clear = np.abs(np.arange(512) - a.return_code) > 12
+        # (issue 33, point 2) every code up to each test's own x_T counted as uniform
+        # light: what the codes under the reset peak's tail could add at most
+        for m in (1.0, 0.0):
+            out.setdefault(f"the fixed captures, each test's codes up to {m:g} below its "
+                           "x_T (the reset peak's tail taken as known)", []).append(
+                floor(tests, margin=m))
+        # ... and a bound on what those codes can add whatever the model of the reset peak:
+        # the codes under every test's reset peak (2.5 below to 2 above its x_T) known
+        # exactly (an oracle test of 1e9 counts a code there, its own light free)
+        k = np.arange(512)[None, :]
+        peak = np.zeros((n_tdc, 512), bool)
+        for _, _, xt in tests:
+            peak |= (k + 1 > xt[:, None] - cal.OWN_CLEAR_LSB) & (k < xt[:, None] + 2)
+        oracle = (np.where(peak, 1e9, 0.0), np.full(n_tdc, 1e12), np.full(n_tdc, 600.0), peak)
+        out.setdefault("the fixed captures, the codes under every test's reset peak known "
+                       "exactly", []).append(floor(tests + [oracle]))
+        # the return masked as `calibrate delay` masks it (zero_test.return_mask)
+        clear = ~zero_test.return_mask(np.full(n_tdc, float(a.return_code)),
+                                       ZERO_PULSE_S / lsb)
         for zc in (1e6, 2e6):
-            z = expected_hits(chip, n0, zc, T, signal=np.full(n_tdc, 0.02),
-                              tau_s=(a.return_code + 0.5) * lsb, pulse_sigma_s=150e-12)
+            z = expected_hits(chip, n0, zc, T, signal=np.full(n_tdc, ZERO_SIGNAL),
+                              tau_s=(a.return_code + 0.5) * lsb, pulse_sigma_s=ZERO_PULSE_S)
             # its window ends where its own light (the return's STARTs too) puts x_T
             x_z = chip.window_truth(cal.light_level(z, np.full(n_tdc, zc)), T)[1]
-            out.setdefault(f"+ the zero's own light, {zc:.0e} cycles (return 0.02 a cycle)",
-                           []).append(floor(tests + [(z, np.full(n_tdc, zc), x_z,
-                                                      np.broadcast_to(clear, z.shape))]))
+            five = tests + [(z, np.full(n_tdc, zc), x_z, clear)]
+            out.setdefault(f"+ the zero's own light, {zc:.0e} cycles (return "
+                           f"{ZERO_SIGNAL} a cycle)", []).append(floor(five))
+            if zc == 1e6:
+                out.setdefault("+ the zero's own light, 1e+06 cycles, every test's codes up "
+                               "to its x_T", []).append(floor(five, margin=0.0))
         for x in (1.5, 1.7, 2.0):
             out.setdefault(f"every test's cycles x{x}", []).append(
                 floor([(h * x, c * x, xt) for h, c, xt in tests]))
@@ -217,6 +288,9 @@ def main() -> None:
     ap.add_argument("--zero-light", type=float, default=0.01)
     ap.add_argument("--return-code", type=int, default=200)
     ap.add_argument("--draws", type=int, default=1)
+    ap.add_argument("--zero-cycles", type=float, default=1e6,
+                    help="the zero capture's cycles, for the row that counts it as a fifth "
+                         "density test (0: no such row)")
     ap.add_argument("--what-if", action="store_true")
     ap.add_argument("--levels", type=float, nargs="+", default=list(LEVELS))
     ap.add_argument("--our-chip", action="store_true")
@@ -229,7 +303,7 @@ def main() -> None:
     for seed in a.seeds:
         chip, knobs = random_chip(seed, n_tdc=a.tdcs, ranges=REAL_CHIP_RANGES)
         for name, v in floor_rows(chip, knobs, LEVELS, [a.cycles] * len(LEVELS),
-                                  a.zero_light, a.return_code).items():
+                                  a.zero_light, a.return_code, a.zero_cycles).items():
             floors.setdefault(name, []).append(v)
     for method in METHODS:
         use(method)
@@ -240,7 +314,7 @@ def main() -> None:
                     rng = (None if not noisy else np.random.default_rng(seed) if d == 0
                            else np.random.default_rng([seed, d]))
                     rows = rows_for(chip, LEVELS, [a.cycles] * len(LEVELS), a.zero_light,
-                                    a.return_code, rng)
+                                    a.return_code, rng, a.zero_cycles)
                     for name, v in rows.items():
                         table.setdefault(name, {}).setdefault((method, noisy), []).append(v)
     # the planned campaign, after: the same budget as calibrate plan spends it
@@ -254,14 +328,17 @@ def main() -> None:
         zero[:, k] += 2e6 * 0.002 * np.exp(-0.5 * ((k - a.return_code) / 1.5) ** 2)[None] / 3.76
         zero = np.random.default_rng(seed).poisson(zero)
         plan = cal.plan_tests(zero, np.full(a.tdcs, 2e6), a.budget, T)
+        # the plan counts the zero capture's own counts (plan_tests(zero_as_test=True)),
+        # and calibrate delay combines them: the row does too (its 2e6 cycles)
         planned_floor.append(floor_rows(chip, knobs, list(plan.lights), list(plan.cycles),
-                                        a.zero_light, a.return_code)["INL table"])
+                                        a.zero_light, a.return_code, 2e6)[ZERO_ROW])
         for noisy in (False, True):
             for d in range(a.draws if noisy else 1):
                 rng = (None if not noisy else np.random.default_rng(seed) if d == 0
                        else np.random.default_rng([seed, d]))
                 planned[noisy].append(rows_for(chip, list(plan.lights), list(plan.cycles),
-                                               a.zero_light, a.return_code, rng)["INL table"])
+                                               a.zero_light, a.return_code, rng,
+                                               2e6)[ZERO_ROW])
         print(f"seed {seed}: plan {[(round(float(n), 4), int(c)) for n, c in zip(plan.lights, plan.cycles, strict=True)]}, "  # noqa: E501
               f"expected {np.nanmedian(plan.delay_error_ps):.0f} ps")
     print(f"\nDelay RMS (ps) each part costs, real-chip zoo seeds {a.seeds}, {a.tdcs} TDCs, "
@@ -274,7 +351,8 @@ def main() -> None:
         fl = f"{rms(floors[name]):.1f}" if name in floors else ""
         print(f"| {name} | " + " | ".join(f"{rms(cols[(m, n)]):.1f}" for m in METHODS
                                           for n in (False, True)) + f" | {fl} |")
-    print(f"| INL table, the {a.budget:.0e} cycles as `calibrate plan` spends them | | | "
+    print(f"| INL table, the {a.budget:.0e} cycles as `calibrate plan` spends them (and the "
+          f"zero capture's 2e6 counted) | | | "
           f"{rms(planned[False]):.1f} | {rms(planned[True]):.1f} | {rms(planned_floor):.1f} |")
     print("\nper seed, the INL table after (noisy) against its floor (ps RMS over the TDCs):")
     k = len(a.seeds)

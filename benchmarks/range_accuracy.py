@@ -300,9 +300,12 @@ def main() -> None:
     args = ap.parse_args()
     chip, plan, tests, d_light, delay_state, z_light, ranges, r_light, t_sim = campaign(args)
     t0 = time.perf_counter()
+    var: dict = {}  # the table's width variance, as `calibrate lsb` stores it
     best, second, fit, n, _, i_best = lsb_from_states(tests, WINDOW_S, inl_rms_lsb=1.0,
-                                                      combine=args.inl_from == "all")
-    base = Calibration(best, second, fit, np.full(chip.n_tdc, np.nan), (), None, {})
+                                                      combine=args.inl_from == "all",
+                                                      variance=var)
+    base = Calibration(best, second, fit, np.full(chip.n_tdc, np.nan), (), None, {},
+                       width_var_lsb2=var.get("width_var"))
     rows = []
     for i, (name, config) in enumerate(CONFIGS):
         if args.only is not None and i not in args.only:

@@ -122,6 +122,54 @@ def _delay_dir(inputs: dict) -> tuple[str, Path]:
     return key, Path(inputs["cache_dir"]) / f"delay-{key}"
 
 
+#: The reset period assumed when a scene's light is predicted for the plan (the simulated
+#: chip's; it only orders and scales the levels the plan weighs).
+PLAN_RESET_S = 20e-9
+
+
+def scene_light(scene: dict) -> float:
+    """A density scene's light, detections per pixel per cycle (eq. 5.1's n), as its model
+    predicts it: ``1 - exp(-rate (reset + T))``, ``rate`` the median pixel's ambient and
+    dark detections a second."""
+    from stages.models.scene import evaluate, scene_from_dict
+
+    model = evaluate(scene_from_dict(scene, scene.get("name", "scene")), cycles=1)
+    rate = float(np.median(model.bg_rate_hz))
+    return float(-np.expm1(-rate * (PLAN_RESET_S + model.window_s)))
+
+
+@task(cache_policy=NO_CACHE, timeout_seconds=STEP_TIMEOUT_S,
+      task_run_name="plan the density tests from the zero capture")
+def plan_density(zero, budget: int, lux: list[float], n_pixels: int) -> dict:
+    """The density tests' cycles at the ``lux`` levels, planned from the zero-distance
+    capture ``zero`` within ``budget`` cycles (:func:`stages.calibration.plan_tests`, as
+    `tcspc calibrate plan`; its levels the lights the scenes' model predicts at ``lux``).
+    A test the plan adds at the zero's own light goes to the level nearest it in light."""
+    from pipeline.offline.calibrate import density_histograms
+    from stages import calibration as cal
+
+    cap = _open(zero)
+    state, _ = density_histograms(cap)
+    lights = [scene_light(scene_dict("density", lux=lv, n_pixels=n_pixels)) for lv in lux]
+    p = cal.plan_tests(state.hits, state.cycles, budget, cap.meta.window_ns * 1e-9,
+                       levels=lights)
+    cycles = np.zeros(len(lux))
+    for n, c in zip(p.lights, p.cycles, strict=True):
+        cycles[int(np.argmin(np.abs(np.log(lights) - np.log(max(n, 1e-9)))))] += c
+    e = p.delay_error_ps
+    why = ""
+    if not np.isfinite(e).any():  # no return on uniform light: nothing to plan for
+        why = ("no return found above uniform light in the zero capture (give it ambient "
+               "light: delay_lux): the budget split evenly")
+        get_run_logger().warning("plan: %s", why)
+        cycles = np.full(len(lux), budget // len(lux))
+    return {"budget": int(budget), "lux": list(lux), "lights": [round(v, 6) for v in lights],
+            "cycles": [max(int(c), 1) for c in cycles], "zero_light": round(p.zero_light, 6),
+            "expected_delay_error_ps": (round(float(np.nanmedian(e)), 1)
+                                        if np.isfinite(e).any() else None),
+            "not_planned": why}
+
+
 @task(cache_policy=Stored(where=_fit_dir), persist_result=True, timeout_seconds=STEP_TIMEOUT_S,
       task_run_name="fit INL and LSB over {inl_rms} LSB")
 def fit_lsb(captures: list, inl_rms: float, cache_dir: str) -> dict:
@@ -529,7 +577,9 @@ def calibration_campaign(out: str = "data/calibration", lux: LuxLevels | None = 
                          max_age_h: PositiveFloat = MAX_AGE_H,
                          max_lsb_drift_ps: PositiveFloat = MAX_LSB_DRIFT_PS,
                          max_delay_drift_ps: PositiveFloat = MAX_DELAY_DRIFT_PS,
-                         stream_out: str | None = None) -> dict:
+                         stream_out: str | None = None,
+                         plan_budget: PositiveInt | None = None,
+                         delay_lux: NonNegativeFloat = 400.0) -> dict:
     """Calibrate the chip: density tests at ``lux`` levels, the zero-distance delay, then
     publish to ``out/current`` unless the candidate is worse than what is there (``force``
     publishes anyway). Runs on the simulator unless ``captures`` names a directory of
@@ -545,7 +595,12 @@ def calibration_campaign(out: str = "data/calibration", lux: LuxLevels | None = 
     in its result (``outcome``, ``rule``, ``refused_because``), its tag
     (``tcspc:published`` / ``tcspc:refused``) and the ``tcspc.calibration.*`` event. The
     cache keeps ``cache_max_gb`` at most, entries unused for ``cache_max_age_days``
-    dropped."""
+    dropped. With ``plan_budget`` (the simulator's campaign) the zero-distance capture is
+    taken first and the density tests' cycles at the ``lux`` levels are planned from it
+    within that budget (:func:`plan_density`, as `tcspc calibrate plan`; ``cycles`` is then
+    not used); the plan is in the result and the report. The zero capture then has
+    ``delay_lux`` of ambient light (the plan reads its window's end and its return against
+    uniform light; `calibrate delay` counts that light as a fifth density test)."""
     log = get_run_logger()
     check_roots(out=out, captures=captures, journal=journal)  # (a served run: its roots)
     cache = Path(out) / "cache"
@@ -558,7 +613,7 @@ def calibration_campaign(out: str = "data/calibration", lux: LuxLevels | None = 
         clean_leftovers(out, cache, Path(out) / "versions", log=log)
         summary, used = _campaign(out, str(cache), lux, cycles, delay_cycles, n_pixels,
                                   chip_seed, seed, inl_rms, captures, journal, density_runs,
-                                  delay_run, force, log,
+                                  delay_run, force, log, plan_budget, delay_lux,
                                   limits=dict(inl_rms=inl_rms, max_age_h=max_age_h,
                                               max_lsb_drift_ps=max_lsb_drift_ps,
                                               max_delay_drift_ps=max_delay_drift_ps,
@@ -572,9 +627,10 @@ def calibration_campaign(out: str = "data/calibration", lux: LuxLevels | None = 
 
 
 def _campaign(out, cache, lux, cycles, delay_cycles, n_pixels, chip_seed, seed, inl_rms,
-              captures, journal, density_runs, delay_run, force, log,
-              limits: dict) -> tuple[dict, set]:
+              captures, journal, density_runs, delay_run, force, log, plan_budget,
+              delay_lux, limits: dict) -> tuple[dict, set]:
     run = new_run_dir(out, "calibration_campaign")
+    plan = None
     if journal:
         from pipeline.stream.journal import JournalCapture
 
@@ -589,14 +645,34 @@ def _campaign(out, cache, lux, cycles, delay_cycles, n_pixels, chip_seed, seed, 
         source = f"captures in {captures}"
     else:
         lux = DEFAULT_LUX if lux is None else lux
-        jobs = [(scene_dict("density", lux=lv, n_pixels=n_pixels), cycles, cache, seed + i,
-                 chip_seed) for i, lv in enumerate(lux)]
-        jobs.append((scene_dict("delay", n_pixels=n_pixels), delay_cycles, cache,
-                     seed + len(lux), chip_seed))
-        *density_caps, delay_cap = map(Path, simulated([simulate.submit(*a) for a in jobs],
-                                                        jobs))
-        source = (f"simulator: chip seed {chip_seed}, {n_pixels} pixels, {cycles:,} cycles at "
-                  f"{lux} lux, delay {delay_cycles:,} cycles")
+        zero_scene = scene_dict("delay", n_pixels=n_pixels)
+        if plan_budget and delay_lux > 0:
+            zero_scene = {**zero_scene, "ambient": [{"kind": "lux", "lux": float(delay_lux)}]}
+        zero_job = (zero_scene, delay_cycles, cache, seed + len(lux), chip_seed)
+        level_cycles = [cycles] * len(lux)
+        if plan_budget:  # the zero capture first, the density tests planned from it
+            delay_cap = Path(simulated([simulate.submit(*zero_job)], [zero_job])[0])
+            plan = plan_density(str(delay_cap), plan_budget, list(lux), n_pixels)
+            level_cycles = plan["cycles"]
+            log.info("density tests planned from the zero capture: %s cycles at %s lux "
+                     "(expected delay error %s ps)", level_cycles, list(lux),
+                     plan["expected_delay_error_ps"])
+        jobs = [(scene_dict("density", lux=lv, n_pixels=n_pixels), c, cache, seed + i,
+                 chip_seed) for i, (lv, c) in enumerate(zip(lux, level_cycles, strict=True))]
+        if plan_budget:
+            density_caps = list(map(Path, simulated([simulate.submit(*a) for a in jobs],
+                                                    jobs)))
+        else:
+            jobs.append(zero_job)
+            *density_caps, delay_cap = map(Path, simulated(
+                [simulate.submit(*a) for a in jobs], jobs))
+        source = (f"simulator: chip seed {chip_seed}, {n_pixels} pixels, "
+                  + (f"{cycles:,} cycles" if plan is None else
+                     f"{level_cycles} cycles planned from the zero capture within "
+                     f"{plan_budget:,}") + f" at {lux} lux, delay {delay_cycles:,} cycles"
+                  + (f" at {delay_lux:g} lux" if plan is not None and delay_lux > 0 else ""))
+    if plan is not None:
+        (run / "plan.json").write_text(json.dumps(plan, indent=1))
     used = {Path(c).parent.name for c in (*density_caps, delay_cap)
             if not hasattr(c, "paths") and Path(c).parent.parent == Path(cache)}
     current = str(Path(out) / "current")
@@ -665,7 +741,7 @@ def _campaign(out, cache, lux, cycles, delay_cycles, n_pixels, chip_seed, seed, 
                if not no_delay else None, "no_delay": no_delay,
                "plots": pngs, "truth": truth,
                "captures": {"density": [_label(c) for c in density_caps],
-                            "delay": _label(delay_cap)}}
+                            "delay": _label(delay_cap)}, "plan": plan}
     sections = [
         ("Source", source),
         ("Verdict", verdict_text),

@@ -162,8 +162,11 @@ def delay(capture, out, distance_m) -> None:
     window. Give the capture ambient light brighter than the density test's (its reset
     peak ~10 codes lower): its own reset peak then scales the time axis at its exact light
     where the return keeps clear of it; otherwise the LSB polynomial does (within the
-    statistics of the density tests' INL either way). Prints how many TDCs got a delay
-    and why the others did not; exits non-zero, leaving CALDIR as it was, when none did."""
+    statistics of the density tests' INL either way). That ambient light, clear of the
+    return and the reset peak, is also counted as one more density test: the table's code
+    widths take its counts (once per capture; docs/calibration.md). Prints how many TDCs
+    got a delay and why the others did not; exits non-zero, leaving CALDIR as it was, when
+    none did."""
     from collections import Counter
 
     from pipeline.io.atomic import OutputError

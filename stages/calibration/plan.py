@@ -88,14 +88,20 @@ def zero_geometry(hits: np.ndarray, cycles) -> tuple[float, np.ndarray, np.ndarr
 
 
 def plan_tests(hits: np.ndarray, cycles, budget: float, window_s: float = 80e-9,
-               levels=DEFAULT_LEVELS, window_share: float = 0.8) -> Plan:
+               levels=DEFAULT_LEVELS, window_share: float = 0.8,
+               zero_as_test: bool = True) -> Plan:
     """The density tests to take within ``budget`` cycles, planned from a zero-distance
     capture's histograms (``hits`` (n_tdc, 512), ``cycles``): the LSB fit's ``levels``, and
     a test at the zero capture's light (its window ends where the zero's does) where its
     cycles lower the variance, the cycles spent where the delay's counting variance falls
     most (module text).
     ``window_share``: the share of a density test's STARTs in the window (the rest is the
-    reset peak; 0.8 for a 20 ns reset period before an 80 ns window)."""
+    reset peak; 0.8 for a 20 ns reset period before an 80 ns window).
+    ``zero_as_test``: the zero capture's own counts measure the codes clear of its return
+    and reset peak (``calibrate delay`` counts them, :mod:`.zero_test`), and the plan
+    counts them too."""
+    from stages.calibration.zero_test import return_mask
+
     n0, x_t0, k_p = zero_geometry(hits, cycles)
     x_t0 = np.where(np.isfinite(x_t0), x_t0, np.nanmedian(x_t0))
     lights = np.unique(np.round(np.concatenate([np.asarray(levels, np.float64), [n0]]), 6))
@@ -111,8 +117,14 @@ def plan_tests(hits: np.ndarray, cycles, budget: float, window_s: float = 80e-9,
     weight = np.where(codes[None, :] < np.nan_to_num(k_p)[:, None], (1 - f[:, None]) ** 2,
                       f[:, None] ** 2) * inside                    # (tdc, code)
 
+    own = np.zeros(weight.shape)
+    if zero_as_test:  # its hits a code (a response sigma of ~1 code assumed for the mask)
+        clear = (codes[None, :] < np.floor(x_t0 - OWN_CLEAR_LSB)[:, None]) & ~return_mask(
+            k_p, 1.0)
+        own = np.where(clear, np.asarray(hits, np.float64), 0.0)
+
     def variance(c):  # per TDC, in LSB^2
-        info = np.einsum("i,itk->tk", c * p, measured)
+        info = np.einsum("i,itk->tk", c * p, measured) + own
         with np.errstate(divide="ignore", invalid="ignore"):
             v = np.where(weight > 0, weight * np.where(info > 0, 1 / info, UNMEASURED_VAR),
                          0.0)

@@ -53,6 +53,29 @@ def test_calibration_campaign_publishes_a_checked_calibration(campaign):
     assert tests.height == 5 and tests["detections_per_pixel_per_cycle"].is_sorted()
 
 
+def test_the_campaign_takes_the_zero_capture_first_and_plans_from_it(harness, tmp_path):
+    """With ``plan_budget`` the zero-distance capture is simulated first and the density
+    tests' cycles are planned from it (issue 33: `calibrate plan`'s planner), within the
+    budget, every lux level kept; the plan is in the result, the run's plan.json and the
+    report, and the density captures hold the planned cycles."""
+    from flows.calibration import calibration_campaign
+    from pipeline.io.capture import Capture
+
+    budget = 400_000
+    r = calibration_campaign(out=str(tmp_path), **{**SMALL_CAL, "inl_rms": 1.5},
+                             plan_budget=budget)
+    plan = r["plan"]
+    assert plan["budget"] == budget and len(plan["cycles"]) == len(SMALL_CAL["lux"])
+    assert sum(plan["cycles"]) <= budget and min(plan["cycles"]) >= 0.05 * budget - 1
+    assert plan["not_planned"] == "" and plan["expected_delay_error_ps"] > 0
+    assert plan["cycles"] != [budget // 5] * 5  # spent where the delay's error comes from
+    assert plan["lights"] == sorted(plan["lights"]) and 0 < plan["zero_light"] < 1
+    assert [Capture(c).meta.cycles for c in r["captures"]["density"]] == plan["cycles"]
+    assert json.loads((Path(r["run"]) / "plan.json").read_text()) == plan
+    assert "planned from the zero capture" in (Path(r["run"]) / "report.md").read_text()
+    assert r["truth"]["lsb_error_rms_ps"] < 0.5
+
+
 def test_a_worse_calibration_is_refused_and_the_old_one_stays(campaign):
     from flows.calibration import calibration_campaign
 

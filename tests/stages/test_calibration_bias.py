@@ -150,8 +150,9 @@ def _zero_capture_hits(chip, light=0.01, cycles=2e6, code=200, seed=0):
 def test_the_plan_keeps_the_levels_adds_the_zeros_light_and_spends_the_budget():
     """The plan holds the LSB fit's levels (and the zero capture's light where its cycles
     help), its cycles sum to at most the budget, every level keeps its minimum share; more
-    budget, smaller expected delay error (as 1/sqrt); the dim tests that alone measure the
-    top of the zero's window get more than the minimum."""
+    budget, smaller expected delay error (as 1/sqrt, from the tests' counts alone); the dim
+    tests that alone measure the top of the zero's window get more than the minimum unless
+    the zero capture's own counts are counted (as ``calibrate delay`` counts them)."""
     chip, _ = random_chip(2, n_tdc=N, ranges=REAL_CHIP_RANGES)
     h = _zero_capture_hits(chip)
     small, big = (cal.plan_tests(h, np.full(N, 2e6), b) for b in (4e6, 1.6e7))
@@ -162,10 +163,20 @@ def test_the_plan_keeps_the_levels_adds_the_zeros_light_and_spends_the_budget():
     assert small.cycles.sum() <= 4e6 and small.cycles[levels].min() >= 0.05 * 4e6 - 1
     assert np.all(np.abs(small.return_code - 200) <= 1)
     assert np.all(np.abs(small.x_t0 - chip.window_truth(0.01, T)[1]) < 2)
-    ratio = small.delay_error_ps / big.delay_error_ps
+    # the tests' own counts: 4x the budget, half the error; the zero capture's own counts
+    # (counted by default, as calibrate delay counts them) lower it, more where the
+    # budget is small
+    alone = [cal.plan_tests(h, np.full(N, 2e6), b, zero_as_test=False) for b in (4e6, 1.6e7)]
+    ratio = alone[0].delay_error_ps / alone[1].delay_error_ps
     assert np.allclose(ratio, 2.0, rtol=0.1), ratio
-    dimmest = int(np.argmin(small.lights))
-    assert small.cycles[dimmest] > 0.1 * 4e6
+    assert np.all(small.delay_error_ps < alone[0].delay_error_ps)
+    assert np.all(big.delay_error_ps < alone[1].delay_error_ps)
+    assert np.all(small.delay_error_ps / alone[0].delay_error_ps
+                  < big.delay_error_ps / alone[1].delay_error_ps)
+    dimmest = int(np.argmin(alone[0].lights))
+    assert alone[0].cycles[dimmest] > 0.1 * 4e6
+    # the zero capture's own counts measure the top of its window: the dim tests need less
+    assert small.cycles[int(np.argmin(small.lights))] < alone[0].cycles[dimmest]
     js = small.to_json()
     assert [t["cycles"] for t in js["tests"]] == small.cycles.tolist()
     assert len(js["expected_delay_error_ps"]) == N
