@@ -68,7 +68,7 @@ def by_kind(seeds, cells, threads) -> None:
             z = err / (e.sigma_s[..., 0] * C / 2)
             det = e.detected[..., 0] & sc.surface
 
-            def cov(m):
+            def cov(m, det=det, z=z):
                 m = m & det
                 return f"{np.mean(z[m] < 2):.3f} ({m.sum()})" if m.any() else "-"
 

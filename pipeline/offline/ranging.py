@@ -23,6 +23,19 @@ from stages.ranging import Estimate, Histograms, estimate_returns, response_from
 from stages.ranging.multi import MAX_RETURNS, select_rows
 
 
+def calibrated_axis(state: HistogramState, calibration: Calibration, window_s: float):
+    """The calibration's rows of the measurement's TDCs and their time axis at its light
+    (``time_axis``); CalibrationError for a calibration without a delay or rows."""
+    if not calibration.has_delay:
+        raise CalibrationError(f"{calibration.path}: no delay (run `tcspc calibrate delay` "
+                               "on a zero-distance capture first)")
+    try:
+        calib = calibration.rows(state.tdc_offset, state.tdc_offset + state.n_tdc)
+    except ValueError as exc:
+        raise CalibrationError(str(exc)) from exc
+    return calib, time_axis(calib, state.hits, state.cycles, window_s)
+
+
 def range_state(state: HistogramState, calibration: Calibration, window_s: float,
                 t_laser_win_s: float, estimator: str = "ml", sigma_s: float | None = None,
                 p_fa: float = 1e-3, in_situ: bool = False, max_returns: int = 1
@@ -44,14 +57,7 @@ def range_state(state: HistogramState, calibration: Calibration, window_s: float
     the estimate, distances and sigmas in metres, and a note for the user ("" when the
     calibration covers this measurement's light).
     """
-    if not calibration.has_delay:
-        raise CalibrationError(f"{calibration.path}: no delay (run `tcspc calibrate delay` "
-                               "on a zero-distance capture first)")
-    try:
-        calib = calibration.rows(state.tdc_offset, state.tdc_offset + state.n_tdc)
-    except ValueError as exc:
-        raise CalibrationError(str(exc)) from exc
-    axis = time_axis(calib, state.hits, state.cycles, window_s)
+    calib, axis = calibrated_axis(state, calibration, window_s)
     notes = []
 
     def run(axis, sigma_s):

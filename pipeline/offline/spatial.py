@@ -174,19 +174,10 @@ def range_state_spatial(state, calibration, window_s: float, t_laser_win_s: floa
     from scipy.constants import c as c_light
 
     from pipeline.offline import ranging as rg
-    from schemas.errors import CalibrationError
     from stages import calibration as cal
-    from stages.calibration_set import time_axis
     from stages.ranging import Estimate, Histograms, response_from_data
 
-    if not calibration.has_delay:
-        raise CalibrationError(f"{calibration.path}: no delay (run `tcspc calibrate delay` "
-                               "on a zero-distance capture first)")
-    try:
-        calib = calibration.rows(state.tdc_offset, state.tdc_offset + state.n_tdc)
-    except ValueError as exc:
-        raise CalibrationError(str(exc)) from exc
-    axis = time_axis(calib, state.hits, state.cycles, window_s)
+    calib, axis = rg.calibrated_axis(state, calibration, window_s)
     h = Histograms.from_codes(state.hits, axis.tau_edges_s, state.cycles, window_s,
                               x_t=axis.x_t)
     notes = [axis.note] if axis.note else []

@@ -45,9 +45,8 @@ def reconcile(topo: Topology) -> dict:
     ranger = None
     if topo.range:
         from pipeline.io.caldir import load_calibration
-        from pipeline.offline.ranging import RangeCore
-
         from pipeline.io.geometry import load_geometry
+        from pipeline.offline.ranging import RangeCore
 
         geom = spatial_geometry(topo)
         ranger = RangeCore(load_calibration(topo.range["calibration"]),

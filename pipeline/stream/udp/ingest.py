@@ -660,8 +660,10 @@ def _hung_up(monitors: list, beat, at_end: list, wait_s: float = END_WAIT_S) -> 
     t_end = time.monotonic() + wait_s
     while True:
         state = _connections(monitors, state)
-        gone = [w and ev == zmq.EVENT_DISCONNECTED for w, ev in zip(watch, state)]
-        if all(g or not w for g, w in zip(gone, watch)) or time.monotonic() >= t_end:
+        gone = [w and ev == zmq.EVENT_DISCONNECTED
+                for w, ev in zip(watch, state, strict=False)]
+        if all(g or not w for g, w in zip(gone, watch, strict=True)) \
+                or time.monotonic() >= t_end:
             return gone
         beat.beat(state="finished")
         time.sleep(0.02)

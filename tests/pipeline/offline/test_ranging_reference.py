@@ -575,8 +575,12 @@ def test_the_range_stage_tracks_the_lsb_for_the_campaigns_verdict(measurements, 
 
     import pyarrow.parquet as pq
 
-    from pipeline.offline.ranging import (CHIP_RECHECK, LSB_TRACK_AFTER_S, LSB_TRACK_EVERY_S,
-                                          RangeCore)
+    from pipeline.offline.ranging import (
+        CHIP_RECHECK,
+        LSB_TRACK_AFTER_S,
+        LSB_TRACK_EVERY_S,
+        RangeCore,
+    )
     from pipeline.stream.stage import ParquetSink
 
     states, window_s = measurements

@@ -115,7 +115,7 @@ def _drain(sock) -> list[str]:
     while True:
         try:
             got.extend(sock.recv(4096).decode().split("\n"))
-        except (TimeoutError, socket.timeout):
+        except TimeoutError:
             return got
 
 
