@@ -108,3 +108,21 @@ def test_a_zero_file_finds_two_surfaces_and_no_third(zero_dir, sep):
     third = int((t["detected"] & (t["return_index"] >= 2)).sum())
     assert both.mean() >= 0.95, both.mean()
     assert third <= binom.ppf(0.999, n, 1e-3), third
+
+
+def test_a_weak_zero_files_own_error_is_in_sigma(tmp_path):
+    """A zero-distance file of returns no stronger than the ranged ones (1 000 counts
+    each): each distance is a difference of two times of the same spread, and its sigma
+    holds the zero row's too (without it, 2-sigma covered ~0.84)."""
+    rng = np.random.default_rng(24)
+    n, per = 900, 300
+    zero = g.write(tmp_path / "zero.parquet", {"z": g.histograms(
+        rng, np.zeros((per, 1)), np.full((per, 1), 1000.0), 0.1)})
+    d = rng.uniform(1.5, 8.0, n)
+    f = g.write(tmp_path / "r.parquet",
+                g.split(g.histograms(rng, d[:, None], np.full((n, 1), 1000.0), 0.1), per))
+    t, _ = g.rng_range(f, estimator="fast", zero=zero, max_returns=1)
+    r0 = t["detected"]
+    err = t["distance_m"][r0] - d[g.row_of(t, per)[r0]]
+    cov = float(np.mean(np.abs(err / t["sigma_m"][r0]) <= 2))
+    assert 0.93 <= cov <= 0.97, cov
