@@ -1,6 +1,6 @@
 """Issue 34's goals from outside (benchmarks/ranging_goals.py): its generator checked
-here, the audit itself as a slow test (its coverage checks are in docs/ranging.md, two of
-them not met and said so)."""
+here, the audit itself as a slow test (its coverage checks are in docs/ranging.md), and
+the --zero cases it failed (ml's coverage with three returns, the spurious third return)."""
 
 from __future__ import annotations
 
