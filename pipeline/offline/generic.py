@@ -671,8 +671,7 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
     if zero is not None:
         z = read_generic(zero)[0]
         zt = measurement_times(z, estimator, p_fa, response, sigma_s, cycles)
-        zero_delay = dict(zip(zt.tdc.tolist(), np.where(zt.est.detected, zt.t_s, np.nan),
-                              strict=True))
+        zero_delay = _zero_delays(zt)
         zero_note = ""
         if (max_returns <= 1 and sigma_s is None and response is None
                 and not z.reference.any() and np.asarray(zt.est.detected).any()):
@@ -688,8 +687,7 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
                 sigma_s = s_z
                 zero_note = f" (measured on the zero-distance file: {how})"
                 zt = measurement_times(z, estimator, p_fa, response, sigma_s, cycles)
-                zero_delay = dict(zip(zt.tdc.tolist(), np.where(zt.est.detected, zt.t_s,
-                                                                np.nan), strict=True))
+                zero_delay = _zero_delays(zt)
         if max_returns > 1 and np.asarray(zt.est.detected).any():
             # the zero file's returns, aligned and averaged: the returns' response, tail
             # and all, as a calibration's (issue 34.1)
@@ -700,8 +698,7 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
             if sigma_s is None:  # the same shape times the zero and the file
                 response = returns_response
                 zt = measurement_times(z, estimator, p_fa, response, None, cycles)
-                zero_delay = dict(zip(zt.tdc.tolist(), np.where(zt.est.detected, zt.t_s,
-                                                                np.nan), strict=True))
+                zero_delay = _zero_delays(zt)
     tables, info = [], {}
     for meas in _row_batches(path):
         for m in meas:
@@ -720,13 +717,16 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
             if calibration is not None:
                 delay, scale = calibration.row_fit(key, tm.tdc)
             elif zero_delay is not None:
-                delay = np.array([zero_delay.get(int(t), np.nan) for t in tm.tdc])
+                delay, delay_sd = np.array([zero_delay.get(int(t), (np.nan, np.nan))
+                                            for t in tm.tdc]).reshape(-1, 2).T
             else:
                 delay = np.full(tm.tdc.size, float(delay_s))
             d = C_LIGHT / 2 * (tm.t_s * scale - delay)
             sig_t = np.asarray(tm.est.sigma_s, float) * scale
             if calibration is not None:  # the calibration line's own, in quadrature
                 sig_t = np.hypot(sig_t, calibration.row_sigma_m(key, tm.tdc, d) * 2 / C_LIGHT)
+            elif zero_delay is not None:  # the zero row's time's own, in quadrature
+                sig_t = np.hypot(sig_t, delay_sd)
             sig = sig_t * C_LIGHT / 2
             # a row without a delay or a finite time is not detected (its flag says why); a
             # return before the zero is flagged as the chip's is (NaN distance, not detected)
@@ -771,6 +771,15 @@ def range_generic(path: str | Path, calibration: DistanceCalibration | None = No
     if estimator in SIGMA_NOTE:
         meta[b"tcspc.sigma"] = SIGMA_NOTE[estimator].encode()
     return table.replace_schema_metadata(meta), info
+
+
+def _zero_delays(zt: Times) -> dict[int, tuple[float, float]]:
+    """Each row of a zero-distance file (its tdc): its detected return's time and sigma
+    (NaN where none was detected), the delay a row of the ranged file is measured from."""
+    det = np.asarray(zt.est.detected, bool)
+    return dict(zip(zt.tdc.tolist(), zip(np.where(det, zt.t_s, np.nan).tolist(),
+                                         np.where(det, zt.est.sigma_s, np.nan).tolist(),
+                                         strict=True), strict=True))
 
 
 #: count values a batch of rows of a big file holds (x ~64 bytes when ranged: ~0.5 GB)

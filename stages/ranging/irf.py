@@ -36,6 +36,14 @@ RESPONSE_ERROR = 0.2
 RESPONSE_ERROR_MAX = 3.0
 #: fine shift step (bins) of the search, refined by a parabola
 _STEP = 0.1
+#: a measured response keeps the bins from this many times its rise (mode to half
+#: maximum on the leading side) ahead of its mode, and no fewer than :data:`LEAD_BINS`:
+#: a Gaussian's 3.5 sigma (a fixed 4 bins cut a 2.3-bin sigma at 1.7 of them, 2.7 % of
+#: its counts, and ml's times with it wandered by up to 1.4 mm with the return's place in
+#: its bin, issue 34)
+RISE_SPANS = 3.0
+#: ... the least (a SPAD's one-bin rise: the bins before it are background)
+LEAD_BINS = 4
 
 
 @dataclass(frozen=True)
@@ -128,7 +136,10 @@ def response_from_counts(counts, bin_s: float, source: str, cycles=None) -> Resp
     """The response of a histogram of a single return (a reference channel, or a capture
     at a known distance with nothing else in view): pile-up corrected when ``cycles`` is
     known, the background (the median of the bins before the rise, else of the last
-    quarter) removed, nothing kept before 4 bins ahead of the mode.
+    quarter) removed, nothing kept before :data:`LEAD_BINS` ahead of the mode (a
+    reference channel's or a calibration target's SPAD rise; a response wider than a few
+    bins is cut by it: :func:`response_from_returns` keeps its rise. Not changed here:
+    ``calibrate distance``'s pile-up fit was tuned on this cut, see docs/ranging.md).
 
     >>> r = response_from_counts([1, 1, 1, 1, 1, 1, 51, 31, 11, 6, 1, 1], 1e-10, "demo")
     >>> r.mode, round(float(r.density[6]), 2)
@@ -142,11 +153,56 @@ def response_from_counts(counts, bin_s: float, source: str, cycles=None) -> Resp
         before = np.cumsum(c) - c
         c = -np.log1p(-c / (cycles - before)) * cycles
     k = int(np.argmax(c))
-    pre = c[: max(k - 4, 0)]
+    pre = c[: max(k - LEAD_BINS, 0)]
     bg = float(np.median(pre)) if pre.size >= 4 else float(np.median(c[-max(c.size // 4, 1):]))
     d = np.clip(c - bg, 0.0, None)
-    d[: max(k - 4, 0)] = 0.0
+    d[: max(k - LEAD_BINS, 0)] = 0.0
     return Response(d, float(bin_s), source)
+
+
+def _backgrounds(y, k, lead: int) -> np.ndarray:
+    """Each row's background: the mean of its bins more than ``lead`` before its mode
+    bin ``k``, else (fewer than 4 of them) the median of its last quarter. (The median
+    of a few counts a bin is below their mean, 0 at 0.5 a bin: what it left stood in the
+    response as a pedestal to the window's end, 8 % of a return of 2 000 counts.)"""
+    n = y.shape[1]
+    out = np.empty(y.shape[0])
+    for i in range(y.shape[0]):  # per row: a mean over a variable span (a few rows)
+        pre = y[i, : max(k[i] - lead, 0)]
+        out[i] = np.mean(pre) if pre.size >= 4 else np.median(y[i, -max(n // 4, 1):])
+    return out
+
+
+def lead_bins(y, k) -> int:
+    """Bins ahead of the mode that a response measured on the rows ``y`` (each a return
+    whose mode is in bin ``k``) keeps: :data:`RISE_SPANS` times the rise of their sum
+    (each row's background taken out, the rows aligned on ``k``), no fewer than
+    :data:`LEAD_BINS`."""
+    y = np.atleast_2d(np.asarray(y, np.float64))
+    k = np.asarray(k, np.int64)
+    bg = _backgrounds(y, k, LEAD_BINS)
+    j = np.arange(int(k.max()) + 1)
+    at = k[:, None] - j[None, :]
+    reach = at >= 0
+    v = np.where(reach, np.take_along_axis(y, np.clip(at, 0, None), 1) - bg[:, None],
+                 0.0).sum(0) / np.maximum(reach.sum(0), 1)
+    below = np.flatnonzero(v < v[0] / 2)
+    if not v[0] > 0 or not below.size:
+        return LEAD_BINS
+    i = below[0]  # the half maximum crossed between i - 1 and i
+    rise = i - 1 + (v[i - 1] - v[0] / 2) / (v[i - 1] - v[i])
+    return max(LEAD_BINS, int(np.ceil(RISE_SPANS * rise)))
+
+
+def _without_background(y, k) -> np.ndarray:
+    """The rows ``y`` (returns whose modes are in bins ``k``) less each one's background
+    (:func:`_backgrounds`), not clipped at 0 (each row's positive fluctuations clipped
+    alone add up to a pedestal: the caller clips their average), nothing kept before
+    :func:`lead_bins` ahead of the mode."""
+    lead = lead_bins(y, k)
+    d = y - _backgrounds(y, k, lead)[:, None]
+    d[np.arange(y.shape[1])[None, :] < (np.asarray(k) - lead)[:, None]] = 0.0
+    return d
 
 
 def _solve(models, y, wts):
@@ -286,13 +342,14 @@ def _fwhm_bins(response: Response) -> float:
 def response_from_returns(h: Histograms, t_s, source: str) -> Response:
     """The response of the returns themselves: every row with a finite time ``t_s`` (one
     return each: captures of a single target at known distances, or each pixel's strongest
-    return), pile-up corrected, its background (the median of the bins before the rise,
-    else of the last quarter) removed, shifted by a fraction of a bin (its cumulative sum
-    interpolated) so that the times coincide, and averaged bin by bin over the rows that
-    reach that bin (a row late in the window has its tail cut by the window's end), each
-    row normalised over the bins that every row reaches. Nothing is kept before 4 bins
-    ahead of the mode. The rows' responses must share a shape (the TMF8820's zones agree
-    within ~3 % a bin); a reference channel's (another optical path) need not be theirs."""
+    return), pile-up corrected, its background (:func:`_backgrounds`) taken out, shifted
+    by a fraction of a bin (its cumulative sum interpolated) so that the times coincide,
+    and averaged bin by bin over the rows that reach that bin (a row late in the window
+    has its tail cut by the window's end), each row normalised over the bins that every
+    row reaches, and the average clipped at 0.
+    Nothing is kept before :func:`lead_bins` ahead of the mode. The rows' responses must
+    share a shape (the TMF8820's zones agree within ~3 % a bin); a reference channel's
+    (another optical path) need not be theirs."""
     bin_s = float(h.bin_s)
     t = np.asarray(t_s, np.float64)
     use = np.flatnonzero(np.isfinite(t))
@@ -302,12 +359,7 @@ def response_from_returns(h: Histograms, t_s, source: str) -> Response:
     y = np.where(h.valid, h.intensity() * h.cycles[:, None], 0.0)[use]
     pos = (t[use] - h.edges_s[use, 0]) / bin_s                # the times in bins
     k = np.clip(np.floor(pos).astype(np.int64), 0, n - 1)
-    d = np.empty_like(y)
-    for i in range(use.size):  # per row: a median over a variable span (a few rows)
-        pre = y[i, : max(k[i] - 4, 0)]
-        bg = np.median(pre) if pre.size >= 4 else np.median(y[i, -max(n // 4, 1):])
-        d[i] = np.clip(y[i] - bg, 0.0, None)
-        d[i, : max(k[i] - 4, 0)] = 0.0
+    d = _without_background(y, k)
     lead = pos - pos.min()                                     # >= 0: shift each row early
     cum = np.concatenate([np.zeros((use.size, 1)), np.cumsum(d, axis=1)], axis=1)
     x = np.arange(n + 1)[None, :] + lead[:, None]
@@ -320,7 +372,7 @@ def response_from_returns(h: Histograms, t_s, source: str) -> Response:
     if not good.any():
         raise ValueError(f"response {source!r}: no return above its background")
     a = np.nan_to_num(aligned[good]) / norm[good, None]
-    density = a.sum(axis=0) / np.maximum(reach[good].sum(axis=0), 1)
+    density = np.clip(a.sum(axis=0) / np.maximum(reach[good].sum(axis=0), 1), 0.0, None)
     # each bin's error: the largest relative departure of a row from the mean, over the
     # bin and its neighbours (a shift of a bin), no lower than RESPONSE_ERROR
     dev = np.where(reach[good], np.abs(a - density), 0.0).max(axis=0)
