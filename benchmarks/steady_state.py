@@ -15,6 +15,11 @@ longer measurement's (their counts are the same draw repeated, not Poisson), and
 check rightly finds the code-density pattern noisier than the calibration's chip allows.
 
     python benchmarks/steady_state.py [--data data] [--times 100] [--repeat 2]
+        [--capture data/raw/pattern --histograms-only]
+
+``--capture``: another capture (e.g. the demo's test pattern, 5 % hits) instead of the
+street scene; ``--histograms-only`` leaves the range rows out (a capture that is not the
+calibration's chip).
 """
 
 from __future__ import annotations
@@ -52,9 +57,12 @@ def main() -> None:
     ap.add_argument("--times", type=int, default=100)
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--measurement-cycles", type=int, default=20_000)
+    ap.add_argument("--capture", type=Path, default=None,
+                    help="the capture replayed (default: DATA/raw/street)")
+    ap.add_argument("--histograms-only", action="store_true")
     args = ap.parse_args()
     cal = (args.data / "calibration" / "current").resolve()
-    src = args.data / "raw" / "street"
+    src = args.capture or args.data / "raw" / "street"
     if not (args.data / "raw" / "street.bin").exists() or not cal.exists():
         raise SystemExit(f"{args.data}: no raw/street.bin or calibration/current "
                          "(run `make demo` first, or give --data)")
@@ -74,10 +82,10 @@ def main() -> None:
                 w.write(words)
         n = words.size * args.times
         del words
-        print(f"capture: the street scene x {args.times}, {n / 1e6:.0f} M words, "
+        print(f"capture: {src.name} x {args.times}, {n / 1e6:.0f} M words, "
               f"{c.meta.n_tdc} TDCs\n")
         for k in range(args.repeat):
-            for what in ("histograms", "ranges"):
+            for what in ("histograms",) + (() if args.histograms_only else ("ranges",)):
                 if what == "histograms":
                     wall = offline(["histogram", str(tmp / "cap.bin"), "--out",
                                     str(tmp / "h.parquet"), "--calibration", str(cal),
@@ -99,6 +107,8 @@ def main() -> None:
     print("| graph | offline command | daemon, steady state | ratio |")
     print("|---|---:|---:|---:|")
     for what, cmd in (("histograms", "tcspc histogram"), ("ranges", "tcspc range")):
+        if not rows[what]:
+            continue
         off = [o for o, _ in rows[what]]
         day = [d for _, d in rows[what]]
         rat = [d / o for o, d in rows[what]]
