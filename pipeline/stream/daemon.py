@@ -233,8 +233,6 @@ def build(topo: Topology) -> list[Proc]:
     return procs
 
 
-
-
 def run_token(state: Path, run: str) -> tuple[Path, str]:
     """The run's token: random, in ``STATE/tokens/RUN.token`` (mode 0600, its directory
     0700), made once per run and kept (a restarted daemon's stages and the old ones agree).

@@ -42,6 +42,7 @@ PRELOAD_RANGE = ["pipeline.offline.ranging", "pipeline.stream.forkwarm"]
 #: the range stage's calibration and estimator, for the server's warm-up (forkwarm)
 WARM_ENV = "TCSPC_FORK_WARM_RANGE"
 
+
 def die_with_parent() -> None:
     """In a stage (between fork and exec): SIGKILL it when the daemon dies, however the
     daemon dies, so a killed daemon leaves no orphan writing to the run (a restarted daemon

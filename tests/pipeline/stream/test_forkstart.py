@@ -189,3 +189,27 @@ def test_a_sigkilled_daemon_takes_its_fork_server_and_stages_with_it(tmp_path):
     for p in left:  # (no orphan outlives the test either)
         os.kill(p, signal.SIGKILL)
     assert not left, "the fork server or its stages outlived the daemon"
+
+
+def test_the_topologys_estimators_are_the_rangings():
+    """The topology names the estimators itself (checking a topology must not import the
+    ranging's numba kernels): the same list as the ranging's registry."""
+    from pipeline.stream.topology import ESTIMATORS as named
+    from stages.ranging import ESTIMATORS
+
+    assert tuple(named) == tuple(ESTIMATORS)
+
+
+def test_no_other_account_reaches_the_fork_server():
+    """The server's socket (it forks whatever its client sends: a process as this
+    account) lies in a directory only this account may enter (mode 0700), as the stages'
+    ipc:// sockets and the state do."""
+    from multiprocessing import forkserver
+
+    from pipeline.stream.forkstart import warm
+
+    warm()
+    address = Path(forkserver._forkserver._forkserver_address)
+    assert address.exists()
+    st = address.parent.stat()
+    assert st.st_uid == os.getuid() and st.st_mode & 0o077 == 0, oct(st.st_mode)
