@@ -117,6 +117,7 @@ import zmq
 from pipeline.io.atomic import atomic_path
 from pipeline.stream.bounds import bounds_file, ensure_bounds
 from pipeline.stream.forkstart import die_with_parent
+from pipeline.stream.journal import stream_ended
 from pipeline.stream.reconcile import accounting, reconcile
 from pipeline.stream.sidecar import Sidecar, status_pub, view_args
 from pipeline.stream.topology import (
@@ -405,13 +406,13 @@ class Supervisor:
                 p.finished = True  # shutting down: the run ends here, no new source
                 self.log(f"{p.name}: ended (exit {code}) during shutdown")
                 continue
-            m = self.metrics.get(p.name, {})
-            if p.name == "source" and m.get("pid") == p.popen.pid \
-                    and m.get("state") == "finished":
-                # it had journaled the run's end and sent its stops (it reports "finished"
-                # only after both) and died after, lingering over what it sent: a source
-                # restarted there would take up a run that has ended (a UDP one waits for
-                # datagrams that never come)
+            if p.name == "source" and stream_ended(self.topo.state / "journal",
+                                                   self.topo.run):
+                # it had journaled the stream's end (the journal is the truth, not a last
+                # heartbeat the collector may have missed) and died after, lingering over
+                # what it sent: a source restarted there would take up a run that has ended
+                # (a UDP one waits for datagrams that never come); the workers end on the
+                # journal's end if its stops were lost with it
                 p.finished = True
                 self.log(f"{p.name}: ended (exit {code}) after it finished the run (its end "
                          "journaled); not restarted")
@@ -643,7 +644,7 @@ class Supervisor:
 
     # -------------------------------------------------------------- run
     def run(self) -> dict:
-        from pipeline.stream.journal import reopen, stream_ended
+        from pipeline.stream.journal import reopen
         from pipeline.stream.runrecord import end
 
         if self.record.get("state") == "finished":

@@ -283,22 +283,28 @@ def test_restarts_back_off_exponentially_within_a_budget_rate(tmp_path):
 
 
 def test_a_source_killed_after_it_finished_the_run_is_not_restarted(tmp_path):
-    """Issue 38.6: a source that reported "finished" (its end journaled, its stops sent)
-    and was killed while it lingered over what it sent is finished, not restarted into a
-    run that has ended (a UDP ingest restarted there waited for datagrams for ever); one
-    killed before it finished is restarted."""
+    """Issue 38.6: a source that had journaled its stream's end (the end line's
+    ``complete``) and was killed while it lingered over what it sent is finished, not
+    restarted into a run that has ended (a UDP ingest restarted there waited for datagrams
+    for ever); one killed before, or whose end was a signal's stop, is restarted. The
+    journal decides, not a last heartbeat the collector may have missed."""
     from pipeline.stream.daemon import Proc, Supervisor
     from pipeline.stream.topology import load_topology
 
     topo = load_topology(topology(tmp_path, cycles=1000))
     topo.restart_backoff_s = 0.05
-    for state, restarted in (("finished", False), ("running", True)):
+    for i, (end, restarted) in enumerate((("complete", False), ("stop", True),
+                                          (None, True))):
+        topo.run = f"f{i}"
+        if end is not None:
+            w = JournalWriter(topo.state / "journal", topo.run, N, 140.0)
+            w.close(complete=end == "complete")
         logged = []
         sup = Supervisor(topo, log=logged.append, poll_s=0.01)
         src = Proc("source", [sys.executable, "-c", "import time; time.sleep(60)"], [])
         sup.procs, sup.by_name = [src], {"source": src}
         sup._start(src)
-        sup.metrics["source"] = {"pid": src.popen.pid, "state": state, "t": time.time()}
+        sup.metrics["source"] = {"pid": src.popen.pid, "state": "finished", "t": time.time()}
         os.kill(src.popen.pid, signal.SIGKILL)
         src.popen.wait()
         sup._check()
