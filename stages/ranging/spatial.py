@@ -84,19 +84,25 @@ class SpatialEstimate:
     surrounded: np.ndarray
 
 
-def _box(a: np.ndarray, k: int) -> np.ndarray:
-    """Sums over the (2k+1)^2 window (clipped at the image's edges) along axes 0 and 1."""
-    h, w = a.shape[:2]
-    s = np.zeros((h + 1, w + 1) + a.shape[2:], np.float64)
-    s[1:, 1:] = a.cumsum(0).cumsum(1)
-    r0, r1 = np.clip(np.arange(h) - k, 0, h), np.clip(np.arange(h) + k + 1, 0, h)
-    c0, c1 = np.clip(np.arange(w) - k, 0, w), np.clip(np.arange(w) + k + 1, 0, w)
-    return (s[r1][:, c1] - s[r0][:, c1] - s[r1][:, c0] + s[r0][:, c0])
+def _box(a: np.ndarray, k: int, dtype=np.float64) -> np.ndarray:
+    """Sums over the (2k+1)^2 window (clipped at the image's edges) along axes 0 and 1,
+    in ``dtype``: shifted adds along each axis (numpy's prefix sums along the image's
+    axes, not the array's last, cost 2-5x as much on a frame)."""
+    rows = np.array(a, dtype)
+    for d in range(1, k + 1):
+        rows[d:] += a[:-d]
+        rows[:-d] += a[d:]
+    out = rows.copy()
+    for d in range(1, k + 1):
+        out[:, d:] += rows[:, :-d]
+        out[:, :-d] += rows[:, d:]
+    return out
 
 
-def _cumbins(a: np.ndarray) -> np.ndarray:
+def _cumbins(a: np.ndarray, dtype=np.float64) -> np.ndarray:
     """Prefix sums along the bins with a leading 0."""
-    out = np.zeros(a.shape[:-1] + (a.shape[-1] + 1,), np.float64)
+    out = np.empty(a.shape[:-1] + (a.shape[-1] + 1,), dtype)
+    out[..., 0] = 0
     np.cumsum(a, axis=-1, out=out[..., 1:])
     return out
 
@@ -164,14 +170,17 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> tuple:
                 - np.take_along_axis(P, a[..., None], -1))[..., 0]
 
     def candidates(k_win, boxes, nc):
-        PA = _cumbins(_box(counts, k_win))       # (h, w, n + 1)
+        # (float32 where every window's total is an integer float32 holds exactly: the
+        # search only, its sums as in float64; 30 % of the frame's time in float64)
+        dt = np.float32 if counts.sum(-1).max() * (2 * k_win + 1) ** 2 < 2 ** 24 else np.float64
+        PA = _cumbins(_box(counts, k_win, dt), dt)       # (h, w, n + 1)
         halves = [max(1, int(round(x * sb))) for x in boxes]
 
         def boxed(k):  # counts in [j - k, j + k] (clipped) for every bin j: slices
             if 2 * k + 1 > n:
                 p = np.pad(PA, ((0, 0), (0, 0), (k, k)), mode="edge")
                 return p[..., 2 * k + 1:2 * k + 1 + n] - p[..., :n]
-            out = np.empty((h, w, n))
+            out = np.empty((h, w, n), PA.dtype)
             np.subtract(PA[..., 2 * k + 1:], PA[..., :n - 2 * k], out=out[..., k:n - k])
             np.subtract(PA[..., k + 1:2 * k + 1], PA[..., :1], out=out[..., :k])
             np.subtract(PA[..., n:], PA[..., n - 2 * k:n - k], out=out[..., n - k:])
@@ -186,12 +195,21 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> tuple:
         Z = np.full((h, w, n), -np.inf, np.float32)
         which = np.zeros((h, w, n), np.int8)
         for i, kb in enumerate(halves):
-            nb = np.minimum(np.arange(n) + kb + 1, n) - np.maximum(np.arange(n) - kb, 0)
-            b = (bgA[..., None] * nb).astype(np.float32)
-            z = ((first if i == 0 else boxed(kb)).astype(np.float32) - b) / np.sqrt(b + 1.0)
+            # the box's excess over its background in sds: in place, the box's full
+            # width inside the bins, its clipped ends apart
+            z = (first if i == 0 else boxed(kb)).astype(np.float32, copy=False)
+            m = slice(kb, n - kb) if n > 2 * kb else slice(0, 0)
+            b = (bgA * (2 * kb + 1)).astype(np.float32)[..., None]
+            z[..., m] -= b
+            z[..., m] /= np.sqrt(b + np.float32(1.0))
+            for e_ in (slice(0, min(kb, n)), slice(max(n - kb, min(kb, n)), n)):
+                j_ = np.arange(n)[e_]
+                nb = np.minimum(j_ + kb + 1, n) - np.maximum(j_ - kb, 0)
+                b = (bgA[..., None] * nb).astype(np.float32)
+                z[..., e_] = (z[..., e_] - b) / np.sqrt(b + np.float32(1.0))
             better = z > Z
-            np.copyto(Z, z, where=better)
             np.copyto(which, np.int8(i), where=better)
+            np.maximum(Z, z, out=Z)
         # the best of every block of bins, then the candidates block by block, each at
         # least its box and 4 sigma from the ones before it
         B = max(1, int(sb))
@@ -248,6 +266,10 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> tuple:
     qn = q * (n + 1)                                       # its prefix sums' first row
     beta_q = beta.ravel()[q] * on
     X = np.stack([np.ones_like(dr), dr, dc]).astype(np.float64)  # (3, m)
+    XX = (X[:, None, :] * X[None, :, :]).reshape(9, -1).T       # (m, 9)
+
+    def gram(wq):  # sum over the neighbours of wq X X^T: (h, w, 3, 3), one matrix product
+        return (wq @ XX).reshape(wq.shape[:-1] + (3, 3))
     shape = (h, w, nc)
     t_out, sig_out, sig_cnt = np.full(shape, np.nan), np.full(shape, np.inf), np.zeros(shape)
     own, surr, rank = np.zeros(shape, bool), np.zeros(shape, bool), np.zeros(shape)
@@ -281,8 +303,8 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> tuple:
             # weighted least squares of the photons' times on (1, dr, dc): moments of the
             # net counts (a neighbour's net count may be negative: its weight is 0)
             s1w = np.where(n0 > 0, s1, 0.0)
-            M = np.einsum("hwm,im,jm->hwij", wgt, X, X)
-            y = np.einsum("hwm,im->hwi", s1w, X)
+            M = gram(wgt)
+            y = s1w @ X.T
             tot = wgt.sum(-1)
             ridge = 1.0 + 0.01 * tot                          # slopes shrink where few
             M[..., 1, 1] += ridge
@@ -300,7 +322,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> tuple:
         pos = n0 > 0
         rss = np.where(pos, s2 - 2 * tq * s1 + tq ** 2 * n0, 0.0).sum(-1)
         tot = np.where(pos, n0, 0.0).sum(-1)
-        Mfit = np.einsum("hwm,im,jm->hwij", np.where(pos, n0, 0.0), X, X)
+        Mfit = gram(np.where(pos, n0, 0.0))
         Minv = np.linalg.inv(Mfit + np.eye(3) * 1e-6)
         # the ridge's pull of the slopes towards 0 moves t0 where the neighbours on the
         # surface are one-sided (an edge): (M + R)^-1 R beta, its first element, squared
@@ -320,7 +342,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> tuple:
         # every neighbour's leverage on t0 times its photons' summed residual, squared,
         # which takes in what the model leaves out (the background's fluctuation, a
         # surface that is not quite a plane); the larger of the two
-        lev = np.einsum("hwi,im->hwm", Minv[..., 0, :], X)
+        lev = Minv[..., 0, :] @ X
         res = np.where(pos, s1 - tq * n0, 0.0)
         m_eff = np.maximum(pos.sum(-1), 4)
         var_sand = ((lev * res) ** 2).sum(-1) * m_eff / (m_eff - 3)
@@ -331,11 +353,11 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> tuple:
         # one side, where their leverage on t0 is largest. The signed net counts
         # estimate the information without that bias: both variances again with them,
         # the larger kept (where the signed matrix is positive definite)
-        Ms = np.einsum("hwm,im,jm->hwij", np.where(inside, n0, 0.0), X, X) + np.eye(3) * 1e-6
+        Ms = gram(np.where(inside, n0, 0.0)) + np.eye(3) * 1e-6
         pd = np.linalg.det(Ms) > 0
         Msi = np.linalg.inv(np.where(pd[..., None, None], Ms, np.eye(3)))
         pd &= Msi[..., 0, 0] > 0
-        lev_s = np.einsum("hwi,im->hwm", Msi[..., 0, :], X)
+        lev_s = Msi[..., 0, :] @ X
         var_model = np.where(pd, np.maximum(var_model, var_photon * Msi[..., 0, 0] + var_bg),
                              var_model)
         var_sand = np.where(pd, np.maximum(var_sand, ((lev_s * res) ** 2).sum(-1) * m_eff
