@@ -42,6 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stages.ranging._numba import numba
 from stages.ranging.detection import poisson_tail
 
 WINDOW = 3      # k: the window is (2k + 1)^2 pixels
@@ -109,7 +110,7 @@ def _cumbins(a: np.ndarray, dtype=np.float64) -> np.ndarray:
 
 def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3,
             window: int = WINDOW, max_returns: int = 2, t0_s: float = 0.0,
-            threads: int = 1) -> SpatialEstimate:
+            threads: int = 1, compiled: bool | None = None) -> SpatialEstimate:
     """Range an image of histograms with its neighbours (module docstring).
 
     ``counts`` (rows, cols, bins) photon counts (no pile-up: a photon-counting histogram
@@ -117,13 +118,17 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
     the pulse's (instrument response's) sigma. ``threads`` > 1 ranges bands of rows at
     once (numpy releases the GIL), each with ``window + 1`` rows of its neighbours', then
     relabels the whole image, so the result is the same as in one piece (tested).
+    ``compiled``: the plane fits' window sums by numba (default where it is installed)
+    or numpy (the same result, tested).
     """
+    compiled = (numba is not None) if compiled is None else bool(compiled) and numba is not None
     counts = np.asarray(counts, np.float64)
     _check(counts, bin_s, sigma_s, p_fa, window, max_returns)
     h = counts.shape[0]
     bands = min(max(1, int(threads)), max(1, h // (4 * window + 4)))
     if bands == 1:
-        return _finish(_spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s),
+        return _finish(_spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s,
+                                compiled),
                        max_returns, bin_s, sigma_s / bin_s, t0_s)
     from concurrent.futures import ThreadPoolExecutor
 
@@ -133,7 +138,7 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
              for a, b in zip(edges[:-1], edges[1:], strict=True)]
     with ThreadPoolExecutor(bands) as ex:
         got = list(ex.map(lambda p: _spatial(counts[p[0]:p[3]], bin_s, sigma_s, p_fa, window,
-                                             max_returns, t0_s), parts))
+                                             max_returns, t0_s, compiled), parts))
     fields = tuple(np.concatenate([e[i][a - lo:b - lo]
                                    for e, (lo, a, b, _) in zip(got, parts, strict=True)])
                    for i in range(len(got[0])))
@@ -155,7 +160,7 @@ def _check(counts, bin_s, sigma_s, p_fa, window, max_returns) -> None:
                          f"{max_returns}")
 
 
-def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> tuple:
+def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled) -> tuple:
     """Steps 1-3 on a band of rows: per pixel and candidate, before the relabelling."""
     h, w, n = counts.shape
     sb = sigma_s / bin_s                     # the pulse's sigma in bins
@@ -281,14 +286,10 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> tuple:
     def window_sums(tq, half):
         """Counts, sums of bin-time and of its square in tq +- half (bins), background
         subtracted, for every neighbour; and the raw counts and background."""
-        a = np.clip(np.floor(tq - half + 0.5).astype(np.int64), 0, n)
-        z = np.clip(np.floor(tq + half + 0.5).astype(np.int64), 0, n)
-        g = (np.take(P, qn + z, 0) - np.take(P, qn + a, 0)) * on[..., None]  # (h, w, m, 3)
-        raw, s1, s2 = g[..., 0], g[..., 1], g[..., 2]
-        bsum = beta_q * (z - a)
-        mid1 = beta_q * (z * z - a * a) / 2.0                 # sum of (j + 0.5) over the bins
-        mid2 = beta_q * ((z ** 3 - a ** 3) / 3.0 - (z - a) / 12.0)  # of (j + 0.5)^2
-        return raw - bsum, s1 - mid1, s2 - mid2, raw, bsum
+        if compiled:
+            hb = np.ascontiguousarray(np.broadcast_to(half, tq.shape[:2] + (1,))[..., 0])
+            return _window_sums_numba(P, qn, on, beta_q, tq, hb, n)
+        return _window_sums_numpy(P, qn, on, beta_q, tq, half, n)
 
     for r in range(nc):
         t0 = cand[..., r] + 0.5                               # bins
@@ -402,6 +403,50 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s) -> tuple:
                            (rank, -1e9)):
                 arr[..., r] = np.where(same, v, arr[..., r])
     return t_out, sig_out, sig_cnt, own | surr, own, surr, slope, mine_r, bw_r, rank, beta, P0
+
+
+def _window_sums_numpy(P, qn, on, beta_q, tq, half, n):
+    """Per pixel and neighbour (h, w, m): the counts, sums of bin-time and of its square
+    in tq +- half (bins), background subtracted, and the raw counts and the background,
+    from the (count, time, time^2) prefix sums ``P`` (rows qn + bin)."""
+    a = np.clip(np.floor(tq - half + 0.5).astype(np.int64), 0, n)
+    z = np.clip(np.floor(tq + half + 0.5).astype(np.int64), 0, n)
+    g = (np.take(P, qn + z, 0) - np.take(P, qn + a, 0)) * on[..., None]  # (h, w, m, 3)
+    raw, s1, s2 = g[..., 0], g[..., 1], g[..., 2]
+    bsum = beta_q * (z - a)
+    mid1 = beta_q * (z * z - a * a) / 2.0                 # sum of (j + 0.5) over the bins
+    mid2 = beta_q * ((z ** 3 - a ** 3) / 3.0 - (z - a) / 12.0)  # of (j + 0.5)^2
+    return raw - bsum, s1 - mid1, s2 - mid2, raw, bsum
+
+
+if numba is not None:
+    @numba.njit(cache=True, nogil=True)
+    def _window_sums_numba(P, qn, on, beta_q, tq, half, n):
+        """:func:`_window_sums_numpy` in one pass, without its temporaries (the same
+        operations in the same order: equal results); ``half`` (h, w)."""
+        h, w, m = tq.shape
+        n0 = np.empty((h, w, m))
+        s1 = np.empty((h, w, m))
+        s2 = np.empty((h, w, m))
+        raw = np.empty((h, w, m))
+        bsum = np.empty((h, w, m))
+        for i in range(h):
+            for j in range(w):
+                hf = half[i, j]
+                for k in range(m):
+                    t = tq[i, j, k]
+                    a = min(max(np.int64(np.floor(t - hf + 0.5)), 0), n)
+                    z = min(max(np.int64(np.floor(t + hf + 0.5)), 0), n)
+                    qa, qz, o, bq = qn[i, j, k] + a, qn[i, j, k] + z, on[i, j, k], beta_q[i, j, k]
+                    r = (P[qz, 0] - P[qa, 0]) * o
+                    b = bq * (z - a)
+                    raw[i, j, k] = r
+                    bsum[i, j, k] = b
+                    n0[i, j, k] = r - b
+                    s1[i, j, k] = (P[qz, 1] - P[qa, 1]) * o - bq * (z * z - a * a) / 2.0
+                    s2[i, j, k] = ((P[qz, 2] - P[qa, 2]) * o
+                                   - bq * ((z ** 3 - a ** 3) / 3.0 - (z - a) / 12.0))
+        return n0, s1, s2, raw, bsum
 
 
 def _finish(fields, max_returns, bin_s, sb, t0_s) -> SpatialEstimate:

@@ -24,6 +24,7 @@ from benchmarks.spatial_scenes import (  # noqa: E402
     scene,
 )
 from stages.ranging import Histograms, estimate  # noqa: E402
+from stages.ranging._numba import numba  # noqa: E402
 from stages.ranging.spatial import spatial  # noqa: E402
 
 WINDOW_M = N_BINS * BIN_S * C / 2
@@ -120,6 +121,17 @@ def test_threads_agree():
     moved = first & ~np.isclose(a.t_s[..., 0], b.t_s[..., 0], rtol=0, atol=0.1 * SIGMA_S,
                                 equal_nan=True)
     assert moved.sum() <= 0.015 * first.sum(), (moved.sum(), first.sum())
+
+
+@pytest.mark.skipif(numba is None, reason="numba not installed")
+def test_compiled_and_numpy_agree():
+    """The plane fits' window sums by numba and by numpy: the same operations in the same
+    order, so the same estimates to the bit (two surfaces, edges, sky)."""
+    sc = scene(40, 36)
+    counts = histograms(sc, 2, 50, 5)
+    a, b = (spatial(counts, BIN_S, SIGMA_S, compiled=c) for c in (True, False))
+    for k in a.__dataclass_fields__:
+        assert np.array_equal(getattr(a, k), getattr(b, k), equal_nan=True), k
 
 
 @pytest.mark.parametrize("kw,msg", [
