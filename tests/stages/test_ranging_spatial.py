@@ -115,12 +115,14 @@ def test_threads_agree():
     det = a.detected
     assert np.allclose(a.t_s[det], b.t_s[det], rtol=0, atol=0.1 * SIGMA_S)
     # the relabelling runs on the whole image (its sweeps reach further than a band's
-    # halo): the undetected pixels' first return moves only where the float noise above
-    # moved a candidate, 10 of 1,007 here (38 when it ran in bands)
+    # halo): the undetected pixels' first return moves only near the bands' seam (row
+    # 24), where the float noise above moved a candidate: 16 of 1,007 here (10 before
+    # the straight-boundary prior, which reaches 3 pixels; 38 when it ran in bands)
     first = ~det[..., 0]
     moved = first & ~np.isclose(a.t_s[..., 0], b.t_s[..., 0], rtol=0, atol=0.1 * SIGMA_S,
                                 equal_nan=True)
-    assert moved.sum() <= 0.015 * first.sum(), (moved.sum(), first.sum())
+    assert moved.sum() <= 0.025 * first.sum(), (moved.sum(), first.sum())
+    assert np.all(np.abs(np.nonzero(moved)[0] - 24) <= 6)
 
 
 @pytest.mark.skipif(numba is None, reason="numba not installed")
