@@ -25,7 +25,8 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    unless its own photons say so.
    3b. Which candidate an undetected pixel reports (:func:`_relabel`): a few ICM sweeps
    of a Potts MRF over its candidates and its 8 nearest's planes carried over, by the
-   pixel's own Poisson likelihood and how many of its 8 nearest lie on each.
+   pixel's own Poisson likelihood, how many of its 8 nearest lie on each, and how many
+   of the 6 pixels of its best row, column or diagonal (a straight boundary).
 4. sigma: the photons' spread about the plane over their number, through the fit's
    design (its (0, 0) element), with the background left in the window, or the fit's
    sandwich variance, the larger; times Huber's factor for a window centred on its own
@@ -496,7 +497,14 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
     in place with its sigma and signal): a steep surface's plane fitted from one side
     of an edge misses the pixel by more than a pulse, its neighbour's does not. Returns
     the ranking with the chosen candidate of every undetected pixel first. (Seed 1, (2,
-    50), 5 sweeps: 21 pixels > 10 cm off at PRIOR 0.7; 35 at 0.5; 29 at 1.0 and 3 sweeps.)"""
+    50), 5 sweeps: 21 pixels > 10 cm off at PRIOR 0.7; 35 at 0.5; 29 at 1.0 and 3 sweeps.)
+    And a straight-boundary prior: ``LINE`` for each of the ``2 LINE_L`` pixels of the
+    row, column or diagonal (at ``DIAG``) through the pixel that lie most on the plane.
+    Beside a straight edge the 8 nearest split 5 to 3 for the pixel's surface (4 to 4
+    where two pixels along the edge are wrong together: an ICM fixed point), and one
+    background photon in a wrong candidate's window outweighs that; the line along the
+    edge is all on the pixel's surface (seed 1, (2, 50): 21 -> 1 pixel > 10 cm off;
+    docs/ranging.md)."""
     h, w, nc = t_out.shape
     tb = (t_out - t0_s) / bin_s                               # bins
     S = 0.95 * np.maximum(sig_cnt, 0.05)
