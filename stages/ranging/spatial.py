@@ -524,18 +524,24 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
         return out
 
     def agreement(tl, t, sl):  # the prior of the plane (t, sl): its 8 nearest and line
+        on = {}  # whether the neighbour at (i, j) lies on the plane
+
+        def lies(i, j):
+            if (i, j) not in on:
+                pred = t + sl[..., 0] * i + sl[..., 1] * j
+                on[i, j] = np.abs(shifted(tl, i, j, np.nan)[..., None] - pred) < tol
+            return on[i, j]
+
         got = np.zeros(t.shape)
         for i, j in offs:
-            pred = t + sl[..., 0] * i + sl[..., 1] * j
-            got += np.abs(shifted(tl, i, j, np.nan)[..., None] - pred) < tol
+            got += lies(i, j)
         # the straight boundary: the row, column or diagonal through the pixel along
         # which most of the 2 LINE_L pixels lie on the plane
         best = np.zeros(t.shape)
         for i, j in ((0, 1), (1, 0), (1, 1), (1, -1)):
             run = np.zeros(t.shape)
             for d in [x for x in range(-LINE_L, LINE_L + 1) if x]:
-                pred = t + sl[..., 0] * (d * i) + sl[..., 1] * (d * j)
-                run += np.abs(shifted(tl, d * i, d * j, np.nan)[..., None] - pred) < tol
+                run += lies(d * i, d * j)
             best = np.maximum(best, run * (DIAG if i and j else 1.0))
         return PRIOR * got + LINE * best
 
