@@ -542,7 +542,7 @@ def test_pile_up_is_fitted_where_the_data_have_it(tmp_path):
     f = _calibration_file(tmp_path, rng, cycles=20_000, signal=8000.0, bg=2.0)
     cal = calibrate_distance(f, tmp_path / "truth.csv", estimators=("ml",))
     assert cal.cycles is not None and cal.pileup.startswith("Coates"), cal.pileup
-    assert "F test" in cal.pileup and "background behind the returns" in cal.pileup
+    assert "F test" in cal.pileup and "background behind the returns" in cal.pileup, cal.pileup
 
 
 def test_a_file_too_big_to_range_is_refused_up_front_in_one_line(tmp_path):
