@@ -481,15 +481,17 @@ def calibrate_distance(path: str | Path, truth_csv: str | Path,
         source = (f"row {mid.tdc[r]} of {mid.name} at "
                   f"{cal.distances_m[order[len(order) // 2]]:g} m")
 
-    def response(cycles, rows=(r,), shifts=(0,)):
-        """The response of ``rows`` of ``mid``, each moved ``shifts`` bins earlier and
-        summed (their cycles too: the Coates correction of rows of one shape, summed)."""
-        rows, shifts = np.asarray(rows), np.asarray(shifts)
-        at = (np.arange(mid.counts.shape[1])[None, :] + shifts[:, None]) % mid.counts.shape[1]
-        counts = np.take_along_axis(mid.counts[rows].astype(np.float64), at, 1).sum(0)
-        c = np.where(np.isfinite(mid.cycles[rows]), mid.cycles[rows],
-                     np.nan if cycles is None else cycles)
-        return response_from_counts(counts, nominal, source, float(c.sum()))
+    def response(cycles, rows=None, shifts=None):
+        """The response of row ``r`` of ``mid``, or of its ``rows``, each pile-up
+        corrected, moved ``shifts`` bins earlier, and summed."""
+        if rows is None:
+            c = mid.cycles[r] if np.isfinite(mid.cycles[r]) else cycles
+            return response_from_counts(mid.counts[r], nominal, source, c)
+        h = _histograms(mid, _cycles(mid, cycles)[0], rows)
+        n = h.counts.shape[1]
+        at = (np.arange(n)[None, :] + np.asarray(shifts)[:, None]) % n
+        y = np.take_along_axis(h.intensity() * h.cycles[:, None], at, 1).sum(0)
+        return response_from_counts(y, nominal, source)
 
     cal.missing = missing
     cal.response = response(None)
