@@ -13,8 +13,8 @@ Pile-up: an instrument that does not report its laser pulses gives no Coates cor
 From three or more distances the calibration models pile-up where the data have it (the
 background behind the returns is thinned, :func:`_background_deficit`) with one effective
 number of pulses per histogram (the sensor's, the same for every row and capture: the one
-whose correction leaves the smallest calibration residuals where that lowers them
-significantly, else the one that makes the background behind the returns equal to the
+whose correction leaves the smallest calibration residuals where the lines can see the
+pile-up and do, else the one that makes the background behind the returns equal to the
 one before them) and records it; ranging uses it where the file has no cycles, and says
 so.
 """
@@ -569,56 +569,72 @@ def _pileup(meas, dist, response, p_fa) -> tuple[float | None, str]:
     """Whether pile-up is modelled, and with what effective pulse count: (count or None,
     what was modelled and why). The data decide: only where the background behind the
     returns is thinned (:func:`_background_deficit`, p < :data:`PILEUP_ALPHA`). The count
-    is then the calibration lines' (:func:`_fit_cycles`) where they fix it (the count
-    lowers their residuals, F test at PILEUP_ALPHA: the returns' signals differ with
-    distance, so pile-up bends the lines), else the background's own
-    (:func:`_deficit_cycles`: targets of one strength all move alike, which the delay
-    takes up, and the lines cannot see the count)."""
+    is then the calibration lines' (:func:`_fit_cycles`) where they can see it and do:
+    the background's count (:func:`_deficit_cycles`) would bend them beyond their noise
+    (the returns' signals differ with distance), and the lines' own count lowers their
+    residuals, both F tests at PILEUP_ALPHA. Else it is the background's: targets of one
+    strength all move alike, which the delay takes up, and a count the lines chose there
+    was noise (1.7e4 for 2e5 pulses, F test p = 0.004: the search over the count makes
+    that test too lenient)."""
     p = _background_deficit(meas, response)
     if not p < PILEUP_ALPHA:
         return None, (f"none (the background behind the returns is not below the one "
                       f"before them: p = {p:.2g}, not < {PILEUP_ALPHA:g})")
     why = (f"modelled: the background behind the returns is below the one before them, "
            f"p = {p:.2g} < {PILEUP_ALPHA:g}")
-    best, none_rms, best_rms, n, p_f = _fit_cycles(meas, dist, response, p_fa)
-    lines = (f"residual RMS {none_rms * 1e3:.3f} -> {best_rms * 1e3:.3f} mm, F test "
-             f"p = {p_f:.2g} on {n} residuals")
-    if p_f < PILEUP_ALPHA:
-        return best, (f"Coates with {best:.4g} effective pulses per histogram, fitted on "
-                      f"the calibration lines ({lines} < {PILEUP_ALPHA:g}); {why}")
+    best, res0, best_rms, p_f = _fit_cycles(meas, dist, response, p_fa)
+    n, dof = int(np.isfinite(res0).sum()), _dof(res0, dist)
+    lines = (f"residual RMS {_rms(res0) * 1e3:.3f} -> {best_rms * 1e3:.3f} mm"
+             + (f" at {best:.4g}" if best else "") + f", F test p = {p_f:.2g} on {n} "
+             "residuals")
     count = _deficit_cycles(meas, response)
+    p_bend, bend = 0.0, ""
+    if count is not None:
+        res = _residuals(meas, dist, response, p_fa, count)
+        # against their noise: the residuals at the lines' own best count
+        p_bend = _f_test(float(np.hypot(_rms(res - res0), best_rms)), best_rms, n, dof)
+        bend = (f"that count bends them by {_rms(res - res0) * 1e3:.3f} mm RMS against "
+                f"their {best_rms * 1e3:.3f} mm noise, F test p = {p_bend:.2g}; ")
+    if p_f < PILEUP_ALPHA and p_bend < PILEUP_ALPHA:
+        return best, (f"Coates with {best:.4g} effective pulses per histogram, fitted on "
+                      f"the calibration lines ({bend}{lines} < {PILEUP_ALPHA:g}); {why}")
     if count is None:
         return None, (f"none (the background behind the returns is below the one before "
                       f"them, p = {p:.2g}, but no effective pulse count up to 10^6 times "
                       f"the brightest histogram brings it up to that one: {lines})")
     return count, (f"Coates with {count:.4g} effective pulses per histogram, the count "
                    f"whose correction brings the background behind the returns up to the "
-                   f"one before them (the calibration lines do not fix it: {lines}); {why}")
+                   f"one before them (the calibration lines do not fix it: {bend}{lines}); "
+                   f"{why}")
+
+
+def _residuals(meas, dist, response, p_fa, cycles=None) -> np.ndarray:
+    """ml's calibration lines' residuals (m) with the Coates correction of ``cycles``."""
+    return _fit_rows([measurement_times(m, "ml", p_fa, response, cycles=cycles)
+                      for m in meas], dist)[2]
+
+
+def _dof(res, dist) -> int:
+    """Residuals left free by every row's line and one count."""
+    return int(np.isfinite(res).sum()) - 2 * dist.shape[1] - 1
 
 
 def _fit_cycles(meas, dist, response, p_fa):
     """The effective pulses per histogram whose Coates correction leaves the smallest
     residuals of ml's calibration lines: (count or None where no count does better than
-    none, RMS without and with it, residuals, the F test's p of the one added parameter
-    against the two of every row's line)."""
+    none, the residuals without it, the RMS with it, the F test's p of the one added
+    parameter against the two of every row's line)."""
     from scipy.optimize import minimize_scalar
 
     top = max(float(m.counts.sum(axis=1).max()) for m in meas)
 
-    def fit(log_k):
-        c = None if log_k is None else float(np.exp(log_k)) * top
-        return _fit_rows([measurement_times(m, "ml", p_fa, response, cycles=c)
-                          for m in meas], dist)[2]
-
     def rms(log_k):
-        return _rms(fit(log_k))
+        return _rms(_residuals(meas, dist, response, p_fa, float(np.exp(log_k)) * top))
 
     grid = np.log(_CYCLE_GRID)
     scores = np.array([rms(x) for x in grid])
-    res0 = fit(None)
-    none_rms = best_rms = _rms(res0)
-    n = int(np.isfinite(res0).sum())
-    best = None
+    res0 = _residuals(meas, dist, response, p_fa)
+    best, best_rms = None, _rms(res0)
     i = int(np.nanargmin(scores))
     if scores[i] < best_rms:  # refined between the grid's neighbours (a smooth minimum)
         lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
@@ -626,8 +642,9 @@ def _fit_cycles(meas, dist, response, p_fa):
                             options={"xatol": 0.005})
         x, v = (r.x, r.fun) if r.fun < scores[i] else (grid[i], scores[i])
         best, best_rms = float(np.exp(x)) * top, v
-    p = _f_test(none_rms, best_rms, n, n - 2 * dist.shape[1] - 1) if best else 1.0
-    return best, none_rms, best_rms, n, p
+    n = int(np.isfinite(res0).sum())
+    p = _f_test(_rms(res0), best_rms, n, _dof(res0, dist)) if best else 1.0
+    return best, res0, best_rms, p
 
 
 #: the significance at which a calibration models pile-up (an effective pulse count)
