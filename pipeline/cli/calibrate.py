@@ -201,9 +201,11 @@ def distance(histograms, truth, out, p_fa, overwrite) -> None:
 
     For every estimator and row: the delay (eq. 5.3 at the target's distance) and, from
     two or more distances, the real bin width (one distance: the file's bin_width_ps);
-    the instrument response measured on the reference channel (or the brightest row at
-    the middle distance); from three or more distances, the effective laser pulses of an
-    instrument that does not report them (pile-up). Prints the fit's residuals and RMS."""
+    the instrument response measured on the reference channel (or the rows at the middle
+    distance, aligned and summed); from three or more distances, where the background
+    behind the returns is thinned (pile-up, p < 0.01), the effective laser pulses of an
+    instrument that does not report them. Prints the fit's residuals and RMS, and what
+    pile-up model was chosen and why."""
     from pipeline.offline.generic import CALIBRATION_FILE, calibrate_distance
 
     _check_outs(out, None, overwrite, contents=(CALIBRATION_FILE,))

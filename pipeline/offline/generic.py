@@ -10,10 +10,13 @@ Off-axis zones see a flat target along a longer, slanted path, a fixed factor th
 per-row scale takes up.
 
 Pile-up: an instrument that does not report its laser pulses gives no Coates correction.
-From three or more distances the calibration fits one effective number of pulses per
-histogram (the sensor's, the same for every row and capture: the one whose correction
-leaves the smallest calibration residuals) and records it; ranging uses it where the file
-has no cycles, and says so.
+From three or more distances the calibration models pile-up where the data have it (the
+background behind the returns is thinned, :func:`_background_deficit`) with one effective
+number of pulses per histogram (the sensor's, the same for every row and capture: the one
+whose correction leaves the smallest calibration residuals where the lines can see the
+pile-up and do, else the one that makes the background behind the returns equal to the
+one before them) and records it; ranging uses it where the file has no cycles, and says
+so.
 """
 
 from __future__ import annotations
@@ -478,9 +481,17 @@ def calibrate_distance(path: str | Path, truth_csv: str | Path,
         source = (f"row {mid.tdc[r]} of {mid.name} at "
                   f"{cal.distances_m[order[len(order) // 2]]:g} m")
 
-    def response(cycles):
-        c = mid.cycles[r] if np.isfinite(mid.cycles[r]) else cycles
-        return response_from_counts(mid.counts[r], nominal, source, c)
+    def response(cycles, rows=None, shifts=None):
+        """The response of row ``r`` of ``mid``, or of its ``rows``, each pile-up
+        corrected, moved ``shifts`` bins earlier, and summed."""
+        if rows is None:
+            c = mid.cycles[r] if np.isfinite(mid.cycles[r]) else cycles
+            return response_from_counts(mid.counts[r], nominal, source, c)
+        h = _histograms(mid, _cycles(mid, cycles)[0], rows)
+        n = h.counts.shape[1]
+        at = (np.arange(n)[None, :] + np.asarray(shifts)[:, None]) % n
+        y = np.take_along_axis(h.intensity() * h.cycles[:, None], at, 1).sum(0)
+        return response_from_counts(y, nominal, source)
 
     cal.missing = missing
     cal.response = response(None)
@@ -492,15 +503,24 @@ def calibrate_distance(path: str | Path, truth_csv: str | Path,
         cal.pileup = ("none (the file gives no cycles; an effective pulse count needs >= 3 "
                       "distances to fit)")
     else:
-        p_deficit = _background_deficit(meas, cal.response)
-        if not p_deficit < PILEUP_ALPHA:
-            cal.pileup = (f"none (the background behind the returns is not below the one "
-                          f"before them: p = {p_deficit:.2g}, not < {PILEUP_ALPHA:g})")
-        else:
-            cal.cycles, cal.pileup = _fit_cycles(meas, dist, cal.response, p_fa)
-            cal.pileup += (f"; background behind the returns below the one before, "
-                           f"p = {p_deficit:.2g}")
+        cal.cycles, cal.pileup = _pileup(meas, dist, cal.response, p_fa)
+        if cal.cycles is not None:
             cal.response = response(cal.cycles)  # its shape without the pile-up
+    if not mid.reference.any():
+        # every row at the middle distance, not its brightest alone: one row of 2 000
+        # counts gave a Gaussian width 2 % narrow to 11 % wide, an error in every sigma of
+        # the Gaussian estimators with this calibration (fast's 2-sigma coverage 0.929 to
+        # 0.971 by the draw, issue 34)
+        tm = measurement_times(mid, "ml", p_fa, cal.response, cal.response.sigma_s,
+                               cal.cycles)
+        pos = np.asarray(tm.est.t_s, float) / nominal
+        ok = np.flatnonzero(np.asarray(tm.est.detected) & np.isfinite(pos))
+        if ok.size > 1:
+            source = (f"{ok.size} rows of {mid.name} at "
+                      f"{cal.distances_m[order[len(order) // 2]]:g} m, aligned to a bin "
+                      "on their times and summed")
+            shifts = np.rint(pos[ok] - np.median(pos[ok])).astype(np.int64)
+            cal.response = response(cal.cycles, ok, shifts)
     cal.returns_response = _returns_response(meas, cal, p_fa)
     runs = [(name, None) for name in estimators] + [
         (name + GAUSSIAN, cal.response.sigma_s) for name in estimators
@@ -545,22 +565,76 @@ def _returns_response(meas: list[Measurement], cal: DistanceCalibration,
                                  f"the calibration's {n} returns, aligned and averaged")
 
 
-def _fit_cycles(meas, dist, response, p_fa) -> tuple[float | None, str]:
+def _pileup(meas, dist, response, p_fa) -> tuple[float | None, str]:
+    """Whether pile-up is modelled, and with what effective pulse count: (count or None,
+    what was modelled and why). The data decide: only where the background behind the
+    returns is thinned (:func:`_background_deficit`, p < :data:`PILEUP_ALPHA`). The count
+    is then the calibration lines' (:func:`_fit_cycles`) where they can see it and do:
+    the background's count (:func:`_deficit_cycles`) would bend them beyond their noise
+    (the returns' signals differ with distance), and the lines' own count lowers their
+    residuals, both F tests at PILEUP_ALPHA. Else it is the background's: targets of one
+    strength all move alike, which the delay takes up, and a count the lines chose there
+    was noise (1.7e4 for 2e5 pulses, F test p = 0.004: the search over the count makes
+    that test too lenient)."""
+    p = _background_deficit(meas, response)
+    if not p < PILEUP_ALPHA:
+        return None, (f"none (the background behind the returns is not below the one "
+                      f"before them: p = {p:.2g}, not < {PILEUP_ALPHA:g})")
+    why = (f"modelled: the background behind the returns is below the one before them, "
+           f"p = {p:.2g} < {PILEUP_ALPHA:g}")
+    best, res0, best_rms, p_f = _fit_cycles(meas, dist, response, p_fa)
+    n, dof = int(np.isfinite(res0).sum()), _dof(res0, dist)
+    lines = (f"residual RMS {_rms(res0) * 1e3:.3f} -> {best_rms * 1e3:.3f} mm"
+             + (f" at {best:.4g}" if best else "") + f", F test p = {p_f:.2g} on {n} "
+             "residuals")
+    count = _deficit_cycles(meas, response)
+    p_bend, bend = 0.0, ""
+    if count is not None:
+        res = _residuals(meas, dist, response, p_fa, count)
+        # against their noise: the residuals at the lines' own best count
+        p_bend = _f_test(float(np.hypot(_rms(res - res0), best_rms)), best_rms, n, dof)
+        bend = (f"that count bends them by {_rms(res - res0) * 1e3:.3f} mm RMS against "
+                f"their {best_rms * 1e3:.3f} mm noise, F test p = {p_bend:.2g}; ")
+    if p_f < PILEUP_ALPHA and p_bend < PILEUP_ALPHA:
+        return best, (f"Coates with {best:.4g} effective pulses per histogram, fitted on "
+                      f"the calibration lines ({bend}{lines} < {PILEUP_ALPHA:g}); {why}")
+    if count is None:
+        return None, (f"none (the background behind the returns is below the one before "
+                      f"them, p = {p:.2g}, but no effective pulse count up to 10^6 times "
+                      f"the brightest histogram brings it up to that one: {lines})")
+    return count, (f"Coates with {count:.4g} effective pulses per histogram, the count "
+                   f"whose correction brings the background behind the returns up to the "
+                   f"one before them (the calibration lines do not fix it: {bend}{lines}); "
+                   f"{why}")
+
+
+def _residuals(meas, dist, response, p_fa, cycles=None) -> np.ndarray:
+    """ml's calibration lines' residuals (m) with the Coates correction of ``cycles``."""
+    return _fit_rows([measurement_times(m, "ml", p_fa, response, cycles=cycles)
+                      for m in meas], dist)[2]
+
+
+def _dof(res, dist) -> int:
+    """Residuals left free by every row's line and one count."""
+    return int(np.isfinite(res).sum()) - 2 * dist.shape[1] - 1
+
+
+def _fit_cycles(meas, dist, response, p_fa):
     """The effective pulses per histogram whose Coates correction leaves the smallest
-    residuals of ml's calibration lines (None: no correction does best)."""
+    residuals of ml's calibration lines: (count or None where no count does better than
+    none, the residuals without it, the RMS with it, the F test's p of the one added
+    parameter against the two of every row's line)."""
     from scipy.optimize import minimize_scalar
 
     top = max(float(m.counts.sum(axis=1).max()) for m in meas)
 
     def rms(log_k):
-        c = None if log_k is None else float(np.exp(log_k)) * top
-        return _rms(_fit_rows([measurement_times(m, "ml", p_fa, response, cycles=c)
-                               for m in meas], dist)[2])
+        return _rms(_residuals(meas, dist, response, p_fa, float(np.exp(log_k)) * top))
 
     grid = np.log(_CYCLE_GRID)
     scores = np.array([rms(x) for x in grid])
-    best, best_rms = None, rms(None)
-    none_rms = best_rms
+    res0 = _residuals(meas, dist, response, p_fa)
+    best, best_rms = None, _rms(res0)
     i = int(np.nanargmin(scores))
     if scores[i] < best_rms:  # refined between the grid's neighbours (a smooth minimum)
         lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
@@ -568,48 +642,42 @@ def _fit_cycles(meas, dist, response, p_fa) -> tuple[float | None, str]:
                             options={"xatol": 0.005})
         x, v = (r.x, r.fun) if r.fun < scores[i] else (grid[i], scores[i])
         best, best_rms = float(np.exp(x)) * top, v
-    if best is None:
-        return None, "none (no effective pulse count improved the fit)"
-    # one more parameter enters only on an F test of the residuals at PILEUP_ALPHA: every
-    # row's line has 2 parameters; a count fitted to noise took 1.1-2.2e4 pulses on
-    # files without pile-up and hid a second surface (issue 34.2)
-    n = int(np.isfinite(_fit_rows([measurement_times(m, "ml", p_fa, response)
-                                   for m in meas], dist)[2]).sum())
-    dof = n - 2 * dist.shape[1] - 1
-    p = _f_test(none_rms, best_rms, n, dof)
-    why = (f"residual RMS {none_rms * 1e3:.3f} -> {best_rms * 1e3:.3f} mm, F test "
-           f"p = {p:.2g} on {n} residuals")
-    if not p < PILEUP_ALPHA:
-        return None, (f"none (the best effective pulse count, {best:.4g}, is not "
-                      f"significant at {PILEUP_ALPHA:g}: {why})")
-    return best, (f"Coates with {best:.4g} effective pulses per histogram, fitted on the "
-                  f"calibration ({why} < {PILEUP_ALPHA:g})")
+    n = int(np.isfinite(res0).sum())
+    p = _f_test(_rms(res0), best_rms, n, _dof(res0, dist)) if best else 1.0
+    return best, res0, best_rms, p
 
 
 #: the significance at which a calibration models pile-up (an effective pulse count)
 PILEUP_ALPHA = 0.01
 
 
+def _background_regions(m: Measurement, response: Response):
+    """A measurement's rows (reference channel left out) and, per row, its bins behind
+    the return (beyond 4 spans of the response after the row's fullest bin) and before
+    it (2 spans ahead), and the share of those bins that are behind: (counts, before,
+    after, share)."""
+    lo, hi = response.span
+    c = m.counts[~m.reference].astype(np.float64)
+    j = np.arange(c.shape[1])[None, :]
+    k = np.argmax(c, axis=1)[:, None]
+    before, after = j < k - 2 * lo, j > k + 4 * hi
+    return c, before, after, after.sum(1) / np.maximum(before.sum(1) + after.sum(1), 1)
+
+
 def _background_deficit(meas: list[Measurement], response: Response) -> float:
     """P-value of "no pile-up" from the data themselves: a first-photon histogram's
     background behind a return is thinned by the cycles the return took, so behind the
-    returns (beyond 4 spans of the response after each row's fullest bin) it is below the
-    one before them (2 spans ahead). Under no pile-up and a flat background, a row's counts
-    there split binomially by the bins' numbers: the sum over the rows against its mean and
-    variance, one-sided (a normal tail; a diffusion tail behind a return only adds counts,
-    which keeps it conservative). 1 where the rows hold no background to test."""
+    returns it is below the one before them (:func:`_background_regions`). Under no
+    pile-up and a flat background, a row's counts there split binomially by the bins'
+    numbers: the sum over the rows against its mean and variance, one-sided (a normal
+    tail; a diffusion tail behind a return only adds counts, which keeps it conservative).
+    1 where the rows hold no background to test."""
     from scipy.special import ndtr
 
-    lo, hi = response.span
     num = mean = var = 0.0
     for m in meas:
-        c = m.counts[~m.reference]
-        n = c.shape[1]
-        j = np.arange(n)[None, :]
-        k = np.argmax(c, axis=1)[:, None]
-        before, after = j < k - 2 * lo, j > k + 4 * hi
+        c, before, after, share = _background_regions(m, response)
         nb, na = (c * before).sum(1), (c * after).sum(1)
-        share = after.sum(1) / np.maximum(before.sum(1) + after.sum(1), 1)
         tot = nb + na
         num += na.sum()
         mean += (tot * share).sum()
@@ -617,6 +685,32 @@ def _background_deficit(meas: list[Measurement], response: Response) -> float:
     if var <= 0:
         return 1.0
     return float(ndtr((num - mean) / np.sqrt(var)))
+
+
+def _deficit_cycles(meas: list[Measurement], response: Response) -> float | None:
+    """The effective pulses per histogram whose Coates correction makes the background
+    behind the returns equal to the one before them (:func:`_background_regions`; the
+    rows' corrected counts behind the returns, summed, against their share of the rows'
+    corrected background, a root in the count). None: no count between the brightest
+    histogram and 10^6 times it closes the gap."""
+    from scipy.optimize import brentq
+
+    rows = [_background_regions(m, response) for m in meas]
+    top = max(float(r[0].sum(axis=1).max()) for r in rows)
+
+    def gap(log_k):
+        n = float(np.exp(log_k)) * top
+        out = 0.0
+        for c, before, after, share in rows:
+            x = -n * np.log1p(-c / (n - (np.cumsum(c, axis=1) - c)))
+            xb, xa = (x * before).sum(1), (x * after).sum(1)
+            out += float((xa - share * (xa + xb)).sum())
+        return out
+
+    lo, hi = np.log1p(1e-6), np.log(1e6)
+    if not (gap(lo) > 0 > gap(hi)):
+        return None
+    return float(np.exp(brentq(gap, lo, hi, xtol=1e-4))) * top
 
 
 def _f_test(rms0: float, rms1: float, n: int, dof: int) -> float:

@@ -135,11 +135,10 @@ class Response:
 def response_from_counts(counts, bin_s: float, source: str, cycles=None) -> Response:
     """The response of a histogram of a single return (a reference channel, or a capture
     at a known distance with nothing else in view): pile-up corrected when ``cycles`` is
-    known, the background (the median of the bins before the rise, else of the last
-    quarter) removed, nothing kept before :data:`LEAD_BINS` ahead of the mode (a
-    reference channel's or a calibration target's SPAD rise; a response wider than a few
-    bins is cut by it: :func:`response_from_returns` keeps its rise. Not changed here:
-    ``calibrate distance``'s pile-up fit was tuned on this cut, see docs/ranging.md).
+    known, then as :func:`response_from_returns` treats each of its rows: the background
+    (:func:`_backgrounds`) taken out, nothing kept before :func:`lead_bins` ahead of the
+    mode (3 rises: a SPAD's one-bin rise keeps 4 bins, a Gaussian pulse 3.5 sigma), and
+    clipped at 0.
 
     >>> r = response_from_counts([1, 1, 1, 1, 1, 1, 51, 31, 11, 6, 1, 1], 1e-10, "demo")
     >>> r.mode, round(float(r.density[6]), 2)
@@ -152,12 +151,8 @@ def response_from_counts(counts, bin_s: float, source: str, cycles=None) -> Resp
     if cycles is not None and np.isfinite(cycles) and cycles > c.sum():
         before = np.cumsum(c) - c
         c = -np.log1p(-c / (cycles - before)) * cycles
-    k = int(np.argmax(c))
-    pre = c[: max(k - LEAD_BINS, 0)]
-    bg = float(np.median(pre)) if pre.size >= 4 else float(np.median(c[-max(c.size // 4, 1):]))
-    d = np.clip(c - bg, 0.0, None)
-    d[: max(k - LEAD_BINS, 0)] = 0.0
-    return Response(d, float(bin_s), source)
+    d = _without_background(c[None, :], np.array([int(np.argmax(c))]))[0]
+    return Response(np.clip(d, 0.0, None), float(bin_s), source)
 
 
 def _backgrounds(y, k, lead: int) -> np.ndarray:
