@@ -86,13 +86,18 @@ class SparseWords:
         if first_word % n_tdc or self.n % n_tdc:
             raise ValueError(f"a cut by TDC range needs whole cycles: {self.n} words at word "
                              f"{first_word} with {n_tdc} TDCs per cycle")
-        cycle, pos = np.divmod(self.index.astype(np.int64), n_tdc)
+        # in uint32 (an index is < n < 2**32): a word at cycle c, position p (index
+        # c * n_tdc + p) is word c * (b - a) + p - a of range (a, b), i.e. its index less
+        # c * (n_tdc - (b - a)) + a; `p - a < b - a` tests a <= p < b in one compare (p < a
+        # wraps round). 2.5x as fast as int64 divmod and two compares (docs/performance.md)
+        idx, n_tdc_u = self.index, np.uint32(n_tdc)
+        pos = idx % n_tdc_u
         out = []
         for a, b in ranges:
-            mine = (pos >= a) & (pos < b)
-            out.append(SparseWords(self.n // n_tdc * (b - a),
-                                   (cycle[mine] * (b - a) + pos[mine] - a).astype(np.uint32),
-                                   self.words[mine]))
+            mine = (pos - np.uint32(a)) < np.uint32(b - a)
+            i = idx[mine]
+            i -= i // n_tdc_u * np.uint32(n_tdc - (b - a)) + np.uint32(a)
+            out.append(SparseWords(self.n // n_tdc * (b - a), i, self.words[mine]))
         return out
 
     def dense(self, first_word: int, n_tdc: int, tdc_offset: int = 0) -> np.ndarray:
