@@ -213,3 +213,19 @@ def test_no_other_account_reaches_the_fork_server():
     assert address.exists()
     st = address.parent.stat()
     assert st.st_uid == os.getuid() and st.st_mode & 0o077 == 0, oct(st.st_mode)
+
+
+def test_the_servers_imports_are_the_stages_not_the_daemons():
+    """The server imports what the stages use, before it forks the first: not the
+    daemon's supervisor, the topology's pydantic models or asyncio (0.1 CPU-s on the way
+    to the first measurement, docs/performance.md), and not the ranging (numba, scipy:
+    the range stage's, loaded after the data path's imports)."""
+    from pipeline.stream.forkstart import PRELOAD
+
+    code = ("import importlib, sys\n"
+            f"for m in {PRELOAD!r}: importlib.import_module(m)\n"
+            "print(' '.join(m for m in ('pipeline.stream.daemon', 'pipeline.stream.topology',"
+            " 'pydantic', 'asyncio', 'numba', 'scipy') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, check=True).stdout.split()
+    assert out == [], out
