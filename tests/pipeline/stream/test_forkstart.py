@@ -217,15 +217,47 @@ def test_no_other_account_reaches_the_fork_server():
 
 def test_the_servers_imports_are_the_stages_not_the_daemons():
     """The server imports what the stages use, before it forks the first: not the
-    daemon's supervisor, the topology's pydantic models or asyncio (0.1 CPU-s on the way
-    to the first measurement, docs/performance.md), and not the ranging (numba, scipy:
-    the range stage's, loaded after the data path's imports)."""
+    daemon's supervisor or the topology's pydantic models (0.1 CPU-s on the way to the
+    first measurement, docs/performance.md), and not the ranging (numba, scipy: the range
+    stage's, ``PRELOAD_RANGE``, only for a graph with one)."""
     from pipeline.stream.forkstart import PRELOAD
 
     code = ("import importlib, sys\n"
             f"for m in {PRELOAD!r}: importlib.import_module(m)\n"
             "print(' '.join(m for m in ('pipeline.stream.daemon', 'pipeline.stream.topology',"
-            " 'pydantic', 'asyncio', 'numba', 'scipy') if m in sys.modules))")
+            " 'pydantic', 'numba', 'scipy') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120, check=True).stdout.split()
     assert out == [], out
+
+
+def test_a_forked_stage_imports_nothing_after_its_fork(tmp_path):
+    """Every module the stages import is the server's (``PRELOAD``; with a range stage
+    ``PRELOAD_RANGE`` too): one a stage imports after its fork is imported by each stage,
+    on two cores, on the way to the first measurement. (Before: CURVE's zmq.asyncio with
+    asyncio, numpy.ma and rich's emoji table, in every stage.) A capture replayed through
+    2 workers, the range stage (the demo-like calibration) and the sink, with
+    ``TCSPC_FORK_LATE_IMPORTS=1``: each stage's log says what it imported late."""
+    from pipeline.io.capture import CaptureWriter
+    from pipeline.stream.forkstart import LATE_IMPORTS_ENV
+    from stages.testpattern import pattern_words
+
+    words, _ = pattern_words(20_000, 16, hit_prob=0.2, rng=5)
+    with CaptureWriter(tmp_path / "cap", 16, kind="pattern") as w:
+        w.write(words)
+    state = tmp_path / "state"
+    topo = tmp_path / "topo.toml"
+    topo.write_text(f'[daemon]\nstate = "{state}"\n[source]\nkind = "capture"\n'
+                    f'capture = "{tmp_path / "cap"}"\n[histogram]\nworkers = 2\n'
+                    f'measurement_cycles = 10000\nartifacts = "count-as-hits"\n'
+                    f'[sink]\nout = "{tmp_path / "out"}"\n')
+    p = subprocess.run(_cmd("daemon", "--config", str(topo), "--run", "late"),
+                       capture_output=True, text=True, timeout=180,
+                       env={**os.environ, LATE_IMPORTS_ENV: "1"})
+    assert p.returncode == 0, p.stderr[-3000:]
+    logs = sorted((state / "logs").glob("*.log"))
+    assert {f.stem for f in logs} >= {"source", "histogram-0", "histogram-1", "sink"}
+    for f in logs:
+        lines = [ln for ln in f.read_text().splitlines()
+                 if ln.startswith("forkstart: imported after the fork:")]
+        assert lines and lines[-1].endswith(": nothing"), (f.name, lines)
