@@ -44,7 +44,8 @@ PRELOAD = ["numpy", "numpy.ma", "pyarrow", "pyarrow.ipc", "pyarrow.parquet", "zm
            "pipeline.io.caldir", "pipeline.io.capture", "stages.stream", "stages.nativecode",
            "rich._emoji_codes", "glob"]
 #: and with a range stage in the graph: the ranging, its kernels loaded (forkwarm)
-PRELOAD_RANGE = ["pipeline.offline.ranging", "pipeline.stream.forkwarm"]
+PRELOAD_RANGE = ["pipeline.offline.ranging", "stages.calibration.chip_check",
+                 "pipeline.stream.forkwarm"]
 #: the range stage's calibration and estimator, for the server's warm-up (forkwarm)
 WARM_ENV = "TCSPC_FORK_WARM_RANGE"
 #: "1": each forked stage writes in its log, at its end, the modules it imported after its
