@@ -12,7 +12,7 @@ the daemon's log line of the stages' start (its own start, topology and state ch
 "first batch" the source's first message, from its log.
 
     python benchmarks/first_measurement.py [--data data] [--repeat 5] [--range]
-        [--measurement-cycles 20000]
+        [--measurement-cycles 20000] [--forked-only] [--code DIR] [--keep DIR]
 """
 
 from __future__ import annotations
@@ -33,7 +33,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def one(tmp: Path, data: Path, fork: bool, rng: bool, mc: int, tag: str) -> dict:
+def one(tmp: Path, data: Path, fork: bool, rng: bool, mc: int, tag: str,
+        code: Path = ROOT) -> dict:
     cal = (data / "calibration" / "current").resolve()
     state, out = tmp / f"state-{tag}", tmp / f"out-{tag}"
     topo = tmp / f"topo-{tag}.toml"
@@ -52,12 +53,12 @@ calibration = "{cal}"
 [sink]
 out = "{out}"
 """)
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    env = {**os.environ, "PYTHONPATH": str(code)}
     t0 = time.time()
     with open(tmp / f"daemon-{tag}.log", "w") as log:
         p = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "daemon", "--config",
                               str(topo), "--run", "bench"], stdout=subprocess.DEVNULL,
-                             stderr=log, env=env, cwd=ROOT)
+                             stderr=log, env=env, cwd=code)
         first: dict[str, float] = {}
         while p.poll() is None:
             for k in ("histograms", "ranges"):
@@ -86,6 +87,12 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--range", action="store_true", help="the range stage too")
     ap.add_argument("--measurement-cycles", type=int, default=20_000)
+    ap.add_argument("--forked-only", action="store_true",
+                    help="only the stages forked from the server (no exec'd runs)")
+    ap.add_argument("--code", type=Path, action="append",
+                    help="the checkout whose daemon runs (default: this one's); given "
+                         "twice or more, their runs interleaved, a row each")
+    ap.add_argument("--keep", type=Path, help="keep the runs' state and logs here")
     args = ap.parse_args()
     if not (args.data / "raw" / "street.bin").exists() or \
             not (args.data / "calibration" / "current").exists():
@@ -95,23 +102,29 @@ def main() -> None:
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, Python "
           f"{platform.python_version()}, load average {os.getloadavg()[0]:.1f} at start")
     keys = ["forked", "batch", "histograms"] + (["ranges"] if args.range else []) + ["run"]
-    res: dict[bool, list[dict]] = {True: [], False: []}
+    codes = args.code or [ROOT]
+    modes = [(code, fork) for fork in ((True,) if args.forked_only else (True, False))
+             for code in codes]
+    res: dict[tuple, list[dict]] = {m: [] for m in modes}
     with tempfile.TemporaryDirectory() as tmp:
+        where = args.keep or Path(tmp)
+        where.mkdir(parents=True, exist_ok=True)
         for k in range(args.repeat):
-            for fork in (True, False):
-                res[fork].append(one(Path(tmp), args.data, fork, args.range,
-                                     args.measurement_cycles, f"{int(fork)}-{k}"))
+            for i, (code, fork) in enumerate(modes):
+                res[code, fork].append(one(where, args.data, fork, args.range,
+                                           args.measurement_cycles, f"{i}-{k}", code))
     print(f"load average {os.getloadavg()[0]:.1f} at the end\n")
     print("s from the daemon's start, median (min-max) of", args.repeat)
     print("| stages | " + " | ".join(keys) + " |")
     print("|---|" + "---:|" * len(keys))
-    for fork in (True, False):
+    for code, fork in modes:
         cells = []
         for key in keys:
-            v = [r[key] for r in res[fork] if key in r]
+            v = [r[key] for r in res[code, fork] if key in r]
             cells.append(f"{statistics.median(v):.2f} ({min(v):.2f}-{max(v):.2f})" if v
                          else "-")
-        print(f"| {'forked from the server' if fork else 'an interpreter each'} | "
+        label = f"{code}: " if len(codes) > 1 else ""
+        print(f"| {label}{'forked from the server' if fork else 'an interpreter each'} | "
               + " | ".join(cells) + " |")
 
 

@@ -15,7 +15,7 @@ longer measurement's (their counts are the same draw repeated, not Poisson), and
 check rightly finds the code-density pattern noisier than the calibration's chip allows.
 
     python benchmarks/steady_state.py [--data data] [--times 100] [--repeat 2]
-        [--capture data/raw/pattern --histograms-only]
+        [--capture data/raw/pattern --histograms-only] [--code DIR --code DIR]
 
 ``--capture``: another capture (e.g. the demo's test pattern, 5 % hits) instead of the
 street scene; ``--histograms-only`` leaves the range rows out (a capture that is not the
@@ -40,11 +40,11 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.source_path import daemon_run  # noqa: E402
 
 
-def offline(cmd: list[str]) -> float:
+def offline(cmd: list[str], code: Path = ROOT) -> float:
     """The command's wall time, s."""
     t0 = time.perf_counter()
     p = subprocess.run([sys.executable, "-m", "pipeline.cli", *cmd], capture_output=True,
-                       text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+                       text=True, cwd=code, env={**os.environ, "PYTHONPATH": str(code)})
     if p.returncode != 0:
         raise SystemExit(f"tcspc {' '.join(cmd)} failed ({p.returncode}): {p.stderr[-2000:]}")
     return time.perf_counter() - t0
@@ -60,6 +60,9 @@ def main() -> None:
     ap.add_argument("--capture", type=Path, default=None,
                     help="the capture replayed (default: DATA/raw/street)")
     ap.add_argument("--histograms-only", action="store_true")
+    ap.add_argument("--code", type=Path, action="append",
+                    help="the checkout whose commands run (default: this one's); given "
+                         "twice or more, their runs interleaved, a row each")
     args = ap.parse_args()
     cal = (args.data / "calibration" / "current").resolve()
     src = args.capture or args.data / "raw" / "street"
@@ -71,7 +74,9 @@ def main() -> None:
           f"{platform.python_version()}, load average {os.getloadavg()[0]:.1f} at start")
     from pipeline.io.capture import Capture, CaptureWriter
 
-    rows: dict[str, list[tuple[float, float]]] = {"histograms": [], "ranges": []}
+    codes = args.code or [ROOT]
+    whats = ("histograms",) + (() if args.histograms_only else ("ranges",))
+    rows: dict[tuple, list[tuple[float, float]]] = {(w, c): [] for w in whats for c in codes}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         c = Capture(src)
@@ -85,39 +90,44 @@ def main() -> None:
         print(f"capture: {src.name} x {args.times}, {n / 1e6:.0f} M words, "
               f"{c.meta.n_tdc} TDCs\n")
         for k in range(args.repeat):
-            for what in ("histograms",) + (() if args.histograms_only else ("ranges",)):
-                if what == "histograms":
-                    wall = offline(["histogram", str(tmp / "cap.bin"), "--out",
-                                    str(tmp / "h.parquet"), "--calibration", str(cal),
-                                    "--overwrite"])
-                else:
-                    wall = offline(["range", str(tmp / "cap.bin"), "--calibration", str(cal),
-                                    "--out", str(tmp / "r.parquet"), "--overwrite",
-                                    "--force"])  # (below)
-                _, acc, _, steady = daemon_run(ROOT, tmp, tmp / "cap.bin", 2, f"{what}-{k}",
-                                               str(cal) if what == "ranges" else None,
-                                               n_tdc=c.meta.n_tdc, mc=args.measurement_cycles)
-                assert acc["balanced"], acc
-                rate = steady["words"] / steady["wall"] / 1e6
-                rows[what].append((n / wall / 1e6, rate))
-                print(f"  {what} run {k}: offline {n / wall / 1e6:.1f} M words/s, daemon "
-                      f"steady {rate:.1f}, ratio {rate / (n / wall / 1e6):.2f}", flush=True)
+            for what in whats:
+                for i, code in enumerate(codes):
+                    if what == "histograms":
+                        wall = offline(["histogram", str(tmp / "cap.bin"), "--out",
+                                        str(tmp / "h.parquet"), "--calibration", str(cal),
+                                        "--overwrite"], code)
+                    else:
+                        wall = offline(["range", str(tmp / "cap.bin"), "--calibration",
+                                        str(cal), "--out", str(tmp / "r.parquet"),
+                                        "--overwrite", "--force"], code)  # (below)
+                    _, acc, _, steady = daemon_run(code, tmp, tmp / "cap.bin", 2,
+                                                   f"{what}-{k}-{i}",
+                                                   str(cal) if what == "ranges" else None,
+                                                   n_tdc=c.meta.n_tdc,
+                                                   mc=args.measurement_cycles)
+                    assert acc["balanced"], acc
+                    rate = steady["words"] / steady["wall"] / 1e6
+                    rows[what, code].append((n / wall / 1e6, rate))
+                    print(f"  {what} run {k}{f' ({code})' if len(codes) > 1 else ''}: "
+                          f"offline {n / wall / 1e6:.1f} M words/s, daemon steady "
+                          f"{rate:.1f}, ratio {rate / (n / wall / 1e6):.2f}", flush=True)
     print(f"\nload average {os.getloadavg()[0]:.1f} at the end")
     print("\nM words/s, median (min-max) of", args.repeat)
     print("| graph | offline command | daemon, steady state | ratio |")
     print("|---|---:|---:|---:|")
-    for what, cmd in (("histograms", "tcspc histogram"), ("ranges", "tcspc range")):
-        if not rows[what]:
-            continue
-        off = [o for o, _ in rows[what]]
-        day = [d for _, d in rows[what]]
-        rat = [d / o for o, d in rows[what]]
+    for (what, code), got in rows.items():
+        cmd = "tcspc histogram" if what == "histograms" else "tcspc range"
+        off = [o for o, _ in got]
+        day = [d for _, d in got]
+        rat = [d / o for o, d in got]
 
         def cell(v):
             return f"{statistics.median(v):.2f} ({min(v):.2f}-{max(v):.2f})"
         graph = "source -> 2 workers -> sink" if what == "histograms" else \
             "source -> 2 workers -> range -> sink"
-        print(f"| {graph} (against `{cmd}`) | {cell(off)} | {cell(day)} | {cell(rat)} |")
+        label = f"{code}: " if len(codes) > 1 else ""
+        print(f"| {label}{graph} (against `{cmd}`) | {cell(off)} | {cell(day)} | "
+              f"{cell(rat)} |")
 
 
 if __name__ == "__main__":

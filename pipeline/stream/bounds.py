@@ -16,12 +16,15 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from pipeline.io.atomic import atomic_path
-from pipeline.stream.topology import Topology
 from stages.artifact import ArtifactBounds
+
+if TYPE_CHECKING:  # (a worker loads bounds without the topology's pydantic models)
+    from pipeline.stream.topology import Topology
 
 COUNTED = 'none: artifact words counted as hits ([histogram] artifacts = "count-as-hits")'
 

@@ -29,18 +29,29 @@ import signal
 import subprocess
 import sys
 
-#: what the server imports once: the stages' modules (each imports what else it needs)
-PRELOAD = ["numpy", "pyarrow", "pyarrow.ipc", "pyarrow.parquet", "zmq", "zstandard",
+#: what the server imports once: what the stages import, every module a forked stage
+#: would otherwise import after its fork (CURVE's zmq.auth and the zmq.asyncio with
+#: asyncio it imports at its first use, pyzmq's garbage collector of frames sent without
+#: a copy, numpy.ma, rich's emoji table at the first line printed), and not the daemon's
+#: own (pipeline.stream.daemon, the topology's pydantic models: 0.1 CPU-s no stage uses,
+#: on the way to the first fork; tests/pipeline/stream/test_forkstart.py holds both)
+PRELOAD = ["numpy", "numpy.ma", "pyarrow", "pyarrow.ipc", "pyarrow.parquet", "zmq",
+           "zmq.auth", "zmq.auth.thread", "zmq.asyncio", "zmq.utils.garbage", "zstandard",
            "pipeline.cli.app", "pipeline.cli.stream", "pipeline.stream.stage",
            "pipeline.stream.wire", "pipeline.stream.journal", "pipeline.stream.state",
-           "pipeline.stream.daemon", "pipeline.stream.fanout", "pipeline.stream.bounds",
+           "pipeline.stream.fanout", "pipeline.stream.bounds", "pipeline.stream.metrics",
            "pipeline.stream.udp", "pipeline.stream.curve", "pipeline.stream.rawwire",
            "pipeline.io.caldir", "pipeline.io.capture", "stages.stream", "stages.nativecode",
-           "asyncio", "glob"]
+           "rich._emoji_codes", "glob"]
 #: and with a range stage in the graph: the ranging, its kernels loaded (forkwarm)
-PRELOAD_RANGE = ["pipeline.offline.ranging", "pipeline.stream.forkwarm"]
+PRELOAD_RANGE = ["pipeline.offline.ranging", "stages.calibration.chip_check",
+                 "pipeline.stream.forkwarm"]
 #: the range stage's calibration and estimator, for the server's warm-up (forkwarm)
 WARM_ENV = "TCSPC_FORK_WARM_RANGE"
+#: "1": each forked stage writes in its log, at its end, the modules it imported after its
+#: fork (what the server's preload missed: each is imported by every stage, after the
+#: fork, on the way to the first measurement)
+LATE_IMPORTS_ENV = "TCSPC_FORK_LATE_IMPORTS"
 
 
 def die_with_parent() -> None:
@@ -184,4 +195,11 @@ def _run(module: str, args: list[str], env: dict[str, str], log: str, name: str)
     # what `python -m MODULE ARGS` does, in this process (the daemon's stages:
     # MODULE = pipeline.cli, whose __main__ ends with sys.exit: the exit code stands)
     sys.argv = [module, *args]
-    runpy.run_module(module, run_name="__main__", alter_sys=True)
+    before = set(sys.modules) if env.get(LATE_IMPORTS_ENV) == "1" else None
+    try:
+        runpy.run_module(module, run_name="__main__", alter_sys=True)
+    finally:
+        if before is not None:  # (a diagnostic: what the server's PRELOAD missed)
+            late = sorted(set(sys.modules) - before - {"__main__"})
+            print(f"forkstart: imported after the fork: {' '.join(late) or 'nothing'}",
+                  file=sys.stderr)

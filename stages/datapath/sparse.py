@@ -86,13 +86,20 @@ class SparseWords:
         if first_word % n_tdc or self.n % n_tdc:
             raise ValueError(f"a cut by TDC range needs whole cycles: {self.n} words at word "
                              f"{first_word} with {n_tdc} TDCs per cycle")
-        cycle, pos = np.divmod(self.index.astype(np.int64), n_tdc)
+        # in uint32 (an index is < n < 2**32): a word at cycle c, position p (index
+        # c * n_tdc + p) is word c * (b - a) + p - a of range (a, b), i.e. its index less
+        # c * (n_tdc - (b - a)) + a; `p - a < b - a` tests a <= p < b in one compare (p < a
+        # wraps round); p as i - i // n_tdc * n_tdc (numpy's uint32 `%` by a scalar is 10x
+        # slower than its `//`). 4x as fast as int64 divmod, two compares and boolean
+        # indexing (docs/performance.md)
+        idx, n_tdc_u = np.asarray(self.index, np.uint32), np.uint32(n_tdc)
+        pos = idx - idx // n_tdc_u * n_tdc_u
         out = []
         for a, b in ranges:
-            mine = (pos >= a) & (pos < b)
-            out.append(SparseWords(self.n // n_tdc * (b - a),
-                                   (cycle[mine] * (b - a) + pos[mine] - a).astype(np.uint32),
-                                   self.words[mine]))
+            mine = (pos - np.uint32(a)) < np.uint32(b - a)
+            i = np.compress(mine, idx)
+            i -= i // n_tdc_u * np.uint32(n_tdc - (b - a)) + np.uint32(a)
+            out.append(SparseWords(self.n // n_tdc * (b - a), i, np.compress(mine, self.words)))
         return out
 
     def dense(self, first_word: int, n_tdc: int, tdc_offset: int = 0) -> np.ndarray:

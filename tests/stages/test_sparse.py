@@ -163,9 +163,25 @@ def test_a_fanout_cut_from_the_whole_form_is_the_form_of_each_range(n_tdc, cycle
     (whole,) = dp.sparse_encode(words, start * n_tdc, n_tdc)
     direct = dp.sparse_encode(words, start * n_tdc, n_tdc, ranges)
     for got, want in zip(whole.cut(start * n_tdc, n_tdc, ranges), direct, strict=True):
-        assert got.size == want.size
+        assert got.size == want.size and got.index.dtype == np.uint32
         np.testing.assert_array_equal(got.index, want.index)
         np.testing.assert_array_equal(got.words, want.words)
     if n_tdc > 1:
         with pytest.raises(ValueError, match="whole cycles"):
             whole.cut(start * n_tdc + 1, n_tdc, ranges)
+
+
+def test_a_cut_holds_near_the_end_of_the_uint32_index():
+    """The cut computes in uint32 (an index is below the batch's words, < 2**32): words
+    at the last cycles of a 2**32-word span land where the int64 arithmetic puts them."""
+    n_tdc = 96
+    n = (2**32 // n_tdc) * n_tdc
+    index = np.array([0, 95, 96, n - 97, n - 96, n - 50, n - 1], np.uint32)
+    sw = dp.SparseWords(n, index, np.arange(index.size, dtype=np.uint32))
+    for a, b in [(0, 40), (40, 95), (95, 96)]:
+        (got,) = sw.cut(0, n_tdc, [(a, b)])
+        cyc, pos = np.divmod(index.astype(np.int64), n_tdc)
+        mine = (pos >= a) & (pos < b)
+        np.testing.assert_array_equal(got.index, cyc[mine] * (b - a) + pos[mine] - a)
+        np.testing.assert_array_equal(got.words, sw.words[mine])
+        assert got.n == n // n_tdc * (b - a)

@@ -248,7 +248,9 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                 while not tx.poll(200, zmq.POLLOUT):
                     if abort_tx.is_set():
                         return
-                tx.send_multipart(frames, zmq.NOBLOCK)
+                # (the words' frame without a copy, as the replay's source: a new
+                # buffer nothing writes again)
+                tx.send_multipart(frames, zmq.NOBLOCK, copy=False)
 
     rx_thread = threading.Thread(target=receiver, name="udp-receive", daemon=True)
     tx_thread = threading.Thread(target=sender, name="udp-send", daemon=True)

@@ -213,3 +213,72 @@ def test_no_other_account_reaches_the_fork_server():
     assert address.exists()
     st = address.parent.stat()
     assert st.st_uid == os.getuid() and st.st_mode & 0o077 == 0, oct(st.st_mode)
+
+
+def test_the_servers_imports_are_the_stages_not_the_daemons():
+    """The server imports what the stages use, before it forks the first: not the
+    daemon's supervisor or the topology's pydantic models (0.1 CPU-s on the way to the
+    first measurement, docs/performance.md), and not the ranging (numba, scipy: the range
+    stage's, ``PRELOAD_RANGE``, only for a graph with one)."""
+    from pipeline.stream.forkstart import PRELOAD
+
+    code = ("import importlib, sys\n"
+            f"for m in {PRELOAD!r}: importlib.import_module(m)\n"
+            "print(' '.join(m for m in ('pipeline.stream.daemon', 'pipeline.stream.topology',"
+            " 'pydantic', 'numba', 'scipy') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, check=True).stdout.split()
+    assert out == [], out
+
+
+def _late_imports(tmp_path, topo: Path) -> dict[str, str]:
+    """Each forked stage's imports after its fork, from its log (TCSPC_FORK_LATE_IMPORTS)."""
+    from pipeline.stream.forkstart import LATE_IMPORTS_ENV
+
+    p = subprocess.run(_cmd("daemon", "--config", str(topo), "--run", "late"),
+                       capture_output=True, text=True, timeout=300,
+                       env={**os.environ, LATE_IMPORTS_ENV: "1"})
+    assert p.returncode == 0, p.stderr[-3000:]
+    late = {}
+    for f in sorted((tmp_path / "state" / "logs").glob("*.log")):
+        lines = [ln for ln in f.read_text().splitlines()
+                 if ln.startswith("forkstart: imported after the fork:")]
+        assert lines, f.name
+        late[f.stem] = lines[-1].rsplit(": ", 1)[1]
+    return late
+
+
+def test_a_forked_stage_imports_nothing_after_its_fork(tmp_path):
+    """Every module the stages import is the server's (``PRELOAD``): one a stage imports
+    after its fork is imported by each stage, on two cores, on the way to the first
+    measurement. (Before: CURVE's zmq.auth.thread and zmq.asyncio with asyncio, numpy.ma,
+    rich's emoji table, in every stage.) A capture replayed through 2 workers and the
+    sink, with ``TCSPC_FORK_LATE_IMPORTS=1``: each stage's log says what it imported."""
+    from pipeline.io.capture import CaptureWriter
+    from stages.testpattern import pattern_words
+
+    words, _ = pattern_words(20_000, 16, hit_prob=0.2, rng=5)
+    with CaptureWriter(tmp_path / "cap", 16, kind="pattern") as w:
+        w.write(words)
+    topo = tmp_path / "topo.toml"
+    topo.write_text(f'[daemon]\nstate = "{tmp_path / "state"}"\n[source]\nkind = "capture"\n'
+                    f'capture = "{tmp_path / "cap"}"\n[histogram]\nworkers = 2\n'
+                    f'measurement_cycles = 10000\nartifacts = "count-as-hits"\n'
+                    f'[sink]\nout = "{tmp_path / "out"}"\n')
+    late = _late_imports(tmp_path, topo)
+    assert set(late) == {"source", "histogram-0", "histogram-1", "sink"}
+    assert set(late.values()) == {"nothing"}, late
+
+
+def test_a_forked_range_stage_imports_nothing_after_its_fork(tmp_path, caldir):
+    """With a range stage the server imports the ranging too (``PRELOAD_RANGE``): the
+    range stage imports nothing after its fork either (before: the chip check, at its
+    first measurement). (The simulator's source imports the simulator, which a capture's
+    or a chip's source does not need.)"""
+    scene = tmp_path / "small.toml"
+    path = write_topology(tmp_path, source=f'kind = "sim"\nscene = "{scene}"\n'
+                          'cycles = 20000', extra=f'[range]\ncalibration = "{caldir}"\n')
+    late = _late_imports(tmp_path, path)
+    assert set(late) == {"source", "histogram-0", "range", "sink"}
+    assert {k: v for k, v in late.items() if k != "source"} == dict.fromkeys(
+        ["histogram-0", "range", "sink"], "nothing"), late
