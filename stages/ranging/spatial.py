@@ -35,7 +35,9 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    sandwich variance, the larger; times Huber's factor for a window centred on its own
    estimate; plus the ridge's pull on t0 where the neighbours are one-sided. Both
    variances also with the fit's information from the neighbours' signed net counts
-   (a neighbour without signal has none), the larger kept.
+   (a neighbour without signal has none), the larger kept. Given each pixel's time
+   axis's own error variance (a chip's calibration, ``cal_var_s2``), the model's
+   variance gains the sum over the neighbours of their squared weight on t0 times it.
 
 Up to ``max_returns`` (2) surfaces a pixel, the strongest first.
 """
@@ -122,7 +124,8 @@ def _cumbins(a: np.ndarray, dtype=np.float64) -> np.ndarray:
 
 def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3,
             window: int = WINDOW, max_returns: int = 2, t0_s: float = 0.0,
-            threads: int = 1, compiled: bool | None = None) -> SpatialEstimate:
+            threads: int = 1, compiled: bool | None = None,
+            cal_var_s2: np.ndarray | None = None) -> SpatialEstimate:
     """Range an image of histograms with its neighbours (module docstring).
 
     ``counts`` (rows, cols, bins) photon counts (no pile-up: a photon-counting histogram
@@ -131,16 +134,24 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
     once (numpy releases the GIL), each with ``window + 1`` rows of its neighbours', then
     relabels the whole image, so the result is the same as in one piece (tested).
     ``compiled``: the plane fits' window sums by numba (default where it is installed)
-    or numpy (the same result, tested).
+    or numpy (the same result, tested). ``cal_var_s2`` (rows, cols): each pixel's time
+    axis's own error variance (s^2; a chip's calibration, fixed a pixel, independent
+    between pixels), which the estimate carries as the fit weighs its neighbours: the
+    sigma gains the sum over the neighbours of their squared weight on t0 times it (4).
     """
     compiled = (numba is not None) if compiled is None else bool(compiled) and numba is not None
     counts = np.asarray(counts, np.float64)
     _check(counts, bin_s, sigma_s, p_fa, window, max_returns)
+    if cal_var_s2 is not None:
+        cal_var_s2 = np.asarray(cal_var_s2, np.float64)
+        if cal_var_s2.shape != counts.shape[:2] or not np.all(cal_var_s2 >= 0):
+            raise ValueError(f"cal_var_s2 must be (rows, cols) = {counts.shape[:2]}, finite "
+                             f"and >= 0, found {cal_var_s2.shape}")
     h = counts.shape[0]
     bands = min(max(1, int(threads)), max(1, h // (4 * window + 4)))
     if bands == 1:
         return _finish(_spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s,
-                                compiled),
+                                compiled, cal_var_s2),
                        max_returns, bin_s, sigma_s / bin_s, t0_s)
     from concurrent.futures import ThreadPoolExecutor
 
@@ -149,8 +160,9 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
     parts = [(max(a - halo, 0), a, b, min(b + halo, h))
              for a, b in zip(edges[:-1], edges[1:], strict=True)]
     with ThreadPoolExecutor(bands) as ex:
-        got = list(ex.map(lambda p: _spatial(counts[p[0]:p[3]], bin_s, sigma_s, p_fa, window,
-                                             max_returns, t0_s, compiled), parts))
+        got = list(ex.map(lambda p: _spatial(
+            counts[p[0]:p[3]], bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
+            None if cal_var_s2 is None else cal_var_s2[p[0]:p[3]]), parts))
     fields = tuple(np.concatenate([e[i][a - lo:b - lo]
                                    for e, (lo, a, b, _) in zip(got, parts, strict=True)])
                    for i in range(len(got[0])))
@@ -172,7 +184,8 @@ def _check(counts, bin_s, sigma_s, p_fa, window, max_returns) -> None:
                          f"{max_returns}")
 
 
-def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled) -> tuple:
+def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
+             cal_var=None) -> tuple:
     """Steps 1-3 on a band of rows: per pixel and candidate, before the relabelling."""
     h, w, n = counts.shape
     sb = sigma_s / bin_s                     # the pulse's sigma in bins
@@ -282,6 +295,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled) 
     q = np.clip(R, 0, h - 1) * w + np.clip(Cc, 0, w - 1)   # flat neighbour index
     qn = q * (n + 1)                                       # its prefix sums' first row
     beta_q = beta.ravel()[q] * on
+    cal_q = None if cal_var is None else (cal_var / bin_s ** 2).ravel()[q] * on  # bins^2
     X = np.stack([np.ones_like(dr), dr, dc]).astype(np.float64)  # (3, m)
     XX = (X[:, None, :] * X[None, :, :]).reshape(9, -1).T       # (m, 9)
 
@@ -379,6 +393,15 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled) 
         # (an M-estimator with psi(u) = u for |u| < c sigma, 0 beyond): Huber's variance
         # E[psi^2] / E[psi']^2 gains the boundary term 2 c phi(c) in E[psi'], a factor
         # (P / (P - 2 c phi(c)))^2 on a Gaussian pulse, P = P(|u| < c): 1.20 at c = 2.5
+        if cal_q is not None:
+            # each neighbour's time axis off by its own calibration error moves all its
+            # photons, so t0 by its weight in the fit (the ridge's, as fitted) times it:
+            # a term of the model's variance; the sandwich's has it already (each
+            # neighbour's summed residual holds its error)
+            # (not scaled by Huber's factor below: the error moves the photons, not the
+            # window's centring)
+            wt0 = (Mri[..., 0, :] @ X) * np.where(pos, n0, 0.0)
+            var_model = var_model + (wt0 ** 2 * cal_q).sum(-1) / MSHIFT
         var_t0 = np.maximum(var_model, var_sand) * MSHIFT + var_ridge
         # -- 3. the decision
         half = WIDTH_TEST * sb
