@@ -168,11 +168,7 @@ def range_state_spatial(state, calibration, window_s: float, t_laser_win_s: floa
     response is the calibration's (measured at the delay) unless ``sigma_s``. Returns
     (estimate, distances (m), sigmas (m), note) as ``range_state`` does: a row per TDC
     (return 0) and one per further detected return; a TDC the geometry has no pixel for,
-    or without a delay, has one row, not detected, flagged. The sigma holds the
-    neighbours' calibration variances as the plane fit weighs them (each TDC's at its
-    first return's time; the image is ranged a second time with them), not the pixel's
-    own calibration sigma, which the estimate does not carry; with a calibration that
-    states no uncertainty, the estimator's sigma alone."""
+    or without a delay, has one row, not detected, flagged."""
     import dataclasses
 
     from scipy.constants import c as c_light
@@ -210,38 +206,6 @@ def range_state_spatial(state, calibration, window_s: float, t_laser_win_s: floa
         s = None
         rc = np.zeros((0, 2), np.int64)
     r, c = rc[:, 0], rc[:, 1]
-    est, distance = _rows(s, pix, r, c, n, k, delay, idx, sigma_s, t_laser_win_s, window_s)
-    cal_s = rg.calibration_sigma_s(calibration, calib, state, axis, est, window_s)
-    sig = np.asarray(est.sigma_s, np.float64)
-    if s is not None and np.isfinite(cal_s).any():
-        # the estimate is the plane of the pixel's neighbours, each on its own time axis:
-        # it carries their calibration errors as the fit weighs them, not the pixel's own
-        # (docs/ranging.md "On the chip"). Each TDC's calibration variance at its first
-        # return's time (the neighbours on a surface share it), ranged again with it
-        first = est.return_index == 0
-        var = np.full(n, np.nan)
-        var[est.pixel[first]] = cal_s[first] ** 2
-        var = np.where(np.isfinite(var), var, np.nanmedian(var) if np.isfinite(var).any()
-                       else 0.0)
-        cv = np.zeros((hh, ww))
-        cv[r, c] = var[pix]
-        s = spatial(img, bin_s, sigma_s, p_fa, max_returns=k, t0_s=lo, threads=threads,
-                    cal_var_s2=cv)
-        est2, _ = _rows(s, pix, r, c, n, k, delay, idx, sigma_s, t_laser_win_s, window_s)
-        sig = np.asarray(est2.sigma_s, np.float64)
-    else:
-        sig = np.where(np.isfinite(cal_s), np.hypot(sig, cal_s), sig)
-    return est, distance, sig * c_light / 2, "; ".join(notes)
-
-
-def _rows(s, pix, r, c, n, k, delay, idx, sigma_s, t_laser_win_s, window_s):
-    """:func:`range_state_spatial`'s rows from the image's estimate ``s``."""
-    import dataclasses
-
-    from pipeline.offline import ranging as rg
-    from stages import calibration as cal
-    from stages.ranging import Estimate
-
     rows = np.zeros((n, k), bool)
     rows[:, 0] = True
     det = np.zeros((n, k), bool)
@@ -269,4 +233,8 @@ def _rows(s, pix, r, c, n, k, delay, idx, sigma_s, t_laser_win_s, window_s):
     with np.errstate(invalid="ignore"):
         distance = cal.distance_m(t_laser_win_s, delay[p_i], window_s - est.t_s)
     est = dataclasses.replace(est, detected=est.detected & np.isfinite(distance))
-    return rg.behind_zero(est, distance)
+    est, distance = rg.behind_zero(est, distance)
+    cal_s = rg.calibration_sigma_s(calibration, calib, state, axis, est, window_s)
+    sig = np.asarray(est.sigma_s, np.float64)
+    sig = np.where(np.isfinite(cal_s), np.hypot(sig, cal_s), sig)
+    return est, distance, sig * c_light / 2, "; ".join(notes)

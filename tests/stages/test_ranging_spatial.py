@@ -261,8 +261,8 @@ def test_sigma_covers_the_neighbours_calibration_errors(sd_m, s, b):
     neighbours, so it carries their errors as the fit weighs them. With their variance
     (``cal_var_s2``) the sigma covers the error against the true surface (2 sigma:
     0.950, 0.981, 0.962 in the three cells); without it 0.896, 0.937, 0.942 (and the
-    pixel's own calibration sigma in quadrature, as ``range_state_spatial`` added
-    before, would over-state it: 1-2 cm against an error of 3-7 mm RMS)."""
+    pixel's own calibration sigma in quadrature, which ``range_state_spatial`` adds,
+    would over-state it: 1-2 cm against an error of 3-7 mm RMS)."""
     h = w = 32
     r, c = np.mgrid[0:h, 0:w].astype(float)
     d = 5.0 + 0.01 * r + 0.005 * c

@@ -161,14 +161,11 @@ geometry = "{geom}"
     assert (d <= 0.1 * both["sigma_m"]).all(), both.select(on + ["distance_m", "distance_m_off"])
     first = live.filter(pl.col("return_index") == 0).sort("tdc")
     # (at these few photons `ml` alone detects 6-12 of the 16 and puts one or two 40
-    # sigma off on 2 of 3 seeds; here 13-15 detected, every pixel within 3 sigma while
-    # the sigma held the pixel's own calibration sigma, which over-stated it; with the
-    # neighbours' calibration as the fit weighs them, 2 of 16 at 3.3 and 3.8 sigma,
-    # 12 within 2)
+    # sigma off on 2 of 3 seeds; here 13-15 detected, every pixel within 3 sigma)
     assert first.height == 16 and first["detected"].sum() >= 13
     truth = np.where(first["tdc"].to_numpy() < 8, 1.5, 2.5)
     z = np.abs(first["distance_m"].to_numpy() - truth) / first["sigma_m"].to_numpy()
-    assert z.max() < 4 and np.mean(z < 2) >= 0.75, z
+    assert z.max() < 3, z
     (ply,) = (tmp_path / "out" / "pointcloud").rglob("*.ply")
     from plyfile import PlyData
 
