@@ -512,8 +512,8 @@ def _finish(fields, max_returns, bin_s, sb, t0_s) -> SpatialEstimate:
 
 
 
-def _block_move(i, j, phase, lab, free, tb, llr, slope, sig_cnt, sig_out, P0, beta, half,
-                tol, shifted, agreement):
+def _block_move(i, j, phase, lab, before, free, tb, llr, slope, sig_cnt, sig_out, P0, beta,
+                half, tol, shifted, agreement):
     """3b's block move: every free pixel whose neighbour at (r + i, c + j) lies on another
     plane is proposed that neighbour's plane carried over, a boundary's whole run at once
     (a column for a step along a row, a row for one along a column): a straight boundary
@@ -524,7 +524,8 @@ def _block_move(i, j, phase, lab, free, tb, llr, slope, sig_cnt, sig_out, P0, be
     group is accepted, all of it, where the sum over its pixels of their own Poisson
     log-likelihood (the proposed pixels') plus ``BLOCK_PAIR`` times the prior of every
     pixel rises: outside a group nothing changes, so the sum is the group's exact
-    change."""
+    change. ``before``: every pixel's prior under ``lab`` (None: not computed yet);
+    returns the labels and it (None where they changed)."""
     h, w, nc = tb.shape
     n = P0.shape[-1] - 1
     kk = lab[..., None]
@@ -536,7 +537,7 @@ def _block_move(i, j, phase, lab, free, tb, llr, slope, sig_cnt, sig_out, P0, be
     prop = (free & (mine[None, :] if j else mine[:, None]) & np.isfinite(tq)
             & ~(np.abs(tq - tl) < tol))
     if not prop.any():
-        return lab
+        return lab, before
     slq = np.stack([shifted(sl[..., 0], i, j, 0.0), shifted(sl[..., 1], i, j, 0.0)], -1)
     scq, sgq = (shifted(np.take_along_axis(x, kk, -1)[..., 0], i, j, v)
                 for x, v in ((sig_cnt, 0.0), (sig_out, np.inf)))
@@ -549,17 +550,20 @@ def _block_move(i, j, phase, lab, free, tb, llr, slope, sig_cnt, sig_out, P0, be
                   m[..., 0] * np.log1p(S / np.maximum(beta * (z - a), 1e-9)) - S, -np.inf)
     t2 = np.where(prop, tq, tl)
     s2 = np.where(prop[..., None], slq, sl)
-    before = agreement(tl, tl[..., None], sl[:, :, None])[..., 0]
+    if before is None:
+        before = agreement(tl, tl[..., None], sl[:, :, None])[..., 0]
     after = agreement(t2, t2[..., None], s2[:, :, None])[..., 0]
     gain = (np.where(prop, lq - np.take_along_axis(llr, kk, -1)[..., 0], 0.0)
             + BLOCK_PAIR * (after - before))
     gain = np.where(np.isfinite(gain), gain, np.where(prop, -1e9, 0.0))
     group, ng = ndimage.label(ndimage.binary_dilation(prop, np.ones((7, 7), bool)))
     take = prop & (np.bincount(group.ravel(), gain.ravel(), ng + 1)[group] > 0.0)
+    if not take.any():
+        return lab, before
     for arr, new in ((tb, tq), (llr, lq), (sig_cnt, scq), (sig_out, sgq)):
         arr[..., -1] = np.where(take, new, arr[..., -1])
     slope[..., -1, :] = np.where(take[..., None], slq, slope[..., -1, :])
-    return np.where(take, nc - 1, lab)
+    return np.where(take, nc - 1, lab), None
 
 
 def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_s, sb,
@@ -662,11 +666,13 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
                                      np.take_along_axis(slp, kk[..., None], 2)[:, :, 0],
                                      slope[..., -1, :])
         lab = np.where(take, nc - 1, lab)
+    before = None  # every pixel's prior under lab, while no block has moved
     for _ in range(BLOCK_ROUNDS):
         for (i, j), phase in product(((0, 1), (0, -1), (1, 0), (-1, 0)),
                                      range(BLOCK_PHASES)):
-            lab = _block_move(i, j, phase, lab, free, tb, llr, slope, sig_cnt, sig_out, P0,
-                              beta, half, tol, shifted, agreement)
+            lab, before = _block_move(i, j, phase, lab, before, free, tb, llr, slope,
+                                      sig_cnt, sig_out, P0, beta, half, tol, shifted,
+                                      agreement)
     t_out[..., -1] = tb[..., -1] * bin_s + t0_s
     chosen = np.arange(nc) == lab[..., None]
     return np.where(free[..., None] & chosen, 1e11, 0.0) + rank
