@@ -26,13 +26,18 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    3b. Which candidate an undetected pixel reports (:func:`_relabel`): a few ICM sweeps
    of a Potts MRF over its candidates and its 8 nearest's planes carried over, by the
    pixel's own Poisson likelihood, how many of its 8 nearest lie on each, and how many
-   of the 6 pixels of its best row, column or diagonal (a straight boundary).
+   of the 6 pixels of its best row, column or diagonal (a straight boundary); then block
+   moves, which shift a boundary's whole run by one pixel where the sum over the run
+   and its neighbourhood rises (a local minimiser moves one pixel at a time, and the
+   line prior holds each pixel of a straight boundary where it is).
 4. sigma: the photons' spread about the plane over their number, through the fit's
    design (its (0, 0) element), with the background left in the window, or the fit's
    sandwich variance, the larger; times Huber's factor for a window centred on its own
    estimate; plus the ridge's pull on t0 where the neighbours are one-sided. Both
    variances also with the fit's information from the neighbours' signed net counts
-   (a neighbour without signal has none), the larger kept.
+   (a neighbour without signal has none), the larger kept. Given each pixel's time
+   axis's own error variance (a chip's calibration, ``cal_var_s2``), the model's
+   variance gains the sum over the neighbours of their squared weight on t0 times it.
 
 Up to ``max_returns`` (2) surfaces a pixel, the strongest first.
 """
@@ -40,8 +45,10 @@ Up to ``max_returns`` (2) surfaces a pixel, the strongest first.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import product
 
 import numpy as np
+from scipy import ndimage
 
 from stages.ranging._numba import numba
 from stages.ranging.detection import poisson_tail
@@ -56,6 +63,9 @@ LINE = 0.4       # and of each pixel of its best straight line through the pixel
 LINE_L = 3       # that line's reach each side (pixels)
 DIAG = 0.5       # a diagonal line's weight against a row's or a column's
 SWEEPS = 5       # its ICM sweeps (3: 0.69 % > 10 cm off at (2, 50), 8: as 5)
+BLOCK_ROUNDS = 1  # then block moves (a boundary's run shifted by a pixel), each direction
+BLOCK_PHASES = 4  # in 4 passes of every 4th column (row)
+BLOCK_PAIR = 1.5  # the priors' weight in a block's sum (seed 1: 1.5-3 alike, 1 and 0.5 worse)
 
 
 def _mshift_factor(c: float) -> float:
@@ -114,7 +124,8 @@ def _cumbins(a: np.ndarray, dtype=np.float64) -> np.ndarray:
 
 def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3,
             window: int = WINDOW, max_returns: int = 2, t0_s: float = 0.0,
-            threads: int = 1, compiled: bool | None = None) -> SpatialEstimate:
+            threads: int = 1, compiled: bool | None = None,
+            cal_var_s2: np.ndarray | None = None) -> SpatialEstimate:
     """Range an image of histograms with its neighbours (module docstring).
 
     ``counts`` (rows, cols, bins) photon counts (no pile-up: a photon-counting histogram
@@ -123,16 +134,24 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
     once (numpy releases the GIL), each with ``window + 1`` rows of its neighbours', then
     relabels the whole image, so the result is the same as in one piece (tested).
     ``compiled``: the plane fits' window sums by numba (default where it is installed)
-    or numpy (the same result, tested).
+    or numpy (the same result, tested). ``cal_var_s2`` (rows, cols): each pixel's time
+    axis's own error variance (s^2; a chip's calibration, fixed a pixel, independent
+    between pixels), which the estimate carries as the fit weighs its neighbours: the
+    sigma gains the sum over the neighbours of their squared weight on t0 times it (4).
     """
     compiled = (numba is not None) if compiled is None else bool(compiled) and numba is not None
     counts = np.asarray(counts, np.float64)
     _check(counts, bin_s, sigma_s, p_fa, window, max_returns)
+    if cal_var_s2 is not None:
+        cal_var_s2 = np.asarray(cal_var_s2, np.float64)
+        if cal_var_s2.shape != counts.shape[:2] or not np.all(cal_var_s2 >= 0):
+            raise ValueError(f"cal_var_s2 must be (rows, cols) = {counts.shape[:2]}, finite "
+                             f"and >= 0, found {cal_var_s2.shape}")
     h = counts.shape[0]
     bands = min(max(1, int(threads)), max(1, h // (4 * window + 4)))
     if bands == 1:
         return _finish(_spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s,
-                                compiled),
+                                compiled, cal_var_s2),
                        max_returns, bin_s, sigma_s / bin_s, t0_s)
     from concurrent.futures import ThreadPoolExecutor
 
@@ -141,8 +160,9 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
     parts = [(max(a - halo, 0), a, b, min(b + halo, h))
              for a, b in zip(edges[:-1], edges[1:], strict=True)]
     with ThreadPoolExecutor(bands) as ex:
-        got = list(ex.map(lambda p: _spatial(counts[p[0]:p[3]], bin_s, sigma_s, p_fa, window,
-                                             max_returns, t0_s, compiled), parts))
+        got = list(ex.map(lambda p: _spatial(
+            counts[p[0]:p[3]], bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
+            None if cal_var_s2 is None else cal_var_s2[p[0]:p[3]]), parts))
     fields = tuple(np.concatenate([e[i][a - lo:b - lo]
                                    for e, (lo, a, b, _) in zip(got, parts, strict=True)])
                    for i in range(len(got[0])))
@@ -164,7 +184,8 @@ def _check(counts, bin_s, sigma_s, p_fa, window, max_returns) -> None:
                          f"{max_returns}")
 
 
-def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled) -> tuple:
+def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
+             cal_var=None) -> tuple:
     """Steps 1-3 on a band of rows: per pixel and candidate, before the relabelling."""
     h, w, n = counts.shape
     sb = sigma_s / bin_s                     # the pulse's sigma in bins
@@ -274,6 +295,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled) 
     q = np.clip(R, 0, h - 1) * w + np.clip(Cc, 0, w - 1)   # flat neighbour index
     qn = q * (n + 1)                                       # its prefix sums' first row
     beta_q = beta.ravel()[q] * on
+    cal_q = None if cal_var is None else (cal_var / bin_s ** 2).ravel()[q] * on  # bins^2
     X = np.stack([np.ones_like(dr), dr, dc]).astype(np.float64)  # (3, m)
     XX = (X[:, None, :] * X[None, :, :]).reshape(9, -1).T       # (m, 9)
 
@@ -371,6 +393,15 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled) 
         # (an M-estimator with psi(u) = u for |u| < c sigma, 0 beyond): Huber's variance
         # E[psi^2] / E[psi']^2 gains the boundary term 2 c phi(c) in E[psi'], a factor
         # (P / (P - 2 c phi(c)))^2 on a Gaussian pulse, P = P(|u| < c): 1.20 at c = 2.5
+        if cal_q is not None:
+            # each neighbour's time axis off by its own calibration error moves all its
+            # photons, so t0 by its weight in the fit (the ridge's, as fitted) times it:
+            # a term of the model's variance; the sandwich's has it already (each
+            # neighbour's summed residual holds its error)
+            # (not scaled by Huber's factor below: the error moves the photons, not the
+            # window's centring)
+            wt0 = (Mri[..., 0, :] @ X) * np.where(pos, n0, 0.0)
+            var_model = var_model + (wt0 ** 2 * cal_q).sum(-1) / MSHIFT
         var_t0 = np.maximum(var_model, var_sand) * MSHIFT + var_ridge
         # -- 3. the decision
         half = WIDTH_TEST * sb
@@ -481,6 +512,60 @@ def _finish(fields, max_returns, bin_s, sb, t0_s) -> SpatialEstimate:
 
 
 
+def _block_move(i, j, phase, lab, before, free, tb, llr, slope, sig_cnt, sig_out, P0, beta,
+                half, tol, shifted, agreement):
+    """3b's block move: every free pixel whose neighbour at (r + i, c + j) lies on another
+    plane is proposed that neighbour's plane carried over, a boundary's whole run at once
+    (a column for a step along a row, a row for one along a column): a straight boundary
+    shifted by one pixel, which single-pixel sweeps cannot do (the line prior holds each
+    of its pixels where it is). Only the columns (rows) ``phase`` modulo ``BLOCK_PHASES``
+    take part, so that runs within the priors' reach of each other are few. The proposals
+    are grouped by the connected parts of the pixels within that reach (3) of one, and a
+    group is accepted, all of it, where the sum over its pixels of their own Poisson
+    log-likelihood (the proposed pixels') plus ``BLOCK_PAIR`` times the prior of every
+    pixel rises: outside a group nothing changes, so the sum is the group's exact
+    change. ``before``: every pixel's prior under ``lab`` (None: not computed yet);
+    returns the labels and it (None where they changed)."""
+    h, w, nc = tb.shape
+    n = P0.shape[-1] - 1
+    kk = lab[..., None]
+    tl = np.take_along_axis(tb, kk, -1)[..., 0]
+    sl = np.take_along_axis(slope, kk[..., None], 2)[:, :, 0]
+    tq = shifted(tl, i, j, np.nan) - shifted(sl[..., 0], i, j, 0.0) * i \
+        - shifted(sl[..., 1], i, j, 0.0) * j
+    mine = np.arange(w if j else h) % BLOCK_PHASES == phase
+    prop = (free & (mine[None, :] if j else mine[:, None]) & np.isfinite(tq)
+            & ~(np.abs(tq - tl) < tol))
+    if not prop.any():
+        return lab, before
+    slq = np.stack([shifted(sl[..., 0], i, j, 0.0), shifted(sl[..., 1], i, j, 0.0)], -1)
+    scq, sgq = (shifted(np.take_along_axis(x, kk, -1)[..., 0], i, j, v)
+                for x, v in ((sig_cnt, 0.0), (sig_out, np.inf)))
+    ti = np.where(prop, tq, 0.0)
+    a = np.clip(np.floor(ti - half + 0.5).astype(np.int64), 0, n)
+    z = np.clip(np.floor(ti + half + 0.5).astype(np.int64), 0, n)
+    m = (np.take_along_axis(P0, z[..., None], -1) - np.take_along_axis(P0, a[..., None], -1))
+    S = 0.95 * np.maximum(scq, 0.05)
+    lq = np.where(prop & (z > a),
+                  m[..., 0] * np.log1p(S / np.maximum(beta * (z - a), 1e-9)) - S, -np.inf)
+    t2 = np.where(prop, tq, tl)
+    s2 = np.where(prop[..., None], slq, sl)
+    if before is None:
+        before = agreement(tl, tl[..., None], sl[:, :, None])[..., 0]
+    after = agreement(t2, t2[..., None], s2[:, :, None])[..., 0]
+    gain = (np.where(prop, lq - np.take_along_axis(llr, kk, -1)[..., 0], 0.0)
+            + BLOCK_PAIR * (after - before))
+    gain = np.where(np.isfinite(gain), gain, np.where(prop, -1e9, 0.0))
+    group, ng = ndimage.label(ndimage.binary_dilation(prop, np.ones((7, 7), bool)))
+    take = prop & (np.bincount(group.ravel(), gain.ravel(), ng + 1)[group] > 0.0)
+    if not take.any():
+        return lab, before
+    for arr, new in ((tb, tq), (llr, lq), (sig_cnt, scq), (sig_out, sgq)):
+        arr[..., -1] = np.where(take, new, arr[..., -1])
+    slope[..., -1, :] = np.where(take[..., None], slq, slope[..., -1, :])
+    return np.where(take, nc - 1, lab), None
+
+
 def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_s, sb,
              t0_s):
     """3b. Which candidate an undetected pixel reports: the one that maximises the pixel's
@@ -504,7 +589,9 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
     where two pixels along the edge are wrong together: an ICM fixed point), and one
     background photon in a wrong candidate's window outweighs that; the line along the
     edge is all on the pixel's surface (seed 1, (2, 50): 21 -> 1 pixel > 10 cm off;
-    docs/ranging.md)."""
+    docs/ranging.md). Then :func:`_block_move` for each direction along a row or a
+    column: a boundary's run shifted by one pixel at once (seed 1 at (2, 10): 6 -> 3
+    pixels > 10 cm off, (2, 2): 4 -> 2; (2, 50): 1 -> 1)."""
     h, w, nc = t_out.shape
     tb = (t_out - t0_s) / bin_s                               # bins
     S = 0.95 * np.maximum(sig_cnt, 0.05)
@@ -579,6 +666,13 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
                                      np.take_along_axis(slp, kk[..., None], 2)[:, :, 0],
                                      slope[..., -1, :])
         lab = np.where(take, nc - 1, lab)
+    before = None  # every pixel's prior under lab, while no block has moved
+    for _ in range(BLOCK_ROUNDS):
+        for (i, j), phase in product(((0, 1), (0, -1), (1, 0), (-1, 0)),
+                                     range(BLOCK_PHASES)):
+            lab, before = _block_move(i, j, phase, lab, before, free, tb, llr, slope,
+                                      sig_cnt, sig_out, P0, beta, half, tol, shifted,
+                                      agreement)
     t_out[..., -1] = tb[..., -1] * bin_s + t0_s
     chosen = np.arange(nc) == lab[..., None]
     return np.where(free[..., None] & chosen, 1e11, 0.0) + rank

@@ -116,13 +116,15 @@ def test_threads_agree():
     assert np.allclose(a.t_s[det], b.t_s[det], rtol=0, atol=0.1 * SIGMA_S)
     # the relabelling runs on the whole image (its sweeps reach further than a band's
     # halo): the undetected pixels' first return moves only near the bands' seam (row
-    # 24), where the float noise above moved a candidate: 16 of 1,007 here (10 before
-    # the straight-boundary prior, which reaches 3 pixels; 38 when it ran in bands)
+    # 24), where the float noise above moved a candidate: 25 of 1,007 here, rows 18-32
+    # (16, rows 18-27, without the block moves, which carry a change along a boundary's
+    # run; 10 before the straight-boundary prior, which reaches 3 pixels; 38 when it ran
+    # in bands)
     first = ~det[..., 0]
     moved = first & ~np.isclose(a.t_s[..., 0], b.t_s[..., 0], rtol=0, atol=0.1 * SIGMA_S,
                                 equal_nan=True)
-    assert moved.sum() <= 0.025 * first.sum(), (moved.sum(), first.sum())
-    assert np.all(np.abs(np.nonzero(moved)[0] - 24) <= 6)
+    assert moved.sum() <= 0.03 * first.sum(), (moved.sum(), first.sum())
+    assert np.all(np.abs(np.nonzero(moved)[0] - 24) <= 9)
 
 
 def _edge_scene(slope, h=48, w=48):
@@ -225,3 +227,58 @@ def test_range_spatial_then_export(tmp_path):
     p = subprocess.run(run + ["export", str(out), "--geometry", str(g), "--out",
                               str(tmp_path / "c.mcap")], capture_output=True, text=True)
     assert p.returncode == 0, p.stderr
+
+
+def test_block_moves_shift_a_straight_boundary(monkeypatch):
+    """The relabelling's block moves at (2, 50): a run of pixels beside a straight depth
+    edge, all put on the far surface together (an ICM fixed point the line prior holds),
+    is moved onto the near one at once: seeds 0-5, 92 edge pixels each, 0 > 10 cm off
+    against 24 without. On an edge at 22 degrees to the columns, no harm (seeds 0-3: 15
+    against 15); and on Lindell's scene, seed 8: 15 surface pixels > 10 cm off against
+    37."""
+    from stages.ranging import spatial as sp
+
+    sc = scene()
+    counts = histograms(sc, 2, 50, 8)
+
+    def lindell():
+        est = spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
+        return int((_errors(sc, est.t_s[..., 0] * C / 2) > 0.1).sum())
+
+    vertical, slanted, scene_off = _edge_misses(0.0), _edge_misses(0.4, range(4)), lindell()
+    monkeypatch.setattr(sp, "BLOCK_ROUNDS", 0, raising=False)
+    vertical0, slanted0, scene_off0 = (_edge_misses(0.0), _edge_misses(0.4, range(4)),
+                                       lindell())
+    assert vertical <= 5 and vertical <= 0.3 * vertical0, (vertical, vertical0)
+    assert slanted <= slanted0, (slanted, slanted0)
+    assert scene_off <= 20 and scene_off <= 0.6 * scene_off0, (scene_off, scene_off0)
+
+
+@pytest.mark.parametrize("sd_m, s, b", [(0.02, 10, 2), (0.02, 2, 10), (0.01, 5, 50)])
+def test_sigma_covers_the_neighbours_calibration_errors(sd_m, s, b):
+    """A chip's pixels each on their own time axis, off by a fixed calibration error
+    (independent between pixels, sd 1-2 cm): the estimate is the plane of the
+    neighbours, so it carries their errors as the fit weighs them. With their variance
+    (``cal_var_s2``) the sigma covers the error against the true surface (2 sigma:
+    0.950, 0.981, 0.962 in the three cells); without it 0.896, 0.937, 0.942 (and the
+    pixel's own calibration sigma in quadrature, which ``range_state_spatial`` adds,
+    would over-state it: 1-2 cm against an error of 3-7 mm RMS)."""
+    h = w = 32
+    r, c = np.mgrid[0:h, 0:w].astype(float)
+    d = 5.0 + 0.01 * r + 0.005 * c
+    eps = np.random.default_rng(5).normal(0, sd_m, (h, w))
+    sc = Scene(np.stack([d + eps, np.full_like(d, np.nan)], -1),
+               np.stack([np.ones_like(d), np.zeros_like(d)], -1))
+    counts = histograms(sc, s, b, 0)
+    var = np.full((h, w), (sd_m * 2 / C) ** 2)
+    covers = []
+    for est in (spatial(counts, BIN_S, SIGMA_S), spatial(counts, BIN_S, SIGMA_S,
+                                                         cal_var_s2=var)):
+        det = est.detected[..., 0]
+        err = np.abs(est.t_s[..., 0] * C / 2 - d)[det]
+        assert np.sqrt(np.mean(err ** 2)) < 0.5 * sd_m
+        covers.append(np.mean(err < 2 * est.sigma_s[..., 0][det] * C / 2))
+    assert 0.94 <= covers[1] <= 0.985, covers
+    assert covers[0] < covers[1] - 0.01, covers
+    with pytest.raises(ValueError, match="cal_var_s2"):
+        spatial(counts, BIN_S, SIGMA_S, cal_var_s2=var[:-1])
