@@ -226,7 +226,8 @@ def coverage(rep: Report, tmp: Path, rng, n: int, per: int) -> None:
                 cov = float(np.mean(np.abs(z) <= 2))
                 rep.check(0.93 <= cov <= 0.97, f"coverage, S {s:g}, B {bg:g} a bin, {name}, "
                           f"{est}: {cov:.3f} over {r0.sum()} detected (goal 0.93-0.97); bias "
-                          f"{np.mean(err) * 1e3:+.2f} mm, RMSE {np.sqrt(np.mean(err ** 2)) * 1e3:.2f} mm,"
+                          f"{np.mean(err) * 1e3:+.2f} mm, RMSE "
+                          f"{np.sqrt(np.mean(err ** 2)) * 1e3:.2f} mm,"
                           f" median sigma {np.median(t['sigma_m'][r0]) * 1e3:.2f} mm")
 
 

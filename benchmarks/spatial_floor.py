@@ -74,7 +74,7 @@ def main() -> None:
         bad = surf & (err > 0.1)
         zero = surf & (own_signal(sc, histograms(sc, s, 0, seed)) == 0)
 
-        def rmse(fixed):
+        def rmse(fixed, err=err, surf=surf):
             return float(np.sqrt(np.mean(np.where(fixed, 0.0, err)[surf] ** 2)))
 
         print(f"| {seed} | {rmse(np.zeros_like(bad)):.4f} | {bad.sum()} | {(bad & zero).sum()} | "

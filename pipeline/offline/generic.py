@@ -36,6 +36,7 @@ from pipeline.io.atomic import atomic_path
 from pipeline.io.generic import Measurement, read_generic
 from schemas.errors import CalibrationError, SchemaMismatch
 from stages.ranging import ESTIMATORS, Estimate, Histograms, estimate, estimate_returns
+from stages.ranging.histograms import coates
 from stages.ranging.irf import (
     IRF_ESTIMATORS,
     Response,
@@ -702,7 +703,7 @@ def _deficit_cycles(meas: list[Measurement], response: Response) -> float | None
         n = float(np.exp(log_k)) * top
         out = 0.0
         for c, before, after, share in rows:
-            x = -n * np.log1p(-c / (n - (np.cumsum(c, axis=1) - c)))
+            x = coates(c, n) * n
             xb, xa = (x * before).sum(1), (x * after).sum(1)
             out += float((xa - share * (xa + xb)).sum())
         return out

@@ -9,6 +9,19 @@ from functools import cached_property
 import numpy as np
 
 
+def coates(counts, cycles, at_risk=None) -> np.ndarray:
+    """Coates's pile-up correction of first-photon histograms: the expected detections
+    per bin per cycle, ``-log(1 - counts / at_risk)``, with ``at_risk`` the cycles not yet
+    stopped before the bin (at least 1) and the ratio kept below 1. ``counts`` (..., bins),
+    ``cycles`` broadcast against ``counts[..., 0]``. (Times ``cycles``: the photon counts
+    a histogram without pile-up would hold.) ``at_risk``: those numbers where known."""
+    c = np.asarray(counts, np.float64)
+    if at_risk is None:
+        at_risk = np.asarray(cycles, np.float64)[..., None] - (np.cumsum(c, axis=-1) - c)
+    r = np.maximum(at_risk, 1.0)
+    return -np.log1p(-np.minimum(c / r, 1 - 1e-12))
+
+
 @dataclass(frozen=True)
 class Histograms:
     """First-photon histograms in arrival order on a calibrated time axis.
@@ -70,8 +83,7 @@ class Histograms:
 
     def intensity(self) -> np.ndarray:
         """Coates-corrected expected detections per bin per cycle (undistorted)."""
-        r = np.maximum(self.at_risk, 1.0)
-        return -np.log1p(-np.minimum(self.counts / r, 1 - 1e-12))
+        return coates(self.counts, self.cycles, self.at_risk)
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,7 @@ from scipy.interpolate import PchipInterpolator
 
 from stages.models.tcspc import FWHM_PER_SIGMA
 from stages.ranging.detection import _background, _detection, scan_bins
-from stages.ranging.histograms import Estimate, Histograms
+from stages.ranging.histograms import Estimate, Histograms, coates
 from stages.ranging.validation import _safe, check_histograms, check_p_fa, finish
 
 #: the estimators that take a measured response
@@ -149,8 +149,7 @@ def response_from_counts(counts, bin_s: float, source: str, cycles=None) -> Resp
         raise ValueError(f"response {source!r}: counts must be >= 3 finite, non-negative "
                          "values")
     if cycles is not None and np.isfinite(cycles) and cycles > c.sum():
-        before = np.cumsum(c) - c
-        c = -np.log1p(-c / (cycles - before)) * cycles
+        c = coates(c, cycles) * cycles
     d = _without_background(c[None, :], np.array([int(np.argmax(c))]))[0]
     return Response(np.clip(d, 0.0, None), float(bin_s), source)
 

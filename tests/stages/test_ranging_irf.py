@@ -162,3 +162,25 @@ def test_a_response_from_one_row_times_a_return_anywhere_in_its_bin(phase):
     far = _gaussian_rows(None, 60 + sweep, 1e6, bg=0.0)
     err = fit_response(far, resp, "ml").t_s / BIN - t0 - (60 + sweep)
     assert np.all(np.abs(err) < 0.02), err.round(3)
+
+
+def test_the_coates_correction_is_one_for_every_caller():
+    """stages.ranging.histograms.coates serves Histograms.intensity, a one-row response
+    and calibrate distance's pile-up count: it inverts first-photon thinning exactly,
+    keeps zero counts at zero, and stays finite where every remaining cycle stopped in a
+    bin (saturated pile-up) or the cycles are fewer than the counts."""
+    from stages.ranging.histograms import Histograms, coates
+
+    lam = np.array([0.0, 0.01, 0.2, 0.05, 0.0, 0.3])
+    cycles = 1e6
+    # the expected first-photon counts of those per-cycle intensities
+    survive = np.exp(-np.concatenate([[0.0], np.cumsum(lam)[:-1]]))
+    counts = cycles * survive * -np.expm1(-lam)
+    np.testing.assert_allclose(coates(counts, cycles), lam, rtol=1e-9, atol=1e-15)
+    h = Histograms(counts[None], np.arange(7.0)[None], np.array([cycles]),
+                   np.ones((1, 6), bool))
+    np.testing.assert_array_equal(h.intensity()[0], coates(counts, cycles))
+    np.testing.assert_array_equal(coates(np.array([[0.0, 0.0]]), np.array([10.0])), 0.0)
+    sat = coates(np.array([3.0, 7.0, 0.0]), 10.0)  # the second bin stops every cycle left
+    assert np.all(np.isfinite(sat)) and sat[1] > 20 and sat[2] == 0.0
+    assert np.all(np.isfinite(coates(np.array([5.0, 9.0]), 4.0)))  # fewer cycles than counts
