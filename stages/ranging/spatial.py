@@ -568,13 +568,14 @@ def _label_sigma(state, sig_cnt, sig_out, P0, beta, bin_s, sb) -> None:
                         lp + agreement(tl, np.where(np.isfinite(tp), tp, 0.0), slp)], -1)
     s2 = np.concatenate([sig_out, sgp], -1) ** 2 / bin_s ** 2          # bins^2
     # the labels on the reported surface (within the prior's tolerance of its time)
-    on = np.isfinite(u) & np.isfinite(s2) & (np.abs(t - tl[..., None]) < tol)
+    # (a plane without a sigma, inf, makes the variance inf where it has weight)
+    on = np.isfinite(u) & (np.abs(t - tl[..., None]) < tol)
     top = np.max(np.where(on, u, -np.inf), -1, keepdims=True)
     p = np.where(on, np.exp(np.where(on, u, 0.0) - np.where(np.isfinite(top), top, 0.0)),
                  0.0)
     tot = p.sum(-1)
     d2 = np.where(on, s2 + (np.where(on, t, 0.0) - tl[..., None]) ** 2, 0.0)
-    var = (p * d2).sum(-1) / np.where(tot > 0, tot, 1.0)
+    var = np.where(p > 0, p * d2, 0.0).sum(-1) / np.where(tot > 0, tot, 1.0)
     fix = free & (tot > 0) & np.isfinite(tl)
     chosen = (np.arange(nc) == kk) & fix[..., None]
     sig_out[...] = np.where(chosen, np.sqrt(var)[..., None] * bin_s, sig_out)
