@@ -38,6 +38,8 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    (a neighbour without signal has none), the larger kept. Given each pixel's time
    axis's own error variance (a chip's calibration, ``cal_var_s2``), the model's
    variance gains the sum over the neighbours of their squared weight on t0 times it.
+   An undetected pixel's reported surface (3b) has instead the spread of the planes on
+   it that the relabelling weighed, each by its posterior (:func:`_label_sigma`).
 
 Up to ``max_returns`` (2) surfaces a pixel, the strongest first.
 """
@@ -495,8 +497,10 @@ def _finish(fields, max_returns, bin_s, sb, t0_s) -> SpatialEstimate:
     t_out, sig_out, sig_cnt, det, own, surr = (
         slot(x, v) for x, v in ((t_out, np.nan), (sig_out, np.inf), (sig_cnt, 0.0),
                                 (det, False), (own, False), (surr, False)))
-    rank = _relabel(t_out, sig_out, slot(slope, 0.0), slot(mine_r, 0.0), slot(bw_r, 0.0),
-                    sig_cnt, slot(rank, -1e9), det, P0, beta, bin_s, sb, t0_s)
+    rank, state = _relabel(t_out, sig_out, slot(slope, 0.0), slot(mine_r, 0.0),
+                           slot(bw_r, 0.0), sig_cnt, slot(rank, -1e9), det, P0, beta,
+                           bin_s, sb, t0_s)
+    _label_sigma(state, sig_cnt, sig_out, P0, beta, bin_s, sb)
     # detected before not; then by the corner windows that see the surface, then by the
     # pixel's own excess counts, then by the neighbourhood's signal
     key = np.where(det, 1e12, 0.0) + rank
@@ -510,6 +514,71 @@ def _finish(fields, max_returns, bin_s, sb, t0_s) -> SpatialEstimate:
                            take(own), take(surr))
 
 
+def _own_llr(P0, beta, t, sig_cnt, half):
+    """The pixel's own Poisson log-likelihood ratio of a surface at ``t`` (bins, NaN:
+    none): its counts within +-``half`` against its background, with the signal a pixel
+    ``sig_cnt`` (3b's score without the prior); ``t`` (h, w, k)."""
+    n = P0.shape[-1] - 1
+    ok = np.isfinite(t)
+    ti = np.where(ok, t, 0.0)
+    a = np.clip(np.floor(ti - half + 0.5).astype(np.int64), 0, n)
+    z = np.clip(np.floor(ti + half + 0.5).astype(np.int64), 0, n)
+    m = np.take_along_axis(P0, z, -1) - np.take_along_axis(P0, a, -1)
+    S = 0.95 * np.maximum(sig_cnt, 0.05)
+    return np.where(ok & (z > a),
+                    m * np.log1p(S / np.maximum(beta[..., None] * (z - a), 1e-9)) - S,
+                    -np.inf)
+
+
+def _label_sigma(state, sig_cnt, sig_out, P0, beta, bin_s, sb) -> None:
+    """sigma of an undetected pixel's reported surface (3b), in ``sig_out`` in place.
+    The relabelling picks one of the pixel's labels (its candidates and its 8 nearest's
+    planes carried over) by a score that is a log posterior up to a constant: the
+    pixel's own Poisson log-likelihood ratio plus the Potts prior given the others'
+    labels. Among the labels on the reported surface (within the prior's tolerance, 3
+    sigma of the pulse, of the reported time) softmax of the scores is the conditional
+    posterior p_k of each plane, and the reported time's error variance is
+    sum_k p_k (sigma_k^2 + (t_k - t_reported)^2): each plane's own variance and its
+    distance from the one reported. A plane carried over has its own pixel's sigma, not
+    the error of its slope over the step, nor does the sigma of the pixel's own
+    candidate see a neighbour's plane that disagrees: the spread of the planes does.
+    The labels on other surfaces are left out: the Potts weights were chosen for the
+    labelling, not as probabilities, and their softmax over every label put 7-26x the
+    squared errors' sum into the variance (docs/ranging.md). Times, detections and the
+    detected pixels' sigma stay as they are."""
+    lab, free, tb, llr, slope, shifted, agreement = state
+    if not free.any():
+        return
+    h, w, nc = tb.shape
+    tol = 3.0 * sb
+    offs = [(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1) if (i, j) != (0, 0)]
+    kk = lab[..., None]
+    tl = np.take_along_axis(tb, kk, -1)[..., 0]
+    sl = np.take_along_axis(slope, kk[..., None], 2)[:, :, 0]
+    sc, sg = (np.take_along_axis(x, kk, -1)[..., 0] for x in (sig_cnt, sig_out))
+    # the 8 nearest's planes carried over, as the sweeps propose them
+    tp = np.stack([shifted(tl, i, j, np.nan) - shifted(sl[..., 0], i, j, 0.0) * i
+                   - shifted(sl[..., 1], i, j, 0.0) * j for i, j in offs], -1)
+    slp = np.stack([shifted(sl, i, j, 0.0) for i, j in offs], 2)
+    scp = np.stack([shifted(sc, i, j, 0.0) for i, j in offs], -1)
+    sgp = np.stack([shifted(sg, i, j, np.inf) for i, j in offs], -1)
+    lp = _own_llr(P0, beta, tp, scp, WIDTH_TEST * sb)
+    t = np.concatenate([tb, tp], -1)
+    u = np.concatenate([llr + agreement(tl, tb, slope),
+                        lp + agreement(tl, np.where(np.isfinite(tp), tp, 0.0), slp)], -1)
+    s2 = np.concatenate([sig_out, sgp], -1) ** 2 / bin_s ** 2          # bins^2
+    # the labels on the reported surface (within the prior's tolerance of its time)
+    # (a plane without a sigma, inf, makes the variance inf where it has weight)
+    on = np.isfinite(u) & (np.abs(t - tl[..., None]) < tol)
+    top = np.max(np.where(on, u, -np.inf), -1, keepdims=True)
+    p = np.where(on, np.exp(np.where(on, u, 0.0) - np.where(np.isfinite(top), top, 0.0)),
+                 0.0)
+    tot = p.sum(-1)
+    d2 = np.where(on, s2 + (np.where(on, t, 0.0) - tl[..., None]) ** 2, 0.0)
+    var = np.where(p > 0, p * d2, 0.0).sum(-1) / np.where(tot > 0, tot, 1.0)
+    fix = free & (tot > 0) & np.isfinite(tl)
+    chosen = (np.arange(nc) == kk) & fix[..., None]
+    sig_out[...] = np.where(chosen, np.sqrt(var)[..., None] * bin_s, sig_out)
 
 
 def _block_move(i, j, phase, lab, before, free, tb, llr, slope, sig_cnt, sig_out, P0, beta,
@@ -675,4 +744,5 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
                                       agreement)
     t_out[..., -1] = tb[..., -1] * bin_s + t0_s
     chosen = np.arange(nc) == lab[..., None]
-    return np.where(free[..., None] & chosen, 1e11, 0.0) + rank
+    return (np.where(free[..., None] & chosen, 1e11, 0.0) + rank,
+            (lab, free, tb, llr, slope, shifted, agreement))  # for _label_sigma
