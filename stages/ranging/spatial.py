@@ -174,6 +174,9 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
 def _check(counts, bin_s, sigma_s, p_fa, window, max_returns) -> None:
     if counts.ndim != 3 or min(counts.shape) < 1 or counts.shape[2] < 3:
         raise ValueError(f"counts must be (rows, cols, bins >= 3), found {counts.shape}")
+    if counts.shape[0] * counts.shape[1] < 2:
+        raise ValueError("spatial ranging needs an image of at least 2 pixels (each pixel "
+                         f"is ranged by its neighbours), found {counts.shape[:2]}")
     if not np.all(np.isfinite(counts)) or counts.min() < 0:
         raise ValueError("counts must be finite and >= 0")
     for name, v in (("bin_s", bin_s), ("sigma_s", sigma_s)):
@@ -530,6 +533,25 @@ def _own_llr(P0, beta, t, sig_cnt, half):
                     -np.inf)
 
 
+OFFS = [(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1) if (i, j) != (0, 0)]  # 8 nearest
+
+
+def _carried(lab, tb, slope, sig_cnt, sig_out, shifted):
+    """3b's carry-over: every pixel's reported time ``tl`` (h, w) and its 8 nearest's
+    reported planes carried over to it (h, w, 8): their times at the pixel, slopes,
+    signal a pixel and sigma."""
+    kk = lab[..., None]
+    tl = np.take_along_axis(tb, kk, -1)[..., 0]
+    sl = np.take_along_axis(slope, kk[..., None], 2)[:, :, 0]
+    sc, sg = (np.take_along_axis(x, kk, -1)[..., 0] for x in (sig_cnt, sig_out))
+    tp = np.stack([shifted(tl, i, j, np.nan) - shifted(sl[..., 0], i, j, 0.0) * i
+                   - shifted(sl[..., 1], i, j, 0.0) * j for i, j in OFFS], -1)
+    slp = np.stack([shifted(sl, i, j, 0.0) for i, j in OFFS], 2)
+    scp = np.stack([shifted(sc, i, j, 0.0) for i, j in OFFS], -1)
+    sgp = np.stack([shifted(sg, i, j, np.inf) for i, j in OFFS], -1)
+    return tl, tp, slp, scp, sgp
+
+
 def _label_sigma(state, sig_cnt, sig_out, P0, beta, bin_s, sb) -> None:
     """sigma of an undetected pixel's reported surface (3b), in ``sig_out`` in place.
     The relabelling picks one of the pixel's labels (its candidates and its 8 nearest's
@@ -551,17 +573,9 @@ def _label_sigma(state, sig_cnt, sig_out, P0, beta, bin_s, sb) -> None:
         return
     h, w, nc = tb.shape
     tol = 3.0 * sb
-    offs = [(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1) if (i, j) != (0, 0)]
     kk = lab[..., None]
-    tl = np.take_along_axis(tb, kk, -1)[..., 0]
-    sl = np.take_along_axis(slope, kk[..., None], 2)[:, :, 0]
-    sc, sg = (np.take_along_axis(x, kk, -1)[..., 0] for x in (sig_cnt, sig_out))
     # the 8 nearest's planes carried over, as the sweeps propose them
-    tp = np.stack([shifted(tl, i, j, np.nan) - shifted(sl[..., 0], i, j, 0.0) * i
-                   - shifted(sl[..., 1], i, j, 0.0) * j for i, j in offs], -1)
-    slp = np.stack([shifted(sl, i, j, 0.0) for i, j in offs], 2)
-    scp = np.stack([shifted(sc, i, j, 0.0) for i, j in offs], -1)
-    sgp = np.stack([shifted(sg, i, j, np.inf) for i, j in offs], -1)
+    tl, tp, slp, scp, sgp = _carried(lab, tb, slope, sig_cnt, sig_out, shifted)
     lp = _own_llr(P0, beta, tp, scp, WIDTH_TEST * sb)
     t = np.concatenate([tb, tp], -1)
     u = np.concatenate([llr + agreement(tl, tb, slope),
@@ -668,13 +682,13 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
     lab = np.argmax(np.where(det, 1e12, 0.0) + rank, axis=-1)
     free = ~det.any(-1)
     tol = 3.0 * sb
-    offs = [(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1) if (i, j) != (0, 0)]
-    n = P0.shape[-1] - 1
     half = WIDTH_TEST * sb
 
     def shifted(x, i, j, v):  # x at the neighbour (r + i, c + j), v outside the image
         # (slices, not np.pad: its per-call cost was a third of a 1 x 128 line's ranging)
         out = np.full(x.shape, v, x.dtype)
+        if abs(i) >= h or abs(j) >= w:  # (the neighbour is off the image everywhere)
+            return out
         out[max(-i, 0):h - max(i, 0), max(-j, 0):w - max(j, 0)] = \
             x[max(i, 0):h - max(-i, 0), max(j, 0):w - max(-j, 0)]
         return out
@@ -689,7 +703,7 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
             return on[i, j]
 
         got = np.zeros(t.shape)
-        for i, j in offs:
+        for i, j in OFFS:
             got += lies(i, j)
         # the straight boundary: the row, column or diagonal through the pixel along
         # which most of the 2 LINE_L pixels lie on the plane
@@ -706,22 +720,9 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
         u = llr + agreement(tl, tb, slope)
         lab = np.where(free, np.argmax(u, -1), lab)
         # the 8 nearest's planes carried over: the best replaces the pixel's last slot
-        tl = np.take_along_axis(tb, lab[..., None], -1)[..., 0]
-        sl = np.take_along_axis(slope, lab[..., None, None], 2)[:, :, 0]
-        sc, sg = (np.take_along_axis(x, lab[..., None], 2)[..., 0] for x in (sig_cnt, sig_out))
-        tp = np.stack([shifted(tl, i, j, np.nan) - shifted(sl[..., 0], i, j, 0.0) * i
-                       - shifted(sl[..., 1], i, j, 0.0) * j for i, j in offs], -1)
-        slp = np.stack([shifted(sl, i, j, 0.0) for i, j in offs], 2)
-        scp = np.stack([shifted(sc, i, j, 0.0) for i, j in offs], -1)
-        sgp = np.stack([shifted(sg, i, j, np.inf) for i, j in offs], -1)
-        ok = np.isfinite(tp)
-        ti = np.where(ok, tp, 0.0)
-        a = np.clip(np.floor(ti - half + 0.5).astype(np.int64), 0, n)
-        z = np.clip(np.floor(ti + half + 0.5).astype(np.int64), 0, n)
-        mp = np.take_along_axis(P0, z, -1) - np.take_along_axis(P0, a, -1)
-        bp = beta[..., None] * (z - a)
-        Sp = 0.95 * np.maximum(scp, 0.05)
-        lp = np.where(ok & (z > a), mp * np.log1p(Sp / np.maximum(bp, 1e-9)) - Sp, -np.inf)
+        tl, tp, slp, scp, sgp = _carried(lab, tb, slope, sig_cnt, sig_out, shifted)
+        lp = _own_llr(P0, beta, tp, scp, half)
+        ti = np.where(np.isfinite(tp), tp, 0.0)
         up = lp + agreement(tl, ti, slp)
         k = np.argmax(up, -1)
         best = np.take_along_axis(up, k[..., None], -1)[..., 0]

@@ -218,6 +218,7 @@ def test_compiled_and_numpy_agree():
 @pytest.mark.parametrize("kw,msg", [
     (dict(counts=np.zeros((4, 4))), "rows, cols, bins"),
     (dict(counts=-np.ones((4, 4, 8))), "finite and >= 0"),
+    (dict(counts=np.ones((1, 1, 64))), "at least 2 pixels"),  # (no neighbours)
     (dict(sigma_s=0.0), "sigma_s"), (dict(bin_s=np.nan), "bin_s"),
     (dict(p_fa=1.0), "p_fa"), (dict(window=0), "window")])
 def test_checked_at_the_door(kw, msg):
@@ -317,3 +318,19 @@ def test_sigma_covers_the_neighbours_calibration_errors(sd_m, s, b):
     assert covers[0] < covers[1] - 0.01, covers
     with pytest.raises(ValueError, match="cal_var_s2"):
         spatial(counts, BIN_S, SIGMA_S, cal_var_s2=var[:-1])
+
+
+@pytest.mark.parametrize("shape", [(2, 9), (9, 2), (1, 5), (2, 2), (1, 2)])
+def test_images_narrower_than_the_line_prior(shape):
+    """An image 1 or 2 pixels high or wide (a line sensor, a corner of a frame): the
+    relabelling's line reaches 3 pixels, past the image's edge (it raised an error at 2
+    before). A return of 8 photons a pixel on 0.05 background a bin is found in every
+    pixel."""
+    n = 64
+    rng = np.random.default_rng(0)
+    counts = rng.poisson(0.05, shape + (n,)).astype(float)
+    counts[..., 30] += 8
+    est = spatial(counts, BIN_S, SIGMA_S, 1e-3)
+    assert est.t_s.shape == shape + (2,)
+    assert est.detected[..., 0].all()
+    assert np.all(np.abs(est.t_s[..., 0] / BIN_S - 30.5) < 2.0)  # (the pulse: 2.3 bins)
