@@ -67,6 +67,11 @@ DIAG = 0.5       # a diagonal line's weight against a row's or a column's
 SWEEPS = 5       # its ICM sweeps (3: 0.69 % > 10 cm off at (2, 50), 8: as 5)
 BLOCK_ROUNDS = 1  # then block moves (a boundary's run shifted by a pixel), each direction
 BLOCK_PHASES = 4  # in 4 passes of every 4th column (row)
+PROFILE_BLOCK = 32  # the background's time profile: its blocks (bins)
+PROFILE_P = 1e-4    # and the chi-square test's p below which the frame is not flat
+MASK_K = WINDOW   # over the window's neighbourhood (3 x 3: the scene's returns leaked and the
+                  # flat frames of Lindell's grid came out not flat)
+SIGNAL_Z = 3.1      # a block whose neighbourhood's count stands this many sd above: a return's
 BLOCK_PAIR = 1.5  # the priors' weight in a block's sum (seed 1: 1.5-3 alike, 1 and 0.5 worse)
 
 
@@ -124,6 +129,92 @@ def _cumbins(a: np.ndarray, dtype=np.float64) -> np.ndarray:
     return out
 
 
+def _span(a, z, prof):
+    """The background's share of bins [a, z): z - a for a flat one, else its profile's
+    sum over them (``prof``: :func:`background_profile`'s)."""
+    return z - a if prof is None else prof[1][z] - prof[1][a]
+
+
+def background_profile(counts: np.ndarray, block: int = PROFILE_BLOCK,
+                       p: float = PROFILE_P) -> tuple | None:
+    """The background's time profile over the frame, or None where the frame's background
+    is flat within its noise. Every estimate and test of the estimator takes a pixel's
+    background as its rate times this profile; a flat one (None) is what it assumed
+    before. A background that is not flat in time (pile-up of ambient light in counts not
+    corrected for it, an afterpulsing tail, a gate's edge) with a flat model makes the
+    bins where it is above its mean look like returns: on empty frames whose background
+    falls as e^-3t over the window, at 50 photons a pixel, 0.93 of the pixels were
+    detected at p_fa 1e-3 (benchmarks/spatial_background.py).
+
+    The frame's counts in blocks of ``block`` bins give the profile: every pixel's kept
+    counts over the counts its own rate a bin would put in each block (three passes,
+    from the profile of all counts). A block is left out of a pixel, with the blocks
+    beside it, where its 7 x 7 neighbourhood's count is beyond that neighbourhood's
+    background's tail at ``SIGNAL_P`` (the returns; a threshold, not the largest excess:
+    picking the largest left out the rare counts of the faint blocks, and a falling
+    profile came out low at its end). A chi-square test of the kept counts against
+    each pixel's flat rate decides: flat at p >= ``p`` (None; every frame of Lindell's
+    grid, seeds 1-5). The profile is the same for every pixel (their rates differ); it
+    follows changes slower than a block (2.5 ns at 80 ps bins),
+    not a faster one. Returns (s, S0, S1, S2): s the profile a bin, mean 1; S0, S1, S2
+    the prefix sums (length bins + 1) of s, s (j + 0.5) and s (j + 0.5)^2."""
+    from scipy.stats import chi2
+
+    h, w, n = counts.shape
+    nb = n // block
+    if nb < 6:
+        return None
+    edges = np.arange(nb + 1) * block
+    edges[-1] = n                                    # the last block takes the rest
+    width = np.diff(edges).astype(np.float64)
+    blk = np.add.reduceat(counts, edges[:-1], axis=-1)        # (h, w, nb)
+    # the returns' blocks: a block whose neighbourhood's count stands above the line
+    # through the blocks two away on either side (at the ends, through the next two on
+    # the inside) by more than SIGNAL_Z sds: a return is narrow, a background's profile
+    # is not (a linear one cancels; e^-3t's curvature over 4 blocks is a tenth of a
+    # block's count). On rates a bin (the last block may be wider).
+    box = _box(blk, MASK_K)
+    rb, vb = box / width, box / width ** 2                    # rate a bin, its variance
+    line, var = np.empty_like(rb), np.empty_like(rb)
+    line[..., 2:-2] = (rb[..., :-4] + rb[..., 4:]) / 2
+    var[..., 2:-2] = (vb[..., :-4] + vb[..., 4:]) / 4
+    for k in (0, 1):
+        line[..., k] = 2 * rb[..., k + 2] - rb[..., k + 4]
+        var[..., k] = 4 * vb[..., k + 2] + vb[..., k + 4]
+        line[..., -1 - k] = 2 * rb[..., -3 - k] - rb[..., -5 - k]
+        var[..., -1 - k] = 4 * vb[..., -3 - k] + vb[..., -5 - k]
+    expect = np.maximum(line, 0.0) * width
+    hit = (box - expect) / np.sqrt(np.maximum(expect, 1.0) + var * width ** 2) > SIGNAL_Z
+    keep = ~(hit | np.pad(hit[..., 1:], ((0, 0), (0, 0), (0, 1)))
+             | np.pad(hit[..., :-1], ((0, 0), (0, 0), (1, 0))))
+    kept = np.where(keep, blk, 0.0)
+    prof = np.ones(nb)
+    for _ in range(3):
+        rate = kept.sum(-1) / np.maximum((keep * width * prof).sum(-1), 1e-300)
+        unit = (keep * rate[..., None]).sum((0, 1)) * width
+        prof = np.where(unit > 0, kept.sum((0, 1)) / np.maximum(unit, 1e-300), prof)
+    # the test against each pixel's flat rate over its kept blocks
+    rate0 = kept.sum(-1) / np.maximum((keep * width).sum(-1), 1e-300)
+    expect = (keep * rate0[..., None]).sum((0, 1)) * width
+    obs = kept.sum((0, 1))
+    use = expect > 0
+    if use.sum() < 4:
+        return None
+    x2 = float((((obs - expect) ** 2)[use] / expect[use]).sum())
+    if chi2.sf(x2, use.sum() - 1) >= p:
+        return None
+    mid = (edges[:-1] + edges[1:]) / 2.0
+    tj = np.arange(n) + 0.5
+    sj = np.interp(tj, mid, np.maximum(prof, 0.0))
+    sj = np.maximum(sj, 1e-3 * sj.max()) if sj.max() > 0 else np.ones(n)
+    sj = sj / sj.mean()
+
+    def cum(x):
+        return np.concatenate([[0.0], np.cumsum(x)])
+
+    return sj, cum(sj), cum(sj * tj), cum(sj * tj * tj)
+
+
 def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3,
             window: int = WINDOW, max_returns: int = 2, t0_s: float = 0.0,
             threads: int = 1, compiled: bool | None = None,
@@ -150,11 +241,12 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
             raise ValueError(f"cal_var_s2 must be (rows, cols) = {counts.shape[:2]}, finite "
                              f"and >= 0, found {cal_var_s2.shape}")
     h = counts.shape[0]
+    prof = background_profile(counts)
     bands = min(max(1, int(threads)), max(1, h // (4 * window + 4)))
     if bands == 1:
         return _finish(_spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s,
-                                compiled, cal_var_s2),
-                       max_returns, bin_s, sigma_s / bin_s, t0_s)
+                                compiled, cal_var_s2, prof),
+                       max_returns, bin_s, sigma_s / bin_s, t0_s, prof)
     from concurrent.futures import ThreadPoolExecutor
 
     edges = np.linspace(0, h, bands + 1).astype(int)
@@ -164,11 +256,11 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
     with ThreadPoolExecutor(bands) as ex:
         got = list(ex.map(lambda p: _spatial(
             counts[p[0]:p[3]], bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
-            None if cal_var_s2 is None else cal_var_s2[p[0]:p[3]]), parts))
+            None if cal_var_s2 is None else cal_var_s2[p[0]:p[3]], prof), parts))
     fields = tuple(np.concatenate([e[i][a - lo:b - lo]
                                    for e, (lo, a, b, _) in zip(got, parts, strict=True)])
                    for i in range(len(got[0])))
-    return _finish(fields, max_returns, bin_s, sigma_s / bin_s, t0_s)
+    return _finish(fields, max_returns, bin_s, sigma_s / bin_s, t0_s, prof)
 
 
 def _check(counts, bin_s, sigma_s, p_fa, window, max_returns) -> None:
@@ -190,7 +282,7 @@ def _check(counts, bin_s, sigma_s, p_fa, window, max_returns) -> None:
 
 
 def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
-             cal_var=None) -> tuple:
+             cal_var=None, prof=None) -> tuple:
     """Steps 1-3 on a band of rows: per pixel and candidate, before the relabelling."""
     h, w, n = counts.shape
     sb = sigma_s / bin_s                     # the pulse's sigma in bins
@@ -226,13 +318,23 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         c0 = np.argmax(first, axis=-1)
         e = int(halves[-1] + 4 * sb)
         a0, z0 = np.clip(c0 - e, 0, n), np.clip(c0 + e + 1, 0, n)
-        bgA = (PA[..., n] - between(PA, a0, z0)) / np.maximum(n - (z0 - a0), 1)
+        bgA = (PA[..., n] - between(PA, a0, z0)) / np.maximum(n - _span(a0, z0, prof), 1)
         Z = np.full((h, w, n), -np.inf, np.float32)
         which = np.zeros((h, w, n), np.int8)
         for i, kb in enumerate(halves):
             # the box's excess over its background in sds: in place, the box's full
             # width inside the bins, its clipped ends apart
             z = (first if i == 0 else boxed(kb)).astype(np.float32, copy=False)
+            if prof is not None:  # the background's profile over each bin's box
+                jb = np.arange(n)
+                b = bgA[..., None].astype(np.float32) * _span(
+                    np.maximum(jb - kb, 0), np.minimum(jb + kb + 1, n), prof).astype(np.float32)
+                z -= b
+                z /= np.sqrt(b + np.float32(1.0))
+                better = z > Z
+                np.copyto(which, np.int8(i), where=better)
+                np.maximum(Z, z, out=Z)
+                continue
             m = slice(kb, n - kb) if n > 2 * kb else slice(0, 0)
             b = (bgA * (2 * kb + 1)).astype(np.float32)[..., None]
             z[..., m] -= b
@@ -265,7 +367,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
             cand[..., r], half[..., r] = c, kb
             a, z = np.clip(c - kb, 0, n), np.clip(c + kb + 1, 0, n)
             # the union bound over the bins and the box widths
-            ok[..., r] = ((poisson_tail(between(PA, a, z), bgA * (z - a))
+            ok[..., r] = ((poisson_tail(between(PA, a, z), bgA * _span(a, z, prof))
                            <= p_fa / (n * len(halves)))
                           & (np.take_along_axis(Zb, k[..., None], -1)[..., 0] > -np.inf))
             near = np.abs(blk * B - c[..., None]) <= (kb + 4 * sb + B)[..., None]
@@ -278,7 +380,8 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
     e0 = (cand_half[..., 0] + 4 * sb).astype(np.int64)
     a0, z0 = np.clip(cand[..., 0] - e0, 0, n), np.clip(cand[..., 0] + e0 + 1, 0, n)
     out_cnt = P0[..., n] - between(P0, a0, z0)
-    beta = _box(out_cnt, 1) / np.maximum(_box((n - (z0 - a0)).astype(np.float64), 1), 1.0)
+    beta = _box(out_cnt, 1) / np.maximum(_box((n - _span(a0, z0, prof)).astype(np.float64), 1),
+                                         1.0)
     j = np.arange(n)
     # -- 2. the plane fit for every candidate, at every pixel
     # counts, sums of bin-time and of its square, prefix-summed together: one gather a
@@ -314,13 +417,16 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
     slope = np.zeros(shape + (2,))
     mine_r, bw_r = np.zeros(shape), np.zeros(shape)
 
+    # (the numba kernel's background tables: a flat background's are unused)
+    tables = (True, np.zeros(1), np.zeros(1), np.zeros(1)) if prof is None else (False, *prof[1:])
+
     def window_sums(tq, half):
         """Counts, sums of bin-time and of its square in tq +- half (bins), background
         subtracted, for every neighbour; and the raw counts and background."""
         if compiled:
             hb = np.ascontiguousarray(np.broadcast_to(half, tq.shape[:2] + (1,))[..., 0])
-            return _window_sums_numba(P, qn, on, beta_q, tq, hb, n)
-        return _window_sums_numpy(P, qn, on, beta_q, tq, half, n)
+            return _window_sums_numba(P, qn, on, beta_q, tq, hb, n, *tables)
+        return _window_sums_numpy(P, qn, on, beta_q, tq, half, n, prof)
 
     for r in range(nc):
         t0 = cand[..., r] + 0.5                               # bins
@@ -414,7 +520,8 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         z = np.clip(np.floor(t0 + half + 0.5).astype(np.int64), 0, n)
         mine = (np.take_along_axis(P0, z[..., None], -1)
                 - np.take_along_axis(P0, a[..., None], -1))[..., 0]
-        own_r = poisson_tail(mine, beta * (z - a)) <= p_fa
+        bw = beta * _span(a, z, prof)
+        own_r = poisson_tail(mine, bw) <= p_fa
         nquad = np.zeros((h, w))
         for side in QUADRANTS(dr, dc):
             cnt = (raw * side).sum(-1)
@@ -423,7 +530,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         quad = nquad == 4
         found = cand_ok[..., r] & np.isfinite(t0)
         slope[..., r, 0], slope[..., r, 1] = a_s, b_s
-        mine_r[..., r], bw_r[..., r] = mine, beta * (z - a)
+        mine_r[..., r], bw_r[..., r] = mine, bw
         # (a candidate the window does not detect still gives the pixel a distance, as a
         # per-pixel estimator's undetected peak does; it is never detected)
         t_out[..., r] = np.where(np.isfinite(t0), t0 * bin_s + t0_s, np.nan)
@@ -433,7 +540,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         # (ranking by the excess counts of the pixel and its 8 nearest instead of its own
         # left more pixels > 10 cm off in most cells of Lindell's grid: not kept)
         rank[..., r] = (np.where(found, 0.0, -1e8) + nquad * 1e6
-                        + (mine - beta * (z - a)) * 1e3 + sig_cnt[..., r])
+                        + (mine - bw) * 1e3 + sig_cnt[..., r])
         surr[..., r] = found & quad
     # two candidates that settled on one surface are one
     for r in range(1, nc):
@@ -445,7 +552,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
     return t_out, sig_out, sig_cnt, own | surr, own, surr, slope, mine_r, bw_r, rank, beta, P0
 
 
-def _window_sums_numpy(P, qn, on, beta_q, tq, half, n):
+def _window_sums_numpy(P, qn, on, beta_q, tq, half, n, prof=None):
     """Per pixel and neighbour (h, w, m): the counts, sums of bin-time and of its square
     in tq +- half (bins), background subtracted, and the raw counts and the background,
     from the (count, time, time^2) prefix sums ``P`` (rows qn + bin)."""
@@ -453,15 +560,18 @@ def _window_sums_numpy(P, qn, on, beta_q, tq, half, n):
     z = np.clip(np.floor(tq + half + 0.5).astype(np.int64), 0, n)
     g = (np.take(P, qn + z, 0) - np.take(P, qn + a, 0)) * on[..., None]  # (h, w, m, 3)
     raw, s1, s2 = g[..., 0], g[..., 1], g[..., 2]
-    bsum = beta_q * (z - a)
-    mid1 = beta_q * (z * z - a * a) / 2.0                 # sum of (j + 0.5) over the bins
-    mid2 = beta_q * ((z ** 3 - a ** 3) / 3.0 - (z - a) / 12.0)  # of (j + 0.5)^2
+    if prof is None:
+        bsum = beta_q * (z - a)
+        mid1 = beta_q * (z * z - a * a) / 2.0                 # sum of (j + 0.5) over the bins
+        mid2 = beta_q * ((z ** 3 - a ** 3) / 3.0 - (z - a) / 12.0)  # of (j + 0.5)^2
+    else:  # the background's profile: its sums, of (j + 0.5) and of (j + 0.5)^2
+        bsum, mid1, mid2 = (beta_q * (S[z] - S[a]) for S in prof[1:])
     return raw - bsum, s1 - mid1, s2 - mid2, raw, bsum
 
 
 if numba is not None:
     @numba.njit(cache=True, nogil=True)
-    def _window_sums_numba(P, qn, on, beta_q, tq, half, n):
+    def _window_sums_numba(P, qn, on, beta_q, tq, half, n, flat, S0, S1, S2):
         """:func:`_window_sums_numpy` in one pass, without its temporaries (the same
         operations in the same order: equal results); ``half`` (h, w)."""
         h, w, m = tq.shape
@@ -479,17 +589,21 @@ if numba is not None:
                     z = min(max(np.int64(np.floor(t + hf + 0.5)), 0), n)
                     qa, qz, o, bq = qn[i, j, k] + a, qn[i, j, k] + z, on[i, j, k], beta_q[i, j, k]
                     r = (P[qz, 0] - P[qa, 0]) * o
-                    b = bq * (z - a)
+                    b = bq * (z - a) if flat else bq * (S0[z] - S0[a])
                     raw[i, j, k] = r
                     bsum[i, j, k] = b
                     n0[i, j, k] = r - b
-                    s1[i, j, k] = (P[qz, 1] - P[qa, 1]) * o - bq * (z * z - a * a) / 2.0
-                    s2[i, j, k] = ((P[qz, 2] - P[qa, 2]) * o
-                                   - bq * ((z ** 3 - a ** 3) / 3.0 - (z - a) / 12.0))
+                    if flat:
+                        s1[i, j, k] = (P[qz, 1] - P[qa, 1]) * o - bq * (z * z - a * a) / 2.0
+                        s2[i, j, k] = ((P[qz, 2] - P[qa, 2]) * o
+                                       - bq * ((z ** 3 - a ** 3) / 3.0 - (z - a) / 12.0))
+                    else:
+                        s1[i, j, k] = (P[qz, 1] - P[qa, 1]) * o - bq * (S1[z] - S1[a])
+                        s2[i, j, k] = (P[qz, 2] - P[qa, 2]) * o - bq * (S2[z] - S2[a])
         return n0, s1, s2, raw, bsum
 
 
-def _finish(fields, max_returns, bin_s, sb, t0_s) -> SpatialEstimate:
+def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None) -> SpatialEstimate:
     """3b and the order of the returns, on the whole image (the relabelling's sweeps
     reach further than a band's halo)."""
     t_out, sig_out, sig_cnt, det, own, surr, slope, mine_r, bw_r, rank, beta, P0 = fields
@@ -502,8 +616,8 @@ def _finish(fields, max_returns, bin_s, sb, t0_s) -> SpatialEstimate:
                                 (det, False), (own, False), (surr, False)))
     rank, state = _relabel(t_out, sig_out, slot(slope, 0.0), slot(mine_r, 0.0),
                            slot(bw_r, 0.0), sig_cnt, slot(rank, -1e9), det, P0, beta,
-                           bin_s, sb, t0_s)
-    _label_sigma(state, sig_cnt, sig_out, P0, beta, bin_s, sb)
+                           bin_s, sb, t0_s, prof)
+    _label_sigma(state, sig_cnt, sig_out, P0, beta, bin_s, sb, prof)
     # detected before not; then by the corner windows that see the surface, then by the
     # pixel's own excess counts, then by the neighbourhood's signal
     key = np.where(det, 1e12, 0.0) + rank
@@ -517,7 +631,7 @@ def _finish(fields, max_returns, bin_s, sb, t0_s) -> SpatialEstimate:
                            take(own), take(surr))
 
 
-def _own_llr(P0, beta, t, sig_cnt, half):
+def _own_llr(P0, beta, t, sig_cnt, half, prof=None):
     """The pixel's own Poisson log-likelihood ratio of a surface at ``t`` (bins, NaN:
     none): its counts within +-``half`` against its background, with the signal a pixel
     ``sig_cnt`` (3b's score without the prior); ``t`` (h, w, k)."""
@@ -529,7 +643,7 @@ def _own_llr(P0, beta, t, sig_cnt, half):
     m = np.take_along_axis(P0, z, -1) - np.take_along_axis(P0, a, -1)
     S = 0.95 * np.maximum(sig_cnt, 0.05)
     return np.where(ok & (z > a),
-                    m * np.log1p(S / np.maximum(beta[..., None] * (z - a), 1e-9)) - S,
+                    m * np.log1p(S / np.maximum(beta[..., None] * _span(a, z, prof), 1e-9)) - S,
                     -np.inf)
 
 
@@ -552,7 +666,7 @@ def _carried(lab, tb, slope, sig_cnt, sig_out, shifted):
     return tl, tp, slp, scp, sgp
 
 
-def _label_sigma(state, sig_cnt, sig_out, P0, beta, bin_s, sb) -> None:
+def _label_sigma(state, sig_cnt, sig_out, P0, beta, bin_s, sb, prof=None) -> None:
     """sigma of an undetected pixel's reported surface (3b), in ``sig_out`` in place.
     The relabelling picks one of the pixel's labels (its candidates and its 8 nearest's
     planes carried over) by a score that is a log posterior up to a constant: the
@@ -576,7 +690,7 @@ def _label_sigma(state, sig_cnt, sig_out, P0, beta, bin_s, sb) -> None:
     kk = lab[..., None]
     # the 8 nearest's planes carried over, as the sweeps propose them
     tl, tp, slp, scp, sgp = _carried(lab, tb, slope, sig_cnt, sig_out, shifted)
-    lp = _own_llr(P0, beta, tp, scp, WIDTH_TEST * sb)
+    lp = _own_llr(P0, beta, tp, scp, WIDTH_TEST * sb, prof)
     t = np.concatenate([tb, tp], -1)
     u = np.concatenate([llr + agreement(tl, tb, slope),
                         lp + agreement(tl, np.where(np.isfinite(tp), tp, 0.0), slp)], -1)
@@ -596,7 +710,7 @@ def _label_sigma(state, sig_cnt, sig_out, P0, beta, bin_s, sb) -> None:
 
 
 def _block_move(i, j, phase, lab, before, free, tb, llr, slope, sig_cnt, sig_out, P0, beta,
-                half, tol, shifted, agreement):
+                half, tol, shifted, agreement, prof=None):
     """3b's block move: every free pixel whose neighbour at (r + i, c + j) lies on another
     plane is proposed that neighbour's plane carried over, a boundary's whole run at once
     (a column for a step along a row, a row for one along a column): a straight boundary
@@ -630,7 +744,8 @@ def _block_move(i, j, phase, lab, before, free, tb, llr, slope, sig_cnt, sig_out
     m = (np.take_along_axis(P0, z[..., None], -1) - np.take_along_axis(P0, a[..., None], -1))
     S = 0.95 * np.maximum(scq, 0.05)
     lq = np.where(prop & (z > a),
-                  m[..., 0] * np.log1p(S / np.maximum(beta * (z - a), 1e-9)) - S, -np.inf)
+                  m[..., 0] * np.log1p(S / np.maximum(beta * _span(a, z, prof), 1e-9)) - S,
+                  -np.inf)
     t2 = np.where(prop, tq, tl)
     s2 = np.where(prop[..., None], slq, sl)
     if before is None:
@@ -650,7 +765,7 @@ def _block_move(i, j, phase, lab, before, free, tb, llr, slope, sig_cnt, sig_out
 
 
 def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_s, sb,
-             t0_s):
+             t0_s, prof=None):
     """3b. Which candidate an undetected pixel reports: the one that maximises the pixel's
     own Poisson log-likelihood ratio (its counts in the test window against its
     background, the signal per pixel the neighbourhood saw) plus ``PRIOR`` for each of
@@ -721,7 +836,7 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
         lab = np.where(free, np.argmax(u, -1), lab)
         # the 8 nearest's planes carried over: the best replaces the pixel's last slot
         tl, tp, slp, scp, sgp = _carried(lab, tb, slope, sig_cnt, sig_out, shifted)
-        lp = _own_llr(P0, beta, tp, scp, half)
+        lp = _own_llr(P0, beta, tp, scp, half, prof)
         ti = np.where(np.isfinite(tp), tp, 0.0)
         up = lp + agreement(tl, ti, slp)
         k = np.argmax(up, -1)
@@ -742,7 +857,7 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
                                      range(BLOCK_PHASES)):
             lab, before = _block_move(i, j, phase, lab, before, free, tb, llr, slope,
                                       sig_cnt, sig_out, P0, beta, half, tol, shifted,
-                                      agreement)
+                                      agreement, prof)
     t_out[..., -1] = tb[..., -1] * bin_s + t0_s
     chosen = np.arange(nc) == lab[..., None]
     return (np.where(free[..., None] & chosen, 1e11, 0.0) + rank,
