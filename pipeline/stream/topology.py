@@ -197,8 +197,12 @@ class RangeSection(_Section):
     endpoint: str | None = Field(None, description="its endpoint (leave out: ipc://STATE/sock/NAME)")
     # issue 35: each measurement ranged with its neighbours (docs/ranging.md "On the chip")
     spatial: bool = Field(False, description="true: each measurement ranged with its "
-                          "neighbours as the geometry's image (one histogram worker; "
-                          "max_returns 1..4)")
+                          "neighbours as the geometry's image, the histogram workers' parts "
+                          "gathered first (max_returns 1..4)")
+    hold: int = Field(8, ge=1, le=256, description="with spatial: measurements held while "
+                      "their workers' parts gather, 1..256 (past that the oldest is ranged "
+                      "with the parts it has, flagged, and ranged again from the journal "
+                      "at the run's end)")
     geometry: str | None = Field(None, min_length=1, description="with spatial: the "
                                  "array's layout (leave out: [sink] geometry)")
 
@@ -330,7 +334,7 @@ def load_topology(path: str | Path | None, run: str | None = None,
             problems.append(f"{where} [range] estimator = {rng['estimator']!r}: use one of "
                             f"{ESTIMATORS}")
         if rng.get("spatial") or rng.get("geometry"):
-            _check_spatial(rng, sink, workers, where, problems)
+            _check_spatial(rng, sink, where, problems)
     if src is not None and (hist_m is not None or "histogram" not in raw):
         _check_artifacts(src["kind"], hist, where, problems)  # (else [histogram]'s problem)
     for sec, body in (("histogram", hist), ("range", rng or {})):
@@ -380,9 +384,9 @@ def load_topology(path: str | Path | None, run: str | None = None,
                     fork_server=d.fork_server)
 
 
-def _check_spatial(rng: dict, sink: dict, workers: int, where: str, problems: list) -> None:
-    """``[range] spatial``: a geometry (its own or the sink's), one histogram worker (the
-    estimator needs a measurement's whole frame in one message), 1..4 returns."""
+def _check_spatial(rng: dict, sink: dict, where: str, problems: list) -> None:
+    """``[range] spatial``: a geometry (its own or the sink's), 1..4 returns (any number
+    of histogram workers: the range stage gathers their parts of a measurement)."""
     if not rng.get("spatial"):
         problems.append(f"{where} [range] geometry is for spatial = true")
         return
@@ -397,10 +401,6 @@ def _check_spatial(rng: dict, sink: dict, workers: int, where: str, problems: li
             load_geometry(geometry)
         except ValueError as exc:
             problems.append(f"{where} [range] geometry = {geometry!r}: {exc}")
-    if workers != 1:
-        problems.append(f"{where} [range] spatial = true: with [histogram] workers = "
-                        f"{workers}; use 1 (a measurement's frame is ranged whole, and a "
-                        "fan-out by TDC range splits it)")
     if rng.get("max_returns", 3) > 4:
         problems.append(f"{where} [range] spatial = true: max_returns = "
                         f"{rng['max_returns']}; use 1..4")

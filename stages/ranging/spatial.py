@@ -605,9 +605,10 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
 
     def shifted(x, i, j, v):  # x at the neighbour (r + i, c + j), v outside the image
         # (slices, not np.pad: its per-call cost was a third of a 1 x 128 line's ranging)
+        # (a shift past the image's size leaves it all outside: the ends clipped at 0)
         out = np.full(x.shape, v, x.dtype)
-        out[max(-i, 0):h - max(i, 0), max(-j, 0):w - max(j, 0)] = \
-            x[max(i, 0):h - max(-i, 0), max(j, 0):w - max(-j, 0)]
+        out[max(-i, 0):max(h - max(i, 0), 0), max(-j, 0):max(w - max(j, 0), 0)] = \
+            x[max(i, 0):max(h - max(-i, 0), 0), max(j, 0):max(w - max(-j, 0), 0)]
         return out
 
     def agreement(tl, t, sl):  # the prior of the plane (t, sl): its 8 nearest and line

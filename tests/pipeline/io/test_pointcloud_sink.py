@@ -107,13 +107,16 @@ fov_v_deg = 10.0
 """
 
 
-def test_the_daemon_ranges_with_the_neighbours_as_the_offline_command(tmp_path, caldir):
+@pytest.mark.parametrize("workers", [1, 3])
+def test_the_daemon_ranges_with_the_neighbours_as_the_offline_command(tmp_path, caldir,
+                                                                      workers):
     """`[range] spatial = true`: a simulated capture of 16 pixels as a 4 x 4 image, a depth
     edge between its top and bottom halves (1.5 and 2.5 m, few photons), run through the
-    daemon (capture source, one worker, the range stage ranging with the neighbours, the
-    sink writing point clouds) gives the ranges `tcspc range CAP --calibration C
-    --spatial --geometry G` writes for the same capture, and the truth within 3 sigma on
-    every pixel (detected or not), the edge kept."""
+    daemon (capture source, one worker or three, whose TDC ranges 0..4, 5..10, 11..15 cut
+    the image's rows, the range stage gathering their parts and ranging with the
+    neighbours, the sink writing point clouds) gives the ranges `tcspc range CAP
+    --calibration C --spatial --geometry G` writes for the same capture, and the truth
+    within 3 sigma on every pixel (detected or not), the edge kept."""
     import polars as pl
 
     from pipeline.cli import cli
@@ -133,7 +136,7 @@ state = "{tmp_path / 'state'}"
 kind = "capture"
 capture = "{cap}"
 [histogram]
-workers = 1
+workers = {workers}
 calibration = "{caldir}"
 [range]
 calibration = "{caldir}"
@@ -146,6 +149,10 @@ geometry = "{geom}"
 """)
     res = Supervisor(load_topology(topo, "sp"), log=lambda m: None).run()
     assert res["failed"] is None, res
+    assert res["state"] == "finished", res["problems"]
+    assert res["accounting"]["spatial_incomplete_frames"] == 0
+    parts = sorted((tmp_path / "out" / "ranges").rglob("*.parquet"))
+    assert len(parts) == workers  # (one file a worker's part, beside its histograms)
     live = pl.read_parquet(tmp_path / "out" / "ranges" / "date=*" / "run=sp" / "*.parquet")
     cli.main(args=["range", str(cap), "--calibration", str(caldir), "--spatial",
                    "--geometry", str(geom), "--out", str(tmp_path / "off.parquet"), "-q"],
@@ -166,11 +173,12 @@ geometry = "{geom}"
     truth = np.where(first["tdc"].to_numpy() < 8, 1.5, 2.5)
     z = np.abs(first["distance_m"].to_numpy() - truth) / first["sigma_m"].to_numpy()
     assert z.max() < 3, z
-    (ply,) = (tmp_path / "out" / "pointcloud").rglob("*.ply")
     from plyfile import PlyData
 
-    v = PlyData.read(str(ply))["vertex"]
-    assert len(v.data) == live["detected"].sum()
+    plys = sorted((tmp_path / "out" / "pointcloud").rglob("*.ply"))
+    assert len(plys) == workers
+    v = np.concatenate([PlyData.read(str(p))["vertex"].data for p in plys])
+    assert len(v) == live["detected"].sum()
     # the offline ranges exported with the same geometry: the same points
     cli.main(args=["export", str(tmp_path / "off.parquet"), "--geometry", str(geom),
                    "--out", str(tmp_path / "off.ply"), "-q"], standalone_mode=False)
@@ -184,16 +192,35 @@ geometry = "{geom}"
     # the ranges lost: `tcspc reconcile` rebuilds them from the journal, spatially too
     from pipeline.stream.daemon import reconcile_offline
 
-    (part,) = (tmp_path / "out" / "ranges").rglob("*.parquet")
-    part.unlink()
-    reconcile_offline(load_topology(topo, "sp"))
+    # (one part's: the whole frame is gathered from the journal and ranged again)
+    parts[-1].unlink()
+    rec = reconcile_offline(load_topology(topo, "sp"))
+    again = pl.read_parquet(tmp_path / "out" / "ranges" / "date=*" / "run=sp" / "*.parquet")
+    assert again.sort(on).equals(live.sort(on))
+    assert rec["reconciled"]["spatial_reranged"] == [0], rec["reconciled"]
+    if workers == 1:
+        return
+    # a part the range stage ranged in a frame without another part (a worker's part that
+    # did not come: its file says which TDCs it lacked): ranged again whole, from the
+    # histograms the datasets hold
+    import pyarrow.parquet as pq
+
+    t = pq.read_table(parts[0])
+    pq.write_table(t.set_column(t.column_names.index("distance_m"), "distance_m",
+                                pa.array(np.full(t.num_rows, 9.0))).replace_schema_metadata(
+        {**t.schema.metadata, b"tcspc.spatial_missing": b"[[5, 11]]"}), parts[0])
+    rec = reconcile_offline(load_topology(topo, "sp"))
+    assert rec["reconciled"]["spatial_reranged"] == [0], rec["reconciled"]
+    assert rec["reconciled"]["spatial_incomplete"] == [] and rec["state"] == "finished"
+    assert b"tcspc.spatial_missing" not in pq.read_schema(parts[0]).metadata
     again = pl.read_parquet(tmp_path / "out" / "ranges" / "date=*" / "run=sp" / "*.parquet")
     assert again.sort(on).equals(live.sort(on))
 
 
 def test_the_topology_checks_spatial_ranging(tmp_path):
-    """`[range] spatial = true` needs a geometry and one histogram worker (a fan-out by TDC
-    range splits a measurement's frame): refused in one line otherwise (exit 2)."""
+    """`[range] spatial = true` needs a geometry and 1..4 returns, and takes any number of
+    histogram workers (the range stage gathers their parts of a measurement; ``hold`` of
+    them at most, >= 1): refused in one line otherwise (exit 2)."""
     import subprocess
     import sys
 
@@ -207,11 +234,22 @@ def test_the_topology_checks_spatial_ranging(tmp_path):
     with pytest.raises(TopologyError, match=r"\[range\] geometry is for spatial"):
         load_topology(None, overrides={**over, "range": {"calibration": str(cal),
                                                          "geometry": "tmf8820"}})
-    topo = load_topology(None, overrides={**over, "histogram": {"workers": 1}, "range": {
-        "calibration": str(cal), "spatial": True, "geometry": "thesis128"}})
-    from pipeline.stream.daemon import spatial_args
+    with pytest.raises(TopologyError, match=r"\[range\] hold"):
+        load_topology(None, overrides={**over, "range": {
+            "calibration": str(cal), "spatial": True, "geometry": "thesis128", "hold": 0}})
+    from pipeline.stream.daemon import build, spatial_args
 
-    assert spatial_args(topo) == ["--spatial", "--geometry", "thesis128"]
+    for workers in (1, 2, 4):  # (the one-worker refusal of before: gone)
+        topo = load_topology(None, overrides={**over, "histogram": {"workers": workers},
+                                              "range": {"calibration": str(cal),
+                                                        "spatial": True,
+                                                        "geometry": "thesis128"}})
+        assert spatial_args(topo) == ["--spatial", "--geometry", "thesis128", "--hold", 8]
+        (rng,) = [p for p in build(topo) if p.name == "range"]
+        assert rng.argv[rng.argv.index("--workers") + 1] == str(workers)
+    topo = load_topology(None, overrides={**over, "range": {
+        "calibration": str(cal), "spatial": True, "geometry": "thesis128", "hold": 3}})
+    assert spatial_args(topo)[-2:] == ["--hold", 3]
     assert spatial_args(load_topology(None, overrides=over)) == []
     scene = tmp_path / "small.toml"
     scene.write_text("")
@@ -219,10 +257,11 @@ def test_the_topology_checks_spatial_ranging(tmp_path):
     path.write_text(f"[source]\nkind = 'sim'\nscene = '{scene}'\n[daemon]\nstate = "
                     f"'{tmp_path / 's'}'\n[histogram]\nworkers = 2\n[sink]\nout = "
                     f"'{tmp_path / 'o'}'\n[range]\ncalibration = '{cal}'\nspatial = true\n"
-                    "geometry = 'thesis128'\n")
+                    "geometry = 'thesis128'\nmax_returns = 5\n")
     p = subprocess.run([sys.executable, "-m", "pipeline.cli", "daemon", "--config",
                         str(path)], capture_output=True, text=True)
     assert p.returncode == 2
     lines = [x for x in p.stderr.splitlines() if x.strip()]
-    assert any("[range] spatial = true" in x and "workers = 2" in x for x in lines), lines
+    assert any("[range] spatial = true" in x and "max_returns = 5" in x for x in lines), lines
+    assert not any("workers" in x for x in lines), lines
     assert "Traceback" not in p.stderr
