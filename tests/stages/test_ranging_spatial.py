@@ -282,3 +282,19 @@ def test_sigma_covers_the_neighbours_calibration_errors(sd_m, s, b):
     assert covers[0] < covers[1] - 0.01, covers
     with pytest.raises(ValueError, match="cal_var_s2"):
         spatial(counts, BIN_S, SIGMA_S, cal_var_s2=var[:-1])
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 5), (2, 2), (2, 4), (3, 1)])
+def test_images_smaller_than_the_neighbourhood(shape):
+    """An image fewer rows or columns than a neighbour's shift (a 2 x 4 frame of a chip,
+    a gathered frame with a worker's part missing): every neighbour past the edge is
+    outside, nothing wraps round; a surface at 5 m with many photons is found on every
+    pixel."""
+    h, w = shape
+    depth = np.full((h, w, 2), np.nan)
+    depth[..., 0] = 5.0
+    share = np.zeros((h, w, 2))
+    share[..., 0] = 1.0
+    est = spatial(histograms(Scene(depth, share), 200, 2, 5), BIN_S, SIGMA_S, 1e-3)
+    assert est.detected[..., 0].all()
+    assert np.all(np.abs(est.t_s[..., 0] * C / 2 - 5.0) < 0.05)
