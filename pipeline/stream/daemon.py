@@ -77,6 +77,7 @@ starts, as are the state directory and the resources: ``pipeline.stream.state``)
     spatial = false              # true: ranged with the neighbours as the geometry's image
                                  # (geometry = ..., else [sink] geometry); the workers'
     hold = 8                     # parts of a measurement gathered first, this many held
+                                 # (leave out: a source batch's measurements + 2 hwm)
 
     [sink]
     out = "data/stream"
@@ -125,6 +126,7 @@ from pipeline.stream.topology import (
     GRACE_S,
     STARTUP_S,
     Topology,
+    range_hold,
     spatial_geometry,
     tdc_ranges,
 )
@@ -846,8 +848,7 @@ def exit_code(result: dict) -> int:
 def spatial_args(topo: Topology) -> list:
     """The range stage's spatial options."""
     g = spatial_geometry(topo)
-    return [] if g is None else ["--spatial", "--geometry", g, "--hold",
-                                 topo.range.get("hold", 8)]
+    return [] if g is None else ["--spatial", "--geometry", g, "--hold", range_hold(topo)]
 
 
 def _cloud_args(sink: dict) -> list:

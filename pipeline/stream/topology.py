@@ -199,10 +199,11 @@ class RangeSection(_Section):
     spatial: bool = Field(False, description="true: each measurement ranged with its "
                           "neighbours as the geometry's image, the histogram workers' parts "
                           "gathered first (max_returns 1..4)")
-    hold: int = Field(8, ge=1, le=256, description="with spatial: measurements held while "
-                      "their workers' parts gather, 1..256 (past that the oldest is ranged "
-                      "with the parts it has, flagged, and ranged again from the journal "
-                      "at the run's end)")
+    hold: int | None = Field(None, ge=1, le=256, description="with spatial: measurements "
+                             "held while their workers' parts gather, 1..256 (past that the "
+                             "oldest is ranged with the parts it has, flagged, and ranged "
+                             "again from the journal at the run's end; leave out: a source "
+                             "batch's measurements + 2 hwm, 8..256)")
     geometry: str | None = Field(None, min_length=1, description="with spatial: the "
                                  "array's layout (leave out: [sink] geometry)")
 
@@ -584,6 +585,25 @@ def spatial_geometry(topo: Topology) -> str | None:
     if not (topo.range or {}).get("spatial"):
         return None
     return topo.range.get("geometry") or topo.sink.get("geometry")
+
+
+#: the most words a source sends in one batch (a replayed capture's,
+#: pipeline.cli.stream.REPLAY_BATCH_WORDS): a worker folds its part of a batch at once and
+#: sends every measurement in it together
+SOURCE_BATCH_WORDS = 1 << 20
+HOLD_MIN, HOLD_MAX = 8, 256
+
+
+def range_hold(topo: Topology) -> int:
+    """``[range] hold``, else enough for one worker to be a source batch's measurements
+    and its queues (2 hwm) ahead of another: 8..256 (docs/ranging.md "On the chip")."""
+    if (topo.range or {}).get("hold") is not None:
+        return int(topo.range["hold"])
+    mc = topo.histogram.get("measurement_cycles")
+    if not mc:  # one measurement: the run
+        return HOLD_MIN
+    batch_cycles = max(1, SOURCE_BATCH_WORDS // topo.n_tdc)
+    return min(HOLD_MAX, max(HOLD_MIN, -(-batch_cycles // mc) + 2 * topo.hwm))
 
 
 def tdc_ranges(topo: Topology) -> list[tuple[int, int]]:

@@ -215,6 +215,30 @@ geometry = "{geom}"
     assert b"tcspc.spatial_missing" not in pq.read_schema(parts[0]).metadata
     again = pl.read_parquet(tmp_path / "out" / "ranges" / "date=*" / "run=sp" / "*.parquet")
     assert again.sort(on).equals(live.sort(on))
+    # ... and when the journal cannot give the missing part back (its chunk corrupt, its
+    # histograms gone): ranged with what there is, flagged, and the run is incomplete
+    from pipeline.stream.journal import _entries, segment_path
+
+    journal = tmp_path / "state" / "journal"
+    (chunk,) = [e for e in _entries(journal / "sp.index.jsonl") if not e.get("end")][:1]
+    seg = segment_path(journal, "sp", chunk["segment"], chunk["enc"])
+    data = bytearray(seg.read_bytes())
+    data[chunk["offset"] + chunk["bytes"] // 2] ^= 0x04
+    seg.write_bytes(bytes(data))
+    next((tmp_path / "out" / "histograms").rglob("part-000000-t005.parquet")).unlink()
+    t = pq.read_table(parts[0])
+    pq.write_table(t.replace_schema_metadata(
+        {**t.schema.metadata, b"tcspc.spatial_missing": b"[[5, 11]]"}), parts[0])
+    rec = reconcile_offline(load_topology(topo, "sp"))
+    assert rec["reconciled"]["spatial_incomplete"] == [0], rec["reconciled"]
+    assert [0, 5] in rec["reconciled"]["corrupt"]
+    assert rec["state"] == "incomplete" and any(
+        "without some workers' parts" in x for x in rec["problems"]), rec["problems"]
+    again = pl.read_parquet(tmp_path / "out" / "ranges" / "date=*" / "run=sp" / "*.parquet")
+    gone = again.filter(pl.col("tdc").is_between(5, 10))
+    assert gone.height == 6 and not gone["detected"].any()
+    assert again.filter(~pl.col("tdc").is_between(5, 10))["flag"].str.contains(
+        "ranged without some TDCs").all()
 
 
 def test_the_topology_checks_spatial_ranging(tmp_path):
@@ -238,18 +262,30 @@ def test_the_topology_checks_spatial_ranging(tmp_path):
         load_topology(None, overrides={**over, "range": {
             "calibration": str(cal), "spatial": True, "geometry": "thesis128", "hold": 0}})
     from pipeline.stream.daemon import build, spatial_args
+    from pipeline.stream.topology import SOURCE_BATCH_WORDS
 
     for workers in (1, 2, 4):  # (the one-worker refusal of before: gone)
         topo = load_topology(None, overrides={**over, "histogram": {"workers": workers},
                                               "range": {"calibration": str(cal),
                                                         "spatial": True,
                                                         "geometry": "thesis128"}})
-        assert spatial_args(topo) == ["--spatial", "--geometry", "thesis128", "--hold", 8]
+        # (the street's 128 TDCs: a batch of 8192 cycles, 1 of 20 000-cycle measurements,
+        # + 2 x hwm 4 = 9)
+        assert spatial_args(topo) == ["--spatial", "--geometry", "thesis128", "--hold", 9]
         (rng,) = [p for p in build(topo) if p.name == "range"]
         assert rng.argv[rng.argv.index("--workers") + 1] == str(workers)
-    topo = load_topology(None, overrides={**over, "range": {
-        "calibration": str(cal), "spatial": True, "geometry": "thesis128", "hold": 3}})
-    assert spatial_args(topo)[-2:] == ["--hold", 3]
+
+    def hold(rng=None, **hist):
+        return spatial_args(load_topology(None, overrides={
+            **over, "histogram": {"workers": 2, **hist}, "range": {
+                "calibration": str(cal), "spatial": True, "geometry": "thesis128",
+                **(rng or {})}}))[-1]
+
+    assert hold({"hold": 3}) == 3
+    assert hold(measurement_cycles=1000) == 9 + 8 and hold(measurement_cycles=10) == 256
+    from pipeline.cli.stream import REPLAY_BATCH_WORDS
+
+    assert SOURCE_BATCH_WORDS == REPLAY_BATCH_WORDS
     assert spatial_args(load_topology(None, overrides=over)) == []
     scene = tmp_path / "small.toml"
     scene.write_text("")
@@ -265,3 +301,70 @@ def test_the_topology_checks_spatial_ranging(tmp_path):
     assert any("[range] spatial = true" in x and "max_returns = 5" in x for x in lines), lines
     assert not any("workers" in x for x in lines), lines
     assert "Traceback" not in p.stderr
+
+
+def test_frames_pushed_out_by_hold_are_ranged_again_whole(tmp_path, caldir):
+    """Three workers, four measurements, ``[range] hold = 1``: a measurement whose last
+    part comes after the next measurement's first is ranged with the parts it has (how
+    often depends on the workers' timing), flagged; at the run's end every such one is
+    ranged again whole, so each measurement's rows are those its whole frame gives in one
+    message (its histograms from the datasets, ranged apart), no row flagged, the run
+    finished."""
+    import polars as pl
+    import pyarrow.parquet as pq
+
+    from pipeline.cli import cli
+    from pipeline.io.caldir import load_calibration
+    from pipeline.io.capture import Capture
+    from pipeline.offline.ranging import RangeCore
+    from pipeline.stream.daemon import Supervisor
+
+    (tmp_path / "edge16.toml").write_text(EDGE16)
+    geom = tmp_path / "grid16.toml"
+    geom.write_text(GRID16)
+    cap = tmp_path / "cap"
+    cli.main(args=["simulate", str(tmp_path / "edge16.toml"), "--cycles", "6000", "--out",
+                   str(cap), "--seed", "4", "-q"], standalone_mode=False)
+    topo = tmp_path / "topo.toml"
+    topo.write_text(f"""
+[daemon]
+state = "{tmp_path / 'state'}"
+[source]
+kind = "capture"
+capture = "{cap}"
+[histogram]
+workers = 3
+measurement_cycles = 1500
+calibration = "{caldir}"
+[range]
+calibration = "{caldir}"
+spatial = true
+max_returns = 2
+hold = 1
+geometry = "{geom}"
+[sink]
+out = "{tmp_path / 'out'}"
+""")
+    res = Supervisor(load_topology(topo, "h1"), log=lambda m: None).run()
+    assert res["state"] == "finished", res["problems"]
+    rec = res["reconciled"]
+    assert rec["spatial_incomplete"] == []
+    # (each frame ranged live without a part is ranged again; none is when all came whole)
+    assert len(rec["spatial_reranged"]) >= min(res["accounting"]["spatial_incomplete_frames"],
+                                               1)
+    live = pl.read_parquet(tmp_path / "out" / "ranges" / "date=*" / "run=h1" / "*.parquet")
+    assert (live["flag"] == "").all() and live["measurement"].n_unique() == 4
+    meta = Capture(cap).meta
+    whole = RangeCore(load_calibration(caldir), spatial=load_geometry(geom), max_returns=2,
+                      forward_histograms=False)
+    want = []
+    for k in range(4):
+        parts = sorted((tmp_path / "out" / "histograms").rglob(f"part-{k:06d}-t*.parquet"))
+        t = pa.concat_tables([pq.read_table(p).replace_schema_metadata(None)
+                              for p in parts]).combine_chunks()
+        head = {"run": "h1", "measurement": f"h1-m{k:06d}", "measurement_index": k,
+                "tdc_range": [0, 16], "n_tdc_total": 16, "window_ns": meta.window_ns,
+                "t_laser_win_ns": meta.t_laser_win_ns}
+        want += [pl.from_arrow(b) for _, b in whole.process(head, t.to_batches()[0])]
+    on = ["measurement", "tdc", "return_index"]
+    assert live.sort(on).equals(pl.concat(want).sort(on))
