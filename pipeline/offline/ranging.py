@@ -468,7 +468,8 @@ class RangeCore:
         if spatial is not None:
             from pipeline.offline.spatial import FrameGather
 
-            self.gather = FrameGather() if hold is None else FrameGather(hold)
+            self.gather = FrameGather(n_tdc=calibration.n_tdc, **(
+                {} if hold is None else {"hold": hold}))
         if spatial is not None and not np.any(spatial.index_of(np.arange(calibration.n_tdc))
                                               >= 0):
             raise CalibrationError(f"geometry {spatial.name}: no pixel for any of the "

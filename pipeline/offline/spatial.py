@@ -298,22 +298,25 @@ class FrameGather:
     ``duplicates``, not gathered again. A later part of a measurement given back
     incomplete starts a new gathering (it is ranged with what comes with it)."""
 
-    def __init__(self, hold: int = HOLD, remember: int = REMEMBER):
+    def __init__(self, hold: int = HOLD, remember: int = REMEMBER, n_tdc: int | None = None):
         if hold < 1:
             raise ValueError(f"hold must be >= 1, found {hold}")
         self.hold, self.remember = hold, remember
+        self.n_tdc = n_tdc  #: the frame's TDCs where a header has no n_tdc_total
         self._open: dict[str, dict[tuple[int, int], tuple[dict, pa.RecordBatch]]] = {}
         self._done: dict[str, dict[tuple[int, int], tuple]] = {}  # (insertion ordered)
         self.incomplete = 0  #: frames given back without every part
         self.duplicates = 0  #: parts of a measurement already gathered whole, dropped
 
-    @staticmethod
-    def _key(header: dict, batch: pa.RecordBatch) -> tuple[str, tuple[int, int], int]:
+    def _total(self, header: dict, end: int) -> int:
+        return int(header.get("n_tdc_total") or self.n_tdc or end)
+
+    def _key(self, header: dict, batch: pa.RecordBatch) -> tuple[str, tuple[int, int], int]:
         from schemas.errors import Rejected
 
         rng = header.get("tdc_range") or [0, batch.num_rows]
         a, b = int(rng[0]), int(rng[1])
-        total = int(header.get("n_tdc_total") or b)
+        total = self._total(header, b)
         if not 0 <= a < b <= total or batch.num_rows != b - a:
             raise Rejected("bad_payload", f"measurement {header.get('measurement')}: "
                            f"tdc_range {rng} of {total} TDCs with {batch.num_rows} rows")
@@ -355,7 +358,7 @@ class FrameGather:
 
         parts = sorted(self._open.pop(name).items())
         head0 = parts[0][1][0]
-        n = int(head0.get("n_tdc_total") or parts[-1][0][1]) if total is None else total
+        n = self._total(head0, parts[-1][0][1]) if total is None else total
         have = np.zeros(n, bool)
         states = []
         for (a, b), (_, batch) in parts:

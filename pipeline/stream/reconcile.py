@@ -348,8 +348,8 @@ def accounting(topo: Topology, metrics: dict[str, dict], reconciled: dict | None
               "words_in_gaps": span - journaled,
               # spatial: frames the range stage ranged without some workers' parts (its
               # last process's count; the reconciliation ranged them again whole)
-              **({"spatial_incomplete_frames": metrics["range"]["incomplete_frames"]}
-                 if "incomplete_frames" in metrics.get("range", {}) else {}),
+              **({"spatial_incomplete_frames": int(metrics.get("range", {}).get(
+                  "incomplete_frames", 0))} if spatial_geometry(topo) else {}),
               "measurements_files": len(parts)}
     if bounds is not None:
         result["artifact_bounds"] = bounds

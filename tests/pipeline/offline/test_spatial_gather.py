@@ -208,3 +208,15 @@ def test_the_range_stage_ranges_the_gathered_frame_as_one_message(tmp_path, cald
     d = np.asarray(t.column("distance_m"))[first]
     truth = np.where(tdc[first] < 8, 1.5, 2.5)
     assert np.all(np.abs(d - truth) < 3 * np.asarray(t.column("sigma_m"))[first])
+
+
+def test_a_header_without_the_frames_size_takes_the_calibrations():
+    """A part without ``n_tdc_total`` (a source that does not say it): the frame is the
+    ``n_tdc`` given (the calibration's TDCs), never the part alone."""
+    s = _measurement(0)
+    g = FrameGather(n_tdc=N)
+    head, batch = _part(0, s, 0, 5)
+    del head["n_tdc_total"]
+    assert g.add(head, batch) == []
+    (f,) = g.flush()
+    assert f.missing == [(5, 16)] and f.state.n_tdc == N
