@@ -429,12 +429,15 @@ def stage_histogram(pull, push, n_tdc, tdc_range, measurement_cycles, calibratio
 @click.option("--quarantine", type=click.Path(), default=None)
 @click.option("--spatial", is_flag=True,
               help="Each measurement ranged with its neighbours as --geometry's image "
-                   "(docs/ranging.md; its whole frame in one message: one worker).")
+                   "(docs/ranging.md; the workers' parts of it gathered into its frame).")
 @click.option("--geometry", default=None, help="With --spatial: the array's layout.")
+@click.option("--hold", type=click.IntRange(min=1), default=8, show_default=True,
+              help="With --spatial: measurements held while their workers' parts gather "
+                   "(past that the oldest is ranged with the parts it has, flagged).")
 @_metrics
 @_accept
 def stage_range(pull, push, calibration, estimator, max_returns, workers, quarantine,
-                spatial, geometry, metrics, senders) -> None:
+                spatial, geometry, hold, metrics, senders) -> None:
     """Ranges of each measurement's histograms with a calibration (eq. 5.4)."""
     _secure(pull, push, metrics)
     from pipeline.io.caldir import load_calibration
@@ -445,20 +448,23 @@ def stage_range(pull, push, calibration, estimator, max_returns, workers, quaran
     if spatial or geometry:
         if not (spatial and geometry):
             raise click.UsageError("--spatial and --geometry go together")
-        if workers != 1 or not 1 <= max_returns <= 4:
-            raise click.UsageError("--spatial: one histogram worker (--workers 1) and "
-                                   "--max-returns 1..4")
+        if not 1 <= max_returns <= 4:
+            raise click.UsageError("--spatial: --max-returns 1..4")
         from pipeline.io.geometry import load_geometry
 
         geom = load_geometry(geometry)  # checked before the stage starts
     core = RangeCore(load_calibration(calibration), estimator, max_returns=max_returns,
                      warn=lambda m: err.print(f"range: warning: {m}", highlight=False),
-                     spatial=geom)
+                     spatial=geom, hold=hold)
     stats = run_stage(core, pull, push, quarantine=quarantine, expect_stops=workers,
                       metrics=metrics, name="range", senders=list(senders) or None)
     err.print(f"range: {core.ranged} measurements ranged; rejected {dict(stats.rejected)}"
               + (f"; calibration notes {core.notes}" if core.notes else "")
-              + (f"; chip check {core.chip_checks}" if core.chip_checks else ""),
+              + (f"; chip check {core.chip_checks}" if core.chip_checks else "")
+              + (f"; {core.incomplete_frames} frames without every worker's part"
+                 if core.incomplete_frames else "")
+              + (f"; {core.gather.duplicates} parts sent again dropped"
+                 if core.gather is not None and core.gather.duplicates else ""),
               highlight=False)
 
 

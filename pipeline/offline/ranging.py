@@ -241,6 +241,9 @@ CHIP_MISMATCH = "calibration of another chip (code-density pattern)"
 #: A stream's measurement that the run ended inside (a stop, an interrupted or failed run):
 #: ranged on what it holds; a resumed run completes it and its ranges replace these.
 PARTIAL = "partial measurement: the run ended inside it"
+#: A spatial frame ranged without some of its TDCs (their worker's part did not arrive):
+#: its neighbours there were missing; the reconciliation ranges it again from the journal.
+INCOMPLETE_FRAME = "ranged without some TDCs' part (spatial)"
 TDC_MISMATCH = "this TDC's code-density pattern is not the calibration's"
 #: A TDC of a matching capture is flagged alone where its own excess is over this many
 #: sigmas (and its widths differ by more than a chip's drift): one in ~3.5 million by
@@ -423,8 +426,10 @@ def lsb_tracking(calibration: Calibration, state: HistogramState, window_s: floa
 
 class RangeCore:
     """The range stage: each histograms message (a measurement, or a worker's TDC range of
-    one) in, its ranges out, the histograms passed on beside them for the sink. Stateless:
-    a measurement is ranged on its own, so a fan-out needs no join."""
+    one) in, its ranges out, the histograms passed on beside them for the sink. Stateless
+    (a measurement is ranged on its own, so a fan-out needs no join), but for ``spatial``:
+    there a measurement is ranged as one image, so the parts of a fan-out by TDC range
+    are joined first (:class:`pipeline.offline.spatial.FrameGather`, ``hold``)."""
 
     in_spec = HISTOGRAMS
     out_spec = RANGES
@@ -434,7 +439,8 @@ class RangeCore:
                  forward_histograms: bool = True, max_returns: int = MAX_RETURNS,
                  check_chip: bool = True, warn=None, spatial=None,
                  track_lsb_every_s: float = LSB_TRACK_EVERY_S,
-                 track_lsb_after_s: float = LSB_TRACK_AFTER_S, clock=time.monotonic):
+                 track_lsb_after_s: float = LSB_TRACK_AFTER_S, clock=time.monotonic,
+                 hold: int | None = None):
         if not calibration.has_delay:  # fail at start, not on the first message
             raise CalibrationError(f"{calibration.path}: no delay (run `tcspc calibrate "
                                    "delay` on a zero-distance capture first)")
@@ -455,8 +461,15 @@ class RangeCore:
         self._track_at = clock() + track_lsb_after_s
         #: a Geometry: each measurement ranged with its neighbours as that geometry's
         #: image (:func:`pipeline.offline.spatial.range_state_spatial`, issue 35), its
-        #: whole frame in one message (the topology has one histogram worker)
+        #: frame gathered from the histogram workers' parts (:class:`FrameGather`, at
+        #: most ``hold`` measurements held)
         self.spatial = spatial
+        self.gather = None
+        if spatial is not None:
+            from pipeline.offline.spatial import FrameGather
+
+            self.gather = FrameGather(n_tdc=calibration.n_tdc, **(
+                {} if hold is None else {"hold": hold}))
         if spatial is not None and not np.any(spatial.index_of(np.arange(calibration.n_tdc))
                                               >= 0):
             raise CalibrationError(f"geometry {spatial.name}: no pixel for any of the "
@@ -483,7 +496,18 @@ class RangeCore:
                     self.estimator, max_returns=self.max_returns)
 
     def process(self, header: dict, batch: pa.RecordBatch) -> list:
+        forward = [(header, batch)] if self.forward else []
+        if self.gather is not None:  # spatial: ranged once the measurement's frame is whole
+            frames = self.gather.add(header, batch)
+            return forward + [m for f in frames for m in self._range_frame(f)]
         state = HistogramState.from_table(pa.Table.from_batches([batch]))
+        head, table = self._range(header, state)
+        return forward + [(head, b) for b in table.to_batches()]
+
+    def _range(self, header: dict, state: HistogramState,
+               absent: np.ndarray | None = None) -> tuple[dict, pa.Table]:
+        """The ranges header and table of one measurement's histograms (``absent``: the
+        TDCs of a spatial frame whose part did not arrive)."""
         window_s = float(header.get("window_ns", self.window_ns)) * 1e-9
         gate_s = float(header["t_laser_win_ns"]) * 1e-9
         if self.spatial is not None:
@@ -491,7 +515,8 @@ class RangeCore:
 
             est, d, s, note = range_state_spatial(state, self.calibration, window_s, gate_s,
                                                   self.spatial,
-                                                  max_returns=min(self.max_returns, 4))
+                                                  max_returns=min(self.max_returns, 4),
+                                                  absent=absent)
         else:
             est, d, s, note = range_state(state, self.calibration, window_s, gate_s,
                                           self.estimator, max_returns=self.max_returns)
@@ -501,11 +526,11 @@ class RangeCore:
         chip = None
         # a chip does not change within a run: the first measurement and every
         # CHIP_RECHECK-th are checked (the check costs about as much as ranging), every one
-        # once a mismatch was seen
+        # once a mismatch was seen; not a frame with a part missing (its filled rows)
         self._unchecked += 1
-        if self.check_chip and (not self.chip_checks
-                                or self.chip_checks.get("mismatch", 0) > 0
-                                or self._unchecked >= CHIP_RECHECK):
+        if self.check_chip and absent is None and (
+                not self.chip_checks or self.chip_checks.get("mismatch", 0) > 0
+                or self._unchecked >= CHIP_RECHECK):
             self._unchecked = 0
             est, _, chk = chip_checked(self.calibration, state, est, window_s)
             chip = chk.verdict
@@ -522,6 +547,12 @@ class RangeCore:
             cyc = header.get("cycles") or [0, 0]
             est = _flag_rows(est, np.ones(np.size(est.t_s), bool),
                              f"{PARTIAL} (cycles {cyc[0]}..{cyc[1]})")
+        if absent is not None:  # a frame without some TDCs: its other rows say which
+            from pipeline.offline.spatial import _runs
+
+            gone = ", ".join(f"{a + state.tdc_offset}..{b + state.tdc_offset - 1}"
+                             for a, b in _runs(absent))
+            est = _flag_rows(est, ~absent[est.pixel], f"{INCOMPLETE_FRAME} (TDCs {gone})")
         table = ranges_table(name, est, d, s, state.tdc_offset)
         head = {**header, "schema": RANGES.name, "version": RANGES.version,
                 "step": self.step_id,
@@ -532,8 +563,36 @@ class RangeCore:
                 **({"calibration_id": self.calibration.meta["calibration_id"]}
                    if self.calibration.meta.get("calibration_id") else {})}
         self.ranged += 1
-        out = [(head, b) for b in table.to_batches()]
-        return ([(header, batch)] if self.forward else []) + out
+        return head, table
+
+    def _range_frame(self, frame) -> list:
+        """A gathered frame ranged whole, its ranges sent as one message per worker's part
+        (the file each part's histograms have beside them: ``part-K-tFIRST``), and one per
+        missing part with its TDCs' rows, not detected, flagged; each of a frame with a part
+        missing carries ``spatial_missing`` (the missing TDC ranges: the reconciliation
+        ranges that measurement again from the journal)."""
+        import pyarrow.compute as pc
+
+        head, table = self._range(frame.header, frame.state, frame.absent)
+        tdc = table.column("tdc")
+        out = []
+        for ph, (a, b) in [*frame.parts, *((None, r) for r in frame.missing)]:
+            rows = table.filter(pc.and_(pc.greater_equal(tdc, a), pc.less(tdc, b)))
+            det = pc.and_(rows.column("detected"), pc.equal(rows.column("return_index"), 0))
+            h = {**head, "tdc_range": [a, b], "detected": int(pc.sum(det).as_py() or 0),
+                 **({k: ph[k] for k in ("words", "class_counts", "partial", "cycles")
+                     if k in ph} if ph is not None else {}),
+                 **({"spatial_missing": [list(r) for r in frame.missing]}
+                    if frame.missing else {})}
+            out += [(h, bt) for bt in rows.to_batches()]
+        return out
 
     def finish(self, header: dict) -> list:
-        return []
+        if self.gather is None:
+            return []
+        return [m for f in self.gather.flush() for m in self._range_frame(f)]
+
+    @property
+    def incomplete_frames(self) -> int:
+        """Spatial frames ranged without every worker's part (the stage's metrics)."""
+        return 0 if self.gather is None else self.gather.incomplete

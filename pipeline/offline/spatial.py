@@ -10,6 +10,7 @@ histograms are taken as photon counts: a photon-counting sensor, or few photons 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -112,6 +113,8 @@ SUBBINS = 2
 #: the flags of a chip's TDC the spatial ranging leaves out (a row each, not detected)
 UNPLACED = "no pixel in the geometry: not ranged (spatial)"
 NO_DELAY = "no delay: not ranged (spatial)"
+#: the flag of a TDC whose worker's part of the measurement did not arrive (:class:`FrameGather`)
+MISSING = "its worker's part of the measurement did not arrive: not ranged (spatial)"
 
 
 def common_axis(edges_s: np.ndarray, counts: np.ndarray, valid: np.ndarray,
@@ -157,7 +160,8 @@ def common_axis(edges_s: np.ndarray, counts: np.ndarray, valid: np.ndarray,
 
 def range_state_spatial(state, calibration, window_s: float, t_laser_win_s: float,
                         geom: Geometry, sigma_s: float | None = None, p_fa: float = 1e-3,
-                        max_returns: int = 2, threads: int = 1):
+                        max_returns: int = 2, threads: int = 1,
+                        absent: np.ndarray | None = None):
     """:func:`pipeline.offline.ranging.range_state` with the neighbours: a chip's
     measurement (each TDC on its own INL time axis) laid out as ``geom``'s image and ranged
     by :func:`stages.ranging.spatial.spatial` (docs/ranging.md "On the chip").
@@ -168,7 +172,8 @@ def range_state_spatial(state, calibration, window_s: float, t_laser_win_s: floa
     response is the calibration's (measured at the delay) unless ``sigma_s``. Returns
     (estimate, distances (m), sigmas (m), note) as ``range_state`` does: a row per TDC
     (return 0) and one per further detected return; a TDC the geometry has no pixel for,
-    or without a delay, has one row, not detected, flagged."""
+    or without a delay, has one row, not detected, flagged; so has an ``absent`` one (bool a
+    TDC: its part of the measurement did not arrive; its rows only keep the light level)."""
     import dataclasses
 
     from scipy.constants import c as c_light
@@ -191,6 +196,8 @@ def range_state_spatial(state, calibration, window_s: float, t_laser_win_s: floa
     idx = geom.index_of(state.tdc_offset + np.arange(n))
     edges = h.edges_s - delay[:, None]          # arrival time less the pixel's delay
     use = (idx >= 0) & np.isfinite(delay) & np.all(np.isfinite(edges), axis=1)
+    if absent is not None:
+        use &= ~np.asarray(absent, bool)
     pix = np.flatnonzero(use)
     k = max_returns
     if pix.size:
@@ -199,6 +206,10 @@ def range_state_spatial(state, calibration, window_s: float, t_laser_win_s: floa
         common, lo = common_axis(edges, counts, h.valid, use, bin_s)
         rc = np.stack([np.asarray(geom.row)[idx[pix]], np.asarray(geom.col)[idx[pix]]], 1)
         hh, ww = rc.max(0) + 1
+        if absent is not None:  # the image as large as with every part (the same edges)
+            placed = idx[(idx >= 0) & np.asarray(absent, bool)]
+            hh = max(hh, int(np.max(np.asarray(geom.row)[placed], initial=-1)) + 1)
+            ww = max(ww, int(np.max(np.asarray(geom.col)[placed], initial=-1)) + 1)
         img = np.zeros((hh, ww, common.shape[1]))
         img[rc[:, 0], rc[:, 1]] = common
         s = spatial(img, bin_s, sigma_s, p_fa, max_returns=k, t0_s=lo, threads=threads)
@@ -223,6 +234,8 @@ def range_state_spatial(state, calibration, window_s: float, t_laser_win_s: floa
     flag = np.full(n, "", dtype=object)
     flag[~np.isfinite(delay)] = NO_DELAY
     flag[idx < 0] = UNPLACED
+    if absent is not None:
+        flag[np.asarray(absent, bool)] = MISSING
     t_u = per_tdc("t_s", np.nan)
     est = Estimate(t_s=t_u + delay[p_i], sigma_s=per_tdc("sigma_s", np.nan),
                    fwhm_s=np.full(p_i.size, 2.3548200450309493 * sigma_s),
@@ -238,3 +251,145 @@ def range_state_spatial(state, calibration, window_s: float, t_laser_win_s: floa
     sig = np.asarray(est.sigma_s, np.float64)
     sig = np.where(np.isfinite(cal_s), np.hypot(sig, cal_s), sig)
     return est, distance, sig * c_light / 2, "; ".join(notes)
+
+
+# ------------------------------------------------------------------ the daemon's fan-out
+#: measurements whose parts the range stage holds while they gather, by default
+#: (``[range] hold``): each a chip's frame, <= 128 TDCs x 512 codes x 8 bytes (0.5 MB)
+HOLD = 8
+#: measurements gathered whole that are remembered, so that a part sent again (a worker
+#: restarted between sending and checkpointing) is known as one and not ranged alone
+REMEMBER = 64
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One measurement's parts gathered: ``state`` every TDC of the frame, [0, n_tdc_total)
+    (a missing part's rows the mean of the arrived rows: the light level the time axis is
+    read at stays the arrived TDCs'), ``header`` the first part's with the frame's
+    ``tdc_range``, ``parts`` each arrived part's (header, (first, end)) by TDC, ``missing``
+    the TDC ranges whose part did not arrive."""
+
+    header: dict
+    state: object
+    parts: list
+    missing: list
+
+    @property
+    def absent(self) -> np.ndarray | None:
+        """Bool per TDC of the frame: its part did not arrive (None: none missing)."""
+        if not self.missing:
+            return None
+        out = np.zeros(self.state.n_tdc, bool)
+        for a, b in self.missing:
+            out[a - self.state.tdc_offset:b - self.state.tdc_offset] = True
+        return out
+
+
+class FrameGather:
+    """The range stage's join of a fan-out by TDC range (``[range] spatial`` with several
+    histogram workers): each worker sends its TDC range of a measurement (``tdc_range`` of
+    ``n_tdc_total``); the parts of one measurement (its ``measurement`` name) are held until
+    they cover every TDC, then given back as one :class:`Frame`. At most ``hold``
+    measurements are held: past that the oldest (by ``measurement_index``) is given back
+    with what arrived, and so is every held one at the stream's end (:meth:`flush`); those
+    are counted in ``incomplete``. A part of a measurement given back whole a moment ago,
+    the same again (its words and ``partial``), is a restarted worker's repeat: counted in
+    ``duplicates``, not gathered again. A later part of a measurement given back
+    incomplete starts a new gathering (it is ranged with what comes with it)."""
+
+    def __init__(self, hold: int = HOLD, remember: int = REMEMBER, n_tdc: int | None = None):
+        if hold < 1:
+            raise ValueError(f"hold must be >= 1, found {hold}")
+        self.hold, self.remember = hold, remember
+        self.n_tdc = n_tdc  #: the frame's TDCs where a header has no n_tdc_total
+        self._open: dict[str, dict[tuple[int, int], tuple[dict, pa.RecordBatch]]] = {}
+        self._done: dict[str, dict[tuple[int, int], tuple]] = {}  # (insertion ordered)
+        self.incomplete = 0  #: frames given back without every part
+        self.duplicates = 0  #: parts of a measurement already gathered whole, dropped
+
+    def _total(self, header: dict, end: int) -> int:
+        return int(header.get("n_tdc_total") or self.n_tdc or end)
+
+    def _key(self, header: dict, batch: pa.RecordBatch) -> tuple[str, tuple[int, int], int]:
+        from schemas.errors import Rejected
+
+        rng = header.get("tdc_range") or [0, batch.num_rows]
+        a, b = int(rng[0]), int(rng[1])
+        total = self._total(header, b)
+        if not 0 <= a < b <= total or batch.num_rows != b - a:
+            raise Rejected("bad_payload", f"measurement {header.get('measurement')}: "
+                           f"tdc_range {rng} of {total} TDCs with {batch.num_rows} rows")
+        return str(header.get("measurement", header.get("run"))), (a, b), total
+
+    def add(self, header: dict, batch: pa.RecordBatch) -> list[Frame]:
+        """Take one part; the frames it completes or pushes out (oldest first)."""
+        from schemas.errors import Rejected
+
+        name, rng, total = self._key(header, batch)
+        same = (bool(header.get("partial")), header.get("words"))
+        if self._done.get(name, {}).get(rng) == same:
+            self.duplicates += 1
+            return []
+        parts = self._open.setdefault(name, {})
+        for a, b in parts:
+            if (a, b) != rng and a < rng[1] and rng[0] < b:
+                raise Rejected("bad_payload", f"measurement {name}: tdc_range {list(rng)} "
+                               f"overlaps another part's {[a, b]}")
+        parts[rng] = (header, batch)  # a part sent again replaces the one held
+        out = []
+        if sum(b - a for a, b in parts) == total:
+            out.append(self._give(name, total))
+        while len(self._open) > self.hold:
+            oldest = min(self._open, key=lambda n: self._index(n))
+            out.append(self._give(oldest, None))
+        return out
+
+    def flush(self) -> list[Frame]:
+        """Every held measurement, oldest first (the stream's end)."""
+        return [self._give(n, None) for n in sorted(self._open, key=self._index)]
+
+    def _index(self, name: str) -> tuple:
+        head = next(iter(self._open[name].values()))[0]
+        return (int(head.get("measurement_index", head.get("seq", 0))), name)
+
+    def _give(self, name: str, total: int | None) -> Frame:
+        from stages.histogram import HistogramState
+
+        parts = sorted(self._open.pop(name).items())
+        head0 = parts[0][1][0]
+        n = self._total(head0, parts[-1][0][1]) if total is None else total
+        have = np.zeros(n, bool)
+        states = []
+        for (a, b), (_, batch) in parts:
+            st = HistogramState.from_table(pa.Table.from_batches([batch]))
+            states.append(((a, b), st))
+            have[a:b] = True
+        missing = _runs(~have)
+        hits = np.zeros((n, states[0][1].hits.shape[1]), np.uint64)
+        cc = np.zeros((states[0][1].class_counts.shape[0], n), np.uint64)
+        for (a, b), st in states:
+            hits[a:b], cc[:, a:b] = st.hits, st.class_counts
+        if missing:
+            hits[~have] = np.rint(hits[have].mean(axis=0)).astype(np.uint64)
+            cc[:, ~have] = np.rint(cc[:, have].mean(axis=1)).astype(np.uint64)[:, None]
+            self.incomplete += 1
+        else:
+            self._done[name] = {r: (bool(h.get("partial")), h.get("words"))
+                                for r, (h, _) in parts}
+            while len(self._done) > self.remember:
+                self._done.pop(next(iter(self._done)))
+        cycles = [h.get("cycles") for _, (h, _) in parts if h.get("cycles")]
+        header = {k: v for k, v in head0.items() if k not in ("words", "class_counts")}
+        header.update(tdc_range=[0, n], partial=any(h.get("partial") for _, (h, _) in parts),
+                      **({"cycles": [min(c[0] for c in cycles), max(c[1] for c in cycles)]}
+                         if cycles else {}))
+        state = HistogramState(hits, cc, sum(st.words for _, st in states))
+        return Frame(header, state, [(h, r) for r, (h, _) in parts], missing)
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """The [first, end) runs of True in ``mask``."""
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist(),
+                    strict=True))

@@ -75,7 +75,9 @@ starts, as are the state directory and the resources: ``pipeline.stream.state``)
     calibration = "data/calibration/current"
     estimator = "ml"
     spatial = false              # true: ranged with the neighbours as the geometry's image
-                                 # (geometry = ..., else [sink] geometry; one worker)
+                                 # (geometry = ..., else [sink] geometry); the workers'
+    hold = 8                     # parts of a measurement gathered first, this many held
+                                 # (leave out: a source batch's measurements + 2 hwm)
 
     [sink]
     out = "data/stream"
@@ -124,6 +126,7 @@ from pipeline.stream.topology import (
     GRACE_S,
     STARTUP_S,
     Topology,
+    range_hold,
     spatial_geometry,
     tdc_ranges,
 )
@@ -704,6 +707,10 @@ class Supervisor:
                 result["reconciled"] = reconcile(self.topo)
                 for part in result["reconciled"].get("rebuilt", []):
                     self.log(f"rebuilt from the journal: {part['file']} ({part['why']})")
+                if result["reconciled"].get("spatial_reranged"):
+                    self.log("ranged again whole from the journal (a worker's part had not "
+                             "reached the range stage): measurements "
+                             f"{result['reconciled']['spatial_reranged'][:8]}")
                 result["accounting"] = accounting(  # (rejections: the run's totals)
                     self.topo, self.ops.totals.merged(self.metrics), result["reconciled"],
                     self.bounds)
@@ -792,6 +799,10 @@ def problems(result: dict) -> list[str]:
         if rec.get(key):
             out.append(f"{len(rec[key])} measurement(s) {what}: [measurement, first TDC] "
                        f"{rec[key][:8]}")
+    if rec.get("spatial_incomplete"):
+        out.append(f"{len(rec['spatial_incomplete'])} measurement(s) ranged with the "
+                   f"neighbours without some workers' parts (not in the journal either): "
+                   f"{rec['spatial_incomplete'][:8]}")
     if acc.get("words_in_gaps", 0) or acc.get("lost_datagrams", 0) or acc.get(
             "ring_dropped_datagrams", 0):
         out.append(f"input lost before the journal: {acc.get('lost_datagrams', 0):,} "
@@ -837,7 +848,7 @@ def exit_code(result: dict) -> int:
 def spatial_args(topo: Topology) -> list:
     """The range stage's spatial options."""
     g = spatial_geometry(topo)
-    return [] if g is None else ["--spatial", "--geometry", g]
+    return [] if g is None else ["--spatial", "--geometry", g, "--hold", range_hold(topo)]
 
 
 def _cloud_args(sink: dict) -> list:

@@ -60,6 +60,52 @@ def reconcile(topo: Topology) -> dict:
     window_ns = None
     spans = _journal_spans(journal, topo.run)
     check = topo.source.get("kind") != "file"  # (an instrument's records are not words)
+
+    def recompute(k: int, a: int, b: int) -> list:
+        """The histograms messages of measurement ``k``'s TDCs [a, b), from the journal."""
+        nonlocal window_ns
+        bounds = bounds_all.rows(a, b) if bounds_all else None
+        core = HistogramCore(b - a, bounds, tdc_offset=a,
+                             measurement_cycles=topo.histogram.get("measurement_cycles"),
+                             accumulator=_instrument_accumulator(topo))
+        core.measurement = k
+        w = b - a
+        lo = k * mc * w
+        hi = min((k + 1) * mc, cycles) * w
+        core.next_word = lo
+        if window_ns is None:
+            window_ns = _journal_window_ns(journal, topo.run)
+        gate = _journal_gate_ns(journal, topo.run)
+        msgs = []
+        for f, words in worker_reader(lambda s, e: read_range(journal, topo.run, s, e),
+                                      n, (a, b))(lo, hi):
+            msgs += core.process({"run": topo.run, "first_word": f, "seq": k,
+                                  "t_laser_win_ns": gate, "window_ns": window_ns,
+                                  "date": topo.date, "n_tdc_total": n}, _words_batch(words))
+        if hi < (k + 1) * mc * w or core.m_words is None:  # (one measurement: the run)
+            msgs += core.finish({"run": topo.run})
+        return msgs
+
+    def stored(path: Path, k: int, a: int, b: int) -> list:
+        """A histograms part the datasets hold (checked against the journal above) as the
+        message its worker sent."""
+        import pyarrow.parquet as pq
+
+        table = pq.read_table(path)
+        meta = json.loads((table.schema.metadata or {}).get(b"tcspc.measurement", b"{}"))
+        head = {"kind": "data", "schema": "histograms", "run": topo.run, "seq": k,
+                "step": "reconcile", "measurement": table.column("measurement")[0].as_py(),
+                "measurement_index": k, "tdc_range": [a, b], "n_tdc_total": n,
+                "t_laser_win_ns": _journal_gate_ns(journal, topo.run),
+                "window_ns": window_ns or _journal_window_ns(journal, topo.run),
+                "date": topo.date, **meta}
+        return [(head, table.replace_schema_metadata(None).combine_chunks().to_batches()[0])]
+
+    # spatial ranging ranges a measurement's frame whole: a part recomputed, or ranged
+    # without another part, has the whole measurement ranged again (gathered, as live)
+    spatial = ranger is not None and ranger.gather is not None
+    rerange: set[int] = set()
+    made: dict[tuple[int, int], list] = {}  # spatial: the parts recomputed, for the gather
     for (a, b) in tdc_ranges(topo):
         for k in range(n_meas):
             if (k, a) in have_h and (have_r is None or (k, a) in have_r):
@@ -68,6 +114,9 @@ def reconcile(topo: Topology) -> dict:
                 why = _part_problem(have_h[(k, a)], b - a, cyc,
                                     (f"{topo.run}-m{k:06d}" if by_m else topo.run, a)
                                     ) if check else None
+                if why is None and spatial and _spatial_missing(have_r[(k, a)]):
+                    rerange.add(k)  # its histograms are whole: only the ranges again
+                    continue
                 why = why or (_unreadable(have_r[(k, a)]) if have_r is not None else None)
                 if why is None:
                     continue
@@ -88,35 +137,36 @@ def reconcile(topo: Topology) -> dict:
                 if (k, a) not in have_h:  # (a histogram already written is classified)
                     withheld += (min((k + 1) * mc, cycles) - k * mc) * (b - a)
                 continue
-            bounds = bounds_all.rows(a, b) if bounds_all else None
-            core = HistogramCore(b - a, bounds, tdc_offset=a,
-                                 measurement_cycles=topo.histogram.get("measurement_cycles"),
-                                 accumulator=_instrument_accumulator(topo))
-            core.measurement = k
-            w = b - a
-            lo = k * mc * w
-            hi = min((k + 1) * mc, cycles) * w
-            core.next_word = lo
-            if window_ns is None:
-                window_ns = _journal_window_ns(journal, topo.run)
-            gate = _journal_gate_ns(journal, topo.run)
-            msgs = []
-            for f, words in worker_reader(lambda s, e: read_range(journal, topo.run, s, e),
-                                          n, (a, b))(lo, hi):
-                msgs += core.process({"run": topo.run, "first_word": f, "seq": k,
-                                      "t_laser_win_ns": gate, "window_ns": window_ns,
-                                      "date": topo.date}, _words_batch(words))
-            if hi < (k + 1) * mc * w or core.m_words is None:  # (one measurement: the run)
-                msgs += core.finish({"run": topo.run})
+            msgs = recompute(k, a, b)
             for head, batch in msgs:
                 sink.process(head, batch)
-                if ranger is not None:
+                if ranger is not None and not spatial:
                     for h2, b2 in ranger.process(head, batch)[1:]:
                         sink.process(h2, b2)
+            if spatial:
+                made[(k, a)] = msgs
+                rerange.add(k)
             redone.append([k, a])
+    lost = {(k, a) for k, a in unrecoverable + corrupt_meas}
+    for k in sorted(rerange):  # every part of the measurement, gathered and ranged whole
+        ranger.forward = False
+        for (a, b) in tdc_ranges(topo):
+            if (k, a) in lost or ((k, a) not in made and (k, a) not in have_h):
+                continue  # (its words are gone: the frame is ranged without it, flagged)
+            msgs = made.pop((k, a), None) or stored(have_h[(k, a)], k, a, b)
+            for head, batch in msgs:
+                for h2, b2 in ranger.process(head, batch):
+                    sink.process(h2, b2)
+        for h2, b2 in ranger.finish({}):  # (a frame with a part lost: what it has)
+            sink.process(h2, b2)
+    still = sorted({k for (k, _), p in _dataset_parts(out, "ranges", topo.run).items()
+                    if _spatial_missing(p)}) if spatial else []
     return {"checked": True, "measurements": n_meas, "tdc_ranges": len(tdc_ranges(topo)),
             "recomputed": redone, "rebuilt": rebuilt, "unrecoverable": unrecoverable,
             "corrupt": corrupt_meas,
+            # spatial: measurements ranged again whole, and those still without a part
+            **({"spatial_reranged": sorted(rerange), "spatial_incomplete": still}
+               if spatial else {}),
             "corrupt_chunks": sorted(corrupt_chunks.values()),
             "corrupt_words": sum(c[1] for c in corrupt_chunks.values()),
             "withheld_words": withheld}
@@ -140,6 +190,19 @@ def _words_in(spans: list[tuple[int, int]], lo: int, hi: int) -> int:
             break
         n += max(0, min(b, hi) - max(a, lo))
     return n
+
+
+def _spatial_missing(path: Path) -> list | None:
+    """The TDC ranges a spatial ranges part was ranged without (its metadata), None for
+    none (or an unreadable file: :func:`_unreadable` says so)."""
+    import pyarrow.parquet as pq
+
+    try:
+        meta = pq.read_schema(path).metadata or {}
+    except Exception:  # noqa: BLE001 (pyarrow raises OSError, ArrowInvalid, ...)
+        return None
+    raw = meta.get(b"tcspc.spatial_missing")
+    return json.loads(raw) if raw else None
 
 
 def _unreadable(path: Path) -> tuple[Path, str] | None:
@@ -283,6 +346,10 @@ def accounting(topo: Topology, metrics: dict[str, dict], reconciled: dict | None
               "checkpoints_discarded": {name: m["checkpoints_discarded"] for name, m in
                                         metrics.items() if m.get("checkpoints_discarded")},
               "words_in_gaps": span - journaled,
+              # spatial: frames the range stage ranged without some workers' parts (its
+              # last process's count; the reconciliation ranged them again whole)
+              **({"spatial_incomplete_frames": int(metrics.get("range", {}).get(
+                  "incomplete_frames", 0))} if spatial_geometry(topo) else {}),
               "measurements_files": len(parts)}
     if bounds is not None:
         result["artifact_bounds"] = bounds

@@ -72,7 +72,8 @@ class StageStats:
                "quarantine_dropped": self.quarantine_dropped,
                "checkpoint_failures": self.checkpoint_failures,
                "paused_s": round(self.paused_s, 1), "unwritten": self.unwritten}
-        for name in ("words_total", "measurement", "gap_words", "backfilled", "duplicates"):
+        for name in ("words_total", "measurement", "gap_words", "backfilled", "duplicates",
+                     "incomplete_frames"):
             if hasattr(core, name):
                 out[name] = int(getattr(core, name))
         by_class = getattr(core, "words_by_class", None)
@@ -681,6 +682,9 @@ class ParquetSink:
             meta[b"tcspc.calibration_id"] = str(header["calibration_id"]).encode()
         if isinstance(header.get("lsb_drift"), dict):  # ranges: the stream's LSB tracking
             meta[b"tcspc.lsb_drift"] = json.dumps(header["lsb_drift"]).encode()
+        if isinstance(header.get("spatial_missing"), list):  # ranges: a frame ranged
+            # without some workers' parts (the reconciliation ranges it again)
+            meta[b"tcspc.spatial_missing"] = json.dumps(header["spatial_missing"]).encode()
         if meta:
             table = table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
         buf = pa.BufferOutputStream()

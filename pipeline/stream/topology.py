@@ -197,8 +197,13 @@ class RangeSection(_Section):
     endpoint: str | None = Field(None, description="its endpoint (leave out: ipc://STATE/sock/NAME)")
     # issue 35: each measurement ranged with its neighbours (docs/ranging.md "On the chip")
     spatial: bool = Field(False, description="true: each measurement ranged with its "
-                          "neighbours as the geometry's image (one histogram worker; "
-                          "max_returns 1..4)")
+                          "neighbours as the geometry's image, the histogram workers' parts "
+                          "gathered first (max_returns 1..4)")
+    hold: int | None = Field(None, ge=1, le=256, description="with spatial: measurements "
+                             "held while their workers' parts gather, 1..256 (past that the "
+                             "oldest is ranged with the parts it has, flagged, and ranged "
+                             "again from the journal at the run's end; leave out: a source "
+                             "batch's measurements + 2 hwm, 8..256)")
     geometry: str | None = Field(None, min_length=1, description="with spatial: the "
                                  "array's layout (leave out: [sink] geometry)")
 
@@ -330,7 +335,7 @@ def load_topology(path: str | Path | None, run: str | None = None,
             problems.append(f"{where} [range] estimator = {rng['estimator']!r}: use one of "
                             f"{ESTIMATORS}")
         if rng.get("spatial") or rng.get("geometry"):
-            _check_spatial(rng, sink, workers, where, problems)
+            _check_spatial(rng, sink, where, problems)
     if src is not None and (hist_m is not None or "histogram" not in raw):
         _check_artifacts(src["kind"], hist, where, problems)  # (else [histogram]'s problem)
     for sec, body in (("histogram", hist), ("range", rng or {})):
@@ -380,9 +385,9 @@ def load_topology(path: str | Path | None, run: str | None = None,
                     fork_server=d.fork_server)
 
 
-def _check_spatial(rng: dict, sink: dict, workers: int, where: str, problems: list) -> None:
-    """``[range] spatial``: a geometry (its own or the sink's), one histogram worker (the
-    estimator needs a measurement's whole frame in one message), 1..4 returns."""
+def _check_spatial(rng: dict, sink: dict, where: str, problems: list) -> None:
+    """``[range] spatial``: a geometry (its own or the sink's), 1..4 returns (any number
+    of histogram workers: the range stage gathers their parts of a measurement)."""
     if not rng.get("spatial"):
         problems.append(f"{where} [range] geometry is for spatial = true")
         return
@@ -394,13 +399,13 @@ def _check_spatial(rng: dict, sink: dict, workers: int, where: str, problems: li
         from pipeline.io.geometry import load_geometry
 
         try:
-            load_geometry(geometry)
+            g = load_geometry(geometry)
         except ValueError as exc:
             problems.append(f"{where} [range] geometry = {geometry!r}: {exc}")
-    if workers != 1:
-        problems.append(f"{where} [range] spatial = true: with [histogram] workers = "
-                        f"{workers}; use 1 (a measurement's frame is ranged whole, and a "
-                        "fan-out by TDC range splits it)")
+        else:
+            if g.rows * g.cols < 2:
+                problems.append(f"{where} [range] spatial = true: geometry {geometry!r} "
+                                "has one pixel, and a pixel is ranged by its neighbours")
     if rng.get("max_returns", 3) > 4:
         problems.append(f"{where} [range] spatial = true: max_returns = "
                         f"{rng['max_returns']}; use 1..4")
@@ -584,6 +589,25 @@ def spatial_geometry(topo: Topology) -> str | None:
     if not (topo.range or {}).get("spatial"):
         return None
     return topo.range.get("geometry") or topo.sink.get("geometry")
+
+
+#: the most words a source sends in one batch (a replayed capture's,
+#: pipeline.cli.stream.REPLAY_BATCH_WORDS): a worker folds its part of a batch at once and
+#: sends every measurement in it together
+SOURCE_BATCH_WORDS = 1 << 20
+HOLD_MIN, HOLD_MAX = 8, 256
+
+
+def range_hold(topo: Topology) -> int:
+    """``[range] hold``, else enough for one worker to be a source batch's measurements
+    and its queues (2 hwm) ahead of another: 8..256 (docs/ranging.md "On the chip")."""
+    if (topo.range or {}).get("hold") is not None:
+        return int(topo.range["hold"])
+    mc = topo.histogram.get("measurement_cycles")
+    if not mc:  # one measurement: the run
+        return HOLD_MIN
+    batch_cycles = max(1, SOURCE_BATCH_WORDS // topo.n_tdc)
+    return min(HOLD_MAX, max(HOLD_MIN, -(-batch_cycles // mc) + 2 * topo.hwm))
 
 
 def tdc_ranges(topo: Topology) -> list[tuple[int, int]]:

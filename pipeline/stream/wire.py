@@ -87,7 +87,9 @@ HEADER_SCHEMAS: dict[tuple[str, str | None], dict] = {
         "n_tdc_total": _int(1, 65_536)},
 }
 HEADER_SCHEMAS[("data", "ranges")] = {**HEADER_SCHEMAS[("data", "histograms")],
-                                      "detected": _int()}
+                                      "detected": _int(),
+                                      # a spatial frame's missing TDC ranges
+                                      "spatial_missing": {"type": "list", "items": "list"}}
 
 _TYPES = {"str": (str,), "int": (int,), "number": (int, float), "bool": (bool,),
           "list": (list,), "dict": (dict,)}

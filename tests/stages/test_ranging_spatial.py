@@ -374,3 +374,19 @@ def test_images_narrower_than_the_line_prior(shape):
     assert est.t_s.shape == shape + (2,)
     assert est.detected[..., 0].all()
     assert np.all(np.abs(est.t_s[..., 0] / BIN_S - 30.5) < 2.0)  # (the pulse: 2.3 bins)
+
+
+@pytest.mark.parametrize("shape", [(1, 5), (2, 2), (2, 4), (3, 1)])
+def test_images_smaller_than_the_neighbourhood(shape):
+    """An image fewer rows or columns than a neighbour's shift (a 2 x 4 frame of a chip,
+    a gathered frame with a worker's part missing): every neighbour past the edge is
+    outside, nothing wraps round; a surface at 5 m with many photons is found on every
+    pixel."""
+    h, w = shape
+    depth = np.full((h, w, 2), np.nan)
+    depth[..., 0] = 5.0
+    share = np.zeros((h, w, 2))
+    share[..., 0] = 1.0
+    est = spatial(histograms(Scene(depth, share), 200, 2, 5), BIN_S, SIGMA_S, 1e-3)
+    assert est.detected[..., 0].all()
+    assert np.all(np.abs(est.t_s[..., 0] * C / 2 - 5.0) < 0.05)

@@ -107,13 +107,16 @@ fov_v_deg = 10.0
 """
 
 
-def test_the_daemon_ranges_with_the_neighbours_as_the_offline_command(tmp_path, caldir):
+@pytest.mark.parametrize("workers", [1, 3])
+def test_the_daemon_ranges_with_the_neighbours_as_the_offline_command(tmp_path, caldir,
+                                                                      workers):
     """`[range] spatial = true`: a simulated capture of 16 pixels as a 4 x 4 image, a depth
     edge between its top and bottom halves (1.5 and 2.5 m, few photons), run through the
-    daemon (capture source, one worker, the range stage ranging with the neighbours, the
-    sink writing point clouds) gives the ranges `tcspc range CAP --calibration C
-    --spatial --geometry G` writes for the same capture, and the truth within 3 sigma on
-    every pixel (detected or not), the edge kept."""
+    daemon (capture source, one worker or three, whose TDC ranges 0..4, 5..10, 11..15 cut
+    the image's rows, the range stage gathering their parts and ranging with the
+    neighbours, the sink writing point clouds) gives the ranges `tcspc range CAP
+    --calibration C --spatial --geometry G` writes for the same capture, and the truth
+    within 3 sigma on every pixel (detected or not), the edge kept."""
     import polars as pl
 
     from pipeline.cli import cli
@@ -133,7 +136,7 @@ state = "{tmp_path / 'state'}"
 kind = "capture"
 capture = "{cap}"
 [histogram]
-workers = 1
+workers = {workers}
 calibration = "{caldir}"
 [range]
 calibration = "{caldir}"
@@ -146,6 +149,10 @@ geometry = "{geom}"
 """)
     res = Supervisor(load_topology(topo, "sp"), log=lambda m: None).run()
     assert res["failed"] is None, res
+    assert res["state"] == "finished", res["problems"]
+    assert res["accounting"]["spatial_incomplete_frames"] == 0
+    parts = sorted((tmp_path / "out" / "ranges").rglob("*.parquet"))
+    assert len(parts) == workers  # (one file a worker's part, beside its histograms)
     live = pl.read_parquet(tmp_path / "out" / "ranges" / "date=*" / "run=sp" / "*.parquet")
     cli.main(args=["range", str(cap), "--calibration", str(caldir), "--spatial",
                    "--geometry", str(geom), "--out", str(tmp_path / "off.parquet"), "-q"],
@@ -166,11 +173,12 @@ geometry = "{geom}"
     truth = np.where(first["tdc"].to_numpy() < 8, 1.5, 2.5)
     z = np.abs(first["distance_m"].to_numpy() - truth) / first["sigma_m"].to_numpy()
     assert z.max() < 3, z
-    (ply,) = (tmp_path / "out" / "pointcloud").rglob("*.ply")
     from plyfile import PlyData
 
-    v = PlyData.read(str(ply))["vertex"]
-    assert len(v.data) == live["detected"].sum()
+    plys = sorted((tmp_path / "out" / "pointcloud").rglob("*.ply"))
+    assert len(plys) == workers
+    v = np.concatenate([PlyData.read(str(p))["vertex"].data for p in plys])
+    assert len(v) == live["detected"].sum()
     # the offline ranges exported with the same geometry: the same points
     cli.main(args=["export", str(tmp_path / "off.parquet"), "--geometry", str(geom),
                    "--out", str(tmp_path / "off.ply"), "-q"], standalone_mode=False)
@@ -184,16 +192,59 @@ geometry = "{geom}"
     # the ranges lost: `tcspc reconcile` rebuilds them from the journal, spatially too
     from pipeline.stream.daemon import reconcile_offline
 
-    (part,) = (tmp_path / "out" / "ranges").rglob("*.parquet")
-    part.unlink()
-    reconcile_offline(load_topology(topo, "sp"))
+    # (one part's: the whole frame is gathered from the journal and ranged again)
+    parts[-1].unlink()
+    rec = reconcile_offline(load_topology(topo, "sp"))
     again = pl.read_parquet(tmp_path / "out" / "ranges" / "date=*" / "run=sp" / "*.parquet")
     assert again.sort(on).equals(live.sort(on))
+    assert rec["reconciled"]["spatial_reranged"] == [0], rec["reconciled"]
+    if workers == 1:
+        return
+    # a part the range stage ranged in a frame without another part (a worker's part that
+    # did not come: its file says which TDCs it lacked): ranged again whole, from the
+    # histograms the datasets hold
+    import pyarrow.parquet as pq
+
+    t = pq.read_table(parts[0])
+    pq.write_table(t.set_column(t.column_names.index("distance_m"), "distance_m",
+                                pa.array(np.full(t.num_rows, 9.0))).replace_schema_metadata(
+        {**t.schema.metadata, b"tcspc.spatial_missing": b"[[5, 11]]"}), parts[0])
+    rec = reconcile_offline(load_topology(topo, "sp"))
+    assert rec["reconciled"]["spatial_reranged"] == [0], rec["reconciled"]
+    assert rec["reconciled"]["spatial_incomplete"] == [] and rec["state"] == "finished"
+    assert b"tcspc.spatial_missing" not in pq.read_schema(parts[0]).metadata
+    again = pl.read_parquet(tmp_path / "out" / "ranges" / "date=*" / "run=sp" / "*.parquet")
+    assert again.sort(on).equals(live.sort(on))
+    # ... and when the journal cannot give the missing part back (its chunk corrupt, its
+    # histograms gone): ranged with what there is, flagged, and the run is incomplete
+    from pipeline.stream.journal import _entries, segment_path
+
+    journal = tmp_path / "state" / "journal"
+    (chunk,) = [e for e in _entries(journal / "sp.index.jsonl") if not e.get("end")][:1]
+    seg = segment_path(journal, "sp", chunk["segment"], chunk["enc"])
+    data = bytearray(seg.read_bytes())
+    data[chunk["offset"] + chunk["bytes"] // 2] ^= 0x04
+    seg.write_bytes(bytes(data))
+    next((tmp_path / "out" / "histograms").rglob("part-000000-t005.parquet")).unlink()
+    t = pq.read_table(parts[0])
+    pq.write_table(t.replace_schema_metadata(
+        {**t.schema.metadata, b"tcspc.spatial_missing": b"[[5, 11]]"}), parts[0])
+    rec = reconcile_offline(load_topology(topo, "sp"))
+    assert rec["reconciled"]["spatial_incomplete"] == [0], rec["reconciled"]
+    assert [0, 5] in rec["reconciled"]["corrupt"]
+    assert rec["state"] == "incomplete" and any(
+        "without some workers' parts" in x for x in rec["problems"]), rec["problems"]
+    again = pl.read_parquet(tmp_path / "out" / "ranges" / "date=*" / "run=sp" / "*.parquet")
+    gone = again.filter(pl.col("tdc").is_between(5, 10))
+    assert gone.height == 6 and not gone["detected"].any()
+    assert again.filter(~pl.col("tdc").is_between(5, 10))["flag"].str.contains(
+        "ranged without some TDCs").all()
 
 
 def test_the_topology_checks_spatial_ranging(tmp_path):
-    """`[range] spatial = true` needs a geometry and one histogram worker (a fan-out by TDC
-    range splits a measurement's frame): refused in one line otherwise (exit 2)."""
+    """`[range] spatial = true` needs a geometry and 1..4 returns, and takes any number of
+    histogram workers (the range stage gathers their parts of a measurement; ``hold`` of
+    them at most, >= 1): refused in one line otherwise (exit 2)."""
     import subprocess
     import sys
 
@@ -207,11 +258,40 @@ def test_the_topology_checks_spatial_ranging(tmp_path):
     with pytest.raises(TopologyError, match=r"\[range\] geometry is for spatial"):
         load_topology(None, overrides={**over, "range": {"calibration": str(cal),
                                                          "geometry": "tmf8820"}})
-    topo = load_topology(None, overrides={**over, "histogram": {"workers": 1}, "range": {
-        "calibration": str(cal), "spatial": True, "geometry": "thesis128"}})
-    from pipeline.stream.daemon import spatial_args
+    with pytest.raises(TopologyError, match=r"\[range\] hold"):
+        load_topology(None, overrides={**over, "range": {
+            "calibration": str(cal), "spatial": True, "geometry": "thesis128", "hold": 0}})
+    one = tmp_path / "one.toml"  # a single pixel has no neighbours to range it by
+    one.write_text('name = "one"\n[grid]\nrows = 1\ncols = 1\nfov_h_deg = 1.0\n'
+                   'fov_v_deg = 1.0\n')
+    with pytest.raises(TopologyError, match=r"has one pixel"):
+        load_topology(None, overrides={**over, "range": {
+            "calibration": str(cal), "spatial": True, "geometry": str(one)}})
+    from pipeline.stream.daemon import build, spatial_args
+    from pipeline.stream.topology import SOURCE_BATCH_WORDS
 
-    assert spatial_args(topo) == ["--spatial", "--geometry", "thesis128"]
+    for workers in (1, 2, 4):  # (the one-worker refusal of before: gone)
+        topo = load_topology(None, overrides={**over, "histogram": {"workers": workers},
+                                              "range": {"calibration": str(cal),
+                                                        "spatial": True,
+                                                        "geometry": "thesis128"}})
+        # (the street's 128 TDCs: a batch of 8192 cycles, 1 of 20 000-cycle measurements,
+        # + 2 x hwm 4 = 9)
+        assert spatial_args(topo) == ["--spatial", "--geometry", "thesis128", "--hold", 9]
+        (rng,) = [p for p in build(topo) if p.name == "range"]
+        assert rng.argv[rng.argv.index("--workers") + 1] == str(workers)
+
+    def hold(rng=None, **hist):
+        return spatial_args(load_topology(None, overrides={
+            **over, "histogram": {"workers": 2, **hist}, "range": {
+                "calibration": str(cal), "spatial": True, "geometry": "thesis128",
+                **(rng or {})}}))[-1]
+
+    assert hold({"hold": 3}) == 3
+    assert hold(measurement_cycles=1000) == 9 + 8 and hold(measurement_cycles=10) == 256
+    from pipeline.cli.stream import REPLAY_BATCH_WORDS
+
+    assert SOURCE_BATCH_WORDS == REPLAY_BATCH_WORDS
     assert spatial_args(load_topology(None, overrides=over)) == []
     scene = tmp_path / "small.toml"
     scene.write_text("")
@@ -219,10 +299,78 @@ def test_the_topology_checks_spatial_ranging(tmp_path):
     path.write_text(f"[source]\nkind = 'sim'\nscene = '{scene}'\n[daemon]\nstate = "
                     f"'{tmp_path / 's'}'\n[histogram]\nworkers = 2\n[sink]\nout = "
                     f"'{tmp_path / 'o'}'\n[range]\ncalibration = '{cal}'\nspatial = true\n"
-                    "geometry = 'thesis128'\n")
+                    "geometry = 'thesis128'\nmax_returns = 5\n")
     p = subprocess.run([sys.executable, "-m", "pipeline.cli", "daemon", "--config",
                         str(path)], capture_output=True, text=True)
     assert p.returncode == 2
     lines = [x for x in p.stderr.splitlines() if x.strip()]
-    assert any("[range] spatial = true" in x and "workers = 2" in x for x in lines), lines
+    assert any("[range] spatial = true" in x and "max_returns = 5" in x for x in lines), lines
+    assert not any("workers" in x for x in lines), lines
     assert "Traceback" not in p.stderr
+
+
+def test_frames_pushed_out_by_hold_are_ranged_again_whole(tmp_path, caldir):
+    """Three workers, four measurements, ``[range] hold = 1``: a measurement whose last
+    part comes after the next measurement's first is ranged with the parts it has (how
+    often depends on the workers' timing), flagged; at the run's end every such one is
+    ranged again whole, so each measurement's rows are those its whole frame gives in one
+    message (its histograms from the datasets, ranged apart), no row flagged, the run
+    finished."""
+    import polars as pl
+    import pyarrow.parquet as pq
+
+    from pipeline.cli import cli
+    from pipeline.io.caldir import load_calibration
+    from pipeline.io.capture import Capture
+    from pipeline.offline.ranging import RangeCore
+    from pipeline.stream.daemon import Supervisor
+
+    (tmp_path / "edge16.toml").write_text(EDGE16)
+    geom = tmp_path / "grid16.toml"
+    geom.write_text(GRID16)
+    cap = tmp_path / "cap"
+    cli.main(args=["simulate", str(tmp_path / "edge16.toml"), "--cycles", "6000", "--out",
+                   str(cap), "--seed", "4", "-q"], standalone_mode=False)
+    topo = tmp_path / "topo.toml"
+    topo.write_text(f"""
+[daemon]
+state = "{tmp_path / 'state'}"
+[source]
+kind = "capture"
+capture = "{cap}"
+[histogram]
+workers = 3
+measurement_cycles = 1500
+calibration = "{caldir}"
+[range]
+calibration = "{caldir}"
+spatial = true
+max_returns = 2
+hold = 1
+geometry = "{geom}"
+[sink]
+out = "{tmp_path / 'out'}"
+""")
+    res = Supervisor(load_topology(topo, "h1"), log=lambda m: None).run()
+    assert res["state"] == "finished", res["problems"]
+    rec = res["reconciled"]
+    assert rec["spatial_incomplete"] == []
+    # (each frame ranged live without a part is ranged again; none is when all came whole)
+    assert len(rec["spatial_reranged"]) >= min(res["accounting"]["spatial_incomplete_frames"],
+                                               1)
+    live = pl.read_parquet(tmp_path / "out" / "ranges" / "date=*" / "run=h1" / "*.parquet")
+    assert (live["flag"] == "").all() and live["measurement"].n_unique() == 4
+    meta = Capture(cap).meta
+    whole = RangeCore(load_calibration(caldir), spatial=load_geometry(geom), max_returns=2,
+                      forward_histograms=False)
+    want = []
+    for k in range(4):
+        parts = sorted((tmp_path / "out" / "histograms").rglob(f"part-{k:06d}-t*.parquet"))
+        t = pa.concat_tables([pq.read_table(p).replace_schema_metadata(None)
+                              for p in parts]).combine_chunks()
+        head = {"run": "h1", "measurement": f"h1-m{k:06d}", "measurement_index": k,
+                "tdc_range": [0, 16], "n_tdc_total": 16, "window_ns": meta.window_ns,
+                "t_laser_win_ns": meta.t_laser_win_ns}
+        want += [pl.from_arrow(b) for _, b in whole.process(head, t.to_batches()[0])]
+    on = ["measurement", "tdc", "return_index"]
+    assert live.sort(on).equals(pl.concat(want).sort(on))
