@@ -112,7 +112,7 @@ class Port:
     def verdict(self, stats):
         """The daemon's verdict on this run: its accounting from the ingest's counts."""
         topo = SimpleNamespace(sink={"out": self.tmp / "out"}, run="r",
-                               state=self.tmp / "state", source={"kind": "udp"})
+                               state=self.tmp / "state", source={"kind": "udp"}, range=None)
         acc = accounting(topo, {"source": stats.fields()})
         acc["balanced"] = True  # (no workers here: the words are checked by the test)
         res = {"reconciled": {"checked": True}, "accounting": acc}
