@@ -134,6 +134,20 @@ class Calibration:
         return self._memo(("scale_splines", float(window_s)),
                           lambda: cal.scale_splines(self.density, fit, window_s))
 
+    def scale_refs(self, window_s: float, light: float, source=None):
+        """:func:`stages.calibration.scale_refs` at a light: where the axis's scale is
+        the density tests' interpolated, the tests' x_T and weights its error comes from
+        (for :mod:`stages.calibration.uncertainty`); rows whose scale came from the
+        capture's own reset peak (``source``, a :class:`TimeAxis`'s) weigh NaN (their
+        x_T is the one reference). None where nothing is interpolated."""
+        refs = cal.scale_refs(self.density, self.lsb_fit, window_s, light,
+                              self.scale_splines(window_s))
+        if refs is None or source is None:
+            return refs
+        codes, weights = refs
+        situ = np.asarray(source, dtype=object) == "reset peak"
+        return codes, np.where(situ[:, None], np.nan, weights)
+
     def rows(self, start: int, stop: int) -> Calibration:
         """The calibration of TDCs ``start..stop-1`` (a worker's TDC range; the same
         object for the same range, so what it builds is kept)."""
