@@ -99,8 +99,10 @@ def calibration_sigma_s(calibration: Calibration, calib: Calibration, state, axi
     the table's counting noise over the codes between the return (at this light) and the
     delay's return (at the zero's), taken together so the codes both span cancel
     (:func:`stages.calibration.uncertainty.range_sigma_s`); the zero capture's peak fit;
-    and the time scale's at both lights (the LSB interpolation's spread). ``calib``: the
-    rows of ``calibration`` the state covers."""
+    the time scale's at both lights (the LSB interpolation's spread); and the scale's
+    where this capture's light, counted, is off by its binomial error
+    (:meth:`Calibration.scale_slope`). ``calib``: the rows of ``calibration`` the state
+    covers."""
     from stages.calibration import uncertainty
 
     u = calibration.meta.get("delay", {}).get("uncertainty")
@@ -135,9 +137,17 @@ def calibration_sigma_s(calibration: Calibration, calib: Calibration, state, axi
                                  calib.scale_splines(window_s))
     rel = np.where(np.asarray(axis.source)[px] == "reset peak", 0.0,
                    uncertainty.scale_rel_sigma(spread[px]))
+    # the light the scale is read at is itself counted: its binomial error over the
+    # capture's TDC-cycles moves the scale by the LSB's slope (a short capture, where the
+    # LSB bends: 0.7 % of 0.13 detections a cycle in 6000 cycles of 16 TDCs, 4e-4 of the
+    # scale); not where the capture's own reset peak scales the axis
+    cycles = float(np.max(state.cycles)) * state.n_tdc
+    sd_n = np.sqrt(max(light * (1.0 - light), 0.0) / max(cycles, 1.0))
+    rel_n = np.where(np.asarray(axis.source)[px] == "reset peak", 0.0,
+                     np.nan_to_num(np.abs(calib.scale_slope(window_s, light)[px])) * sd_n)
     tau0 = s0 * cal._bound_at(calib.code_bounds[px], x0)
     return np.sqrt(table ** 2 + np.nan_to_num(peak0) ** 2 + (rel * tau) ** 2
-                   + np.nan_to_num(rel0 * tau0) ** 2)
+                   + (rel_n * tau) ** 2 + np.nan_to_num(rel0 * tau0) ** 2)
 
 
 def _rows_of(refs, rows):

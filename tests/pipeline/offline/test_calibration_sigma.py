@@ -250,3 +250,38 @@ def test_one_density_test_stores_its_width_variance_too(tmp_path):
         assert np.all(np.isfinite(v[res.ok])) and np.all(v[res.ok] > 0)
         out[cycles] = np.median(v[res.ok][:, 50:300])
     assert 3 < out[100_000] / out[400_000] < 5, out
+
+
+def test_the_light_a_capture_is_read_at_is_counted_too(calibrated):
+    """The scale's slope against light (``Calibration.scale_slope``) is the chip's (its
+    window LSB's, within 15 % over a zoo chip's TDCs), and a short capture's sigma holds the
+    binomial error of its counted light times it (a 100x longer one of the same shape,
+    a tenth of it): on benchmarks/spatial_chip.py's captures (6000 cycles) it was the
+    per-capture scatter that sigma left out (residual z RMS 1.15 -> 1.01 at 0.002)."""
+    from benchmarks.calibration_sigma import RANGE_GATE_S, T, state_of
+    from pipeline.offline.ranging import calibrated_axis, calibration_sigma_s, range_state
+    from stages.simulator.expected import expected_hits
+
+    chip, calib = calibrated
+    n, h = 0.15, 0.01
+    want = (np.log(chip.window_truth(n + h, T)[0])
+            - np.log(chip.window_truth(n - h, T)[0])) / (2 * h)
+    got = calib.scale_slope(T, n)
+    # (a TDC's window LSB carries its INL as x_T crosses codes: 2-33 % apart a TDC)
+    assert abs(np.mean(got) / np.mean(want) - 1) < 0.15, (got, want)
+    assert np.all(np.abs(got / want - 1) < 0.4), (got, want)
+    hits = expected_hits(chip, n, 2000, T, signal=np.full(N, 0.1),
+                         tau_s=np.full(N, 30e-9), pulse_sigma_s=80e-12)
+    sig = []
+    for k in (1, 100):
+        st = state_of(np.round(hits * k), 2000 * k)
+        est, *_ = range_state(st, calib, T, RANGE_GATE_S)
+        rows, axis = calibrated_axis(st, calib, T)
+        sig.append(calibration_sigma_s(calib, rows, st, axis, est, T))
+    from stages import calibration as cal
+
+    light = cal.light_level(np.round(hits), 2000)
+    term = (np.abs(calib.scale_slope(T, light)) * np.sqrt(light * (1 - light) / (N * 2000))
+            * 30e-9)
+    np.testing.assert_allclose(np.sqrt(sig[0] ** 2 - sig[1] ** 2), term * np.sqrt(0.99),
+                               rtol=0.1)
