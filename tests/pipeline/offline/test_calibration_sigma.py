@@ -211,10 +211,12 @@ def test_two_sigma_covers_the_errors_on_zoo_chips():
 
 @pytest.mark.slow
 def test_two_sigma_covers_the_errors_on_many_zoo_chips():
-    """Twelve zoo chips, 16 TDCs, six range captures each: 0.92-0.98."""
+    """Twelve zoo chips, 16 TDCs, six range captures each: 0.92-0.99 (measured 0.982,
+    1-sigma 0.699; 0.976 before the scale took the table's error at the density tests'
+    x_T and the light's count, docs/calibration.md "On a chip calibrated again")."""
     r = _coverage(range(20, 32), 16, 6)
     assert r.error_m.size > 900
-    assert 0.92 <= coverage(r) <= 0.98, coverage(r)
+    assert 0.92 <= coverage(r) <= 0.99, coverage(r)
 
 
 def test_the_delays_sigma_grows_with_the_codes_it_spans(calibrated):
