@@ -552,7 +552,8 @@ def _expected_var(h, r, measured=None):
     for p in range(8):  # each phase's codes, a running mean over 2m + 1 of them
         cs = np.cumsum(np.pad(v[..., p::8], [(0, 0)] * (h.ndim - 1) + [(m + 1, m)]), axis=-1)
         cn = np.cumsum(np.pad(n[..., p::8], [(0, 0)] * (h.ndim - 1) + [(m + 1, m)]), axis=-1)
-        tot, cnt = cs[..., 2 * m + 1:] - cs[..., :-2 * m - 1], cn[..., 2 * m + 1:] - cn[..., :-2 * m - 1]
+        tot = cs[..., 2 * m + 1:] - cs[..., :-2 * m - 1]
+        cnt = cn[..., 2 * m + 1:] - cn[..., :-2 * m - 1]
         with np.errstate(divide="ignore", invalid="ignore"):
             mean[..., p::8] = np.where(cnt >= m, tot / cnt, np.nan)
     h_exp = r * -np.expm1(-mean)

@@ -14,9 +14,10 @@ spline through ``T / B(x_T,i)``, :func:`.timescale.scale_refs`), its error is th
 at *their* x_T, weighted by the spline: ``(x / x_ref) [j < x_ref]`` becomes ``sum_i
 weights_i (x / x_T,i) [j < x_T,i]``; between two tests the codes from one x_T to the
 other are measured by the dimmer tests only, and their error is no longer left out
-(issue 33.3's gap on re-calibrated chips). A range is the difference of two such times, its return's at the range's light and
-the zero capture's return at the zero's light (the delay, eq. 5.3): the codes both share
-cancel, so the two are taken together (:func:`range_sigma_s`), not in quadrature.
+(issue 33.3's gap on re-calibrated chips). A range is the difference of two such
+times, its return's at the range's light and the zero capture's return at the zero's
+light (the delay, eq. 5.3): the codes both share cancel, so the two are taken together
+(:func:`range_sigma_s`), not in quadrature.
 
 Codes no test measured (the table continued past its last measured code with the phase
 pattern, :func:`.timescale.code_bounds`) have the variance of the random DNL about the
