@@ -134,6 +134,41 @@ class Calibration:
         return self._memo(("scale_splines", float(window_s)),
                           lambda: cal.scale_splines(self.density, fit, window_s))
 
+    def scale_refs(self, window_s: float, light: float, source=None):
+        """:func:`stages.calibration.scale_refs` at a light: where the axis's scale is
+        the density tests' interpolated, the tests' x_T and weights its error comes from
+        (for :mod:`stages.calibration.uncertainty`); rows whose scale came from the
+        capture's own reset peak (``source``, a :class:`TimeAxis`'s) weigh NaN (their
+        x_T is the one reference). None where nothing is interpolated."""
+        refs = cal.scale_refs(self.density, self.lsb_fit, window_s, light,
+                              self.scale_splines(window_s))
+        if refs is None or source is None:
+            return refs
+        codes, weights = refs
+        situ = np.asarray(source, dtype=object) == "reset peak"
+        return codes, np.where(situ[:, None], np.nan, weights)
+
+    def scale_slope(self, window_s: float, light: float) -> np.ndarray:
+        """(n_tdc,) d ln(scale) / dn at a light (eq. 5.1's n): how far the axis's scale
+        moves per unit of the light it is read at (a central difference on
+        :func:`stages.calibration.scale_at_light`, kept inside the LSB fit's levels);
+        0 without an LSB fit (one density test: its own scale at any light)."""
+        fit = self.lsb_fit
+        if fit is None:
+            return np.zeros(self.n_tdc)
+        h = max(1e-4, 0.01 * float(light))
+        lo, hi = fit.n_range
+        a, b = float(light) - h, float(light) + h
+        if fit.in_range(light):  # (the spline is not read across the levels' ends)
+            a, b = max(a, lo), min(b, hi)
+
+        def scale(n):
+            return cal.scale_at_light(self.density, self.lsb_s(n)[0], window_s, fit, n,
+                                      self.scale_splines(window_s), self.code_bounds)
+
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return (np.log(scale(b)) - np.log(scale(a))) / (b - a)
+
     def rows(self, start: int, stop: int) -> Calibration:
         """The calibration of TDCs ``start..stop-1`` (a worker's TDC range; the same
         object for the same range, so what it builds is kept)."""

@@ -436,7 +436,8 @@ def delay_from_state(calib: Calibration, state, window_s: float, t_laser_win_s: 
         "lsb_spread_ps": [None if not np.isfinite(v) else round(float(v), 1)
                           for v in np.where(source == "reset peak", np.nan, spread_ps)],
         "tdcs_with_delay": int(np.isfinite(d).sum()),
-        **delay_uncertainty(calib, at, axis, est.sigma_s, spread, d)})
+        **delay_uncertainty(calib, at, axis, est.sigma_s, spread, d,
+                            calib.scale_refs(window_s, light, axis.source))})
     return calib
 
 
@@ -491,20 +492,23 @@ def _listed(v, digits: int) -> list:
             for x in np.asarray(v, np.float64)]
 
 
-def delay_uncertainty(calib: Calibration, at, axis, peak_sigma_s, spread, delay) -> dict:
+def delay_uncertainty(calib: Calibration, at, axis, peak_sigma_s, spread, delay,
+                      refs=None) -> dict:
     """The delay's standard error per TDC (issue 33.3), for meta.json's ``delay``: the
     zero capture's peak (its fit's sigma), the table's counting noise over the codes the
     delay spans (:func:`stages.calibration.uncertainty.table_sigma_s` at the return's
     code ``at`` on the capture's ``axis``) and the time scale's (the LSB interpolation's
     spread where the axis is the polynomial's), in quadrature; with what a range needs to
-    take the codes it shares with the delay together (``uncertainty``)."""
+    take the codes it shares with the delay together (``uncertainty``). ``refs``: where
+    the scale is the density tests' interpolated (:meth:`Calibration.scale_refs`), the
+    table's error at their x_T."""
     tau = np.asarray(axis.scale, np.float64) * _bound_at_codes(calib, at)
     rel = np.where(np.asarray(axis.source) == "reset peak", 0.0,
                    uncertainty.scale_rel_sigma(spread))
     if calib.width_var_lsb2 is None:
         table = np.zeros(calib.n_tdc)
     else:
-        table = uncertainty.table_sigma_s(calib.width_var_lsb2, at, axis.x_t, axis.scale)
+        table = uncertainty.table_sigma_s(calib.width_var_lsb2, at, axis.x_t, axis.scale, refs)
     total = np.sqrt(np.asarray(peak_sigma_s, np.float64) ** 2 + table ** 2 + (rel * tau) ** 2)
     total = np.where(np.isfinite(delay), total, np.nan)
     return {"delay_sigma_ps": _listed(total * 1e12, 3),

@@ -99,8 +99,10 @@ def calibration_sigma_s(calibration: Calibration, calib: Calibration, state, axi
     the table's counting noise over the codes between the return (at this light) and the
     delay's return (at the zero's), taken together so the codes both span cancel
     (:func:`stages.calibration.uncertainty.range_sigma_s`); the zero capture's peak fit;
-    and the time scale's at both lights (the LSB interpolation's spread). ``calib``: the
-    rows of ``calibration`` the state covers."""
+    the time scale's at both lights (the LSB interpolation's spread); and the scale's
+    where this capture's light, counted, is off by its binomial error
+    (:meth:`Calibration.scale_slope`). ``calib``: the rows of ``calibration`` the state
+    covers."""
     from stages.calibration import uncertainty
 
     u = calibration.meta.get("delay", {}).get("uncertainty")
@@ -120,16 +122,37 @@ def calibration_sigma_s(calibration: Calibration, calib: Calibration, state, axi
                      np.float64)[rows] * 1e-12
     tau = window_s - np.asarray(est.t_s, np.float64)
     x = uncertainty.codes_at(tau, axis.tau_edges_s[px])
-    table = uncertainty.range_sigma_s(calib.width_var_lsb2[px], x, axis.x_t[px],
-                                      axis.scale[px], x0, xr0, s0)
     light = cal.light_level(state.hits, state.cycles)
+    # where a scale is the density tests' interpolated, its error is the table's at their
+    # x_T (the range's at this light, the delay's at the zero's: as `calibrate delay` took it)
+    refs = _rows_of(calib.scale_refs(window_s, light, axis.source), px)
+    zero = calibration.meta["delay"]
+    refs0 = None
+    if zero.get("light") is not None and zero.get("scale_from") is not None:
+        refs0 = _rows_of(calibration.scale_refs(window_s, float(zero["light"]),
+                                                 zero["scale_from"]), rows)
+    table = uncertainty.range_sigma_s(calib.width_var_lsb2[px], x, axis.x_t[px],
+                                      axis.scale[px], x0, xr0, s0, refs, refs0)
     spread, _ = cal.scale_spread(calib.density, calib.lsb_fit, window_s, light,
                                  calib.scale_splines(window_s))
     rel = np.where(np.asarray(axis.source)[px] == "reset peak", 0.0,
                    uncertainty.scale_rel_sigma(spread[px]))
+    # the light the scale is read at is itself counted: its binomial error over the
+    # capture's TDC-cycles moves the scale by the LSB's slope (a short capture, where the
+    # LSB bends: 0.7 % of 0.13 detections a cycle in 6000 cycles of 16 TDCs, 4e-4 of the
+    # scale); not where the capture's own reset peak scales the axis
+    cycles = float(np.max(state.cycles)) * state.n_tdc
+    sd_n = np.sqrt(max(light * (1.0 - light), 0.0) / max(cycles, 1.0))
+    rel_n = np.where(np.asarray(axis.source)[px] == "reset peak", 0.0,
+                     np.nan_to_num(np.abs(calib.scale_slope(window_s, light)[px])) * sd_n)
     tau0 = s0 * cal._bound_at(calib.code_bounds[px], x0)
     return np.sqrt(table ** 2 + np.nan_to_num(peak0) ** 2 + (rel * tau) ** 2
-                   + np.nan_to_num(rel0 * tau0) ** 2)
+                   + (rel_n * tau) ** 2 + np.nan_to_num(rel0 * tau0) ** 2)
+
+
+def _rows_of(refs, rows):
+    """:meth:`Calibration.scale_refs`'s ``(codes, weights)`` at ``rows`` (None stays)."""
+    return None if refs is None else tuple(np.asarray(a)[rows] for a in refs)
 
 
 #: the flag of a return before the zero

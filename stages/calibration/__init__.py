@@ -97,6 +97,7 @@ from stages.calibration.timescale import (  # noqa: F401
     scale_at_light,
     scale_in_situ,
     scale_points,
+    scale_refs,
     scale_splines,
     scale_spread,
     scale_unresolved,

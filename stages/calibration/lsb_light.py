@@ -87,15 +87,32 @@ class RowSplines:
             if lv.size < 3:
                 continue
             self.parts.append((rows, lv, bool(pattern.all()),
-                               CubicSpline(coord(lv), y[rows][:, pattern].T, axis=0)))
+                               CubicSpline(coord(lv), y[rows][:, pattern].T, axis=0), pattern))
 
     def __call__(self, n: float) -> np.ndarray:
         out = np.full(self.n_rows, np.nan)
-        for rows, lv, complete, spline in self.parts:
+        for rows, lv, complete, spline, _ in self.parts:
             if not (complete or lv[0] - 1e-12 <= n <= lv[-1] + 1e-12):
                 continue
             x = min(max(n, lv[0]), lv[-1])  # (the campaign's range is the caller's check)
             out[rows] = spline(self.coord(x))
+        return out
+
+    def weights(self, n: float) -> np.ndarray:
+        """(n_rows, n_levels) what each point weighs in the value read at ``n``: a cubic
+        spline through given points is linear in them, so ``self(n)`` is
+        ``sum_i weights[:, i] y[:, i]`` (0 for a row's missing points; NaN where
+        ``self(n)`` is)."""
+        from scipy.interpolate import CubicSpline
+
+        out = np.full((self.n_rows, self.parts[0][4].size if self.parts else 0), np.nan)
+        for rows, lv, complete, _, pattern in self.parts:
+            if not (complete or lv[0] - 1e-12 <= n <= lv[-1] + 1e-12):
+                continue
+            x = min(max(n, lv[0]), lv[-1])
+            w = np.zeros(pattern.size)
+            w[pattern] = CubicSpline(self.coord(lv), np.eye(lv.size), axis=0)(self.coord(x))
+            out[rows] = w
         return out
 
 

@@ -147,6 +147,31 @@ def scale_splines(density: DensityResult, fit: LsbFit, window_s: float) -> Scale
     return ScaleSplines(levels, RowSplines(levels, s_pts), RowSplines(levels, s_pts, _identity))
 
 
+def scale_refs(density: DensityResult, fit: LsbFit | None, window_s: float, light: float,
+               splines: ScaleSplines | None = None):
+    """Where the scale :func:`scale_at_light` interpolates at ``light`` takes its error
+    from (issue 33.3): ``(codes, weights)``, each (n_tdc, n_levels), the density tests'
+    x_T = T / LSB_i on the table (their points ``T / B(x_T,i)``) and what each weighs in
+    the scale read, ``w_i s_i / s`` (``w_i`` the spline's weights in sqrt(n), ``s_i`` the
+    points, ``s`` the scale read; they sum to ~1). The scale's relative error is then
+    ``-sum_i weights_i dB(x_T,i) / B(x_T,i)``: at a light between two tests the table's
+    error at *their* x_T, not at the light's own (the codes between are measured by the
+    dimmer tests only). None where the scale is not interpolated at ``light`` (the
+    polynomial's or the capture's x_T is then the one reference)."""
+    if not _interpolates(fit, light):
+        return None
+    splines = scale_splines(density, fit, window_s) if splines is None else splines
+    levels = np.asarray(fit.levels, np.float64)
+    order = np.argsort(levels)
+    codes = window_s / (fit.points_ps()[:, order] * 1e-12)
+    _, pts = scale_points(density, fit, window_s)
+    w = splines.in_sqrt.weights(float(light))
+    s = splines.in_sqrt(float(light))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        weights = np.nan_to_num(w * pts, nan=0.0) / s[:, None]
+    return codes, np.where(np.isfinite(s)[:, None], weights, np.nan)
+
+
 #: When the spread of the scale (:func:`scale_spread`, as ps at a return's tau) flags a
 #: delay or a range: over this many of its statistical sigmas (INL x LSB, and for the
 #: delay the peak's fit) plus the floor; half the chip sweep's tolerance (4 sigmas + 20

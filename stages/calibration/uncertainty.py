@@ -9,9 +9,15 @@ tests by inverse variance as the widths are. The widths are independent, so a ti
 is linear in theirs: ``dtau(x) = scale (dB(x) - (x / x_ref) dB(x_ref))`` with
 ``dB(x) = sum over j < x of dw_j``, and its variance is ``sum_j a_j^2 v_j`` with
 ``a_j = scale ([j < x] - (x / x_ref) [j < x_ref])`` (``[j < x]`` the share of code j below
-x). A range is the difference of two such times, its return's at the range's light and
-the zero capture's return at the zero's light (the delay, eq. 5.3): the codes both share
-cancel, so the two are taken together (:func:`range_sigma_s`), not in quadrature.
+x). Where the scale at a light is interpolated between the density tests' points (a
+spline through ``T / B(x_T,i)``, :func:`.timescale.scale_refs`), its error is the table's
+at *their* x_T, weighted by the spline: ``(x / x_ref) [j < x_ref]`` becomes ``sum_i
+weights_i (x / x_T,i) [j < x_T,i]``; between two tests the codes from one x_T to the
+other are measured by the dimmer tests only, and their error is no longer left out
+(issue 33.3's gap on re-calibrated chips). A range is the difference of two such
+times, its return's at the range's light and the zero capture's return at the zero's
+light (the delay, eq. 5.3): the codes both share cancel, so the two are taken together
+(:func:`range_sigma_s`), not in quadrature.
 
 Codes no test measured (the table continued past its last measured code with the phase
 pattern, :func:`.timescale.code_bounds`) have the variance of the random DNL about the
@@ -110,14 +116,29 @@ def _below(x) -> np.ndarray:
     return np.clip(np.asarray(x, np.float64)[:, None] - j, 0.0, 1.0)
 
 
-def time_coefficients(x, x_ref, scale) -> np.ndarray:
+def time_coefficients(x, x_ref, scale, refs=None) -> np.ndarray:
     """(n, 512) ``a_j``: seconds of tau at code ``x`` per unit of error in width j, on an
     axis that puts tau = T at ``x_ref`` with ``scale`` seconds per unit; 0 where any of
-    them is NaN."""
+    them is NaN. ``refs``: where the scale is interpolated between the density tests
+    (:func:`.timescale.scale_refs`, ``(codes, weights)`` each (n, n_levels)), its error
+    is the table's at the tests' x_T, weighted, instead of at ``x_ref``:
+    ``a_j = scale ([j < x] - sum_i weights_i (x / codes_i) [j < codes_i])``; a row whose
+    weights are NaN takes ``x_ref``."""
     x, x_ref, scale = (np.asarray(a, np.float64) for a in (x, x_ref, scale))
     good = np.isfinite(x) & np.isfinite(x_ref) & np.isfinite(scale) & (x_ref > 0)
     x, x_ref, scale = (np.where(good, a, 1.0) for a in (x, x_ref, scale))
-    a = scale[:, None] * (_below(x) - (x / x_ref)[:, None] * _below(x_ref))
+    ref = (x / x_ref)[:, None] * _below(x_ref)
+    if refs is not None:
+        codes, weights = (np.asarray(a, np.float64) for a in refs)
+        use = good & np.all(np.isfinite(weights), axis=1) & np.all(
+            np.isfinite(codes) | (weights == 0), axis=1)
+        interp = np.zeros_like(ref)
+        for i in range(codes.shape[1]):  # one term a density test (a few)
+            c = np.where(use & (weights[:, i] != 0), codes[:, i], 1.0)
+            w = np.where(use, weights[:, i], 0.0)
+            interp += (w * x / c)[:, None] * _below(c)
+        ref = np.where(use[:, None], interp, ref)
+    a = scale[:, None] * (_below(x) - ref)
     return np.where(good[:, None], a, 0.0)
 
 
@@ -126,17 +147,20 @@ def _sum_var(a, width_var, good) -> np.ndarray:
     return np.where(good, np.sqrt(np.sum(a * a * v, axis=1)), np.nan)
 
 
-def table_sigma_s(width_var, x, x_ref, scale) -> np.ndarray:
-    """(n,) standard error (s) of tau at code ``x`` from the table's widths."""
+def table_sigma_s(width_var, x, x_ref, scale, refs=None) -> np.ndarray:
+    """(n,) standard error (s) of tau at code ``x`` from the table's widths (``refs``: as
+    :func:`time_coefficients`)."""
     good = np.isfinite(np.asarray(x, np.float64)) & np.isfinite(np.asarray(scale, np.float64))
-    return _sum_var(time_coefficients(x, x_ref, scale), width_var, good)
+    return _sum_var(time_coefficients(x, x_ref, scale, refs), width_var, good)
 
 
-def range_sigma_s(width_var, x, x_ref, scale, x0, x_ref0, scale0) -> np.ndarray:
+def range_sigma_s(width_var, x, x_ref, scale, x0, x_ref0, scale0, refs=None,
+                  refs0=None) -> np.ndarray:
     """(n,) standard error (s) of a range's time ``tau(x) - tau0(x0)`` from the table: its
-    return at code ``x`` on its axis (``x_ref``, ``scale``) against the delay's return at
-    ``x0`` on the zero capture's (``x_ref0``, ``scale0``); the codes both span cancel."""
-    a = (time_coefficients(x, x_ref, scale) - time_coefficients(x0, x_ref0, scale0))
+    return at code ``x`` on its axis (``x_ref``, ``scale``; ``refs`` where that scale is
+    interpolated, :func:`time_coefficients`) against the delay's return at ``x0`` on the
+    zero capture's (``x_ref0``, ``scale0``, ``refs0``); the codes both span cancel."""
+    a = (time_coefficients(x, x_ref, scale, refs) - time_coefficients(x0, x_ref0, scale0, refs0))
     good = np.isfinite(np.asarray(x, np.float64)) & np.isfinite(np.asarray(x0, np.float64))
     return _sum_var(a, width_var, good)
 
