@@ -245,6 +245,23 @@ PROFILE_Z = 3.1
 PROFILE_P = 1e-4
 
 
+def _block_sums(counts, edges_s, valid, edges):
+    """Per row and block (``edges``: the blocks' first bins and the end): the valid
+    counts, all counts and the valid bins' widths; None where the rows' bin edges are not
+    all the same."""
+    e = np.asarray(edges_s, np.float64)
+    if not (e.strides[0] == 0 or (e == e[:1]).all()):
+        return None
+    valid = np.asarray(valid, bool)
+    w = np.diff(e[0])
+    whole = np.add.reduceat(counts, edges[:-1], axis=1)
+    if valid.all():  # (generic histograms: one pass)
+        return whole, whole, np.broadcast_to(np.add.reduceat(w, edges[:-1]), whole.shape)
+    blk = np.add.reduceat(np.where(valid, counts, 0.0), edges[:-1], axis=1)
+    wb = np.add.reduceat(np.where(valid, w[None, :], 0.0), edges[:-1], axis=1)
+    return blk, whole, wb
+
+
 def time_profile(h: Histograms, block: int = PROFILE_BLOCK, z: float = PROFILE_Z,
                  p: float = PROFILE_P) -> np.ndarray | None:
     """The background's time profile over a batch of rows that share one bin axis, a
@@ -255,7 +272,7 @@ def time_profile(h: Histograms, block: int = PROFILE_BLOCK, z: float = PROFILE_Z
     afterpulsing tail, made the early bins look like returns).
 
     Each row's valid counts in blocks of ``block`` bins against the block's exposure (its
-    valid bins' cycles at risk times their widths); a block whose rate stands more than
+    valid bins' widths times the cycles at risk at its middle); a block whose rate stands more than
     ``z`` sds above the line through the blocks two away on either side (at the ends,
     through the next two inside) is a return's and is left out of that row with the blocks
     beside it: a return is narrow, a background's profile is not (the rows have no
@@ -274,15 +291,20 @@ def time_profile(h: Histograms, block: int = PROFILE_BLOCK, z: float = PROFILE_Z
     counts = np.asarray(h.counts, np.float64)
     n_pix, n = counts.shape
     nb = n // block
-    e = np.asarray(h.edges_s, np.float64)
-    if n_pix == 0 or nb < 6 or not np.array_equal(e, np.broadcast_to(e[:1], e.shape)):
+    if n_pix == 0 or nb < 6:
         return None
     edges = np.arange(nb + 1) * block
     edges[-1] = n                                    # the last block takes the rest
-    valid = np.asarray(h.valid, bool)
-    blk = np.add.reduceat(np.where(valid, counts, 0.0), edges[:-1], axis=1)
-    expo = np.add.reduceat(np.where(valid, np.maximum(h.at_risk, 0.0) * h.widths, 0.0),
-                           edges[:-1], axis=1)
+    sums = _block_sums(counts, h.edges_s, h.valid, edges)
+    if sums is None:
+        return None
+    blk, whole, wb = sums
+    e = np.asarray(h.edges_s, np.float64)
+    # the exposure: the valid bins' width times the cycles at risk at the block's start
+    # less half its counts (the at-risk numbers bin by bin cost a (rows, bins) running
+    # sum: 4x the fast estimator's time)
+    before = np.cumsum(whole, axis=1) - 0.5 * whole
+    expo = wb * np.maximum(np.asarray(h.cycles, np.float64)[:, None] - before, 0.0)
     use = expo > 0
     E = np.where(use, expo, 1.0)
     rb, vb = np.where(use, blk / E, 0.0), np.where(use, blk / E ** 2, 0.0)

@@ -111,3 +111,35 @@ def test_profile_follows_the_background():
     e = h.edges_s.copy()
     e[0] *= 1.0001
     assert det.time_profile(Histograms(h.counts, e, h.cycles, h.valid)) is None
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_piled_up_flat_background_is_flat(seed):
+    """First-photon histograms of a flat background with 86 % of the cycles stopped
+    (the counts fall in time, the rate a cycle at risk does not): no profile, and the
+    rows detected within the binomial bound; with e^-3t the same pile-up is not flat."""
+    rng = np.random.default_rng(seed)
+    n, cycles = 1024, 500
+    for shape, flat in (("flat", True), ("e^-3t", False)):
+        p = -np.expm1(-(2.0 / N) * SHAPES[shape] / SHAPES[shape].mean())
+        surv = np.concatenate([[1.0], np.cumprod(1 - p)])
+        first = rng.multinomial(cycles, np.append(surv[:-1] * p, surv[-1]), size=n)
+        c = first[:, :-1].astype(np.float64)
+        h = Histograms(c, np.broadcast_to(np.arange(N + 1) * BIN, (n, N + 1)).copy(),
+                       np.full(n, float(cycles)), np.ones_like(c, bool))
+        assert (det.time_profile(h) is None) == flat, shape
+        for name in ("fast", "ml", "matched"):
+            assert estimate(h, SIG, name, P_FA).detected.sum() <= binom.isf(1e-6, n, P_FA)
+
+
+def test_masked_bins_and_falling_background():
+    """Rows with their first 40 and last 8 bins masked (a gate) under e^-3t: the profile
+    is found on the valid bins and the rows hold p_fa."""
+    n = 2048
+    h = batch(np.random.default_rng(11), n, 200, SHAPES["e^-3t"])
+    valid = np.ones_like(h.valid)
+    valid[:, :40] = valid[:, -8:] = False
+    h = Histograms(h.counts, h.edges_s, h.cycles, valid)
+    assert det.time_profile(h) is not None
+    for name in ("fast", "ml", "matched"):
+        assert estimate(h, SIG, name, P_FA).detected.sum() <= binom.isf(1e-6, n, P_FA)
