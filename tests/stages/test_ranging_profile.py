@@ -143,3 +143,36 @@ def test_masked_bins_and_falling_background():
     assert det.time_profile(h) is not None
     for name in ("fast", "ml", "matched"):
         assert estimate(h, SIG, name, P_FA).detected.sum() <= binom.isf(1e-6, n, P_FA)
+
+
+@pytest.fixture(scope="module")
+def measured():
+    """A measured response on the same bins: the pulse, 2 million photons."""
+    from stages.ranging.irf import response_from_counts
+
+    rng = np.random.default_rng(5)
+    t = rng.normal(50 * BIN, SIG, 2_000_000)
+    return response_from_counts(np.histogram(t, bins=np.arange(161) * BIN)[0], BIN,
+                                "zero-distance capture")
+
+
+@pytest.mark.parametrize("name", ["matched", "ml"])
+def test_measured_response_holds_p_fa(measured, name):
+    """The measured-response estimators' detection takes the profile too: background
+    alone under e^-3t at 200 photons within the binomial bound, the flat model far above
+    it; a flat batch the same to the bit."""
+    from stages.ranging.irf import fit_response
+
+    n = 1024
+    h = batch(np.random.default_rng(21), n, 200, SHAPES["e^-3t"])
+    bound = binom.isf(1e-6, n, P_FA)
+    assert fit_response(h, measured, name, P_FA).detected.sum() <= bound
+    irf = importlib.import_module("stages.ranging.irf")
+    with mock.patch.object(irf, "time_profile", lambda h: None):
+        assert fit_response(h, measured, name, P_FA).detected.sum() > bound
+    flat = batch(np.random.default_rng(22), n, 50, SHAPES["flat"])
+    got = fit_response(flat, measured, name, P_FA)
+    with mock.patch.object(irf, "time_profile", lambda h: None):
+        ref = fit_response(flat, measured, name, P_FA)
+    for k in ("t_s", "sigma_s", "signal_counts", "background_per_bin", "detected"):
+        np.testing.assert_array_equal(getattr(got, k), getattr(ref, k))
