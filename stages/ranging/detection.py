@@ -236,14 +236,131 @@ def scan_pvalue(t, mu, k: int, m) -> np.ndarray:
     return np.where(t <= 0, 1.0, np.where(m <= 1, first, np.minimum(p, 1.0)))
 
 
-def _detect(h: Histograms, peak, bg_rate, p_fa, t_s=None, sigma_s=None, compiled=None):
+#: the per-pixel estimators' background time profile (:func:`time_profile`): blocks of
+#: this many bins, the z above the line through the blocks two away that makes a block a
+#: return's, and the chi-square's p below which a batch's background is not flat (the
+#: spatial estimator's block and p)
+PROFILE_BLOCK = 32
+PROFILE_Z = 3.1
+PROFILE_P = 1e-4
+
+
+def _block_sums(counts, edges_s, valid, edges):
+    """Per row and block (``edges``: the blocks' first bins and the end): the valid
+    counts, all counts and the valid bins' widths; None where the rows' bin edges are not
+    all the same."""
+    e = np.asarray(edges_s, np.float64)
+    if not (e.strides[0] == 0 or (e == e[:1]).all()):
+        return None
+    valid = np.asarray(valid, bool)
+    w = np.diff(e[0])
+    whole = np.add.reduceat(counts, edges[:-1], axis=1)
+    if valid.all():  # (generic histograms: one pass)
+        return whole, whole, np.broadcast_to(np.add.reduceat(w, edges[:-1]), whole.shape)
+    blk = np.add.reduceat(np.where(valid, counts, 0.0), edges[:-1], axis=1)
+    wb = np.add.reduceat(np.where(valid, w[None, :], 0.0), edges[:-1], axis=1)
+    return blk, whole, wb
+
+
+def time_profile(h: Histograms, block: int = PROFILE_BLOCK, z: float = PROFILE_Z,
+                 p: float = PROFILE_P) -> np.ndarray | None:
+    """The background's time profile over a batch of rows that share one bin axis, a
+    factor a bin (mean 1), or None where the batch's background is flat within its noise
+    (or the rows' edges differ, or there are fewer than 6 blocks): the background expected
+    in bin j is then the row's rate times width_j times s_j, not rate times width_j (a
+    background that falls in time, pile-up of ambient light not corrected or an
+    afterpulsing tail, made the early bins look like returns).
+
+    Each row's valid counts in blocks of ``block`` bins against the block's exposure (its
+    valid bins' widths times the cycles at risk at its middle); a block whose rate stands more than
+    ``z`` sds above the line through the blocks two away on either side (at the ends,
+    through the next two inside) is a return's and is left out of that row with the blocks
+    beside it: a return is narrow, a background's profile is not (the rows have no
+    neighbours here: the row's own blocks decide, where the spatial estimator's
+    :func:`stages.ranging.spatial.background_profile` sums a 7 x 7 neighbourhood). The
+    profile is each block's kept counts over those each row's rate would put there (three
+    passes), interpolated linearly in time between the blocks' centres. A test of a trend
+    decides: the kept counts' excess over each row's flat rate, weighted by the blocks'
+    times, over its sd (normal; two-sided): flat at p >= ``p``. Not a chi-square over the
+    blocks: faint returns at times spread over the batch, each too faint for its row's
+    block test, raise the middle of the window, and at 2 signal and 2 background photons
+    a row the chi-square called 3 000 such rows not flat (p ~ 1e-75) and their detection
+    lost a third; a trend is what pile-up and afterpulsing make."""
+    from scipy.special import ndtr
+
+    counts = np.asarray(h.counts, np.float64)
+    n_pix, n = counts.shape
+    nb = n // block
+    if n_pix == 0 or nb < 6:
+        return None
+    edges = np.arange(nb + 1) * block
+    edges[-1] = n                                    # the last block takes the rest
+    sums = _block_sums(counts, h.edges_s, h.valid, edges)
+    if sums is None:
+        return None
+    blk, whole, wb = sums
+    e = np.asarray(h.edges_s, np.float64)
+    # the exposure: the valid bins' width times the cycles at risk at the block's start
+    # less half its counts (the at-risk numbers bin by bin cost a (rows, bins) running
+    # sum: 4x the fast estimator's time)
+    before = np.cumsum(whole, axis=1) - 0.5 * whole
+    expo = wb * np.maximum(np.asarray(h.cycles, np.float64)[:, None] - before, 0.0)
+    use = expo > 0
+    E = np.where(use, expo, 1.0)
+    rb, vb = np.where(use, blk / E, 0.0), np.where(use, blk / E ** 2, 0.0)
+    line, var = np.empty_like(rb), np.empty_like(rb)
+    line[:, 2:-2] = (rb[:, :-4] + rb[:, 4:]) / 2
+    var[:, 2:-2] = (vb[:, :-4] + vb[:, 4:]) / 4
+    for k in (0, 1):
+        line[:, k] = 2 * rb[:, k + 2] - rb[:, k + 4]
+        var[:, k] = 4 * vb[:, k + 2] + vb[:, k + 4]
+        line[:, -1 - k] = 2 * rb[:, -3 - k] - rb[:, -5 - k]
+        var[:, -1 - k] = 4 * vb[:, -3 - k] + vb[:, -5 - k]
+    expect = np.maximum(line, 0.0) * E
+    hit = use & ((blk - expect) / np.sqrt(np.maximum(expect, 1.0) + var * E ** 2) > z)
+    keep = use & ~(hit | np.pad(hit[:, 1:], ((0, 0), (0, 1)))
+                   | np.pad(hit[:, :-1], ((0, 0), (1, 0))))
+    kept = np.where(keep, blk, 0.0)
+    ke = np.where(keep, E, 0.0)
+    prof = np.ones(nb)
+    for _ in range(3):
+        rate = kept.sum(1) / np.maximum((ke * prof).sum(1), 1e-300)
+        unit = (ke * rate[:, None]).sum(0)
+        prof = np.where(unit > 0, kept.sum(0) / np.maximum(unit, 1e-300), prof)
+    rate0 = kept.sum(1) / np.maximum(ke.sum(1), 1e-300)
+    expect = (ke * rate0[:, None]).sum(0)
+    obs = kept.sum(0)
+    ok = expect > 0
+    if ok.sum() < 4:
+        return None
+    mid = 0.5 * (e[0, edges[:-1]] + e[0, edges[1:]])
+    x = mid - (expect * mid).sum() / expect.sum()
+    zt = float((obs - expect)[ok] @ x[ok]) / math.sqrt(float(expect[ok] @ x[ok] ** 2))
+    if 2 * ndtr(-abs(zt)) >= p:
+        return None
+    sj = np.interp(0.5 * (e[0, :-1] + e[0, 1:]), mid, np.maximum(prof, 0.0))
+    sj = np.maximum(sj, 1e-3 * sj.max()) if sj.max() > 0 else np.ones(n)
+    return sj / sj.mean()
+
+
+def _detect(h: Histograms, peak, bg_rate, p_fa, t_s=None, sigma_s=None, compiled=None,
+            profile="auto"):
     """:func:`_detection` of a :class:`Histograms` at the bin holding the estimate ``t_s``
     (the ``peak`` where it is not finite, or not given: the least-squares fit's time can
     be pulled sigmas off by an empty code, its box's peak is not); over windows of
     :func:`scan_bins` bins when ``sigma_s`` is given (compiled where numba is: one pass a
-    row, no (pixels, bins) arrays)."""
+    row, no (pixels, bins) arrays). Where the batch's background is not flat in time
+    (:func:`time_profile`, computed when ``profile`` is "auto"; None: flat), the
+    background expected in bin j is the row's rate times width_j times s_j, the rate
+    estimated (:func:`_background`) on those weighted widths, not ``bg_rate``."""
     at = peak if t_s is None else bin_of(h.edges_s, t_s, peak)
     k = 1 if sigma_s is None else scan_bins(sigma_s, h.bin_s)
+    if isinstance(profile, str):
+        profile = time_profile(h)
+    if profile is not None:
+        ws = h.widths * profile[None, :]
+        bg = _background(h.lam, ws, h.valid, h.at_risk)
+        return _detection(h.counts, h.valid, h.at_risk, ws, at, bg, p_fa, scan=k)
     compiled = (numba is not None) if compiled is None else compiled
     if k > 1 and compiled:
         det = _scan_detect(np.ascontiguousarray(h.counts, np.float64),

@@ -9,7 +9,7 @@ import numpy as np
 
 from stages.models.tcspc import FWHM_PER_SIGMA
 from stages.ranging._numba import numba
-from stages.ranging.detection import _detection, bin_of, scan_bins
+from stages.ranging.detection import _detect, _detection, bin_of, scan_bins, time_profile
 from stages.ranging.gauss_table import _cdf_pdf_numpy
 from stages.ranging.histograms import Estimate, Histograms
 from stages.ranging.validation import validated
@@ -426,7 +426,10 @@ def fast(h: Histograms, sigma_s: float, p_fa: float = 1e-3, compiled: bool | Non
     """
     compiled = (numba is not None) if compiled is None else compiled
     args, bin_s = _fast_args(h, sigma_s, p_fa)
-    t, _, m, bg, det, sig = (_fast_numba if compiled else _fast_numpy)(*args)
+    t, peak, m, bg, det, sig = (_fast_numba if compiled else _fast_numpy)(*args)
+    profile = time_profile(h)
+    if profile is not None:  # a background not flat in time: the test on its profile
+        det = _detect(h, peak, bg, p_fa, t, sigma_s, profile=profile)
     return Estimate(t, sig, np.full(t.size, FWHM_PER_SIGMA * sigma_s), m * h.cycles,
                     bg * bin_s * h.cycles, det, "fast")
 

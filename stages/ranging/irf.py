@@ -22,7 +22,7 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator
 
 from stages.models.tcspc import FWHM_PER_SIGMA
-from stages.ranging.detection import _background, _detection, scan_bins
+from stages.ranging.detection import _background, _detection, scan_bins, time_profile
 from stages.ranging.histograms import Estimate, Histograms, coates
 from stages.ranging.validation import _safe, check_histograms, check_p_fa, finish
 
@@ -308,7 +308,12 @@ def _fit(h: Histograms, response: Response, estimator: str, p_fa: float) -> Esti
     away = h.valid & ((kk < peak[:, None] - 2 * lo) | (kk > peak[:, None] + 2 * hi))
     rate = _background(h.lam, h.widths, away, h.at_risk)
     bg = rate * h.cycles * bin_s
-    detected = _detection(h.counts, h.valid, h.at_risk, h.widths, peak, rate, p_fa,
+    # a background not flat in time over a batch on one axis: the detection's background
+    # in bin j is the rate times width_j times the profile's s_j (docs/ranging.md)
+    profile = time_profile(h)
+    ws = h.widths if profile is None else h.widths * profile[None, :]
+    rate_d = rate if profile is None else _background(h.lam, ws, away, h.at_risk)
+    detected = _detection(h.counts, h.valid, h.at_risk, ws, peak, rate_d, p_fa,
                           scan=scan_bins(response.sigma_s, bin_s))
     sane = np.isfinite(t_s) & np.isfinite(sigma_bins) & (amp > 0)
     fwhm = _fwhm_bins(response) * bin_s
