@@ -305,28 +305,10 @@ def time_profile(h: Histograms, block: int = PROFILE_BLOCK, z: float = PROFILE_Z
     # sum: 4x the fast estimator's time)
     before = np.cumsum(whole, axis=1) - 0.5 * whole
     expo = wb * np.maximum(np.asarray(h.cycles, np.float64)[:, None] - before, 0.0)
-    use = expo > 0
-    E = np.where(use, expo, 1.0)
-    rb, vb = np.where(use, blk / E, 0.0), np.where(use, blk / E ** 2, 0.0)
-    line, var = np.empty_like(rb), np.empty_like(rb)
-    line[:, 2:-2] = (rb[:, :-4] + rb[:, 4:]) / 2
-    var[:, 2:-2] = (vb[:, :-4] + vb[:, 4:]) / 4
-    for k in (0, 1):
-        line[:, k] = 2 * rb[:, k + 2] - rb[:, k + 4]
-        var[:, k] = 4 * vb[:, k + 2] + vb[:, k + 4]
-        line[:, -1 - k] = 2 * rb[:, -3 - k] - rb[:, -5 - k]
-        var[:, -1 - k] = 4 * vb[:, -3 - k] + vb[:, -5 - k]
-    expect = np.maximum(line, 0.0) * E
-    hit = use & ((blk - expect) / np.sqrt(np.maximum(expect, 1.0) + var * E ** 2) > z)
-    keep = use & ~(hit | np.pad(hit[:, 1:], ((0, 0), (0, 1)))
-                   | np.pad(hit[:, :-1], ((0, 0), (1, 0))))
+    keep = profile_keep(blk, expo, z)
     kept = np.where(keep, blk, 0.0)
-    ke = np.where(keep, E, 0.0)
-    prof = np.ones(nb)
-    for _ in range(3):
-        rate = kept.sum(1) / np.maximum((ke * prof).sum(1), 1e-300)
-        unit = (ke * rate[:, None]).sum(0)
-        prof = np.where(unit > 0, kept.sum(0) / np.maximum(unit, 1e-300), prof)
+    ke = np.where(keep, expo, 0.0)
+    prof = profile_passes(kept, ke)
     rate0 = kept.sum(1) / np.maximum(ke.sum(1), 1e-300)
     expect = (ke * rate0[:, None]).sum(0)
     obs = kept.sum(0)
@@ -338,8 +320,54 @@ def time_profile(h: Histograms, block: int = PROFILE_BLOCK, z: float = PROFILE_Z
     zt = float((obs - expect)[ok] @ x[ok]) / math.sqrt(float(expect[ok] @ x[ok] ** 2))
     if 2 * ndtr(-abs(zt)) >= p:
         return None
-    sj = np.interp(0.5 * (e[0, :-1] + e[0, 1:]), mid, np.maximum(prof, 0.0))
-    sj = np.maximum(sj, 1e-3 * sj.max()) if sj.max() > 0 else np.ones(n)
+    return profile_per_bin(prof, mid, 0.5 * (e[0, :-1] + e[0, 1:]))
+
+
+def profile_keep(blk, expo, z):
+    """Blocks (..., blocks) of counts ``blk`` over exposures ``expo``: False where a block
+    is a return's, or beside one. A return's block stands more than ``z`` sds above the line
+    through the blocks two away on either side (at the ends, through the next two inside):
+    a return is narrow, a background's profile is not (a linear one cancels; e^-3t's
+    curvature over 4 blocks is a tenth of a block's count). Blocks without exposure are
+    False too. For :func:`time_profile` (a row's own blocks) and the spatial estimator's
+    :func:`stages.ranging.spatial.background_profile` (a 7 x 7 neighbourhood's)."""
+    use = expo > 0
+    E = np.where(use, expo, 1.0)
+    rb, vb = np.where(use, blk / E, 0.0), np.where(use, blk / E ** 2, 0.0)
+    line, var = np.empty_like(rb), np.empty_like(rb)
+    line[..., 2:-2] = (rb[..., :-4] + rb[..., 4:]) / 2
+    var[..., 2:-2] = (vb[..., :-4] + vb[..., 4:]) / 4
+    for k in (0, 1):
+        line[..., k] = 2 * rb[..., k + 2] - rb[..., k + 4]
+        var[..., k] = 4 * vb[..., k + 2] + vb[..., k + 4]
+        line[..., -1 - k] = 2 * rb[..., -3 - k] - rb[..., -5 - k]
+        var[..., -1 - k] = 4 * vb[..., -3 - k] + vb[..., -5 - k]
+    expect = np.maximum(line, 0.0) * E
+    hit = use & ((blk - expect) / np.sqrt(np.maximum(expect, 1.0) + var * E ** 2) > z)
+    pad = [(0, 0)] * (hit.ndim - 1)
+    return use & ~(hit | np.pad(hit[..., 1:], pad + [(0, 1)])
+                   | np.pad(hit[..., :-1], pad + [(1, 0)]))
+
+
+def profile_passes(kept, ke, passes: int = 3):
+    """The profile a block (mean about 1) from every row's (pixel's) kept counts ``kept``
+    and kept exposures ``ke`` (..., blocks): each block's kept counts over those that each
+    row's own rate would put there, the rates and the profile estimated in turn."""
+    nb = kept.shape[-1]
+    kept2, ke2 = kept.reshape(-1, nb), ke.reshape(-1, nb)
+    prof = np.ones(nb)
+    for _ in range(passes):
+        rate = kept2.sum(1) / np.maximum((ke2 * prof).sum(1), 1e-300)
+        unit = (ke2 * rate[:, None]).sum(0)
+        prof = np.where(unit > 0, kept2.sum(0) / np.maximum(unit, 1e-300), prof)
+    return prof
+
+
+def profile_per_bin(prof, mid, centres):
+    """A profile a block, at the blocks' middles ``mid``, a bin (at ``centres``): linear
+    in between, at least 1e-3 of its largest, mean 1."""
+    sj = np.interp(centres, mid, np.maximum(prof, 0.0))
+    sj = np.maximum(sj, 1e-3 * sj.max()) if sj.max() > 0 else np.ones(len(centres))
     return sj / sj.mean()
 
 

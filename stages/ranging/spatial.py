@@ -53,7 +53,7 @@ import numpy as np
 from scipy import ndimage
 
 from stages.ranging._numba import numba
-from stages.ranging.detection import poisson_tail
+from stages.ranging.detection import poisson_tail, profile_keep, profile_passes, profile_per_bin
 
 WINDOW = 3      # k: the window is (2k + 1)^2 pixels
 WIDTH_FIT = 2.5  # the plane fit's window, +- sigmas of the pulse
@@ -168,31 +168,11 @@ def background_profile(counts: np.ndarray, block: int = PROFILE_BLOCK,
     edges[-1] = n                                    # the last block takes the rest
     width = np.diff(edges).astype(np.float64)
     blk = np.add.reduceat(counts, edges[:-1], axis=-1)        # (h, w, nb)
-    # the returns' blocks: a block whose neighbourhood's count stands above the line
-    # through the blocks two away on either side (at the ends, through the next two on
-    # the inside) by more than SIGNAL_Z sds: a return is narrow, a background's profile
-    # is not (a linear one cancels; e^-3t's curvature over 4 blocks is a tenth of a
-    # block's count). On rates a bin (the last block may be wider).
-    box = _box(blk, MASK_K)
-    rb, vb = box / width, box / width ** 2                    # rate a bin, its variance
-    line, var = np.empty_like(rb), np.empty_like(rb)
-    line[..., 2:-2] = (rb[..., :-4] + rb[..., 4:]) / 2
-    var[..., 2:-2] = (vb[..., :-4] + vb[..., 4:]) / 4
-    for k in (0, 1):
-        line[..., k] = 2 * rb[..., k + 2] - rb[..., k + 4]
-        var[..., k] = 4 * vb[..., k + 2] + vb[..., k + 4]
-        line[..., -1 - k] = 2 * rb[..., -3 - k] - rb[..., -5 - k]
-        var[..., -1 - k] = 4 * vb[..., -3 - k] + vb[..., -5 - k]
-    expect = np.maximum(line, 0.0) * width
-    hit = (box - expect) / np.sqrt(np.maximum(expect, 1.0) + var * width ** 2) > SIGNAL_Z
-    keep = ~(hit | np.pad(hit[..., 1:], ((0, 0), (0, 0), (0, 1)))
-             | np.pad(hit[..., :-1], ((0, 0), (0, 0), (1, 0))))
+    # the returns' blocks, by the 7 x 7 neighbourhood's counts; the profile from the
+    # pixel's own
+    keep = profile_keep(_box(blk, MASK_K), np.broadcast_to(width, blk.shape), SIGNAL_Z)
     kept = np.where(keep, blk, 0.0)
-    prof = np.ones(nb)
-    for _ in range(3):
-        rate = kept.sum(-1) / np.maximum((keep * width * prof).sum(-1), 1e-300)
-        unit = (keep * rate[..., None]).sum((0, 1)) * width
-        prof = np.where(unit > 0, kept.sum((0, 1)) / np.maximum(unit, 1e-300), prof)
+    prof = profile_passes(kept, keep * width)
     # the test against each pixel's flat rate over its kept blocks
     rate0 = kept.sum(-1) / np.maximum((keep * width).sum(-1), 1e-300)
     expect = (keep * rate0[..., None]).sum((0, 1)) * width
@@ -203,11 +183,8 @@ def background_profile(counts: np.ndarray, block: int = PROFILE_BLOCK,
     x2 = float((((obs - expect) ** 2)[use] / expect[use]).sum())
     if chi2.sf(x2, use.sum() - 1) >= p:
         return None
-    mid = (edges[:-1] + edges[1:]) / 2.0
     tj = np.arange(n) + 0.5
-    sj = np.interp(tj, mid, np.maximum(prof, 0.0))
-    sj = np.maximum(sj, 1e-3 * sj.max()) if sj.max() > 0 else np.ones(n)
-    sj = sj / sj.mean()
+    sj = profile_per_bin(prof, (edges[:-1] + edges[1:]) / 2.0, tj)
 
     def cum(x):
         return np.concatenate([[0.0], np.cumsum(x)])
