@@ -701,7 +701,6 @@ def _block_move(i, j, phase, lab, before, free, tb, llr, slope, sig_cnt, sig_out
     change. ``before``: every pixel's prior under ``lab`` (None: not computed yet);
     returns the labels and it (None where they changed)."""
     h, w, nc = tb.shape
-    n = P0.shape[-1] - 1
     kk = lab[..., None]
     tl = np.take_along_axis(tb, kk, -1)[..., 0]
     sl = np.take_along_axis(slope, kk[..., None], 2)[:, :, 0]
@@ -715,14 +714,8 @@ def _block_move(i, j, phase, lab, before, free, tb, llr, slope, sig_cnt, sig_out
     slq = np.stack([shifted(sl[..., 0], i, j, 0.0), shifted(sl[..., 1], i, j, 0.0)], -1)
     scq, sgq = (shifted(np.take_along_axis(x, kk, -1)[..., 0], i, j, v)
                 for x, v in ((sig_cnt, 0.0), (sig_out, np.inf)))
-    ti = np.where(prop, tq, 0.0)
-    a = np.clip(np.floor(ti - half + 0.5).astype(np.int64), 0, n)
-    z = np.clip(np.floor(ti + half + 0.5).astype(np.int64), 0, n)
-    m = (np.take_along_axis(P0, z[..., None], -1) - np.take_along_axis(P0, a[..., None], -1))
-    S = 0.95 * np.maximum(scq, 0.05)
-    lq = np.where(prop & (z > a),
-                  m[..., 0] * np.log1p(S / np.maximum(beta * _span(a, z, prof), 1e-9)) - S,
-                  -np.inf)
+    lq = _own_llr(P0, beta, np.where(prop, tq, np.nan)[..., None], scq[..., None], half,
+                  prof)[..., 0]
     t2 = np.where(prop, tq, tl)
     s2 = np.where(prop[..., None], slq, sl)
     if before is None:

@@ -107,20 +107,12 @@ fov_v_deg = 10.0
 """
 
 
-@pytest.mark.parametrize("workers", [1, 3])
-def test_the_daemon_ranges_with_the_neighbours_as_the_offline_command(tmp_path, caldir,
-                                                                      workers):
-    """`[range] spatial = true`: a simulated capture of 16 pixels as a 4 x 4 image, a depth
-    edge between its top and bottom halves (1.5 and 2.5 m, few photons), run through the
-    daemon (capture source, one worker or three, whose TDC ranges 0..4, 5..10, 11..15 cut
-    the image's rows, the range stage gathering their parts and ranging with the
-    neighbours, the sink writing point clouds) gives the ranges `tcspc range CAP
-    --calibration C --spatial --geometry G` writes for the same capture, and the truth
-    within 3 sigma on every pixel (detected or not), the edge kept."""
-    import polars as pl
-
+def _edge_topology(tmp_path, caldir, histogram: str, rest: str):
+    """The edge scene's simulated capture (seed 4, 6000 cycles), its 4 x 4 geometry, and a
+    daemon topology on it: a capture source, ``histogram`` (the [histogram] table's lines
+    besides the calibration), then ``rest`` ([range] on). Returns (topology, capture,
+    geometry)."""
     from pipeline.cli import cli
-    from pipeline.stream.daemon import Supervisor
 
     (tmp_path / "edge16.toml").write_text(EDGE16)
     geom = tmp_path / "grid16.toml"
@@ -136,14 +128,34 @@ state = "{tmp_path / 'state'}"
 kind = "capture"
 capture = "{cap}"
 [histogram]
-workers = {workers}
+{histogram}
 calibration = "{caldir}"
+""" + rest.format(caldir=caldir, geom=geom, out=tmp_path / "out"))
+    return topo, cap, geom
+
+
+@pytest.mark.parametrize("workers", [1, 3])
+def test_the_daemon_ranges_with_the_neighbours_as_the_offline_command(tmp_path, caldir,
+                                                                      workers):
+    """`[range] spatial = true`: a simulated capture of 16 pixels as a 4 x 4 image, a depth
+    edge between its top and bottom halves (1.5 and 2.5 m, few photons), run through the
+    daemon (capture source, one worker or three, whose TDC ranges 0..4, 5..10, 11..15 cut
+    the image's rows, the range stage gathering their parts and ranging with the
+    neighbours, the sink writing point clouds) gives the ranges `tcspc range CAP
+    --calibration C --spatial --geometry G` writes for the same capture, and the truth
+    within 3 sigma on every pixel (detected or not), the edge kept."""
+    import polars as pl
+
+    from pipeline.cli import cli
+    from pipeline.stream.daemon import Supervisor
+
+    topo, cap, geom = _edge_topology(tmp_path, caldir, f"workers = {workers}", """
 [range]
 calibration = "{caldir}"
 spatial = true
 max_returns = 2
 [sink]
-out = "{tmp_path / 'out'}"
+out = "{out}"
 pointcloud = "ply"
 geometry = "{geom}"
 """)
@@ -319,29 +331,13 @@ def test_frames_pushed_out_by_hold_are_ranged_again_whole(tmp_path, caldir):
     import polars as pl
     import pyarrow.parquet as pq
 
-    from pipeline.cli import cli
     from pipeline.io.caldir import load_calibration
     from pipeline.io.capture import Capture
     from pipeline.offline.ranging import RangeCore
     from pipeline.stream.daemon import Supervisor
 
-    (tmp_path / "edge16.toml").write_text(EDGE16)
-    geom = tmp_path / "grid16.toml"
-    geom.write_text(GRID16)
-    cap = tmp_path / "cap"
-    cli.main(args=["simulate", str(tmp_path / "edge16.toml"), "--cycles", "6000", "--out",
-                   str(cap), "--seed", "4", "-q"], standalone_mode=False)
-    topo = tmp_path / "topo.toml"
-    topo.write_text(f"""
-[daemon]
-state = "{tmp_path / 'state'}"
-[source]
-kind = "capture"
-capture = "{cap}"
-[histogram]
-workers = 3
-measurement_cycles = 1500
-calibration = "{caldir}"
+    topo, cap, geom = _edge_topology(tmp_path, caldir, "workers = 3\nmeasurement_cycles = 1500",
+                                     """
 [range]
 calibration = "{caldir}"
 spatial = true
@@ -349,7 +345,7 @@ max_returns = 2
 hold = 1
 geometry = "{geom}"
 [sink]
-out = "{tmp_path / 'out'}"
+out = "{out}"
 """)
     res = Supervisor(load_topology(topo, "h1"), log=lambda m: None).run()
     assert res["state"] == "finished", res["problems"]

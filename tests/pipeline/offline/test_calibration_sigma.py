@@ -30,6 +30,22 @@ def calibrated():
     return chip, calibrate(chip, 1)
 
 
+def _boundaries(rng, var, draws):
+    """Monte Carlo tables: code widths 1 + N(0, var) a draw, their boundaries (draws, n,
+    codes + 1)."""
+    widths = 1 + rng.normal(0, 1, (draws,) + var.shape) * np.sqrt(var)[None]
+    return np.concatenate([np.zeros((draws, var.shape[0], 1)), np.cumsum(widths, axis=2)],
+                          axis=2)
+
+
+def _at(b, x):
+    """The boundaries ``b`` read at fractional codes ``x`` (n,), linear within a code."""
+    k = np.floor(x).astype(int)
+    lo = np.take_along_axis(b, k[None, :, None], axis=2)[..., 0]
+    hi = np.take_along_axis(b, k[None, :, None] + 1, axis=2)[..., 0]
+    return lo + (x - k) * (hi - lo)
+
+
 def test_time_sigma_is_the_scatter_of_the_axis_over_width_errors():
     """The linear propagation (``uncertainty.table_sigma_s``, ``range_sigma_s``) against
     Monte Carlo: widths drawn with their variances, the time at a code on the axis that
@@ -41,21 +57,14 @@ def test_time_sigma_is_the_scatter_of_the_axis_over_width_errors():
     x = np.array([37.3, 120.6, 250.2, 410.9])   # the last beyond x_ref
     x_ref = np.full(n, 390.4)
     T = 80e-9
-    widths = 1 + rng.normal(0, 1, (draws, n, 512)) * np.sqrt(var)[None]
-    b = np.concatenate([np.zeros((draws, n, 1)), np.cumsum(widths, axis=2)], axis=2)
+    b = _boundaries(rng, var, draws)
 
-    def at(b, x):
-        k = np.floor(x).astype(int)
-        lo = np.take_along_axis(b, k[None, :, None], axis=2)[..., 0]
-        hi = np.take_along_axis(b, k[None, :, None] + 1, axis=2)[..., 0]
-        return lo + (x - k) * (hi - lo)
-
-    tau = T * at(b, x) / at(b, x_ref)
+    tau = T * _at(b, x) / _at(b, x_ref)
     want = tau.std(axis=0)
     got = uncertainty.table_sigma_s(var, x, x_ref, np.full(n, T / 390.4))
     np.testing.assert_allclose(got, want, rtol=0.06)
     x0 = np.full(n, 200.0)
-    d = tau - T * at(b, x0) / at(b, x_ref)
+    d = tau - T * _at(b, x0) / _at(b, x_ref)
     got_d = uncertainty.range_sigma_s(var, x, x_ref, np.full(n, T / 390.4), x0, x_ref,
                                       np.full(n, T / 390.4))
     np.testing.assert_allclose(got_d, d.std(axis=0), rtol=0.06)
@@ -78,14 +87,7 @@ def test_an_interpolated_scale_takes_the_tables_error_at_the_tests_x_T():
     wts = np.array([[0.3, 0.6, 0.1], [0.0, 0.5, 0.5], [0.9, 0.15, -0.05]])
     x = np.array([150.0, 370.0, 390.0])
     T = 80e-9
-    widths = 1 + rng.normal(0, 1, (draws, n, 512)) * np.sqrt(var)[None]
-    b = np.concatenate([np.zeros((draws, n, 1)), np.cumsum(widths, axis=2)], axis=2)
-
-    def at(b, x):
-        k = np.floor(x).astype(int)
-        lo = np.take_along_axis(b, k[None, :, None], axis=2)[..., 0]
-        hi = np.take_along_axis(b, k[None, :, None] + 1, axis=2)[..., 0]
-        return lo + (x - k) * (hi - lo)
+    b = _boundaries(rng, var, draws)
 
     # s = sum_i w_i s_i, s_i = T / B(x_T,i); the weights as scale_refs gives them are
     # w_i s_i / s at the noise-free table (B(k) = k)
@@ -93,15 +95,15 @@ def test_an_interpolated_scale_takes_the_tables_error_at_the_tests_x_T():
     s0 = (wts * pts).sum(axis=1)
     spline_w = wts  # w_i s_i / s0 = wts when the spline weights are wts * s0 / s_i
     w_spline = spline_w * s0[:, None] / pts
-    s = sum(w_spline[:, i] * T / at(b, codes[:, i]) for i in range(3))
-    tau = s * at(b, x)
+    s = sum(w_spline[:, i] * T / _at(b, codes[:, i]) for i in range(3))
+    tau = s * _at(b, x)
     x_ref = T / s0
     got = uncertainty.table_sigma_s(var, x, x_ref, s0, (codes, spline_w))
     np.testing.assert_allclose(got, tau.std(axis=0), rtol=0.06)
     one = uncertainty.table_sigma_s(var, x_ref, x_ref, s0)
     assert np.all(one < 1e-18)  # the old claim at x_T
     assert np.all(uncertainty.table_sigma_s(var, x_ref, x_ref, s0, (codes, spline_w))
-                  > 0.3 * (s * at(b, x_ref)).std(axis=0))
+                  > 0.3 * (s * _at(b, x_ref)).std(axis=0))
 
 
 def test_the_axis_between_the_levels_is_off_by_what_the_calibration_says():
