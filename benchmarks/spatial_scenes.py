@@ -36,8 +36,14 @@ class Scene:
         return np.isfinite(self.depth[..., 0])
 
 
-def scene(h: int = 64, w: int = 64) -> Scene:
+def scene(h: int = 64, w: int = 64, angle_deg: float = 0.0) -> Scene:
+    """``angle_deg``: the scene turned about the image's centre (its edges then lie
+    along no row, column or diagonal; the corners turned out of the image are lost)."""
     r, c = np.mgrid[0:h, 0:w] / np.array([h, w])[:, None, None]  # 0..1 down and across
+    if angle_deg:
+        a = np.deg2rad(angle_deg)
+        r, c = (0.5 + (r - 0.5) * np.cos(a) - (c - 0.5) * np.sin(a),
+                0.5 + (r - 0.5) * np.sin(a) + (c - 0.5) * np.cos(a))
     d = 6.0 + 2.0 * c                                   # the wall, slanted
     floor = r > 0.75
     d = np.where(floor, 3.0 + 1.0 * (1 - r) / 0.25, d)  # the floor, nearer at the bottom

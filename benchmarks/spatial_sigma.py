@@ -63,11 +63,13 @@ def main() -> None:
     ap.add_argument("--seeds", default="1,2,3,4")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--cells", nargs="*", metavar="S,B")
+    ap.add_argument("--angle", type=float, default=0.0,
+                    help="the scene turned by this many degrees")
     args = ap.parse_args()
     cells = ([tuple(float(x) for x in c.split(",")) for c in args.cells] if args.cells
              else GRID)
     seeds = [int(s) for s in args.seeds.split(",")]
-    sc = scene()
+    sc = scene(angle_deg=args.angle)
     per_pixel(histograms(sc, 1, 1, 0), "fast")  # compile once
     load0 = os.getloadavg()[0]
     print("| signal | background | seed | detected | undetected | all | undetected > 10 cm "

@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from dataclasses import fields
+
 import numpy as np
 import pytest
 
@@ -172,24 +174,19 @@ def test_a_flat_frame_keeps_the_flat_background(lindell_2_50):
 
 
 def test_threads_agree():
+    """Bands of rows give the estimate of one piece, to the bit: each band reads
+    2 window + 2 rows of its neighbours' (a pixel's fit reads its neighbours' background
+    rates, each over the 3 x 3 around it outside the window's strongest candidate).
+    With window + 1, 7 detections and 316 distances differed near the bands' seam once
+    the fit weighed the neighbours by their signed net counts (before that, 25 of the
+    undetected pixels' distances)."""
     sc = scene(48, 40)
-    counts = histograms(sc, 2, 50, 2)
-    a, b = (spatial(counts, BIN_S, SIGMA_S, threads=t) for t in (1, 2))
-    assert np.array_equal(a.detected, b.detected)
-    # (float noise through the windows' whole-bin edges: the same up to a bin's rounding)
-    det = a.detected
-    assert np.allclose(a.t_s[det], b.t_s[det], rtol=0, atol=0.1 * SIGMA_S)
-    # the relabelling runs on the whole image (its sweeps reach further than a band's
-    # halo): the undetected pixels' first return moves only near the bands' seam (row
-    # 24), where the float noise above moved a candidate: 25 of 1,007 here, rows 18-32
-    # (16, rows 18-27, without the block moves, which carry a change along a boundary's
-    # run; 10 before the straight-boundary prior, which reaches 3 pixels; 38 when it ran
-    # in bands)
-    first = ~det[..., 0]
-    moved = first & ~np.isclose(a.t_s[..., 0], b.t_s[..., 0], rtol=0, atol=0.1 * SIGMA_S,
-                                equal_nan=True)
-    assert moved.sum() <= 0.03 * first.sum(), (moved.sum(), first.sum())
-    assert np.all(np.abs(np.nonzero(moved)[0] - 24) <= 9)
+    for seed in (2, 3):
+        counts = histograms(sc, 2, 50, seed)
+        a, b = (spatial(counts, BIN_S, SIGMA_S, threads=t) for t in (1, 2))
+        for f in fields(a):
+            x, y = getattr(a, f.name), getattr(b, f.name)
+            assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), f.name
 
 
 def _edge_scene(slope, h=48, w=48):
@@ -390,3 +387,30 @@ def test_images_smaller_than_the_neighbourhood(shape):
     est = spatial(histograms(Scene(depth, share), 200, 2, 5), BIN_S, SIGMA_S, 1e-3)
     assert est.detected[..., 0].all()
     assert np.all(np.abs(est.t_s[..., 0] * C / 2 - 5.0) < 0.05)
+
+
+def test_a_wedge_of_sky_is_not_surrounded(monkeypatch):
+    """The scene turned by 30 degrees (its edges along no row, column or diagonal) at 10
+    signal and 2 background photons: the sky's pixels at the end of the gap beside the
+    box lie in a wedge narrower than a right angle, where all four corner windows see
+    the objects around them. Their own photons (none, where ~10 are the surface's) refuse
+    the surface: 13 of 480 empty pixels were detected without that, at most 1 % with it;
+    every surface pixel is still detected and covered as before."""
+    from stages.ranging import spatial as sp
+
+    sc = scene(angle_deg=30)
+    counts = histograms(sc, 10, 2, 2)
+    empty = ~sc.surface
+
+    def run():
+        est = spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
+        return est, int(est.detected[..., 0][empty].sum())
+
+    est, false = run()
+    monkeypatch.setattr(sp, "pdtr", lambda k, m: np.ones(np.broadcast(k, m).shape))
+    _, false0 = run()
+    assert false <= 0.01 * empty.sum() and false0 >= 2 * max(false, 3), (false, false0)
+    det = est.detected[..., 0][sc.surface]
+    assert det.mean() >= 0.99
+    err = _errors(sc, est.t_s[..., 0] * C / 2)
+    assert np.mean(err[det] < 2 * (est.sigma_s[..., 0] * C / 2)[sc.surface][det]) >= 0.93
