@@ -532,7 +532,11 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         own[..., r] = found & own_r
         # (ranking by the excess counts of the pixel and its 8 nearest instead of its own
         # left more pixels > 10 cm off in most cells of Lindell's grid: not kept)
-        rank[..., r] = (np.where(found, 0.0, -1e8) + nquad * 1e6
+        # (the pixel's own detection first: a surface its corner windows see and its own
+        # photons do not, beside a depth edge, is the neighbours' more than its own; the
+        # scene turned by 30 degrees at (10, 50): 10 pixels > 10 cm off with a wrong
+        # first return and the right one second)
+        rank[..., r] = (np.where(found, 0.0, -1e8) + (found & own_r) * 1e7 + nquad * 1e6
                         + (mine - bw) * 1e3 + sig_cnt[..., r])
         surr[..., r] = found & quad
     # two candidates that settled on one surface are one
