@@ -6,9 +6,8 @@ from __future__ import annotations
 
 import subprocess
 import sys
-from pathlib import Path
-
 from dataclasses import fields
+from pathlib import Path
 
 import numpy as np
 import pytest
