@@ -6,6 +6,8 @@ and the daemon SIGTERMed the range stage 3 s later. A sender now stays connected
 consumer hangs up (pipeline.stream.hangup)."""
 
 import json
+import os
+import signal
 import threading
 import time
 from pathlib import Path
@@ -19,7 +21,8 @@ from pipeline.stream.topology import load_topology
 SCENE = (Path(__file__).parents[3] / "scenes" / "small16.toml").read_text()
 
 
-def _run(tmp_path, caldir, workers: int) -> tuple[dict, dict, list[str], Supervisor]:
+def _run(tmp_path, caldir, workers: int, mc: int, during=None
+         ) -> tuple[dict, dict, list[str], Supervisor]:
     (tmp_path / "small.toml").write_text(SCENE)
     topo = tmp_path / "topo.toml"
     topo.write_text(f"""
@@ -32,7 +35,7 @@ cycles = 6000
 seed = 4
 [histogram]
 workers = {workers}
-measurement_cycles = 302
+measurement_cycles = {mc}
 artifacts = "count-as-hits"
 [range]
 calibration = "{caldir}"
@@ -41,13 +44,19 @@ out = "{tmp_path / 'out'}"
 """)
     lines: list[str] = []
     sup = Supervisor(load_topology(topo, "e"), log=lines.append)
-    res = sup.run()
+    res = {}
+    t = threading.Thread(target=lambda: res.update(sup.run()))
+    t.start()
+    if during is not None:
+        during(sup)
+    t.join(timeout=120)
+    assert not t.is_alive(), "the daemon did not finish"
     stages = json.loads((tmp_path / "state" / "status.json").read_text())["stages"]
     return res, stages, lines, sup
 
 
-def _every_link_delivers(tmp_path, caldir, workers):
-    res, st, lines, sup = _run(tmp_path, caldir, workers)
+def _every_link_delivers(tmp_path, caldir, workers, mc=302, during=None):
+    res, st, lines, sup = _run(tmp_path, caldir, workers, mc, during)
     assert res["state"] == "finished", res["problems"]
     names = [f"histogram-{i}" for i in range(workers)]
     # per link: what one side sent (data messages) is what the other received, its stops
@@ -55,7 +64,7 @@ def _every_link_delivers(tmp_path, caldir, workers):
     for h in names:
         assert st[h]["received"] == st["source"]["sent"] + 1, (h, st[h], st["source"])
     sent = [st[h]["sent"] for h in names]
-    assert min(sent) >= 20  # (302-cycle measurements of 6000 cycles: 20 each)
+    assert sent == [-(-6000 // mc)] * workers  # (302 cycles a measurement: 20 each)
     assert st["range"]["received"] == sum(sent) + workers, (sent, st["range"])
     assert st["sink"]["received"] == st["range"]["sent"] + 1
     assert all(st[n]["unacknowledged"] == 0 for n in [*names, "range"])
@@ -68,6 +77,37 @@ def _every_link_delivers(tmp_path, caldir, workers):
 
 def test_every_message_of_three_workers_reaches_the_range_stage(tmp_path, caldir):
     _every_link_delivers(tmp_path, caldir, 3)
+
+
+def _pause_the_range_stage(sup, hold_s=5.0):
+    """SIGSTOP the range stage as soon as it is started, until the workers have finished
+    (their few messages fit in their queues), then ``hold_s`` more: they wait, past the
+    daemon's 3 s grace, for a consumer that takes nothing (not even a connection)."""
+    deadline = time.time() + 60
+    while time.time() < deadline:
+        p = sup.by_name["range"].popen
+        if p is not None:
+            os.kill(p.pid, signal.SIGSTOP)
+            try:
+                while not all(
+                        sup.metrics.get(f"histogram-{i}", {}).get("state") == "finished"
+                        for i in range(3)):
+                    assert time.time() < deadline, "the workers did not finish"
+                    time.sleep(0.05)
+                time.sleep(hold_s)
+            finally:
+                os.kill(p.pid, signal.SIGCONT)
+            return
+        time.sleep(0.01)
+    raise AssertionError("the range stage never reported")
+
+
+def test_workers_wait_for_a_range_stage_slower_than_the_grace(tmp_path, caldir):
+    """The workers have sent everything and reported finished; the range stage takes
+    nothing for 5 s. The daemon does not take the workers for stuck (a SIGTERM would cut
+    their wait short and lose their last messages): each waits, and the range stage gets
+    all once it goes on."""
+    _every_link_delivers(tmp_path, caldir, 3, 3000, _pause_the_range_stage)
 
 
 @pytest.mark.slow
