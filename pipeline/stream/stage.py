@@ -628,10 +628,10 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
         if writer is not None:
             writer.shutdown(wait=True)
             writer = None
+        at_end = consumers.at_end()  # (before a consumer can end on the journal's end)
         if journal is not None:  # the run's end is on disk before anyone hears of it
             journal.close(complete=not halt.is_set())  # (a signal: a stop, resumable)
             journal = None
-        at_end = consumers.at_end()
         for tx in txs:
             tx.send_multipart(wire.encode({"kind": "stop", "schema": RAW_WORDS.name,
                                            "version": RAW_WORDS.version, "run": run,
