@@ -378,8 +378,12 @@ class Supervisor:
                     # a stage paused on a full disk is waiting, not stuck: ended now, what
                     # it holds would be written by the reconciliation onto the same disk
                     paused = heard and m.get("state") == "paused"
+                    # one that reported "finished" has taken its stops and sent its own:
+                    # it waits (bounded) for its consumer to hang up, and a SIGTERM there
+                    # would cut that wait short (pipeline.stream.hangup)
+                    ending = heard and m.get("state") == "finished"
                     if p.upstream_done_at is None or got != p.last_received or starting \
-                            or paused:
+                            or paused or ending:
                         p.upstream_done_at = now  # still working: not stuck
                         p.last_received = got
                     grace = self._grace()

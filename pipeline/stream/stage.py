@@ -22,6 +22,7 @@ import zmq
 
 from pipeline.io.atomic import atomic_path
 from pipeline.stream import wire
+from pipeline.stream.hangup import END_WAIT_S, Consumers
 from pipeline.stream.metrics import Metrics
 from pipeline.stream.state import write_under
 from schemas.errors import Rejected, TcspcError
@@ -64,6 +65,7 @@ class StageStats:
     checkpoint_failures: int = 0  #: checkpoints a full disk refused (skipped)
     paused_s: float = 0.0        #: time waiting for a full disk
     unwritten: int = 0           #: messages given up on a full disk at a signal (journaled)
+    unacknowledged: int = 0      #: consumers that did not hang up after the stop (hangup)
 
     def fields(self, core=None) -> dict:
         out = {"received": self.received, "sent": self.sent,
@@ -71,7 +73,8 @@ class StageStats:
                "checkpoints_discarded": self.checkpoints_discarded,
                "quarantine_dropped": self.quarantine_dropped,
                "checkpoint_failures": self.checkpoint_failures,
-               "paused_s": round(self.paused_s, 1), "unwritten": self.unwritten}
+               "paused_s": round(self.paused_s, 1), "unwritten": self.unwritten,
+               "unacknowledged": self.unacknowledged}
         for name in ("words_total", "measurement", "gap_words", "backfilled", "duplicates",
                      "incomplete_frames"):
             if hasattr(core, name):
@@ -105,10 +108,11 @@ def own_context(context: zmq.Context | None) -> tuple[zmq.Context, bool]:
 
 def end_context(ctx: zmq.Context) -> None:
     """End a stage's own context once its sockets are closed. ZeroMQ sends from a
-    background thread: a process that exits without this loses what is still queued (the
-    last measurements and the stop of a stage whose consumer is slower, which the daemon
-    then had to SIGTERM and rebuild from the journal). ``term()`` returns once they are
-    delivered or the sockets' linger has run out."""
+    background thread: a process that exits without this loses what is still queued in
+    it; ``term()`` returns once that is written to the connection or the sockets' linger
+    has run out. Written is not read: over ipc:// what the consumer has not read is lost
+    when the sender closes, so a sender first waits for its consumer to hang up
+    (:mod:`pipeline.stream.hangup`)."""
     from pipeline.stream.curve import release
 
     release(ctx)
@@ -261,7 +265,8 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
               max_bytes: int = wire.MAX_MESSAGE_BYTES,
               quarantine_max_files: int = QUARANTINE_MAX_FILES,
               quarantine_max_bytes: int = QUARANTINE_MAX_BYTES,
-              senders: list[str] | None = None) -> StageStats:
+              senders: list[str] | None = None,
+              end_wait_s: float = END_WAIT_S) -> StageStats:
     """Run ``core`` between ``pull`` (bound) and ``push`` (connected) until a stop message,
     a signal or ``stop`` is set. Returns the counts.
 
@@ -281,7 +286,11 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
     (``bad_token``) and every message sent carries it. A checkpoint that cannot be trusted
     is set aside (``.bad``) with its reason on stderr, and the core rebuilds from the
     journal. ``senders``: the step ids this stage takes messages from (None: any); a
-    message from another is rejected (``unknown_sender``)."""
+    message from another is rejected (``unknown_sender``). At its end, after its stop, it
+    waits up to ``end_wait_s`` for its consumer to hang up (its acknowledgement: ZeroMQ's
+    ipc transport loses what a consumer has not read when the sender closes, whatever the
+    linger; :mod:`pipeline.stream.hangup`); one that does not is counted in
+    ``unacknowledged``."""
     ctx, own = own_context(context)
     stats = StageStats()
     token = token if token is not None else wire.load_token()
@@ -307,14 +316,16 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
     idle = 0.0
     rx = _socket(ctx, zmq.PULL, hwm, max_bytes)
     bind(rx, pull)
-    tx = None
+    tx = consumers = None
     if push:
         tx = _socket(ctx, zmq.PUSH, hwm)
+        consumers = Consumers([tx])  # (watched from before it connects)
         connect(tx, push)
     last = {"run": "run", "seq": 0}
     beat = Metrics(metrics, name or core.step_id, ctx, token=token)
     stopped_by: set[str] = set()
     given_up: list = []  # non-empty once a signal gave up on an unresponsive consumer
+    gone = [False]  # the consumer hung up after the stop: nothing left to linger over
 
     def deliver(frames) -> bool:
         """Send, waiting while downstream is full (back-pressure); after a signal, a
@@ -434,6 +445,7 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
             if ckpt is not None and time.monotonic() - saved_at >= checkpoint_every_s:
                 checkpoint()
                 saved_at = time.monotonic()
+        rx.close(linger=0)  # taken all it will: its hang-up lets the senders upstream end
         try:
             send(retry_disk_full(core.finish, last))
         except _GaveUp:
@@ -445,13 +457,24 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
                          "version": core.out_spec.version, "run": last.get("run", "run"),
                          "seq": stats.sent, "step": core.step_id,
                          "rejected": dict(stats.rejected)}
-            deliver(wire.encode(stop_head, None, token))
+            at_end = consumers.at_end()
+            if deliver(wire.encode(stop_head, None, token)):
+                # the consumer's hang-up acknowledges the stop: closing before it loses what
+                # it has not read yet (hangup.py); after a signal, drain_ms at most
+                gone = consumers.wait(at_end, end_wait_s, beat, stop, drain_ms / 1000,
+                                      **stats.fields(core))
+                stats.unacknowledged = consumers.unacknowledged
+                if stats.unacknowledged:
+                    _log(f"its consumer at {push} did not hang up within {end_wait_s:g} s "
+                         "of its stop; what it has not read may be lost (the journal and the "
+                         "run's reconciliation have it)")
         beat.beat(force=True, state="finished", **stats.fields(core))
     finally:
         beat.close()
         rx.close(linger=0)
         if tx is not None:
-            tx.close(linger=0 if stop.is_set() else END_LINGER_MS)
+            consumers.close()
+            tx.close(linger=0 if stop.is_set() or gone[0] else END_LINGER_MS)
         if own:
             end_context(ctx)
     return stats
@@ -462,7 +485,8 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
                context: zmq.Context | None = None, journal=None,
                split: list[tuple[int, int]] | None = None, metrics: str | None = None,
                window_ns: float | None = None, date: str | None = None,
-               token: str | None = None, stable: int = 0, sparse: bool = False) -> int:
+               token: str | None = None, stable: int = 0, sparse: bool = False,
+               end_wait_s: float = END_WAIT_S) -> int:
     """Send ``(first_word, words)`` batches as raw_words messages, then a stop. Returns the
     words sent. ``rate_words_s`` limits the rate (None: as fast as the consumer takes).
     With a ``journal`` (JournalWriter) every batch is journaled before it is sent. With
@@ -475,7 +499,8 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
     thesis chip's words as ``raw_sparse`` messages (only the words that are not their
     position's plain no_hit word, with their index: docs/streaming.md "Sparse raw words"),
     made in the one pass that cuts the fan-out's ranges; the journal still takes every
-    word."""
+    word. After the stops it waits up to ``end_wait_s`` for each consumer to hang up
+    (:mod:`pipeline.stream.hangup`)."""
     import numpy as np
 
     from pipeline.stream.fanout import TdcSplitter
@@ -493,11 +518,11 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
         raise ValueError("several endpoints need TDC ranges to split by")
     ctx, own = own_context(context)
     token = token if token is not None else wire.load_token()
-    txs = []
-    for ep in pushes:
-        tx = _socket(ctx, zmq.PUSH, hwm)
+    txs = [_socket(ctx, zmq.PUSH, hwm) for _ in pushes]
+    consumers = Consumers(txs)  # (watched from before they connect)
+    for tx, ep in zip(txs, pushes, strict=True):
         connect(tx, ep)
-        txs.append(tx)
+    gone = [False] * len(txs)
     beat = Metrics(metrics, step_id, ctx, token=token)
     halt = threading.Event()
     if threading.current_thread() is threading.main_thread():
@@ -603,6 +628,7 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
         if writer is not None:
             writer.shutdown(wait=True)
             writer = None
+        at_end = consumers.at_end()  # (before a consumer can end on the journal's end)
         if journal is not None:  # the run's end is on disk before anyone hears of it
             journal.close(complete=not halt.is_set())  # (a signal: a stop, resumable)
             journal = None
@@ -611,17 +637,26 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
                                            "version": RAW_WORDS.version, "run": run,
                                            "seq": seq, "step": step_id, "words": sent},
                                           None, token))
-        beat.beat(force=True, state="finished", sent=seq, words=sent,
-                  blocked_s=round(blocked, 3))
+        done = {"sent": seq, "words": sent, "blocked_s": round(blocked, 3)}
+        beat.beat(force=True, state="finished", **done)
+        # each worker's hang-up acknowledges its stop (hangup.py); a signal ended the run,
+        # not this wait: the stops of an interrupted run are waited for the same
+        gone = consumers.wait(at_end, end_wait_s, beat, **done)
+        if consumers.unacknowledged:
+            _log(f"{consumers.unacknowledged} of {len(txs)} consumers did not hang up "
+                 f"within {end_wait_s:g} s of their stop")
+            beat.beat(force=True, state="finished", unacknowledged=consumers.unacknowledged,
+                      **done)
     finally:
         if writer is not None:
             writer.shutdown(wait=True)
         if journal is not None:
             journal.close()
         beat.close()
+        consumers.close()
         # wait (bounded) for a restarted consumer to take what is queued, the stop included
-        for tx in txs:
-            tx.close(linger=60_000)
+        for tx, left in zip(txs, gone, strict=True):
+            tx.close(linger=0 if left else 60_000)
         if own:
             end_context(ctx)
     return sent

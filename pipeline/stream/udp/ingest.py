@@ -21,6 +21,7 @@ import numpy as np
 import zmq
 
 from pipeline.stream import datagram, wire
+from pipeline.stream.hangup import END_WAIT_S, Consumers
 from pipeline.stream.journal import JournalWriter
 from pipeline.stream.stage import Quarantine, _socket, connect, end_context, own_context
 from pipeline.stream.udp.order import (
@@ -35,9 +36,6 @@ from pipeline.stream.udp.senders import Senders, parse_peers, sender_name
 from schemas.words import RAW_WORDS
 
 BATCH_WORDS = 1 << 18  # 1 MiB messages
-#: At the run's end, how long to wait for the consumers to hang up (each ends within its
-#: idle_after_s, 2 s, of the journal's end) before lingering over the ones still connected.
-END_WAIT_S = 3.0
 REORDER_LINGER_S = 0.5         #: after the last datagram, wait this long for stragglers
 GATE_PS = (1_000, 10_000_000)  #: a gate outside 1 ns .. 10 us is not a gate
 RING_DATAGRAMS = 4096          #: received, not yet journaled (<= 256 MiB of datagrams)
@@ -158,15 +156,13 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     ctx, own = own_context(context)
     token = token if token is not None else wire.load_token()
     pushes = [push] if isinstance(push, str) else list(push)
-    # each consumer's connection, watched from before it is made: one that hangs up after
-    # its stop went out has all it will ever take, and nothing is lingered over for it
-    # (_hung_up)
-    txs, monitors = [], []
-    for ep in pushes:
-        tx = _socket(ctx, zmq.PUSH, 4)
-        monitors.append(tx.get_monitor_socket(zmq.EVENT_CONNECTED | zmq.EVENT_DISCONNECTED))
+    # each consumer's connection, watched from before it is made: the ingest stays
+    # connected until each has hung up after the run's end (its acknowledgement), and one
+    # that hung up has all it will ever take: nothing is lingered over for it (hangup.py)
+    txs = [_socket(ctx, zmq.PUSH, 4) for _ in pushes]
+    consumers = Consumers(txs)
+    for tx, ep in zip(txs, pushes, strict=True):
         connect(tx, ep)
-        txs.append(tx)
     if (split is not None and len(split) != len(txs)) or (split is None and len(txs) != 1):
         raise ValueError("one TDC range per endpoint")
     beat = Metrics(metrics, "source", ctx, token=token)
@@ -570,7 +566,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             take(r)
         flush()
         stats.gap_cycles, stats.lost_datagrams = reasm.gap_cycles, reasm.lost()
-        at_end = _connections(monitors)  # (before a consumer can end on the end)
+        at_end = consumers.at_end()  # (before a consumer can end on the end)
         if writer is not None:  # the run's end is on disk before anyone hears of it
             writer.close(complete=not stop.is_set())  # (a signal: a stop, resumable)
             stats.journal = [str(p) for p in writer.segments]
@@ -623,49 +619,13 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             writer.close()
             stats.journal = [str(p) for p in writer.segments]
         sent_all = not tx_thread.is_alive() and not gave_up and at_end is not None
-        gone = (_hung_up(monitors, beat, at_end, end_wait_s) if sent_all
+        gone = (consumers.wait(at_end, end_wait_s, beat, **stats.fields()) if sent_all
                 else [False] * len(txs))
-        for tx, mon, left in zip(txs, monitors, gone, strict=True):
-            tx.disable_monitor()
-            mon.close(linger=0)
+        consumers.close()
+        for tx, left in zip(txs, gone, strict=True):
             tx.close(linger=60_000 if sent_all and not left else 0)
         beat.close()
         if own and not tx_thread.is_alive():  # (a sender still stuck keeps its sockets)
             end_context(ctx)
     return stats
 
-
-def _connections(monitors: list, known: list | None = None) -> list:
-    """Each consumer's last connection event (``zmq.EVENT_CONNECTED`` or
-    ``EVENT_DISCONNECTED``; ``known`` where none came since), its monitor read to the end."""
-    from zmq.utils.monitor import recv_monitor_message
-
-    out = list(known) if known is not None else [None] * len(monitors)
-    for i, mon in enumerate(monitors):
-        while mon.poll(0):
-            out[i] = recv_monitor_message(mon)["event"]
-    return out
-
-
-def _hung_up(monitors: list, beat, at_end: list, wait_s: float = END_WAIT_S) -> list[bool]:
-    """Which consumers hung up after the run's end (``at_end``: their connections when the
-    end was journaled, before any stop went out). A consumer ends only on its stop or on
-    the journal's end, after everything before them: one that hung up since has all it
-    will take, and its socket is closed without lingering. (ZeroMQ otherwise waited out the
-    linger for a stop still queued to a consumer that had ended on the journal's end: ~1
-    run in 10 ending on ``idle``, 60 s.) Waits up to ``wait_s`` for the ones still
-    connected (reporting "finished" each second), then leaves them to the linger (which
-    ends as soon as what they were sent is delivered); one not connected at the end
-    (restarting) keeps its stop queued for it."""
-    watch = [ev == zmq.EVENT_CONNECTED for ev in at_end]
-    state = list(at_end)
-    t_end = time.monotonic() + wait_s
-    while True:
-        state = _connections(monitors, state)
-        gone = [w and ev == zmq.EVENT_DISCONNECTED
-                for w, ev in zip(watch, state, strict=False)]
-        if all(g or not w for g, w in zip(gone, watch, strict=True)) \
-                or time.monotonic() >= t_end:
-            return gone
-        beat.beat(state="finished")
-        time.sleep(0.02)

@@ -93,7 +93,7 @@ def test_udp_ingest_accounts_for_every_datagram(tmp_path):
     result = {}
     t = threading.Thread(target=lambda: result.update(s=run_udp_ingest(
         sock, ep, run="u1", journal=tmp_path / "journal", quarantine=tmp_path / "q",
-        idle_s=10, context=ctx)))
+        idle_s=10, context=ctx, end_wait_s=0)))  # (read after it ended)
     t.start()
     words, _ = pattern_words(40 * 32, 128, hit_prob=0.1, rng=2)
     out = pysocket.socket(pysocket.AF_INET, pysocket.SOCK_DGRAM)
@@ -213,6 +213,7 @@ def test_a_stage_that_exits_delivers_what_it_queued_for_a_slow_consumer(tmp_path
             parts.append(sw.dense(head["first_word"], 16))
             got += sw.size
             time.sleep(0.05)  # a consumer slower than the source: its queue is full
+        rx.close(linger=0)  # a stage hangs up once it has its stop: the source then ends
         assert proc.wait(timeout=60) == 0
     finally:
         proc.kill()

@@ -9,7 +9,7 @@ import time
 
 import zmq
 
-from pipeline.stream.udp.ingest import _connections, _hung_up
+from pipeline.stream.hangup import Consumers
 
 
 class _Beat:
@@ -24,7 +24,7 @@ def _pair(ctx, path):
     pull = ctx.socket(zmq.PULL)
     pull.bind(f"ipc://{path}")
     push = ctx.socket(zmq.PUSH)
-    mon = push.get_monitor_socket(zmq.EVENT_CONNECTED | zmq.EVENT_DISCONNECTED)
+    mon = Consumers([push])
     push.connect(f"ipc://{path}")
     push.send(b"words")
     assert pull.recv() == b"words"
@@ -32,8 +32,7 @@ def _pair(ctx, path):
 
 
 def _close(ctx, push, mon, gone):
-    push.disable_monitor()
-    mon.close(linger=0)
+    mon.close()
     push.close(linger=60_000 if not gone else 0)
     t0 = time.monotonic()
     ctx.term()
@@ -43,12 +42,12 @@ def _close(ctx, push, mon, gone):
 def test_a_consumer_that_ended_on_the_journals_end_is_not_lingered_over(tmp_path):
     ctx = zmq.Context()
     pull, push, mon = _pair(ctx, tmp_path / "a")
-    at_end = _connections([mon])
+    at_end = mon.at_end()
     assert at_end == [zmq.EVENT_CONNECTED]
     pull.close(linger=0)  # the worker ended on the journal's end ...
     time.sleep(0.2)
     push.send(b"stop", zmq.NOBLOCK)  # ... before its stop, now queued to nobody
-    gone = _hung_up([mon], _Beat(), at_end, wait_s=10)
+    gone = mon.wait(at_end, 10, _Beat())
     assert gone == [True]
     assert _close(ctx, push, mon, gone[0]) < 3  # (60 s lingered before)
 
@@ -56,16 +55,15 @@ def test_a_consumer_that_ended_on_the_journals_end_is_not_lingered_over(tmp_path
 def test_a_consumer_still_taking_is_waited_for_then_lingered_over(tmp_path):
     ctx = zmq.Context()
     pull, push, mon = _pair(ctx, tmp_path / "b")
-    at_end = _connections([mon])
+    at_end = mon.at_end()
     push.send(b"stop")
     beat = _Beat()
     t0 = time.monotonic()
-    gone = _hung_up([mon], beat, at_end, wait_s=0.5)  # it never hangs up
+    gone = mon.wait(at_end, 0.5, beat)  # it never hangs up
     assert gone == [False] and time.monotonic() - t0 >= 0.5 and "finished" in beat.states
     assert pull.recv() == b"stop"
     pull.close(linger=0)
-    push.disable_monitor()
-    mon.close(linger=0)
+    mon.close()
     push.close(linger=1000)
     ctx.term()
 
@@ -77,15 +75,14 @@ def test_a_consumer_gone_before_the_end_keeps_its_stop_queued(tmp_path):
     pull, push, mon = _pair(ctx, tmp_path / "c")
     pull.close(linger=0)
     time.sleep(0.2)
-    at_end = _connections([mon])
+    at_end = mon.at_end()
     assert at_end == [zmq.EVENT_DISCONNECTED]
     push.send(b"stop", zmq.NOBLOCK)
-    assert _hung_up([mon], _Beat(), at_end, wait_s=10) == [False]
+    assert mon.wait(at_end, 10, _Beat()) == [False]
     again = ctx.socket(zmq.PULL)  # the restarted worker binds again and gets it
     again.bind(f"ipc://{tmp_path / 'c'}")
     assert again.poll(5000) and again.recv() == b"stop"
     again.close(linger=0)
-    push.disable_monitor()
-    mon.close(linger=0)
+    mon.close()
     push.close(linger=0)
     ctx.term()

@@ -39,7 +39,7 @@ def _ingest(tmp_path, name, schedule, **kw):
     res = {}
     t = threading.Thread(target=lambda: res.update(s=run_udp_ingest(
         sock, ep, run=name, journal=tmp_path / name, quarantine=tmp_path / f"q-{name}",
-        idle_s=5, context=ctx, **kw)))
+        idle_s=5, context=ctx, end_wait_s=0, **kw)))  # (read after it ends)
     t.start()
     out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     for data in schedule:
@@ -324,7 +324,8 @@ def test_a_stalled_stage_downstream_loses_no_datagram(tmp_path):
     port = sock.getsockname()[1]
     res = {}
     ingest = threading.Thread(target=lambda: res.update(s=run_udp_ingest(
-        sock, ep, run="st", journal=tmp_path / "j", idle_s=10, context=ctx, send_queue=2)))
+        sock, ep, run="st", journal=tmp_path / "j", idle_s=10, context=ctx, send_queue=2,
+        end_wait_s=0)))  # (its consumer hangs up after it ended)
     ingest.start()
     out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     for i in range(n):
@@ -338,7 +339,8 @@ def test_a_stalled_stage_downstream_loses_no_datagram(tmp_path):
     sink = ctx.socket(zmq.PULL)
     sink.bind(f"ipc://{tmp_path}/out.sock")
     stage = run_stage(core, ep, f"ipc://{tmp_path}/out.sock", context=ctx,
-                      run_ended=lambda: run_end(tmp_path / "j", "st"))
+                      run_ended=lambda: run_end(tmp_path / "j", "st"),
+                      end_wait_s=0)  # (this test reads its output after it returned)
     ingest.join(timeout=60)
     assert not ingest.is_alive()
     head, batch = wire.decode(sink.recv_multipart())
