@@ -1,0 +1,228 @@
+"""The daemon's range stage with the neighbours (``[range] spatial = true``, issue 35.3) on a
+chip of the zoo, not the simulator's default one, laid out on an odd, non-square grid, and
+stopped by Ctrl-C while it holds parts of frames (docs/streaming.md "Ranging with the
+neighbours in the daemon", docs/ranging.md "On the chip")."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from pipeline.io.caldir import load_calibration
+from pipeline.io.capture import Capture
+from pipeline.io.geometry import load_geometry
+from pipeline.offline.ranging import RangeCore
+from pipeline.offline.simulate import simulate_capture, simulated_calibration
+from pipeline.offline.spatial import UNPLACED
+from pipeline.stream.topology import load_topology
+from stages.histogram import HistogramAccumulator
+from stages.models.scene import scene_from_dict
+from stages.simulator.chip import REAL_CHIP_RANGES, random_chip
+
+N = 16
+#: 3 rows of 5: TDCs 0..14 placed (row = tdc // 5), TDC 15 has no pixel; the three
+#: workers' TDC ranges (0..4, 5..10, 11..15) cut the second and third rows
+GRID = 'name = "grid3x5"\n[grid]\nrows = 3\ncols = 5\nfov_h_deg = 12.0\nfov_v_deg = 7.0\n'
+#: the zoo's chip 2 (a real chip's random DNL and INL bow; its LSB 198 ps at no light,
+#: +51 ps with light), as benchmarks/spatial_chip.py --zoo 2 draws it
+ZOO = {**REAL_CHIP_RANGES, "n_sat": (0.5, 1.5), "artifact_rate": (0.0, 6e-4)}
+ON = ["measurement", "tdc", "return_index"]
+
+
+def _edge(refl: float = 0.0005):
+    """The top row (TDCs 0..4) at 1.5 m, the rest at 2.5 m, 800 lux."""
+    return scene_from_dict({
+        "name": "edge", "sensor": {"n_pixels": N},
+        "gate": {"t_laser_win_ns": 140.0, "delay_ns": 100.0},
+        "targets": [{"pixels": [0, 4], "distance_m": 1.5, "reflectivity": refl,
+                     "surface": "mirror"},
+                    {"pixels": [5, N - 1], "distance_m": 2.5, "reflectivity": refl,
+                     "surface": "mirror"}],
+        "ambient": [{"kind": "lux", "lux": 800.0}]})
+
+
+@pytest.fixture(scope="module")
+def zoo(tmp_path_factory):
+    """(chip, calibration directory, geometry file) of the zoo's chip 2."""
+    d = tmp_path_factory.mktemp("zoo")
+    chip, _ = random_chip(2, N, ZOO)
+    (d / "grid.toml").write_text(GRID)
+    return chip, simulated_calibration(d, N, chip), d / "grid.toml"
+
+
+def _topology(tmp_path, cal, geom, cap, extra_source: str = "", histogram: str = ""):
+    topo = tmp_path / "topo.toml"
+    topo.write_text(f"""
+[daemon]
+state = "{tmp_path / 'state'}"
+[source]
+kind = "capture"
+capture = "{cap}"
+{extra_source}
+[histogram]
+workers = 3
+calibration = "{cal}"
+{histogram}
+[range]
+calibration = "{cal}"
+spatial = true
+max_returns = 2
+geometry = "{geom}"
+[sink]
+out = "{tmp_path / 'out'}"
+""")
+    return topo
+
+
+def _ranges(tmp_path, run) -> pl.DataFrame:
+    return pl.read_parquet(tmp_path / "out" / "ranges" / "date=*" / f"run={run}" / "*.parquet")
+
+
+def test_a_zoo_chip_on_an_odd_grid_streams_the_offline_rows(tmp_path, zoo):
+    """A chip of the zoo (other LSB, DNL, INL bow, second stage and reset peak than the
+    simulator's default), 16 TDCs on a 3 x 5 grid (TDC 15 without a pixel), three workers
+    whose parts cut the grid's rows: the daemon writes the rows `tcspc range CAP
+    --calibration C --spatial --geometry G` writes for the same capture, to the bit, TDC 15
+    flagged and not detected, and the truth within 3 sigma on every detected pixel."""
+    from pipeline.cli import cli
+    from pipeline.stream.daemon import Supervisor
+
+    chip, cal, geom = zoo
+    cap = tmp_path / "cap"
+    simulate_capture(_edge(), 6000, cap, chip=chip, seed=104)
+    res = Supervisor(load_topology(_topology(tmp_path, cal, geom, cap), "z"),
+                     log=lambda m: None).run()
+    assert res["state"] == "finished", res["problems"]
+    assert res["accounting"]["spatial_incomplete_frames"] == 0
+    live = _ranges(tmp_path, "z")
+    cli.main(args=["range", str(cap), "--calibration", str(cal), "--spatial", "--geometry",
+                   str(geom), "--out", str(tmp_path / "off.parquet"), "-q"],
+             standalone_mode=False)
+    off = pl.read_parquet(tmp_path / "off.parquet")
+    on = ["tdc", "return_index"]
+    cols = ["distance_m", "sigma_m", "detected", "signal_counts", "flag"]
+    assert live.sort(on).select(on + cols).equals(off.sort(on).select(on + cols))
+    first = live.filter(pl.col("return_index") == 0).sort("tdc")
+    assert first["tdc"].to_list() == list(range(N))
+    assert first["flag"][N - 1] == UNPLACED and not first["detected"][N - 1]
+    placed = first.head(N - 1)
+    assert placed["detected"].sum() >= 13
+    truth = np.where(placed["tdc"].to_numpy() < 5, 1.5, 2.5)
+    det = placed["detected"].to_numpy()
+    z = np.abs(placed["distance_m"].to_numpy() - truth) / placed["sigma_m"].to_numpy()
+    assert z[det].max() < 3, z
+
+
+def _status(state: Path) -> dict:
+    try:
+        return json.loads((state / "status.json").read_text())["stages"]
+    except (OSError, ValueError, KeyError):
+        return {}
+
+
+def _daemon(topo, run):
+    return subprocess.Popen([sys.executable, "-m", "pipeline.cli", "daemon", "--config",
+                             str(topo), "--run", run], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def _whole_frames(tmp_path, run, cal, geom, meta, n_meas) -> pl.DataFrame:
+    """Each measurement's rows as its whole frame gives them in one message: its
+    histograms parts from the datasets, joined, ranged apart."""
+    core = RangeCore(load_calibration(cal), spatial=load_geometry(geom), max_returns=2,
+                     forward_histograms=False)
+    want = []
+    for k in range(n_meas):
+        parts = sorted((tmp_path / "out" / "histograms").rglob(f"part-{k:06d}-t*.parquet"))
+        t = pa.concat_tables([pq.read_table(p).replace_schema_metadata(None)
+                              for p in parts]).combine_chunks()
+        head = {"run": run, "measurement": f"{run}-m{k:06d}", "measurement_index": k,
+                "tdc_range": [0, N], "n_tdc_total": N, "window_ns": meta.window_ns,
+                "t_laser_win_ns": meta.t_laser_win_ns}
+        want += [pl.from_arrow(b) for _, b in core.process(head, t.to_batches()[0])]
+    return pl.concat(want)
+
+
+def test_ctrl_c_while_the_range_stage_holds_parts_then_resume(tmp_path, zoo):
+    """Ctrl-C (SIGINT to `tcspc daemon`) while the range stage holds parts of frames whose
+    third worker's part has not come (that worker stopped, then killed, so that its parts
+    never reach the stage before the stop): the run is "interrupted" (exit 130), the frames
+    held are ranged at the stop without that part, flagged, and ranged again whole by the
+    run's reconciliation; started again with the same --run it finishes (exit 0), and
+    every measurement is in the datasets once: its histograms those of the capture's words
+    [kMN, (k+1)MN), its ranges the rows its whole frame gives (no row twice, none flagged,
+    none missing)."""
+    chip, cal, geom = zoo
+    cap = tmp_path / "cap"
+    cycles, mc = 300_000, 20_000  # 4.8 M words: 5 source batches of 65 536 cycles
+    simulate_capture(_edge(), cycles, cap, chip=chip, seed=7)
+    topo = _topology(tmp_path, cal, geom, cap, "rate = 1e6",
+                     f"measurement_cycles = {mc}")
+    state = tmp_path / "state"
+    p = _daemon(topo, "c")
+    stopped = None
+    held = 0
+    deadline = time.time() + 90
+    try:
+        while time.time() < deadline:
+            st = _status(state)
+            if stopped is None and st.get("source", {}).get("words", 0) > 1_000_000 \
+                    and st.get("histogram-2", {}).get("pid"):
+                stopped = st["histogram-2"]["pid"]
+                os.kill(stopped, signal.SIGSTOP)
+            if stopped is not None and st.get("range", {}).get("held_frames", 0) >= 2:
+                held = st["range"]["held_frames"]
+                break
+            time.sleep(0.05)
+        assert held >= 2, "the range stage never held two frames"
+        os.kill(stopped, signal.SIGKILL)
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 130, err
+    first = json.loads(out)
+    assert first["state"] == "interrupted", first["problems"]
+    stopped_at = first["accounting"]["words_in"]
+    assert stopped_at < cycles * N
+    rec = first["reconciled"]
+    assert first["accounting"]["spatial_incomplete_frames"] >= 1
+    assert rec["spatial_reranged"] and rec["spatial_incomplete"] == []
+    # resumed
+    p = _daemon(topo, "c")
+    out, err = p.communicate(timeout=240)
+    assert p.returncode == 0, err
+    res = json.loads(out)
+    assert res["state"] == "finished" and res["accounting"]["words_in"] == cycles * N
+    assert res["accounting"]["balanced"] and not res["problems"]
+    n_meas = cycles // mc
+    live = _ranges(tmp_path, "c")
+    assert live.select(ON).n_unique() == live.height  # no row twice
+    assert live["measurement"].n_unique() == n_meas
+    assert (live["flag"].filter(live["tdc"] < N - 1) == "").all()
+    assert live.filter(pl.col("return_index") == 0).height == n_meas * N  # none missing
+    meta = Capture(cap).meta
+    want = _whole_frames(tmp_path, "c", cal, geom, meta, n_meas)
+    assert live.sort(ON).equals(want.sort(ON))
+    # the histograms: each measurement once, the capture's words
+    h = pl.read_parquet(tmp_path / "out" / "histograms" / "date=*" / "run=c" / "*.parquet")
+    assert h.height == n_meas * N
+    words = np.concatenate([w.copy() for _, w in Capture(cap).iter_chunks()])  # (a ring)
+    bounds = load_calibration(cal).bounds
+    for k in range(n_meas):
+        acc = HistogramAccumulator(N, bounds)
+        acc.update(words[k * mc * N:(k + 1) * mc * N], 0)
+        m = h.filter(pl.col("measurement") == f"c-m{k:06d}").sort("tdc")
+        assert np.array_equal(np.stack(m["counts"].to_numpy()), acc.snapshot().hits), k
