@@ -376,8 +376,10 @@ class Supervisor:
                     starting = (not heard and now - p.started_at < STARTUP_S
                                 and not self.stop.is_set())  # (a stop: nothing to wait on)
                     # a stage paused on a full disk is waiting, not stuck: ended now, what
-                    # it holds would be written by the reconciliation onto the same disk
-                    paused = heard and m.get("state") == "paused"
+                    # it holds would be written by the reconciliation onto the same disk;
+                    # so is one delivering its last messages (its consumer still taking
+                    # them: pipeline.stream.stage.taken, bounded)
+                    paused = heard and m.get("state") in ("paused", "delivering")
                     if p.upstream_done_at is None or got != p.last_received or starting \
                             or paused:
                         p.upstream_done_at = now  # still working: not stuck

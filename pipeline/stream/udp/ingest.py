@@ -22,7 +22,14 @@ import zmq
 
 from pipeline.stream import datagram, wire
 from pipeline.stream.journal import JournalWriter
-from pipeline.stream.stage import Quarantine, _socket, connect, end_context, own_context
+from pipeline.stream.stage import (
+    Quarantine,
+    _socket,
+    connect,
+    connections,
+    end_context,
+    own_context,
+)
 from pipeline.stream.udp.order import (
     MAX_JUMP_CYCLES,
     MAX_JUMP_DATAGRAMS,
@@ -570,7 +577,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
             take(r)
         flush()
         stats.gap_cycles, stats.lost_datagrams = reasm.gap_cycles, reasm.lost()
-        at_end = _connections(monitors)  # (before a consumer can end on the end)
+        at_end = connections(monitors)  # (before a consumer can end on the end)
         if writer is not None:  # the run's end is on disk before anyone hears of it
             writer.close(complete=not stop.is_set())  # (a signal: a stop, resumable)
             stats.journal = [str(p) for p in writer.segments]
@@ -635,18 +642,6 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     return stats
 
 
-def _connections(monitors: list, known: list | None = None) -> list:
-    """Each consumer's last connection event (``zmq.EVENT_CONNECTED`` or
-    ``EVENT_DISCONNECTED``; ``known`` where none came since), its monitor read to the end."""
-    from zmq.utils.monitor import recv_monitor_message
-
-    out = list(known) if known is not None else [None] * len(monitors)
-    for i, mon in enumerate(monitors):
-        while mon.poll(0):
-            out[i] = recv_monitor_message(mon)["event"]
-    return out
-
-
 def _hung_up(monitors: list, beat, at_end: list, wait_s: float = END_WAIT_S) -> list[bool]:
     """Which consumers hung up after the run's end (``at_end``: their connections when the
     end was journaled, before any stop went out). A consumer ends only on its stop or on
@@ -661,7 +656,7 @@ def _hung_up(monitors: list, beat, at_end: list, wait_s: float = END_WAIT_S) -> 
     state = list(at_end)
     t_end = time.monotonic() + wait_s
     while True:
-        state = _connections(monitors, state)
+        state = connections(monitors, state)
         gone = [w and ev == zmq.EVENT_DISCONNECTED
                 for w, ev in zip(watch, state, strict=False)]
         if all(g or not w for g, w in zip(gone, watch, strict=True)) \

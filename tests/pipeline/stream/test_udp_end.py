@@ -9,7 +9,8 @@ import time
 
 import zmq
 
-from pipeline.stream.udp.ingest import _connections, _hung_up
+from pipeline.stream.stage import connections
+from pipeline.stream.udp.ingest import _hung_up
 
 
 class _Beat:
@@ -43,7 +44,7 @@ def _close(ctx, push, mon, gone):
 def test_a_consumer_that_ended_on_the_journals_end_is_not_lingered_over(tmp_path):
     ctx = zmq.Context()
     pull, push, mon = _pair(ctx, tmp_path / "a")
-    at_end = _connections([mon])
+    at_end = connections([mon])
     assert at_end == [zmq.EVENT_CONNECTED]
     pull.close(linger=0)  # the worker ended on the journal's end ...
     time.sleep(0.2)
@@ -56,7 +57,7 @@ def test_a_consumer_that_ended_on_the_journals_end_is_not_lingered_over(tmp_path
 def test_a_consumer_still_taking_is_waited_for_then_lingered_over(tmp_path):
     ctx = zmq.Context()
     pull, push, mon = _pair(ctx, tmp_path / "b")
-    at_end = _connections([mon])
+    at_end = connections([mon])
     push.send(b"stop")
     beat = _Beat()
     t0 = time.monotonic()
@@ -77,7 +78,7 @@ def test_a_consumer_gone_before_the_end_keeps_its_stop_queued(tmp_path):
     pull, push, mon = _pair(ctx, tmp_path / "c")
     pull.close(linger=0)
     time.sleep(0.2)
-    at_end = _connections([mon])
+    at_end = connections([mon])
     assert at_end == [zmq.EVENT_DISCONNECTED]
     push.send(b"stop", zmq.NOBLOCK)
     assert _hung_up([mon], _Beat(), at_end, wait_s=10) == [False]
