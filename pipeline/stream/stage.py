@@ -96,6 +96,11 @@ def _socket(ctx: zmq.Context, kind: int, hwm: int,
 
 
 END_LINGER_MS = 10_000  #: at a stage's end, how long its last messages may take to go
+#: at a stage's end, how long it waits for its consumer to take its last messages and
+#: hang up (:func:`taken`): a range stage far behind (hundreds of frames to range, on a
+#: loaded machine) may take longer than END_LINGER_MS; a consumer that is stuck is the
+#: daemon's to end (its heartbeat deadline, its grace), this is only a bound
+TAKEN_WAIT_S = 60.0
 
 
 def own_context(context: zmq.Context | None) -> tuple[zmq.Context, bool]:
@@ -465,7 +470,7 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
     return stats
 
 
-def taken(mon: zmq.Socket, beat=None, timeout_s: float = END_LINGER_MS / 1000) -> bool:
+def taken(mon: zmq.Socket, beat=None, timeout_s: float = TAKEN_WAIT_S) -> bool:
     """Wait until the consumer a stage's PUSH socket sends to has closed its end (``mon``,
     the socket's monitor of connections made and dropped), at most ``timeout_s``: True when
     it has (or it never connected). A consumer closes once it has taken every producer's

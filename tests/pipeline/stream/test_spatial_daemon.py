@@ -167,7 +167,7 @@ def _whole_frames(tmp_path, run, cal, geom, meta, n_meas) -> pl.DataFrame:
     return pl.concat(want)
 
 
-@pytest.mark.parametrize("how", ["killed", "hold1"])
+@pytest.mark.parametrize("how", [pytest.param("killed", marks=pytest.mark.slow), "hold1"])
 def test_ctrl_c_while_the_range_stage_holds_parts_then_resume(tmp_path, zoo, long_capture,
                                                              how):
     """Ctrl-C (SIGINT to `tcspc daemon`) while the range stage holds parts of frames:
@@ -257,33 +257,49 @@ def test_ctrl_c_while_the_range_stage_holds_parts_then_resume(tmp_path, zoo, lon
         assert np.array_equal(np.stack(m["counts"].to_numpy()), acc.snapshot().hits), k
 
 
-@pytest.mark.parametrize("spatial", [False, True])
+@pytest.mark.parametrize("case", [pytest.param("plain", marks=pytest.mark.slow), "spatial",
+                                  "spatial-one-batch-hold-8"])
 def test_a_runs_last_measurements_reach_the_range_stage_by_the_stream(tmp_path, zoo,
-                                                                        long_capture, spatial):
-    """60 measurements of 5000 cycles, three workers, as fast as they go: every part
-    reaches the datasets by the stream (nothing recomputed by the reconciliation) and, with
-    the neighbours, every frame is gathered whole live (nothing ranged again at the end).
-    Seen before: the workers' last two measurements and their stops were lost on the way
-    to the range stage on every such run (ZeroMQ drops what a consumer with a full queue
-    had read when its producer closes: pipeline.stream.stage.taken), and 38 of the 60
-    frames were ranged without a part live, the default ``hold`` (22) under how far a
-    worker can be ahead of another (pipeline.stream.topology.range_hold: now 134)."""
+                                                                        long_capture, case):
+    """60 measurements, three workers, as fast as they go: every part reaches the datasets
+    by the stream (nothing recomputed by the reconciliation) and, with the neighbours and
+    the default ``hold``, every frame is gathered whole live (nothing ranged again at the
+    end). ``plain`` and ``spatial``: 5000 cycles a measurement, 5 source batches. Seen
+    before: the workers' last two measurements and their stops were lost on the way to
+    the range stage on every such run (ZeroMQ drops what a consumer with a full queue had
+    read when its producer closes: pipeline.stream.stage.taken), and 38 of the 60 frames
+    were ranged without a part live, the default ``hold`` (22) under how far a worker can
+    be ahead of another (pipeline.stream.topology.range_hold: now 134).
+    ``spatial-one-batch-hold-8``: 100 cycles a measurement, the whole capture one source
+    batch, so that each worker sends its 60 at once to a range stage that ranges each
+    frame up to three times (``hold = 8``): the workers, blocked on it after the source
+    ended, were taken for stuck and SIGTERMed 3 s later, and their last 4 measurements
+    given up (the daemon now counts a message sent as progress)."""
     from pipeline.stream.daemon import Supervisor
 
-    _, cal, geom = zoo
-    topo = _topology(tmp_path, cal, geom, long_capture, histogram="measurement_cycles = 5000")
-    if not spatial:
-        topo.write_text(topo.read_text().replace("spatial = true\n", "").replace(
-            f'geometry = "{geom}"\n', ""))
+    chip, cal, geom = zoo
+    cap, mc = long_capture, 5000
+    if case == "spatial-one-batch-hold-8":
+        cap, mc = tmp_path / "short", 100
+        simulate_capture(_edge(), 6000, cap, chip=chip, seed=5)
+    topo = _topology(tmp_path, cal, geom, cap, histogram=f"measurement_cycles = {mc}")
+    text = topo.read_text()
+    if case == "plain":
+        text = text.replace("spatial = true\n", "").replace(f'geometry = "{geom}"\n', "")
+    elif case == "spatial-one-batch-hold-8":
+        text = text.replace("spatial = true\n", "spatial = true\nhold = 8\n")
+    topo.write_text(text)
     res = Supervisor(load_topology(topo, "e"), log=lambda m: None).run()
     assert res["state"] == "finished", res["problems"]
     rec = res["reconciled"]
     assert rec["recomputed"] == [] and rec["rebuilt"] == [], rec
-    if spatial:
+    if case == "spatial":
         assert rec["spatial_reranged"] == [] and rec["spatial_incomplete"] == []
         assert res["accounting"]["spatial_incomplete_frames"] == 0
     live = _ranges(tmp_path, "e")
-    assert live["measurement"].n_unique() == CYCLES // 5000
+    assert live["measurement"].n_unique() == 60
+    # (no frame left ranged without a part; 100 cycles leave some pixels "before the zero")
+    assert not live["flag"].str.contains("part").any()
 
 
 PRODUCER = """
