@@ -31,6 +31,24 @@ def caldir(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def zoo(tmp_path_factory):
+    """A chip of the zoo, not the simulator's default one (``random_chip(2, 16, ...)``: a
+    real chip's random DNL and INL bow, LSB 198 ps at no light and +51 ps with light, the
+    chip sweep's LSB saturation; benchmarks/spatial_chip.py --zoo 2), calibrated as
+    ``caldir`` is, and a 3 x 5 grid geometry (TDCs 0..14 placed, row = tdc // 5; TDC 15
+    without a pixel): ``(chip, calibration directory, geometry file)``."""
+    from pipeline.offline.simulate import simulated_calibration
+    from stages.simulator.chip import REAL_CHIP_RANGES, random_chip
+
+    d = tmp_path_factory.mktemp("zoo")
+    chip, _ = random_chip(2, 16, {**REAL_CHIP_RANGES, "n_sat": (0.5, 1.5),
+                                  "artifact_rate": (0.0, 6e-4)})
+    (d / "grid.toml").write_text('name = "grid3x5"\n[grid]\nrows = 3\ncols = 5\n'
+                                 'fov_h_deg = 12.0\nfov_v_deg = 7.0\n')
+    return chip, simulated_calibration(d, 16, chip), d / "grid.toml"
+
+
+@pytest.fixture(scope="session")
 def mirror16():
     """A simulated measurement (20,000 cycles) of scenes/small16.toml's chip and mirror at
     1.5 m, brighter (reflectivity 0.004): the return counts more than the reset peak on

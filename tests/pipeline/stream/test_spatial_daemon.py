@@ -1,7 +1,8 @@
 """The daemon's range stage with the neighbours (``[range] spatial = true``, issue 35.3) on a
 chip of the zoo, not the simulator's default one, laid out on an odd, non-square grid, and
-stopped by Ctrl-C while it holds parts of frames (docs/streaming.md "Ranging with the
-neighbours in the daemon", docs/ranging.md "On the chip")."""
+stopped by Ctrl-C while it holds parts of frames; and the end of a run's stream, which lost
+its last measurements (docs/ranging.md "On the chip", docs/streaming.md "A stage's last
+messages" and "Restarts")."""
 
 from __future__ import annotations
 
@@ -23,20 +24,16 @@ from pipeline.io.caldir import load_calibration
 from pipeline.io.capture import Capture
 from pipeline.io.geometry import load_geometry
 from pipeline.offline.ranging import RangeCore
-from pipeline.offline.simulate import simulate_capture, simulated_calibration
+from pipeline.offline.simulate import simulate_capture
 from pipeline.offline.spatial import UNPLACED
 from pipeline.stream.topology import load_topology
 from stages.histogram import HistogramAccumulator
 from stages.models.scene import scene_from_dict
-from stages.simulator.chip import REAL_CHIP_RANGES, random_chip
 
 N = 16
-#: 3 rows of 5: TDCs 0..14 placed (row = tdc // 5), TDC 15 has no pixel; the three
-#: workers' TDC ranges (0..4, 5..10, 11..15) cut the second and third rows
-GRID = 'name = "grid3x5"\n[grid]\nrows = 3\ncols = 5\nfov_h_deg = 12.0\nfov_v_deg = 7.0\n'
-#: the zoo's chip 2 (a real chip's random DNL and INL bow; its LSB 198 ps at no light,
-#: +51 ps with light), as benchmarks/spatial_chip.py --zoo 2 draws it
-ZOO = {**REAL_CHIP_RANGES, "n_sat": (0.5, 1.5), "artifact_rate": (0.0, 6e-4)}
+#: the zoo's chip 2 on a 3 x 5 grid (tests/conftest.py ``zoo``): TDCs 0..14 placed (row =
+#: tdc // 5), TDC 15 has no pixel; the three workers' TDC ranges (0..4, 5..10, 11..15) cut
+#: the second and third rows
 ON = ["measurement", "tdc", "return_index"]
 
 
@@ -50,15 +47,6 @@ def _edge(refl: float = 0.0005):
                     {"pixels": [5, N - 1], "distance_m": 2.5, "reflectivity": refl,
                      "surface": "mirror"}],
         "ambient": [{"kind": "lux", "lux": 800.0}]})
-
-
-@pytest.fixture(scope="module")
-def zoo(tmp_path_factory):
-    """(chip, calibration directory, geometry file) of the zoo's chip 2."""
-    d = tmp_path_factory.mktemp("zoo")
-    chip, _ = random_chip(2, N, ZOO)
-    (d / "grid.toml").write_text(GRID)
-    return chip, simulated_calibration(d, N, chip), d / "grid.toml"
 
 
 #: the long capture's cycles (4.8 M words: 5 source batches of 65 536 cycles)
