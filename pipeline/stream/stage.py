@@ -477,7 +477,7 @@ def taken(mon: zmq.Socket, beat=None, timeout_s: float = TAKEN_WAIT_S) -> bool:
     stop, so the messages before ours have all been taken. Why: ZeroMQ counts a message
     sent once the kernel has it; when the producer then closes, a consumer whose queue is
     full (its high-water mark) drops what it had read and not yet queued, tens of kB
-    (measured on ipc: 2 of 30 messages of 20 kB, 9-26 of 30 of 5 kB, none of 60 kB and
+    (measured on ipc: 2 of 30 messages of 20 kB, 8-11 of 30 of 5 kB, none of 60 kB and
     up), which lost a run's last measurements between the workers and a slower range stage
     (docs/streaming.md, "A stage's last messages"). ``beat`` is called while waiting."""
     last, end = None, time.monotonic() + timeout_s
