@@ -401,7 +401,9 @@ class Supervisor:
             if p.restart_at is not None:  # dead, its restart waiting out the backoff
                 if self.stop.is_set() and p.name == "source":
                     p.finished, p.restart_at = True, None  # shutting down: no new source
-                elif now >= p.restart_at:
+                elif now >= p.restart_at or self.stop.is_set():
+                    # (a stop does not wait out the backoff: the source, stopping after
+                    # its batch, waits on this stage's queue, and so would the stop)
                     p.restart_at = None
                     self._start(p)
                 continue

@@ -170,7 +170,9 @@ def test_ctrl_c_while_the_range_stage_holds_parts_then_resume(tmp_path, zoo, lon
     none missing)."""
     _, cal, geom = zoo
     cap, cycles, mc = long_capture, CYCLES, 20_000
-    topo = _topology(tmp_path, cal, geom, cap, "rate = 1e6", f"measurement_cycles = {mc}")
+    # (``killed``: its restart 20 s after, which a stop does not wait out)
+    topo = _topology(tmp_path, cal, geom, cap, "rate = 1e6", f"measurement_cycles = {mc}",
+                     "restart_backoff_s = 20.0" if how == "killed" else "")
     if how == "hold1":
         topo.write_text(topo.read_text().replace("spatial = true\n", "spatial = true\nhold = 1\n"))
     state = tmp_path / "state"
@@ -198,17 +200,21 @@ def test_ctrl_c_while_the_range_stage_holds_parts_then_resume(tmp_path, zoo, lon
         assert held >= 2 or how == "hold1", "the range stage never held two frames"
         assert p.poll() is None, "the run ended before the stop"
         p.send_signal(signal.SIGINT)
+        t0 = time.monotonic()
         out, err = p.communicate(timeout=120)
+        took = time.monotonic() - t0
     finally:
         if p.poll() is None:
             p.kill()
     assert p.returncode == 130, err
+    assert took < 15, took  # (the stop waited out the restart's backoff: 20-25 s)
     first = json.loads(out)
     assert first["state"] == "interrupted", first["problems"]
     stopped_at = first["accounting"]["words_in"]
     assert stopped_at < cycles * N
     rec = first["reconciled"]
-    print(f"{how}: held {held} at the stop; first run: frames without a part",
+    print(f"{how}: held {held} at the stop, stopped in {took:.1f} s; first run: frames "
+          "without a part",
           first["accounting"]["spatial_incomplete_frames"], "ranged again",
           rec["spatial_reranged"], "parts recomputed", rec["recomputed"])
     if how == "hold1":
