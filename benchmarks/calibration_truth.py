@@ -31,7 +31,7 @@ from scipy.constants import c as C_LIGHT
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.spatial_chip import N, calibration, scene  # noqa: E402
+from benchmarks.spatial_chip import N, scene  # noqa: E402
 from pipeline.io.caldir import load_calibration  # noqa: E402
 from pipeline.io.capture import Capture  # noqa: E402
 from pipeline.offline.ranging import (  # noqa: E402
@@ -39,7 +39,7 @@ from pipeline.offline.ranging import (  # noqa: E402
     calibration_sigma_s,
     range_state,
 )
-from pipeline.offline.simulate import simulate_capture  # noqa: E402
+from pipeline.offline.simulate import simulate_capture, simulated_calibration  # noqa: E402
 from stages.calibration import uncertainty  # noqa: E402
 from stages.calibration_set import time_axis  # noqa: E402
 from stages.histogram import HistogramAccumulator  # noqa: E402
@@ -94,7 +94,7 @@ def scale_z(calib, path: Path) -> np.ndarray:
 def one(cal_seed: int, seeds: int) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        calib = load_calibration(calibration(tmp, cal_seed))
+        calib = load_calibration(simulated_calibration(tmp, N, seed=cal_seed))
         chip = make_chip(N, 1)
         d = calib.meta["delay"]
         delay_err = np.asarray(calib.delay_s) - (100e-9 + 2 * 0.001 / C_LIGHT)

@@ -13,8 +13,18 @@ The calibration is built as the tests' (four density tests and a delay, tests/co
 ``caldir``), in a temporary directory, unless ``--cal``; ``--cal-seed`` N > 0 builds it
 from other simulated captures (a chip calibrated again: other fixed errors a TDC).
 
+``--zoo S`` puts a chip of the zoo in place of the simulator's default one
+(``random_chip(S, tdcs, ZOO)``: every knob of :data:`ZOO_RANGES` drawn, with a real chip's
+random DNL and INL bow, :data:`REAL_CHIP_RANGES`, and the LSB saturating no faster than the
+chip sweep's), calibrated as above from captures of that chip. ``--rows R --cols C`` lay
+the pixels out R x C (``tdc = row x cols + col``; the top ``R // 2`` rows at 1.5 m, the
+rest at 2.5 m; one row: its left half at 1.5 m); ``--tdcs N`` (default R x C) may be more
+than the grid has pixels (the extra TDCs are not ranged, flagged). ``--lux`` the ambient
+light (800), ``--p-fa`` the false-alarm rate a pixel (1e-3).
+
     python benchmarks/spatial_chip.py [--seeds 20] [--cycles 6000] [--cal DIR]
-        [--cal-seed 0]
+        [--cal-seed 0] [--zoo S] [--rows 4 --cols 4] [--tdcs N] [--lux 800]
+        [--p-fa 1e-3]
 """
 
 from __future__ import annotations
@@ -35,39 +45,29 @@ from pipeline.io.caldir import load_calibration  # noqa: E402
 from pipeline.io.capture import Capture  # noqa: E402
 from pipeline.io.geometry import load_geometry  # noqa: E402
 from pipeline.offline.ranging import range_state  # noqa: E402
-from pipeline.offline.simulate import simulate_capture  # noqa: E402
+from pipeline.offline.simulate import simulate_capture, simulated_calibration  # noqa: E402
 from pipeline.offline.spatial import range_state_spatial  # noqa: E402
 from stages.histogram import HistogramAccumulator  # noqa: E402
 from stages.models.scene import scene_from_dict  # noqa: E402
+from stages.simulator.chip import REAL_CHIP_RANGES, random_chip  # noqa: E402
 
 N = 16
+#: the zoo's ranges for ``--zoo``: a real chip's DNL and bow, the LSB saturating no
+#: faster than the chip sweep's (tests/pipeline/offline/test_chip_sweep.py SWEEP_RANGES;
+#: a faster one is flagged by the LSB campaign, not ranged)
+ZOO = {**REAL_CHIP_RANGES, "n_sat": (0.5, 1.5), "artifact_rate": (0.0, 6e-4)}
 
 
-def calibration(d: Path, seed: int = 0) -> Path:
-    from pipeline.offline.calibrate import add_delay, lsb_campaign
-
-    caps = []
-    for i, lux in enumerate((133.950, 535.799, 1607.398, 4018.495)):
-        dens = scene_from_dict({"name": f"d{i}", "sensor": {"n_pixels": N},
-                                "ambient": [{"kind": "lux", "lux": lux}]})
-        simulate_capture(dens, 300_000, d / f"d{i}", seed=3 + i + 10 * seed)
-        caps.append(d / f"d{i}")
-    delay = scene_from_dict({"name": "z", "sensor": {"n_pixels": N},
-                             "targets": [{"pixels": [0, N - 1], "distance_m": 0.001,
-                                          "reflectivity": 0.0005, "surface": "mirror"}]})
-    simulate_capture(delay, 150_000, d / "delay", seed=9 + 10 * seed)
-    lsb_campaign(caps, d / "cal", inl_rms_lsb=1.0)
-    add_delay(d / "delay", d / "cal")
-    return d / "cal"
-
-
-def scene(refl: float | None):
+def scene(refl: float | None, n: int = N, split: int = N // 2, lux: float = 800.0):
+    """TDCs [0, split) at 1.5 m, [split, n) at 2.5 m (mirrors of ``refl``; none: empty)."""
     targets = [] if refl is None else [
-        {"pixels": [0, 7], "distance_m": 1.5, "reflectivity": refl, "surface": "mirror"},
-        {"pixels": [8, 15], "distance_m": 2.5, "reflectivity": refl, "surface": "mirror"}]
-    return scene_from_dict({"name": "edge16", "sensor": {"n_pixels": N},
+        {"pixels": [0, split - 1], "distance_m": 1.5, "reflectivity": refl,
+         "surface": "mirror"},
+        {"pixels": [split, n - 1], "distance_m": 2.5, "reflectivity": refl,
+         "surface": "mirror"}]
+    return scene_from_dict({"name": "edge", "sensor": {"n_pixels": n},
                             "gate": {"t_laser_win_ns": 140.0, "delay_ns": 100.0},
-                            "targets": targets, "ambient": [{"kind": "lux", "lux": 800.0}]})
+                            "targets": targets, "ambient": [{"kind": "lux", "lux": lux}]})
 
 
 def main() -> None:
@@ -78,16 +78,30 @@ def main() -> None:
     ap.add_argument("--cal", type=Path, default=None)
     ap.add_argument("--cal-seed", type=int, default=0,
                     help="build the calibration from other captures (0: the tests')")
+    ap.add_argument("--zoo", type=int, default=None, help="a chip of the zoo, this seed")
+    ap.add_argument("--rows", type=int, default=4)
+    ap.add_argument("--cols", type=int, default=4)
+    ap.add_argument("--tdcs", type=int, default=None)
+    ap.add_argument("--lux", type=float, default=800.0)
+    ap.add_argument("--p-fa", type=float, default=1e-3, help="false-alarm rate a pixel")
     a = ap.parse_args()
     print("$ python benchmarks/spatial_chip.py " + " ".join(sys.argv[1:]))
     print(f"load average {os.getloadavg()[0]:.1f}\n")
-    truth = np.where(np.arange(N) < 8, 1.5, 2.5)
+    n = a.tdcs or a.rows * a.cols
+    placed = min(n, a.rows * a.cols)
+    split = (a.rows // 2) * a.cols if a.rows > 1 else a.cols // 2
+    truth = np.where(np.arange(n) < split, 1.5, 2.5)
+    chip = None
+    if a.zoo is not None:
+        chip, knobs = random_chip(a.zoo, n, ZOO)
+        print("zoo chip: " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
+                                       for k, v in knobs.items()) + "\n")
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        cal = load_calibration(a.cal or calibration(tmp, a.cal_seed))
-        g = tmp / "grid16.toml"
-        g.write_text('name = "grid16"\n[grid]\nrows = 4\ncols = 4\nfov_h_deg = 10.0\n'
-                     'fov_v_deg = 10.0\n')
+        cal = load_calibration(a.cal or simulated_calibration(tmp, n, chip, a.cal_seed))
+        g = tmp / "grid.toml"
+        g.write_text(f'name = "grid"\n[grid]\nrows = {a.rows}\ncols = {a.cols}\n'
+                     'fov_h_deg = 10.0\nfov_v_deg = 10.0\n')
         geom = load_geometry(g)
         print("| reflectivity | estimator | detected | on the other surface | RMSE detected mm "
               "| within 2 sigma | within 2 estimator's sigma | false surfaces | ms a capture |")
@@ -96,9 +110,10 @@ def main() -> None:
             got = {"ml": [[], [], [], 0.0, [], 0], "spatial": [[], [], [], 0.0, [], 0]}
             for seed in range(a.seeds):
                 out = tmp / f"c{refl}-{seed}"
-                simulate_capture(scene(refl), a.cycles, out, seed=100 + seed)
+                simulate_capture(scene(refl, n, split, a.lux), a.cycles, out,
+                                 seed=100 + seed, **({} if chip is None else {"chip": chip}))
                 cap = Capture(out)
-                acc = HistogramAccumulator(N, cal.bounds)
+                acc = HistogramAccumulator(n, cal.bounds)
                 for first, words in cap.iter_chunks():
                     acc.update(words, first)
                 st = acc.snapshot()
@@ -106,13 +121,17 @@ def main() -> None:
                 for name in got:
                     t0 = time.process_time()
                     if name == "ml":
-                        est, d, s, _ = range_state(st, cal, win, gate, "ml")
+                        est, d, s, _ = range_state(st, cal, win, gate, "ml", p_fa=a.p_fa)
                     else:
-                        est, d, s, _ = range_state_spatial(st, cal, win, gate, geom)
+                        est, d, s, _ = range_state_spatial(st, cal, win, gate, geom,
+                                                           p_fa=a.p_fa)
                     got[name][3] += time.process_time() - t0
                     first = (est.return_index == 0) if est.return_index is not None \
                         else np.ones(d.size, bool)
-                    px = est.pixel[first] if est.pixel is not None else np.arange(N)
+                    px = est.pixel[first] if est.pixel is not None else np.arange(n)
+                    on = px < placed  # (the TDCs the grid has no pixel for: not ranged)
+                    first = np.flatnonzero(first)[on]
+                    px = px[on]
                     det = np.asarray(est.detected, bool)[first]
                     got[name][0].extend(det)
                     err = d[first] - truth[px]

@@ -32,25 +32,12 @@ CASES = ["1500:auto:3", "1500:2:3", "302:8:3", "302:16:3", "302:auto:3", "100:8:
 
 def _inputs(work: Path) -> tuple[Path, Path, Path]:
     """The capture, the calibration and the geometry (made once in ``work``)."""
-    from pipeline.offline.calibrate import add_delay, lsb_campaign
-    from pipeline.offline.simulate import simulate_capture
+    from pipeline.offline.simulate import simulate_capture, simulated_calibration
     from stages.models.scene import scene_from_dict
 
     cal, cap, geom = work / "cal", work / "cap", work / "grid16.toml"
     if not (cal / "tdc.parquet").exists():
-        caps = []
-        for i, lux in enumerate((133.950, 535.799, 1607.398, 4018.495)):
-            dens = scene_from_dict({"name": f"d{i}", "sensor": {"n_pixels": 16},
-                                    "ambient": [{"kind": "lux", "lux": lux}]})
-            simulate_capture(dens, 300_000, work / f"d{i}", seed=3 + i)
-            caps.append(work / f"d{i}")
-        delay = scene_from_dict({"name": "z", "sensor": {"n_pixels": 16},
-                                 "targets": [{"pixels": [0, 15], "distance_m": 0.001,
-                                              "reflectivity": 0.0005,
-                                              "surface": "mirror"}]})
-        simulate_capture(delay, 150_000, work / "delay", seed=9)
-        lsb_campaign(caps, cal, inl_rms_lsb=1.0)
-        add_delay(work / "delay", cal)
+        simulated_calibration(work, 16)
     if not cap.with_suffix(".bin").exists():
         simulate_capture(scene_from_dict(EDGE16), 6000, cap, seed=4)
     geom.write_text(GRID16)

@@ -25,25 +25,27 @@ def caldir(tmp_path_factory):
     """A calibration of the 16-pixel chip of scenes/small16.toml, built once for the
     daemon's and the view's tests: LSB against light from four density tests (the range's
     light differs from any one test's), and a delay."""
-    from pipeline.offline.calibrate import add_delay, lsb_campaign
-    from pipeline.offline.simulate import simulate_capture
-    from stages.models.scene import scene_from_dict
+    from pipeline.offline.simulate import simulated_calibration
 
-    n = 16
-    d = tmp_path_factory.mktemp("cal")
-    caps = []
-    for i, lux in enumerate((133.950, 535.799, 1607.398, 4018.495)):
-        dens = scene_from_dict({"name": f"d{i}", "sensor": {"n_pixels": n},
-                                "ambient": [{"kind": "lux", "lux": lux}]})
-        simulate_capture(dens, 300_000, d / f"d{i}", seed=3 + i)
-        caps.append(d / f"d{i}")
-    delay = scene_from_dict({"name": "z", "sensor": {"n_pixels": n},
-                             "targets": [{"pixels": [0, n - 1], "distance_m": 0.001,
-                                          "reflectivity": 0.0005, "surface": "mirror"}]})
-    simulate_capture(delay, 150_000, d / "delay", seed=9)
-    lsb_campaign(caps, d / "cal", inl_rms_lsb=1.0)
-    add_delay(d / "delay", d / "cal")
-    return d / "cal"
+    return simulated_calibration(tmp_path_factory.mktemp("cal"), 16)
+
+
+@pytest.fixture(scope="session")
+def zoo(tmp_path_factory):
+    """A chip of the zoo, not the simulator's default one (``random_chip(2, 16, ...)``: a
+    real chip's random DNL and INL bow, LSB 198 ps at no light and +51 ps with light, the
+    chip sweep's LSB saturation; benchmarks/spatial_chip.py --zoo 2), calibrated as
+    ``caldir`` is, and a 3 x 5 grid geometry (TDCs 0..14 placed, row = tdc // 5; TDC 15
+    without a pixel): ``(chip, calibration directory, geometry file)``."""
+    from pipeline.offline.simulate import simulated_calibration
+    from stages.simulator.chip import REAL_CHIP_RANGES, random_chip
+
+    d = tmp_path_factory.mktemp("zoo")
+    chip, _ = random_chip(2, 16, {**REAL_CHIP_RANGES, "n_sat": (0.5, 1.5),
+                                  "artifact_rate": (0.0, 6e-4)})
+    (d / "grid.toml").write_text('name = "grid3x5"\n[grid]\nrows = 3\ncols = 5\n'
+                                 'fov_h_deg = 12.0\nfov_v_deg = 7.0\n')
+    return chip, simulated_calibration(d, 16, chip), d / "grid.toml"
 
 
 @pytest.fixture(scope="session")

@@ -619,3 +619,8 @@ class RangeCore:
     def incomplete_frames(self) -> int:
         """Spatial frames ranged without every worker's part (the stage's metrics)."""
         return 0 if self.gather is None else self.gather.incomplete
+
+    @property
+    def held_frames(self) -> int:
+        """Spatial frames held while their workers' parts gather (the stage's metrics)."""
+        return 0 if self.gather is None else self.gather.held

@@ -91,3 +91,35 @@ class SimulatedCapture:
         n = self.sim.n_tdc
         for first_cycle, words in self.sim.batches(self.cycles):
             yield first_cycle * n, words
+
+
+#: the tests' calibration campaign (tests/conftest.py ``caldir``): four density tests of
+#: 300 000 cycles at these lux (the range's light falls between them) and a zero-distance
+#: capture of 150 000 cycles
+CAMPAIGN_LUX = (133.950, 535.799, 1607.398, 4018.495)
+
+
+def simulated_calibration(d, n_tdc: int, chip: Chip | None = None, seed: int = 0) -> Path:
+    """A calibration directory (``d``/cal) of a simulated ``n_tdc``-TDC chip (the
+    simulator's default one, or ``chip``, e.g. the zoo's): LSB against light from four
+    density tests and a delay from a zero-distance capture, built as `tcspc calibrate lsb`
+    and `calibrate delay` build it (``inl_rms_lsb`` 1). ``seed`` > 0 draws other captures
+    (the chip calibrated again: other fixed errors a TDC)."""
+    from pipeline.offline.calibrate import add_delay, lsb_campaign
+    from stages.models.scene import scene_from_dict
+
+    d = Path(d)
+    kw = {} if chip is None else {"chip": chip}
+    caps = []
+    for i, lux in enumerate(CAMPAIGN_LUX):
+        dens = scene_from_dict({"name": f"d{i}", "sensor": {"n_pixels": n_tdc},
+                                "ambient": [{"kind": "lux", "lux": lux}]})
+        simulate_capture(dens, 300_000, d / f"d{i}", seed=3 + i + 10 * seed, **kw)
+        caps.append(d / f"d{i}")
+    delay = scene_from_dict({"name": "z", "sensor": {"n_pixels": n_tdc},
+                             "targets": [{"pixels": [0, n_tdc - 1], "distance_m": 0.001,
+                                          "reflectivity": 0.0005, "surface": "mirror"}]})
+    simulate_capture(delay, 150_000, d / "delay", seed=9 + 10 * seed, **kw)
+    lsb_campaign(caps, d / "cal", inl_rms_lsb=1.0)
+    add_delay(d / "delay", d / "cal")
+    return d / "cal"

@@ -308,6 +308,11 @@ class FrameGather:
         self.incomplete = 0  #: frames given back without every part
         self.duplicates = 0  #: parts of a measurement already gathered whole, dropped
 
+    @property
+    def held(self) -> int:
+        """Measurements held, some of their parts come, the rest awaited."""
+        return len(self._open)
+
     def _total(self, header: dict, end: int) -> int:
         return int(header.get("n_tdc_total") or self.n_tdc or end)
 

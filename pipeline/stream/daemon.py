@@ -368,11 +368,17 @@ class Supervisor:
             if code is None:
                 if p.upstream and all(self.by_name[u].finished for u in p.upstream):
                     # progress: messages taken or words folded in (a restarted worker
-                    # backfilling from the journal takes no message), as this process
-                    # incarnation reports them; one not heard from yet is starting up
+                    # backfilling from the journal takes no message), or, blocked on a
+                    # slower consumer, messages sent or the consumer taking any (it waits
+                    # its turn: ended then, what it had not sent was lost to the stream),
+                    # as this process incarnation reports them; one not heard from yet is
+                    # starting up
                     m = self.metrics.get(p.name, {})
                     heard = m.get("pid") == p.popen.pid
-                    got = (m.get("received"), m.get("words_total")) if heard else None
+                    got = ((m.get("received"), m.get("words_total"), m.get("sent"),
+                            *(self.metrics.get(q.name, {}).get("received")
+                              for q in self.procs if p.name in q.upstream
+                              and m.get("state") == "blocked")) if heard else None)
                     starting = (not heard and now - p.started_at < STARTUP_S
                                 and not self.stop.is_set())  # (a stop: nothing to wait on)
                     # a stage paused on a full disk is waiting, not stuck: ended now, what
@@ -397,7 +403,9 @@ class Supervisor:
             if p.restart_at is not None:  # dead, its restart waiting out the backoff
                 if self.stop.is_set() and p.name == "source":
                     p.finished, p.restart_at = True, None  # shutting down: no new source
-                elif now >= p.restart_at:
+                elif now >= p.restart_at or self.stop.is_set():
+                    # (a stop does not wait out the backoff: the source, stopping after
+                    # its batch, waits on this stage's queue, and so would the stop)
                     p.restart_at = None
                     self._start(p)
                 continue

@@ -32,11 +32,13 @@ import sys
 #: what the server imports once: what the stages import, every module a forked stage
 #: would otherwise import after its fork (CURVE's zmq.auth and the zmq.asyncio with
 #: asyncio it imports at its first use, pyzmq's garbage collector of frames sent without
-#: a copy, numpy.ma, rich's emoji table at the first line printed), and not the daemon's
+#: a copy, its socket monitor's reader at a stage's end (pipeline.stream.hangup),
+#: numpy.ma, rich's emoji table at the first line printed), and not the daemon's
 #: own (pipeline.stream.daemon, the topology's pydantic models: 0.1 CPU-s no stage uses,
 #: on the way to the first fork; tests/pipeline/stream/test_forkstart.py holds both)
 PRELOAD = ["numpy", "numpy.ma", "pyarrow", "pyarrow.ipc", "pyarrow.parquet", "zmq",
-           "zmq.auth", "zmq.auth.thread", "zmq.asyncio", "zmq.utils.garbage", "zstandard",
+           "zmq.auth", "zmq.auth.thread", "zmq.asyncio", "zmq.utils.garbage",
+           "zmq.utils.monitor", "zstandard",
            "pipeline.cli.app", "pipeline.cli.stream", "pipeline.stream.stage",
            "pipeline.stream.wire", "pipeline.stream.journal", "pipeline.stream.state",
            "pipeline.stream.fanout", "pipeline.stream.bounds", "pipeline.stream.metrics",

@@ -76,7 +76,7 @@ class StageStats:
                "paused_s": round(self.paused_s, 1), "unwritten": self.unwritten,
                "unacknowledged": self.unacknowledged}
         for name in ("words_total", "measurement", "gap_words", "backfilled", "duplicates",
-                     "incomplete_frames"):
+                     "incomplete_frames", "held_frames"):
             if hasattr(core, name):
                 out[name] = int(getattr(core, name))
         by_class = getattr(core, "words_by_class", None)

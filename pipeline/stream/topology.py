@@ -599,15 +599,19 @@ HOLD_MIN, HOLD_MAX = 8, 256
 
 
 def range_hold(topo: Topology) -> int:
-    """``[range] hold``, else enough for one worker to be a source batch's measurements
-    and its queues (2 hwm) ahead of another: 8..256 (docs/ranging.md "On the chip")."""
+    """``[range] hold``, else enough for one worker to be as far ahead of another as the
+    queues let it: the source blocks only once a worker's input queue (2 hwm batches) is
+    full, so a worker may have folded 2 hwm + 1 source batches' measurements more than
+    another, and the other's parts of them may still be in its output queue (2 hwm
+    messages): 8..256 (docs/ranging.md "On the chip")."""
     if (topo.range or {}).get("hold") is not None:
         return int(topo.range["hold"])
     mc = topo.histogram.get("measurement_cycles")
     if not mc:  # one measurement: the run
         return HOLD_MIN
     batch_cycles = max(1, SOURCE_BATCH_WORDS // topo.n_tdc)
-    return min(HOLD_MAX, max(HOLD_MIN, -(-batch_cycles // mc) + 2 * topo.hwm))
+    lag = (2 * topo.hwm + 1) * -(-batch_cycles // mc) + 2 * topo.hwm
+    return min(HOLD_MAX, max(HOLD_MIN, lag))
 
 
 def tdc_ranges(topo: Topology) -> list[tuple[int, int]]:

@@ -288,8 +288,8 @@ def test_the_topology_checks_spatial_ranging(tmp_path):
                                                         "spatial": True,
                                                         "geometry": "thesis128"}})
         # (the street's 128 TDCs: a batch of 8192 cycles, 1 of 20 000-cycle measurements,
-        # + 2 x hwm 4 = 9)
-        assert spatial_args(topo) == ["--spatial", "--geometry", "thesis128", "--hold", 9]
+        # times 2 x hwm 4 + 1 batches a worker may be ahead, + 2 x hwm 4 = 17)
+        assert spatial_args(topo) == ["--spatial", "--geometry", "thesis128", "--hold", 17]
         (rng,) = [p for p in build(topo) if p.name == "range"]
         assert rng.argv[rng.argv.index("--workers") + 1] == str(workers)
 
@@ -300,7 +300,7 @@ def test_the_topology_checks_spatial_ranging(tmp_path):
                 **(rng or {})}}))[-1]
 
     assert hold({"hold": 3}) == 3
-    assert hold(measurement_cycles=1000) == 9 + 8 and hold(measurement_cycles=10) == 256
+    assert hold(measurement_cycles=1000) == 9 * 9 + 8 and hold(measurement_cycles=10) == 256
     from pipeline.cli.stream import REPLAY_BATCH_WORDS
 
     assert SOURCE_BATCH_WORDS == REPLAY_BATCH_WORDS
