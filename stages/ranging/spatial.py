@@ -20,11 +20,12 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    its background alone: a window fixed by the neighbours, so no look-elsewhere, and
    background alone passes with probability at most ``p_fa`` (the exact Poisson tail).
    Or, the surface surrounds the pixel: each of the four (k+1)^2 windows that have the
-   pixel in a corner holds a detection at t0 (each at ``p_fa``), unless the pixel's own
-   photons refuse it (fewer than the best corner window's signal a pixel leaves at
-   ``p_fa``). A pixel beside an object, in empty sky, has a quarter of windows that see
-   only sky, and so no surface unless its own photons say so; one in a wedge of sky
-   narrower than a right angle has none, and only its own photons can refuse it.
+   pixel in a corner holds a detection at t0 (each at ``p_fa``), unless the photons of
+   the pixel, or of the 3 x 3 around it, refuse it (fewer than the best corner window's
+   signal a pixel leaves at ``p_fa``). A pixel beside an object, in empty sky, has a
+   quarter of windows that see only sky, and so no surface unless its own photons say
+   so; one in a wedge of sky narrower than a right angle has none, and only the photons
+   around it can refuse it.
    3b. Which candidate an undetected pixel reports (:func:`_relabel`): a few ICM sweeps
    of a Potts MRF over its candidates and its 8 nearest's planes carried over, by the
    pixel's own Poisson likelihood, how many of its 8 nearest lie on each, and how many
