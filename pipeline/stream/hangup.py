@@ -21,9 +21,9 @@ import zmq
 from zmq.utils.monitor import recv_monitor_message
 
 #: At a sender's end, how long it waits for its consumers to hang up: a consumer still
-#: taking its queue (bounded by the high-water marks) ends well within it; one that is
-#: truly gone (killed, frozen) has hung up already, or is killed by the daemon's heartbeat
-#: deadline, which hangs it up.
+#: taking its queue (bounded by the high-water marks) ends well within it; a killed one has
+#: hung up already; a frozen one is given up on here (counted ``unacknowledged``) before
+#: the daemon's heartbeat deadline (60 s by default) kills it.
 END_WAIT_S = 30.0
 _EVENTS = zmq.EVENT_CONNECTED | zmq.EVENT_DISCONNECTED
 
@@ -37,6 +37,17 @@ class Consumers:
         self.monitors = [s.get_monitor_socket(_EVENTS) for s in self.socks]
         self.last: list[int | None] = [None] * len(self.socks)  #: each one's last event
         self.unacknowledged = 0  #: consumers :meth:`wait` waited for in vain
+        self._next_read = 0.0
+
+    def keep(self, every_s: float = 1.0) -> None:
+        """Read the monitors, at most every ``every_s``: called from the sender's loop.
+        A monitor left unread fills its queue (~1,000 events: ~500 reconnects of a
+        consumer restarting) and then blocks ZeroMQ's I/O thread, every socket of the
+        process with it; ``last`` keeps what :meth:`at_end` needs."""
+        now = time.monotonic()
+        if now >= self._next_read:
+            self._next_read = now + every_s
+            self.events()
 
     def events(self) -> list[list[int]]:
         """The events since the last call, in order, each consumer's; ``last`` follows."""

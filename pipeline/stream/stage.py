@@ -340,6 +340,8 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
         try:
             while not tx.poll(200, zmq.POLLOUT):
                 waited += 200
+                if consumers is not None:
+                    consumers.keep()
                 beat.beat(state="blocked", **stats.fields(core))
                 if stop.is_set() and (waited >= drain_ms or given_up):
                     given_up.append(True)  # the rest go the same way, without waiting
@@ -394,6 +396,8 @@ def run_stage(core, pull: str, push: str | None = None, *, hwm: int = DEFAULT_HW
 
     try:
         while True:
+            if consumers is not None:
+                consumers.keep()
             beat.beat(state="running", **stats.fields(core))
             if stop.is_set() and not rx.poll(drain_ms):
                 # a signal: take what is in flight, then finish; when the run has ended
@@ -574,6 +578,7 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
         for tx, frames in zip(txs, msgs, strict=True):
             tb = time.perf_counter()
             while not tx.poll(200, zmq.POLLOUT):  # a consumer behind: waiting, alive (the
+                consumers.keep()
                 beat.beat(state="blocked", sent=seq, words=sent,  # daemon's deadline)
                           blocked_s=round(blocked + time.perf_counter() - tb, 3))
             # the words' frame (0.1-4 MiB) handed to ZeroMQ without a copy: each is a new
@@ -618,6 +623,7 @@ def run_source(batches, push: str | list[str], *, step_id: str, run: str, n_tdc:
                 _log(f"first batch sent at {time.time():.6f}")
             sent += words.size
             seq += 1
+            consumers.keep()
             beat.beat(state="running", sent=seq, words=sent, blocked_s=round(blocked, 3))
             if rate_words_s:
                 ahead = sent / rate_words_s - (time.perf_counter() - t0)

@@ -512,6 +512,7 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
     try:
         while not stop.is_set():
             stats.gap_cycles, stats.lost_datagrams = reasm.gap_cycles, reasm.lost()
+            consumers.keep()
             beat.beat(state="running", **stats.fields())
             if last_end == -1 and idle >= linger_s and ref is not None:
                 group, strays = ref.settle()  # a run of fewer datagrams than the quorum
@@ -597,9 +598,11 @@ def run_udp_ingest(sock: socket.socket, push: str | list[str], *, run: str = "ud
                     break
                 except queue.Full:
                     gave_up = journal is not None and time.monotonic() >= t_end
+                    consumers.keep()
                     beat.beat(state="blocked", **stats.fields())
         while not gave_up and tx_thread.is_alive() and time.monotonic() < t_end:
             tx_thread.join(timeout=1.0)
+            consumers.keep()
             beat.beat(state="blocked", **stats.fields())
         # with a journal, a sender still stuck after that minute is given up on too: its
         # messages are not lingered over for another minute (the stage is ended and reads

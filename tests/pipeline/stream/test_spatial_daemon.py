@@ -260,10 +260,10 @@ def test_a_runs_last_measurements_reach_the_range_stage_by_the_stream(tmp_path, 
     the default ``hold``, every frame is gathered whole live (nothing ranged again at the
     end). ``plain`` and ``spatial``: 5000 cycles a measurement, 5 source batches. Seen
     before: the workers' last two measurements and their stops were lost on the way to
-    the range stage on every such run (ZeroMQ drops what a consumer with a full queue had
-    read when its producer closes: pipeline.stream.stage.taken), and 38 of the 60 frames
-    were ranged without a part live, the default ``hold`` (22) under how far a worker can
-    be ahead of another (pipeline.stream.topology.range_hold: now 134).
+    the range stage on every such run (ZeroMQ's ipc transport loses what a consumer with a
+    full queue has not read when its producer closes: pipeline.stream.hangup), and 38 of
+    the 60 frames were ranged without a part live, the default ``hold`` (22) under how far
+    a worker can be ahead of another (pipeline.stream.topology.range_hold: now 134).
     ``spatial-one-batch-hold-8``: 100 cycles a measurement, the whole capture one source
     batch, so that each worker sends its 60 at once to a range stage that ranges each
     frame up to three times (``hold = 8``): the workers, blocked on it after the source
