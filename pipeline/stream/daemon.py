@@ -77,7 +77,7 @@ starts, as are the state directory and the resources: ``pipeline.stream.state``)
     spatial = false              # true: ranged with the neighbours as the geometry's image
                                  # (geometry = ..., else [sink] geometry); the workers'
     hold = 8                     # parts of a measurement gathered first, this many held
-                                 # (leave out: a source batch's measurements + 2 hwm)
+                                 # (leave out: 2 hwm + 1 batches' measurements + 2 hwm)
 
     [sink]
     out = "data/stream"

@@ -202,8 +202,8 @@ class RangeSection(_Section):
     hold: int | None = Field(None, ge=1, le=256, description="with spatial: measurements "
                              "held while their workers' parts gather, 1..256 (past that the "
                              "oldest is ranged with the parts it has, flagged, and ranged "
-                             "again from the journal at the run's end; leave out: a source "
-                             "batch's measurements + 2 hwm, 8..256)")
+                             "again from the journal at the run's end; leave out: 2 hwm + 1 "
+                             "source batches' measurements + 2 hwm, 8..256)")
     geometry: str | None = Field(None, min_length=1, description="with spatial: the "
                                  "array's layout (leave out: [sink] geometry)")
 
