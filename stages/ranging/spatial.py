@@ -705,8 +705,8 @@ def _label_sigma(state, sig_cnt, sig_out, P0, beta, bin_s, sb, prof=None) -> Non
     # (a plane without a sigma, inf, makes the variance inf where it has weight)
     on = np.isfinite(u) & (np.abs(t - tl[..., None]) < tol)
     top = np.max(np.where(on, u, -np.inf), -1, keepdims=True)
-    p = np.where(on, np.exp(np.where(on, u, 0.0) - np.where(np.isfinite(top), top, 0.0)),
-                 0.0)
+    # (exp of the labels on it only: another's u - top overflowed on a real capture)
+    p = np.exp(np.where(on, u - np.where(np.isfinite(top), top, 0.0), -np.inf))
     tot = p.sum(-1)
     d2 = np.where(on, s2 + (np.where(on, t, 0.0) - tl[..., None]) ** 2, 0.0)
     var = np.where(p > 0, p * d2, 0.0).sum(-1) / np.where(tot > 0, tot, 1.0)

@@ -820,3 +820,26 @@ def test_an_irf_wider_than_the_window_names_the_option_and_the_file(tmp_path):
     r = tcspc("range", f, "--delay-ps", "0", "--irf-ps", "1e6", "--out", tmp_path / "r.parquet")
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "h.parquet: --irf-ps 1e+06: sigma_s" in r.stderr, r.stderr
+
+
+def test_tmf8820_with_the_neighbours_detects_no_zone_without_photons(tmf):
+    """The real TMF8820 captures ranged with the neighbours (`--spatial`, its 3 x 3 zones'
+    geometry): a zone whose histogram holds almost nothing (zone 3 of capture_002: no
+    count at all, 15 in zone 4; 28 in zone 4 of capture_004, against 328 and more in
+    every other zone) is not detected, however bright the zones around it.
+    Before the surrounded pixel's own photons could refuse it, the corner windows
+    detected 3 such zones on the neighbours' surface; every zone with a return is still
+    detected."""
+    d, truth, cal, _ = tmf
+    out = d / "spatial.parquet"
+    r = tcspc("range", d / "h.parquet", "--spatial", "--geometry", "tmf8820", "--delay-ps",
+              "0", "--irf-ps", "250", "--out", out, "--overwrite")
+    assert r.returncode == 0, r.stderr
+    h = pl.read_parquet(d / "h.parquet").with_columns(
+        pl.col("counts").list.sum().alias("total")).select("measurement", "tdc", "total")
+    df = (pl.read_parquet(out).filter(pl.col("return_index") == 0)
+          .join(h, on=["measurement", "tdc"]))
+    assert df.height == 720 and df["distance_m"].is_finite().all()
+    empty = df.filter(pl.col("total") < 100)
+    assert empty.height == 3 and not empty["detected"].any()
+    assert df.filter(pl.col("total") >= 100)["detected"].all()
