@@ -49,9 +49,9 @@ def is_generic(path: str) -> bool:
 def range_generic(path: str, out: str, calibration, delay_ps, zero, gate, estimator, irf_ps,
                   p_fa, quiet: bool, max_returns: int | None = None) -> None:
     """Ranges of a generic histograms file (any instrument's) on its own uniform bins."""
-    import numpy as np
     import polars as pl
 
+    from pipeline.cli.export import detected_span
     from pipeline.offline.generic import DistanceCalibration, write_ranges
     from pipeline.offline.generic import range_generic as rng_generic
     from schemas.errors import CalibrationError
@@ -96,9 +96,7 @@ def range_generic(path: str, out: str, calibration, delay_ps, zero, gate, estima
                   + (f" (+{more} further returns)" if more else "")
                   + f" ({estimator}, P_fa {p_fa:g}) in "
                   f"{df['measurement'].n_unique()} measurement(s), "
-                  f"{time.perf_counter() - t0:.2f} s; distance "
-                  f"{det['distance_m'].min() if det.height else np.nan:.4f}.."
-                  f"{det['distance_m'].max() if det.height else np.nan:.4f} m; wrote {out}",
+                  f"{time.perf_counter() - t0:.2f} s; {detected_span(table)}; wrote {out}",
                   highlight=False)
 
 
