@@ -31,8 +31,12 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pipeline.io.atomic import atomic_path
-from pipeline.io.linospad2 import (Linospad2Error, iter_cycles, looks_like_linospad2,
-                                   read_published_calibration)
+from pipeline.io.linospad2 import (
+    Linospad2Error,
+    iter_cycles,
+    looks_like_linospad2,
+    read_published_calibration,
+)
 from stages.instruments import linospad2 as lino
 
 
