@@ -80,6 +80,7 @@ def range_spatial(capture, out, spatial, geometry, irf_ps, p_fa, delay_ps, max_r
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from exc
     _spatial_input(capture)
+    from pipeline.cli import instruments
     from pipeline.io.geometry import load_geometry
     from pipeline.offline.generic import write_ranges
     from pipeline.offline.spatial import range_spatial as run
@@ -97,18 +98,7 @@ def range_spatial(capture, out, spatial, geometry, irf_ps, p_fa, delay_ps, max_r
         err.print(f"{int((det & first).sum())} of {int(first.sum())} pixels detected "
                   f"(+{int((det & ~first).sum())} further returns) (spatial, P_fa {p_fa:g} "
                   f"a pixel) in {time.perf_counter() - t0:.2f} s; "
-                  f"{detected_span(table)}; wrote {out}", highlight=False)
-
-
-def detected_span(table) -> str:
-    """The summary's distances: the detected returns' range, or that there is none (an
-    undetected row's distance is its best candidate's, not a return: never summarised)."""
-    det = np.asarray(table.column("detected").to_numpy(zero_copy_only=False), bool)
-    d = np.asarray(table.column("distance_m").to_numpy(zero_copy_only=False), np.float64)[det]
-    d = d[np.isfinite(d)]
-    if not d.size:
-        return "no return detected"
-    return f"distance {d.min():.4f}..{d.max():.4f} m"
+                  f"{instruments.detected_span(table)}; wrote {out}", highlight=False)
 
 
 def _spatial_input(capture) -> None:

@@ -51,7 +51,6 @@ def range_generic(path: str, out: str, calibration, delay_ps, zero, gate, estima
     """Ranges of a generic histograms file (any instrument's) on its own uniform bins."""
     import polars as pl
 
-    from pipeline.cli.export import detected_span
     from pipeline.offline.generic import DistanceCalibration, write_ranges
     from pipeline.offline.generic import range_generic as rng_generic
     from schemas.errors import CalibrationError
@@ -98,6 +97,19 @@ def range_generic(path: str, out: str, calibration, delay_ps, zero, gate, estima
                   f"{df['measurement'].n_unique()} measurement(s), "
                   f"{time.perf_counter() - t0:.2f} s; {detected_span(table)}; wrote {out}",
                   highlight=False)
+
+
+def detected_span(table) -> str:
+    """The summary's distances: the detected returns' range, or that there is none (an
+    undetected row's distance is its best candidate's, not a return: never summarised)."""
+    import numpy as np
+
+    det = np.asarray(table.column("detected").to_numpy(zero_copy_only=False), bool)
+    d = np.asarray(table.column("distance_m").to_numpy(zero_copy_only=False), np.float64)[det]
+    d = d[np.isfinite(d)]
+    if not d.size:
+        return "no return detected"
+    return f"distance {d.min():.4f}..{d.max():.4f} m"
 
 
 def _print_summary(summary, quiet: bool) -> None:
