@@ -109,6 +109,11 @@ def main(argv=None) -> int:
           f"bins of {a.period_ps / a.bins:g} ps ("
           + ("fine codes by " + a.code_times if a.code_times else "nominal fine codes")
           + ")", file=sys.stderr)
+    if not a.code_times and a.period_ps % lino.CLOCK_PS == 0:
+        print(f"warning: {a.capture}: nominal fine codes folded on whole clock periods: the "
+              "carry chain's dead and wide codes make a comb in every pixel, shared by a "
+              "TDC's 4 (false surfaces with --spatial); give --code-times",
+              file=sys.stderr)
     return 0
 
 

@@ -65,6 +65,7 @@ def tof(tmp_path_factory):
                 BINS, "--out", d / f"{name}.parquet", *extra)
         assert r.returncode == 0, r.stderr
         assert "131,560 photons of 20 cycles" in r.stderr
+        assert ("warning" in r.stderr) == (name == "nominal"), r.stderr
     return d
 
 
