@@ -72,7 +72,9 @@ RANGES = SchemaSpec("ranges", "3.0", (
     # 3.0: uint32 (a generic file's pixel numbers up to 2^32 - 1, issue 34.7; it was uint16)
     field("tdc", pa.uint32(), "", "TDC address (0-based); for generic histograms the "
           "file's row number, 0..2^32 - 1"),
-    field("distance_m", pa.float64(), "m", "estimated distance (eq. 5.4)"),
+    field("distance_m", pa.float64(), "m", "estimated distance (eq. 5.4); on a row not "
+          "detected the best candidate's (or NaN), not a return: `detected` tells them "
+          "apart, and `tcspc export` writes detected returns only"),
     field("sigma_m", pa.float64(), "m", "one-sigma uncertainty of distance_m: the fit's "
           "(its counts' Fisher information) and, ranged with a chip calibration that stores "
           "its own uncertainty (docs/calibration.md), the calibration's in quadrature: the "

@@ -605,10 +605,10 @@ def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, g
         err.print(f"{det.height} of {df.height} pixels detected"
                   + (f" (+{more} further returns)" if more else "")
                   + f" ({estimator}, P_fa {p_fa:g}) in "
-                  f"{time.perf_counter() - t0:.2f} s; distance "
-                  f"{det['distance_m'].min() if det.height else float('nan'):.3f}.."
-                  f"{det['distance_m'].max() if det.height else float('nan'):.3f} m, median "
-                  f"sigma {det['sigma_m'].median() if det.height else float('nan'):.4f} m")
+                  f"{time.perf_counter() - t0:.2f} s; "
+                  + (f"distance {det['distance_m'].min():.3f}..{det['distance_m'].max():.3f}"
+                     f" m, median sigma {det['sigma_m'].median():.4f} m" if det.height else
+                     "no return detected"))
         err.print(f"wrote {out}")
     _warn_no_delay(calib)
 

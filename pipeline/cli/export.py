@@ -15,7 +15,7 @@ _SUFFIX = {".las": "las", ".ply": "ply", ".pcd": "pcd", ".mcap": "mcap"}
 @click.command(short_help="Ranges and a geometry as a point cloud (LAS, PLY, PCD, MCAP).")
 @click.argument("ranges", type=click.Path(exists=True))
 @click.option("--geometry", "geometry", required=True,
-              help="A shipped geometry (thesis128, tmf8820), a geometry .toml or a "
+              help="A shipped geometry (thesis128, tmf8820, linospad2), a geometry .toml or a "
                    "pixel_geometry .parquet (docs/geometry.md).")
 @click.option("--format", "fmt", type=click.Choice(["las", "ply", "pcd", "mcap"]),
               default=None, help="Default: from --out's suffix.")
@@ -79,6 +79,8 @@ def range_spatial(capture, out, spatial, geometry, irf_ps, p_fa, delay_ps, max_r
             raise ValueError(f"--delay-ps must be finite, found {delay_ps}")
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from exc
+    _spatial_input(capture)
+    from pipeline.cli import instruments
     from pipeline.io.geometry import load_geometry
     from pipeline.offline.generic import write_ranges
     from pipeline.offline.spatial import range_spatial as run
@@ -95,5 +97,33 @@ def range_spatial(capture, out, spatial, geometry, irf_ps, p_fa, delay_ps, max_r
         first = np.asarray(table.column("return_index").to_numpy()) == 0
         err.print(f"{int((det & first).sum())} of {int(first.sum())} pixels detected "
                   f"(+{int((det & ~first).sum())} further returns) (spatial, P_fa {p_fa:g} "
-                  f"a pixel) in {time.perf_counter() - t0:.2f} s; wrote {out}",
-                  highlight=False)
+                  f"a pixel) in {time.perf_counter() - t0:.2f} s; "
+                  f"{instruments.detected_span(table)}; wrote {out}", highlight=False)
+
+
+def _spatial_input(capture) -> None:
+    """--spatial without --calibration ranges generic histograms only: anything else is
+    refused in one line naming the file and what it is (a LinoSPAD2 file was refused with
+    pyarrow's "Parquet magic bytes not found", its fine-code histograms as not 'generic')."""
+    from pipeline.cli import instruments
+
+    fmt = instruments.detect(capture, None, histograms=True)
+    if fmt == "histograms":
+        if instruments.is_generic(capture):
+            return
+        import pyarrow.parquet as pq
+
+        names = pq.ParquetFile(capture).schema_arrow.names
+        inst = (sorted(set(map(str, pq.read_table(capture, columns=["instrument"])
+                               .column("instrument").to_pylist())))
+                if "instrument" in names else ["tcspc-chip"])
+        what = ("LinoSPAD2 fine-code histograms (codes of a 2.5 ns clock period, not a "
+                "time of flight)" if inst == ["linospad2"] else
+                f"histograms of instrument {', '.join(inst)}")
+    elif fmt == "tcspc":
+        what = "a tcspc capture (its --spatial takes --calibration and --geometry)"
+    else:
+        what = {"linospad2": "a LinoSPAD2 raw capture (photon times with no laser sync)",
+                "ptu": "a PicoQuant PTU file"}.get(fmt, f"a {fmt} file")
+    raise instruments.BadInput(f"{capture}: {what}; --spatial without --calibration ranges "
+                               "generic histograms (docs/instruments_generic.md)")

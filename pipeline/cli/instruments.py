@@ -49,7 +49,6 @@ def is_generic(path: str) -> bool:
 def range_generic(path: str, out: str, calibration, delay_ps, zero, gate, estimator, irf_ps,
                   p_fa, quiet: bool, max_returns: int | None = None) -> None:
     """Ranges of a generic histograms file (any instrument's) on its own uniform bins."""
-    import numpy as np
     import polars as pl
 
     from pipeline.offline.generic import DistanceCalibration, write_ranges
@@ -96,10 +95,21 @@ def range_generic(path: str, out: str, calibration, delay_ps, zero, gate, estima
                   + (f" (+{more} further returns)" if more else "")
                   + f" ({estimator}, P_fa {p_fa:g}) in "
                   f"{df['measurement'].n_unique()} measurement(s), "
-                  f"{time.perf_counter() - t0:.2f} s; distance "
-                  f"{det['distance_m'].min() if det.height else np.nan:.4f}.."
-                  f"{det['distance_m'].max() if det.height else np.nan:.4f} m; wrote {out}",
+                  f"{time.perf_counter() - t0:.2f} s; {detected_span(table)}; wrote {out}",
                   highlight=False)
+
+
+def detected_span(table) -> str:
+    """The summary's distances: the detected returns' range, or that there is none (an
+    undetected row's distance is its best candidate's, not a return: never summarised)."""
+    import numpy as np
+
+    det = np.asarray(table.column("detected").to_numpy(zero_copy_only=False), bool)
+    d = np.asarray(table.column("distance_m").to_numpy(zero_copy_only=False), np.float64)[det]
+    d = d[np.isfinite(d)]
+    if not d.size:
+        return "no return detected"
+    return f"distance {d.min():.4f}..{d.max():.4f} m"
 
 
 def _print_summary(summary, quiet: bool) -> None:

@@ -1,7 +1,7 @@
-"""Geometry files (docs/geometry.md): a shipped name (``thesis128``, ``tmf8820``), a TOML
-file with a ``[grid]`` or a ``[pixels]`` section and a ``[pose]``, or a ``pixel_geometry``
-parquet table. Checked at the door: every problem in one pass, a line each naming the
-file, the section and the key (:class:`GeometryError`, exit 2)."""
+"""Geometry files (docs/geometry.md): a shipped name (``thesis128``, ``tmf8820``,
+``linospad2``), a TOML file with a ``[grid]`` or a ``[pixels]`` section and a ``[pose]``, or a
+``pixel_geometry`` parquet table. Checked at the door: every problem in one pass, a line each
+naming the file, the section and the key (:class:`GeometryError`, exit 2)."""
 
 from __future__ import annotations
 

@@ -216,7 +216,7 @@ class SinkSection(_Section):
         None, description="las, ply, pcd or mcap: each measurement's ranges also as a point "
         "cloud under OUT/pointcloud (needs geometry)")
     geometry: str | None = Field(None, min_length=1, description="a shipped geometry "
-                                 "(thesis128, tmf8820), a .toml or a .parquet")
+                                 "(thesis128, tmf8820, linospad2), a .toml or a .parquet")
 
 
 class MetricsSection(_Section):

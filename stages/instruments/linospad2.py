@@ -256,6 +256,57 @@ def fine_histograms(words, firmware: str, by: str = "pixel",
     return counts.reshape(n_rows, N_FINE).astype(np.uint64), _tally(c, valid)
 
 
+# ------------------------------------------------------------- times of flight (a laser)
+
+def photon_times_ps(code, row, table_ps=None) -> np.ndarray:
+    """Each photon's time since its cycle's start, ps (float64).
+
+    ``code`` the words' 28-bit codes, ``row`` each photon's row of ``table_ps`` (its pixel
+    for a per-pixel table, its TDC for a per-TDC one). The clock period ``code // 140`` counts
+    2.5 ns; within it the fine code's time is nominal (``fine x 17.857 ps``: the carry chain
+    taken as linear, which it is not: ~20 % of its codes are dead and the rest ~21 ps wide,
+    see docs/instruments_linospad2.md) or, given a code-density table (rows x 140
+    cumulative code times, ps, each code's upper edge: the published convention,
+    :class:`CodeDensity`), the centre of the code's calibrated interval.
+
+    >>> photon_times_ps(np.array([141, 2 * 140 + 3]), np.array([0, 0])).round(3).tolist()
+    [2517.857, 5053.571]
+    >>> tab = np.tile(np.linspace(0, 2500, 141)[1:], (1, 1))   # 140 codes of 17.857 ps
+    >>> photon_times_ps(np.array([141]), np.array([0]), tab).round(3).tolist()
+    [2526.786]
+    """
+    code = np.asarray(code, np.int64)
+    coarse = (code // N_FINE).astype(np.float64) * CLOCK_PS
+    fine = code % N_FINE
+    if table_ps is None:
+        return coarse + fine * CODE_PS
+    tab = np.asarray(table_ps, np.float64)
+    if tab.ndim != 2 or tab.shape[1] != N_FINE:
+        raise ValueError(f"photon_times_ps: a table of rows x {N_FINE} code times, found "
+                         f"{tab.shape}")
+    upper = tab[np.asarray(row, np.int64), fine]
+    lower = np.where(fine > 0, tab[np.asarray(row, np.int64), np.maximum(fine - 1, 0)], 0.0)
+    return coarse + 0.5 * (lower + upper)
+
+
+def folded_histograms(row, t_ps, n_rows: int, period_ps: float, bins: int) -> np.ndarray:
+    """Counts (n_rows, bins) int64 of the times folded on a laser period: ``t mod period``
+    in ``bins`` bins of ``period / bins`` (a laser fired by the board's clock, so that
+    its pulses fall at multiples of the period since each cycle's start).
+
+    >>> folded_histograms([0, 0, 1], [10.0, 110.0, 205.0], 2, 100.0, 4).tolist()
+    [[2, 0, 0, 0], [1, 0, 0, 0]]
+    """
+    if not (np.isfinite(period_ps) and period_ps > 0):
+        raise ValueError(f"folded_histograms: the period must be > 0 ps, found {period_ps}")
+    if bins < 1:
+        raise ValueError(f"folded_histograms: bins must be >= 1, found {bins}")
+    row = np.asarray(row, np.int64)
+    b = np.floor(np.mod(np.asarray(t_ps, np.float64), period_ps) * (bins / period_ps))
+    b = np.minimum(b.astype(np.int64), bins - 1)      # (a rounding at the period's end)
+    return np.bincount(row * bins + b, minlength=n_rows * bins).reshape(n_rows, bins)
+
+
 # ------------------------------------------------------------------------- code density
 
 @dataclass(frozen=True)

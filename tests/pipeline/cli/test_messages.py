@@ -116,3 +116,39 @@ def test_the_photon_hdf5_export_leaves_no_file_open(tmp_path):
     assert "UnclosedFileWarning" not in res.stderr and (tmp_path / "p.h5").stat().st_size
     doc = (ROOT / "docs" / "instruments_ptu.md").read_text()
     assert "tcspc decode FILE.ptu --out FILE.h5" in doc and "not** a dependency" not in doc
+
+
+LINO = ROOT / "tests" / "data" / "linospad2" / "test_data_2212b.dat"
+
+
+@pytest.mark.skipif(not LINO.exists() or not T3.exists(), reason="no real sample files")
+def test_spatial_says_what_an_input_it_cannot_range_is(tmp_path):
+    """`range --spatial` on anything but generic histograms: one line naming the file and
+    what it is, exit 2 (a LinoSPAD2 capture was "Parquet magic bytes not found")."""
+    fine = tmp_path / "fine.parquet"
+    assert tcspc("histogram", LINO, "--by", "pixel", "--out", fine, "-q").exit_code == 0
+    for path, said in ((LINO, "a LinoSPAD2 raw capture"), (T3, "a PicoQuant PTU file"),
+                       (fine, "LinoSPAD2 fine-code histograms")):
+        res = tcspc("range", path, "--spatial", "--geometry", "linospad2", "--delay-ps", "0",
+                    "--irf-ps", "42.5", "--out", tmp_path / "r.parquet")
+        assert res.exit_code == 2, res.output
+        assert said in res.output and "generic histograms" in res.output, res.output
+        assert "Parquet" not in res.output and "Traceback" not in res.output
+        assert not (tmp_path / "r.parquet").exists()
+
+
+def test_a_range_without_a_detection_says_so_not_nan(tmp_path):
+    import numpy as np
+    import polars as pl
+
+    h = tmp_path / "h.parquet"
+    counts = np.random.default_rng(3).poisson(0.5, (4, 64))
+    pl.DataFrame({"measurement": "m", "tdc": np.arange(4), "counts": counts.tolist(),
+                  "cycles": None, "instrument": "generic", "bin_width_ps": 80.0,
+                  "row": 0, "col": np.arange(4)}).write_parquet(h)
+    for spatial in ((), ("--spatial",)):
+        res = tcspc("range", h, "--delay-ps", "0", "--irf-ps", "40", "--p-fa", "1e-9",
+                    *spatial, "--out", tmp_path / "r.parquet", "--overwrite")
+        assert res.exit_code == 0, res.output
+        assert "0 of 4" in res.output and "no return detected" in res.output, res.output
+        assert "nan" not in res.output

@@ -267,5 +267,12 @@ def test_shipped_geometries():
     # the datasheet's 63 degrees on the diagonal: the corner zones' outer edges
     corner = np.array([1, math.tan(math.radians(31.5)) / math.sqrt(2)] * 1)
     assert abs(2 * math.degrees(math.atan(math.hypot(corner[1], corner[1]))) - 63) < 1e-9
+    li = load_geometry("linospad2")
+    assert (li.rows, li.cols, li.distance) == (1, 256, "radial")
+    assert li.tdc.tolist() == list(range(256)) and li.col.tolist() == list(range(256))
+    # 26.2 um pitch behind the assumed 8 mm lens, centred: pixel t at atan((127.5 - t) p / f)
+    want = np.arctan((127.5 - np.arange(256)) * 0.0262 / 8)
+    assert np.abs(np.asarray(li.azimuth_rad) - want).max() < 1e-12
+    assert not np.any(li.elevation_rad)
     with pytest.raises(GeometryError, match="not a shipped geometry"):
         load_geometry("nope")
