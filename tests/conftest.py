@@ -1,4 +1,7 @@
+import fcntl
 import os
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,6 +23,26 @@ def rng():
     return np.random.default_rng(12345)
 
 
+def built_once(tmp_path_factory, name: str, build) -> Path:
+    """The directory ``build(d)`` fills, built once a test run: with pytest-xdist by the
+    first worker that asks, the others waiting for it and reading it (the workers' base
+    temporary directories share their parent). Its users only read it."""
+    if "PYTEST_XDIST_WORKER" not in os.environ:
+        d = tmp_path_factory.mktemp(name)
+        build(d)
+        return d
+    root = tmp_path_factory.getbasetemp().parent
+    d = root / name
+    with open(root / f"{name}.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # (released when the file is closed)
+        if not (d / ".built").exists():
+            shutil.rmtree(d, ignore_errors=True)
+            d.mkdir()
+            build(d)
+            (d / ".built").touch()
+    return d
+
+
 @pytest.fixture(scope="session")
 def caldir(tmp_path_factory):
     """A calibration of the 16-pixel chip of scenes/small16.toml, built once for the
@@ -27,7 +50,7 @@ def caldir(tmp_path_factory):
     light differs from any one test's), and a delay."""
     from pipeline.offline.simulate import simulated_calibration
 
-    return simulated_calibration(tmp_path_factory.mktemp("cal"), 16)
+    return built_once(tmp_path_factory, "caldir", lambda d: simulated_calibration(d, 16)) / "cal"
 
 
 @pytest.fixture(scope="session")
@@ -40,12 +63,16 @@ def zoo(tmp_path_factory):
     from pipeline.offline.simulate import simulated_calibration
     from stages.simulator.chip import REAL_CHIP_RANGES, random_chip
 
-    d = tmp_path_factory.mktemp("zoo")
     chip, _ = random_chip(2, 16, {**REAL_CHIP_RANGES, "n_sat": (0.5, 1.5),
                                   "artifact_rate": (0.0, 6e-4)})
-    (d / "grid.toml").write_text('name = "grid3x5"\n[grid]\nrows = 3\ncols = 5\n'
-                                 'fov_h_deg = 12.0\nfov_v_deg = 7.0\n')
-    return chip, simulated_calibration(d, 16, chip), d / "grid.toml"
+
+    def build(d):
+        simulated_calibration(d, 16, chip)
+        (d / "grid.toml").write_text('name = "grid3x5"\n[grid]\nrows = 3\ncols = 5\n'
+                                     'fov_h_deg = 12.0\nfov_v_deg = 7.0\n')
+
+    d = built_once(tmp_path_factory, "zoo", build)
+    return chip, d / "cal", d / "grid.toml"
 
 
 @pytest.fixture(scope="session")
