@@ -156,10 +156,16 @@ def test_chip_options_are_refused_on_an_instrument_file(tmp_path):
 
 
 def test_decode_to_photon_hdf5(tmp_path):
+    """A valid Photon-HDF5 file, its detectors the histogram's hits, and no file left
+    open at the command's exit (PyTables' UnclosedFileWarning); docs/instruments_ptu.md
+    says how to make one."""
     phconvert = pytest.importorskip("phconvert")  # dev and hdf5 extras install it
     out = tmp_path / "hh.h5"
     r = tcspc("decode", T3, "--out", out)
     assert r.returncode == 0, r.stderr
+    assert "UnclosedFileWarning" not in r.stderr and out.stat().st_size, r.stderr
+    doc = (ROOT / "docs" / "instruments_ptu.md").read_text()
+    assert "tcspc decode FILE.ptu --out FILE.h5" in doc and "not** a dependency" not in doc
     import tables
 
     with tables.open_file(str(out)) as h5:  # (given a path, phconvert leaves it open)
