@@ -1,6 +1,9 @@
 import fcntl
+import json
 import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -119,3 +122,95 @@ def other_account():
         yield pwd.getpwnam(name).pw_uid
     finally:
         subprocess.run(["userdel", name], capture_output=True)
+
+
+#: the modules `tcspc range`, `calibrate distance`, `histogram` and `decode` import,
+#: imported once by :class:`CliProcess`'s server (~1.3 s a command's start-up)
+_CLI_IMPORTS = ("numpy", "scipy.special", "scipy.stats", "scipy.optimize", "polars",
+                "pyarrow.parquet", "pyarrow.compute", "pipeline.cli.app",
+                "pipeline.cli.instruments", "pipeline.offline.generic",
+                "pipeline.offline.ranging", "pipeline.offline.instruments",
+                "pipeline.io.generic", "pipeline.io.ptu", "pipeline.io.linospad2")
+
+#: the server: a request a line (argv, cwd, the stdout and stderr files, a timeout); the
+#: child's exit status a line (null: killed at the timeout)
+_CLI_SERVER = r"""
+import atexit, importlib, json, os, select, signal, sys, traceback
+for name in json.loads(sys.argv[1]):
+    importlib.import_module(name)
+from pipeline.cli.app import main
+for line in sys.stdin:
+    req = json.loads(line)
+    pid = os.fork()
+    if pid == 0:
+        code = 1
+        try:
+            os.chdir(req["cwd"])
+            os.dup2(os.open(os.devnull, os.O_RDONLY), 0)
+            for fd, path in ((1, req["out"]), (2, req["err"])):
+                os.dup2(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), fd)
+            sys.argv = ["tcspc", *req["argv"]]
+            try:
+                main()
+                code = 0
+            except SystemExit as e:
+                if isinstance(e.code, str):
+                    print(e.code, file=sys.stderr)
+                code = e.code if isinstance(e.code, int) else (e.code is not None)
+            atexit._run_exitfuncs()  # (what an exiting interpreter runs: PyTables' close)
+        except BaseException:
+            traceback.print_exc()
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(int(code))
+    with os.fdopen(os.pidfd_open(pid)) as done:
+        if not select.select([done], [], [], req["timeout"])[0]:
+            os.kill(pid, signal.SIGKILL)
+    status = os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
+    print(json.dumps(None if status == -signal.SIGKILL else status), flush=True)
+"""
+
+
+class CliProcess:
+    """``python -m pipeline.cli ARGS`` as ``subprocess.run(..., capture_output=True,
+    text=True)`` gives it (exit status, stdout, stderr), each command a process of its own
+    forked from a server that imported the commands' modules once: a start-up is ~1.3 s
+    of imports, ~30 of them in test_generic.py and test_cli_instruments.py. Started on
+    first use."""
+
+    def __init__(self, tmp: Path):
+        self.tmp, self.proc, self.n = tmp, None, 0
+
+    def run(self, *args, cwd=None, timeout: float = 300) -> subprocess.CompletedProcess:
+        if self.proc is None or self.proc.poll() is not None:
+            root = str(Path(__file__).parents[1])
+            self.proc = subprocess.Popen(
+                [sys.executable, "-c", _CLI_SERVER, json.dumps(_CLI_IMPORTS)],
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                env={**os.environ, "PYTHONPATH": root}, cwd=root)
+        self.n += 1
+        out, err = self.tmp / f"{self.n}.out", self.tmp / f"{self.n}.err"
+        argv = [str(a) for a in args]
+        self.proc.stdin.write(json.dumps({"argv": argv, "cwd": str(cwd or os.getcwd()),
+                                          "out": str(out), "err": str(err),
+                                          "timeout": timeout}) + "\n")
+        self.proc.stdin.flush()
+        code = json.loads(self.proc.stdout.readline())
+        if code is None:
+            raise subprocess.TimeoutExpired(["tcspc", *argv], timeout)
+        return subprocess.CompletedProcess(["tcspc", *argv], code, out.read_text(),
+                                           err.read_text())
+
+    def close(self) -> None:
+        if self.proc is not None:
+            self.proc.stdin.close()
+            self.proc.wait(timeout=30)
+
+
+@pytest.fixture(scope="session")
+def cli_process(tmp_path_factory):
+    """A :class:`CliProcess` of this test process."""
+    p = CliProcess(tmp_path_factory.mktemp("cli"))
+    yield p
+    p.close()

@@ -20,10 +20,18 @@ LINO = DATA / "linospad2" / "test_data_2212b.dat"
 ROOT = Path(__file__).parents[3]
 
 
+_CLI = []
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _cli(cli_process):
+    _CLI[:] = [cli_process]
+
+
 def tcspc(*args, cwd=None):
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.run([sys.executable, "-m", "pipeline.cli", *map(str, args)],
-                          capture_output=True, text=True, timeout=300, env=env, cwd=cwd)
+    """`python -m pipeline.cli ARGS`, a process forked from one that imported the
+    commands' modules (tests/conftest.py ``CliProcess``)."""
+    return _CLI[0].run(*args, cwd=cwd)
 
 
 def test_formats_are_read_from_the_content(tmp_path):
