@@ -1,4 +1,10 @@
+import fcntl
+import json
 import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,6 +26,26 @@ def rng():
     return np.random.default_rng(12345)
 
 
+def built_once(tmp_path_factory, name: str, build) -> Path:
+    """The directory ``build(d)`` fills, built once a test run: with pytest-xdist by the
+    first worker that asks, the others waiting for it and reading it (the workers' base
+    temporary directories share their parent). Its users only read it."""
+    if "PYTEST_XDIST_WORKER" not in os.environ:
+        d = tmp_path_factory.mktemp(name)
+        build(d)
+        return d
+    root = tmp_path_factory.getbasetemp().parent
+    d = root / name
+    with open(root / f"{name}.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # (released when the file is closed)
+        if not (d / ".built").exists():
+            shutil.rmtree(d, ignore_errors=True)
+            d.mkdir()
+            build(d)
+            (d / ".built").touch()
+    return d
+
+
 @pytest.fixture(scope="session")
 def caldir(tmp_path_factory):
     """A calibration of the 16-pixel chip of scenes/small16.toml, built once for the
@@ -27,7 +53,7 @@ def caldir(tmp_path_factory):
     light differs from any one test's), and a delay."""
     from pipeline.offline.simulate import simulated_calibration
 
-    return simulated_calibration(tmp_path_factory.mktemp("cal"), 16)
+    return built_once(tmp_path_factory, "caldir", lambda d: simulated_calibration(d, 16)) / "cal"
 
 
 @pytest.fixture(scope="session")
@@ -40,12 +66,16 @@ def zoo(tmp_path_factory):
     from pipeline.offline.simulate import simulated_calibration
     from stages.simulator.chip import REAL_CHIP_RANGES, random_chip
 
-    d = tmp_path_factory.mktemp("zoo")
     chip, _ = random_chip(2, 16, {**REAL_CHIP_RANGES, "n_sat": (0.5, 1.5),
                                   "artifact_rate": (0.0, 6e-4)})
-    (d / "grid.toml").write_text('name = "grid3x5"\n[grid]\nrows = 3\ncols = 5\n'
-                                 'fov_h_deg = 12.0\nfov_v_deg = 7.0\n')
-    return chip, simulated_calibration(d, 16, chip), d / "grid.toml"
+
+    def build(d):
+        simulated_calibration(d, 16, chip)
+        (d / "grid.toml").write_text('name = "grid3x5"\n[grid]\nrows = 3\ncols = 5\n'
+                                     'fov_h_deg = 12.0\nfov_v_deg = 7.0\n')
+
+    d = built_once(tmp_path_factory, "zoo", build)
+    return chip, d / "cal", d / "grid.toml"
 
 
 @pytest.fixture(scope="session")
@@ -92,3 +122,95 @@ def other_account():
         yield pwd.getpwnam(name).pw_uid
     finally:
         subprocess.run(["userdel", name], capture_output=True)
+
+
+#: the modules `tcspc range`, `calibrate distance`, `histogram` and `decode` import,
+#: imported once by :class:`CliProcess`'s server (~1.3 s a command's start-up)
+_CLI_IMPORTS = ("numpy", "scipy.special", "scipy.stats", "scipy.optimize", "polars",
+                "pyarrow.parquet", "pyarrow.compute", "pipeline.cli.app",
+                "pipeline.cli.instruments", "pipeline.offline.generic",
+                "pipeline.offline.ranging", "pipeline.offline.instruments",
+                "pipeline.io.generic", "pipeline.io.ptu", "pipeline.io.linospad2")
+
+#: the server: a request a line (argv, cwd, the stdout and stderr files, a timeout); the
+#: child's exit status a line (null: killed at the timeout)
+_CLI_SERVER = r"""
+import atexit, importlib, json, os, select, signal, sys, traceback
+for name in json.loads(sys.argv[1]):
+    importlib.import_module(name)
+from pipeline.cli.app import main
+for line in sys.stdin:
+    req = json.loads(line)
+    pid = os.fork()
+    if pid == 0:
+        code = 1
+        try:
+            os.chdir(req["cwd"])
+            os.dup2(os.open(os.devnull, os.O_RDONLY), 0)
+            for fd, path in ((1, req["out"]), (2, req["err"])):
+                os.dup2(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), fd)
+            sys.argv = ["tcspc", *req["argv"]]
+            try:
+                main()
+                code = 0
+            except SystemExit as e:
+                if isinstance(e.code, str):
+                    print(e.code, file=sys.stderr)
+                code = e.code if isinstance(e.code, int) else (e.code is not None)
+            atexit._run_exitfuncs()  # (what an exiting interpreter runs: PyTables' close)
+        except BaseException:
+            traceback.print_exc()
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(int(code))
+    with os.fdopen(os.pidfd_open(pid)) as done:
+        if not select.select([done], [], [], req["timeout"])[0]:
+            os.kill(pid, signal.SIGKILL)
+    status = os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
+    print(json.dumps(None if status == -signal.SIGKILL else status), flush=True)
+"""
+
+
+class CliProcess:
+    """``python -m pipeline.cli ARGS`` as ``subprocess.run(..., capture_output=True,
+    text=True)`` gives it (exit status, stdout, stderr), each command a process of its own
+    forked from a server that imported the commands' modules once: a start-up is ~1.3 s
+    of imports, ~30 of them in test_generic.py and test_cli_instruments.py. Started on
+    first use."""
+
+    def __init__(self, tmp: Path):
+        self.tmp, self.proc, self.n = tmp, None, 0
+
+    def run(self, *args, cwd=None, timeout: float = 300) -> subprocess.CompletedProcess:
+        if self.proc is None or self.proc.poll() is not None:
+            root = str(Path(__file__).parents[1])
+            self.proc = subprocess.Popen(
+                [sys.executable, "-c", _CLI_SERVER, json.dumps(_CLI_IMPORTS)],
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                env={**os.environ, "PYTHONPATH": root}, cwd=root)
+        self.n += 1
+        out, err = self.tmp / f"{self.n}.out", self.tmp / f"{self.n}.err"
+        argv = [str(a) for a in args]
+        self.proc.stdin.write(json.dumps({"argv": argv, "cwd": str(cwd or os.getcwd()),
+                                          "out": str(out), "err": str(err),
+                                          "timeout": timeout}) + "\n")
+        self.proc.stdin.flush()
+        code = json.loads(self.proc.stdout.readline())
+        if code is None:
+            raise subprocess.TimeoutExpired(["tcspc", *argv], timeout)
+        return subprocess.CompletedProcess(["tcspc", *argv], code, out.read_text(),
+                                           err.read_text())
+
+    def close(self) -> None:
+        if self.proc is not None:
+            self.proc.stdin.close()
+            self.proc.wait(timeout=30)
+
+
+@pytest.fixture(scope="session")
+def cli_process(tmp_path_factory):
+    """A :class:`CliProcess` of this test process."""
+    p = CliProcess(tmp_path_factory.mktemp("cli"))
+    yield p
+    p.close()

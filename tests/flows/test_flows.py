@@ -708,7 +708,7 @@ def _flow_for_crash_test():
     return crash_test
 
 
-@pytest.mark.parametrize("name, param, word", [
+BAD_PARAMETERS = [
     ("batch", "op=bogus", "op"), ("performance_prediction", "runs=-1", "runs"),
     ("performance_prediction", "configs=[99]", "configs"),
     ("speed_vs_error", "pixels=0", "pixels"),
@@ -718,20 +718,68 @@ def _flow_for_crash_test():
     ("calibration_campaign", "captures=/nonexistent/caps", "captures"),
     ("calibration_campaign", "journal=/nonexistent/journal", "journal"),
     ("distance_sweep", "calibration=/nonexistent/cal", "calibration"),
-    ("distance_sweep", "stream=/nonexistent/stream", "no such file")])
-def test_a_bad_parameter_is_refused_before_a_run_in_one_line_exit_2(name, param, word):
-    """#39.7: what made a run and a long traceback is one line naming the parameter, exit
-    2, and no flow run (the check comes before the flow is called)."""
+    ("distance_sweep", "stream=/nonexistent/stream", "no such file")]
+
+#: `tcspc flow run NAME -p PARAM` for each case, each in a process of its own forked from
+#: one that imported the command once (a start-up with Prefect's imports is 4-6 s on the
+#: loaded 2-core VM, 11 of them a minute): the child's own stderr (fd 2) and exit status
+_FORKED_RUNS = r"""
+import json, os, sys
+from flows.cli import FLOWS, load
+from pipeline.cli.app import main
+for n in FLOWS:  # (the flows' modules and their imports, before the forks)
+    load(n)
+out = []
+for i, (name, param) in enumerate(json.loads(sys.argv[1])):
+    err = os.path.join(sys.argv[2], f"{i}.err")
+    pid = os.fork()
+    if pid == 0:
+        os.dup2(os.open(err, os.O_WRONLY | os.O_CREAT | os.O_TRUNC), 2)
+        sys.argv = ["tcspc", "flow", "run", name, "-p", param]
+        code = 1
+        try:
+            main()
+            code = 0
+        except SystemExit as e:
+            code = e.code if isinstance(e.code, int) else 1
+        except BaseException:
+            import traceback
+            traceback.print_exc()
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    with open(err) as f:
+        out.append([os.waitstatus_to_exitcode(status), f.read()])
+print(json.dumps(out))
+"""
+
+
+@pytest.fixture(scope="module")
+def bad_parameter_runs(tmp_path_factory):
     import subprocess
     import sys
 
-    r = subprocess.run([sys.executable, "-c", "from pipeline.cli.app import main; main()",
-                        "flow", "run", name, "-p", param], capture_output=True, text=True,
-                       timeout=120)
-    assert r.returncode == 2, r.stderr
-    errs = [ln for ln in r.stderr.splitlines() if ln.lower().startswith("error")]
-    assert len(errs) == 1 and f"{word}" in errs[0], r.stderr
-    assert "Traceback" not in r.stderr and "running " not in r.stderr  # no run created
+    d = tmp_path_factory.mktemp("bad-parameters")
+    r = subprocess.run([sys.executable, "-c", _FORKED_RUNS,
+                        json.dumps([[name, param] for name, param, _ in BAD_PARAMETERS]),
+                        str(d)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    return dict(zip([(name, param) for name, param, _ in BAD_PARAMETERS],
+                    json.loads(r.stdout.splitlines()[-1]), strict=True))
+
+
+@pytest.mark.parametrize("name, param, word", BAD_PARAMETERS)
+def test_a_bad_parameter_is_refused_before_a_run_in_one_line_exit_2(bad_parameter_runs, name,
+                                                                     param, word):
+    """#39.7: what made a run and a long traceback is one line naming the parameter, exit
+    2, and no flow run (the check comes before the flow is called)."""
+    code, stderr = bad_parameter_runs[name, param]
+    assert code == 2, stderr
+    errs = [ln for ln in stderr.splitlines() if ln.lower().startswith("error")]
+    assert len(errs) == 1 and f"{word}" in errs[0], stderr
+    assert "Traceback" not in stderr and "running " not in stderr  # no run created
 
 
 def test_a_candidate_that_fails_the_inl_check_is_a_refusal_with_its_report(captured, tmp_path):

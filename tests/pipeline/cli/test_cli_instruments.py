@@ -20,10 +20,18 @@ LINO = DATA / "linospad2" / "test_data_2212b.dat"
 ROOT = Path(__file__).parents[3]
 
 
+_CLI = []
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _cli(cli_process):
+    _CLI[:] = [cli_process]
+
+
 def tcspc(*args, cwd=None):
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.run([sys.executable, "-m", "pipeline.cli", *map(str, args)],
-                          capture_output=True, text=True, timeout=300, env=env, cwd=cwd)
+    """`python -m pipeline.cli ARGS`, a process forked from one that imported the
+    commands' modules (tests/conftest.py ``CliProcess``)."""
+    return _CLI[0].run(*args, cwd=cwd)
 
 
 def test_formats_are_read_from_the_content(tmp_path):
@@ -156,10 +164,16 @@ def test_chip_options_are_refused_on_an_instrument_file(tmp_path):
 
 
 def test_decode_to_photon_hdf5(tmp_path):
+    """A valid Photon-HDF5 file, its detectors the histogram's hits, and no file left
+    open at the command's exit (PyTables' UnclosedFileWarning); docs/instruments_ptu.md
+    says how to make one."""
     phconvert = pytest.importorskip("phconvert")  # dev and hdf5 extras install it
     out = tmp_path / "hh.h5"
     r = tcspc("decode", T3, "--out", out)
     assert r.returncode == 0, r.stderr
+    assert "UnclosedFileWarning" not in r.stderr and out.stat().st_size, r.stderr
+    doc = (ROOT / "docs" / "instruments_ptu.md").read_text()
+    assert "tcspc decode FILE.ptu --out FILE.h5" in doc and "not** a dependency" not in doc
     import tables
 
     with tables.open_file(str(out)) as h5:  # (given a path, phconvert leaves it open)

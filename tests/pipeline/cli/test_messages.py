@@ -106,17 +106,6 @@ def test_view_url_is_removed_when_the_page_stops(tmp_path):
     assert not (state / "view.url").exists()
 
 
-def test_the_photon_hdf5_export_leaves_no_file_open(tmp_path):
-    pytest.importorskip("phconvert")
-    code = (f"from pipeline.cli.app import cli; cli.main(['decode', {str(T3)!r}, '--out', "
-            f"{str(tmp_path / 'p.h5')!r}, '-q'])")
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=300)
-    assert res.returncode == 0, res.stderr
-    assert "UnclosedFileWarning" not in res.stderr and (tmp_path / "p.h5").stat().st_size
-    doc = (ROOT / "docs" / "instruments_ptu.md").read_text()
-    assert "tcspc decode FILE.ptu --out FILE.h5" in doc and "not** a dependency" not in doc
-
 
 LINO = ROOT / "tests" / "data" / "linospad2" / "test_data_2212b.dat"
 

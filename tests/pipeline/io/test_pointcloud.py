@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import math
 import struct
-import subprocess
-import sys
 
 import numpy as np
 import pyarrow as pa
@@ -131,17 +129,18 @@ def _read_pcd(path):
     return np.frombuffer(path.read_bytes(), dt, count=int(h["POINTS"][0]), offset=i)
 
 
-@pytest.fixture
-def exported(tmp_path):
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory, cli_process):
+    """`tcspc export` of the same ranges to each format, once for the tests that read
+    them (each a process forked from tests/conftest.py's ``CliProcess``)."""
+    tmp_path = tmp_path_factory.mktemp("exported")
     rng = np.random.default_rng(3)
     table = _ranges(tmp_path / "r.parquet", rng)
     g = _geometry_toml(tmp_path)
     out = {}
     for fmt in ("las", "ply", "pcd", "mcap"):
         f = tmp_path / f"c.{fmt}"
-        r = subprocess.run([sys.executable, "-m", "pipeline.cli", "export",
-                            str(tmp_path / "r.parquet"), "--geometry", str(g), "--out", str(f)],
-                           capture_output=True, text=True)
+        r = cli_process.run("export", tmp_path / "r.parquet", "--geometry", g, "--out", f)
         assert r.returncode == 0, r.stderr
         assert "2 detected return(s) of TDCs that geometry test has no pixel" in r.stderr
         out[fmt] = f
@@ -237,21 +236,19 @@ def test_axial_and_equiangular(tmp_path, distance, projection):
         assert np.abs(c.xyz - want).max() < 1e-3
 
 
-def test_overwrite_refused_and_bad_geometry(tmp_path):
+def test_overwrite_refused_and_bad_geometry(tmp_path, cli_process):
     _ranges(tmp_path / "r.parquet", np.random.default_rng(1))
     out = tmp_path / "c.ply"
     out.write_text("keep")
-    cmd = [sys.executable, "-m", "pipeline.cli", "export", str(tmp_path / "r.parquet"),
-           "--geometry", "tmf8820", "--out", str(out)]
-    r = subprocess.run(cmd, capture_output=True, text=True)
+    cmd = ["export", str(tmp_path / "r.parquet"), "--geometry", "tmf8820", "--out", str(out)]
+    r = cli_process.run(*cmd)
     assert r.returncode == 2 and "exists; give --overwrite" in r.stderr
     assert out.read_text() == "keep"
-    r = subprocess.run(cmd + ["--overwrite"], capture_output=True, text=True)
+    r = cli_process.run(*cmd, "--overwrite")
     assert r.returncode == 0, r.stderr
     bad = tmp_path / "bad.toml"
     bad.write_text("[grid]\nrows = 0\ncols = 3\nfov_h_deg = 200\nfov_v_deg = 1\nwhat = 1\n")
-    r = subprocess.run(cmd[:6] + [str(bad), "--out", str(tmp_path / "x.las")],
-                       capture_output=True, text=True)
+    r = cli_process.run(*cmd[:3], bad, "--out", tmp_path / "x.las")
     assert r.returncode == 2 and "Traceback" not in r.stderr
     for key in ("rows", "fov_h_deg", "what"):
         assert f"[grid] {key}" in r.stderr, r.stderr

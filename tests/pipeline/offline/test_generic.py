@@ -25,10 +25,18 @@ TMF = ROOT / "tests" / "data" / "tmf8820" / "distance_data_even.json"
 BIN_PS = 100.0
 
 
+_CLI = []
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _cli(cli_process):
+    _CLI[:] = [cli_process]
+
+
 def tcspc(*args):
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.run([sys.executable, "-m", "pipeline.cli", *map(str, args)],
-                          capture_output=True, text=True, timeout=300, env=env)
+    """`python -m pipeline.cli ARGS`, a process forked from one that imported the
+    commands' modules (tests/conftest.py ``CliProcess``)."""
+    return _CLI[0].run(*args)
 
 
 def _returns(rng, t0_ps, n_signal, n_bins=200, bg=5.0):
