@@ -606,9 +606,8 @@ def _range(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero, g
                   + (f" (+{more} further returns)" if more else "")
                   + f" ({estimator}, P_fa {p_fa:g}) in "
                   f"{time.perf_counter() - t0:.2f} s; "
-                  + (f"distance {det['distance_m'].min():.3f}..{det['distance_m'].max():.3f}"
-                     f" m, median sigma {det['sigma_m'].median():.4f} m" if det.height else
-                     "no return detected"))
+                  + instruments.detected_span(df.to_arrow())
+                  + (f", median sigma {det['sigma_m'].median():.4f} m" if det.height else ""))
         err.print(f"wrote {out}")
     _warn_no_delay(calib)
 

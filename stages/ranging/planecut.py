@@ -26,7 +26,8 @@ follow rows, columns and diagonals (docs/ranging.md has the numbers both ways).
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import ndtr
+
+from stages.models.tcspc import log_phi_interval
 
 CUT = 6.0          # nats a pixel of boundary length (seeds 1-8 at (2, 50): 3 and 10 worse)
 CUT_CYCLES = 3     # expansion cycles over the labels (at most; it stops when none moves)
@@ -100,7 +101,7 @@ def gauss_llr(P0, beta, T, S, sb, shape=None):
         j = base + d
         inside = (j >= 0) & (j < n)
         jc = np.clip(j, 0, n - 1)
-        p = ndtr((j + 1 - ti) / sb) - ndtr((j - ti) / sb)
+        p = np.exp(log_phi_interval((j - ti) / sb, (j + 1 - ti) / sb))
         jf = jc.reshape(h, w, -1)
         m = (np.take_along_axis(P0, jf + 1, -1) - np.take_along_axis(P0, jf, -1)).reshape(T.shape)
         bg = beta[..., None] * (1.0 if shape is None else shape[jc])

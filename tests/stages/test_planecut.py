@@ -78,8 +78,10 @@ def test_a_line_of_pixels_cuts_at_one():
 
 
 def test_planes_are_found_from_noisy_returns():
-    """Two planes and scattered false returns: both planes come back within 0.05 bin at
-    every pixel, in the order of their support, and the false returns make none."""
+    """Two planes (returns scattered 0.8 bin about them, slopes 0.1 bin a pixel) and 3 %
+    false returns: both planes come back within 0.4 bin at every pixel of the image
+    (measured 0.09 and 0.26), in the order of their support, and the false returns make
+    none."""
     rng = np.random.default_rng(3)
     h, w = 40, 40
     r, c = np.mgrid[0:h, 0:w].astype(float)
@@ -98,7 +100,7 @@ def test_planes_are_found_from_noisy_returns():
     assert len(got) == 2
     for (a, s, sg), want in zip(got, (A, B), strict=True):
         fit = a[0] + a[1] * r + a[2] * c
-        assert np.max(np.abs(fit - (want[0] + want[1] * r + want[2] * c))) < 0.05 * 10
+        assert np.max(np.abs(fit - (want[0] + want[1] * r + want[2] * c))) < 0.4
         assert s == 2.0 and sg == 1e-11
 
 
