@@ -20,7 +20,8 @@ minimum. The labels are the frame's planes, found from the detected pixels' loca
 
 A length prior rounds corners (a corner pixel costs more boundary than it saves), so
 the labelling is only where the ICM starts; its line priors then keep the edges that
-follow rows, columns and diagonals (docs/ranging.md has the numbers both ways).
+follow rows, columns and diagonals (docs/ranging.md has the numbers both ways), and
+:func:`straight` puts a corner's pixel back with the straight edges beside it.
 """
 
 from __future__ import annotations
@@ -180,9 +181,11 @@ def expand(D: np.ndarray, lam: float = CUT, cycles: int = CUT_CYCLES) -> np.ndar
 
 def start(tb, slope, det, sig_cnt, sig_out, P0, beta, sb, prof=None):
     """Every pixel's plane by the cut (above): (T (h, w) its time, bins, NaN for no
-    surface or no plane; (h, w, 2) slopes; signal a pixel; sigma (s)), or None where
-    the frame has no plane. A detected pixel's labels are its detections' planes (those
-    within ``3 sb`` of one cost 0, the others ``HARD``); where none is, its photons'."""
+    surface or no plane; (h, w, 2) slopes; signal a pixel; sigma (s); and the planes:
+    their times (h, w, L) at every pixel, coefficients (L, 3), signal (L,) and sigma
+    (L,)), or None where the frame has no plane. A detected pixel's labels are its
+    detections' planes (those within ``3 sb`` of one cost 0, the others ``HARD``); where
+    none is, its photons'."""
     h, w, nc = tb.shape
     tol = 3.0 * sb
     pl = planes(tb, slope, det, sig_cnt, sig_out, tol)
@@ -203,5 +206,123 @@ def start(tb, slope, det, sig_cnt, sig_out, P0, beta, sb, prof=None):
     k = np.minimum(lab, len(pl) - 1)
     t = np.where(on, np.take_along_axis(T, k[..., None], -1)[..., 0], np.nan)
     sl = np.where(on[..., None], a[k][..., 1:], 0.0)
-    return (t, sl, np.where(on, S[k], 0.0),
-            np.where(on, np.array([p[2] for p in pl])[k], np.inf))
+    sg = np.array([p[2] for p in pl])
+    return (t, sl, np.where(on, S[k], 0.0), np.where(on, sg[k], np.inf), (T, a, S, sg))
+
+
+# corners (:func:`straight`, called by stages.ranging.spatial._corners)
+STRAIGHT_R = 3         # a window is (2 R + 1)^2 pixels
+STRAIGHT_SHIFT = 3     # centred on the pixel, or on p + (i, j), i, j in {-SHIFT, 0, SHIFT}
+STRAIGHT_ANGLES = 36   # the boundary's directions tried, over 180 degrees
+STRAIGHT_MIN = 6.0     # the weight of each label a window needs
+STRAIGHT_FREE = 0.5    # an undetected pixel's weight (a detected one's: 1)
+STRAIGHT_CORNER = 0.5  # the centred window's misfit from which the pixel may be a corner
+STRAIGHT_MISFIT = 0.5  # and a window beside it misfits at most this
+CORNER_NATS = 2.0      # the pixel's own log-likelihood a corner's label may cost
+CORNER_PASSES = 2
+
+
+def _straight_tables():
+    """Per window (the centred one first): its offsets from p (p itself left out), their
+    order along each direction's normal, the gaps between consecutive projections,
+    whether p (at 0) lies below each split between them, and the gaps' tie-breaker."""
+    R, K, sh = STRAIGHT_R, STRAIGHT_ANGLES, STRAIGHT_SHIFT
+    th = np.arange(K) * np.pi / K
+    nrm = np.stack([np.sin(th), np.cos(th)], -1)                  # (K, 2)
+    out = []
+    for si, sj in [(0, 0)] + [(i, j) for i in (-sh, 0, sh) for j in (-sh, 0, sh) if i or j]:
+        di, dj = np.mgrid[si - R:si + R + 1, sj - R:sj + R + 1]
+        keep = (di != 0) | (dj != 0)
+        off = np.stack([di[keep], dj[keep]], -1)                  # (M, 2)
+        proj = nrm @ off.T.astype(np.float64)                     # (K, M)
+        order = np.argsort(proj, -1, kind="stable")
+        sp = np.take_along_axis(proj, order, -1)
+        gap = np.diff(sp, axis=-1)                                # (K, M - 1)
+        tie = (1e-3 * np.tile(gap, (2, 1)).ravel()).astype(np.float32)
+        out.append((off, order, gap, 0.5 * (sp[:, 1:] + sp[:, :-1]) > 0.0, tie))
+    return out
+
+
+_STRAIGHT = None
+
+
+def _split(cat, weight, who, A, B, win):
+    """One window's best half-plane between A and B for each pixel of ``who``: (the
+    label it puts the pixel on, its misfit, its gap, whether the window holds enough of
+    both)."""
+    off, order, gap, p_below, tie = win
+    h, w = cat.shape
+    n = who.shape[0]
+    r = who[:, 0, None] + off[:, 0]
+    c = who[:, 1, None] + off[:, 1]
+    ins = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+    rc, cc = np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)
+    cw = np.where(ins, cat[rc, cc], -1)
+    wt = np.where(ins, weight[rc, cc], 0.0)
+    # (float32: the weights are halves and ones, their sums exact)
+    a = np.where(cw == A[:, None], wt, 0.0).astype(np.float32)   # (n, M)
+    b = np.where(cw == B[:, None], wt, 0.0).astype(np.float32)
+    at, bt = a.sum(1), b.sum(1)
+    enough = (at >= STRAIGHT_MIN) & (bt >= STRAIGHT_MIN)
+    ca = np.cumsum(a[:, order], -1)[..., :-1]                     # (n, K, M - 1): below
+    cb = np.cumsum(b[:, order], -1)[..., :-1]
+    m1 = (at[:, None, None] - ca) + cb                            # A below, B above
+    m2 = ca + (bt[:, None, None] - cb)                            # B below, A above
+    both = np.concatenate([m1, m2], 1).reshape(n, -1)
+    k = np.argmin(both - tie, -1)                                 # the widest gap among equals
+    mis = both[np.arange(n), k]
+    first = k < gap.size                                          # m1: A below
+    kk = k % gap.size
+    below = p_below.ravel()[kk]
+    return (np.where(below == first, A, B), mis, gap.ravel()[kk], enough)
+
+
+def straight(cat, weight, who, corner=None):
+    """Each pixel of ``who`` (n, 2): the label its neighbours' straight boundaries put it
+    on, where the window centred on it is not one straight boundary (misfit >=
+    ``corner``, default ``STRAIGHT_CORNER``). ``cat`` (h, w) the labels (-1: none),
+    ``weight`` (h, w) each pixel's say. In each of the 8 windows centred beside the
+    pixel, the half-plane (36 directions) splitting the pixel's label A from the
+    commonest other label B near it with the least weight on the wrong side, the widest
+    gap between the two among equals; a window with ``STRAIGHT_MIN`` of each and a
+    misfit of at most ``STRAIGHT_MISFIT`` is one straight boundary, and the side of it
+    the pixel lies on is its say. A corner pixel lies inside both edges' windows; one
+    beyond the end of an edge lies on the extension of one and outside the other: the
+    windows that are straight must agree. Returns (label (n,), -1 where no window is
+    straight or they differ; the least misfit among them, inf where none)."""
+    global _STRAIGHT
+    corner = STRAIGHT_CORNER if corner is None else corner
+    if _STRAIGHT is None:
+        _STRAIGHT = _straight_tables()
+    h, w = cat.shape
+    n = who.shape[0]
+    pred = np.full(n, -1)
+    best = np.full(n, np.inf)
+    L = int(cat.max()) + 1
+    if L <= 0 or n == 0:
+        return pred, best
+    A = cat[who[:, 0], who[:, 1]]
+    reach = STRAIGHT_R + STRAIGHT_SHIFT
+    di, dj = np.mgrid[-reach:reach + 1, -reach:reach + 1]
+    r, c = who[:, 0, None] + di.ravel(), who[:, 1, None] + dj.ravel()
+    ins = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+    cc = np.where(ins, cat[np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)], -1)
+    ww = np.where(ins, weight[np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)], 0.0)
+    ok = (cc >= 0) & (cc != A[:, None])
+    hist = np.zeros((n, L))
+    np.add.at(hist, (np.nonzero(ok)[0], cc[ok]), ww[ok])
+    B = np.argmax(hist, -1)
+    _, cen, _, enough = _split(cat, weight, who, A, B, _STRAIGHT[0])
+    sub = np.nonzero(~enough | (cen >= corner))[0]                # not one straight edge
+    if not sub.size:
+        return pred, best
+    said = np.full(sub.size, -1)                                  # the straight windows'
+    split = np.zeros(sub.size, bool)                              # label, unless they differ
+    for win in _STRAIGHT[1:]:
+        lab, mis, _, en = _split(cat, weight, who[sub], A[sub], B[sub], win)
+        ok = en & (mis <= STRAIGHT_MISFIT)
+        split |= ok & (said >= 0) & (said != lab)
+        said = np.where(ok, lab, said)
+        best[sub] = np.where(ok, np.minimum(mis, best[sub]), best[sub])
+    pred[sub] = np.where(split, -1, said)
+    return pred, best

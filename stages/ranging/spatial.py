@@ -34,7 +34,9 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    of the 6 pixels of its best row, column or diagonal (a straight boundary); then block
    moves, which shift a boundary's whole run by one pixel where the sum over the run
    and its neighbourhood rises (a local minimiser moves one pixel at a time, and the
-   line prior holds each pixel of a straight boundary where it is).
+   line prior holds each pixel of a straight boundary where it is); last, corners
+   (:func:`_corners`): a pixel whose window is no straight boundary goes with the
+   straight boundaries of the windows beside it, where they agree (at any angle).
 4. sigma: the photons' spread about the plane over their number, through the fit's
    design (its (0, 0) element), with the background left in the window, or the fit's
    sandwich variance, the larger; times Huber's factor for a window centred on its own
@@ -766,6 +768,71 @@ def _block_move(i, j, phase, lab, before, free, tb, llr, slope, sig_cnt, sig_out
     return np.where(take, nc - 1, lab), None
 
 
+def _corners(lab, free, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, half, tol,
+             prof=None):
+    """3b's last step: corners. A length prior (the cut's) and line priors along rows,
+    columns and diagonals (the sweeps') both hold that the pixel at an object's corner
+    belongs to what surrounds it: its 8 nearest split 3 to 5 against it, and the row and
+    the column through it split evenly. What places it is that the object's two edges
+    are straight and meet beyond it. For each undetected pixel beside a boundary between
+    the frame's planes (``table``: :func:`planecut.start`'s) whose centred window is not
+    one straight boundary, :func:`planecut.straight` looks at the windows beside it,
+    along the edges: where those that are one straight boundary agree on the side the
+    pixel lies on (at a corner, inside both edges; beyond an edge's end, they differ and
+    nothing moves), at any angle (36 directions), the pixel takes that side's plane if
+    its own Poisson log-likelihood loses less than ``CORNER_NATS`` by it: its candidate
+    on the plane, or the plane in its last slot. (Seeds 1-8 at (2, 50): 41 -> 24
+    surface pixels > 10 cm off on the grid's scene, 320 -> 276 turned by 30 degrees;
+    held out, seeds 9-15: 59 -> 37 and 282 -> 250; docs/ranging.md "Corners".)
+    Returns the labels; ``tb``, ``llr``,
+    ``slope``, ``sig_cnt`` and ``sig_out`` are written in place where a plane is put in
+    the last slot."""
+    T, a, S, sg = table
+    h, w, nc = tb.shape
+    weight = np.where(free, planecut.STRAIGHT_FREE, 1.0)
+    near = np.ones((h, w), bool)   # after a pass: the pixels its moves' windows reach
+    reach = 2 * (planecut.STRAIGHT_R + planecut.STRAIGHT_SHIFT) + 1
+    for _ in range(planecut.CORNER_PASSES):
+        # every pixel's plane: the one its reported time lies on (-1: none)
+        tl = np.take_along_axis(tb, lab[..., None], -1)[..., 0]
+        d = np.abs(T - tl[..., None])
+        d = np.where(np.isfinite(d), d, np.inf)
+        cat = np.argmin(d, -1)
+        cat = np.where(np.take_along_axis(d, cat[..., None], -1)[..., 0] < tol, cat, -1)
+        edge = ndimage.maximum_filter(cat, 3) != ndimage.minimum_filter(cat, 3)
+        who = np.argwhere(free & edge & (cat >= 0) & near)
+        pred, mis = planecut.straight(cat, weight, who)
+        r, c = who[:, 0], who[:, 1]
+        move = (pred >= 0) & (pred != cat[r, c]) & (mis <= planecut.STRAIGHT_MISFIT)
+        r, c, pl = r[move], c[move], pred[move]
+        if not r.size:
+            break
+        tn = T[r, c, pl]
+        dd = np.abs(tb[r, c, :-1] - tn[:, None])
+        k = np.argmin(np.where(np.isfinite(dd), dd, np.inf), -1)
+        have = dd[np.arange(r.size), k] < tol        # a candidate on the plane
+        tt = np.full((h, w, 1), np.nan)
+        tt[r, c, 0] = tn
+        ss = np.zeros((h, w, 1))
+        ss[r, c, 0] = S[pl]
+        lp = _own_llr(P0, beta, tt, ss, half, prof)[r, c, 0]
+        new = np.where(have, llr[r, c, k], lp)
+        ok = llr[r, c, lab[r, c]] - new < planecut.CORNER_NATS
+        lab[r[ok & have], c[ok & have]] = k[ok & have]
+        put = ok & ~have                              # else the plane in the last slot
+        rp, cp, pp = r[put], c[put], pl[put]
+        tb[rp, cp, -1] = tn[put]
+        llr[rp, cp, -1] = lp[put]
+        sig_cnt[rp, cp, -1] = S[pp]
+        sig_out[rp, cp, -1] = sg[pp]
+        slope[rp, cp, -1, :] = a[pp, 1:]
+        lab[rp, cp] = nc - 1
+        moved = np.zeros((h, w), bool)
+        moved[r[ok], c[ok]] = True
+        near = ndimage.maximum_filter(moved, reach)
+    return lab
+
+
 def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_s, sb,
              t0_s, prof=None):
     """3b. Which candidate an undetected pixel reports: the one that maximises the pixel's
@@ -795,7 +862,8 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
     :func:`planecut.start`'s labels, not each pixel's own best candidate: an undetected
     pixel on its candidate on its label's plane, or on the plane in the last slot (seeds
     1-15 at (2, 50): 188 -> 100 pixels > 10 cm off, turned by 30 degrees 789 -> 602;
-    docs/ranging.md "Where the sweeps start")."""
+    docs/ranging.md "Where the sweeps start"). Last, :func:`_corners` (which needs the
+    cut's planes)."""
     h, w, nc = t_out.shape
     tb = (t_out - t0_s) / bin_s                               # bins
     S = 0.95 * np.maximum(sig_cnt, 0.05)
@@ -808,7 +876,7 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
     # a candidate on the pixel's plane, or the plane itself in the last slot
     got = planecut.start(tb, slope, det, sig_cnt, sig_out, P0, beta, sb, prof)
     if got is not None:
-        tg, slg, scg, sgg = got
+        tg, slg, scg, sgg, table = got
         use = free & np.isfinite(tg)
         dd = np.abs(tb[..., :-1] - tg[..., None])
         k = np.argmin(np.where(np.isfinite(dd), dd, np.inf), -1)
@@ -880,6 +948,9 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
             lab, before = _block_move(i, j, phase, lab, before, free, tb, llr, slope,
                                       sig_cnt, sig_out, P0, beta, half, tol, shifted,
                                       agreement, prof)
+    if got is not None:
+        lab = _corners(lab, free, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, half,
+                       tol, prof)
     t_out[..., -1] = tb[..., -1] * bin_s + t0_s
     chosen = np.arange(nc) == lab[..., None]
     return (np.where(free[..., None] & chosen, 1e11, 0.0) + rank,

@@ -154,3 +154,78 @@ def test_start_labels_a_frame_without_detections_none():
                          np.zeros((h, w, 2)), np.full((h, w, 2), np.inf),
                          np.zeros((h, w, n + 1)), np.full((h, w), 0.1), 2.3)
     assert got is None
+
+
+def _square(n, half, angle_deg):
+    """Labels 1 inside a square of half-side ``half`` about the image's centre, turned by
+    ``angle_deg``, 0 outside; and each pixel's coordinates (u, v) along its sides."""
+    r, c = np.mgrid[0:n, 0:n] - (n - 1) / 2.0
+    a = np.deg2rad(angle_deg)
+    u = r * np.cos(a) + c * np.sin(a)
+    v = -r * np.sin(a) + c * np.cos(a)
+    return ((np.abs(u) < half) & (np.abs(v) < half)).astype(np.int64), u, v
+
+
+@pytest.mark.parametrize("angle", [0, 10, 17, 30, 45, 60, 73])
+def test_a_corner_pixel_goes_with_its_edges_at_any_angle(angle):
+    """The pixel nearest each corner of a square, labelled as what surrounds it, is put
+    back on the square: the windows beside it, along its edges, are each one straight
+    boundary (misfit 0) and agree that it lies inside. The pixel is the one nearest the
+    corner at least half a pixel inside both edges: a pixel the edge passes closer to
+    is a tip its neighbours' centres cannot place (at 10 and 30 degrees the outermost
+    pixels are 0.06 and 0.31 pixel inside, and the windows along their two edges
+    disagree, so nothing is proposed)."""
+    lab, u, v = _square(41, 11.3, angle)
+    inside = 11.3 - np.maximum(np.abs(u), np.abs(v)) >= 0.5
+    for su, sv in product((-1, 1), repeat=2):
+        score = np.where(inside, su * u + sv * v, -np.inf)
+        r, c = np.unravel_index(np.argmax(score), lab.shape)
+        cat = lab.copy()
+        cat[r, c] = 0
+        pred, mis = planecut.straight(cat, np.ones(cat.shape), np.array([[r, c]]))
+        assert pred[0] == 1 and mis[0] <= planecut.STRAIGHT_MISFIT, (r, c, pred, mis)
+
+
+@pytest.mark.parametrize("angle", [0, 10, 30, 45, 60, 73])
+def test_the_pixel_outside_a_corner_stays(angle):
+    """The pixel diagonally outside each corner of a square, rightly what surrounds it, is
+    not put on the square: no window beside it is one boundary with it inside."""
+    lab, u, v = _square(41, 11.3, angle)
+    for su, sv in product((-1, 1), repeat=2):
+        score = np.where(lab == 1, su * u + sv * v, -np.inf)
+        r, c = np.unravel_index(np.argmax(score), lab.shape)
+        out = np.where(lab == 0, np.hypot(u - u[r, c], v - v[r, c])
+                       + 10 * ((su * u < su * u[r, c]) | (sv * v < sv * v[r, c])), np.inf)
+        ro, co = np.unravel_index(np.argmin(out), lab.shape)
+        pred, mis = planecut.straight(lab, np.ones(lab.shape), np.array([[ro, co]]))
+        assert not (pred[0] == 1 and mis[0] <= planecut.STRAIGHT_MISFIT), (ro, co)
+
+
+@pytest.mark.parametrize("angle", range(0, 180, 15))
+def test_a_straight_edge_is_left_to_the_sweeps(angle):
+    """Along one straight boundary (at any angle) no pixel is a corner: the window
+    centred on it is the boundary, so :func:`straight` proposes nothing."""
+    n = 31
+    r, c = np.mgrid[0:n, 0:n] - n // 2
+    a = np.deg2rad(angle)
+    cat = (r * np.cos(a) - c * np.sin(a) > 0.3).astype(np.int64)
+    edge = np.argwhere(np.abs(r * np.cos(a) - c * np.sin(a) - 0.3) < 1.5)
+    edge = edge[(edge.min(1) >= 6) & (edge.max(1) < n - 6)]
+    pred, _ = planecut.straight(cat, np.ones(cat.shape), edge)
+    assert edge.shape[0] > 10 and np.all(pred == -1)
+
+
+@pytest.mark.parametrize("shape", [(1, 40), (40, 1), (2, 2), (3, 3)])
+def test_straight_on_frames_too_small_for_a_window(shape):
+    """Frames too small or too thin for a window with 6 pixels of each label: no pixel
+    is moved, nothing raised; no pixel asked: empty answers; no label at all: none."""
+    cat = np.zeros(shape, np.int64)
+    cat[..., shape[-1] // 2:] = 1
+    who = np.argwhere(np.ones(shape, bool))
+    pred, mis = planecut.straight(cat, np.ones(shape), who)
+    assert pred.shape == (who.shape[0],)
+    assert np.all((pred == -1) | (pred == cat[who[:, 0], who[:, 1]]))  # nothing moves
+    pred, mis = planecut.straight(cat, np.ones(shape), np.zeros((0, 2), np.int64))
+    assert pred.shape == (0,) and mis.shape == (0,)
+    pred, _ = planecut.straight(np.full(shape, -1), np.ones(shape), who)
+    assert np.all(pred == -1)
