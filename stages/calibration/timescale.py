@@ -141,7 +141,7 @@ def continue_table(table: DensityResult, tests: list) -> DensityResult:
         # its phase mean by about another: its dead neighbour may lie above x_T, where the
         # test keeps no width); the test's other widths there are its phase means, or
         # measured within OWN_CLEAR_LSB of its reset peak (not trusted: taken, the widths
-        # there were off by z RMS 1.22 on zoo chips 3-7, 0.97 without)
+        # there were off by z RMS 1.22 on zoo chips 3-7, 0.98 without)
         dead = np.isfinite(wg) & (wg <= 0)
         near = dead | np.roll(dead, 1) | np.roll(dead, -1)
         with np.errstate(invalid="ignore"):

@@ -62,7 +62,7 @@ def pattern_var(widths: np.ndarray, width_var: np.ndarray) -> np.ndarray:
     the dim tests that measure it (~0.02 LSB^2 a code) left a random DNL of 0.05-0.07 LSB
     at 0.015-0.03 LSB sd: the codes under the dimmest test's reset peak (dead codes and
     their neighbours aside) were off by z RMS 1.38, 5.5 % beyond 3 sigma (zoo chips 3-7, 8
-    and 16 TDCs, 422 codes); now 0.97, none (with :func:`.timescale.continue_table`). A
+    and 16 TDCs, 422 codes); now 0.98, none (with :func:`.timescale.continue_table`). A
     dead code among those 64 took it to 0.19-0.24 LSB sd. 0 where fewer than a block
     were measured."""
     w = np.asarray(widths, np.float64)
