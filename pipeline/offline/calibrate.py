@@ -108,6 +108,7 @@ def density_from_capture(capture: Capture, inl_rms_lsb: float | None = 0.3,
                   for st, _ in rest]
         res = refilled(state, res, others, window_s)
         res = checked(state, res, second)
+        res = cal.continue_table(res, [r for _, r in others])
     if variance is not None:
         variance["width_var"] = table_variance(state, own, others, res)
     if inl_rms_lsb is not None:
@@ -241,6 +242,8 @@ def lsb_from_states(tests: list, window_s: float, inl_rms_lsb: float = 0.5,
     if others:
         best = refilled(tests[i_best][0], best, others, window_s, combine)
         best = checked(tests[i_best][0], best, tests[i_best][1])
+        # the codes under the dimmest test's reset peak, measured by none, as it put them
+        best = cal.continue_table(best, [r for _, r in others])
         if log:
             log(f"INL from {names[i_best]}; the codes under its reset peak also "
                 f"from the {len(others)} other test(s)")

@@ -88,6 +88,7 @@ from stages.calibration.timescale import (  # noqa: F401
     _identity,
     _interpolates,
     code_bounds,
+    continue_table,
     delay_s,
     density_rows,
     distance_m,

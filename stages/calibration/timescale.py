@@ -47,12 +47,33 @@ def density_rows(density: DensityResult, rows) -> DensityResult:
 CONTINUE_CODES = 64
 
 
+def _phase_means(w: np.ndarray, lo: int, hi: int) -> np.ndarray:
+    """(8,) the mean width of each phase (code mod 8) over codes ``lo..hi-1`` of one TDC's
+    widths ``w`` that are finite, live and beside live codes (a dead code's time is in a
+    neighbour, which the pattern does not predict); all finite codes where that leaves a
+    phase without one, 1.0 where nothing does."""
+    k = np.arange(max(int(lo), 0), max(int(hi), 0))
+    v = w[k]
+    fin = np.isfinite(v)
+    zero = np.zeros(w.size + 2, bool)
+    zero[1:-1] = np.isfinite(w) & (w <= 0)
+    near = zero[k] | zero[k + 1] | zero[k + 2]  # the code, the one below, the one above
+    out = np.ones(8)
+    for p in range(8):
+        for sel in (fin & ~near & (k % 8 == p), fin & (k % 8 == p)):
+            if sel.any():
+                out[p] = float(v[sel].mean())
+                break
+    return out
+
+
 def code_bounds(density: DensityResult) -> np.ndarray:
     """(n_tdc, 513) code boundaries in units of the density test's LSB (``k + INL_k``).
     Beyond the last code the tests measured, they continue with the measured phase pattern
-    (the mean width of each phase, code mod 8, over the ``CONTINUE_CODES`` codes below it):
-    a dimmer capture's window ends there. One unit a code instead (before issue 33) lost
-    each such code's DNL: 13-14 ps of delay on a chip of the zoo."""
+    (the mean width of each phase, code mod 8, over the ``CONTINUE_CODES`` codes below it,
+    dead codes and their neighbours left out): a dimmer capture's window ends there. One
+    unit a code instead (before issue 33) lost each such code's DNL: 13-14 ps of delay on a
+    chip of the zoo."""
     k = np.arange(N_CODES + 1, dtype=np.float64)
     inl = np.asarray(density.inl_lsb, np.float64)
     inl = np.concatenate([inl, inl[:, -1:]], axis=1)
@@ -61,13 +82,78 @@ def code_bounds(density: DensityResult) -> np.ndarray:
     out = np.where(np.isfinite(inl), inl, np.where(np.isfinite(fill), fill, 0.0))
     widths = np.asarray(density.width_lsb, np.float64)
     for t in np.flatnonzero((last > CONTINUE_CODES) & (last < N_CODES)):  # per TDC, once
-        w = widths[t, last[t] - CONTINUE_CODES:last[t]]
-        ph = np.arange(last[t] - CONTINUE_CODES, last[t]) % 8
-        mean = np.array([np.nanmean(w[ph == p]) if np.isfinite(w[ph == p]).any() else 1.0
-                         for p in range(8)])
+        mean = _phase_means(widths[t], last[t] - CONTINUE_CODES, last[t])
         beyond = np.arange(last[t], N_CODES)
         out[t, last[t] + 1:] = out[t, last[t]] + np.cumsum(mean[beyond % 8] - 1.0)
     return k[None, :] + out
+
+
+def continue_table(table: DensityResult, tests: list) -> DensityResult:
+    """``table`` (the density test kept, filled from ``tests``, the other tests' results)
+    carried on over the codes no test measured below the highest x_T of ``tests``: the
+    3-4 codes under the dimmest test's reset peak (above the last it measured,
+    :data:`.density.OWN_CLEAR_LSB`), where a capture between the two dimmest levels reads
+    its x_T and the dimmest test's scale point ``T / B(x_T)`` is read.
+
+    Each such code takes the table's local phase mean (what :func:`code_bounds` continues
+    with), except where the dimmest test found a dead code (no count between lit codes):
+    that one at zero width, and its neighbours with what the test put there beyond its own
+    phase mean (the dead code's time, in the neighbour its reset peak chose,
+    :func:`.density._dead_widths`), brought to the table's units. The pattern alone gave a
+    dead code there a whole width: the axis between the levels 41-88 ps off on zoo chip 5
+    (8 TDCs) where the table's sigma said 5-10 ps (benchmarks/calibration_between_levels.py).
+    The code after the dimmest test's x_T takes the pattern too; so does the table's last
+    measured code, as :func:`code_bounds` always gave it (measured by the dimmest test
+    alone, 2.5-3.5 LSB below its reset peak: 0.1-0.15 LSB sd, the pattern's guess 0.05-0.07;
+    kept measured, the axis between the levels erred by 42 ps RMS against 36 on zoo chips
+    3-7 at 16 TDCs). Their variance stays the table's (:func:`.uncertainty.table_var`:
+    the pattern's where no test measured them, the measurement's at the last code)."""
+    import dataclasses
+
+    tests = [r for r in tests if r is not None]
+    if not tests:
+        return table
+    w = np.array(table.width_lsb, np.float64, copy=True)
+    inl = np.array(table.inl_lsb, np.float64, copy=True)
+    x_all = np.column_stack([np.where(np.asarray(r.ok, bool), r.x_t, np.nan) for r in tests])
+    k = np.arange(N_CODES)
+    changed = False
+    for t in np.flatnonzero(np.asarray(table.ok, bool)):  # per TDC, once per calibration
+        fin = np.flatnonzero(np.isfinite(w[t]) & np.isfinite(inl[t]))
+        if fin.size <= CONTINUE_CODES or not np.isfinite(x_all[t]).any():
+            continue
+        last = int(fin[-1])
+        src = tests[int(np.nanargmax(x_all[t]))]
+        top = int(np.floor(src.x_t[t]))  # the code holding the dimmest test's x_T
+        ws = np.asarray(src.width_lsb[t], np.float64)
+        if not last < top < N_CODES - 1 or not np.all(np.isfinite(ws[last:top + 1])):
+            continue
+        interior = top - EDGE_MARGIN  # the codes of the test's own uniform light
+        both = (k < interior) & np.isfinite(w[t]) & np.isfinite(ws) & (w[t] > 0) & (ws > 0)
+        if both.sum() < CONTINUE_CODES:
+            continue
+        ratio = w[t, both].sum() / ws[both].sum()  # its units to the table's
+        gap = np.arange(last, top + 2)
+        pm = _phase_means(w[t], last - CONTINUE_CODES, last)[gap % 8]
+        own = _phase_means(ws, 0, interior)[gap % 8]
+        wg = np.append(ws[last:top + 1], np.nan)  # (no width above its x_T)
+        # a dead code, its neighbours, and a code holding a dead code's time (wider than
+        # its phase mean by about another: its dead neighbour may lie above x_T, where the
+        # test keeps no width); the test's other widths there are its phase means, or
+        # measured within OWN_CLEAR_LSB of its reset peak (not trusted: taken, the widths
+        # there were off by z RMS 1.22 on zoo chips 3-7, 0.98 without)
+        dead = np.isfinite(wg) & (wg <= 0)
+        near = dead | np.roll(dead, 1) | np.roll(dead, -1)
+        with np.errstate(invalid="ignore"):
+            near |= wg - own > 0.5 * float(np.mean(own))
+        near &= np.isfinite(wg)
+        new = np.where(dead, 0.0, np.where(near, np.maximum(pm + ratio * (wg - own), 0.0), pm))
+        w[t, gap] = new
+        inl[t, gap[1:]] = inl[t, last] + np.cumsum(new[:-1] - 1.0)
+        changed = True
+    if not changed:
+        return table
+    return dataclasses.replace(table, width_lsb=w, dnl_lsb=w - 1.0, inl_lsb=inl)
 
 
 def _bound_at(bounds: np.ndarray, x) -> np.ndarray:
