@@ -5,7 +5,7 @@ zero-distance peak's width, the delay and the distance.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -108,8 +108,6 @@ def continue_table(table: DensityResult, tests: list) -> DensityResult:
     kept measured, the axis between the levels erred by 42 ps RMS against 36 on zoo chips
     3-7 at 16 TDCs). Their variance stays the table's (:func:`.uncertainty.table_var`:
     the pattern's where no test measured them, the measurement's at the last code)."""
-    import dataclasses
-
     tests = [r for r in tests if r is not None]
     if not tests:
         return table
@@ -153,7 +151,7 @@ def continue_table(table: DensityResult, tests: list) -> DensityResult:
         changed = True
     if not changed:
         return table
-    return dataclasses.replace(table, width_lsb=w, dnl_lsb=w - 1.0, inl_lsb=inl)
+    return replace(table, width_lsb=w, dnl_lsb=w - 1.0, inl_lsb=inl)
 
 
 def _bound_at(bounds: np.ndarray, x) -> np.ndarray:
