@@ -238,7 +238,10 @@ def _straight_tables():
         order = np.argsort(proj, -1, kind="stable")
         sp = np.take_along_axis(proj, order, -1)
         gap = np.diff(sp, axis=-1)                                # (K, M - 1)
-        tie = (1e-3 * np.tile(gap, (2, 1)).ravel()).astype(np.float32)
+        # the widest gap among equal misfits; a split between equal projections (no gap:
+        # the pixel's side there is not defined) never chosen
+        tie = np.where(gap > 1e-9, 1e-3 * gap, -np.inf)
+        tie = np.tile(tie, (2, 1)).ravel().astype(np.float32)
         out.append((off, order, gap, 0.5 * (sp[:, 1:] + sp[:, :-1]) > 0.0, tie))
     return out
 

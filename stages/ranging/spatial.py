@@ -803,7 +803,7 @@ def _corners(lab, free, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, half,
         who = np.argwhere(free & edge & (cat >= 0) & near)
         pred, mis = planecut.straight(cat, weight, who)
         r, c = who[:, 0], who[:, 1]
-        move = (pred >= 0) & (pred != cat[r, c]) & (mis <= planecut.STRAIGHT_MISFIT)
+        move = (pred >= 0) & (pred != cat[r, c])  # (straight windows agreed: misfit ok)
         r, c, pl = r[move], c[move], pred[move]
         if not r.size:
             break

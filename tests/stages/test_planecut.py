@@ -183,7 +183,7 @@ def test_a_corner_pixel_goes_with_its_edges_at_any_angle(angle):
         cat = lab.copy()
         cat[r, c] = 0
         pred, mis = planecut.straight(cat, np.ones(cat.shape), np.array([[r, c]]))
-        assert pred[0] == 1 and mis[0] <= planecut.STRAIGHT_MISFIT, (r, c, pred, mis)
+        assert pred[0] == 1 and mis[0] == 0.0, (r, c, pred, mis)
 
 
 @pytest.mark.parametrize("angle", [0, 10, 30, 45, 60, 73])
@@ -201,10 +201,12 @@ def test_the_pixel_outside_a_corner_stays(angle):
         assert not (pred[0] == 1 and mis[0] <= planecut.STRAIGHT_MISFIT), (ro, co)
 
 
-@pytest.mark.parametrize("angle", range(0, 180, 15))
+@pytest.mark.parametrize("angle", [*range(0, 180, 15), 17, 37, 52, 98, 143])
 def test_a_straight_edge_is_left_to_the_sweeps(angle):
-    """Along one straight boundary (at any angle) no pixel is a corner: the window
-    centred on it is the boundary, so :func:`straight` proposes nothing."""
+    """Along one straight boundary (at any angle) no pixel is moved: the window centred
+    on it is the boundary, so :func:`straight` proposes nothing, or (where the edge lies
+    between two of the 36 directions and the centred window's split misfits, as at 52
+    degrees) the windows beside it put the pixel back on its own side."""
     n = 31
     r, c = np.mgrid[0:n, 0:n] - n // 2
     a = np.deg2rad(angle)
@@ -212,7 +214,9 @@ def test_a_straight_edge_is_left_to_the_sweeps(angle):
     edge = np.argwhere(np.abs(r * np.cos(a) - c * np.sin(a) - 0.3) < 1.5)
     edge = edge[(edge.min(1) >= 6) & (edge.max(1) < n - 6)]
     pred, _ = planecut.straight(cat, np.ones(cat.shape), edge)
-    assert edge.shape[0] > 10 and np.all(pred == -1)
+    assert edge.shape[0] > 10
+    assert np.all((pred == -1) | (pred == cat[edge[:, 0], edge[:, 1]]))
+    assert np.mean(pred == -1) > 0.8
 
 
 @pytest.mark.parametrize("shape", [(1, 40), (40, 1), (2, 2), (3, 3)])

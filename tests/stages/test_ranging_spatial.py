@@ -466,4 +466,4 @@ def test_corners_go_with_their_edges(monkeypatch):
     monkeypatch.setattr(planecut, "CORNER_PASSES", 0)
     grid0, turned0 = off(0), off(30)
     assert grid <= 0.6 * grid0
-    assert turned <= turned0
+    assert turned <= 0.9 * turned0
