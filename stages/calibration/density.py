@@ -400,6 +400,18 @@ def dead_codes(h: np.ndarray, top: int) -> np.ndarray:
     return out
 
 
+def beside_dead(w: np.ndarray) -> np.ndarray:
+    """A TDC's dead codes (a finite width of zero or less: no count between lit codes,
+    their time in a neighbour) and the codes either side of one, along the last axis: the
+    widths a phase pattern does not predict."""
+    w = np.asarray(w, np.float64)
+    dead = np.isfinite(w) & (w <= 0)
+    out = dead.copy()
+    out[..., 1:] |= dead[..., :-1]
+    out[..., :-1] |= dead[..., 1:]
+    return out
+
+
 def _dead_widths(w, dead, measured, pm, peak):
     """``w`` (interior-LSB units) with every dead code at zero width and its time given to
     the neighbour that holds it. A measured neighbour (``measured``: by this test's light

@@ -10,7 +10,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from schemas.constants import N_CODES
-from stages.calibration.density import DensityResult
+from stages.calibration.density import DensityResult, beside_dead
 from stages.calibration.lsb_light import LsbFit, RowSplines
 from stages.calibration.reset_peak import EDGE_MARGIN, RESET_HALF, at_risk_by_code, fit_reset_peak
 
@@ -55,9 +55,7 @@ def _phase_means(w: np.ndarray, lo: int, hi: int) -> np.ndarray:
     k = np.arange(max(int(lo), 0), max(int(hi), 0))
     v = w[k]
     fin = np.isfinite(v)
-    zero = np.zeros(w.size + 2, bool)
-    zero[1:-1] = np.isfinite(w) & (w <= 0)
-    near = zero[k] | zero[k + 1] | zero[k + 2]  # the code, the one below, the one above
+    near = beside_dead(w)[k]
     out = np.ones(8)
     for p in range(8):
         for sel in (fin & ~near & (k % 8 == p), fin & (k % 8 == p)):
@@ -141,7 +139,7 @@ def continue_table(table: DensityResult, tests: list) -> DensityResult:
         # measured within OWN_CLEAR_LSB of its reset peak (not trusted: taken, the widths
         # there were off by z RMS 1.22 on zoo chips 3-7, 0.98 without)
         dead = np.isfinite(wg) & (wg <= 0)
-        near = dead | np.roll(dead, 1) | np.roll(dead, -1)
+        near = beside_dead(wg)
         with np.errstate(invalid="ignore"):
             near |= wg - own > 0.5 * float(np.mean(own))
         near &= np.isfinite(wg)

@@ -30,6 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from schemas.constants import N_CODES
+from stages.calibration.density import beside_dead
 
 #: Codes a block over which :func:`pattern_var` measures the scatter of the widths about
 #: the 8-code phase pattern (as ``timescale.CONTINUE_CODES``: the codes whose phase means
@@ -70,9 +71,8 @@ def pattern_var(widths: np.ndarray, width_var: np.ndarray) -> np.ndarray:
     out = np.zeros(w.shape[0])
     k = np.arange(w.shape[1])
     for t in range(w.shape[0]):  # per TDC, once per calibration
-        zero = np.isfinite(w[t]) & (w[t] <= 0)
-        near = zero | np.roll(zero, 1) | np.roll(zero, -1)
-        fin = np.flatnonzero(np.isfinite(w[t]) & np.isfinite(v[t]) & ~near & (k >= 8))
+        fin = np.flatnonzero(np.isfinite(w[t]) & np.isfinite(v[t]) & ~beside_dead(w[t])
+                             & (k >= 8))
         if fin.size < PATTERN_CODES:
             continue
         r2, c = [], []
