@@ -21,7 +21,8 @@ minimum. The labels are the frame's planes, found from the detected pixels' loca
 A length prior rounds corners (a corner pixel costs more boundary than it saves), so
 the labelling is only where the ICM starts; its line priors then keep the edges that
 follow rows, columns and diagonals (docs/ranging.md has the numbers both ways), and
-:func:`straight` puts a corner's pixel back with the straight edges beside it.
+:func:`edge_side` puts each pixel beside a boundary on the side of the straight edge
+that the photons of the window around it, or of the windows beside it, place.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from stages.models.tcspc import log_phi_interval
+from stages.ranging._numba import numba
 
 CUT = 6.0          # nats a pixel of boundary length (seeds 1-8 at (2, 50): 3 and 10 worse)
 CUT_CYCLES = 3     # expansion cycles over the labels (at most; it stops when none moves)
@@ -207,125 +209,247 @@ def start(tb, slope, det, sig_cnt, sig_out, P0, beta, sb, prof=None):
     t = np.where(on, np.take_along_axis(T, k[..., None], -1)[..., 0], np.nan)
     sl = np.where(on[..., None], a[k][..., 1:], 0.0)
     sg = np.array([p[2] for p in pl])
-    return (t, sl, np.where(on, S[k], 0.0), np.where(on, sg[k], np.inf), (T, a, S, sg))
+    return (t, sl, np.where(on, S[k], 0.0), np.where(on, sg[k], np.inf), (T, a, S, sg, llr))
 
 
-# corners (:func:`straight`, called by stages.ranging.spatial._corners)
-STRAIGHT_R = 3         # a window is (2 R + 1)^2 pixels
-STRAIGHT_SHIFT = 3     # centred on the pixel, or on p + (i, j), i, j in {-SHIFT, 0, SHIFT}
-STRAIGHT_ANGLES = 36   # the boundary's directions tried, over 180 degrees
-STRAIGHT_MIN = 6.0     # the weight of each label a window needs
-STRAIGHT_FREE = 0.5    # an undetected pixel's weight (a detected one's: 1)
-STRAIGHT_CORNER = 0.5  # the centred window's misfit from which the pixel may be a corner
-STRAIGHT_MISFIT = 0.5  # and a window beside it misfits at most this
-CORNER_NATS = 2.0      # the pixel's own log-likelihood a corner's label may cost
-CORNER_PASSES = 2
+# edges (:func:`edge_side`, called by stages.ranging.spatial._edges)
+EDGE_R = 5           # the window is (2 R + 1)^2 pixels, centred on the pixel
+EDGE_ANGLES = 36     # the boundary's directions tried, over 180 degrees (both ways round)
+EDGE_CAP = 6.0       # nats: an undetected pixel's say between two planes at most
+EDGE_DET = 12.0      # and a detected pixel's, for the plane it is on
+EDGE_MIN = 6.0       # the weight of each label a window needs
+EDGE_FREE = 0.5      # an undetected pixel's weight (a detected one's: 1)
+EDGE_MISFIT = 2.0    # the labels' misfit (weights as EDGE_FREE) of a straight window
+EDGE_P = 0.7         # the posterior of the other side from which the pixel moves
+EDGE_PASSES = 2
+EDGE_SHIFT = 5       # the windows beside the pixel: centred this far along rows, columns
+EDGE_TURN = 4        # directions (20 degrees) between two windows' lines that are a corner
 
 
-def _straight_tables():
-    """Per window (the centred one first): its offsets from p (p itself left out), their
-    order along each direction's normal, the gaps between consecutive projections,
-    whether p (at 0) lies below each split between them, and the gaps' tie-breaker."""
-    R, K, sh = STRAIGHT_R, STRAIGHT_ANGLES, STRAIGHT_SHIFT
+def _edge_tables():
+    """Per window (the centred one first, then those centred ``EDGE_SHIFT`` beside p):
+    its offsets from p, their order along each direction's normal, log of the gaps
+    between consecutive projections (-inf: no gap) and whether p lies below each split."""
+    R, K, sh = EDGE_R, EDGE_ANGLES, EDGE_SHIFT
     th = np.arange(K) * np.pi / K
-    nrm = np.stack([np.sin(th), np.cos(th)], -1)                  # (K, 2)
+    nrm = np.stack([np.sin(th), np.cos(th)], -1)
     out = []
     for si, sj in [(0, 0)] + [(i, j) for i in (-sh, 0, sh) for j in (-sh, 0, sh) if i or j]:
         di, dj = np.mgrid[si - R:si + R + 1, sj - R:sj + R + 1]
-        keep = (di != 0) | (dj != 0)
-        off = np.stack([di[keep], dj[keep]], -1)                  # (M, 2)
-        proj = nrm @ off.T.astype(np.float64)                     # (K, M)
+        off = np.stack([di.ravel(), dj.ravel()], -1)
+        proj = nrm @ off.T.astype(np.float64)
         order = np.argsort(proj, -1, kind="stable")
         sp = np.take_along_axis(proj, order, -1)
-        gap = np.diff(sp, axis=-1)                                # (K, M - 1)
-        # the widest gap among equal misfits; a split between equal projections (no gap:
-        # the pixel's side there is not defined) never chosen
-        tie = np.where(gap > 1e-9, 1e-3 * gap, -np.inf)
-        tie = np.tile(tie, (2, 1)).ravel().astype(np.float32)
-        out.append((off, order, gap, 0.5 * (sp[:, 1:] + sp[:, :-1]) > 0.0, tie))
+        gap = np.diff(sp, axis=-1)
+        lg = np.where(gap > 1e-9, np.log(np.maximum(gap, 1e-300)), -np.inf)
+        out.append((off, order, lg, 0.5 * (sp[:, 1:] + sp[:, :-1]) > 0.0, (si, sj)))
     return out
 
 
-_STRAIGHT = None
+_EDGE = None
 
 
-def _split(cat, weight, who, A, B, win):
-    """One window's best half-plane between A and B for each pixel of ``who``: (the
-    label it puts the pixel on, its misfit, its gap, whether the window holds enough of
-    both)."""
-    off, order, gap, p_below, tie = win
+def _edge_windows():
+    """The windows' tables for the constants as they are (built again if they change)."""
+    global _EDGE
+    key = (EDGE_R, EDGE_ANGLES, EDGE_SHIFT)
+    if _EDGE is None or _EDGE[0] != key:
+        _EDGE = (key, _edge_tables())
+    return _EDGE[1]
+
+
+def edge_side(cat, weight, det, llr, who, A, B, compiled=None):
+    """Each pixel of ``who`` (n, 2) on a straight boundary between the planes ``A`` and
+    ``B`` (n,): the posterior that it lies on B's side (NaN: no say). A window is one
+    straight boundary where its labels ``cat`` (h, w; -1 none) weighted by ``weight``
+    split between A and B along a half-plane with a misfit of at most ``EDGE_MISFIT``.
+    In such a window every half-plane (``EDGE_ANGLES`` directions, both ways round,
+    every split between the pixels' projections, a uniform prior over the line's offset:
+    the gap's width) is weighed by the likelihood of the window's photons with A on one
+    side and B on the other: each undetected pixel's Poisson log-likelihood ratio of A
+    against B (``llr`` (h, w, L), each plane's, clipped to +-``EDGE_CAP``), each
+    detected pixel +-``EDGE_DET`` for the plane it is on. The edge's pixels far along it
+    place it where each one's few photons cannot. The window centred on the pixel has
+    the say where it is straight; else the windows centred ``EDGE_SHIFT`` beside it
+    that are, where they all agree (each beyond ``EDGE_P`` the same way) and two of
+    them place it: their lines ``EDGE_TURN`` directions apart (a corner's two edges),
+    or on both sides of it along each one's line, each centre a pixel or more from it
+    (a run of wrong labels between them); not one edge's windows on one side only
+    (beyond the edge's end). ``compiled``: by numba (None: where it is installed;
+    False: the numpy twin, in chunks of 512 pixels)."""
+    tables = _edge_windows()
+    post, _ = _edge_window(cat, weight, det, llr, who, A, B, tables[0], compiled)
+    rest = np.nonzero(np.isnan(post))[0]
+    if not rest.size or not EDGE_SHIFT:
+        return post
+    said = [_edge_window(cat, weight, det, llr, who[rest], A[rest], B[rest], win, compiled)
+            for win in tables[1:]]
+    P = np.stack([x[0] for x in said], 1)                         # (m, 8)
+    kd = np.stack([x[1] for x in said], 1)
+    ok = np.isfinite(P)
+    lo, hi = np.fmin.reduce(P, 1), np.fmax.reduce(P, 1)
+    agree = ok.any(1) & ((lo > EDGE_P) | (hi < 1.0 - EDGE_P))
+    # two straight windows with lines EDGE_TURN apart (a corner's two edges), or along
+    # one line on both sides of the pixel (a run of wrong labels between them); not one
+    # edge's windows on one side only (beyond its end)
+    K = EDGE_ANGLES
+    th = kd * np.pi / K
+    placed = np.zeros(rest.size, bool)
+    cen = np.array([win[4] for win in tables[1:]], np.float64)    # (8, 2)
+    # each window's centre along each window's line (the tangent (cos, -sin) in (row,
+    # col)); a centre within a pixel of p along it (across the line from p) is on
+    # neither side
+    along = (cen[None, :, None, 0] * np.cos(th)[:, None, :]
+             - cen[None, :, None, 1] * np.sin(th)[:, None, :])   # (m, window, line)
+    side = np.where(np.abs(along) >= 1.0, np.sign(along), 0.0)
+    for i in range(len(said)):
+        for j in range(i + 1, len(said)):
+            both = ok[:, i] & ok[:, j]
+            turn = np.abs(kd[:, i] - kd[:, j])
+            turn = np.minimum(turn, K - turn)
+            # on both sides of p along either window's line (lines within EDGE_TURN)
+            across = ((side[:, i, i] * side[:, j, i] < 0)
+                      & (side[:, i, j] * side[:, j, j] < 0))
+            placed |= both & ((turn >= EDGE_TURN) | across)
+    post[rest] = np.where(agree & placed, np.where(lo > EDGE_P, lo, hi), np.nan)
+    return post
+
+
+def _edge_window(cat, weight, det, llr, who, A, B, win, compiled=None):
+    """:func:`edge_side` in one window: the posterior, NaN where it is not straight (by
+    numba where it is installed, ``compiled`` None or True; the numpy twin else)."""
+    off, order, lg, p_below = win[:4]
+    llr = np.asarray(llr, np.float64)
+    if numba is not None and (compiled is None or bool(compiled)):
+        return _edge_window_numba(cat, weight.astype(np.float64), det, llr,
+                                  who.astype(np.int64), A.astype(np.int64),
+                                  B.astype(np.int64), off, order, lg, p_below,
+                                  EDGE_MIN, EDGE_MISFIT, EDGE_CAP, EDGE_DET)
+    # (the numpy twin in chunks: each pixel's (directions, window) arrays)
+    got = [_edge_window_numpy(cat, weight, det, llr, who[k:k + 512], A[k:k + 512],
+                              B[k:k + 512], off, order, lg, p_below)
+           for k in range(0, who.shape[0], 512)]
+    if not got:
+        return np.full(0, np.nan), np.full(0, -1)
+    return np.concatenate([g[0] for g in got]), np.concatenate([g[1] for g in got])
+
+
+def _edge_window_numpy(cat, weight, det, llr, who, A, B, off, order, lg, p_below):
+    """:func:`_edge_window`'s numpy twin on a chunk of pixels."""
     h, w = cat.shape
-    n = who.shape[0]
+    post = np.full(who.shape[0], np.nan)
+    kdir = np.full(who.shape[0], -1)
     r = who[:, 0, None] + off[:, 0]
     c = who[:, 1, None] + off[:, 1]
     ins = (r >= 0) & (r < h) & (c >= 0) & (c < w)
     rc, cc = np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)
     cw = np.where(ins, cat[rc, cc], -1)
+    ia, ib = cw == A[:, None], cw == B[:, None]
     wt = np.where(ins, weight[rc, cc], 0.0)
-    # (float32: the weights are halves and ones, their sums exact)
-    a = np.where(cw == A[:, None], wt, 0.0).astype(np.float32)   # (n, M)
-    b = np.where(cw == B[:, None], wt, 0.0).astype(np.float32)
+    a, b = np.where(ia, wt, 0.0), np.where(ib, wt, 0.0)
     at, bt = a.sum(1), b.sum(1)
-    enough = (at >= STRAIGHT_MIN) & (bt >= STRAIGHT_MIN)
-    ca = np.cumsum(a[:, order], -1)[..., :-1]                     # (n, K, M - 1): below
-    cb = np.cumsum(b[:, order], -1)[..., :-1]
-    m1 = (at[:, None, None] - ca) + cb                            # A below, B above
-    m2 = ca + (bt[:, None, None] - cb)                            # B below, A above
-    both = np.concatenate([m1, m2], 1).reshape(n, -1)
-    k = np.argmin(both - tie, -1)                                 # the widest gap among equals
-    mis = both[np.arange(n), k]
-    first = k < gap.size                                          # m1: A below
-    kk = k % gap.size
-    below = p_below.ravel()[kk]
-    return (np.where(below == first, A, B), mis, gap.ravel()[kk], enough)
+    # the misfit with A below a split: A's weight above it and B's below, at - (ca - cb)
+    # (ca, cb: A's and B's below); with A above: bt + (ca - cb)
+    d = np.cumsum((a - b)[:, order], -1)[..., :-1]                # (n, K, M - 1)
+    fin = np.isfinite(lg)
+    mis = np.minimum(at - np.where(fin, d, -np.inf).max((1, 2)),
+                     bt + np.where(fin, d, np.inf).min((1, 2)))
+    go = np.nonzero((at >= EDGE_MIN) & (bt >= EDGE_MIN) & (mis <= EDGE_MISFIT))[0]
+    if not go.size:
+        return post, kdir
+    rc, cc, ia, ib = rc[go], cc[go], ia[go], ib[go]
+    la = llr[rc, cc, A[go, None]]
+    lb = llr[rc, cc, B[go, None]]
+    with np.errstate(invalid="ignore"):                           # (-inf - -inf: no say)
+        e = np.clip(np.nan_to_num(la - lb, nan=0.0), -EDGE_CAP, EDGE_CAP)
+    e = np.where(det[rc, cc], np.where(ia, EDGE_DET, np.where(ib, -EDGE_DET, 0.0)), e)
+    e = np.where(ins[go], e, 0.0)
+    ce = np.cumsum(e[:, order], -1)                               # (n, K, M)
+    below = ce[..., :-1]
+    s1 = below + lg                  # A below: the log-likelihood (up to a constant)
+    s2 = (ce[..., -1:] - below) + lg  # A above
+    pa = np.where(p_below, s1, s2).reshape(go.size, -1)  # the splits that put p on A's side
+    pb = np.where(p_below, s2, s1).reshape(go.size, -1)
+    top = np.maximum(pa.max(-1), pb.max(-1))[:, None]
+    za = np.exp(pa - top).sum(-1)
+    zb = np.exp(pb - top).sum(-1)
+    post[go] = zb / (za + zb)
+    # the best line's direction (the first of equals, as the numba twin)
+    kdir[go] = np.argmax(np.maximum(pa, pb), -1) // (order.shape[1] - 1)
+    return post, kdir
 
 
-def straight(cat, weight, who, corner=None):
-    """Each pixel of ``who`` (n, 2): the label its neighbours' straight boundaries put it
-    on, where the window centred on it is not one straight boundary (misfit >=
-    ``corner``, default ``STRAIGHT_CORNER``). ``cat`` (h, w) the labels (-1: none),
-    ``weight`` (h, w) each pixel's say. In each of the 8 windows centred beside the
-    pixel, the half-plane (36 directions) splitting the pixel's label A from the
-    commonest other label B near it with the least weight on the wrong side, the widest
-    gap between the two among equals; a window with ``STRAIGHT_MIN`` of each and a
-    misfit of at most ``STRAIGHT_MISFIT`` is one straight boundary, and the side of it
-    the pixel lies on is its say. A corner pixel lies inside both edges' windows; one
-    beyond the end of an edge lies on the extension of one and outside the other: the
-    windows that are straight must agree. Returns (label (n,), -1 where no window is
-    straight or they differ; the least misfit among them, inf where none)."""
-    global _STRAIGHT
-    corner = STRAIGHT_CORNER if corner is None else corner
-    if _STRAIGHT is None:
-        _STRAIGHT = _straight_tables()
-    h, w = cat.shape
-    n = who.shape[0]
-    pred = np.full(n, -1)
-    best = np.full(n, np.inf)
-    L = int(cat.max()) + 1
-    if L <= 0 or n == 0:
-        return pred, best
-    A = cat[who[:, 0], who[:, 1]]
-    reach = STRAIGHT_R + STRAIGHT_SHIFT
-    di, dj = np.mgrid[-reach:reach + 1, -reach:reach + 1]
-    r, c = who[:, 0, None] + di.ravel(), who[:, 1, None] + dj.ravel()
-    ins = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-    cc = np.where(ins, cat[np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)], -1)
-    ww = np.where(ins, weight[np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)], 0.0)
-    ok = (cc >= 0) & (cc != A[:, None])
-    hist = np.zeros((n, L))
-    np.add.at(hist, (np.nonzero(ok)[0], cc[ok]), ww[ok])
-    B = np.argmax(hist, -1)
-    _, cen, _, enough = _split(cat, weight, who, A, B, _STRAIGHT[0])
-    sub = np.nonzero(~enough | (cen >= corner))[0]                # not one straight edge
-    if not sub.size:
-        return pred, best
-    said = np.full(sub.size, -1)                                  # the straight windows'
-    split = np.zeros(sub.size, bool)                              # label, unless they differ
-    for win in _STRAIGHT[1:]:
-        lab, mis, _, en = _split(cat, weight, who[sub], A[sub], B[sub], win)
-        ok = en & (mis <= STRAIGHT_MISFIT)
-        split |= ok & (said >= 0) & (said != lab)
-        said = np.where(ok, lab, said)
-        best[sub] = np.where(ok, np.minimum(mis, best[sub]), best[sub])
-    pred[sub] = np.where(split, -1, said)
-    return pred, best
+if numba is not None:
+    @numba.njit(cache=True, nogil=True)
+    def _edge_window_numba(cat, weight, det, llr, who, A, B, off, order, lg, p_below,
+                           min_w, max_mis, cap, det_w):
+        """:func:`_edge_window` a pixel at a time, without its temporaries (the same
+        sums in the same order)."""
+        h, w = cat.shape
+        n, M, K, S = who.shape[0], off.shape[0], order.shape[0], order.shape[1] - 1
+        post = np.full(n, np.nan)
+        kdir = np.full(n, -1)
+        wa = np.empty(M)
+        wb = np.empty(M)
+        e = np.empty(M)
+        for i in range(n):
+            at = 0.0
+            bt = 0.0
+            for q in range(M):
+                r, c = who[i, 0] + off[q, 0], who[i, 1] + off[q, 1]
+                wa[q] = 0.0
+                wb[q] = 0.0
+                e[q] = 0.0
+                if r < 0 or r >= h or c < 0 or c >= w:
+                    continue
+                lab = cat[r, c]
+                if lab == A[i]:
+                    wa[q] = weight[r, c]
+                elif lab == B[i]:
+                    wb[q] = weight[r, c]
+                at += wa[q]
+                bt += wb[q]
+                if det[r, c]:
+                    e[q] = det_w if lab == A[i] else (-det_w if lab == B[i] else 0.0)
+                else:
+                    x = llr[r, c, A[i]] - llr[r, c, B[i]]
+                    e[q] = 0.0 if x != x else min(max(x, -cap), cap)
+            if at < min_w or bt < min_w:
+                continue
+            hi = -np.inf
+            lo = np.inf
+            for k in range(K):
+                d = 0.0
+                for s in range(S):
+                    q = order[k, s]
+                    d += wa[q] - wb[q]
+                    if lg[k, s] > -np.inf:
+                        hi = max(hi, d)
+                        lo = min(lo, d)
+            if min(at - hi, bt + lo) > max_mis:
+                continue
+            top = -np.inf
+            for sweep in range(2):        # the largest log-likelihood, then the sums
+                za = 0.0
+                zb = 0.0
+                for k in range(K):
+                    tot = 0.0
+                    for q in range(M):
+                        tot += e[order[k, q]]
+                    c1 = 0.0
+                    for s in range(S):
+                        c1 += e[order[k, s]]
+                        if lg[k, s] == -np.inf:
+                            continue
+                        s1 = c1 + lg[k, s]            # A below the split
+                        s2 = (tot - c1) + lg[k, s]    # A above
+                        pa, pb = (s1, s2) if p_below[k, s] else (s2, s1)
+                        if sweep == 0:
+                            if max(pa, pb) > top:
+                                top = max(pa, pb)
+                                kdir[i] = k
+                        else:
+                            za += np.exp(pa - top)
+                            zb += np.exp(pb - top)
+            post[i] = zb / (za + zb)
+        return post, kdir

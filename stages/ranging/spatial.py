@@ -34,9 +34,10 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    of the 6 pixels of its best row, column or diagonal (a straight boundary); then block
    moves, which shift a boundary's whole run by one pixel where the sum over the run
    and its neighbourhood rises (a local minimiser moves one pixel at a time, and the
-   line prior holds each pixel of a straight boundary where it is); last, corners
-   (:func:`_corners`): a pixel whose window is no straight boundary goes with the
-   straight boundaries of the windows beside it, where they agree (at any angle).
+   line prior holds each pixel of a straight boundary where it is); last, edges
+   (:func:`_edges`): a pixel beside a boundary goes to the side of the straight edge
+   that the photons of the 11 x 11 window around it place (every line at any angle,
+   weighed by their likelihood), or, near a corner, of the windows beside it.
 4. sigma: the photons' spread about the plane over their number, through the fit's
    design (its (0, 0) element), with the background left in the window, or the fit's
    sandwich variance, the larger; times Huber's factor for a window centred on its own
@@ -212,11 +213,12 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
     the pulse's (instrument response's) sigma. ``threads`` > 1 ranges bands of rows at
     once (numpy releases the GIL), each with ``2 window + 2`` rows of its neighbours', then
     relabels the whole image, so the result is the same as in one piece (tested).
-    ``compiled``: the plane fits' window sums by numba (default where it is installed)
-    or numpy (the same result, tested). ``cal_var_s2`` (rows, cols): each pixel's time
-    axis's own error variance (s^2; a chip's calibration, fixed a pixel, independent
-    between pixels), which the estimate carries as the fit weighs its neighbours: the
-    sigma gains the sum over the neighbours of their squared weight on t0 times it (4).
+    ``compiled``: the plane fits' window sums and the edges' windows (3b) by numba
+    (default where it is installed) or numpy (the same result, tested). ``cal_var_s2``
+    (rows, cols): each pixel's time axis's own error variance (s^2; a chip's
+    calibration, fixed a pixel, independent between pixels), which the estimate carries
+    as the fit weighs its neighbours: the sigma gains the sum over the neighbours of
+    their squared weight on t0 times it (4).
     """
     compiled = (numba is not None) if compiled is None else bool(compiled) and numba is not None
     counts = np.asarray(counts, np.float64)
@@ -232,7 +234,7 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
     if bands == 1:
         return _finish(_spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s,
                                 compiled, cal_var_s2, prof),
-                       max_returns, bin_s, sigma_s / bin_s, t0_s, prof)
+                       max_returns, bin_s, sigma_s / bin_s, t0_s, prof, compiled)
     from concurrent.futures import ThreadPoolExecutor
 
     edges = np.linspace(0, h, bands + 1).astype(int)
@@ -248,7 +250,7 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
     fields = tuple(np.concatenate([e[i][a - lo:b - lo]
                                    for e, (lo, a, b, _) in zip(got, parts, strict=True)])
                    for i in range(len(got[0])))
-    return _finish(fields, max_returns, bin_s, sigma_s / bin_s, t0_s, prof)
+    return _finish(fields, max_returns, bin_s, sigma_s / bin_s, t0_s, prof, compiled)
 
 
 def _check(counts, bin_s, sigma_s, p_fa, window, max_returns) -> None:
@@ -614,7 +616,7 @@ if numba is not None:
         return n0, s1, s2, raw, bsum
 
 
-def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None) -> SpatialEstimate:
+def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None) -> SpatialEstimate:
     """3b and the order of the returns, on the whole image (the relabelling's sweeps
     reach further than a band's halo)."""
     t_out, sig_out, sig_cnt, det, own, surr, slope, mine_r, bw_r, rank, beta, P0 = fields
@@ -627,7 +629,7 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None) -> SpatialEstimate:
                                 (det, False), (own, False), (surr, False)))
     rank, state = _relabel(t_out, sig_out, slot(slope, 0.0), slot(mine_r, 0.0),
                            slot(bw_r, 0.0), sig_cnt, slot(rank, -1e9), det, P0, beta,
-                           bin_s, sb, t0_s, prof)
+                           bin_s, sb, t0_s, prof, compiled)
     _label_sigma(state, sig_cnt, sig_out, P0, beta, bin_s, sb, prof)
     # detected before not; then by the corner windows that see the surface, then by the
     # pixel's own excess counts, then by the neighbourhood's signal
@@ -768,73 +770,109 @@ def _block_move(i, j, phase, lab, before, free, tb, llr, slope, sig_cnt, sig_out
     return np.where(take, nc - 1, lab), None
 
 
-def _corners(lab, free, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, half, tol,
-             prof=None):
-    """3b's last step: corners. A length prior (the cut's) and line priors along rows,
-    columns and diagonals (the sweeps') both hold that the pixel at an object's corner
-    belongs to what surrounds it: its 8 nearest split 3 to 5 against it, and the row and
-    the column through it split evenly. What places it is that the object's two edges
-    are straight and meet beyond it. For each undetected pixel beside a boundary between
-    the frame's planes (``table``: :func:`planecut.start`'s) whose centred window is not
-    one straight boundary, :func:`planecut.straight` looks at the windows beside it,
-    along the edges: where those that are one straight boundary agree on the side the
-    pixel lies on (at a corner, inside both edges; beyond an edge's end, they differ and
-    nothing moves), at any angle (36 directions), the pixel takes that side's plane if
-    its own Poisson log-likelihood loses less than ``CORNER_NATS`` by it: its candidate
-    on the plane, or the plane in its last slot. (Seeds 1-8 at (2, 50): 41 -> 24
-    surface pixels > 10 cm off on the grid's scene, 320 -> 276 turned by 30 degrees;
-    held out, seeds 9-15: 59 -> 37 and 282 -> 250; docs/ranging.md "Corners".)
-    Returns the labels; ``tb``, ``llr``,
-    ``slope``, ``sig_cnt`` and ``sig_out`` are written in place where a plane is put in
-    the last slot."""
-    T, a, S, sg = table
-    h, w, nc = tb.shape
-    weight = np.where(free, planecut.STRAIGHT_FREE, 1.0)
-    near = np.ones((h, w), bool)   # after a pass: the pixels its moves' windows reach
-    reach = 2 * (planecut.STRAIGHT_R + planecut.STRAIGHT_SHIFT) + 1
-    for _ in range(planecut.CORNER_PASSES):
-        # every pixel's plane: the one its reported time lies on (-1: none)
-        tl = np.take_along_axis(tb, lab[..., None], -1)[..., 0]
-        d = np.abs(T - tl[..., None])
-        d = np.where(np.isfinite(d), d, np.inf)
-        cat = np.argmin(d, -1)
-        cat = np.where(np.take_along_axis(d, cat[..., None], -1)[..., 0] < tol, cat, -1)
+def _take_plane(r, c, pl, lab, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, half,
+                tol, prof=None):
+    """The pixels (r, c) take the frame's planes ``pl`` (``table``: :func:`planecut.start`'s):
+    their candidate on the plane, or the plane in their last slot (``tb``, ``llr``,
+    ``slope``, ``sig_cnt``, ``sig_out`` written in place). ``lab`` in place."""
+    T, a, S, sg = table[:4]
+    nc = tb.shape[-1]
+    tn = T[r, c, pl]
+    dd = np.abs(tb[r, c, :-1] - tn[:, None])
+    k = np.argmin(np.where(np.isfinite(dd), dd, np.inf), -1)
+    have = dd[np.arange(r.size), k] < tol        # a candidate on the plane
+    tt = np.full(T.shape[:2] + (1,), np.nan)
+    tt[r, c, 0] = tn
+    ss = np.zeros(T.shape[:2] + (1,))
+    ss[r, c, 0] = S[pl]
+    lp = _own_llr(P0, beta, tt, ss, half, prof)[r, c, 0]
+    new = np.where(have, llr[r, c, k], lp)
+    ok = np.isfinite(new)      # (not a plane whose pulse lies mostly outside the window)
+    lab[r[ok & have], c[ok & have]] = k[ok & have]
+    put = ok & ~have                              # else the plane in the last slot
+    rp, cp, pp = r[put], c[put], pl[put]
+    tb[rp, cp, -1] = tn[put]
+    llr[rp, cp, -1] = lp[put]
+    sig_cnt[rp, cp, -1] = S[pp]
+    sig_out[rp, cp, -1] = sg[pp]
+    slope[rp, cp, -1, :] = a[pp, 1:]
+    lab[rp, cp] = nc - 1
+
+
+def _plane_of(lab, tb, T, tol):
+    """Every pixel's plane among the frame's: the one its reported time lies on (-1: none)."""
+    tl = np.take_along_axis(tb, lab[..., None], -1)[..., 0]
+    d = np.abs(T - tl[..., None])
+    d = np.where(np.isfinite(d), d, np.inf)
+    cat = np.argmin(d, -1)
+    return np.where(np.take_along_axis(d, cat[..., None], -1)[..., 0] < tol, cat, -1)
+
+
+def _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, half, tol,
+           prof=None, compiled=None):
+    """3b's last step, edges. The sweeps' priors count the pixels along rows, columns and
+    diagonals, and every monotone staircase between two points has the same length on
+    the pixel grid: beside an edge at 30 degrees a run of pixels one pixel over costs
+    them nothing, and the run's own few photons hardly decide. The edge's pixels further
+    along do. Each undetected pixel beside a boundary between two of the frame's planes
+    (its own, A, and the commonest other among its 8 nearest, B) goes to B where
+    :func:`planecut.edge_side` gives B's side a posterior above ``EDGE_P``: in the 11 x 11
+    window around it, where its labels are one straight boundary, every line (36
+    directions, every offset) weighed by the likelihood of the window's photons; near a
+    corner or a run of wrong labels, the windows beside it. Two passes, the second on
+    the pixels the first's moves reach. Detection is untouched. (Seeds 1-8 at (2, 50),
+    pixels > 10 cm off, against the corners' step it replaced: the grid's scene 24 ->
+    19, turned by 30 degrees 276 -> 168; held out, seeds 9-15: 37 -> 28 and 250 -> 124;
+    docs/ranging.md "Edges".) Returns
+    the labels; ``tb``, ``llr``, ``slope``, ``sig_cnt`` and ``sig_out`` are written in
+    place where a plane is put in a pixel's last slot."""
+    T, lp = table[0], table[4]
+    weight = np.where(free, planecut.EDGE_FREE, 1.0)
+    dets = det.any(-1)
+    near = np.ones(free.shape, bool)  # after a pass: the pixels its moves' windows reach
+    for _ in range(planecut.EDGE_PASSES):
+        cat = _plane_of(lab, tb, T, tol)
         edge = ndimage.maximum_filter(cat, 3) != ndimage.minimum_filter(cat, 3)
         who = np.argwhere(free & edge & (cat >= 0) & near)
-        pred, mis = planecut.straight(cat, weight, who)
-        r, c = who[:, 0], who[:, 1]
-        move = (pred >= 0) & (pred != cat[r, c])  # (straight windows agreed: misfit ok)
-        r, c, pl = r[move], c[move], pred[move]
+        if not who.size:
+            break
+        A = cat[who[:, 0], who[:, 1]]
+        B = _commonest_other(cat, weight, who, A, 1)
+        who, A, B = who[B >= 0], A[B >= 0], B[B >= 0]   # (beside no other plane: none)
+        post = planecut.edge_side(cat, weight, dets, lp, who, A, B, compiled)
+        move = post > planecut.EDGE_P
+        r, c, pl = who[move, 0], who[move, 1], B[move]
         if not r.size:
             break
-        tn = T[r, c, pl]
-        dd = np.abs(tb[r, c, :-1] - tn[:, None])
-        k = np.argmin(np.where(np.isfinite(dd), dd, np.inf), -1)
-        have = dd[np.arange(r.size), k] < tol        # a candidate on the plane
-        tt = np.full((h, w, 1), np.nan)
-        tt[r, c, 0] = tn
-        ss = np.zeros((h, w, 1))
-        ss[r, c, 0] = S[pl]
-        lp = _own_llr(P0, beta, tt, ss, half, prof)[r, c, 0]
-        new = np.where(have, llr[r, c, k], lp)
-        ok = llr[r, c, lab[r, c]] - new < planecut.CORNER_NATS
-        lab[r[ok & have], c[ok & have]] = k[ok & have]
-        put = ok & ~have                              # else the plane in the last slot
-        rp, cp, pp = r[put], c[put], pl[put]
-        tb[rp, cp, -1] = tn[put]
-        llr[rp, cp, -1] = lp[put]
-        sig_cnt[rp, cp, -1] = S[pp]
-        sig_out[rp, cp, -1] = sg[pp]
-        slope[rp, cp, -1, :] = a[pp, 1:]
-        lab[rp, cp] = nc - 1
-        moved = np.zeros((h, w), bool)
-        moved[r[ok], c[ok]] = True
-        near = ndimage.maximum_filter(moved, reach)
+        _take_plane(r, c, pl, lab, tb, llr, slope, sig_cnt, sig_out, table, P0, beta,
+                    half, tol, prof)
+        moved = np.zeros(free.shape, bool)
+        moved[r, c] = True
+        near = ndimage.maximum_filter(moved, 2 * (planecut.EDGE_R + planecut.EDGE_SHIFT) + 1)
     return lab
 
 
+def _commonest_other(cat, weight, who, A, k):
+    """The commonest label other than A (and none) within k of each pixel of ``who``,
+    by weight (-1: none)."""
+    h, w = cat.shape
+    L = int(cat.max()) + 1
+    n = who.shape[0]
+    if L <= 0:
+        return np.full(n, -1)
+    di, dj = np.mgrid[-k:k + 1, -k:k + 1]
+    r, c = who[:, 0, None] + di.ravel(), who[:, 1, None] + dj.ravel()
+    ins = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+    cc = np.where(ins, cat[np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)], -1)
+    ww = np.where(ins, weight[np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)], 0.0)
+    ok = (cc >= 0) & (cc != A[:, None])
+    hist = np.zeros((n, L))
+    np.add.at(hist, (np.nonzero(ok)[0], cc[ok]), ww[ok])
+    return np.where(hist.max(-1) > 0, np.argmax(hist, -1), -1)
+
+
 def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_s, sb,
-             t0_s, prof=None):
+             t0_s, prof=None, compiled=None):
     """3b. Which candidate an undetected pixel reports: the one that maximises the pixel's
     own Poisson log-likelihood ratio (its counts in the test window against its
     background, the signal per pixel the neighbourhood saw) plus ``PRIOR`` for each of
@@ -862,7 +900,7 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
     :func:`planecut.start`'s labels, not each pixel's own best candidate: an undetected
     pixel on its candidate on its label's plane, or on the plane in the last slot (seeds
     1-15 at (2, 50): 188 -> 100 pixels > 10 cm off, turned by 30 degrees 789 -> 602;
-    docs/ranging.md "Where the sweeps start"). Last, :func:`_corners` (which needs the
+    docs/ranging.md "Where the sweeps start"). Last, :func:`_edges` (which needs the
     cut's planes)."""
     h, w, nc = t_out.shape
     tb = (t_out - t0_s) / bin_s                               # bins
@@ -949,8 +987,8 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
                                       sig_cnt, sig_out, P0, beta, half, tol, shifted,
                                       agreement, prof)
     if got is not None:
-        lab = _corners(lab, free, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, half,
-                       tol, prof)
+        lab = _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, half,
+                     tol, prof, compiled)
     t_out[..., -1] = tb[..., -1] * bin_s + t0_s
     chosen = np.arange(nc) == lab[..., None]
     return (np.where(free[..., None] & chosen, 1e11, 0.0) + rank,

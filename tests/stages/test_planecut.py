@@ -166,15 +166,20 @@ def _square(n, half, angle_deg):
     return ((np.abs(u) < half) & (np.abs(v) < half)).astype(np.int64), u, v
 
 
+def _corner_case(lab, r, c):
+    """The square's labels with every pixel detected but (r, c), and no photons' say."""
+    det = np.ones(lab.shape, bool)
+    det[r, c] = False
+    return (lab, np.ones(lab.shape), det, np.zeros(lab.shape + (2,)), np.array([[r, c]]))
+
+
+@pytest.mark.parametrize("compiled", [None, False])
 @pytest.mark.parametrize("angle", [0, 10, 17, 30, 45, 60, 73])
-def test_a_corner_pixel_goes_with_its_edges_at_any_angle(angle):
+def test_a_corner_pixel_goes_with_its_edges_at_any_angle(angle, compiled):
     """The pixel nearest each corner of a square, labelled as what surrounds it, is put
-    back on the square: the windows beside it, along its edges, are each one straight
-    boundary (misfit 0) and agree that it lies inside. The pixel is the one nearest the
-    corner at least half a pixel inside both edges: a pixel the edge passes closer to
-    is a tip its neighbours' centres cannot place (at 10 and 30 degrees the outermost
-    pixels are 0.06 and 0.31 pixel inside, and the windows along their two edges
-    disagree, so nothing is proposed)."""
+    back on the square (posterior > EDGE_P) by the windows beside it, along its two
+    edges: the window centred on it is no straight boundary. The pixel is the one
+    nearest the corner at least half a pixel inside both edges."""
     lab, u, v = _square(41, 11.3, angle)
     inside = 11.3 - np.maximum(np.abs(u), np.abs(v)) >= 0.5
     for su, sv in product((-1, 1), repeat=2):
@@ -182,54 +187,257 @@ def test_a_corner_pixel_goes_with_its_edges_at_any_angle(angle):
         r, c = np.unravel_index(np.argmax(score), lab.shape)
         cat = lab.copy()
         cat[r, c] = 0
-        pred, mis = planecut.straight(cat, np.ones(cat.shape), np.array([[r, c]]))
-        assert pred[0] == 1 and mis[0] == 0.0, (r, c, pred, mis)
+        post = planecut.edge_side(*_corner_case(cat, r, c), np.array([0]), np.array([1]),
+                                  compiled)
+        assert post[0] > planecut.EDGE_P, (angle, r, c, post)
 
 
-@pytest.mark.parametrize("angle", [0, 10, 30, 45, 60, 73])
-def test_the_pixel_outside_a_corner_stays(angle):
-    """The pixel diagonally outside each corner of a square, rightly what surrounds it, is
-    not put on the square: no window beside it is one boundary with it inside."""
+@pytest.mark.parametrize("compiled", [None, False])
+@pytest.mark.parametrize("angle", [0, 10, 17, 30, 45, 60, 73])
+def test_the_pixels_outside_a_corner_stay(angle, compiled):
+    """The 3 pixels nearest each corner of a square that lie at least half a pixel
+    outside one of its edges (beyond an edge's end, or diagonally out) are not put on
+    the square. (A pixel within half a pixel of both edges' lines is not placed by them:
+    at 17 degrees the one diagonally out lies 0.04 pixel outside one edge's line, and the
+    windows put it inside.)"""
     lab, u, v = _square(41, 11.3, angle)
+    out = (np.maximum(np.abs(u), np.abs(v)) - 11.3 >= 0.5) & (lab == 0)
     for su, sv in product((-1, 1), repeat=2):
-        score = np.where(lab == 1, su * u + sv * v, -np.inf)
-        r, c = np.unravel_index(np.argmax(score), lab.shape)
-        out = np.where(lab == 0, np.hypot(u - u[r, c], v - v[r, c])
-                       + 10 * ((su * u < su * u[r, c]) | (sv * v < sv * v[r, c])), np.inf)
-        ro, co = np.unravel_index(np.argmin(out), lab.shape)
-        pred, mis = planecut.straight(lab, np.ones(lab.shape), np.array([[ro, co]]))
-        assert not (pred[0] == 1 and mis[0] <= planecut.STRAIGHT_MISFIT), (ro, co)
+        corner = np.array([su * 11.3, sv * 11.3])
+        d = np.where(out, np.hypot(u - corner[0], v - corner[1]), np.inf)
+        for k in np.argsort(d, None)[:3]:
+            r, c = np.unravel_index(k, lab.shape)
+            post = planecut.edge_side(*_corner_case(lab, r, c), np.array([0]), np.array([1]),
+                                      compiled)
+            assert not post[0] > planecut.EDGE_P, (angle, r, c, post)
 
 
+@pytest.mark.parametrize("compiled", [None, False])
 @pytest.mark.parametrize("angle", [*range(0, 180, 15), 17, 37, 52, 98, 143])
-def test_a_straight_edge_is_left_to_the_sweeps(angle):
-    """Along one straight boundary (at any angle) no pixel is moved: the window centred
-    on it is the boundary, so :func:`straight` proposes nothing, or (where the edge lies
-    between two of the 36 directions and the centred window's split misfits, as at 52
-    degrees) the windows beside it put the pixel back on its own side."""
+def test_a_straight_edge_stays_where_it_is(angle, compiled):
+    """Along one straight boundary at any angle, each pixel beside it (the others all
+    detected, no photons' say of its own) stays on its side."""
     n = 31
     r, c = np.mgrid[0:n, 0:n] - n // 2
     a = np.deg2rad(angle)
     cat = (r * np.cos(a) - c * np.sin(a) > 0.3).astype(np.int64)
     edge = np.argwhere(np.abs(r * np.cos(a) - c * np.sin(a) - 0.3) < 1.5)
     edge = edge[(edge.min(1) >= 6) & (edge.max(1) < n - 6)]
-    pred, _ = planecut.straight(cat, np.ones(cat.shape), edge)
     assert edge.shape[0] > 10
-    assert np.all((pred == -1) | (pred == cat[edge[:, 0], edge[:, 1]]))
-    assert np.mean(pred == -1) > 0.8
+    for p in edge:
+        A = cat[p[0], p[1]]
+        post = planecut.edge_side(*_corner_case(cat, *p), np.array([A]), np.array([1 - A]),
+                                  compiled)
+        assert not post[0] > planecut.EDGE_P, (angle, p, post)
 
 
-@pytest.mark.parametrize("shape", [(1, 40), (40, 1), (2, 2), (3, 3)])
-def test_straight_on_frames_too_small_for_a_window(shape):
-    """Frames too small or too thin for a window with 6 pixels of each label: no pixel
-    is moved, nothing raised; no pixel asked: empty answers; no label at all: none."""
-    cat = np.zeros(shape, np.int64)
-    cat[..., shape[-1] // 2:] = 1
-    who = np.argwhere(np.ones(shape, bool))
-    pred, mis = planecut.straight(cat, np.ones(shape), who)
-    assert pred.shape == (who.shape[0],)
-    assert np.all((pred == -1) | (pred == cat[who[:, 0], who[:, 1]]))  # nothing moves
-    pred, mis = planecut.straight(cat, np.ones(shape), np.zeros((0, 2), np.int64))
-    assert pred.shape == (0,) and mis.shape == (0,)
-    pred, _ = planecut.straight(np.full(shape, -1), np.ones(shape), who)
-    assert np.all(pred == -1)
+def _edge_brute(cat, weight, det, llr, p, A, B):
+    """edge_side's posterior for one pixel, written out: the window centred on it where
+    that is straight, else the straight ones of the 8 beside it where they all agree and
+    two of them have lines EDGE_TURN apart, or lie on both sides of it (each centre a
+    pixel or more from it) along each one's line."""
+    got, _ = _window_brute(cat, weight, det, llr, p, A, B, (0, 0))
+    if np.isfinite(got):
+        return got
+    sh = planecut.EDGE_SHIFT
+    cen = [(i, j) for i in (-sh, 0, sh) for j in (-sh, 0, sh) if i or j]
+    said = [_window_brute(cat, weight, det, llr, p, A, B, x) for x in cen]
+    ok = [k for k, x in enumerate(said) if np.isfinite(x[0])]
+    if not ok:
+        return np.nan
+    posts = [said[k][0] for k in ok]
+    if not (all(x > planecut.EDGE_P for x in posts)
+            or all(x < 1 - planecut.EDGE_P for x in posts)):
+        return np.nan
+    K = planecut.EDGE_ANGLES
+    for i in ok:
+        for j in ok:
+            if j <= i:
+                continue
+            turn = abs(said[i][1] - said[j][1])
+            turn = min(turn, K - turn)
+            across = True
+            for k in (i, j):                      # along each window's line
+                th = said[k][1] * np.pi / K
+                ti = cen[i][0] * np.cos(th) - cen[i][1] * np.sin(th)
+                tj = cen[j][0] * np.cos(th) - cen[j][1] * np.sin(th)
+                across &= min(abs(ti), abs(tj)) >= 1.0 and ti * tj < 0
+            if turn >= planecut.EDGE_TURN or across:
+                return min(posts) if posts[0] > planecut.EDGE_P else max(posts)
+    return np.nan
+
+
+def _window_brute(cat, weight, det, llr, p, A, B, shift):
+    """One window's posterior (centred at p + shift) written out: every direction, every
+    split between two distinct projections (weighed by its width), both ways round."""
+    R, K = planecut.EDGE_R, planecut.EDGE_ANGLES
+    h, w = cat.shape
+    qs = [(p[0] + shift[0] + i, p[1] + shift[1] + j) for i in range(-R, R + 1)
+          for j in range(-R, R + 1)]
+    inside = [0 <= r < h and 0 <= c < w for r, c in qs]
+    lab = [cat[q] if ok else -1 for q, ok in zip(qs, inside, strict=True)]
+    wt = [weight[q] if ok else 0.0 for q, ok in zip(qs, inside, strict=True)]
+    ev = []
+    for q, ok, lb in zip(qs, inside, lab, strict=True):
+        if not ok:
+            ev.append(0.0)
+        elif det[q]:
+            ev.append(planecut.EDGE_DET if lb == A else -planecut.EDGE_DET if lb == B else 0.0)
+        elif np.isneginf(llr[q][A]) and np.isneginf(llr[q][B]):
+            ev.append(0.0)
+        else:
+            ev.append(float(np.clip(llr[q][A] - llr[q][B], -planecut.EDGE_CAP,
+                                    planecut.EDGE_CAP)))
+    wt, lab, ev = np.array(wt), np.array(lab), np.array(ev)
+    wa, wb = wt[lab == A].sum(), wt[lab == B].sum()
+    off = np.array(qs) - np.array(p)
+    best_misfit = np.inf
+    scores, p_on_a, kk = [], [], []
+    for k in range(K):
+        th = k * np.pi / K
+        proj = np.round(np.sin(th) * off[:, 0] + np.cos(th) * off[:, 1], 9)
+        levels = np.unique(proj)
+        cut = 0.5 * (levels[:-1] + levels[1:])                    # (splits,)
+        for a_below in (True, False):
+            on_a = (proj[None, :] < cut[:, None]) == a_below      # (splits, M)
+            wrong = ((lab == A)[None, :] != on_a) & np.isin(lab, (A, B))[None, :]
+            best_misfit = min(best_misfit, (wrong * wt).sum(1).min())
+            scores.append((on_a * ev).sum(1) + np.log(np.diff(levels)))
+            # (p at projection 0: its side of each split, inside the window or not)
+            p_on_a.append((0.0 < cut) == a_below)
+            kk.append(np.full(cut.size, k))
+    if not (wa >= planecut.EDGE_MIN and wb >= planecut.EDGE_MIN
+            and best_misfit <= planecut.EDGE_MISFIT):
+        return np.nan, -1
+    scores, p_on_a, kk = (np.concatenate(x) for x in (scores, p_on_a, kk))
+    z = np.exp(scores - scores.max())
+    # the best line's direction: the first of (nearly) equals
+    return z[~p_on_a].sum() / z.sum(), int(kk[scores >= scores.max() - 1e-9].min())
+
+
+def _random_edge_frame(seed, a=None):
+    """Random labels near a line at ``a`` (random: None), a few flipped, some of no
+    plane or a third, some pixels detected; evidence random, some -inf, some pixels
+    -inf for both planes."""
+    rng = np.random.default_rng(seed)
+    h, w = 15, 17
+    r, c = np.mgrid[0:h, 0:w]
+    a = rng.uniform(0, np.pi) if a is None else a
+    cat = (np.sin(a) * (r - 7) + np.cos(a) * (c - 8) > rng.uniform(-1, 1)).astype(np.int64)
+    flip = rng.random((h, w)) < 0.04
+    cat = np.where(flip, 1 - cat, cat)
+    cat[rng.random((h, w)) < 0.03] = -1
+    cat[rng.random((h, w)) < 0.03] = 2
+    det = rng.random((h, w)) < 0.3
+    weight = np.where(det, 1.0, planecut.EDGE_FREE)
+    llr = rng.normal(0, 2, (h, w, 3))
+    llr[rng.random((h, w, 3)) < 0.05] = -np.inf
+    llr[rng.random((h, w)) < 0.03, :2] = -np.inf
+    who = np.argwhere((cat >= 0) & ~det)[::3]
+    A = cat[who[:, 0], who[:, 1]]
+    return cat, weight, det, llr, who, A, np.where(A == 0, 1, 0)
+
+
+@pytest.mark.parametrize("compiled", [None, False])
+@pytest.mark.parametrize("seed,angle", [(0, None), (1, None), (2, None), (3, None),
+                                        (4, 0.03), (5, np.pi - 0.03)])
+def test_edge_side_is_its_sum_written_out(seed, angle, compiled):
+    """edge_side's posterior (numba's and its numpy twin) against the sum over every
+    line written out, on windows of random labels near a random line (and lines near 0
+    and 180 degrees, where the directions wrap round), random evidence (some of it
+    -inf, for one plane or both; some pixels detected) and pixels near the image's
+    border; some pixels' centred windows are not straight, and the windows beside them
+    have the say."""
+    cat, weight, det, llr, who, A, B = _random_edge_frame(seed, angle)
+    got = planecut.edge_side(cat, weight, det, llr, who, A, B, compiled)
+    centred, _ = planecut._edge_window(cat, weight, det, llr, who, A, B,
+                                       planecut._edge_windows()[0], compiled)
+    assert np.isfinite(got).sum() > np.isfinite(centred).sum() > 0
+    want = np.array([_edge_brute(cat, weight, det, llr, tuple(p), a_, b_)
+                     for p, a_, b_ in zip(who, A, B, strict=True)])
+    assert np.isfinite(got).sum() >= 5
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    ok = np.isfinite(want)
+    np.testing.assert_allclose(got[ok], want[ok], atol=2e-4)
+
+
+@pytest.mark.parametrize("compiled", [None, False])
+def test_edge_side_is_the_same_on_the_frame_transposed(compiled):
+    """Nothing follows the rows rather than the columns: on random frames and their
+    transposes (the directions map onto each other), the same posteriors, the same
+    pixels with none."""
+    for seed in range(6, 16):
+        cat, weight, det, llr, who, A, B = _random_edge_frame(seed)
+        got = planecut.edge_side(cat, weight, det, llr, who, A, B, compiled)
+        tr = planecut.edge_side(cat.T.copy(), weight.T.copy(), det.T.copy(),
+                                llr.transpose(1, 0, 2).copy(), who[:, ::-1].copy(), A, B,
+                                compiled)
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(tr))
+        np.testing.assert_allclose(got[np.isfinite(got)], tr[np.isfinite(tr)], atol=1e-9)
+
+
+@pytest.mark.parametrize("compiled", [None, False])
+@pytest.mark.parametrize("angle", [0, 17, 30, 37, 52, 73, 98, 143])
+def test_edge_side_puts_a_kink_back_on_its_line(angle, compiled):
+    """A straight edge at any angle whose labels have one pixel on the wrong side, and
+    whose photons each say little (1 nat each pixel for its side; the wrong pixel's
+    own 0.8 nat for the wrong side): the line the window's photons place puts the pixel
+    back (posterior of its true side > EDGE_P); the pixels rightly labelled stay."""
+    n = 31
+    r, c = np.mgrid[0:n, 0:n] - n // 2
+    a = np.deg2rad(angle)
+    d = r * np.cos(a) - c * np.sin(a) - 0.3
+    truth = (d > 0).astype(np.int64)
+    e = np.where(truth == 0, 1.0, -1.0)                           # A (0) against B (1)
+    near = np.argwhere((np.abs(d) < 1.2) & (np.abs(r) < 6) & (np.abs(c) < 6))
+    p = near[np.argmin(np.abs(d[near[:, 0], near[:, 1]] - 0.6))]  # B's, 0.6 px inside
+    cat = truth.copy()
+    cat[p[0], p[1]] = 0
+    e[p[0], p[1]] = 0.8
+    llr = np.stack([e / 2, -e / 2], -1)
+    det = np.zeros(cat.shape, bool)
+    weight = np.full(cat.shape, planecut.EDGE_FREE)
+    got = planecut.edge_side(cat, weight, det, llr, p[None], np.array([0]), np.array([1]),
+                             compiled)
+    assert got[0] > planecut.EDGE_P, (angle, p, got)
+    # its neighbours rightly labelled stay where they are
+    who = near[(near != p).any(1)]
+    A = cat[who[:, 0], who[:, 1]]
+    post = planecut.edge_side(cat, weight, det, llr, who, A, 1 - A, compiled)
+    assert np.all(post < planecut.EDGE_P), (angle, who[post >= planecut.EDGE_P])
+
+
+def test_edge_side_leaves_corners_and_thin_frames():
+    """A window that is no straight boundary (a square's corner) gets no posterior
+    (NaN: left to the windows beside it); a frame too small for 6 of each label, none; no pixel
+    asked, an empty answer; evidence of no photons at all (0 nats everywhere) leaves
+    the pixel to chance between the sides, never a confident move."""
+    lab, _, _ = _square(41, 11.3, 0)
+    r = c = 20 - 11
+    who = np.array([[r, c], [r - 1, c - 1], [r, c - 1]])
+    A = lab[who[:, 0], who[:, 1]]
+    llr = np.zeros(lab.shape + (2,))
+    det = np.zeros(lab.shape, bool)
+    weight = np.ones(lab.shape)
+    got = planecut.edge_side(lab, weight, det, llr, who, A, 1 - A)
+    assert np.isnan(got[0])
+    for shape in [(1, 40), (40, 1), (2, 2), (3, 3)]:
+        cat = np.zeros(shape, np.int64)
+        cat[..., shape[-1] // 2:] = 1
+        who = np.argwhere(np.ones(shape, bool))
+        A = cat[who[:, 0], who[:, 1]]
+        got = planecut.edge_side(cat, np.ones(shape), np.zeros(shape, bool),
+                                 np.zeros(shape + (2,)), who, A, 1 - A)
+        assert got.shape == (who.shape[0],) and np.all(np.isnan(got))
+    got = planecut.edge_side(lab, weight, det, llr, np.zeros((0, 2), np.int64),
+                             np.zeros(0, np.int64), np.zeros(0, np.int64))
+    assert got.shape == (0,)
+    n = 31
+    rr, cc = np.mgrid[0:n, 0:n] - n // 2
+    cat = (rr * np.cos(0.5) - cc * np.sin(0.5) > 0.3).astype(np.int64)
+    who = np.argwhere(np.abs(rr * np.cos(0.5) - cc * np.sin(0.5) - 0.3) < 1.0)
+    who = who[(who.min(1) >= 6) & (who.max(1) < n - 6)]
+    A = cat[who[:, 0], who[:, 1]]
+    got = planecut.edge_side(cat, np.full(cat.shape, 0.5), np.zeros(cat.shape, bool),
+                             np.zeros((n, n, 2)), who, A, 1 - A)
+    assert np.all(np.isfinite(got)) and np.all(got < planecut.EDGE_P)

@@ -239,8 +239,9 @@ def _falling(h, w, photons, seed, e=3.0):
 @pytest.mark.skipif(numba is None, reason="numba not installed")
 @pytest.mark.parametrize("falling", [False, True])
 def test_compiled_and_numpy_agree(falling):
-    """The plane fits' window sums by numba and by numpy: the same operations in the same
-    order, so the same estimates to the bit (two surfaces, edges, sky; and on a background
+    """The plane fits' window sums and the edges' windows by numba and by numpy: the same
+    operations in the same order (the edges' posteriors to rounding, far from where a
+    pixel moves), so the same estimates to the bit (two surfaces, edges, sky; and on a background
     that falls in time, through the background's profile)."""
     sc = scene(40, 36)
     counts = histograms(sc, 2, 50 * (not falling), 5)
@@ -449,21 +450,27 @@ def test_the_sweeps_start_from_the_graph_cut(monkeypatch, angle, factor):
     assert with_cut <= factor * off()
 
 
-def test_corners_go_with_their_edges(monkeypatch):
-    """At (2, 50) an object's corner pixel goes with its two straight edges, not with
-    what surrounds it (spatial._corners, planecut.straight): seeds 1-4 on the grid's
-    scene have 9 pixels > 10 cm off, against 19 without the step (13 of those 19 at or
-    beside a corner); turned by 30 degrees, 148 against 181."""
+def _off_2_50(angle, edge_passes):
+    """Surface pixels > 10 cm off at (2, 50) summed over seeds 1-4, with the edges' step's
+    passes given."""
     from stages.ranging import planecut
 
-    def off(angle):
+    saved = planecut.EDGE_PASSES
+    try:
+        planecut.EDGE_PASSES = edge_passes
         sc = scene(angle_deg=angle)
         return sum(int((_errors(sc, spatial(histograms(sc, 2, 50, seed), BIN_S, SIGMA_S,
                                             1e-3).t_s[..., 0] * C / 2) > 0.1).sum())
                    for seed in (1, 2, 3, 4))
+    finally:
+        planecut.EDGE_PASSES = saved
 
-    grid, turned = off(0), off(30)
-    monkeypatch.setattr(planecut, "CORNER_PASSES", 0)
-    grid0, turned0 = off(0), off(30)
-    assert grid <= 0.6 * grid0
-    assert turned <= 0.9 * turned0
+
+def test_edges_go_where_their_photons_put_them():
+    """At (2, 50) an edge is placed by the photons of the whole window along it, and a
+    corner's pixel by the windows along its two edges (spatial._edges,
+    planecut.edge_side): seeds 1-4 have 94 surface pixels > 10 cm off turned by 30
+    degrees against 181 without the step, and 9 against 19 on the grid's scene (the
+    corners' step it replaced: 148 and 9)."""
+    assert _off_2_50(30, 2) <= 0.6 * _off_2_50(30, 0)
+    assert _off_2_50(0, 2) <= 0.6 * _off_2_50(0, 0)
