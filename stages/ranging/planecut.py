@@ -221,7 +221,7 @@ EDGE_MIN = 6.0       # the weight of each label a window needs
 EDGE_FREE = 0.5      # an undetected pixel's weight (a detected one's: 1)
 EDGE_MISFIT = 2.0    # the labels' misfit (weights as EDGE_FREE) of a straight window
 EDGE_P = 0.7         # the posterior of the other side from which the pixel moves
-EDGE_PASSES = 2
+EDGE_PASSES = 3       # at most (it stops when none moves)
 EDGE_SHIFT = 5       # the windows beside the pixel: centred this far along rows, columns
 EDGE_TURN = 4        # directions (20 degrees) between two windows' lines that are a corner
 

@@ -819,13 +819,13 @@ def _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, ha
     :func:`planecut.edge_side` gives B's side a posterior above ``EDGE_P``: in the 11 x 11
     window around it, where its labels are one straight boundary, every line (36
     directions, every offset) weighed by the likelihood of the window's photons; near a
-    corner or a run of wrong labels, the windows beside it. Two passes, the second on
-    the pixels the first's moves reach. Detection is untouched. (Seeds 1-8 at (2, 50),
-    pixels > 10 cm off, against the corners' step it replaced: the grid's scene 24 ->
-    19, turned by 30 degrees 276 -> 168; held out, seeds 9-15: 37 -> 28 and 250 -> 124;
-    docs/ranging.md "Edges".) Returns
-    the labels; ``tb``, ``llr``, ``slope``, ``sig_cnt`` and ``sig_out`` are written in
-    place where a plane is put in a pixel's last slot."""
+    corner or a run of wrong labels, the windows beside it. Up to three passes (until
+    none moves), each on the pixels the one before's moves reach. Detection is
+    untouched. (Seeds 1-8 at (2, 50), pixels > 10 cm off, against the corners' step it
+    replaced: the grid's scene 24 -> 19, turned by 30 degrees 276 -> 158; held out,
+    seeds 9-15: 37 -> 27 and 250 -> 118; docs/ranging.md "Edges".) Returns the labels;
+    ``tb``, ``llr``, ``slope``, ``sig_cnt`` and ``sig_out`` are written in place where a
+    plane is put in a pixel's last slot."""
     T, lp = table[0], table[4]
     weight = np.where(free, planecut.EDGE_FREE, 1.0)
     dets = det.any(-1)
