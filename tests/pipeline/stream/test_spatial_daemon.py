@@ -171,7 +171,12 @@ def test_ctrl_c_while_the_range_stage_holds_parts_then_resume(tmp_path, zoo, lon
     _, cal, geom = zoo
     cap, cycles, mc = long_capture, CYCLES, 20_000
     # (``killed``: its restart 20 s after, which a stop does not wait out)
-    topo = _topology(tmp_path, cal, geom, cap, "rate = 1e6", f"measurement_cycles = {mc}",
+    # (``hold1``: a quarter of the rate, so that the stop lands while the run goes on: at
+    # 1e6 words/s the 4.8 M words took 5 s, the status showed a frame ranged without a
+    # part after 3.1-4.2 M of them, and in a clean clone's suite the run had finished,
+    # exit 0, before the stop; at 5e5, after 2.1-3.1 M)
+    rate = "rate = 1e6" if how == "killed" else "rate = 2.5e5"
+    topo = _topology(tmp_path, cal, geom, cap, rate, f"measurement_cycles = {mc}",
                      "restart_backoff_s = 20.0" if how == "killed" else "")
     if how == "hold1":
         topo.write_text(topo.read_text().replace("spatial = true\n", "spatial = true\nhold = 1\n"))
@@ -213,8 +218,8 @@ def test_ctrl_c_while_the_range_stage_holds_parts_then_resume(tmp_path, zoo, lon
     stopped_at = first["accounting"]["words_in"]
     assert stopped_at < cycles * N
     rec = first["reconciled"]
-    print(f"{how}: held {held} at the stop, stopped in {took:.1f} s; first run: frames "
-          "without a part",
+    print(f"{how}: held {held} at the stop, after {stopped_at:,} of {cycles * N:,} words, "
+          f"stopped in {took:.1f} s; first run: frames without a part",
           first["accounting"]["spatial_incomplete_frames"], "ranged again",
           rec["spatial_reranged"], "parts recomputed", rec["recomputed"])
     if how == "hold1":
