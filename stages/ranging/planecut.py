@@ -182,10 +182,10 @@ def expand(D: np.ndarray, lam: float = CUT, cycles: int = CUT_CYCLES) -> np.ndar
 
 
 def start(tb, slope, det, sig_cnt, sig_out, P0, beta, sb, prof=None):
-    """Every pixel's plane by the cut (above): (T (h, w) its time, bins, NaN for no
-    surface or no plane; (h, w, 2) slopes; signal a pixel; sigma (s); and the planes:
-    their times (h, w, L) at every pixel, coefficients (L, 3), signal (L,) and sigma
-    (L,)), or None where the frame has no plane. A detected pixel's labels are its
+    """Every pixel's plane by the cut (above): (its index (h, w), -1 for no surface; and
+    the planes: their times (h, w, L) at every pixel, bins, coefficients (L, 3), signal
+    (L,), sigma (L,) and each pixel's Poisson log-likelihood ratio of each (h, w, L)), or
+    None where the frame has no plane. A detected pixel's labels are its
     detections' planes (those within ``3 sb`` of one cost 0, the others ``HARD``); where
     none is, its photons'."""
     h, w, nc = tb.shape
@@ -204,12 +204,8 @@ def start(tb, slope, det, sig_cnt, sig_out, P0, beta, sb, prof=None):
     D = np.where(fixed[..., None], np.where(near, 0.0, HARD), D)
     D = np.concatenate([D, np.where(fixed, HARD, 0.0)[..., None]], -1)  # no surface
     lab = expand(D)
-    on = lab < len(pl)
-    k = np.minimum(lab, len(pl) - 1)
-    t = np.where(on, np.take_along_axis(T, k[..., None], -1)[..., 0], np.nan)
-    sl = np.where(on[..., None], a[k][..., 1:], 0.0)
     sg = np.array([p[2] for p in pl])
-    return (t, sl, np.where(on, S[k], 0.0), np.where(on, sg[k], np.inf), (T, a, S, sg, llr))
+    return np.where(lab < len(pl), lab, -1), (T, a, S, sg, llr)
 
 
 # edges (:func:`edge_side`, called by stages.ranging.spatial._edges)

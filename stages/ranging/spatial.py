@@ -914,18 +914,10 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
     # a candidate on the pixel's plane, or the plane itself in the last slot
     got = planecut.start(tb, slope, det, sig_cnt, sig_out, P0, beta, sb, prof)
     if got is not None:
-        tg, slg, scg, sgg, table = got
-        use = free & np.isfinite(tg)
-        dd = np.abs(tb[..., :-1] - tg[..., None])
-        k = np.argmin(np.where(np.isfinite(dd), dd, np.inf), -1)
-        have = use & (np.take_along_axis(dd, k[..., None], -1)[..., 0] < tol)
-        put = use & ~have
-        for arr, new in ((tb, tg), (sig_cnt, scg), (sig_out, sgg)):
-            arr[..., -1] = np.where(put, new, arr[..., -1])
-        slope[..., -1, :] = np.where(put[..., None], slg, slope[..., -1, :])
-        llr[..., -1] = np.where(put, _own_llr(P0, beta, tg[..., None], scg[..., None],
-                                                half, prof)[..., 0], llr[..., -1])
-        lab = np.where(have, k, np.where(put, nc - 1, lab))
+        plane, table = got
+        r, c = np.nonzero(free & (plane >= 0))
+        _take_plane(r, c, plane[r, c], lab, tb, llr, slope, sig_cnt, sig_out, table, P0,
+                    beta, half, tol, prof)
 
     def shifted(x, i, j, v):  # x at the neighbour (r + i, c + j), v outside the image
         # (slices, not np.pad: its per-call cost was a third of a 1 x 128 line's ranging)
