@@ -181,16 +181,17 @@ def expand(D: np.ndarray, lam: float = CUT, cycles: int = CUT_CYCLES) -> np.ndar
     return lab
 
 
-def start(tb, slope, det, sig_cnt, sig_out, P0, beta, sb, prof=None):
+def start(tb, slope, det, sig_cnt, sig_out, P0, beta, sb, prof=None, seen=None):
     """Every pixel's plane by the cut (above): (its index (h, w), -1 for no surface; and
     the planes: their times (h, w, L) at every pixel, bins, coefficients (L, 3), signal
     (L,), sigma (L,) and each pixel's Poisson log-likelihood ratio of each (h, w, L)), or
     None where the frame has no plane. A detected pixel's labels are its
     detections' planes (those within ``3 sb`` of one cost 0, the others ``HARD``); where
-    none is, its photons'."""
+    none is, its photons'. ``seen`` (default ``det``): the detections the planes are
+    found from."""
     h, w, nc = tb.shape
     tol = 3.0 * sb
-    pl = planes(tb, slope, det, sig_cnt, sig_out, tol)
+    pl = planes(tb, slope, det if seen is None else seen, sig_cnt, sig_out, tol)
     if not pl:
         return None
     a = np.array([p[0] for p in pl])                                  # (L, 3)

@@ -38,6 +38,11 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    (:func:`_edges`): a pixel beside a boundary goes to the side of the straight edge
    that the photons of the 11 x 11 window around it place (every line at any angle,
    weighed by their likelihood), or, near a corner, of the windows beside it.
+   A surface only the corner windows detect (the pixel's own photons do not) does not
+   hold the pixel there: the pixel is labelled as an undetected one, and the detection
+   stands only where the label lies on its surface; elsewhere it is withdrawn and the
+   label reported. A plane fitted across two surfaces (a pane above a slanted floor)
+   passes the corner windows and misses the pixel by many pulse widths.
 4. sigma: the photons' spread about the plane over their number, through the fit's
    design (its (0, 0) element), with the background left in the window, or the fit's
    sandwich variance, the larger; times Huber's factor for a window centred on its own
@@ -627,10 +632,27 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None) -> S
     t_out, sig_out, sig_cnt, det, own, surr = (
         slot(x, v) for x, v in ((t_out, np.nan), (sig_out, np.inf), (sig_cnt, 0.0),
                                 (det, False), (own, False), (surr, False)))
+    # a surface only the corner windows detect does not hold the pixel: it is labelled
+    # as an undetected one (the frame's planes are still found from every detection),
+    # and the detection stands where the label lies on its surface, else it is
+    # withdrawn (not detected; the label reported). A plane fitted across two surfaces
+    # (a pane above the slanted floor: t0 21 bins off) passes the corner windows.
+    surr_only = surr & ~own
     rank, state = _relabel(t_out, sig_out, slot(slope, 0.0), slot(mine_r, 0.0),
-                           slot(bw_r, 0.0), sig_cnt, slot(rank, -1e9), det, P0, beta,
-                           bin_s, sb, t0_s, prof, compiled)
-    _label_sigma(state, sig_cnt, sig_out, P0, beta, bin_s, sb, prof)
+                           slot(bw_r, 0.0), sig_cnt, slot(rank, -1e9), own, P0, beta,
+                           bin_s, sb, t0_s, prof, compiled, det)
+    lab, free, tb = state[:3]
+    tl = np.take_along_axis(tb, lab[..., None], -1)[..., 0]
+    # (the labels' tolerance, 3 sigma of the pulse, as the relabelling's; a pixel its
+    # own photons hold keeps its corner windows' surfaces as further returns)
+    stand = surr_only & (~free[..., None]
+                         | (np.abs((t_out - t0_s) / bin_s - tl[..., None]) < 3.0 * sb))
+    det = own | stand
+    surr = surr & (own | stand)
+    held = free & stand.any(-1)      # a detection stands: its own fit and sigma
+    rank = np.where(held[..., None], rank - np.where(rank >= 1e10, 1e11, 0.0), rank)
+    _label_sigma((lab, free & ~held) + state[2:], sig_cnt, sig_out, P0, beta, bin_s, sb,
+                 prof)
     # detected before not; then by the corner windows that see the surface, then by the
     # pixel's own excess counts, then by the neighbourhood's signal
     key = np.where(det, 1e12, 0.0) + rank
@@ -872,13 +894,15 @@ def _commonest_other(cat, weight, who, A, k):
 
 
 def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_s, sb,
-             t0_s, prof=None, compiled=None):
+             t0_s, prof=None, compiled=None, seen=None):
     """3b. Which candidate an undetected pixel reports: the one that maximises the pixel's
     own Poisson log-likelihood ratio (its counts in the test window against its
     background, the signal per pixel the neighbourhood saw) plus ``PRIOR`` for each of
     its 8 nearest whose reported time lies on the candidate's plane (within 3 sigma):
-    a few ICM sweeps of a Potts MRF, at a constant cost a pixel. The detected pixels keep
-    their surfaces (and anchor their neighbours); detection itself is unchanged. Every
+    a few ICM sweeps of a Potts MRF, at a constant cost a pixel. The detected pixels
+    (``det``: those the pixel's own photons detect, :func:`_finish`) keep their surfaces
+    (and anchor their neighbours); ``seen``: every detection, which the cut's planes are
+    found from (default ``det``). Every
     distinct candidate takes part, also one its window does not detect: a surface that is
     a minority of the window, at an edge, is often one (2 signal and 50 background
     photons, seed 1, without what follows: 88 surface pixels > 10 cm off against 127 with
@@ -912,7 +936,9 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
     half = WIDTH_TEST * sb
     # the sweeps start from the frame's planes by a graph cut (stages/ranging/planecut.py):
     # a candidate on the pixel's plane, or the plane itself in the last slot
-    got = planecut.start(tb, slope, det, sig_cnt, sig_out, P0, beta, sb, prof)
+    # (the frame's planes from ``seen``, every detection, where given: the corner
+    # windows' detections, which do not fix their pixels' labels, still find planes)
+    got = planecut.start(tb, slope, det, sig_cnt, sig_out, P0, beta, sb, prof, seen)
     if got is not None:
         plane, table = got
         r, c = np.nonzero(free & (plane >= 0))
