@@ -643,8 +643,12 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None) -> S
                            bin_s, sb, t0_s, prof, compiled, det)
     lab, free, tb = state[:3]
     tl = np.take_along_axis(tb, lab[..., None], -1)[..., 0]
-    # (the labels' tolerance, 3 sigma of the pulse, as the relabelling's; a pixel its
-    # own photons hold keeps its corner windows' surfaces as further returns)
+    # (the labels' tolerance, 3 sigma of the pulse, as the relabelling's. A pixel its
+    # own photons hold keeps its corner windows' surfaces as further returns. Also
+    # withdrawing it where the cut, whose labels include "no surface", calls the pixel
+    # empty took the turned scene's false surfaces at seeds 1-3 from 42 to 36 of 11,520
+    # empty pixels, and 5 of 65 true detections at 2 signal photons on the LinoSPAD2
+    # background: not done)
     stand = surr_only & (~free[..., None]
                          | (np.abs((t_out - t0_s) / bin_s - tl[..., None]) < 3.0 * sb))
     det = own | stand
