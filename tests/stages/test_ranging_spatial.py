@@ -452,6 +452,27 @@ def test_a_surface_only_the_corner_windows_see_does_not_hold_the_pixel():
     assert off <= 4, off
 
 
+def test_the_corner_windows_detections_bookkeeping():
+    """How a corner windows' detection is reported once the pixel is relabelled (the
+    grid's scene at (5, 50), seed 1, two returns). A pixel its own photons detect keeps
+    its corner windows' other surface as a detected second return: 41 of the 172
+    two-surface pixels have both returns detected (5 where that surface stood only on
+    the pixel's label, its own one). A detection that stands is not repeated by the
+    label's plane on the same surface as the second return (0 pixels; 1,201 without
+    taking the label's rank back from a pixel whose detection stands). A withdrawn
+    detection is not ``surrounded`` (67 pixels surrounded but not detected where the
+    flag was left), and ``own`` and ``surrounded`` imply ``detected`` everywhere."""
+    sc = scene()
+    est = spatial(histograms(sc, 5, 50, 1), BIN_S, SIGMA_S, 1e-3, threads=2)
+    two = np.isfinite(sc.depth[..., 1])
+    both = est.detected[..., 0] & est.detected[..., 1] & two
+    assert both.sum() >= 0.15 * two.sum(), (both.sum(), two.sum())
+    same = np.abs(est.t_s[..., 0] - est.t_s[..., 1]) < 3 * SIGMA_S
+    assert not (same & est.detected[..., 0]).any(), int((same & est.detected[..., 0]).sum())
+    assert not (est.surrounded & ~est.detected).any()
+    assert not (est.own & ~est.detected).any()
+
+
 @pytest.mark.parametrize("angle, factor", [(0, 0.5), (30, 0.8)])
 def test_the_sweeps_start_from_the_graph_cut(monkeypatch, angle, factor):
     """At (2, 50) the relabelling's sweeps start from the frame's planes labelled by a
