@@ -60,6 +60,24 @@ def log_phi_interval(za, zb):
         return big + np.log1p(-np.exp(small - big))
 
 
+def log_phi_intervals(z):
+    """log(Phi(z[k + 1]) - Phi(z[k])) for every k, ``z`` rising along its first axis:
+    :func:`log_phi_interval` on consecutive edges, each edge's ``log_ndtr`` computed once
+    (not twice for each interval beside it): the same numbers to the bit.
+
+    >>> z = np.array([-1.0, 0.5, 40.0, 41.0])
+    >>> bool(np.array_equal(log_phi_intervals(z), log_phi_interval(z[:-1], z[1:])))
+    True
+    """
+    z = np.asarray(z, np.float64)
+    lo, hi = log_ndtr(z), log_ndtr(-z)
+    upper = z[:-1] > 0
+    big = np.where(upper, hi[:-1], lo[1:])
+    small = np.where(upper, hi[1:], lo[:-1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return big + np.log1p(-np.exp(small - big))
+
+
 def _log1mexp(x):
     """log(1 - exp(-x)) for x >= 0 (Maechler's switch between the two forms)."""
     x = np.asarray(x, np.float64)

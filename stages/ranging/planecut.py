@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.models.tcspc import log_phi_interval
+from stages.models.tcspc import log_phi_intervals
 from stages.ranging._numba import numba
 
 CUT = 6.0          # nats a pixel of boundary length (seeds 1-8 at (2, 50): 3 and 10 worse)
@@ -40,6 +40,16 @@ HYPOTHESES = 400   # the returns tried as a plane's seed, each round (an even su
 SUPPORT_PTS = 4000  # and the returns their support is counted on
 HARD = 30.0        # nats: a label that cannot be (a detected pixel off it, no window)
 PULSE_K = 4.0      # the likelihood's reach, +- sigmas of the pulse
+
+
+def _in_parts(n: int, parts: int, run) -> list:
+    """``run(slice)`` over ``parts`` consecutive slices of ``range(n)``, on as many
+    threads (for work that releases the GIL); their results in order."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    cut = np.linspace(0, n, parts + 1).astype(np.int64)
+    with ThreadPoolExecutor(parts) as ex:
+        return list(ex.map(run, [slice(a, b) for a, b in zip(cut[:-1], cut[1:], strict=True)]))
 
 
 def _even(idx: np.ndarray, k: int) -> np.ndarray:
@@ -86,13 +96,18 @@ def planes(tb, slope, det, sig_cnt, sig_out, tol):
     return out
 
 
-def gauss_llr(P0, beta, T, S, sb, shape=None):
+def gauss_llr(P0, beta, T, S, sb, shape=None, threads=1):
     """Each pixel's Poisson log-likelihood ratio of a surface at ``T`` (h, w, L; bins,
     NaN: none) with ``S`` (L,) signal photons against its background alone (``beta``
     (h, w) a bin, times ``shape`` (bins,) the background's profile, None: flat): the
     Gaussian pulse (sigma ``sb`` bins) integrated over each bin within +-``PULSE_K``
     sigma; ``P0`` (h, w, bins + 1) the counts' prefix sums. -inf where the pulse lies
-    mostly outside the window."""
+    mostly outside the window. ``threads`` > 1: bands of rows at once (numpy and
+    scipy's ufuncs release the GIL; the same numbers)."""
+    parts = min(max(int(threads), 1), P0.shape[0] // 8)
+    if parts > 1:
+        return np.concatenate(_in_parts(
+            P0.shape[0], parts, lambda k: gauss_llr(P0[k], beta[k], T[k], S, sb, shape)))
     h, w, n = P0.shape[0], P0.shape[1], P0.shape[2] - 1
     reach = int(np.ceil(PULSE_K * sb)) + 1
     ok = np.isfinite(T)
@@ -100,11 +115,14 @@ def gauss_llr(P0, beta, T, S, sb, shape=None):
     base = np.floor(ti).astype(np.int64)
     acc = np.zeros(T.shape)
     mass = np.zeros(T.shape)
+    # each bin's share of the pulse (every bin edge's log_ndtr once)
+    ds = np.arange(-reach, reach + 2).reshape((-1,) + (1,) * T.ndim)
+    share = np.exp(log_phi_intervals((base + ds - ti) / sb))
     for d in range(-reach, reach + 1):
         j = base + d
         inside = (j >= 0) & (j < n)
         jc = np.clip(j, 0, n - 1)
-        p = np.exp(log_phi_interval((j - ti) / sb, (j + 1 - ti) / sb))
+        p = share[d + reach]
         jf = jc.reshape(h, w, -1)
         m = (np.take_along_axis(P0, jf + 1, -1) - np.take_along_axis(P0, jf, -1)).reshape(T.shape)
         bg = beta[..., None] * (1.0 if shape is None else shape[jc])
@@ -181,14 +199,14 @@ def expand(D: np.ndarray, lam: float = CUT, cycles: int = CUT_CYCLES) -> np.ndar
     return lab
 
 
-def start(tb, slope, det, sig_cnt, sig_out, P0, beta, sb, prof=None, seen=None):
+def start(tb, slope, det, sig_cnt, sig_out, P0, beta, sb, prof=None, seen=None, threads=1):
     """Every pixel's plane by the cut (above): (its index (h, w), -1 for no surface; and
     the planes: their times (h, w, L) at every pixel, bins, coefficients (L, 3), signal
     (L,), sigma (L,) and each pixel's Poisson log-likelihood ratio of each (h, w, L)), or
     None where the frame has no plane. A detected pixel's labels are its
     detections' planes (those within ``3 sb`` of one cost 0, the others ``HARD``); where
     none is, its photons'. ``seen`` (default ``det``): the detections the planes are
-    found from."""
+    found from. ``threads``: :func:`gauss_llr`'s."""
     h, w, nc = tb.shape
     tol = 3.0 * sb
     pl = planes(tb, slope, det if seen is None else seen, sig_cnt, sig_out, tol)
@@ -198,7 +216,7 @@ def start(tb, slope, det, sig_cnt, sig_out, P0, beta, sb, prof=None, seen=None):
     rr, cc = np.mgrid[0:h, 0:w].astype(np.float64)
     T = a[:, 0] + a[:, 1] * rr[..., None] + a[:, 2] * cc[..., None]    # (h, w, L)
     S = np.array([max(p[1], 0.05) for p in pl])
-    llr = gauss_llr(P0, beta, T, S, sb, None if prof is None else prof[0])
+    llr = gauss_llr(P0, beta, T, S, sb, None if prof is None else prof[0], threads)
     D = np.minimum(np.where(np.isfinite(llr), -llr, HARD), HARD)
     near = (np.abs(T[..., :, None] - np.where(det, tb, np.nan)[..., None, :]) < tol).any(-1)
     fixed = near.any(-1)
@@ -220,6 +238,7 @@ EDGE_MISFIT = 2.0    # the labels' misfit (weights as EDGE_FREE) of a straight w
 EDGE_P = 0.7         # the posterior of the other side from which the pixel moves
 EDGE_PASSES = 3       # at most (it stops when none moves)
 EDGE_SHIFT = 5       # the windows beside the pixel: centred this far along rows, columns
+EDGE_PART = 64       # pixels a thread at least (fewer: one thread)
 EDGE_TURN = 4        # directions (20 degrees) between two windows' lines that are a corner
 
 
@@ -255,7 +274,7 @@ def _edge_windows():
     return _EDGE[1]
 
 
-def edge_side(cat, weight, det, llr, who, A, B, compiled=None):
+def edge_side(cat, weight, det, llr, who, A, B, compiled=None, threads=1):
     """Each pixel of ``who`` (n, 2) on a straight boundary between the planes ``A`` and
     ``B`` (n,): the posterior that it lies on B's side (NaN: no say). A window is one
     straight boundary where its labels ``cat`` (h, w; -1 none) weighted by ``weight``
@@ -273,13 +292,15 @@ def edge_side(cat, weight, det, llr, who, A, B, compiled=None):
     or on both sides of it along each one's line, each centre a pixel or more from it
     (a run of wrong labels between them); not one edge's windows on one side only
     (beyond the edge's end). ``compiled``: by numba (None: where it is installed;
-    False: the numpy twin, in chunks of 512 pixels)."""
+    False: the numpy twin, in chunks of 512 pixels); ``threads`` > 1: numba's pixels in
+    that many parts at once (the kernel releases the GIL; the same numbers)."""
     tables = _edge_windows()
-    post, _ = _edge_window(cat, weight, det, llr, who, A, B, tables[0], compiled)
+    post, _ = _edge_window(cat, weight, det, llr, who, A, B, tables[0], compiled, threads)
     rest = np.nonzero(np.isnan(post))[0]
     if not rest.size or not EDGE_SHIFT:
         return post
-    said = [_edge_window(cat, weight, det, llr, who[rest], A[rest], B[rest], win, compiled)
+    said = [_edge_window(cat, weight, det, llr, who[rest], A[rest], B[rest], win, compiled,
+                         threads)
             for win in tables[1:]]
     P = np.stack([x[0] for x in said], 1)                         # (m, 8)
     kd = np.stack([x[1] for x in said], 1)
@@ -312,16 +333,25 @@ def edge_side(cat, weight, det, llr, who, A, B, compiled=None):
     return post
 
 
-def _edge_window(cat, weight, det, llr, who, A, B, win, compiled=None):
+def _edge_window(cat, weight, det, llr, who, A, B, win, compiled=None, threads=1):
     """:func:`edge_side` in one window: the posterior, NaN where it is not straight (by
-    numba where it is installed, ``compiled`` None or True; the numpy twin else)."""
+    numba where it is installed, ``compiled`` None or True, its pixels in ``threads``
+    parts at once; the numpy twin else)."""
     off, order, lg, p_below = win[:4]
     llr = np.asarray(llr, np.float64)
     if numba is not None and (compiled is None or bool(compiled)):
-        return _edge_window_numba(cat, weight.astype(np.float64), det, llr,
-                                  who.astype(np.int64), A.astype(np.int64),
-                                  B.astype(np.int64), off, order, lg, p_below,
-                                  EDGE_MIN, EDGE_MISFIT, EDGE_CAP, EDGE_DET)
+        weight, who = weight.astype(np.float64), who.astype(np.int64)
+        A, B = A.astype(np.int64), B.astype(np.int64)
+
+        def run(k):
+            return _edge_window_numba(cat, weight, det, llr, who[k], A[k], B[k], off, order,
+                                      lg, p_below, EDGE_MIN, EDGE_MISFIT, EDGE_CAP, EDGE_DET)
+
+        parts = min(max(int(threads), 1), who.shape[0] // EDGE_PART)
+        if parts <= 1:
+            return run(slice(None))
+        got = _in_parts(who.shape[0], parts, run)
+        return np.concatenate([g[0] for g in got]), np.concatenate([g[1] for g in got])
     # (the numpy twin in chunks: each pixel's (directions, window) arrays)
     got = [_edge_window_numpy(cat, weight, det, llr, who[k:k + 512], A[k:k + 512],
                               B[k:k + 512], off, order, lg, p_below)

@@ -240,7 +240,7 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
     if bands == 1:
         return _finish(_spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s,
                                 compiled, cal_var_s2, prof),
-                       max_returns, bin_s, sigma_s / bin_s, t0_s, prof, compiled)
+                       max_returns, bin_s, sigma_s / bin_s, t0_s, prof, compiled, threads)
     from concurrent.futures import ThreadPoolExecutor
 
     edges = np.linspace(0, h, bands + 1).astype(int)
@@ -256,7 +256,7 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
     fields = tuple(np.concatenate([e[i][a - lo:b - lo]
                                    for e, (lo, a, b, _) in zip(got, parts, strict=True)])
                    for i in range(len(got[0])))
-    return _finish(fields, max_returns, bin_s, sigma_s / bin_s, t0_s, prof, compiled)
+    return _finish(fields, max_returns, bin_s, sigma_s / bin_s, t0_s, prof, compiled, threads)
 
 
 def _check(counts, bin_s, sigma_s, p_fa, window, max_returns) -> None:
@@ -622,7 +622,8 @@ if numba is not None:
         return n0, s1, s2, raw, bsum
 
 
-def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None) -> SpatialEstimate:
+def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
+            threads=1) -> SpatialEstimate:
     """3b and the order of the returns, on the whole image (the relabelling's sweeps
     reach further than a band's halo)."""
     t_out, sig_out, sig_cnt, det, own, surr, slope, mine_r, bw_r, rank, beta, P0 = fields
@@ -641,7 +642,7 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None) -> S
     surr_only = surr & ~own
     rank, state = _relabel(t_out, sig_out, slot(slope, 0.0), slot(mine_r, 0.0),
                            slot(bw_r, 0.0), sig_cnt, slot(rank, -1e9), own, P0, beta,
-                           bin_s, sb, t0_s, prof, compiled, det)
+                           bin_s, sb, t0_s, prof, compiled, det, threads)
     lab, free, tb = state[:3]
     tl = np.take_along_axis(tb, lab[..., None], -1)[..., 0]
     # (the labels' tolerance, 3 sigma of the pulse, as the relabelling's. A pixel its
@@ -844,7 +845,7 @@ def _plane_of(lab, tb, T, tol):
 
 
 def _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, half, tol,
-           prof=None, compiled=None):
+           prof=None, compiled=None, threads=1):
     """3b's last step, edges. The sweeps' priors count the pixels along rows, columns and
     diagonals, and every monotone staircase between two points has the same length on
     the pixel grid: beside an edge at 30 degrees a run of pixels one pixel over costs
@@ -874,7 +875,7 @@ def _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, ha
         A = cat[who[:, 0], who[:, 1]]
         B = _commonest_other(cat, weight, who, A, 1)
         who, A, B = who[B >= 0], A[B >= 0], B[B >= 0]   # (beside no other plane: none)
-        post = planecut.edge_side(cat, weight, dets, lp, who, A, B, compiled)
+        post = planecut.edge_side(cat, weight, dets, lp, who, A, B, compiled, threads)
         move = post > planecut.EDGE_P
         r, c, pl = who[move, 0], who[move, 1], B[move]
         if not r.size:
@@ -907,7 +908,7 @@ def _commonest_other(cat, weight, who, A, k):
 
 
 def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_s, sb,
-             t0_s, prof=None, compiled=None, seen=None):
+             t0_s, prof=None, compiled=None, seen=None, threads=1):
     """3b. Which candidate an undetected pixel reports: the one that maximises the pixel's
     own Poisson log-likelihood ratio (its counts in the test window against its
     background, the signal per pixel the neighbourhood saw) plus ``PRIOR`` for each of
@@ -951,7 +952,8 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
     # a candidate on the pixel's plane, or the plane itself in the last slot
     # (the frame's planes from ``seen``, every detection, where given: the corner
     # windows' detections, which do not fix their pixels' labels, still find planes)
-    got = planecut.start(tb, slope, det, sig_cnt, sig_out, P0, beta, sb, prof, seen)
+    got = planecut.start(tb, slope, det, sig_cnt, sig_out, P0, beta, sb, prof, seen,
+                         threads)
     if got is not None:
         plane, table = got
         r, c = np.nonzero(free & (plane >= 0))
@@ -1019,7 +1021,7 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
                                       agreement, prof)
     if got is not None:
         lab = _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, half,
-                     tol, prof, compiled)
+                     tol, prof, compiled, threads)
     t_out[..., -1] = tb[..., -1] * bin_s + t0_s
     chosen = np.arange(nc) == lab[..., None]
     return (np.where(free[..., None] & chosen, 1e11, 0.0) + rank,

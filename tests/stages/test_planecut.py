@@ -361,6 +361,30 @@ def test_edge_side_is_its_sum_written_out(seed, angle, compiled):
     np.testing.assert_allclose(got[ok], want[ok], atol=2e-4)
 
 
+def test_threads_give_the_same_numbers():
+    """edge_side's pixels and gauss_llr's rows in parts on two threads give what one
+    thread gives, to the bit (a part's order or seam wrong would move a pixel's
+    posterior to another's)."""
+    for seed in (0, 1):
+        cat, weight, det, llr, who, A, B = _random_edge_frame(seed)
+        who, A, B = (np.concatenate([x] * 20) for x in (who, A, B))  # parts of >= 64
+        rng = np.random.default_rng(seed)
+        order = rng.permutation(who.shape[0])
+        who, A, B = who[order], A[order], B[order]
+        one = planecut.edge_side(cat, weight, det, llr, who, A, B, None, 1)
+        two = planecut.edge_side(cat, weight, det, llr, who, A, B, None, 2)
+        assert np.isfinite(one).sum() > 100
+        np.testing.assert_array_equal(one, two)
+    h, w, n, sb = 40, 6, 200, 2.3
+    counts = rng.poisson(0.3, (h, w, n)).astype(float)
+    P0 = np.concatenate([np.zeros((h, w, 1)), np.cumsum(counts, -1)], -1)
+    beta = rng.uniform(0.2, 0.6, (h, w))
+    T = rng.uniform(-10, n + 10, (h, w, 3))
+    S = np.array([1.0, 2.0, 4.0])
+    np.testing.assert_array_equal(planecut.gauss_llr(P0, beta, T, S, sb, None, 1),
+                                  planecut.gauss_llr(P0, beta, T, S, sb, None, 3))
+
+
 @pytest.mark.parametrize("compiled", [None, False])
 def test_edge_side_is_the_same_on_the_frame_transposed(compiled):
     """Nothing follows the rows rather than the columns: on random frames and their

@@ -1,5 +1,7 @@
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy import stats
 
 from stages.models.tcspc import (
@@ -7,6 +9,8 @@ from stages.models.tcspc import (
     crlb_tof,
     detected_power_shape,
     first_photon_histogram,
+    log_phi_interval,
+    log_phi_intervals,
     niclass_histogram,
     peak_shift,
 )
@@ -198,3 +202,17 @@ def test_centroid_sigma_eq_2_11_limits():
     assert s == pytest.approx(SIGMA / np.sqrt(1e4 * 1e-6 * 1e6), rel=1e-6)
     worse = centroid_sigma(1e4, 1e6, 0.1, 1e-6, BIN, SIGMA, 50)
     assert worse > s
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(-60.0, 60.0, allow_nan=False), min_size=2, max_size=30, unique=True))
+def test_log_phi_intervals_are_log_phi_interval_on_consecutive_edges(z):
+    """Every edge's log_ndtr once gives the same numbers, to the bit, as each interval
+    alone, in both tails (where the log is all that survives) and across the centre."""
+    z = np.sort(np.array(z))
+    got = log_phi_intervals(z)
+    want = log_phi_interval(z[:-1], z[1:])
+    np.testing.assert_array_equal(got, want)
+    zz = np.stack([z, z + 0.5], 1)          # edges along the first axis, more axes after
+    np.testing.assert_array_equal(log_phi_intervals(zz)[:, 1],
+                                  log_phi_interval(zz[:-1, 1], zz[1:, 1]))
