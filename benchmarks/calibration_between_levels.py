@@ -6,7 +6,8 @@ does it (``calibration_sigma.calibrate``: four density tests at 0.02-0.3), then 
 of uniform light between two levels (5e4 cycles) is given its time axis
 (``stages.calibration_set.time_axis``); the axis read at the chip's true x_T (where tau =
 T) is off by ``err``, against what ``uncertainty.table_sigma_s`` with
-``Calibration.scale_refs`` says (``said``): ``z = err / said``, as
+``Calibration.scale_refs`` says (``said``: the table's widths and the density tests' own
+x_T, ``LsbFit.sigma_ps``): ``z = err / said``, as
 ``tests/pipeline/offline/test_calibration_sigma.py`` checks on two chips.
 
 Per chip, TDC count and light: z RMS, the share within 2 sigma, the median sigma said, the

@@ -144,9 +144,9 @@ class Calibration:
                               self.scale_splines(window_s))
         if refs is None or source is None:
             return refs
-        codes, weights = refs
+        codes, weights, codes_var = refs
         situ = np.asarray(source, dtype=object) == "reset peak"
-        return codes, np.where(situ[:, None], np.nan, weights)
+        return codes, np.where(situ[:, None], np.nan, weights), codes_var
 
     def scale_slope(self, window_s: float, light: float) -> np.ndarray:
         """(n_tdc,) d ln(scale) / dn at a light (eq. 5.1's n): how far the axis's scale
@@ -183,7 +183,8 @@ class Calibration:
         if fit is not None:
             fit = cal.LsbFit(fit.coef[sl], fit.x_mean, fit.x_scale, fit.n_range,
                              np.asarray(fit.residual_ps)[sl] if np.ndim(fit.residual_ps) == 2
-                             else fit.residual_ps, fit.levels)
+                             else fit.residual_ps, fit.levels,
+                             None if fit.sigma_ps is None else np.asarray(fit.sigma_ps)[sl])
         return dataclasses.replace(
             self, density=cal.density_rows(self.density, sl),
             second=cal.SecondStage(*(np.asarray(getattr(self.second, f))[sl]

@@ -184,10 +184,14 @@ def load_calibration(caldir: str | os.PathLike) -> Calibration:
     if px is not None:
         resid = np.asarray(meta.get("lsb_residual_ps", np.empty((n, 0))), np.float64)
         levels = px.get("levels")  # absent in calibrations before the spline: the cubic
+        sig = meta.get("lsb_sigma_ps")  # absent before the points' own errors
+        sig = None if sig is None else np.array(
+            [[np.nan if v is None else v for v in row] for row in sig], np.float64)
         fit = cal.LsbFit(np.stack(col("lsb_poly")), px["mean"], px["scale"],
                          tuple(px["n_range"]), resid,
                          None if levels is None or len(levels) != resid.shape[-1]
-                         else np.asarray(levels, np.float64))
+                         else np.asarray(levels, np.float64),
+                         None if sig is None or sig.shape != resid.shape else sig)
     delay = np.asarray(col("delay_ps"), np.float64) * 1e-12
     dm = meta.get("delay", {})
     var = None
@@ -234,7 +238,8 @@ def save_calibration(calibration: Calibration, out: str | os.PathLike,
         recorded = [{"path": str(p), "sha256": sha256(Path(p))} for p in sources]
     meta = {
         **{k: v for k, v in c.meta.items() if k not in ("lsb_poly_x", "lsb_residual_ps",
-                                                         "delay", "calibration_id")},
+                                                         "lsb_sigma_ps", "delay",
+                                                         "calibration_id")},
         "schema_version": CALIBRATION_TDC.version, "software": software_version(),
         "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "sources": recorded,
@@ -249,7 +254,10 @@ def save_calibration(calibration: Calibration, out: str | os.PathLike,
                            "n_range": list(fit.n_range),
                            **({"levels": np.asarray(fit.levels).tolist()}
                               if fit.levels is not None else {})},
-            "lsb_residual_ps": np.asarray(fit.residual_ps).tolist()} if fit else {}),
+            "lsb_residual_ps": np.asarray(fit.residual_ps).tolist(),
+            **({"lsb_sigma_ps": [[None if not np.isfinite(v) else float(v) for v in row]
+                                 for row in np.asarray(fit.sigma_ps, np.float64)]}
+               if fit.sigma_ps is not None else {})} if fit else {}),
         **({"delay": c.meta["delay"]} if "delay" in c.meta else {}),
     }
     out = Path(out)

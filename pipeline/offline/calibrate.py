@@ -224,6 +224,16 @@ def lsb_from_states(tests: list, window_s: float, inl_rms_lsb: float = 0.5,
                   for r in results])
     lsbs = np.column_stack([r.lsb_s * 1e12 for r in results])
     fit = cal.fit_lsb(n, lsbs)
+    # each point's own error: its x_T's (the reset peak fit) and its counted light's
+    # (binomial over the TDC-cycles that count it, as `n` does)
+    used = [np.where(r.ok, 1.0, 0.0) if r.ok.any() else np.ones(r.n_tdc) for r in results]
+    tdc_cycles = np.array([float(np.sum(u * np.max(st.cycles))) for u, (st, _) in
+                           zip(used, tests, strict=True)])
+    fit = dataclasses.replace(fit, sigma_ps=cal.point_sigma_ps(
+        fit, lsbs, np.column_stack([r.x_t for r in results]),
+        np.column_stack([np.full(r.n_tdc, np.nan) if r.x_t_var is None else r.x_t_var
+                         for r in results]),
+        n * (1 - n) / np.maximum(tdc_cycles, 1.0)))
     # a TDC flagged in any test has no LSB against light: flagged in the result kept
     why = [next((f"{nm}: {r.reasons[t]}" for nm, r in zip(names, results, strict=True)
                  if not r.ok[t]), "") for t in range(lsbs.shape[0])]

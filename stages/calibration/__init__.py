@@ -58,6 +58,7 @@ from stages.calibration.lsb_light import (  # noqa: F401
     RowSplines,
     _spline_rows,
     fit_lsb,
+    point_sigma_ps,
 )
 from stages.calibration.plan import (  # noqa: F401
     DEFAULT_LEVELS,

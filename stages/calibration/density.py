@@ -39,6 +39,9 @@ class DensityResult:
     inl_error_lsb: np.ndarray  #: expected statistical error of the mid-range INL
     #: per TDC, why it is flagged ("" where ok or where no reason was recorded)
     reasons: tuple = ()
+    #: variance (code^2) of ``x_t``: its reset peak fit's own (:func:`x_t_variance`);
+    #: None where not known (a table read back, a result built by hand)
+    x_t_var: np.ndarray | None = None
 
     def __post_init__(self):
         n = int(np.asarray(self.lsb_s).size)
@@ -62,7 +65,8 @@ class DensityResult:
                                                         strict=True))
         nan = {f: np.where(bad if np.ndim(getattr(self, f)) == 1 else bad[:, None],
                            np.nan, getattr(self, f))
-               for f in ("lsb_s", "x_t", "width_lsb", "dnl_lsb", "inl_lsb", "inl_error_lsb")}
+               for f in ("lsb_s", "x_t", "width_lsb", "dnl_lsb", "inl_lsb", "inl_error_lsb",
+                         "x_t_var") if getattr(self, f) is not None}
         import dataclasses
 
         return dataclasses.replace(self, ok=np.asarray(self.ok, bool) & ~bad,
@@ -125,7 +129,7 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
     hits = np.asarray(hits, np.float64)
     cycles = np.asarray(cycles, np.float64)
     n_tdc = hits.shape[0]
-    out = {k: np.full(n_tdc, np.nan) for k in ("lsb", "x_t", "err")}
+    out = {k: np.full(n_tdc, np.nan) for k in ("lsb", "x_t", "err", "x_var")}
     widths = np.full((n_tdc, N_CODES), np.nan)
     inl = np.full((n_tdc, N_CODES), np.nan)
     total = hits.sum(axis=1)
@@ -141,10 +145,10 @@ def density_test(hits: np.ndarray, cycles: np.ndarray, window_s: float,
             ok[t] = False
             reasons[t] = res or "no reset peak, or under 32 codes below it"
             continue
-        out["lsb"][t], out["x_t"][t], widths[t], inl[t], out["err"][t] = res
+        out["lsb"][t], out["x_t"][t], widths[t], inl[t], out["err"][t], out["x_var"][t] = res
     dnl = widths - 1.0
     return DensityResult(out["lsb"], out["x_t"], widths, dnl, inl, total, total / cycles, ok,
-                         out["err"], tuple(reasons.tolist()))
+                         out["err"], tuple(reasons.tolist()), out["x_var"])
 
 
 #: Codes the reset peak (x_T) may sit from where a density test's light ends.
@@ -291,6 +295,8 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill
     if not 0 <= k < w.size:  # the fitted window's end beyond the codes: no x_T here (the
         return None          # range stage's LSB tracking on the test pattern raised)
     x_t = k + (tau_t - bound[k]) / w[k]
+    x_var = x_t_variance(h, at_risk, w, top, scale, x_t,
+                         _expected_var(h, at_risk, np.arange(N_CODES) <= hi) / scale ** 2)
     lsb = window_s / x_t
     # rescale to the window's LSB: B_k (s) = bound * T / tau_t
     b_lsb = bound * x_t / tau_t
@@ -306,7 +312,46 @@ def _one_tdc(h: np.ndarray, n_cycles: float, window_s: float, exclude=None, fill
     width[beyond] = np.nan
     inl[beyond] = np.nan
     err = x_t * INL_RMS_FACTOR / np.sqrt(max(h[interior].sum(), 1.0))
-    return lsb, x_t, width, inl, err
+    return lsb, x_t, width, inl, err, x_var
+
+
+#: Codes below the reset peak's highest count (and :data:`RESET_HALF` above it) whose
+#: widths :func:`x_t_variance` carries into x_T: the fit's codes and two more.
+X_T_CODES = (-RESET_HALF - 2, RESET_HALF)
+
+
+def x_t_variance(h, at_risk, w, top, scale, x_t, own_var, eps: float = 0.02) -> float:
+    """Variance (code^2) of one TDC's x_T (its reset peak fitted over its widths ``w``,
+    interior-LSB units, by :func:`fit_reset_peak`): the fit's own, the inverse of its
+    Fisher information (the peak's counts), and what the widths of the codes under and
+    around the peak put there, ``sum_j g_j^2 v_j`` with ``g_j = dx_T / dw_j`` (the fit
+    repeated with ``w_j + eps``) and ``v_j`` the test's own counting where it measured the
+    code (``own_var``, codes clear of the peak by :data:`OWN_CLEAR_LSB`), else the random
+    DNL about the phase pattern those codes took (:func:`.uncertainty.pattern_var`).
+    NaN where the fit fails."""
+    from stages.calibration.uncertainty import pattern_var
+
+    lo, hi = X_T_CODES
+    codes = np.arange(max(top + lo, 0), min(top + hi, w.size - 1) + 1)
+    bound = np.concatenate([[0.0], np.cumsum(w)])
+    rows = np.vstack([bound[None]] + [bound + eps * (np.arange(bound.size) > j)
+                                      for j in codes])
+    n = rows.shape[0]
+    P, _, _, pv = fit_reset_peak(np.broadcast_to(h, (n, h.size)),
+                                 np.broadcast_to(at_risk, (n, h.size)), rows,
+                                 np.full(n, top), np.full(n, scale), p_var=True)
+    k = np.clip((rows <= P[:, None]).sum(axis=1) - 1, 0, w.size - 1)
+    r = np.arange(n)
+    with np.errstate(all="ignore"):
+        x = k + (P - rows[r, k]) / (rows[r, k + 1] - rows[r, k])
+    if not np.all(np.isfinite(x)):
+        return float("nan")
+    g = (x[1:] - x[0]) / eps
+    measured = np.arange(w.size) < np.floor(x_t - OWN_CLEAR_LSB)
+    v = np.where(measured & np.isfinite(own_var), own_var, np.nan)
+    v = np.where(np.isfinite(v), v, pattern_var(w[None], v[None])[0])
+    fisher = pv[0] / max(float(w[int(np.clip(np.floor(x_t), 0, w.size - 1))]), 1e-3) ** 2
+    return float(fisher + np.sum(g * g * v[codes]))
 
 
 #: Codes whose upper boundary lies this many LSB or more below tau = T are measured by the

@@ -33,7 +33,7 @@ def at_risk_by_code(hits, cycles, artifacts=None) -> np.ndarray:
 # ----------------------------------------------------------------- the reset peak (tau = T)
 
 def fit_reset_peak(h, at_risk, bounds, top, u, sigma0: float = 0.5, iterations: int = 15,
-                   loglik: bool = False):
+                   loglik: bool = False, p_var: bool = False):
     """Where tau = T falls, in the units of ``bounds``: a binned Poisson fit of the reset
     peak over the codes' actual boundaries, for every row at once.
 
@@ -53,7 +53,9 @@ def fit_reset_peak(h, at_risk, bounds, top, u, sigma0: float = 0.5, iterations: 
 
     Returns ``(P, s, A)``, each (n,); P is NaN where the peak holds no excess. With
     ``loglik``, also the Poisson log-likelihood of the fitted codes (up to a constant):
-    two sets of ``bounds`` for the same counts are compared by it.
+    two sets of ``bounds`` for the same counts are compared by it. With ``p_var``, last,
+    P's variance from the counts (the inverse of the Fisher information at the fit, its
+    (P, P) element: s and A fitted too), in the units of ``bounds`` squared.
     """
     from scipy.special import ndtr  # (where used: reading a calibration needs no scipy)
 
@@ -91,13 +93,16 @@ def fit_reset_peak(h, at_risk, bounds, top, u, sigma0: float = 0.5, iterations: 
         un = rk * (1 - e)
         return sc, za, zb, g, pa, pb, ya, yb, e, np.maximum(A[:, None] * g + un, 1e-12)
 
-    for _ in range(iterations):
+    def fisher(P, s, A):  # the model's Jacobian in (P, s, A), its mean, the information
         sc, za, zb, g, pa, pb, ya, yb, e, mu = model(P, s, A)
         jac = np.stack([A[:, None] * -(pb - pa) / sc + rk * e * u * (ndtr(ya) - ndtr(yb)),
                         A[:, None] * -(zb * pb - za * pa) / sc + rk * e * u * (pa - pb),
                         g], axis=-1)
+        return jac, mu, np.einsum("nk,nki,nkj->nij", 1 / mu, jac, jac)
+
+    for _ in range(iterations):
+        jac, mu, info = fisher(P, s, A)
         score = np.einsum("nk,nki->ni", hk / mu - 1, jac)
-        info = np.einsum("nk,nki,nkj->nij", 1 / mu, jac, jac)
         info += np.eye(3)[None] * 1e-12 * np.trace(info, axis1=1, axis2=2)[:, None, None]
         try:
             step = np.linalg.solve(info, score[..., None])[..., 0]
@@ -108,7 +113,14 @@ def fit_reset_peak(h, at_risk, bounds, top, u, sigma0: float = 0.5, iterations: 
         s = np.clip(s + np.clip(step[:, 1], -0.5 * s, 0.5 * s), 0.05 * width, 3 * width)
         A = np.maximum(A + step[:, 2], 1.0)
     P = np.where(tot > 0, P, np.nan)
+    out = (P, s, A)
     if loglik:
         mu = model(np.nan_to_num(P), s, A)[-1]
-        return P, s, A, (hk * np.log(mu) - mu).sum(1)
-    return P, s, A
+        out += ((hk * np.log(mu) - mu).sum(1),)
+    if p_var:
+        info = fisher(np.nan_to_num(P), s, A)[2]
+        with np.errstate(all="ignore"):
+            ok = np.isfinite(info).all(axis=(1, 2)) & (np.linalg.det(info) > 0)
+            cov = np.linalg.inv(np.where(ok[:, None, None], info, np.eye(3)[None]))
+        out += (np.where(ok & np.isfinite(P), cov[:, 0, 0], np.nan),)
+    return out

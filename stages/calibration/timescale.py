@@ -38,7 +38,8 @@ def density_rows(density: DensityResult, rows) -> DensityResult:
 
     idx = np.arange(density.n_tdc)[rows]
     return DensityResult(**{f.name: getattr(density, f.name)[rows]
-                            for f in dataclasses.fields(DensityResult) if f.name != "reasons"},
+                            for f in dataclasses.fields(DensityResult)
+                            if f.name != "reasons" and getattr(density, f.name) is not None},
                          reasons=tuple(density.reasons[i] for i in np.atleast_1d(idx)))
 
 
@@ -238,20 +239,27 @@ def scale_refs(density: DensityResult, fit: LsbFit | None, window_s: float, ligh
     points, ``s`` the scale read; they sum to ~1). The scale's relative error is then
     ``-sum_i weights_i dB(x_T,i) / B(x_T,i)``: at a light between two tests the table's
     error at *their* x_T, not at the light's own (the codes between are measured by the
-    dimmer tests only). None where the scale is not interpolated at ``light`` (the
-    polynomial's or the capture's x_T is then the one reference)."""
+    dimmer tests only). A third array, (n_tdc, n_levels), is the variance (code^2) of
+    those x_T themselves (each test's point, ``LsbFit.sigma_ps``: its reset peak fit and
+    its counted light; 0 where the fit does not say). None where the scale is not
+    interpolated at ``light`` (the polynomial's or the capture's x_T is then the one
+    reference)."""
     if not _interpolates(fit, light):
         return None
     splines = scale_splines(density, fit, window_s) if splines is None else splines
     levels = np.asarray(fit.levels, np.float64)
     order = np.argsort(levels)
-    codes = window_s / (fit.points_ps()[:, order] * 1e-12)
+    points = fit.points_ps()[:, order]
+    codes = window_s / (points * 1e-12)
     _, pts = scale_points(density, fit, window_s)
     w = splines.in_sqrt.weights(float(light))
     s = splines.in_sqrt(float(light))
     with np.errstate(divide="ignore", invalid="ignore"):
         weights = np.nan_to_num(w * pts, nan=0.0) / s[:, None]
-    return codes, np.where(np.isfinite(s)[:, None], weights, np.nan)
+        codes_var = (np.zeros_like(codes) if fit.sigma_ps is None else
+                     np.nan_to_num((codes * np.asarray(fit.sigma_ps, np.float64)[:, order]
+                                    / points) ** 2))
+    return codes, np.where(np.isfinite(s)[:, None], weights, np.nan), codes_var
 
 
 #: When the spread of the scale (:func:`scale_spread`, as ps at a return's tau) flags a

@@ -23,6 +23,13 @@ Codes no test measured (the table continued past its last measured code with the
 pattern, :func:`.timescale.code_bounds`, and under the dimmest test's reset peak,
 :func:`.timescale.continue_table`) have the variance of the random DNL about the pattern
 and of the pattern's own error (:func:`pattern_var`): what the pattern cannot know.
+
+The interpolated scale's points have errors of their own besides the table's: each test's
+x_T, its reset peak fitted over its own widths, is off by the fit's counts and by the
+widths under the peak (:func:`.density.x_t_variance`), and its light is its counted
+STARTs while the LSB it measured is the expected light's (``LsbFit.sigma_ps``,
+:func:`.lsb_light.point_sigma_ps`). They enter through :func:`point_coefficients`
+(``scale_refs``' third array), independent of the widths' counting.
 """
 
 from __future__ import annotations
@@ -151,7 +158,7 @@ def time_coefficients(x, x_ref, scale, refs=None) -> np.ndarray:
     x, x_ref, scale = (np.where(good, a, 1.0) for a in (x, x_ref, scale))
     ref = (x / x_ref)[:, None] * _below(x_ref)
     if refs is not None:
-        codes, weights = (np.asarray(a, np.float64) for a in refs)
+        codes, weights = (np.asarray(a, np.float64) for a in refs[:2])
         use = good & np.all(np.isfinite(weights), axis=1) & np.all(
             np.isfinite(codes) | (weights == 0), axis=1)
         interp = np.zeros_like(ref)
@@ -164,16 +171,43 @@ def time_coefficients(x, x_ref, scale, refs=None) -> np.ndarray:
     return np.where(good[:, None], a, 0.0)
 
 
-def _sum_var(a, width_var, good) -> np.ndarray:
+def _sum_var(a, width_var, good, points=0.0) -> np.ndarray:
     v = np.nan_to_num(np.asarray(width_var, np.float64), nan=0.0)
-    return np.where(good, np.sqrt(np.sum(a * a * v, axis=1)), np.nan)
+    return np.where(good, np.sqrt(np.sum(a * a * v, axis=1) + points), np.nan)
+
+
+def point_coefficients(x, scale, refs) -> np.ndarray | None:
+    """(n, n_levels) seconds of tau at code ``x`` per code of error in each density test's
+    x_T, where the scale is their points' spline (``refs`` from
+    :func:`.timescale.scale_refs`): ``tau = s B(x)`` with ``s = sum_i w_i T / B(x_T,i)``,
+    so ``d tau / d x_T,i = -tau weights_i B'(x_T,i) / B(x_T,i)``, about ``-scale x
+    weights_i / x_T,i`` (about one unit a code); 0 where not interpolated. None without
+    ``refs`` or without their x_T's variances."""
+    if refs is None or len(refs) < 3:
+        return None
+    codes, weights = (np.asarray(a, np.float64) for a in refs[:2])
+    x, scale = np.asarray(x, np.float64), np.asarray(scale, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        b = -(scale * x)[:, None] * weights / codes
+    return np.where(np.isfinite(b), b, 0.0)
+
+
+def _point_var(b, refs):
+    """(n,) ``sum_i b_i^2 var(x_T,i)`` (0 where ``b`` is None)."""
+    if b is None:
+        return 0.0
+    return np.sum(b * b * np.nan_to_num(np.asarray(refs[2], np.float64), nan=0.0), axis=1)
 
 
 def table_sigma_s(width_var, x, x_ref, scale, refs=None) -> np.ndarray:
     """(n,) standard error (s) of tau at code ``x`` from the table's widths (``refs``: as
-    :func:`time_coefficients`)."""
+    :func:`time_coefficients`) and, where the scale is the density tests' points
+    interpolated, from their own x_T (:func:`point_coefficients`; independent of the
+    widths' counting: each reset peak's own counts, the widths under it, the test's
+    counted light)."""
     good = np.isfinite(np.asarray(x, np.float64)) & np.isfinite(np.asarray(scale, np.float64))
-    return _sum_var(time_coefficients(x, x_ref, scale, refs), width_var, good)
+    return _sum_var(time_coefficients(x, x_ref, scale, refs), width_var, good,
+                    _point_var(point_coefficients(x, scale, refs), refs))
 
 
 def range_sigma_s(width_var, x, x_ref, scale, x0, x_ref0, scale0, refs=None,
@@ -184,7 +218,13 @@ def range_sigma_s(width_var, x, x_ref, scale, x0, x_ref0, scale0, refs=None,
     zero capture's (``x_ref0``, ``scale0``, ``refs0``); the codes both span cancel."""
     a = (time_coefficients(x, x_ref, scale, refs) - time_coefficients(x0, x_ref0, scale0, refs0))
     good = np.isfinite(np.asarray(x, np.float64)) & np.isfinite(np.asarray(x0, np.float64))
-    return _sum_var(a, width_var, good)
+    # the tests' x_T are the same for both times: their coefficients are taken together
+    b, b0 = point_coefficients(x, scale, refs), point_coefficients(x0, scale0, refs0)
+    points = 0.0
+    if b is not None or b0 is not None:
+        diff = (0.0 if b is None else b) - (0.0 if b0 is None else b0)
+        points = _point_var(np.asarray(diff), refs if b is not None else refs0)
+    return _sum_var(a, width_var, good, points)
 
 
 def scale_rel_sigma(spread) -> np.ndarray:
