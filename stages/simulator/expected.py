@@ -66,10 +66,47 @@ def expected_hits(chip: Chip, light: float, cycles: float, window_s: float = 80e
     jit_r = chip.reset_jitter_s(n_light)
     out = np.empty((n, N_CODES))
     tau_reset = window_s + chip.reset_offset_ps * 1e-12
+    blur = _Blur(N_CODES - 1, t)                             # reused by every TDC
     for i in range(n):  # once per TDC; the inner work is vectorised
         b = bounds[i, 1:N_CODES]                            # the inner boundaries
-        cdf = (ndtr((b[:, None] - t[None, :]) / jit[i]) @ dens[i]
+        cdf = (blur(b, jit[i]) @ dens[i]
                + reset_mass * ndtr((b - tau_reset) / jit_r[i]))
         total = dens[i].sum() + reset_mass
         out[i] = np.diff(np.concatenate([[0.0], cdf, [total]]))
     return np.clip(out, 0.0, None) * float(cycles)
+
+
+#: Where ndtr is 1.0 and 0.0 to the bit (it is from 8.3 and below -37.7): the jitter's
+#: Gaussian is evaluated between these only.
+_ONE_ABOVE, _ZERO_BELOW = 9.5, -40.5
+
+
+class _Blur:
+    """``ndtr((b[:, None] - t[None, :]) / jit)`` (the share of a START at ``t`` that the
+    jitter puts below each boundary ``b``) for one TDC after another on the same times
+    ``t`` (increasing), in one (511, len(t)) array: ndtr is evaluated only where it is
+    neither 1.0 nor 0.0 in float64, a band of ~50 jitters (~1,000 of the ~20,000 times)
+    a boundary, the rest filled with 1.0 below it and 0.0 above; from one TDC to the next
+    only the columns between the two TDCs' bands are written again. The same array to the
+    bit, so the counts that follow (and every Poisson draw of them) are the same; the
+    full evaluation (511 x ~20,000 ndtr a TDC) took ~0.2 s a TDC."""
+
+    def __init__(self, n_rows: int, t: np.ndarray):
+        self.t = t
+        self.a = np.zeros((n_rows, t.size))
+        self.lo = np.zeros(n_rows, np.int64)  # a row's 1.0s end and its band begins here
+        self.hi = np.full(n_rows, t.size, np.int64)  # ... and its 0.0s begin here
+
+    def __call__(self, b: np.ndarray, jit: float) -> np.ndarray:
+        t, a = self.t, self.a
+        lo = np.searchsorted(t, b - _ONE_ABOVE * jit)       # t[:lo] give 1.0
+        hi = np.searchsorted(t, b - _ZERO_BELOW * jit)      # t[hi:] give 0.0
+        for k in range(b.size):
+            s, e, was_s, was_e = lo[k], hi[k], self.lo[k], self.hi[k]
+            if was_s < s:
+                a[k, was_s:s] = 1.0
+            if e < was_e:
+                a[k, e:was_e] = 0.0
+            a[k, s:e] = ndtr((b[k] - t[s:e]) / jit)
+        self.lo, self.hi = lo, hi
+        return a
