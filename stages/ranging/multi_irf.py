@@ -54,6 +54,7 @@ import numpy as np
 from stages.ranging.detection import _background, poisson_tail, tested_bin
 from stages.ranging.histograms import Estimate, Histograms
 from stages.ranging.irf import Response, _fwhm_bins
+from stages.ranging.irf import window_models as _window_models
 
 #: relative error of a found return's modelled counts in each bin (see the docstring)
 MODEL_ERROR = 0.2
@@ -182,17 +183,6 @@ def _fit(y, valid, gain, known, kerr, response: Response, centre):
     shift = shifts[rows, j] + frac * _STEP
     sigma = np.where(curv > 0, np.sqrt(2.0 / np.where(curv > 0, curv, 1.0)) * _STEP, np.inf)
     return shift, np.maximum(a[rows, j], 0.0), np.maximum(b[rows, j], 0.0), sigma
-
-
-def _window_models(response: Response, shifts, start, width: int) -> np.ndarray:
-    """:meth:`~stages.ranging.irf.Response.models` of the bins ``start`` to ``start +
-    width - 1`` only (each shift its own ``start``): the same numbers."""
-    cum, f = response._interpolator()
-    e = (np.asarray(start)[:, None] + np.arange(width + 1)[None, :]) - (
-        np.asarray(shifts, np.float64)[:, None] - response.mode)
-    v = np.where(e <= 0, 0.0, np.where(e >= cum.size - 1, cum[-1],
-                                       f(np.clip(e, 0, cum.size - 1))))
-    return np.diff(v, axis=1)
 
 
 def _solve(models, y, wts):
