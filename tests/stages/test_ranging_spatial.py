@@ -412,7 +412,7 @@ def test_a_wedge_of_sky_is_not_surrounded(monkeypatch, signal):
     _, false0 = run()
     assert false <= 0.01 * empty.sum() and false0 >= 2 * max(false, 3), (false, false0)
     det = est.detected[..., 0][sc.surface]
-    assert det.mean() >= 0.99
+    assert det.mean() >= 0.975   # (0.98: the lines' refusal takes some beside the edges)
     err = _errors(sc, est.t_s[..., 0] * C / 2)
     assert np.mean(err[det] < 2 * (est.sigma_s[..., 0] * C / 2)[sc.surface][det]) >= 0.93
 
@@ -440,7 +440,9 @@ def test_a_surface_only_the_corner_windows_see_does_not_hold_the_pixel():
     off = 0
     for angle in (0, 30):
         sc = scene(angle_deg=angle)
-        for signal, background, found in ((5, 50, 0.92), (2, 10, 0.85)):
+        # (the share detected: 0.884-0.907 and 0.830-0.870 since a line through the pixel
+        # may refuse a corner windows' detection; 0.93-0.96 and 0.86-0.90 before)
+        for signal, background, found in ((5, 50, 0.87), (2, 10, 0.81)):
             for seed in (1, 2):
                 est = spatial(histograms(sc, signal, background, seed), BIN_S, SIGMA_S,
                               1e-3, threads=2)
@@ -639,3 +641,21 @@ def test_a_return_at_one_time_in_every_pixel_is_not_the_background():
     est = spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
     behind = est.detected & (est.t_s / BIN_S > 500 + 4 * SIGMA_S / BIN_S)
     assert behind.sum() <= 2
+
+
+def test_a_post_a_pixel_or_two_wide_is_not_reported_on_the_wall_behind_it():
+    """Posts 1 and 2 pixels wide at 4 m before a wall at 6 m (an outside probe's fence,
+    benchmarks/probe_scenes.py; seed 3, which neither the probe nor the choice ran), 2
+    signal and 10 background photons a pixel: every corner window of a post pixel is
+    mostly wall, and its own 2 photons cannot refuse the wall (none where 2 are due: 13 %),
+    so 547 pixels of this frame were reported *detected* on the wall, sigma ~4 mm.
+    The line along the post refuses it (32): at most 60 detected pixels > 10 cm off."""
+    from benchmarks.probe_scenes import SCENES
+    from benchmarks.probe_scenes import histograms as ray_histograms
+
+    counts, tr = ray_histograms(SCENES["fence"], 64, 64, 2, 10, 3)
+    est = spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
+    d = est.t_s[..., 0] * C / 2
+    det = est.detected[..., 0]
+    assert det.sum() > 2000
+    assert (det & (np.abs(d - tr[..., 0]) > 0.1)).sum() <= 60
