@@ -72,7 +72,6 @@ from stages.ranging._numba import numba
 from stages.ranging.detection import poisson_tail, profile_keep, profile_passes, profile_per_bin
 
 WINDOW = 3      # k: the window is (2k + 1)^2 pixels
-LINE_VETO = True  # a corner windows' detection refused by a line through the pixel too
 CURVE_R = 4     # the curvature's quadratic: over the (2 CURVE_R + 1)^2 around a pixel
 CURVE_Z = 3.0   # and it corrects t0 where it is this many of its sds from 0
 CURVE_MIN = 12  # of that many detected returns on the pixel's surface at least
@@ -505,20 +504,19 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         # (an M-estimator with psi(u) = u for |u| < c sigma, 0 beyond): Huber's variance
         # E[psi^2] / E[psi']^2 gains the boundary term 2 c phi(c) in E[psi'], a factor
         # (P / (P - 2 c phi(c)))^2 on a Gaussian pulse, P = P(|u| < c): 1.20 at c = 2.5
+        # each neighbour's weight on t0 in the fit (the ridge's, as fitted)
+        w_t0 = (Mri[..., 0, :] @ X) * np.where(pos, n0, 0.0)
         if cal_q is not None:
             # each neighbour's time axis off by its own calibration error moves all its
-            # photons, so t0 by its weight in the fit (the ridge's, as fitted) times it:
-            # a term of the model's variance; the sandwich's has it already (each
-            # neighbour's summed residual holds its error)
+            # photons, so t0 by its weight times it: a term of the model's variance; the
+            # sandwich's has it already (each neighbour's summed residual holds its error)
             # (not scaled by Huber's factor below: the error moves the photons, not the
             # window's centring)
-            wt0 = (Mri[..., 0, :] @ X) * np.where(pos, n0, 0.0)
-            var_model = var_model + (wt0 ** 2 * cal_q).sum(-1) / MSHIFT
+            var_model = var_model + (w_t0 ** 2 * cal_q).sum(-1) / MSHIFT
         var_t0 = np.maximum(var_model, var_sand) * MSHIFT + var_ridge
         # how t0 answers a curvature the plane leaves out, t = ... + (H_rr dr^2 + 2 H_rc
-        # dr dc + H_cc dc^2) / 2: the fit's weights on t0 (as fitted, the ridge's) times
-        # each term (the curvature's step, after the ranking, estimates H)
-        w_t0 = (Mri[..., 0, :] @ X) * np.where(pos, n0, 0.0)
+        # dr dc + H_cc dc^2) / 2: those weights times each term (the curvature's step,
+        # after the ranking, estimates H)
         bend[..., r, :] = np.stack([(w_t0 * dr ** 2).sum(-1) / 2, (w_t0 * dr * dc).sum(-1),
                                     (w_t0 * dc ** 2).sum(-1) / 2], -1)
         # -- 3. the decision
@@ -558,8 +556,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         # across a line, at (5, 50) 3,365 -> 3,175 of the grid's scene, then reported
         # by the relabelling; both halves of a line short instead: 552 -> 368, no cost;
         # the whole line short and each half below its mean: the same as the line alone)
-        lines = ([dr * j == dc * i for i, j in ((0, 1), (1, 0), (1, 1), (1, -1))]
-                 if LINE_VETO else [])
+        lines = [dr * j == dc * i for i, j in ((0, 1), (1, 0), (1, 1), (1, -1))]
         for near in [ring] + lines:   # fewer photons at t0 than the surface leaves at p_fa
             veto |= (pdtr(np.floor(mine + (raw * near).sum(-1)),
                           frac * s_pix + bw + (bsum * near).sum(-1)
