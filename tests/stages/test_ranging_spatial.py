@@ -92,9 +92,11 @@ def test_undetected_pixels_sigma_covers(lindell_2_50):
 def test_label_sigma_changes_only_the_undetected_sigma(monkeypatch):
     """The undetected pixels' sigma is computed after the relabelling and changes
     nothing else: every time, detection and detected pixel's sigma are the same to the
-    bit as without it; the undetected pixels' first return's sigma changes."""
+    bit as without it; the undetected pixels' first return's sigma changes. (Without
+    step 5's undetected part, which weighs the quadratic against that sigma.)"""
     import stages.ranging.spatial as sp
 
+    monkeypatch.setattr(sp, "UNDET_TOL", 0.0)
     sc = scene(48, 40)
     counts = histograms(sc, 2, 50, 2)
     new = sp.spatial(counts, BIN_S, SIGMA_S, 1e-3)
@@ -486,9 +488,12 @@ def test_the_corner_windows_detections_bookkeeping(monkeypatch):
     detected. A detection that stands is not repeated by the label's plane on the same
     surface as the second return (0 pixels; 1,201 without taking the label's rank back).
     A withdrawn detection is not ``surrounded`` (67 pixels surrounded but not detected
-    where the flag was left), and ``own`` and ``surrounded`` imply ``detected``."""
+    where the flag was left), and ``own`` and ``surrounded`` imply ``detected``. (Step
+    5's undetected part off: it moves an undetected label's time onto the detected
+    returns around it.)"""
     import stages.ranging.spatial as sp
 
+    monkeypatch.setattr(sp, "UNDET_TOL", 0.0)
     got = {}
     relabel = sp._relabel
 
@@ -612,13 +617,69 @@ def test_the_curvature_step_takes_out_what_a_plane_fit_misses():
     plane = (300.0 + 0.7 * r - 0.4 * c)[..., None] * np.array([1.0, np.nan]) * bin_s
     p0, q0 = plane.copy(), sig.copy()
     _curvature(plane, sig, det, bend, bin_s, sb, 0.0)
-    np.testing.assert_array_equal(plane, p0)
-    np.testing.assert_array_equal(sig, q0)
+    on = det[..., 0]
+    np.testing.assert_array_equal(plane[on], p0[on])
+    np.testing.assert_array_equal(sig[on], q0[on])
+    # (the undetected pixel on the plane: the detected ones' quadratic, the same time)
+    assert plane[0, 0, 0] == pytest.approx(p0[0, 0, 0], abs=1e-9 * bin_s)
+    assert sig[0, 0, 0] <= q0[0, 0, 0]
     few = np.zeros_like(det)
     few[5:8, 5:8, 0] = True                                        # 9 < CURVE_MIN
     t1 = t0.copy()
     _curvature(t1, sig, few, bend, bin_s, sb, 0.0)
     np.testing.assert_array_equal(t1, t0)
+
+
+def test_an_undetected_pixel_takes_the_quadratic_of_the_detected_ones_around_it(
+        monkeypatch):
+    """Step 5's second part. On a quadratic surface whose detected returns are exact
+    (sigma 0.3 bins), an undetected pixel 0.5 bins off (sigma 1 bin) is put on the
+    surface, its variance the quadratic's (computed here apart, a loop over the
+    neighbours' pairs) plus 0.5^2; one 20 bins off (another surface) and one beside too
+    few detected returns are left alone, and so is every pixel with ``UNDET_TOL`` 0."""
+    from stages.ranging import spatial as sp
+
+    h, w, bin_s, sb = 21, 21, 80e-12, 2.3
+    r, c = np.mgrid[0:h, 0:w].astype(float)
+    true = 300.0 + 0.7 * r - 0.4 * c + (0.05 * r ** 2 - 0.04 * r * c + 0.08 * c ** 2) / 2
+    det = np.zeros((h, w, 2), bool)
+    det[..., 0] = True
+    for p in ((10, 10), (4, 15), (18, 2)):
+        det[p + (0,)] = False
+    det[14:, :8, 0] = False                      # (18, 2): 3 detected in its 9 x 9
+    det[17:20, 3, 0] = True
+    t = true.copy()
+    t[10, 10] += 0.5
+    t[4, 15] += 20.0
+    t[18, 2] += 0.5
+    t_out = np.stack([t, np.full((h, w), np.nan)], -1) * bin_s
+    sig = np.stack([np.where(det[..., 0], 0.3, 1.0), np.full((h, w), np.inf)], -1) * bin_s
+    bend = np.zeros((h, w, 2, 3))                # (no plane fit's bend: nothing corrected)
+    t0, s0 = t_out.copy(), sig.copy()
+    sp._curvature(t_out, sig, det, bend, bin_s, sb, 0.0)
+    assert t_out[10, 10, 0] / bin_s == pytest.approx(true[10, 10], abs=1e-6)
+    # the quadratic's variance, apart: its weights on the 81 neighbours, their errors
+    # correlated as their 7 x 7 windows overlap
+    k = sp.CURVE_R
+    d = [(i, j) for i in range(-k, k + 1) for j in range(-k, k + 1)]
+    X = np.array([[1, i, j, i * i / 2, i * j, j * j / 2] for i, j in d])
+    on = np.array([det[10 + i, 10 + j, 0] for i, j in d])
+    W = np.diag(on / 0.3 ** 2)
+    a = np.linalg.solve(X.T @ W @ X, X.T @ W)[0]
+    var = 0.0
+    for (i, j), ai in zip(d, a, strict=True):
+        for (u, v), aj in zip(d, a, strict=True):
+            rho = max(7 - abs(i - u), 0) / 7 * max(7 - abs(j - v), 0) / 7
+            var += ai * aj * 0.3 * 0.3 * rho
+    assert (sig[10, 10, 0] / bin_s) ** 2 == pytest.approx(var + 0.25, rel=1e-6)
+    assert sig[10, 10, 0] < s0[10, 10, 0]
+    for p in ((4, 15), (18, 2)):
+        assert t_out[p + (0,)] == t0[p + (0,)] and sig[p + (0,)] == s0[p + (0,)]
+    monkeypatch.setattr(sp, "UNDET_TOL", 0.0)
+    t1, s1 = t0.copy(), s0.copy()
+    sp._curvature(t1, s1, det, bend, bin_s, sb, 0.0)
+    np.testing.assert_array_equal(t1, t0)
+    np.testing.assert_array_equal(s1, s0)
 
 
 def test_a_return_at_one_time_in_every_pixel_is_not_the_background():

@@ -212,7 +212,9 @@ def test_ctrl_c_while_the_range_stage_holds_parts_then_resume(tmp_path, zoo, lon
         if p.poll() is None:
             p.kill()
     assert p.returncode == 130, err
-    assert took < 15, took  # (the stop waited out the restart's backoff: 20-25 s)
+    # (the stop waited out the restart's backoff: 20-25 s; 19 s, not less, for a stop that
+    # reconciles under a loaded CI runner: 15.3 s once at load 6-8)
+    assert took < 19, took
     first = json.loads(out)
     assert first["state"] == "interrupted", first["problems"]
     stopped_at = first["accounting"]["words_in"]
