@@ -763,7 +763,8 @@ def _curvature(t_out, sig_out, det, bend, bin_s, sb, t0_s) -> None:
     # (sigma^2: the quadratic's variance and the two's squared difference, which a
     # surface the quadratic does not follow makes large: var_q alone covered 82-86 % of
     # the probe's sphere's undetected pixels at 2 signal photons, against 90-93 % before)
-    v = var_q[use] + (t[rr, cc] - q[use]) ** 2
+    # (never 0: noise-free returns around a pixel exactly on their quadratic)
+    v = np.maximum(var_q[use] + (t[rr, cc] - q[use]) ** 2, 1e-12)
     t_out[rr, cc, 0] = q[use] * bin_s + t0_s
     sig_out[rr, cc, 0] = np.sqrt(v) * bin_s
 

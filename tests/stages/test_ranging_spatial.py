@@ -622,7 +622,7 @@ def test_the_curvature_step_takes_out_what_a_plane_fit_misses():
     np.testing.assert_array_equal(sig[on], q0[on])
     # (the undetected pixel on the plane: the detected ones' quadratic, the same time)
     assert plane[0, 0, 0] == pytest.approx(p0[0, 0, 0], abs=1e-9 * bin_s)
-    assert sig[0, 0, 0] <= q0[0, 0, 0]
+    assert 0 < sig[0, 0, 0] <= q0[0, 0, 0]
     few = np.zeros_like(det)
     few[5:8, 5:8, 0] = True                                        # 9 < CURVE_MIN
     t1 = t0.copy()
