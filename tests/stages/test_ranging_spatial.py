@@ -682,6 +682,48 @@ def test_an_undetected_pixel_takes_the_quadratic_of_the_detected_ones_around_it(
     np.testing.assert_array_equal(s1, s0)
 
 
+def test_an_undetected_pixel_beside_a_near_surface_and_at_the_corner(monkeypatch):
+    """Step 5's second part where its 3 x 3 start holds two surfaces: two curved surfaces
+    side by side (columns 0-9 and 10-20), 10 and 13 bins apart (4.3 and 5.6 pulse
+    sigmas of 2.34 bins, inside ``UNDET_TOL``'s 6), their detected returns exact (sigma
+    0.3 bins). An undetected pixel on the far surface at the edge, 0.5 bins off (sigma
+    1), whose 3 x 3 holds 3 of the near surface's returns, is left as it is (the mixed
+    quadratic disagrees with it); one and two columns in it takes its own surface's
+    quadratic exactly; so does one at the image's corner (5 x 5 of its 9 x 9 in the
+    image, the surface curved along the rows: a clipped neighbour read in place of the
+    missing ones would bend its fit); one on the near surface at the edge never moves
+    towards the far one. Measured: the two at 1-2 columns in and the corner exact to
+    1e-6 bins, sigma^2 below 1; the edge pixels' times and sigmas unchanged."""
+    from stages.ranging import spatial as sp
+
+    h, w, bin_s, sb = 21, 21, 80e-12, 2.34
+    r, c = np.mgrid[0:h, 0:w].astype(float)
+    for gap in (10.0, 13.0):
+        far = 300.0 + 0.3 * r + 0.04 * r ** 2 - 0.2 * c
+        true = np.where(c >= 10, far, far - gap)
+        det = np.zeros((h, w, 2), bool)
+        det[..., 0] = True
+        off = {(10, 10): 0.5, (10, 11): 0.5, (14, 12): -0.5, (0, 0): 0.5, (5, 9): -0.5}
+        for p in off:
+            det[p + (0,)] = False
+        t = true.copy()
+        for p, e in off.items():
+            t[p] += e
+        t_out = np.stack([t, np.full((h, w), np.nan)], -1) * bin_s
+        sig = np.stack([np.where(det[..., 0], 0.3, 1.0), np.full((h, w), np.inf)], -1) * bin_s
+        t0, s0 = t_out.copy(), sig.copy()
+        sp._curvature(t_out, sig, det, np.zeros((h, w, 2, 3)), bin_s, sb, 0.0)
+        for p in ((10, 10), (5, 9)):                     # the edge: left as it is
+            assert t_out[p + (0,)] == t0[p + (0,)] and sig[p + (0,)] == s0[p + (0,)], (gap, p)
+        for p in ((10, 11), (14, 12), (0, 0)):           # inside and at the corner: exact
+            assert t_out[p + (0,)] / bin_s == pytest.approx(true[p], abs=1e-6), (gap, p)
+            assert 0 < (sig[p + (0,)] / bin_s) ** 2 < 1.0, (gap, p)
+        on = det[..., 0]
+        np.testing.assert_array_equal(t_out[on], t0[on])
+        np.testing.assert_array_equal(sig[on], s0[on])
+        np.testing.assert_array_equal(t_out[..., 1], t0[..., 1])
+
+
 def test_a_return_at_one_time_in_every_pixel_is_not_the_background():
     """A wall at one depth in every pixel under a background falling as e^-3t: every
     pixel's 7 x 7 leaves the wall's block out (and the blocks beside it), so only a few
