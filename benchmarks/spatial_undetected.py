@@ -3,13 +3,14 @@ second part, ``stages.ranging.spatial.UNDET_TOL``): before and after, on the sam
 histograms.
 
 The project's scenes (benchmarks/spatial_scenes.py: ``grid``, and ``turned``, the same
-turned by 30 degrees) and the outside probe's (benchmarks/probe_scenes.py: ``sphere``,
-``fence``, ...), both written apart from the simulator. For every scene, cell and the
-seeds together: the undetected first returns on surface pixels, the RMSE of those
-within 10 cm of a true surface ("on the surface"), and the share of all of them within
-2 sigma of the nearest true surface, with the step off (``UNDET_TOL`` 0) and on (its
-default). Detected pixels are not touched by the step (their figures are the same).
-Prints a Markdown table.
+turned by 30 degrees), the outside probe's (benchmarks/probe_scenes.py: ``sphere``,
+``fence``, ...), both written apart from the simulator, and ``stripes12``,
+``stripes18``: stripes of two planes 12 or 18 cm apart (an outside review's case).
+For every scene, cell and the seeds together: the undetected first returns on surface
+pixels, the RMSE of those within 10 cm of a true surface ("on the surface"), and the
+share of all of them within 2 sigma of the nearest true surface, with the step off
+(``UNDET_TOL`` 0) and on (its default). Detected pixels are not touched by the step
+(their figures are the same). Prints a Markdown table.
 
     python benchmarks/spatial_undetected.py [--scenes grid turned] [--cells 2,10 2,50]
         [--seeds 9,10,11,12] [--threads 2]
@@ -31,12 +32,24 @@ from benchmarks.spatial_scenes import BIN_S, SIGMA_S, C, histograms, scene  # no
 from stages.ranging import spatial as sp  # noqa: E402
 
 
+def stripes(gap_m: float):
+    """Vertical stripes 8 pixels wide of two planes ``gap_m`` apart in depth (5 m, slanted
+    1 cm a column and 0.5 cm a row): edges a pulse width or two deep."""
+    def f(r, c, h, w):
+        return 5.0 + 0.01 * c + 0.005 * r + gap_m * ((np.floor(c).astype(int) // 8) % 2)
+    return f
+
+
 def frame(name: str, sig: float, bg: float, seed: int):
     """(counts, depth (h, w, 2) metres, NaN: none) of a scene by name."""
     if name in ("grid", "turned"):
         sc = scene(angle_deg=30.0 if name == "turned" else 0.0)
         return histograms(sc, sig, bg, seed), sc.depth
-    counts, tr = probe.histograms(probe.SCENES[name], 64, 64, sig, bg, seed)
+    if name.startswith("stripes"):          # stripes12: 12 cm apart
+        f = stripes(int(name[7:]) / 100.0)
+    else:
+        f = probe.SCENES[name]
+    counts, tr = probe.histograms(f, 64, 64, sig, bg, seed)
     return counts, np.concatenate([tr[..., :1], np.full(tr.shape[:2] + (1,), np.nan)], -1)
 
 
@@ -53,7 +66,8 @@ def undetected(counts, depth, threads: int) -> tuple[np.ndarray, np.ndarray]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="*", default=["grid", "turned"],
-                    help="grid, turned, or the probe's: " + ", ".join(probe.SCENES))
+                    help="grid, turned, stripesCM (e.g. stripes12), or the probe's: "
+                    + ", ".join(probe.SCENES))
     ap.add_argument("--cells", nargs="*", metavar="S,B", default=["2,10", "2,50", "5,10", "5,50"])
     ap.add_argument("--seeds", default="9,10,11,12")
     ap.add_argument("--threads", type=int, default=2)
