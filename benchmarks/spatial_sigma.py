@@ -24,6 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.spatial import GRID, WINDOW_M, per_pixel  # noqa: E402
 from benchmarks.spatial_scenes import BIN_S, SIGMA_S, C, depth_errors, histograms, scene  # noqa: E402
+from benchmarks.spatial_undetected import machine_line  # noqa: E402
 from stages.ranging import Histograms, estimate  # noqa: E402
 from stages.ranging.spatial import spatial  # noqa: E402
 
@@ -86,8 +87,7 @@ def main() -> None:
             print(f"| {s:g} | {b:g} | {seed} | {pct(m['det'])} | {pct(m['und'])} | "
                   f"{pct(m['all'])} | {m['far'][0]} of {m['far'][1]} | "
                   f"{m['med_und']:.4f} | {pct(f['und'])} |", flush=True)
-    print(f"\nmachine: {os.cpu_count()} cores, load {load0:.2f} before, "
-          f"{os.getloadavg()[0]:.2f} after; spatial with {args.threads} thread(s)")
+    print(machine_line(load0, args.threads))
 
 
 if __name__ == "__main__":

@@ -24,7 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.spatial_scenes import BIN_S, SIGMA_S, C  # noqa: E402
-from benchmarks.spatial_undetected import frame  # noqa: E402
+from benchmarks.spatial_undetected import frame, frames_args, machine_line  # noqa: E402
 from stages.ranging.spatial import spatial  # noqa: E402
 
 
@@ -32,9 +32,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", nargs="*", type=int, metavar="CM",
                     default=[3, 6, 9, 12, 15, 18, 21, 24, 30, 40])
-    ap.add_argument("--cells", nargs="*", metavar="S,B", default=["10,2", "2,10"])
-    ap.add_argument("--seeds", default="9,10")
-    ap.add_argument("--threads", type=int, default=2)
+    frames_args(ap, ["10,2", "2,10"], "9,10")
     args = ap.parse_args()
     seeds = [int(s) for s in args.seeds.split(",")]
     load0 = os.getloadavg()[0]
@@ -59,8 +57,7 @@ def main() -> None:
             print(f"| {cell.replace(',', ', ')} | {step} | {step / sig_cm:.1f} | {err.size:,} "
                   f"| {np.sqrt(np.mean(err[near] ** 2)) * 100:.2f} "
                   f"| {100 * np.mean(err < 2 * sg):.1f} % |", flush=True)
-    print(f"\nmachine: {os.cpu_count()} cores, load {load0:.2f} before, "
-          f"{os.getloadavg()[0]:.2f} after; spatial with {args.threads} thread(s)")
+    print(machine_line(load0, args.threads))
 
 
 if __name__ == "__main__":

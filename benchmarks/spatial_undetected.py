@@ -63,14 +63,26 @@ def undetected(counts, depth, threads: int) -> tuple[np.ndarray, np.ndarray]:
     return err[m], s[m]
 
 
+def frames_args(ap: argparse.ArgumentParser, cells: list[str], seeds: str) -> None:
+    """The spatial benchmarks' shared options: ``--cells S,B ...``, ``--seeds`` and
+    ``--threads``."""
+    ap.add_argument("--cells", nargs="*", metavar="S,B", default=cells)
+    ap.add_argument("--seeds", default=seeds)
+    ap.add_argument("--threads", type=int, default=2)
+
+
+def machine_line(load0: float, threads: int) -> str:
+    """The table's last line: the cores and the load before and after the run."""
+    return (f"\nmachine: {os.cpu_count()} cores, load {load0:.2f} before, "
+            f"{os.getloadavg()[0]:.2f} after; spatial with {threads} thread(s)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="*", default=["grid", "turned"],
                     help="grid, turned, stripesCM (e.g. stripes12), or the probe's: "
                     + ", ".join(probe.SCENES))
-    ap.add_argument("--cells", nargs="*", metavar="S,B", default=["2,10", "2,50", "5,10", "5,50"])
-    ap.add_argument("--seeds", default="9,10,11,12")
-    ap.add_argument("--threads", type=int, default=2)
+    frames_args(ap, ["2,10", "2,50", "5,10", "5,50"], "9,10,11,12")
     args = ap.parse_args()
     seeds = [int(s) for s in args.seeds.split(",")]
     load0 = os.getloadavg()[0]
@@ -98,8 +110,7 @@ def main() -> None:
                       f"{b[1]:.2f} | {a[2]:.1f} -> {b[2]:.1f} % |", flush=True)
     finally:
         sp.UNDET_TOL = on
-    print(f"\nmachine: {os.cpu_count()} cores, load {load0:.2f} before, "
-          f"{os.getloadavg()[0]:.2f} after; spatial with {args.threads} thread(s)")
+    print(machine_line(load0, args.threads))
 
 
 if __name__ == "__main__":

@@ -746,7 +746,7 @@ def _curvature(t_out, sig_out, det, bend, bin_s, sb, t0_s) -> None:
         return
     rr, cc = np.nonzero(d0)                                   # the detected pixels
     g = np.concatenate([np.zeros((rr.size, 3)), bend[rr, cc, 0]], -1)        # (p, 6)
-    b, var_b, cov0, n, _, _ = _quadratic(t, sg, d0, rr, cc, g, sb)
+    b, var_b, cov0, n = _quadratic(t, sg, d0, rr, cc, g, sb)[:4]
     use = (n >= CURVE_MIN) & (np.abs(b) > CURVE_Z * np.sqrt(np.maximum(var_b, 0.0))) \
         & np.isfinite(b)
     rr, cc = rr[use], cc[use]
@@ -761,7 +761,7 @@ def _curvature(t_out, sig_out, det, bend, bin_s, sb, t0_s) -> None:
         return
     g = np.zeros((rr.size, 6))
     g[:, 0] = 1.0
-    q, var_q, _, n, near, chi = _quadratic(t, sg, d0, rr, cc, g, sb, UNDET_TOL)
+    q, var_q, _, n, near, chi = _quadratic(t, sg, d0, rr, cc, g, sb, UNDET_TOL, fit=True)
     var_q = np.maximum(var_q, 0.0)
     use = ((n >= CURVE_MIN) & (near == 0) & (chi < CHI_MAX) & np.isfinite(q)
            & (var_q < sg[rr, cc] ** 2)
@@ -776,7 +776,7 @@ def _curvature(t_out, sig_out, det, bend, bin_s, sb, t0_s) -> None:
     sig_out[rr, cc, 0] = np.sqrt(v) * bin_s
 
 
-def _quadratic(t, sg, d0, rr, cc, g, sb, start=3.0):
+def _quadratic(t, sg, d0, rr, cc, g, sb, start=3.0, fit=False):
     """:func:`_curvature`'s fit: for each pixel (rr, cc), a weighted (sigma^-2)
     least-squares quadratic in (dr, dc) over the detected (``d0``) first returns ``t``
     (bins) of the (2 CURVE_R + 1)^2 around it on its surface (within 3 pulse sigmas
@@ -785,9 +785,9 @@ def _quadratic(t, sg, d0, rr, cc, g, sb, start=3.0):
     dr^2 / 2, dr dc, dc^2 / 2): its value, variance and covariance with the pixel's own
     error (the fits' errors correlate as their 7 x 7 windows overlap: rho = f(d_row)
     f(d_col), f the share of a side two windows d apart have in common); the number of
-    returns it is fitted to; of those off the surface, the number within ``NEAR_OTHER``
-    pulse sigmas of the quadratic (another surface near it); and the reduced chi-square
-    of its fit (each (n,))."""
+    returns it is fitted to (each (n,)); and with ``fit``, of the returns off the
+    surface, the number within ``NEAR_OTHER`` pulse sigmas of the quadratic (another
+    surface near it) and the reduced chi-square of its fit."""
     tol = 3.0 * sb
     h, w = t.shape
     k = CURVE_R
@@ -818,6 +818,8 @@ def _quadratic(t, sg, d0, rr, cc, g, sb, start=3.0):
     asg = (a * np.where(keep, sg[R, C], 0.0)).reshape(-1, d.size, d.size)
     var_b = (asg * (f @ asg @ f.T)).sum((1, 2))
     cov0 = (asg * (f[k][:, None] * f[k][None, :])).sum((1, 2)) * sg[rr, cc]
+    if not fit:
+        return b, var_b, cov0, keep.sum(-1)
     # the detected returns around it off its surface but near it: within NEAR_OTHER
     # pulse sigmas of the quadratic
     p = (Ai @ np.einsum("pm,im,pm->pi", wk, X, tq)[..., None])[..., 0]
