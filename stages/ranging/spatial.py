@@ -79,6 +79,9 @@ UNDET_TOL = 6.0  # an undetected pixel's surface: its 3 x 3's detected returns t
                  # pulse sigmas from its time (0: its time stays the plane's)
 NEAR_OTHER = 10.0  # and not where a detected return off that surface is within this many
 CHI_MAX = 2.0      # or the quadratic misses its returns by more (reduced chi-square)
+STEP_Z = 3.0     # a half of the window whose plane is this many sds off the window's
+STEP_LOF = 3.0   # where the window's quadratic misfits by this many sds of its chi-square
+STEP_ITER = 3    # takes the pixel, its plane re-centred this many times
 WIDTH_FIT = 2.5  # the plane fit's window, +- sigmas of the pulse
 WIDTH_TEST = 2.0  # the pixel's own test window
 BOXES = (1.2, 4.0, 10.0)  # the candidates' time boxes, +- sigmas of the pulse
@@ -518,6 +521,58 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
             # window's centring)
             var_model = var_model + (w_t0 ** 2 * cal_q).sum(-1) / MSHIFT
         var_t0 = np.maximum(var_model, var_sand) * MSHIFT + var_ridge
+        # -- 2b. a depth step inside the window (docs/ranging.md "A small depth step
+        # inside the window"): the plane fitted across two surfaces a few pulse widths
+        # apart is a ramp between them, off by up to half the step; each half of the
+        # window (8 half-planes through the pixel) fits a plane of its own from the same
+        # sums, and the one whose photons spread least about it is the likeliest to lie
+        # on one surface (Kuwahara's choice, in Katkovnik's directional windows)
+        if STEP_Z:
+            hm = _halves(dr, dc)                                           # (8, m)
+            fits = _half_fits(n0, s1, s2, pos, bsum, hm, X, XX, t0, sb, cal_q)
+            kk = np.argmin(fits[3], -1)[..., None]
+            tk, vm, vr, _, ak, bk = (np.take_along_axis(x, kk, -1)[..., 0] for x in fits[:6])
+            hk = hm[kk[..., 0]]                                            # (h, w, m)
+            mk = np.take_along_axis(fits[6], kk[..., None], -2)[..., 0, :]
+            vk = _half_var(n0 * hk, s1, (tk, ak, bk), mk, vm, vr, X)
+            # the half's estimate against the window's, in sds of their difference (a
+            # half's photons are the window's: var(t_k - t0) = var_k - var_t0)
+            d2 = (tk - t0) ** 2
+            v0 = var_t0
+            vd = np.maximum(vk - v0, vk / 4)
+            # where they agree, the squared difference less its noise is the bias the
+            # window's plane may carry: added to its variance (Lepski's bias-variance
+            # balance; the surfaces the plane fits, 0 on average less than one noise
+            # variance)
+            var_t0 = var_t0 + np.maximum(d2 - vd, 0.0)
+            # where they do not, and the window's own quadratic misfits its neighbours (a
+            # curved surface makes the halves and the window disagree too, and a
+            # quadratic follows it), the half is refitted on its own photons and reported
+            step = (d2 > STEP_Z ** 2 * vd) & _misfit(n0, s1, pos, var_photon, X, dr, dc)
+            if step.any():
+                ii, jj = np.nonzero(step)
+                hs = hk[ii, jj]                                            # (p, m)
+                t_, a_, b_ = tk[ii, jj], ak[ii, jj], bk[ii, jj]
+                sub = [x[ii, jj][:, None] for x in (qn, on, beta_q)]
+                for _ in range(STEP_ITER):   # re-centred on its own plane
+                    tq_ = (t_[:, None] + a_[:, None] * dr + b_[:, None] * dc)[:, None]
+                    if compiled:
+                        g_ = _window_sums_numba(P, *sub, tq_, np.full((ii.size, 1), fit), n,
+                                                *tables)
+                    else:
+                        g_ = _window_sums_numpy(P, *sub, tq_, fit, n, prof)
+                    n0_, s1_, s2_, _, bs_ = (x[:, 0] * hs for x in g_)
+                    fit_ = _half_fits(n0_, s1_, s2_, n0_ > 0, bs_, np.ones((1, dr.size)), X, XX,
+                                      t_, sb, None if cal_q is None else cal_q[ii, jj])
+                    t_, vm_, vr_, _, a_, b_ = (x[:, 0] for x in fit_[:6])
+                m_ = fit_[6][:, 0]
+                v_ = _half_var(n0_, s1_, (t_, a_, b_), m_, vm_, vr_, X)
+                wk = np.einsum("pi,im->pm", m_, X) * np.where(n0_ > 0, n0_, 0.0)
+                ok = (t_ - t0[ii, jj]) ** 2 > STEP_Z ** 2 * np.maximum(v_ - v0[ii, jj], v_ / 4)
+                ii, jj = ii[ok], jj[ok]
+                t0[ii, jj], var_t0[ii, jj] = t_[ok], v_[ok]
+                a_s[ii, jj], b_s[ii, jj] = a_[ok], b_[ok]
+                w_t0[ii, jj] = wk[ok]            # its weights: the curvature's step (5)
         # how t0 answers a curvature the plane leaves out, t = ... + (H_rr dr^2 + 2 H_rc
         # dr dc + H_cc dc^2) / 2: those weights times each term (the curvature's step,
         # after the ranking, estimates H)
@@ -593,6 +648,91 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
                 arr[..., r] = np.where(same, v, arr[..., r])
     return (t_out, sig_out, sig_cnt, own | surr, own, surr, slope, mine_r, bw_r, rank, beta, P0,
             bend)
+
+
+def _halves(dr, dc) -> np.ndarray:
+    """The window's 8 halves through the pixel (a row, a column, a diagonal and the
+    side of it), each with its middle line: (8, m) masks over the offsets (dr, dc)."""
+    return np.stack([dc <= 0, dc >= 0, dr <= 0, dr >= 0, dr + dc <= 0, dr + dc >= 0,
+                     dr - dc <= 0, dr - dc >= 0]).astype(np.float64)
+
+
+def _half_fits(n0, s1, s2, pos, bsum, hm, X, XX, t0, sb, cal=None):
+    """Step 2's plane fit (its ridge on the slopes) over each half ``hm`` (k, m) of the
+    window, from the sums at the window's plane, all halves in a few matrix products:
+    per half (..., k), its t0, t0's model variance (as step 2's: the photons' spread and
+    the background's, before Huber's factor), the ridge's pull's, the photons' spread
+    about its plane, its slopes, and the first row of its inverse normal matrix (..., k,
+    3). The photons' spread follows from the sums: rss = S2 - 2 b.Y + b' M b. ``cal``
+    (..., m), each neighbour's calibration variance (bins^2), adds its share, as step 2's."""
+    k, m = hm.shape
+    wq = np.where(pos, n0, 0.0)
+
+    def dot(a, b):  # (einsum's own loops: a pixel's sums the same in any batch; a BLAS
+        return np.einsum("...m,mk->...k", a, b)   # product's order follows its shape)
+    M0 = dot(wq, (hm[:, :, None] * XX[None]).transpose(1, 0, 2).reshape(m, 9 * k)
+             ).reshape(wq.shape[:-1] + (k, 3, 3))
+    Y = dot(np.where(pos, s1, 0.0), (hm[:, :, None] * X.T[None]).transpose(1, 0, 2)
+            .reshape(m, 3 * k)).reshape(wq.shape[:-1] + (k, 3))
+    S2 = dot(np.where(pos, s2, 0.0), hm.T)
+    tot = dot(wq, hm.T)
+    M = M0.copy()
+    ridge = 1.0 + 0.01 * tot
+    M[..., 1, 1] += ridge
+    M[..., 2, 2] += ridge
+    M[..., 0, 0] += 1e-9
+    Y1 = Y.copy()
+    Y1[..., 0] += 1e-9 * t0[..., None]
+    Mi = np.linalg.inv(M)
+    b = (Mi @ Y1[..., None])[..., 0]
+    rss = S2 - 2 * (b * Y).sum(-1) + (b[..., None, :] @ M0 @ b[..., :, None])[..., 0, 0]
+    vp = np.maximum(rss / np.maximum(tot, 1.0), sb ** 2 + 1 / 12)
+    vbg = (dot(bsum, hm.T) * (WIDTH_FIT * sb) ** 2 / 3) / np.maximum(tot, 1.0) ** 2
+    vr = (ridge * (Mi[..., 0, 1] * b[..., 1] + Mi[..., 0, 2] * b[..., 2])) ** 2
+    var = vp * Mi[..., 0, 0] + vbg
+    if cal is not None:  # sum_q (Mi0 . X_q n0_q)^2 cal_q, per half (as step 2's, unscaled)
+        Cq = dot(wq ** 2 * cal, (hm[:, :, None] * XX[None]).transpose(1, 0, 2)
+                 .reshape(m, 9 * k)).reshape(wq.shape[:-1] + (k, 3, 3))
+        var = var + np.einsum("...ki,...kij,...kj->...k", Mi[..., 0, :], Cq,
+                              Mi[..., 0, :]) / MSHIFT
+    return b[..., 0], var, vr, vp, b[..., 1], b[..., 2], Mi[..., 0, :]
+
+
+def _half_var(n0, s1, plane, mi0, var_model, var_ridge, X):
+    """t0's variance of one half's plane (``n0`` 0 outside it), as step 2's: the larger
+    of the model's variance and the sandwich's (each neighbour's leverage on t0 times its
+    photons' summed residual about the plane: what the model leaves out, a neighbour's
+    calibration error or a surface that is not a plane), times Huber's factor, and the
+    ridge's pull."""
+    t, a, b = plane
+    use = n0 > 0
+    tq = t[..., None] + a[..., None] * X[1] + b[..., None] * X[2]
+    res = np.where(use, s1 - tq * n0, 0.0)
+    lev = np.einsum("...i,im->...m", mi0, X)
+    m_eff = np.maximum(use.sum(-1), 4)
+    var_sand = ((lev * res) ** 2).sum(-1) * m_eff / (m_eff - 3)
+    return np.maximum(var_model, var_sand) * MSHIFT + var_ridge
+
+
+def _misfit(n0, s1, pos, var_photon, X, dr, dc) -> np.ndarray:
+    """Whether a quadratic in (dr, dc) fitted to the neighbours' photon times misses
+    their means by more than their noise: chi-square of each neighbour's summed
+    residual over its count times the photons' spread, ``STEP_LOF`` sds of the
+    chi-square above its degrees of freedom. A surface that curves passes; a step
+    inside the window (which no quadratic follows) does not."""
+    X6 = np.concatenate([X, np.stack([dr ** 2 / 2, dr * dc, dc ** 2 / 2])])   # (6, m)
+    XX6 = (X6[:, None, :] * X6[None, :, :]).reshape(36, -1).T
+    wq = np.where(pos, n0, 0.0)
+    M = (wq @ XX6).reshape(wq.shape[:-1] + (6, 6))
+    ridge = 1.0 + 0.01 * wq.sum(-1)
+    for i in range(1, 6):
+        M[..., i, i] += ridge
+    M[..., 0, 0] += 1e-9
+    beta = np.linalg.solve(M, (np.where(pos, s1, 0.0) @ X6.T)[..., None])[..., 0]
+    res = np.where(pos, s1 - n0 * (beta @ X6), 0.0)
+    chi = (res ** 2 / np.maximum(n0, 1.0)).sum(-1) / var_photon
+    dof = np.maximum(pos.sum(-1) - 6, 1)
+    return chi > dof + STEP_LOF * np.sqrt(2 * dof)
 
 
 def _window_sums_numpy(P, qn, on, beta_q, tq, half, n, prof=None):
@@ -746,9 +886,9 @@ def _curvature(t_out, sig_out, det, bend, bin_s, sb, t0_s) -> None:
         return
     rr, cc = np.nonzero(d0)                                   # the detected pixels
     g = np.concatenate([np.zeros((rr.size, 3)), bend[rr, cc, 0]], -1)        # (p, 6)
-    b, var_b, cov0, n = _quadratic(t, sg, d0, rr, cc, g, sb)[:4]
+    b, var_b, cov0, n, _, chi = _quadratic(t, sg, d0, rr, cc, g, sb, fit=True)
     use = (n >= CURVE_MIN) & (np.abs(b) > CURVE_Z * np.sqrt(np.maximum(var_b, 0.0))) \
-        & np.isfinite(b)
+        & np.isfinite(b) & (chi < CHI_MAX)
     rr, cc = rr[use], cc[use]
     t_out[rr, cc, 0] -= b[use] * bin_s
     v = np.maximum(sg[rr, cc] ** 2 + var_b[use] - 2.0 * cov0[use], 0.25 * sg[rr, cc] ** 2)

@@ -77,15 +77,16 @@ def test_two_signal_fifty_background(lindell_2_50):
 def test_undetected_pixels_sigma_covers(lindell_2_50):
     """The undetected pixels' reported surface (the relabelling's, 28 % of the surface
     pixels here) has a sigma that covers its error: 2 sigma holds 93-99 % of them (98 %
-    on seed 7; 83 % with the plane's sigma alone, before the planes' spread on the
-    reported surface, :func:`stages.ranging.spatial._label_sigma`), and 93-98.5 % of
-    every surface pixel (97 %; 93 % before)."""
+    on seed 7, 99.3 % with the depth step's check, 2b, whose bias term the planes
+    carried over bring; 83 % with the plane's sigma alone, before the planes' spread on
+    the reported surface, :func:`stages.ranging.spatial._label_sigma`), and 93-98.5 % of
+    every surface pixel (98.4 %; 93 % before)."""
     sc, _, est = lindell_2_50
     err = _errors(sc, est.t_s[..., 0] * C / 2)
     z = err / (est.sigma_s[..., 0][sc.surface] * C / 2)
     und = ~est.detected[..., 0][sc.surface]
     assert 0.2 <= und.mean() <= 0.4, und.mean()
-    assert 0.93 <= np.mean(z[und] < 2) <= 0.99, np.mean(z[und] < 2)
+    assert 0.93 <= np.mean(z[und] < 2) <= 0.995, np.mean(z[und] < 2)
     assert 0.93 <= np.mean(z < 2) <= 0.985, np.mean(z < 2)
 
 
@@ -239,15 +240,21 @@ def _falling(h, w, photons, seed, e=3.0):
 
 
 @pytest.mark.skipif(numba is None, reason="numba not installed")
-@pytest.mark.parametrize("falling", [False, True])
+@pytest.mark.parametrize("falling", [False, True, "steps"])
 def test_compiled_and_numpy_agree(falling):
     """The plane fits' window sums and the edges' windows by numba and by numpy: the same
     operations in the same order (the edges' posteriors to rounding, far from where a
-    pixel moves), so the same estimates to the bit (two surfaces, edges, sky; and on a background
-    that falls in time, through the background's profile)."""
-    sc = scene(40, 36)
-    counts = histograms(sc, 2, 50 * (not falling), 5)
-    if falling:
+    pixel moves), so the same estimates to the bit (two surfaces, edges, sky; on a
+    background that falls in time, through the background's profile; and small depth
+    steps, where the depth step's check refits a half of the window on a few pixels'
+    sums)."""
+    if falling == "steps":
+        from benchmarks.spatial_undetected import frame
+        counts = frame("stripes12", 10, 2, 5)[0][:40, :36]
+    else:
+        sc = scene(40, 36)
+        counts = histograms(sc, 2, 50 * (not falling), 5)
+    if falling is True:
         counts = counts + _falling(40, 36, 50, 5)
     a, b = (spatial(counts, BIN_S, SIGMA_S, compiled=c) for c in (True, False))
     for k in a.__dataclass_fields__:
@@ -335,7 +342,9 @@ def test_sigma_covers_the_neighbours_calibration_errors(sd_m, s, b):
     (independent between pixels, sd 1-2 cm): the estimate is the plane of the
     neighbours, so it carries their errors as the fit weighs them. With their variance
     (``cal_var_s2``) the sigma covers the error against the true surface (2 sigma:
-    0.950, 0.981, 0.962 in the three cells); without it 0.896, 0.937, 0.942 (and the
+    0.968, 0.986, 0.969 in the three cells; 0.950, 0.981, 0.962 before the depth step's
+    check, 2b, whose bias term adds a little where the halves of the window disagree by
+    chance); without it 0.889, 0.958, 0.954 (and the
     pixel's own calibration sigma in quadrature, which ``range_state_spatial`` adds,
     would over-state it: 1-2 cm against an error of 3-7 mm RMS)."""
     h = w = 32
@@ -353,7 +362,7 @@ def test_sigma_covers_the_neighbours_calibration_errors(sd_m, s, b):
         err = np.abs(est.t_s[..., 0] * C / 2 - d)[det]
         assert np.sqrt(np.mean(err ** 2)) < 0.5 * sd_m
         covers.append(np.mean(err < 2 * est.sigma_s[..., 0][det] * C / 2))
-    assert 0.94 <= covers[1] <= 0.985, covers
+    assert 0.94 <= covers[1] <= 0.99, covers
     assert covers[0] < covers[1] - 0.01, covers
     with pytest.raises(ValueError, match="cal_var_s2"):
         spatial(counts, BIN_S, SIGMA_S, cal_var_s2=var[:-1])
@@ -575,11 +584,13 @@ def test_a_surface_that_is_not_a_plane_keeps_its_sigma():
     run by neither the probe nor the step's tuning). The local plane fit missed them by
     their curvature: 2 sigma covered 42 % (wall) and 28 % (sphere) of the detected
     pixels at (10, 2), detected RMSE 3.6 and 13.0 mm; the curvature's step (5) makes it
-    97 and 88 %, 1.8 and 7.3 mm."""
+    97 and 88 %, 1.8 and 7.3 mm; with the depth step's check (2b), whose bias term sees
+    what the curvature's step leaves on the sphere's steep rim, 98 and 97 %, 1.8 and
+    7.1 mm (87 % without it)."""
     from benchmarks.probe_scenes import SCENES
     from benchmarks.probe_scenes import histograms as ray_histograms
 
-    for name, cover, rmse in (("flatwall", 0.93, 0.0025), ("sphere", 0.85, 0.009)):
+    for name, cover, rmse in (("flatwall", 0.93, 0.0025), ("sphere", 0.93, 0.009)):
         counts, tr = ray_histograms(SCENES[name], 64, 64, 10, 2, 3)
         est = spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
         d, s = est.t_s[..., 0] * C / 2, est.sigma_s[..., 0] * C / 2
@@ -779,3 +790,102 @@ def test_a_post_a_pixel_or_two_wide_is_not_reported_on_the_wall_behind_it():
     det = est.detected[..., 0]
     assert det.sum() > 2000
     assert (det & (np.abs(d - tr[..., 0]) > 0.1)).sum() <= 60
+
+
+@pytest.mark.parametrize("step_cm, cover, rmse", [(12, 0.93, 0.005), (6, 0.88, 0.008)])
+def test_a_small_depth_step_inside_the_window(monkeypatch, step_cm, cover, rmse):
+    """Stripes 8 pixels wide of two planes a few pulse sigmas apart (2.8 cm in range; an
+    outside review's case, benchmarks/spatial_undetected.py's generator, seed 11, which
+    the check's choices did not run), 40 x 40 pixels at (10, 2): the 7 x 7 plane fitted
+    across the step is a ramp, off by up to half the step with a sigma that does not see
+    it. The depth step's check (2b: the window's halves, the least spread one where it
+    disagrees and the window's quadratic misfits, and the bias term where they agree)
+    puts the detected pixels back on their surface with a sigma that covers them.
+    Measured: 12 cm, 2 sigma 51.5 -> 95.7 %, RMSE 3.0 -> 0.33 cm; 6 cm, 28.6 -> 90.8 %,
+    1.5 -> 0.66 cm."""
+    from benchmarks.spatial_undetected import frame
+    from stages.ranging import spatial as sp
+
+    counts, depth = frame(f"stripes{step_cm}", 10, 2, 11)
+    counts, depth = counts[:40, :40], depth[:40, :40, 0]
+    got = {}
+    for z in (0.0, sp.STEP_Z):
+        monkeypatch.setattr(sp, "STEP_Z", z)
+        est = spatial(counts, BIN_S, SIGMA_S, 1e-3)
+        det = est.detected[..., 0]
+        err = np.abs(est.t_s[..., 0] * C / 2 - depth)[det]
+        assert det.mean() > 0.95 and np.all(err < 0.1)
+        got[z] = (np.mean(err < 2 * est.sigma_s[..., 0][det] * C / 2),
+                  np.sqrt(np.mean(err ** 2)))
+    (c0, r0), (c1, r1) = got.values()
+    assert c1 >= cover and r1 <= rmse, got
+    assert c0 <= cover - 0.3 and r0 >= 2 * r1, got
+
+
+def test_the_halves_fits_are_least_squares_planes():
+    """:func:`_half_fits` (every half at once, from matrix products of the sums) against
+    each half's plane fitted on its own, neighbour by neighbour: the same weighted least
+    squares of the photon times on (1, dr, dc) with the ridge on the slopes, its
+    residual sum of squares from the per-neighbour sums s2 - 2 t s1 + t^2 n0, its
+    variance and slopes; and a neighbour's net count <= 0 weighs nothing."""
+    from stages.ranging.spatial import MSHIFT, WIDTH_FIT, _half_fits, _halves
+
+    rng = np.random.default_rng(3)
+    d = np.arange(-3, 4)
+    dr, dc = (x.ravel() for x in np.meshgrid(d, d, indexing="ij"))
+    dr, dc = dr[(dr != 0) | (dc != 0)], dc[(dr != 0) | (dc != 0)]
+    X = np.stack([np.ones_like(dr), dr, dc]).astype(float)
+    XX = (X[:, None, :] * X[None, :, :]).reshape(9, -1).T
+    n0 = rng.poisson(4.0, (5, dr.size)) - 1.0
+    s1 = n0 * (300 + 0.4 * dr + rng.normal(0, 2, n0.shape))
+    s2 = s1 ** 2 / np.maximum(n0, 1) + rng.uniform(1, 9, n0.shape) * np.maximum(n0, 0)
+    bsum = rng.uniform(0, 0.3, n0.shape)
+    t0 = np.full(5, 300.0)
+    hm = _halves(dr, dc)
+    t, var, vr, vp, a, b, mi0 = _half_fits(n0, s1, s2, n0 > 0, bsum, hm, X, XX, t0, 2.3)
+    for p in range(5):
+        for k in range(hm.shape[0]):
+            use = (n0[p] > 0) & (hm[k] > 0)
+            w = np.where(use, n0[p], 0.0)
+            M = (X * w) @ X.T
+            ridge = 1.0 + 0.01 * w.sum()
+            Mr = M + np.diag([1e-9, ridge, ridge])
+            y = X @ np.where(use, s1[p], 0.0) + np.array([1e-9 * t0[p], 0, 0])
+            beta = np.linalg.solve(Mr, y)
+            tq = beta @ X
+            rss = np.where(use, s2[p] - 2 * tq * s1[p] + tq ** 2 * n0[p], 0.0).sum()
+            spread = max(rss / max(w.sum(), 1.0), 2.3 ** 2 + 1 / 12)
+            Mi = np.linalg.inv(Mr)
+            vbg = (bsum[p] * hm[k]).sum() * (WIDTH_FIT * 2.3) ** 2 / 3 / max(w.sum(), 1) ** 2
+            np.testing.assert_allclose([t[p, k], a[p, k], b[p, k]], beta, rtol=1e-10)
+            assert vp[p, k] == pytest.approx(spread, rel=1e-8)
+            assert var[p, k] == pytest.approx(spread * Mi[0, 0] + vbg, rel=1e-8)
+            assert vr[p, k] == pytest.approx((ridge * (Mi[0, 1] * beta[1]
+                                                       + Mi[0, 2] * beta[2])) ** 2, rel=1e-8)
+            np.testing.assert_allclose(mi0[p, k], Mi[0], rtol=1e-10)
+    assert MSHIFT > 1.0
+
+
+def test_a_quadratic_fits_a_curved_window_and_misses_a_step():
+    """:func:`_misfit` on noise-free neighbours' sums (each neighbour's photons at its
+    surface's time): a plane and a curved surface (a quadratic) fit; a step of 4 pulse
+    sigmas through the window, or of 2 beside the pixel, does not; and 4 photons a
+    neighbour with the step half a pulse sigma do."""
+    from stages.ranging.spatial import _misfit
+
+    sb = 2.34
+    d = np.arange(-3, 4)
+    dr, dc = (x.ravel() for x in np.meshgrid(d, d, indexing="ij"))
+    keep = (dr != 0) | (dc != 0)
+    dr, dc = dr[keep].astype(float), dc[keep].astype(float)
+    X = np.stack([np.ones_like(dr), dr, dc])
+
+    def misfit(t, photons=40.0):
+        n0 = np.full((1, dr.size), photons)
+        return bool(_misfit(n0, n0 * t, n0 > 0, np.array([sb ** 2]), X, dr, dc)[0])
+
+    assert not misfit(300 + 0.5 * dr - 0.2 * dc)
+    assert not misfit(300 + 0.5 * dr + 0.08 * dr ** 2 - 0.05 * dr * dc + 0.1 * dc ** 2)
+    assert misfit(300 + 4 * sb * (dc >= 2))
+    assert misfit(300 + 2 * sb * (dc >= 1))
+    assert not misfit(300 + 0.5 * sb * (dc >= 1), photons=4.0)
