@@ -563,7 +563,8 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
                         g_ = _window_sums_numpy(P, *sub, tq_, fit, n, prof)
                     n0_, s1_, s2_, _, bs_ = (x[:, 0] * hs for x in g_)
                     fit_ = _half_fits(n0_, s1_, s2_, n0_ > 0, bs_, np.ones((1, dr.size)), X, XX,
-                                      t_, sb, None if cal_q is None else cal_q[ii, jj])
+                                      t_, sb, None if cal_q is None else cal_q[ii, jj],
+                                      loops=True)
                     t_, vm_, vr_, _, a_, b_ = (x[:, 0] for x in fit_[:6])
                 m_ = fit_[6][:, 0]
                 v_ = _half_var(n0_, s1_, (t_, a_, b_), m_, vm_, vr_, X)
@@ -657,19 +658,22 @@ def _halves(dr, dc) -> np.ndarray:
                      dr - dc <= 0, dr - dc >= 0]).astype(np.float64)
 
 
-def _half_fits(n0, s1, s2, pos, bsum, hm, X, XX, t0, sb, cal=None):
+def _half_fits(n0, s1, s2, pos, bsum, hm, X, XX, t0, sb, cal=None, loops=False):
     """Step 2's plane fit (its ridge on the slopes) over each half ``hm`` (k, m) of the
     window, from the sums at the window's plane, all halves in a few matrix products:
     per half (..., k), its t0, t0's model variance (as step 2's: the photons' spread and
     the background's, before Huber's factor), the ridge's pull's, the photons' spread
     about its plane, its slopes, and the first row of its inverse normal matrix (..., k,
     3). The photons' spread follows from the sums: rss = S2 - 2 b.Y + b' M b. ``cal``
-    (..., m), each neighbour's calibration variance (bins^2), adds its share, as step 2's."""
+    (..., m), each neighbour's calibration variance (bins^2), adds its share, as step 2's.
+    ``loops``: the products in einsum's loops (a few pixels' fits: bands of rows agree to
+    the bit)."""
     k, m = hm.shape
     wq = np.where(pos, n0, 0.0)
 
-    def dot(a, b):  # (einsum's own loops: a pixel's sums the same in any batch; a BLAS
-        return np.einsum("...m,mk->...k", a, b)   # product's order follows its shape)
+    def dot(a, b):  # (``loops``: einsum's own loops, a pixel's sums the same in a batch
+        # of any size, where a BLAS product's order may follow a few rows' shape)
+        return np.einsum("...m,mk->...k", a, b) if loops else a @ b
     M0 = dot(wq, (hm[:, :, None] * XX[None]).transpose(1, 0, 2).reshape(m, 9 * k)
              ).reshape(wq.shape[:-1] + (k, 3, 3))
     Y = dot(np.where(pos, s1, 0.0), (hm[:, :, None] * X.T[None]).transpose(1, 0, 2)
