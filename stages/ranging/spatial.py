@@ -90,6 +90,7 @@ NEAR_OTHER = 10.0  # and not where a detected return off that surface is within 
 CHI_MAX = 2.0      # or the quadratic misses its returns by more (reduced chi-square)
 STEP_Z = 3.0     # a half of the window whose plane is this many sds off the window's (0: off)
 STEP_LOF = 3.0   # where the window's quadratic misfits by this many sds of its chi-square
+STEP_MIN = 12    # pixels in the image a half holds at least, its window twice as many
 STEP_ITER = 3    # takes the pixel, its plane re-centred this many times
 WIDTH_FIT = 2.5  # the plane fit's window, +- sigmas of the pulse
 WIDTH_TEST = 2.0  # the pixel's own test window
@@ -539,14 +540,20 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         if STEP_Z:
             hm = _halves(dr, dc)                                           # (8, m)
             fits = _half_fits(n0, s1, s2, pos, bsum, hm, X, XX, t0, sb, cal_q)
-            kk = np.argmin(fits[3], -1)[..., None]
+            # (a half of fewer than STEP_MIN pixels in the image, or in a window of fewer
+            # than twice that, is not tried: a plane from a few pixels at a corner or on a
+            # small array, a 4 x 4 chip's, is too loose to tell a step; the chip's
+            # calibrated captures lost 1-7 mm of RMSE to it)
+            whole = ((on @ hm.T) >= STEP_MIN) & (on.sum(-1) >= 2 * STEP_MIN)[..., None]
+            kk = np.argmin(np.where(whole, fits[3], np.inf), -1)[..., None]
+            whole = np.take_along_axis(whole, kk, -1)[..., 0]
             tk, vm, vr, _, ak, bk = (np.take_along_axis(x, kk, -1)[..., 0] for x in fits[:6])
             hk = hm[kk[..., 0]]                                            # (h, w, m)
             mk = np.take_along_axis(fits[6], kk[..., None], -2)[..., 0, :]
             vk = _half_var(n0 * hk, s1, (tk, ak, bk), mk, vm, vr, X)
             # the half's estimate against the window's, in sds of their difference (a
             # half's photons are the window's: var(t_k - t0) = var_k - var_t0)
-            d2 = (tk - t0) ** 2
+            d2 = np.where(whole, (tk - t0) ** 2, 0.0)
             v0 = var_t0
             vd = np.maximum(vk - v0, vk / 4)
             # where they agree, the squared difference less its noise is the bias the
@@ -557,7 +564,8 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
             # curved surface makes the halves and the window disagree too, and a
             # quadratic follows it), the half is refitted on its own photons and reported
             ii, jj = np.nonzero(d2 > STEP_Z ** 2 * vd)
-            keep = _misfit(n0[ii, jj], s1[ii, jj], pos[ii, jj], var_photon[ii, jj], X, dr, dc)
+            keep = _misfit(n0[ii, jj], s1[ii, jj], pos[ii, jj], var_photon[ii, jj], X, dr, dc,
+                           None if cal_q is None else cal_q[ii, jj])
             ii, jj = ii[keep], jj[keep]
             if ii.size:
                 hs = hk[ii, jj]                                            # (p, m)
@@ -689,16 +697,20 @@ def _half_fits(n0, s1, s2, pos, bsum, hm, X, XX, t0, sb, cal=None, loops=False):
             .reshape(m, 3 * k)).reshape(wq.shape[:-1] + (k, 3))
     S2 = dot(np.where(pos, s2, 0.0), hm.T)
     tot = dot(wq, hm.T)
-    M = M0.copy()
     ridge = 1.0 + 0.01 * tot
-    M[..., 1, 1] += ridge
-    M[..., 2, 2] += ridge
-    M[..., 0, 0] += 1e-9
+    # the symmetric 3 x 3 normal matrix with the ridge, inverted by its cofactors (one
+    # pass over the arrays; LAPACK's batched inverse of so many small ones is slower)
+    m00, m01, m02 = M0[..., 0, 0] + 1e-9, M0[..., 0, 1], M0[..., 0, 2]
+    m11, m12, m22 = M0[..., 1, 1] + ridge, M0[..., 1, 2], M0[..., 2, 2] + ridge
+    c00, c01, c02 = m11 * m22 - m12 * m12, m02 * m12 - m01 * m22, m01 * m12 - m02 * m11
+    c11, c12, c22 = m00 * m22 - m02 * m02, m01 * m02 - m00 * m12, m00 * m11 - m01 * m01
+    det = m00 * c00 + m01 * c01 + m02 * c02
+    Mi = np.stack([np.stack([c00, c01, c02], -1), np.stack([c01, c11, c12], -1),
+                   np.stack([c02, c12, c22], -1)], -2) / det[..., None, None]
     Y1 = Y.copy()
     Y1[..., 0] += 1e-9 * t0[..., None]
-    Mi = np.linalg.inv(M)
-    b = (Mi @ Y1[..., None])[..., 0]
-    rss = S2 - 2 * (b * Y).sum(-1) + (b[..., None, :] @ M0 @ b[..., :, None])[..., 0, 0]
+    b = (Mi * Y1[..., None, :]).sum(-1)
+    rss = S2 - 2 * (b * Y).sum(-1) + (b[..., :, None] * M0 * b[..., None, :]).sum((-2, -1))
     vp = np.maximum(rss / np.maximum(tot, 1.0), sb ** 2 + 1 / 12)
     vbg = (dot(bsum, hm.T) * (WIDTH_FIT * sb) ** 2 / 3) / np.maximum(tot, 1.0) ** 2
     vr = (ridge * (Mi[..., 0, 1] * b[..., 1] + Mi[..., 0, 2] * b[..., 2])) ** 2
@@ -727,10 +739,12 @@ def _half_var(n0, s1, plane, mi0, var_model, var_ridge, X):
     return np.maximum(var_model, var_sand) * MSHIFT + var_ridge
 
 
-def _misfit(n0, s1, pos, var_photon, X, dr, dc) -> np.ndarray:
+def _misfit(n0, s1, pos, var_photon, X, dr, dc, cal=None) -> np.ndarray:
     """Whether a quadratic in (dr, dc) fitted to the neighbours' photon times misses
     their means by more than their noise: chi-square of each neighbour's summed
-    residual over its count times the photons' spread, ``STEP_LOF`` sds of the
+    residual over its variance (its count times the photons' spread, and with ``cal``,
+    each neighbour's calibration variance in bins^2, its count squared times that: a
+    time axis off by its own error moves all its photons), ``STEP_LOF`` sds of the
     chi-square above its degrees of freedom. A surface that curves passes; a step
     inside the window (which no quadratic follows) does not."""
     X6 = np.concatenate([X, np.stack([dr ** 2 / 2, dr * dc, dc ** 2 / 2])])   # (6, m)
@@ -746,7 +760,10 @@ def _misfit(n0, s1, pos, var_photon, X, dr, dc) -> np.ndarray:
     y = np.einsum("...m,km->...k", np.where(pos, s1, 0.0), X6)
     beta = np.linalg.solve(M, y[..., None])[..., 0]
     res = np.where(pos, s1 - n0 * np.einsum("...k,km->...m", beta, X6), 0.0)
-    chi = (res ** 2 / np.maximum(n0, 1.0)).sum(-1) / var_photon
+    var = np.maximum(n0, 1.0) * var_photon[..., None]
+    if cal is not None:
+        var = var + np.maximum(n0, 0.0) ** 2 * cal
+    chi = (res ** 2 / var).sum(-1)
     dof = np.maximum(pos.sum(-1) - 6, 1)
     return chi > dof + STEP_LOF * np.sqrt(2 * dof)
 
