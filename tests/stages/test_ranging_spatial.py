@@ -889,3 +889,23 @@ def test_a_quadratic_fits_a_curved_window_and_misses_a_step():
     assert misfit(300 + 4 * sb * (dc >= 2))
     assert misfit(300 + 2 * sb * (dc >= 1))
     assert not misfit(300 + 0.5 * sb * (dc >= 1), photons=4.0)
+
+
+@pytest.mark.parametrize("shape", [(4, 4), (1, 40), (3, 5)])
+def test_the_halves_are_not_tried_on_a_small_array(monkeypatch, shape):
+    """A half of the window with fewer than ``STEP_MIN`` (12) pixels in the image, or in
+    a window of fewer than 24, is not tried (2b): on a 4 x 4 chip, a line of pixels (a
+    LinoSPAD2's) or 3 x 5, every estimate is the one without the check, to the bit
+    (the 16-TDC chip's calibrated captures lost 1-7 mm of RMSE to planes of 6-11
+    pixels, `python benchmarks/spatial_chip.py --seeds 30`)."""
+    from benchmarks.spatial_undetected import frame
+    from stages.ranging import spatial as sp
+
+    counts = frame("stripes12", 10, 2, 4)[0][:shape[0], 5:5 + shape[1]]
+    got = []
+    for z in (sp.STEP_Z, 0.0):
+        monkeypatch.setattr(sp, "STEP_Z", z)
+        got.append(spatial(counts, BIN_S, SIGMA_S, 1e-3))
+    for f in fields(got[0]):
+        assert np.array_equal(getattr(got[0], f.name), getattr(got[1], f.name),
+                              equal_nan=True), f.name
