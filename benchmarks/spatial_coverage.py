@@ -59,8 +59,7 @@ def main() -> None:
     rev = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
                          capture_output=True, text=True).stdout.strip() or "?"
     print(f"$ python benchmarks/spatial_coverage.py --scenes {' '.join(args.scenes)} "
-          f"--cells {' '.join(args.cells)} --seeds {args.seeds}   # spatial from {root} "
-          f"at {rev}\n")
+          f"--cells {' '.join(args.cells)} --seeds {args.seeds}   # spatial at {rev}\n")
     print("| scene | signal, background | detected | RMSE cm | within 2 sigma "
           "| > 10 cm off | undetected | undetected within 2 sigma |")
     print("|---|---|---:|---:|---:|---:|---:|---:|")
