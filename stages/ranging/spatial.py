@@ -90,6 +90,7 @@ NEAR_OTHER = 10.0  # and not where a detected return off that surface is within 
 CHI_MAX = 2.0      # or the quadratic misses its returns by more (reduced chi-square)
 STEP_Z = 3.0     # a half of the window whose plane is this many sds off the window's (0: off)
 STEP_LOF = 3.0   # where the window's quadratic misfits by this many sds of its chi-square
+STEP_TWO = 5.0   # or two planes (the half's, the rest's) fit by this much chi-square better
 STEP_MIN = 12    # pixels in the image a half holds at least, its window twice as many
 STEP_ITER = 3    # takes the pixel, its plane re-centred this many times
 WIDTH_FIT = 2.5  # the plane fit's window, +- sigmas of the pulse
@@ -560,12 +561,22 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
             # window's plane may carry: added to its variance (Lepski's balance of bias
             # against variance; on a surface the plane fits, about vd / 2 on average)
             var_t0 = var_t0 + np.where(d2 > vd, d2 - vd, 0.0)
-            # where they do not, and the window's own quadratic misfits its neighbours (a
-            # curved surface makes the halves and the window disagree too, and a
-            # quadratic follows it), the half is refitted on its own photons and reported
+            # where they do not, and the window's own quadratic misfits its neighbours or
+            # two planes, the half's and the rest's, fit them better (a curved surface makes
+            # the halves and the window disagree too, and a quadratic follows it), the half
+            # is refitted on its own photons and reported
             ii, jj = np.nonzero(d2 > STEP_Z ** 2 * vd)
-            keep = _misfit(n0[ii, jj], s1[ii, jj], pos[ii, jj], var_photon[ii, jj], X, dr, dc,
-                           None if cal_q is None else cal_q[ii, jj])
+            n0s, s1s, s2s, ps, hs = (x[ii, jj] for x in (n0, s1, s2, pos, hk))
+            chi_q, dof, var_q = _window_quadratic(n0s, s1s, ps, var_photon[ii, jj], X, dr, dc,
+                                                  None if cal_q is None else cal_q[ii, jj])
+            cs = 1.0 - hs                                                  # the rest
+            rest = _half_fits(n0s * cs, s1s * cs, s2s * cs, n0s * cs > 0, bsum[ii, jj] * cs,
+                              np.ones((1, dr.size)), X, XX, t0[ii, jj], sb, loops=True)
+            plane = np.where(hs > 0, tk[ii, jj, None] + ak[ii, jj, None] * dr
+                             + bk[ii, jj, None] * dc,
+                             rest[0][:, :1] + rest[4][:, :1] * dr + rest[5][:, :1] * dc)
+            chi_2 = (np.where(ps, s1s - n0s * plane, 0.0) ** 2 / var_q).sum(-1)
+            keep = (chi_q > dof + STEP_LOF * np.sqrt(2 * dof)) | (chi_q - chi_2 > STEP_TWO)
             ii, jj = ii[keep], jj[keep]
             if ii.size:
                 hs = hk[ii, jj]                                            # (p, m)
@@ -740,13 +751,20 @@ def _half_var(n0, s1, plane, mi0, var_model, var_ridge, X):
 
 
 def _misfit(n0, s1, pos, var_photon, X, dr, dc, cal=None) -> np.ndarray:
-    """Whether a quadratic in (dr, dc) fitted to the neighbours' photon times misses
-    their means by more than their noise: chi-square of each neighbour's summed
+    """Whether the window's quadratic (:func:`_window_quadratic`) misfits: its
+    chi-square ``STEP_LOF`` sds above its degrees of freedom."""
+    chi, dof, _ = _window_quadratic(n0, s1, pos, var_photon, X, dr, dc, cal)
+    return chi > dof + STEP_LOF * np.sqrt(2 * dof)
+
+
+def _window_quadratic(n0, s1, pos, var_photon, X, dr, dc, cal=None):
+    """A quadratic in (dr, dc) fitted to the neighbours' photon times, and how far it
+    misses their means against their noise: the chi-square of each neighbour's summed
     residual over its variance (its count times the photons' spread, and with ``cal``,
     each neighbour's calibration variance in bins^2, its count squared times that: a
-    time axis off by its own error moves all its photons), ``STEP_LOF`` sds of the
-    chi-square above its degrees of freedom. A surface that curves passes; a step
-    inside the window (which no quadratic follows) does not."""
+    time axis off by its own error moves all its photons), its degrees of freedom, and
+    those variances (..., m). A surface that curves fits; a step inside the window
+    (which no quadratic follows) does not."""
     X6 = np.concatenate([X, np.stack([dr ** 2 / 2, dr * dc, dc ** 2 / 2])])   # (6, m)
     XX6 = (X6[:, None, :] * X6[None, :, :]).reshape(36, -1).T
     wq = np.where(pos, n0, 0.0)
@@ -764,8 +782,7 @@ def _misfit(n0, s1, pos, var_photon, X, dr, dc, cal=None) -> np.ndarray:
     if cal is not None:
         var = var + np.maximum(n0, 0.0) ** 2 * cal
     chi = (res ** 2 / var).sum(-1)
-    dof = np.maximum(pos.sum(-1) - 6, 1)
-    return chi > dof + STEP_LOF * np.sqrt(2 * dof)
+    return chi, np.maximum(pos.sum(-1) - 6, 1), var
 
 
 def _window_sums_numpy(P, qn, on, beta_q, tq, half, n, prof=None):
