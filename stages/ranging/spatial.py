@@ -23,8 +23,9 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    windows) is compared with the window's. Where the two agree, their squared
    difference less its noise variance is added to t0's variance (a bias the plane may
    carry); where they differ by more than ``STEP_Z`` sds and the window's quadratic
-   misfits its neighbours (a curved surface passes), the half, re-centred on its own
-   plane, gives t0 and its variance. Both from the neighbours only: 3's test holds.
+   misfits its neighbours, or two planes (the half's, the rest's) fit them better (a
+   curved surface passes), the half, re-centred on its own plane, gives t0 and its
+   variance. Both from the neighbours only: 3's test holds.
 3. Decision, per pixel and candidate. The pixel's own counts in +-2 sigma of t0 against
    its background alone: a window fixed by the neighbours, so no look-elsewhere, and
    background alone passes with probability at most ``p_fa`` (the exact Poisson tail).
