@@ -5,7 +5,8 @@ histograms.
 The project's scenes (benchmarks/spatial_scenes.py: ``grid``, and ``turned``, the same
 turned by 30 degrees), the outside probe's (benchmarks/probe_scenes.py: ``sphere``,
 ``fence``, ...), both written apart from the simulator, and ``stripes12``,
-``stripes18``: stripes of two planes 12 or 18 cm apart (an outside review's case).
+``stripes18``: stripes of two planes 12 or 18 cm apart (an outside review's case);
+``diagonalCM`` (stripes at 31 degrees) and ``domeboxCM`` (a box on a dome).
 For every scene, cell and the seeds together: the undetected first returns on surface
 pixels, the RMSE of those within 10 cm of a true surface ("on the surface"), and the
 share of all of them within 2 sigma of the nearest true surface, with the step off
@@ -40,6 +41,24 @@ def stripes(gap_m: float):
     return f
 
 
+def diagonal(gap_m: float):
+    """Stripes along r + 0.6 c (edges at 31 degrees to the columns, 7.7 pixels apart
+    across them: between the window's halves' directions, and two edges in some
+    windows) of two planes ``gap_m`` apart (6 m, slanted)."""
+    def f(r, c, h, w):
+        return (6.0 - 0.004 * c + 0.008 * r
+                + gap_m * ((np.floor(r + 0.6 * c).astype(int) // 9) % 2))
+    return f
+
+
+def dome_box(gap_m: float):
+    """A dome (4 m, curving away) with a box ``gap_m`` proud of it on its middle."""
+    def f(r, c, h, w):
+        base = 4.0 + 0.0004 * ((r - 30) ** 2 + (c - 34) ** 2)
+        return base - gap_m * ((r > 20) & (r < 44) & (c > 14) & (c < 40))
+    return f
+
+
 def frame(name: str, sig: float, bg: float, seed: int):
     """(counts, depth (h, w, 2) metres, NaN: none) of a scene by name."""
     if name in ("grid", "turned"):
@@ -47,6 +66,10 @@ def frame(name: str, sig: float, bg: float, seed: int):
         return histograms(sc, sig, bg, seed), sc.depth
     if name.startswith("stripes"):          # stripes12: 12 cm apart
         f = stripes(int(name[7:]) / 100.0)
+    elif name.startswith("diagonal"):       # diagonal9: 9 cm apart
+        f = diagonal(int(name[8:]) / 100.0)
+    elif name.startswith("domebox"):        # domebox12: the box 12 cm proud
+        f = dome_box(int(name[7:]) / 100.0)
     else:
         f = probe.SCENES[name]
     counts, tr = probe.histograms(f, 64, 64, sig, bg, seed)
