@@ -19,7 +19,6 @@ whose first return is > 10 cm off (detected or not), and the undetected first re
 from __future__ import annotations
 
 import argparse
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -29,7 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.spatial_scenes import BIN_S, SIGMA_S, C  # noqa: E402
-from benchmarks.spatial_undetected import frame, frames_args, machine_line  # noqa: E402
+from benchmarks.spatial_undetected import begin, frame, frames_args, machine_line  # noqa: E402
 from stages.ranging.spatial import spatial  # noqa: E402
 
 SCENES = ["grid", "turned", "sphere", "cylinder", "flatwall", "steep10cm", "grazing", "fence",
@@ -52,14 +51,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="*", default=SCENES)
     frames_args(ap, ["10,2", "2,10", "2,50"], "13,14")
-    args = ap.parse_args()
-    seeds = [int(s) for s in args.seeds.split(",")]
-    load0 = os.getloadavg()[0]
     root = Path(sys.modules["stages.ranging.spatial"].__file__).resolve().parents[2]
     rev = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
                          capture_output=True, text=True).stdout.strip() or "?"
-    print(f"$ python benchmarks/spatial_coverage.py --scenes {' '.join(args.scenes)} "
-          f"--cells {' '.join(args.cells)} --seeds {args.seeds}   # spatial at {rev}\n")
+    args, seeds, load0 = begin(ap, "spatial_coverage.py",
+                               lambda a: f"--scenes {' '.join(a.scenes)}",
+                               f"   # spatial at {rev}")
     print("| scene | signal, background | detected | RMSE cm | within 2 sigma "
           "| > 10 cm off | undetected | undetected within 2 sigma |")
     print("|---|---|---:|---:|---:|---:|---:|---:|")

@@ -15,7 +15,6 @@ within 2 sigma of their own surface. Prints a Markdown table.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
@@ -24,7 +23,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.spatial_scenes import BIN_S, SIGMA_S, C  # noqa: E402
-from benchmarks.spatial_undetected import frame, frames_args, machine_line  # noqa: E402
+from benchmarks.spatial_undetected import begin, frame, frames_args, machine_line  # noqa: E402
 from stages.ranging.spatial import spatial  # noqa: E402
 
 
@@ -33,11 +32,8 @@ def main() -> None:
     ap.add_argument("--steps", nargs="*", type=int, metavar="CM",
                     default=[3, 6, 9, 12, 15, 18, 21, 24, 30, 40])
     frames_args(ap, ["10,2", "2,10"], "9,10")
-    args = ap.parse_args()
-    seeds = [int(s) for s in args.seeds.split(",")]
-    load0 = os.getloadavg()[0]
-    print(f"$ python benchmarks/spatial_steps.py --steps {' '.join(map(str, args.steps))} "
-          f"--cells {' '.join(args.cells)} --seeds {args.seeds}\n")
+    args, seeds, load0 = begin(ap, "spatial_steps.py",
+                               lambda a: f"--steps {' '.join(map(str, a.steps))}")
     print("| signal, background | step cm | step / pulse sigma | detected | RMSE cm "
           "| within 2 sigma |")
     print("|---|---:|---:|---:|---:|---:|")

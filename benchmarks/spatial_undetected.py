@@ -94,6 +94,16 @@ def frames_args(ap: argparse.ArgumentParser, cells: list[str], seeds: str) -> No
     ap.add_argument("--threads", type=int, default=2)
 
 
+def begin(ap: argparse.ArgumentParser, script: str, lead, note: str = "") -> tuple:
+    """Parse the options, echo the command (``lead(args)``: the script's own options
+    before the shared ones; ``note`` after it) and return (args, seeds, the load before
+    the run)."""
+    args = ap.parse_args()
+    print(f"$ python benchmarks/{script} {lead(args)} --cells {' '.join(args.cells)} "
+          f"--seeds {args.seeds}{note}\n")
+    return args, [int(x) for x in args.seeds.split(",")], os.getloadavg()[0]
+
+
 def machine_line(load0: float, threads: int) -> str:
     """The table's last line: the cores and the load before and after the run."""
     return (f"\nmachine: {os.cpu_count()} cores, load {load0:.2f} before, "
@@ -106,11 +116,8 @@ def main() -> None:
                     help="grid, turned, stripesCM (e.g. stripes12), or the probe's: "
                     + ", ".join(probe.SCENES))
     frames_args(ap, ["2,10", "2,50", "5,10", "5,50"], "9,10,11,12")
-    args = ap.parse_args()
-    seeds = [int(s) for s in args.seeds.split(",")]
-    load0 = os.getloadavg()[0]
-    print(f"$ python benchmarks/spatial_undetected.py --scenes {' '.join(args.scenes)} "
-          f"--cells {' '.join(args.cells)} --seeds {args.seeds}\n")
+    args, seeds, load0 = begin(ap, "spatial_undetected.py",
+                               lambda a: f"--scenes {' '.join(a.scenes)}")
     print("| scene | signal, background | undetected pixels | RMSE on the surface, cm "
           "(off -> on) | within 2 sigma (off -> on) |")
     print("|---|---|---:|---|---|")

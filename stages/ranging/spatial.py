@@ -447,6 +447,12 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
             return _window_sums_numba(P, qn, on, beta_q, tq, hb, n, *tables)
         return _window_sums_numpy(P, qn, on, beta_q, tq, half, n, prof)
 
+    # 2b's halves of the window (8, m), and where each is tried: a half of fewer than
+    # STEP_MIN pixels in the image, or in a window of fewer than twice that, is not (a
+    # plane from a few pixels at a corner or on a small array, a 4 x 4 chip's, is too
+    # loose to tell a step; the chip's calibrated captures lost 1-7 mm of RMSE to it)
+    hm = _halves(dr, dc)
+    whole_h = ((on @ hm.T) >= STEP_MIN) & (on.sum(-1) >= 2 * STEP_MIN)[..., None]
     for r in range(nc):
         t0 = cand[..., r] + 0.5                               # bins
         a_s = np.zeros((h, w))
@@ -540,15 +546,9 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         # sums, and the one whose photons spread least about it is the likeliest to lie
         # on one surface (Kuwahara's choice, in Katkovnik's directional windows)
         if STEP_Z:
-            hm = _halves(dr, dc)                                           # (8, m)
             fits = _half_fits(n0, s1, s2, pos, bsum, hm, X, XX, t0, sb, cal_q)
-            # (a half of fewer than STEP_MIN pixels in the image, or in a window of fewer
-            # than twice that, is not tried: a plane from a few pixels at a corner or on a
-            # small array, a 4 x 4 chip's, is too loose to tell a step; the chip's
-            # calibrated captures lost 1-7 mm of RMSE to it)
-            whole = ((on @ hm.T) >= STEP_MIN) & (on.sum(-1) >= 2 * STEP_MIN)[..., None]
-            kk = np.argmin(np.where(whole, fits[3], np.inf), -1)[..., None]
-            whole = np.take_along_axis(whole, kk, -1)[..., 0]
+            kk = np.argmin(np.where(whole_h, fits[3], np.inf), -1)[..., None]
+            whole = np.take_along_axis(whole_h, kk, -1)[..., 0]
             tk, vm, vr, _, ak, bk = (np.take_along_axis(x, kk, -1)[..., 0] for x in fits[:6])
             hk = hm[kk[..., 0]]                                            # (h, w, m)
             mk = np.take_along_axis(fits[6], kk[..., None], -2)[..., 0, :]
@@ -577,7 +577,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
                              + bk[ii, jj, None] * dc,
                              rest[0][:, :1] + rest[4][:, :1] * dr + rest[5][:, :1] * dc)
             chi_2 = (np.where(ps, s1s - n0s * plane, 0.0) ** 2 / var_q).sum(-1)
-            keep = (chi_q > dof + STEP_LOF * np.sqrt(2 * dof)) | (chi_q - chi_2 > STEP_TWO)
+            keep = _misfits(chi_q, dof) | (chi_q - chi_2 > STEP_TWO)
             ii, jj = ii[keep], jj[keep]
             if ii.size:
                 hs = hk[ii, jj]                                            # (p, m)
@@ -751,11 +751,14 @@ def _half_var(n0, s1, plane, mi0, var_model, var_ridge, X):
     return np.maximum(var_model, var_sand) * MSHIFT + var_ridge
 
 
-def _misfit(n0, s1, pos, var_photon, X, dr, dc, cal=None) -> np.ndarray:
-    """Whether the window's quadratic (:func:`_window_quadratic`) misfits: its
-    chi-square ``STEP_LOF`` sds above its degrees of freedom."""
-    chi, dof, _ = _window_quadratic(n0, s1, pos, var_photon, X, dr, dc, cal)
+def _misfits(chi, dof) -> np.ndarray:
+    """A chi-square ``STEP_LOF`` sds above its degrees of freedom."""
     return chi > dof + STEP_LOF * np.sqrt(2 * dof)
+
+
+def _misfit(n0, s1, pos, var_photon, X, dr, dc, cal=None) -> np.ndarray:
+    """Whether the window's quadratic (:func:`_window_quadratic`) misfits."""
+    return _misfits(*_window_quadratic(n0, s1, pos, var_photon, X, dr, dc, cal)[:2])
 
 
 def _window_quadratic(n0, s1, pos, var_photon, X, dr, dc, cal=None):
