@@ -51,6 +51,18 @@ def diagonal(gap_m: float):
     return f
 
 
+def slant(angle_deg: float, gap_m: float):
+    """Stripes 8 pixels wide across, their edges at ``angle_deg`` to the columns, of two
+    planes ``gap_m`` apart (6 m, slanted): a step at any angle to the pixel grid."""
+    a = np.deg2rad(angle_deg)
+
+    def f(r, c, h, w):
+        across = r * np.cos(a) - c * np.sin(a)
+        return (6.0 - 0.004 * c + 0.008 * r
+                + gap_m * ((np.floor(across / 8.0).astype(int)) % 2))
+    return f
+
+
 def dome_box(gap_m: float):
     """A dome (4 m, curving away) with a box ``gap_m`` proud of it on its middle."""
     def f(r, c, h, w):
@@ -68,6 +80,9 @@ def frame(name: str, sig: float, bg: float, seed: int):
         f = stripes(int(name[7:]) / 100.0)
     elif name.startswith("diagonal"):       # diagonal9: 9 cm apart
         f = diagonal(int(name[8:]) / 100.0)
+    elif name.startswith("slant"):          # slant12_9: at 12 degrees, 9 cm apart
+        a, g = name[5:].split("_")
+        f = slant(float(a), int(g) / 100.0)
     elif name.startswith("domebox"):        # domebox12: the box 12 cm proud
         f = dome_box(int(name[7:]) / 100.0)
     else:

@@ -18,14 +18,20 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    photons can test it (3).
    2b. A depth step inside the window, too small for the censoring (two surfaces a few
    pulse widths apart: the plane becomes a ramp between them). Each of the window's 8
-   halves through the pixel fits its own plane from the same sums; the one whose
-   photons spread least about it (Kuwahara's choice, in Katkovnik's directional
-   windows) is compared with the window's. Where the two agree, their squared
-   difference less its noise variance is added to t0's variance (a bias the plane may
-   carry); where they differ by more than ``STEP_Z`` sds and the window's quadratic
-   misfits its neighbours, or two planes (the half's, the rest's) fit them better (a
-   curved surface passes), the half, re-centred on its own plane, gives t0 and its
-   variance. Both from the neighbours only: 3's test holds.
+   halves through the pixel along its rows, columns and diagonals (16, at 8 directions,
+   where the neighbours hold ``STEP_FINE`` net photons each) fits its own plane from the
+   same sums; the one whose photons spread least about it (Kuwahara's choice, in
+   Katkovnik's directional windows) is compared with the window's. Where the two
+   agree, their squared difference less its noise variance is added to t0's variance
+   (a bias the plane may carry); where they differ by more than ``STEP_Z`` sds and the
+   window's quadratic misfits its neighbours, or two planes (the half's, the rest's)
+   fit them better (a curved surface passes), the half, re-centred on its own plane,
+   gives t0 and its variance. Both from the neighbours only: 3's test holds.
+   2c. After 3's decision, a detected pixel's own photons (their mean, re-centred on
+   them) are a second estimate of its time: where they lie more than ``OWN_Z`` sds from
+   t0, their squared difference less its noise is a bias t0 may carry (within half a
+   pixel of a step at an angle no half follows, every half holds both surfaces), and the
+   larger of it and 2b's enters t0's variance. The estimate stays the plane's.
 3. Decision, per pixel and candidate. The pixel's own counts in +-2 sigma of t0 against
    its background alone: a window fixed by the neighbours, so no look-elsewhere, and
    background alone passes with probability at most ``p_fa`` (the exact Poisson tail).
@@ -94,6 +100,10 @@ STEP_LOF = 3.0   # where the window's quadratic misfits by this many sds of its 
 STEP_TWO = 5.0   # or two planes (the half's, the rest's) fit by this much chi-square better
 STEP_MIN = 12    # pixels in the image a half holds at least, its window twice as many
 STEP_ITER = 3    # takes the pixel, its plane re-centred this many times
+STEP_FINE = 3.0  # net photons a neighbour from which the halves are cut at 16 directions
+                 # (below it, and at 0, at the 8 of the rows, columns and diagonals)
+OWN_Z = 2.0      # 2c: a detected pixel's own photons this many sds off its plane (0: off)
+OWN_MIN = 3      # counts in the plane's window the pixel needs for it
 WIDTH_FIT = 2.5  # the plane fit's window, +- sigmas of the pulse
 WIDTH_TEST = 2.0  # the pixel's own test window
 BOXES = (1.2, 4.0, 10.0)  # the candidates' time boxes, +- sigmas of the pulse
@@ -447,7 +457,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
             return _window_sums_numba(P, qn, on, beta_q, tq, hb, n, *tables)
         return _window_sums_numpy(P, qn, on, beta_q, tq, half, n, prof)
 
-    # 2b's halves of the window (8, m), and where each is tried: a half of fewer than
+    # 2b's halves of the window (16, m), and where each is tried: a half of fewer than
     # STEP_MIN pixels in the image, or in a window of fewer than twice that, is not (a
     # plane from a few pixels at a corner or on a small array, a 4 x 4 chip's, is too
     # loose to tell a step; the chip's calibrated captures lost 1-7 mm of RMSE to it)
@@ -542,13 +552,24 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         # -- 2b. a depth step inside the window (docs/ranging.md "A small depth step
         # inside the window"): the plane fitted across two surfaces a few pulse widths
         # apart is a ramp between them, off by up to half the step; each half of the
-        # window (8 half-planes through the pixel) fits a plane of its own from the same
-        # sums, and the one whose photons spread least about it is the likeliest to lie
-        # on one surface (Kuwahara's choice, in Katkovnik's directional windows)
+        # window (half-planes through the pixel, :func:`_halves`) fits a plane of its own
+        # from the same sums, and the one whose photons spread least about it is the
+        # likeliest to lie on one surface (Kuwahara's choice, in Katkovnik's directional
+        # windows; the spreads as measured: with the pulse's variance as their floor,
+        # the halves below it tied and the first in order, along the columns, won, and
+        # a step along the rows lost 20 points of 2-sigma coverage against one along the
+        # columns, test_the_step_check_does_not_depend_on_the_steps_direction)
+        var_plane = var_t0.copy()   # t0's variance without 2b's bias term (for 2c)
         if STEP_Z:
             fits = _half_fits(n0, s1, s2, pos, bsum, hm, X, XX, t0, sb, cal_q)
-            kk = np.argmin(np.where(whole_h, fits[3], np.inf), -1)[..., None]
-            whole = np.take_along_axis(whole_h, kk, -1)[..., 0]
+            # (the 8 halves between the rows, columns and diagonals only where the
+            # neighbours hold STEP_FINE net photons each: with fewer, the least of 16
+            # spreads is chosen by its noise more than of 8, and more pixels beside a step
+            # take the other side's half)
+            fine = (tot >= STEP_FINE * np.maximum(on.sum(-1), 1.0)) & (STEP_FINE > 0)
+            avail = whole_h & ((np.arange(hm.shape[0]) < 8) | fine[..., None])
+            kk = np.argmin(np.where(avail, fits[3], np.inf), -1)[..., None]
+            whole = np.take_along_axis(avail, kk, -1)[..., 0]
             tk, vm, vr, _, ak, bk = (np.take_along_axis(x, kk, -1)[..., 0] for x in fits[:6])
             hk = hm[kk[..., 0]]                                            # (h, w, m)
             mk = np.take_along_axis(fits[6], kk[..., None], -2)[..., 0, :]
@@ -601,6 +622,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
                 ok = (t_ - t0[ii, jj]) ** 2 > STEP_Z ** 2 * np.maximum(v_ - v0[ii, jj], v_ / 4)
                 ii, jj = ii[ok], jj[ok]
                 t0[ii, jj], var_t0[ii, jj] = t_[ok], v_[ok]
+                var_plane[ii, jj] = v_[ok]
                 a_s[ii, jj], b_s[ii, jj] = a_[ok], b_[ok]
                 w_t0[ii, jj] = wk[ok]            # its weights: the curvature's step (5)
         # how t0 answers a curvature the plane leaves out, t = ... + (H_rr dr^2 + 2 H_rc
@@ -654,6 +676,19 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         found = cand_ok[..., r] & np.isfinite(t0)
         slope[..., r, 0], slope[..., r, 1] = a_s, b_s
         mine_r[..., r], bw_r[..., r] = mine, bw
+        # -- 2c. the pixel's own photons, a second estimate of its time (after the
+        # decision: 3 tested the plane's window, its p_fa holds). Beside a step that
+        # crosses the window at an angle none of the halves follows, or within half a
+        # pixel of one, no half is one surface and every half's plane is off; the
+        # pixel's own photons are not. Where the two differ by more than ``OWN_Z`` sds,
+        # their squared difference less its noise is the bias t0 may carry, as 2b's
+        # (the larger of the two is kept). The estimate stays the plane's: its own
+        # photons would carry the pixel's own calibration error, which the plane
+        # averages over its neighbours (test_sigma_covers_the_neighbours_calibration_errors)
+        if OWN_Z:
+            ii, jj, bias = _own_bias(P, beta, t0, var_plane, var_photon, found & own_r, fit, n,
+                                     prof, None if cal_var is None else cal_var / bin_s ** 2)
+            var_t0[ii, jj] = np.maximum(var_t0[ii, jj], var_plane[ii, jj] + bias)
         # (a candidate the window does not detect still gives the pixel a distance, as a
         # per-pixel estimator's undetected peak does; it is never detected)
         t_out[..., r] = np.where(np.isfinite(t0), t0 * bin_s + t0_s, np.nan)
@@ -681,18 +716,27 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
 
 
 def _halves(dr, dc) -> np.ndarray:
-    """The window's 8 halves through the pixel (a row, a column, a diagonal and the
-    side of it), each with its middle line: (8, m) masks over the offsets (dr, dc)."""
-    return np.stack([dc <= 0, dc >= 0, dr <= 0, dr >= 0, dr + dc <= 0, dr + dc >= 0,
-                     dr - dc <= 0, dr - dc >= 0]).astype(np.float64)
+    """The window's 16 halves through the pixel, each with its middle line: (16, m) masks
+    over the offsets (dr, dc), both sides of a line at 8 directions. The first 8 along a
+    column, a row and the two diagonals, then the 8 between them (at 22.5 degrees to
+    those). A half holds every offset on its side of the line and on the line's digital
+    trace: within half a pixel of the line along the axis it runs nearer to (one offset
+    a column or a row; the column, row or diagonal itself where the line is one)."""
+    out = []
+    for a in np.pi * np.array([0.5, 0.0, 0.25, -0.25, 0.125, 0.375, 0.625, 0.875]):
+        p = dr * np.cos(a) + dc * np.sin(a)
+        band = 0.5 * max(abs(np.cos(a)), abs(np.sin(a))) + 1e-9
+        out += [p <= band, p >= -band]
+    return np.stack(out).astype(np.float64)
 
 
 def _half_fits(n0, s1, s2, pos, bsum, hm, X, XX, t0, sb, cal=None, loops=False):
     """Step 2's plane fit (its ridge on the slopes) over each half ``hm`` (k, m) of the
     window, from the sums at the window's plane, all halves in a few matrix products:
-    per half (..., k), its t0, t0's model variance (as step 2's: the photons' spread and
-    the background's, before Huber's factor), the ridge's pull's, the photons' spread
-    about its plane, its slopes, and the first row of its inverse normal matrix (..., k,
+    per half (..., k), its t0, t0's model variance (as step 2's: the photons' spread, at
+    least the pulse's, and the background's, before Huber's factor), the ridge's pull's,
+    the photons' spread about its plane (as measured: no floor, which would tie the
+    halves' spreads below it), its slopes, and the first row of its inverse normal matrix (..., k,
     3). The photons' spread follows from the sums: rss = S2 - 2 b.Y + b' M b. ``cal``
     (..., m), each neighbour's calibration variance (bins^2), adds its share, as step 2's.
     ``loops``: the products in einsum's loops (a few pixels' fits: bands of rows agree to
@@ -723,7 +767,8 @@ def _half_fits(n0, s1, s2, pos, bsum, hm, X, XX, t0, sb, cal=None, loops=False):
     Y1[..., 0] += 1e-9 * t0[..., None]
     b = (Mi * Y1[..., None, :]).sum(-1)
     rss = S2 - 2 * (b * Y).sum(-1) + (b[..., :, None] * M0 * b[..., None, :]).sum((-2, -1))
-    vp = np.maximum(rss / np.maximum(tot, 1.0), sb ** 2 + 1 / 12)
+    spread = rss / np.maximum(tot, 1.0)
+    vp = np.maximum(spread, sb ** 2 + 1 / 12)
     vbg = (dot(bsum, hm.T) * (WIDTH_FIT * sb) ** 2 / 3) / np.maximum(tot, 1.0) ** 2
     vr = (ridge * (Mi[..., 0, 1] * b[..., 1] + Mi[..., 0, 2] * b[..., 2])) ** 2
     var = vp * Mi[..., 0, 0] + vbg
@@ -732,7 +777,7 @@ def _half_fits(n0, s1, s2, pos, bsum, hm, X, XX, t0, sb, cal=None, loops=False):
                  .reshape(m, 9 * k)).reshape(wq.shape[:-1] + (k, 3, 3))
         var = var + np.einsum("...ki,...kij,...kj->...k", Mi[..., 0, :], Cq,
                               Mi[..., 0, :]) / MSHIFT
-    return b[..., 0], var, vr, vp, b[..., 1], b[..., 2], Mi[..., 0, :]
+    return b[..., 0], var, vr, spread, b[..., 1], b[..., 2], Mi[..., 0, :]
 
 
 def _half_var(n0, s1, plane, mi0, var_model, var_ridge, X):
@@ -754,6 +799,32 @@ def _half_var(n0, s1, plane, mi0, var_model, var_ridge, X):
 def _misfits(chi, dof) -> np.ndarray:
     """A chi-square ``STEP_LOF`` sds above its degrees of freedom."""
     return chi > dof + STEP_LOF * np.sqrt(2 * dof)
+
+
+def _own_bias(P, beta, t0, var_plane, var_photon, sel, fit, n, prof=None, cal=None):
+    """2c. For the pixels of ``sel``: their own photons' mean, re-centred ``STEP_ITER`` + 1
+    times from t0 on its own window (+- ``fit`` bins), against t0. Where they differ by
+    more than ``OWN_Z`` sds (the mean's variance: the photons' spread and the
+    background's as step 2's, and the pixel's calibration variance ``cal`` (h, w) in
+    bins^2 where given; plus t0's ``var_plane``), with ``OWN_MIN`` counts in the window
+    at least, the squared difference less that variance. Returns their rows, columns
+    and those biases (bins^2)."""
+    h, w = t0.shape
+    ii, jj = np.nonzero(sel & np.isfinite(t0))
+    qs = (ii * w + jj)[:, None] * (n + 1)              # the pixel's own prefix sums' row
+    one, bq = np.ones((ii.size, 1)), beta[ii, jj][:, None]
+    t = t0[ii, jj]
+    m = t
+    for _ in range(STEP_ITER + 1):
+        n0, s1, _, raw, bs = (x[:, 0] for x in _window_sums_numpy(P, qs, one, bq, m[:, None],
+                                                                   fit, n, prof))
+        m = np.where(n0 > 0, s1 / np.where(n0 > 0, n0, 1.0), m)
+    nn = np.maximum(n0, 1.0)
+    v = (var_photon[ii, jj] * nn + bs * fit ** 2 / 3) / nn ** 2 * MSHIFT
+    v = v + var_plane[ii, jj] + (0.0 if cal is None else cal[ii, jj])
+    d2 = (m - t) ** 2
+    ok = (n0 > 0) & (raw >= OWN_MIN) & (d2 > OWN_Z ** 2 * v)
+    return ii[ok], jj[ok], d2[ok] - v[ok]
 
 
 def _misfit(n0, s1, pos, var_photon, X, dr, dc, cal=None) -> np.ndarray:

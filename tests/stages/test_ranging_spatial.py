@@ -801,36 +801,42 @@ def test_a_small_depth_step_inside_the_window(monkeypatch, step_cm, cover, rmse)
     it. The depth step's check (2b: the window's halves, the least spread one where it
     disagrees and the window's quadratic misfits, and the bias term where they agree)
     puts the detected pixels back on their surface with a sigma that covers them.
-    Measured: 12 cm, 2 sigma 51.5 -> 95.7 %, RMSE 3.0 -> 0.33 cm; 6 cm, 28.6 -> 90.8 %,
-    1.5 -> 0.66 cm."""
+    Measured (2c, the pixel's own photons' bias term, off both times): 12 cm, 2 sigma
+    51.5 -> 96.1 %, RMSE 3.0 -> 0.30 cm; 6 cm, 28.6 -> 92.7 %, 1.5 -> 0.55 cm."""
     from stages.ranging import spatial as sp
 
-    (c0, r0), (c1, r1) = _stripes_off_and_on(monkeypatch, f"stripes{step_cm}", (10, 2),
-                                             "STEP_Z", 0.0, 0.95)
+    monkeypatch.setattr(sp, "OWN_Z", 0.0)
+    (c0, r0, _), (c1, r1, n1) = _stripes_off_and_on(monkeypatch, f"stripes{step_cm}",
+                                                    (10, 2), "STEP_Z", 0.0, 0.95)
     got = (c0, r0, c1, r1)
+    assert n1 == 0, n1
     assert sp.STEP_Z > 0 and c1 >= cover and r1 <= rmse, got
     assert c0 <= cover - 0.3 and r0 >= 2 * r1, got
 
 
-def _stripes_off_and_on(monkeypatch, name, cell, constant, off, detected):
-    """2-sigma coverage and RMSE (m) of the detected first returns of a stripes scene
-    (seed 11, 40 x 40), with ``constant`` of stages.ranging.spatial set to ``off``, then
-    at its value: ((cover, rmse) off, (cover, rmse) on). Every detected return lies on its
-    surface and at least ``detected`` of the pixels are detected, both times."""
+def _stripes_off_and_on(monkeypatch, name, cell, constant, off, detected, transpose=False):
+    """2-sigma coverage and RMSE (m) of the detected first returns of a scene of
+    benchmarks/spatial_undetected.py (seed 11, 40 x 40; ``transpose``: rows for columns),
+    with ``constant`` of stages.ranging.spatial set to ``off``, then at its value: ((cover,
+    rmse, n_off) off, (cover, rmse, n_off) on), n_off the detected returns > 10 cm off
+    their surface, left out of the RMSE. At least ``detected`` of the pixels are
+    detected, both times."""
     from benchmarks.spatial_undetected import frame
     from stages.ranging import spatial as sp
 
     counts, depth = frame(name, *cell, 11)
     counts, depth = counts[:40, :40], depth[:40, :40, 0]
+    if transpose:
+        counts, depth = counts.swapaxes(0, 1).copy(), depth.T.copy()
     got = []
     for v in (off, getattr(sp, constant)):
         monkeypatch.setattr(sp, constant, v)
         est = spatial(counts, BIN_S, SIGMA_S, 1e-3)
         det = est.detected[..., 0]
         err = np.abs(est.t_s[..., 0] * C / 2 - depth)[det]
-        assert det.mean() > detected and np.all(err < 0.1)
+        assert det.mean() > detected
         got.append((np.mean(err < 2 * est.sigma_s[..., 0][det] * C / 2),
-                    np.sqrt(np.mean(err ** 2))))
+                    np.sqrt(np.mean(err[err < 0.1] ** 2)), int(np.sum(err >= 0.1))))
     return got
 
 
@@ -866,12 +872,13 @@ def test_the_halves_fits_are_least_squares_planes():
             beta = np.linalg.solve(Mr, y)
             tq = beta @ X
             rss = np.where(use, s2[p] - 2 * tq * s1[p] + tq ** 2 * n0[p], 0.0).sum()
-            spread = max(rss / max(w.sum(), 1.0), 2.3 ** 2 + 1 / 12)
+            spread = rss / max(w.sum(), 1.0)          # the measured spread: no floor
+            vp_ = max(spread, 2.3 ** 2 + 1 / 12)       # the variance's: the pulse's at least
             Mi = np.linalg.inv(Mr)
             vbg = (bsum[p] * hm[k]).sum() * (WIDTH_FIT * 2.3) ** 2 / 3 / max(w.sum(), 1) ** 2
             np.testing.assert_allclose([t[p, k], a[p, k], b[p, k]], beta, rtol=1e-10)
             assert vp[p, k] == pytest.approx(spread, rel=1e-8)
-            assert var[p, k] == pytest.approx(spread * Mi[0, 0] + vbg, rel=1e-8)
+            assert var[p, k] == pytest.approx(vp_ * Mi[0, 0] + vbg, rel=1e-8)
             assert vr[p, k] == pytest.approx((ridge * (Mi[0, 1] * beta[1]
                                                        + Mi[0, 2] * beta[2])) ** 2, rel=1e-8)
             np.testing.assert_allclose(mi0[p, k], Mi[0], rtol=1e-10)
@@ -928,7 +935,65 @@ def test_two_planes_take_a_step_the_quadratic_half_follows(monkeypatch):
     and its misfit is rarely significant; two planes, the least spread half's and the
     rest's, fit the neighbours better by ``STEP_TWO`` (5) of chi-square, and the half is
     taken (2b). Stripes 12 cm apart, seed 11 (not run by the choice of 5), 40 x 40 at
-    (2, 10): detected RMSE 2.4 -> 1.5 cm, 2 sigma 92.4 -> 94.5 %."""
-    (c0, r0), (c1, r1) = _stripes_off_and_on(monkeypatch, "stripes12", (2, 10), "STEP_TWO",
-                                             np.inf, 0.9)
+    (2, 10): detected RMSE 2.4 -> 1.6 cm, 2 sigma 93.8 -> 94.7 %, and the one detected
+    pixel > 10 cm off without it is not."""
+    (c0, r0, n0), (c1, r1, n1) = _stripes_off_and_on(monkeypatch, "stripes12", (2, 10),
+                                                     "STEP_TWO", np.inf, 0.9)
     assert r1 <= 0.018 and r0 >= 0.022 and c1 >= 0.93, (c0, r0, c1, r1)
+    assert n1 == 0 and n0 <= 2, (n0, n1)
+
+
+def test_the_step_check_does_not_depend_on_the_steps_direction(monkeypatch):
+    """2b chooses the half whose photons spread least about its plane. The spread had a
+    floor (the pulse's variance, which the halves' variances keep) and below it the
+    halves tied and the first in order won: a half along the columns. Stripes 6 cm apart,
+    seed 11, 40 x 40 at (10, 2), were 90.6 % within 2 sigma (RMSE 0.60 cm) with the step
+    along the columns and 70.3 % (1.14 cm) along the rows. Without the floor in the
+    choice, the same both ways: 92.7 %, 0.55 cm."""
+    got = [_stripes_off_and_on(monkeypatch, "stripes6", (10, 2), "STEP_Z", 0.0, 0.95,
+                               transpose=t)[1] for t in (False, True)]
+    (c, r, n), (ct, rt, nt) = got
+    assert c >= 0.9 and abs(c - ct) <= 0.005 and abs(r - rt) <= 5e-4 and n == nt == 0, got
+
+
+def test_halves_between_the_rows_columns_and_diagonals(monkeypatch):
+    """Stripes at 31 degrees to the columns, 15 cm apart (between the 8 halves' directions,
+    with two edges in some windows), seed 11, 40 x 40 at (5, 10): with the window's halves
+    at 8 directions only, RMSE 2.5 cm and 87.9 % within 2 sigma; at 16 where the
+    neighbours hold ``STEP_FINE`` net photons each, 1.5 cm and 94.2 %."""
+    (c0, r0, _), (c1, r1, n1) = _stripes_off_and_on(monkeypatch, "diagonal15", (5, 10),
+                                                    "STEP_FINE", 0.0, 0.9)
+    assert r1 <= 0.018 and r0 >= 0.022 and c1 >= 0.92 and c0 <= c1 - 0.03 and n1 == 0, \
+        (c0, r0, c1, r1, n1)
+
+
+@pytest.mark.parametrize("angle", [38, 12])
+def test_the_pixels_own_photons_widen_its_sigma_beside_a_slanted_step(monkeypatch, angle):
+    """A pixel within half a pixel of a step that crosses the window at an angle none of
+    the halves follows (stripes 8 pixels wide, 12 cm apart, edges at 38 and 12 degrees to
+    the columns; seed 11, 40 x 40 at (10, 2)): every half holds both surfaces and their
+    planes, and the window's, are ramps; its own photons are not. 2c adds their squared
+    difference less its noise to the variance: 2 sigma 91.1 -> 96.7 % (38 degrees),
+    89.7 -> 96.5 % (12). It moves no estimate (a pixel's own photons would carry its own
+    calibration error, test_sigma_covers_the_neighbours_calibration_errors); the
+    curvature step (5), which weighs the detected returns by their sigma, moves 0.4-1 %
+    of them (by up to 2.5 cm, either way), and the RMSE is the same within 0.1 mm."""
+    from benchmarks.spatial_undetected import frame
+    from stages.ranging import spatial as sp
+
+    counts, depth = frame(f"slant{angle}_12", 10, 2, 11)
+    counts, depth = counts[:40, :40], depth[:40, :40, 0]
+    got = []
+    for z in (0.0, sp.OWN_Z):
+        monkeypatch.setattr(sp, "OWN_Z", z)
+        got.append(spatial(counts, BIN_S, SIGMA_S, 1e-3))
+    off, on = got
+    np.testing.assert_array_equal(off.detected, on.detected)
+    moved = np.mean(off.t_s[off.detected] != on.t_s[off.detected])
+    det = on.detected[..., 0]
+    errs = [np.abs(e.t_s[..., 0] * C / 2 - depth)[det] for e in (off, on)]
+    (c0, r0), (c1, r1) = ((np.mean(err < 2 * e.sigma_s[..., 0][det] * C / 2),
+                           np.sqrt(np.mean(err ** 2)))
+                          for err, e in zip(errs, (off, on), strict=True))
+    assert sp.OWN_Z > 0 and c1 >= 0.95 and c0 <= c1 - 0.03, (c0, c1)
+    assert moved < 0.02 and abs(r1 - r0) < 5e-4, (moved, r0, r1)
