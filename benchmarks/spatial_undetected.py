@@ -6,7 +6,9 @@ The project's scenes (benchmarks/spatial_scenes.py: ``grid``, and ``turned``, th
 turned by 30 degrees), the outside probe's (benchmarks/probe_scenes.py: ``sphere``,
 ``fence``, ...), both written apart from the simulator, and ``stripes12``,
 ``stripes18``: stripes of two planes 12 or 18 cm apart (an outside review's case);
-``diagonalCM`` (stripes at 31 degrees) and ``domeboxCM`` (a box on a dome).
+``diagonalCM`` (stripes at 31 degrees), ``slantA_CM`` (stripes 8 pixels wide, CM
+apart, their edges at A degrees to the columns), ``rstripesCM`` (``stripesCM`` along the
+rows) and ``domeboxCM`` (a box on a dome).
 For every scene, cell and the seeds together: the undetected first returns on surface
 pixels, the RMSE of those within 10 cm of a true surface ("on the surface"), and the
 share of all of them within 2 sigma of the nearest true surface, with the step off
@@ -76,6 +78,9 @@ def frame(name: str, sig: float, bg: float, seed: int):
     if name in ("grid", "turned"):
         sc = scene(angle_deg=30.0 if name == "turned" else 0.0)
         return histograms(sc, sig, bg, seed), sc.depth
+    if name.startswith("rstripes"):         # rstripes12: stripes12 along the rows
+        counts, depth = frame(name[1:], sig, bg, seed)
+        return counts.swapaxes(0, 1).copy(), depth.swapaxes(0, 1).copy()
     if name.startswith("stripes"):          # stripes12: 12 cm apart
         f = stripes(int(name[7:]) / 100.0)
     elif name.startswith("diagonal"):       # diagonal9: 9 cm apart

@@ -561,13 +561,18 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         # columns, test_the_step_check_does_not_depend_on_the_steps_direction)
         var_plane = var_t0.copy()   # t0's variance without 2b's bias term (for 2c)
         if STEP_Z:
-            fits = _half_fits(n0, s1, s2, pos, bsum, hm, X, XX, t0, sb, cal_q)
             # (the 8 halves between the rows, columns and diagonals only where the
             # neighbours hold STEP_FINE net photons each: with fewer, the least of 16
             # spreads is chosen by its noise more than of 8, and more pixels beside a step
-            # take the other side's half)
+            # take the other side's half; fitted only where some pixel has them, apart
+            # from the 8, so that every band of rows has the 8's products in one shape)
             fine = (tot >= STEP_FINE * np.maximum(on.sum(-1), 1.0)) & (STEP_FINE > 0)
-            avail = whole_h & ((np.arange(hm.shape[0]) < 8) | fine[..., None])
+            k = hm.shape[0] if fine.any() else 8
+            fits = [_half_fits(n0, s1, s2, pos, bsum, hm[i:j], X, XX, t0, sb, cal_q)
+                    for i, j in ((0, 8), (8, k)) if j > i]
+            fits = [np.concatenate(x, -2 if x[0].ndim == t0.ndim + 2 else -1)
+                    for x in zip(*fits, strict=True)]
+            avail = whole_h[..., :k] & ((np.arange(k) < 8) | fine[..., None])
             kk = np.argmin(np.where(avail, fits[3], np.inf), -1)[..., None]
             whole = np.take_along_axis(avail, kk, -1)[..., 0]
             tk, vm, vr, _, ak, bk = (np.take_along_axis(x, kk, -1)[..., 0] for x in fits[:6])
@@ -736,8 +741,9 @@ def _half_fits(n0, s1, s2, pos, bsum, hm, X, XX, t0, sb, cal=None, loops=False):
     per half (..., k), its t0, t0's model variance (as step 2's: the photons' spread, at
     least the pulse's, and the background's, before Huber's factor), the ridge's pull's,
     the photons' spread about its plane (as measured: no floor, which would tie the
-    halves' spreads below it), its slopes, and the first row of its inverse normal matrix (..., k,
-    3). The photons' spread follows from the sums: rss = S2 - 2 b.Y + b' M b. ``cal``
+    halves' spreads below it), its slopes, and the first row of its inverse normal
+    matrix (..., k, 3). The photons' spread follows from the sums: rss = S2 - 2 b.Y +
+    b' M b. ``cal``
     (..., m), each neighbour's calibration variance (bins^2), adds its share, as step 2's.
     ``loops``: the products in einsum's loops (a few pixels' fits: bands of rows agree to
     the bit)."""
