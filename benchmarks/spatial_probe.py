@@ -4,6 +4,7 @@ and undetected; false surfaces; no ramp at edges; no invented surface), scored p
 and cell, pooled over seeds.
 
     python benchmarks/spatial_probe.py run GROUP [--out DIR]   # appends DIR/GROUP.jsonl
+                                    # (report: a frame run again, its latest record)
     python benchmarks/spatial_probe.py report [--out DIR] [GROUP ...]
 
 Groups: main (12 scenes x 4 cells x 3 seeds), sky (all-sky frames: every detection a
@@ -202,9 +203,12 @@ def report(out, want=None):
     for f in sorted(glob.glob(f"{out}/*.jsonl")):
         with open(f) as fh:
             rows += [json.loads(x) for x in fh]
+    key = ("group", "scene", "h", "w", "sig", "bg", "p_fa", "ss", "pulse_mult", "bgk")
+    # (run appends: a frame run again into the same folder replaces its earlier record,
+    # the latest kept, so that a re-run is not pooled with the run before it)
+    rows = list({tuple(r.get(k) for k in key + ("seed",)): r for r in rows}.values())
     crash = [r for r in rows if "crash" in r]
     rows = [r for r in rows if "crash" not in r]
-    key = ("group", "scene", "h", "w", "sig", "bg", "p_fa", "ss", "pulse_mult", "bgk")
     g = defaultdict(list)
     for r in rows:
         g[tuple(r[k] for k in key)].append(r)
