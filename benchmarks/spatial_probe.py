@@ -127,7 +127,8 @@ def run(scene, h, w, sig, bg, seed, p_fa=1e-3, ss=1, pulse_mult=1.0, bgk="flat",
         try:
             est = spatial(counts, gen.BIN_S, gen.SIGMA_S, p_fa, threads=threads)
         except Exception as ex:  # noqa: BLE001
-            return dict(scene=scene, crash=repr(ex))
+            return dict(scene=scene, h=h, w=w, sig=sig, bg=bg, seed=seed, p_fa=p_fa, ss=ss,
+                        pulse_mult=pulse_mult, bgk=bgk, crash=repr(ex))
         el = time.perf_counter() - t0
     r = score(est, tr, el, sorted({str(x.message)[:120] for x in wl}))
     if keep:  # the estimates, for a closer look

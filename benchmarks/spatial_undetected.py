@@ -7,8 +7,8 @@ turned by 30 degrees), the outside probe's (benchmarks/probe_scenes.py: ``sphere
 ``fence``, ...), both written apart from the simulator, and ``stripes12``,
 ``stripes18``: stripes of two planes 12 or 18 cm apart (an outside review's case);
 ``diagonalCM`` (stripes at 31 degrees), ``slantA_CM`` (stripes 8 pixels wide, CM
-apart, their edges at A degrees to the columns), ``rstripesCM`` (``stripesCM`` along the
-rows) and ``domeboxCM`` (a box on a dome).
+apart, their edges at A degrees to the rows: 0 along them, 90 along the columns),
+``rstripesCM`` (``stripesCM`` along the rows) and ``domeboxCM`` (a box on a dome).
 For every scene, cell and the seeds together: the undetected first returns on surface
 pixels, the RMSE of those within 10 cm of a true surface ("on the surface"), and the
 share of all of them within 2 sigma of the nearest true surface, with the step off
@@ -44,7 +44,7 @@ def stripes(gap_m: float):
 
 
 def diagonal(gap_m: float):
-    """Stripes along r + 0.6 c (edges at 31 degrees to the columns, 7.7 pixels apart
+    """Stripes along r + 0.6 c (edges at 31 degrees to the rows, 7.7 pixels apart
     across them: between the window's halves' directions, and two edges in some
     windows) of two planes ``gap_m`` apart (6 m, slanted)."""
     def f(r, c, h, w):
@@ -54,8 +54,9 @@ def diagonal(gap_m: float):
 
 
 def slant(angle_deg: float, gap_m: float):
-    """Stripes 8 pixels wide across, their edges at ``angle_deg`` to the columns, of two
-    planes ``gap_m`` apart (6 m, slanted): a step at any angle to the pixel grid."""
+    """Stripes 8 pixels wide across, their edges at ``angle_deg`` to the rows (0: along
+    the rows, 90: along the columns), of two planes ``gap_m`` apart (6 m, slanted): a
+    step at any angle to the pixel grid."""
     a = np.deg2rad(angle_deg)
 
     def f(r, c, h, w):

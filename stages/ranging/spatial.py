@@ -19,19 +19,19 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    2b. A depth step inside the window, too small for the censoring (two surfaces a few
    pulse widths apart: the plane becomes a ramp between them). Each of the window's 8
    halves through the pixel along its rows, columns and diagonals (16, at 8 directions,
-   where the neighbours hold ``STEP_FINE`` net photons each) fits its own plane from the
-   same sums; the one whose photons spread least about it (Kuwahara's choice, in
-   Katkovnik's directional windows) is compared with the window's. Where the two
-   agree, their squared difference less its noise variance is added to t0's variance
-   (a bias the plane may carry); where they differ by more than ``STEP_Z`` sds and the
-   window's quadratic misfits its neighbours, or two planes (the half's, the rest's)
-   fit them better (a curved surface passes), the half, re-centred on its own plane,
-   gives t0 and its variance. Both from the neighbours only: 3's test holds.
-   2c. After 3's decision, a detected pixel's own photons (their mean, re-centred on
-   them) are a second estimate of its time: where they lie more than ``OWN_Z`` sds from
-   t0, their squared difference less its noise is a bias t0 may carry (within half a
-   pixel of a step at an angle no half follows, every half holds both surfaces), and the
-   larger of it and 2b's enters t0's variance. The estimate stays the plane's.
+   where the neighbours hold ``STEP_FINE`` net photons each on average) fits its own plane
+   from the same sums; the one whose photons spread least about it (Kuwahara's choice, in
+   Katkovnik's directional windows) is compared with the window's. Where the two agree,
+   their squared difference less its noise variance is added to t0's variance (a bias the
+   plane may carry); where they differ by more than ``STEP_Z`` sds and the window's
+   quadratic misfits its neighbours, or two planes (the half's, the rest's) fit them better
+   (a curved surface passes), the half, re-centred on its own plane, gives t0 and its
+   variance. Both from the neighbours only: 3's test holds.
+   2c. After 3's decision, the photons of a pixel they detect (their mean, re-centred on
+   them) are a second estimate of its time: where they lie more than ``OWN_Z`` sds from t0,
+   their squared difference less its noise is a bias t0 may carry (within half a pixel of a
+   step at an angle no half follows, every half holds both surfaces), and the larger of it
+   and 2b's enters t0's variance. t0 stays the plane's.
 3. Decision, per pixel and candidate. The pixel's own counts in +-2 sigma of t0 against
    its background alone: a window fixed by the neighbours, so no look-elsewhere, and
    background alone passes with probability at most ``p_fa`` (the exact Poisson tail).
@@ -100,10 +100,11 @@ STEP_LOF = 3.0   # where the window's quadratic misfits by this many sds of its 
 STEP_TWO = 5.0   # or two planes (the half's, the rest's) fit by this much chi-square better
 STEP_MIN = 12    # pixels in the image a half holds at least, its window twice as many
 STEP_ITER = 3    # takes the pixel, its plane re-centred this many times
-STEP_FINE = 3.0  # net photons a neighbour from which the halves are cut at 16 directions
-                 # (below it, and at 0, at the 8 of the rows, columns and diagonals)
-OWN_Z = 2.0      # 2c: a detected pixel's own photons this many sds off its plane (0: off)
-OWN_MIN = 3      # counts in the plane's window the pixel needs for it
+STEP_FINE = 3.0  # net photons a neighbour (the window's positive net counts over its
+                 # neighbours in the image) from which 2b tries 16 halves, at 8 directions
+                 # (below it, and at 0, the 8 along the rows, columns and diagonals)
+OWN_Z = 2.0      # 2c: a pixel's own photons this many sds off its plane (0: off)
+OWN_MIN = 3      # counts the pixel needs in its own window, about its photons' mean
 WIDTH_FIT = 2.5  # the plane fit's window, +- sigmas of the pulse
 WIDTH_TEST = 2.0  # the pixel's own test window
 BOXES = (1.2, 4.0, 10.0)  # the candidates' time boxes, +- sigmas of the pulse
@@ -562,9 +563,9 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         var_plane = var_t0.copy()   # t0's variance without 2b's bias term (for 2c)
         if STEP_Z:
             # (the 8 halves between the rows, columns and diagonals only where the
-            # neighbours hold STEP_FINE net photons each: with fewer, the least of 16
-            # spreads is chosen by its noise more than of 8, and more pixels beside a step
-            # take the other side's half; fitted only where some pixel has them, apart
+            # neighbours hold STEP_FINE net photons each on average: with fewer, the least
+            # of 16 spreads is chosen by its noise more than of 8, and more pixels beside a
+            # step take the other side's half; fitted only where some pixel has them, apart
             # from the 8, so that every band of rows has the 8's products in one shape)
             fine = (tot >= STEP_FINE * np.maximum(on.sum(-1), 1.0)) & (STEP_FINE > 0)
             k = hm.shape[0] if fine.any() else 8
@@ -687,9 +688,10 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         # pixel of one, no half is one surface and every half's plane is off; the
         # pixel's own photons are not. Where the two differ by more than ``OWN_Z`` sds,
         # their squared difference less its noise is the bias t0 may carry, as 2b's
-        # (the larger of the two is kept). The estimate stays the plane's: its own
-        # photons would carry the pixel's own calibration error, which the plane
-        # averages over its neighbours (test_sigma_covers_the_neighbours_calibration_errors)
+        # (the larger of the two is kept). t0 stays the plane's: the pixel's own photons
+        # would carry its own calibration error, which the plane averages over its
+        # neighbours (test_sigma_covers_the_neighbours_calibration_errors). Only where
+        # its own photons detect the pixel (3), not its corner windows alone
         if OWN_Z:
             ii, jj, bias = _own_bias(P, beta, t0, var_plane, var_photon, found & own_r, fit, n,
                                      prof, None if cal_var is None else cal_var / bin_s ** 2)

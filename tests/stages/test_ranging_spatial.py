@@ -957,7 +957,7 @@ def test_the_step_check_does_not_depend_on_the_steps_direction(monkeypatch):
 
 
 def test_halves_between_the_rows_columns_and_diagonals(monkeypatch):
-    """Stripes at 31 degrees to the columns, 15 cm apart (between the 8 halves' directions,
+    """Stripes at 31 degrees to the rows, 15 cm apart (between the 8 halves' directions,
     with two edges in some windows), seed 11, 40 x 40 at (5, 10): with the window's halves
     at 8 directions only, RMSE 2.5 cm and 87.9 % within 2 sigma; at 16 where the
     neighbours hold ``STEP_FINE`` net photons each, 1.5 cm and 94.2 %."""
@@ -971,13 +971,14 @@ def test_halves_between_the_rows_columns_and_diagonals(monkeypatch):
 def test_the_pixels_own_photons_widen_its_sigma_beside_a_slanted_step(monkeypatch, angle):
     """A pixel within half a pixel of a step that crosses the window at an angle none of
     the halves follows (stripes 8 pixels wide, 12 cm apart, edges at 38 and 12 degrees to
-    the columns; seed 11, 40 x 40 at (10, 2)): every half holds both surfaces and their
+    the rows; seed 11, 40 x 40 at (10, 2)): every half holds both surfaces and their
     planes, and the window's, are ramps; its own photons are not. 2c adds their squared
     difference less its noise to the variance: 2 sigma 91.1 -> 96.7 % (38 degrees),
     89.7 -> 96.5 % (12). It moves no estimate (a pixel's own photons would carry its own
     calibration error, test_sigma_covers_the_neighbours_calibration_errors); the
-    curvature step (5), which weighs the detected returns by their sigma, moves 0.4-1 %
-    of them (by up to 2.5 cm, either way), and the RMSE is the same within 0.1 mm."""
+    curvature step (5), which weighs the detected returns by their sigma, moves some (on
+    these frames 0.4-1 % of them, by up to 2.5 cm either way), and the RMSE is the same
+    within 0.1 mm."""
     from benchmarks.spatial_undetected import frame
     from stages.ranging import spatial as sp
 
