@@ -510,7 +510,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         var_photon = np.maximum(rss / np.maximum(tot, 1.0), sb ** 2 + 1 / 12)
         # the background photons left in the window move t0 too: their count over the
         # signal's, each with the window's spread
-        var_bg = (bsum.sum(-1) * (WIDTH_FIT * sb) ** 2 / 3) / np.maximum(tot, 1.0) ** 2
+        var_bg = _bg_var(bsum.sum(-1), tot, WIDTH_FIT * sb)
         var_model = var_photon * np.abs(Minv[..., 0, 0]) + var_bg
         # and the sandwich (heteroscedasticity-consistent, HC1) variance of the same fit:
         # every neighbour's leverage on t0 times its photons' summed residual, squared,
@@ -722,6 +722,13 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
             bend)
 
 
+def _bg_var(bsum, n, fit):
+    """The variance a mean of ``n`` net photons (at least 1) takes from the ``bsum``
+    background photons left in its window of +- ``fit`` bins (each uniform over it,
+    variance fit^2 / 3): step 2's, 2b's halves' and 2c's."""
+    return (bsum * fit ** 2 / 3) / np.maximum(n, 1.0) ** 2
+
+
 def _halves(dr, dc) -> np.ndarray:
     """The window's 16 halves through the pixel, each with its middle line: (16, m) masks
     over the offsets (dr, dc), both sides of a line at 8 directions. The first 8 along a
@@ -777,7 +784,7 @@ def _half_fits(n0, s1, s2, pos, bsum, hm, X, XX, t0, sb, cal=None, loops=False):
     rss = S2 - 2 * (b * Y).sum(-1) + (b[..., :, None] * M0 * b[..., None, :]).sum((-2, -1))
     spread = rss / np.maximum(tot, 1.0)
     vp = np.maximum(spread, sb ** 2 + 1 / 12)
-    vbg = (dot(bsum, hm.T) * (WIDTH_FIT * sb) ** 2 / 3) / np.maximum(tot, 1.0) ** 2
+    vbg = _bg_var(dot(bsum, hm.T), tot, WIDTH_FIT * sb)
     vr = (ridge * (Mi[..., 0, 1] * b[..., 1] + Mi[..., 0, 2] * b[..., 2])) ** 2
     var = vp * Mi[..., 0, 0] + vbg
     if cal is not None:  # sum_q (Mi0 . X_q n0_q)^2 cal_q, per half (as step 2's, unscaled)
@@ -827,8 +834,7 @@ def _own_bias(P, beta, t0, var_plane, var_photon, sel, fit, n, prof=None, cal=No
         n0, s1, _, raw, bs = (x[:, 0] for x in _window_sums_numpy(P, qs, one, bq, m[:, None],
                                                                    fit, n, prof))
         m = np.where(n0 > 0, s1 / np.where(n0 > 0, n0, 1.0), m)
-    nn = np.maximum(n0, 1.0)
-    v = (var_photon[ii, jj] * nn + bs * fit ** 2 / 3) / nn ** 2 * MSHIFT
+    v = (var_photon[ii, jj] / np.maximum(n0, 1.0) + _bg_var(bs, n0, fit)) * MSHIFT
     v = v + var_plane[ii, jj] + (0.0 if cal is None else cal[ii, jj])
     d2 = (m - t) ** 2
     ok = (n0 > 0) & (raw >= OWN_MIN) & (d2 > OWN_Z ** 2 * v)
