@@ -70,6 +70,14 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    variance gains the sum over the neighbours of their squared weight on t0 times it.
    An undetected pixel's reported surface (3b) has instead the spread of the planes on
    it that the relabelling weighed, each by its posterior (:func:`_label_sigma`).
+5. A surface that is not a plane (:func:`_curvature`): a detected return's t0 corrected
+   by the curvature its window averages, and an undetected one's from the detected
+   returns around it, where a quadratic over them says so.
+6. An undetected return on a surface that is not the pixel's (:func:`_off_surface`):
+   where the pixel's own photons at the reported time make it ``OFF_P`` likely or more
+   that it lies on none of it (a two-component mixture over the pixels around it), its
+   sigma reaches the farthest surface reported within ``OFF_K`` pixels or among its own
+   candidates.
 
 Up to ``max_returns`` (2) surfaces a pixel, the strongest first.
 """
@@ -81,7 +89,7 @@ from itertools import product
 
 import numpy as np
 from scipy import ndimage
-from scipy.special import erf, pdtr
+from scipy.special import erf, expit, logit, pdtr
 
 from stages.ranging import planecut
 from stages.ranging._numba import numba
@@ -122,6 +130,13 @@ MASK_K = WINDOW   # over the window's neighbourhood (3 x 3: the scene's returns 
                   # flat frames of Lindell's grid came out not flat)
 SIGNAL_Z = 3.1      # a block whose neighbourhood's count stands this many sd above: a return's
 BLOCK_PAIR = 1.5  # the priors' weight in a block's sum (seed 1: 1.5-3 alike, 1 and 0.5 worse)
+OFF_P = 0.2      # 6: an undetected first return whose own photons make it this likely
+                 # that it is not on the surface it reports (0: off)
+OFF_K = 4        # the mixture over the (2 OFF_K + 1)^2 around the pixel, and the reach of
+                 # the surfaces reported there
+OFF_FLOOR = 0.25  # such a return's variance gains at least this share of the farthest's
+                  # squared distance (2 sigma then reaches it)
+OFF_ITER = 8     # the mixture's EM steps
 
 
 def _mshift_factor(c: float) -> float:
@@ -978,11 +993,14 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
     def take(x):
         return np.take_along_axis(x, order, -1)
 
+    cand = t_out          # every candidate's time, before the order (6)
     t_out, sig_out, det = take(t_out), take(sig_out), take(det)
     # (the carried plane's slot is no fit: no curvature step)
     bend = np.take_along_axis(slot(bend, 0.0), order[..., None], 2)
     _curvature(t_out, sig_out, det, bend, bin_s, sb, t0_s)
-    return SpatialEstimate(t_out, sig_out, take(sig_cnt),
+    sig_cnt = take(sig_cnt)
+    _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof, cand)
+    return SpatialEstimate(t_out, sig_out, sig_cnt,
                            np.repeat(beta[..., None], max_returns, -1), det,
                            take(own), take(surr))
 
@@ -1057,6 +1075,72 @@ def _curvature(t_out, sig_out, det, bend, bin_s, sb, t0_s) -> None:
     v = np.maximum(var_q[use] + (t[rr, cc] - q[use]) ** 2, 1e-12)
     t_out[rr, cc, 0] = q[use] * bin_s + t0_s
     sig_out[rr, cc, 0] = np.sqrt(v) * bin_s
+
+
+def _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof=None, cand=None):
+    """6. An undetected first return on a surface that is not the pixel's. Its time is a
+    neighbour's surface (3b, 5); its sigma (:func:`_label_sigma`, :func:`_curvature`) is
+    the error of that time on that surface. Where the pixel sees a surface its
+    neighbours do not (a post a pixel wide before a wall, a grazing floor whose range
+    outruns the planes), that sigma covered a third to a half of such pixels (an outside
+    probe's fence and grazing floor at 2 signal photons; docs/ranging.md "An undetected
+    pixel on another surface"). The pixel's own counts m in its test window at the
+    reported time are the evidence: Poisson(g S + B) if it is on the surface (S the
+    surface's signal a pixel, ``sig_cnt``; B its background), Poisson(B) if not. Over the
+    (2 ``OFF_K`` + 1)^2 around each pixel, every reported first return's m gives a
+    two-component mixture, its share pi of returns off their surface and g (the window's
+    S is an average over pixels that include those off it, so it is low by about 1 -
+    pi) by ``OFF_ITER`` EM steps on box sums; the pixel's posterior of being off is
+    then p = expit(logit pi + g S - m log(1 + g S / B)). Where p >= ``OFF_P``, sigma^2
+    gains max(p, ``OFF_FLOOR``) D^2, D the distance to the farthest of the first returns
+    reported within ``OFF_K`` pixels and of the pixel's own candidates ``cand`` (every
+    slot's time before the returns' order: its window's surfaces), the surfaces the
+    pixel may be on instead: the error of a wrong label, weighed by its posterior, and
+    at least enough that 2 sigma reaches it. Times, detections and the detected returns'
+    sigma are untouched, and so is every return whose p is below ``OFF_P`` (the grid's
+    scene at 2 signal photons: 95-98 % of the undetected pixels). Written in place."""
+    t = (t_out[..., 0] - t0_s) / bin_s
+    ok = np.isfinite(t)
+    if not OFF_P or not ok.any():
+        return
+    n = P0.shape[-1] - 1
+    half = WIDTH_TEST * sb
+    ti = np.where(ok, t, 0.0)
+    a = np.clip(np.floor(ti - half + 0.5).astype(np.int64), 0, n)
+    z = np.clip(np.floor(ti + half + 0.5).astype(np.int64), 0, n)
+    m = (np.take_along_axis(P0, z[..., None], -1)
+         - np.take_along_axis(P0, a[..., None], -1))[..., 0]
+    B = beta * _span(a, z, prof)
+    on = ok & (z > a) & (B > 0)
+    if not on.any():
+        return
+    B = np.where(on, B, 1.0)
+    m = np.where(on, m, 0.0)
+    S = 0.95 * np.maximum(np.where(on, sig_cnt[..., 0], 0.0), 0.05)
+    w = on.astype(np.float64)
+    N = np.maximum(_box(w, OFF_K), 1.0)
+    pi, g = np.full(t.shape, 0.1), np.ones(t.shape)
+
+    def post(pi, g):  # each return's posterior of being off its surface
+        return np.where(on, expit(logit(pi) + g * S - m * np.log1p(g * S / B)), 0.0)
+
+    for _ in range(OFF_ITER):
+        r = post(pi, g)
+        pi = np.clip(_box(r, OFF_K) / N, 1e-6, 1.0 - 1e-6)
+        g = np.clip(_box((1.0 - r) * (m - B) * w, OFF_K)
+                    / np.maximum(_box((1.0 - r) * S * w, OFF_K), 1e-9), 0.2, 5.0)
+    p = post(pi, g)
+    size = 2 * OFF_K + 1
+    hi = ndimage.maximum_filter(np.where(ok, t, -np.inf), size, mode="nearest")
+    lo = ndimage.minimum_filter(np.where(ok, t, np.inf), size, mode="nearest")
+    D = np.where(ok, np.maximum(hi - ti, ti - lo), 0.0)
+    if cand is not None:         # and the pixel's own candidates (its window's surfaces)
+        tc = (cand - t0_s) / bin_s
+        D = np.maximum(D, np.where(np.isfinite(tc), np.abs(tc - ti[..., None]), 0.0).max(-1))
+    sg = sig_out[..., 0] / bin_s
+    sel = on & ~det[..., 0] & (p >= OFF_P) & np.isfinite(sg)
+    v = sg ** 2 + np.maximum(p, OFF_FLOOR) * D ** 2
+    sig_out[..., 0] = np.where(sel, np.sqrt(np.where(sel, v, 0.0)) * bin_s, sig_out[..., 0])
 
 
 def _quadratic(t, sg, d0, rr, cc, g, sb, start=3.0, fit=False):
