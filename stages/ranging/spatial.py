@@ -137,6 +137,8 @@ OFF_K = 4        # the mixture over the (2 OFF_K + 1)^2 around the pixel, and th
 OFF_FLOOR = 0.25  # such a return's variance gains at least this share of the farthest's
                   # squared distance (2 sigma then reaches it)
 OFF_ITER = 8     # the mixture's EM steps
+OFF_OWN_MIN = 2  # a candidate the window does not detect is a surface the pixel may be on
+                 # where this many of the pixel's own photons lie at it (0: every one)
 
 
 def _mshift_factor(c: float) -> float:
@@ -456,6 +458,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
     shape = (h, w, nc)
     t_out, sig_out, sig_cnt = np.full(shape, np.nan), np.full(shape, np.inf), np.zeros(shape)
     own, surr, rank = np.zeros(shape, bool), np.zeros(shape, bool), np.zeros(shape)
+    seen = np.zeros(shape, bool)   # the window detects the candidate (6: a surface near)
     # per candidate, for the relabelling (3b): the plane's slopes (bins a pixel), the
     # pixel's own counts in its test window and their background
     slope = np.zeros(shape + (2,))
@@ -726,15 +729,16 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         rank[..., r] = (np.where(found, 0.0, -1e8) + (found & own_r) * 1e7 + nquad * 1e6
                         + (mine - bw) * 1e3 + sig_cnt[..., r])
         surr[..., r] = found & quad
+        seen[..., r] = found
     # two candidates that settled on one surface are one
     for r in range(1, nc):
         for s in range(r):
             same = np.abs(t_out[..., r] - t_out[..., s]) < 3 * sigma_s
             for arr, v in ((t_out, np.nan), (own, False), (surr, False), (sig_cnt, 0.0),
-                           (rank, -1e9)):
+                           (rank, -1e9), (seen, False)):
                 arr[..., r] = np.where(same, v, arr[..., r])
     return (t_out, sig_out, sig_cnt, own | surr, own, surr, slope, mine_r, bw_r, rank, beta, P0,
-            bend)
+            bend, seen)
 
 
 def _bg_var(bsum, n, fit):
@@ -944,7 +948,8 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
             threads=1) -> SpatialEstimate:
     """3b and the order of the returns, on the whole image (the relabelling's sweeps
     reach further than a band's halo)."""
-    t_out, sig_out, sig_cnt, det, own, surr, slope, mine_r, bw_r, rank, beta, P0, bend = fields
+    t_out, sig_out, sig_cnt, det, own, surr, slope, mine_r, bw_r, rank, beta, P0, bend, seen = \
+        fields
 
     def slot(x, v):  # one more slot a pixel: a neighbour's plane carried over (3b)
         return np.concatenate([x, np.full(x.shape[:2] + (1,) + x.shape[3:], v, x.dtype)], 2)
@@ -993,7 +998,8 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
     def take(x):
         return np.take_along_axis(x, order, -1)
 
-    cand = t_out          # every candidate's time, before the order (6)
+    # the candidates' times before the order, and those the pixel's window detects (6)
+    cand = (t_out[..., :seen.shape[-1]], seen)
     t_out, sig_out, det = take(t_out), take(sig_out), take(det)
     # (the carried plane's slot is no fit: no curvature step)
     bend = np.take_along_axis(slot(bend, 0.0), order[..., None], 2)
@@ -1088,30 +1094,31 @@ def _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof=N
     reported time are the evidence: Poisson(g S + B) if it is on the surface (S the
     surface's signal a pixel, ``sig_cnt``; B its background), Poisson(B) if not. Over the
     (2 ``OFF_K`` + 1)^2 around each pixel, every reported first return's m gives a
-    two-component mixture, its share pi of returns off their surface and g (the window's
-    S is an average over pixels that include those off it, so it is low by about 1 -
-    pi) by ``OFF_ITER`` EM steps on box sums; the pixel's posterior of being off is
-    then p = expit(logit pi + g S - m log(1 + g S / B)). Where p >= ``OFF_P``, sigma^2
-    gains max(p, ``OFF_FLOOR``) D^2, D the distance to the farthest of the first returns
-    reported within ``OFF_K`` pixels and of the pixel's own candidates ``cand`` (every
-    slot's time before the returns' order: its window's surfaces), the surfaces the
-    pixel may be on instead: the error of a wrong label, weighed by its posterior, and
-    at least enough that 2 sigma reaches it. Times, detections and the detected returns'
-    sigma are untouched, and so is every return whose p is below ``OFF_P`` (the grid's
-    scene at 2 signal photons: 95-98 % of the undetected pixels). Written in place."""
+    two-component mixture: its share pi of returns off their surface (the mean of the
+    E-step's posteriors) and g, the ratio of the net counts to S over the returns the
+    E-step puts on their surface (a moment step, not the likelihood's maximum: S is an
+    average over pixels that include those off it, so it is low by about 1 - pi), by
+    ``OFF_ITER`` steps on box sums. The pixel's posterior of being off is then
+    p = expit(logit pi + g S - m log(1 + g S / B)). Where p >= ``OFF_P``, sigma^2 gains
+    max(p, ``OFF_FLOOR``) D^2, D the distance to the farthest surface the pixel may be
+    on instead: the first returns reported within ``OFF_K`` pixels, and its own
+    candidates ``cand`` (their times before the returns' order, and whether its window
+    detects each) that its window detects or that hold ``OFF_OWN_MIN`` of its own
+    photons (a candidate neither holds is mostly a peak of the window's background,
+    anywhere in the histogram). That is the error of a wrong label weighed by its
+    posterior, and at least enough that 2 sigma reaches it. Times, detections and the
+    detected returns' sigma are untouched, and so is every return whose p is below
+    ``OFF_P`` (the grid's scene at 2 signal photons, held-out seeds 3-4: 95-98 % of
+    the undetected pixels on a surface). Written in place."""
     t = (t_out[..., 0] - t0_s) / bin_s
     ok = np.isfinite(t)
     if not OFF_P or not ok.any():
         return
-    n = P0.shape[-1] - 1
     half = WIDTH_TEST * sb
     ti = np.where(ok, t, 0.0)
-    a = np.clip(np.floor(ti - half + 0.5).astype(np.int64), 0, n)
-    z = np.clip(np.floor(ti + half + 0.5).astype(np.int64), 0, n)
-    m = (np.take_along_axis(P0, z[..., None], -1)
-         - np.take_along_axis(P0, a[..., None], -1))[..., 0]
+    m, a, z = (x[..., 0] for x in _window_counts(P0, t[..., None], half))
     B = beta * _span(a, z, prof)
-    on = ok & (z > a) & (B > 0)
+    on = ok & (z > a) & (B > 0) & np.isfinite(B) & np.isfinite(sig_cnt[..., 0])
     if not on.any():
         return
     B = np.where(on, B, 1.0)
@@ -1135,8 +1142,9 @@ def _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof=N
     lo = ndimage.minimum_filter(np.where(ok, t, np.inf), size, mode="nearest")
     D = np.where(ok, np.maximum(hi - ti, ti - lo), 0.0)
     if cand is not None:         # and the pixel's own candidates (its window's surfaces)
-        tc = (cand - t0_s) / bin_s
-        D = np.maximum(D, np.where(np.isfinite(tc), np.abs(tc - ti[..., None]), 0.0).max(-1))
+        tc = (cand[0] - t0_s) / bin_s
+        use = np.isfinite(tc) & (cand[1] | (_window_counts(P0, tc, half)[0] >= OFF_OWN_MIN))
+        D = np.maximum(D, np.where(use, np.abs(tc - ti[..., None]), 0.0).max(-1))
     sg = sig_out[..., 0] / bin_s
     sel = on & ~det[..., 0] & (p >= OFF_P) & np.isfinite(sg)
     v = sg ** 2 + np.maximum(p, OFF_FLOOR) * D ** 2
@@ -1196,16 +1204,22 @@ def _quadratic(t, sg, d0, rr, cc, g, sb, start=3.0, fit=False):
     return b, var_b, cov0, keep.sum(-1), near.sum(-1), chi
 
 
+def _window_counts(P0, t, half):
+    """A pixel's counts within +-``half`` bins of ``t`` (bins, (h, w, k); NaN: at 0) from
+    its prefix sums ``P0``, and the window's bins [a, z)."""
+    n = P0.shape[-1] - 1
+    ti = np.where(np.isfinite(t), t, 0.0)
+    a = np.clip(np.floor(ti - half + 0.5).astype(np.int64), 0, n)
+    z = np.clip(np.floor(ti + half + 0.5).astype(np.int64), 0, n)
+    return np.take_along_axis(P0, z, -1) - np.take_along_axis(P0, a, -1), a, z
+
+
 def _own_llr(P0, beta, t, sig_cnt, half, prof=None):
     """The pixel's own Poisson log-likelihood ratio of a surface at ``t`` (bins, NaN:
     none): its counts within +-``half`` against its background, with the signal a pixel
     ``sig_cnt`` (3b's score without the prior); ``t`` (h, w, k)."""
-    n = P0.shape[-1] - 1
     ok = np.isfinite(t)
-    ti = np.where(ok, t, 0.0)
-    a = np.clip(np.floor(ti - half + 0.5).astype(np.int64), 0, n)
-    z = np.clip(np.floor(ti + half + 0.5).astype(np.int64), 0, n)
-    m = np.take_along_axis(P0, z, -1) - np.take_along_axis(P0, a, -1)
+    m, a, z = _window_counts(P0, t, half)
     S = 0.95 * np.maximum(sig_cnt, 0.05)
     return np.where(ok & (z > a),
                     m * np.log1p(S / np.maximum(beta[..., None] * _span(a, z, prof), 1e-9)) - S,
