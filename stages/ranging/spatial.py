@@ -1123,7 +1123,7 @@ def _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof=N
         return
     B = np.where(on, B, 1.0)
     m = np.where(on, m, 0.0)
-    S = 0.95 * np.maximum(np.where(on, sig_cnt[..., 0], 0.0), 0.05)
+    S = _test_signal(np.where(on, sig_cnt[..., 0], 0.0))
     w = on.astype(np.float64)
     N = np.maximum(_box(w, OFF_K), 1.0)
     pi, g = np.full(t.shape, 0.1), np.ones(t.shape)
@@ -1204,6 +1204,12 @@ def _quadratic(t, sg, d0, rr, cc, g, sb, start=3.0, fit=False):
     return b, var_b, cov0, keep.sum(-1), near.sum(-1), chi
 
 
+def _test_signal(sig_cnt):
+    """The signal a pixel expects in its test window (+-``WIDTH_TEST`` pulse sigmas: 95 %
+    of a Gaussian pulse) from the neighbourhood's signal a pixel, at least 0.05."""
+    return 0.95 * np.maximum(sig_cnt, 0.05)
+
+
 def _window_counts(P0, t, half):
     """A pixel's counts within +-``half`` bins of ``t`` (bins, (h, w, k); NaN: at 0) from
     its prefix sums ``P0``, and the window's bins [a, z)."""
@@ -1220,7 +1226,7 @@ def _own_llr(P0, beta, t, sig_cnt, half, prof=None):
     ``sig_cnt`` (3b's score without the prior); ``t`` (h, w, k)."""
     ok = np.isfinite(t)
     m, a, z = _window_counts(P0, t, half)
-    S = 0.95 * np.maximum(sig_cnt, 0.05)
+    S = _test_signal(sig_cnt)
     return np.where(ok & (z > a),
                     m * np.log1p(S / np.maximum(beta[..., None] * _span(a, z, prof), 1e-9)) - S,
                     -np.inf)
@@ -1472,7 +1478,7 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
     cut's planes)."""
     h, w, nc = t_out.shape
     tb = (t_out - t0_s) / bin_s                               # bins
-    S = 0.95 * np.maximum(sig_cnt, 0.05)
+    S = _test_signal(sig_cnt)
     llr = np.where(np.isfinite(tb), mine * np.log1p(S / np.maximum(bw, 1e-9)) - S, -np.inf)
     lab = np.argmax(np.where(det, 1e12, 0.0) + rank, axis=-1)
     free = ~det.any(-1)
