@@ -238,28 +238,35 @@ EDGE_MISFIT = 2.0    # the labels' misfit (weights as EDGE_FREE) of a straight w
 EDGE_P = 0.7         # the posterior of the other side from which the pixel moves
 EDGE_PASSES = 3       # at most (it stops when none moves)
 EDGE_SHIFT = 5       # the windows beside the pixel: centred this far along rows, columns
+EDGE_BESIDE_SPAN = 1  # and each weighs the lines within this many directions of its best
 EDGE_PART = 64       # pixels a thread at least (fewer: one thread)
 EDGE_TURN = 4        # directions (20 degrees) between two windows' lines that are a corner
 
 
-def _edge_tables():
-    """Per window (the centred one first, then those centred ``EDGE_SHIFT`` beside p):
-    its offsets from p, their order along each direction's normal, log of the gaps
-    between consecutive projections (-inf: no gap) and whether p lies below each split."""
-    R, K, sh = EDGE_R, EDGE_ANGLES, EDGE_SHIFT
+def _edge_table(si: int, sj: int):
+    """The window centred at (si, sj) from p: its offsets from p, their order along each
+    direction's normal, log of the gaps between consecutive projections (-inf: no gap)
+    and whether p lies below each split."""
+    R, K = EDGE_R, EDGE_ANGLES
     th = np.arange(K) * np.pi / K
     nrm = np.stack([np.sin(th), np.cos(th)], -1)
-    out = []
-    for si, sj in [(0, 0)] + [(i, j) for i in (-sh, 0, sh) for j in (-sh, 0, sh) if i or j]:
-        di, dj = np.mgrid[si - R:si + R + 1, sj - R:sj + R + 1]
-        off = np.stack([di.ravel(), dj.ravel()], -1)
-        proj = nrm @ off.T.astype(np.float64)
-        order = np.argsort(proj, -1, kind="stable")
-        sp = np.take_along_axis(proj, order, -1)
-        gap = np.diff(sp, axis=-1)
-        lg = np.where(gap > 1e-9, np.log(np.maximum(gap, 1e-300)), -np.inf)
-        out.append((off, order, lg, 0.5 * (sp[:, 1:] + sp[:, :-1]) > 0.0, (si, sj)))
-    return out
+    di, dj = np.mgrid[si - R:si + R + 1, sj - R:sj + R + 1]
+    off = np.stack([di.ravel(), dj.ravel()], -1)
+    proj = nrm @ off.T.astype(np.float64)
+    order = np.argsort(proj, -1, kind="stable")
+    sp = np.take_along_axis(proj, order, -1)
+    gap = np.diff(sp, axis=-1)
+    lg = np.where(gap > 1e-9, np.log(np.maximum(gap, 1e-300)), -np.inf)
+    return off, order, lg, 0.5 * (sp[:, 1:] + sp[:, :-1]) > 0.0, (si, sj)
+
+
+def _edge_tables():
+    """Per window (the centred one first, then those centred ``EDGE_SHIFT`` beside p)
+    its :func:`_edge_table`."""
+    sh = EDGE_SHIFT
+    return [_edge_table(si, sj)
+            for si, sj in [(0, 0)] + [(i, j) for i in (-sh, 0, sh) for j in (-sh, 0, sh)
+                                      if i or j]]
 
 
 _EDGE = None
@@ -270,8 +277,44 @@ def _edge_windows():
     global _EDGE
     key = (EDGE_R, EDGE_ANGLES, EDGE_SHIFT)
     if _EDGE is None or _EDGE[0] != key:
-        _EDGE = (key, _edge_tables())
+        tables = _edge_tables()
+        _EDGE = (key, tables, {(0, 0): tables[0]})  # (and those moved in, by centre)
     return _EDGE[1]
+
+
+def _inside(who, shape):
+    """Each pixel's own window's centre from it, (n, 2): (0, 0), or moved in from the
+    image's border until the window lies inside (along an axis the image is shorter than
+    the window: not moved)."""
+    R = EDGE_R
+    out = np.zeros(who.shape, np.int64)
+    for k, n in enumerate(shape):
+        if n >= 2 * R + 1:
+            out[:, k] = np.clip(who[:, k], R, n - 1 - R) - who[:, k]
+    return out
+
+
+def _own_window(cat, weight, det, llr, who, A, B, compiled=None, threads=1):
+    """The posterior of each pixel's own window (:func:`_edge_window`): centred on it,
+    or moved in from the image's border so that it holds all its (2 R + 1)^2 pixels.
+    At the border a window cut short has one end: a line turned a step off the edge
+    cuts off the few pixels at its end, and their own photons decide it (seed 12 at (2,
+    50): the floor's first row at the image's left border, three pixels put on the wall
+    at 0.91-0.96)."""
+    _edge_windows()
+    moved = _EDGE[2]
+    shift = _inside(who, cat.shape)
+    post = np.full(who.shape[0], np.nan)
+    keys, inv = np.unique(shift, axis=0, return_inverse=True)
+    for g, (si, sj) in enumerate(keys):
+        key = (int(si), int(sj))
+        if key not in moved:
+            moved[key] = _edge_table(*key)
+        win = moved[key]
+        k = np.nonzero(inv.ravel() == g)[0]
+        post[k] = _edge_window(cat, weight, det, llr, who[k], A[k], B[k], win, compiled,
+                               threads)[0]
+    return post
 
 
 def edge_side(cat, weight, det, llr, who, A, B, compiled=None, threads=1):
@@ -285,22 +328,26 @@ def edge_side(cat, weight, det, llr, who, A, B, compiled=None, threads=1):
     side and B on the other: each undetected pixel's Poisson log-likelihood ratio of A
     against B (``llr`` (h, w, L), each plane's, clipped to +-``EDGE_CAP``), each
     detected pixel +-``EDGE_DET`` for the plane it is on. The edge's pixels far along it
-    place it where each one's few photons cannot. The window centred on the pixel has
-    the say where it is straight; else the windows centred ``EDGE_SHIFT`` beside it
-    that are, where they all agree (each beyond ``EDGE_P`` the same way) and two of
-    them place it: their lines ``EDGE_TURN`` directions apart (a corner's two edges),
-    or on both sides of it along each one's line, each centre a pixel or more from it
-    (a run of wrong labels between them); not one edge's windows on one side only
-    (beyond the edge's end). ``compiled``: by numba (None: where it is installed;
-    False: the numpy twin, in chunks of 512 pixels); ``threads`` > 1: numba's pixels in
-    that many parts at once (the kernel releases the GIL; the same numbers)."""
+    place it where each one's few photons cannot. The pixel's own window has the say
+    where it is straight: centred on it, or moved in from the image's border until it
+    lies inside (:func:`_own_window`). Else the windows centred ``EDGE_SHIFT`` beside
+    it that are straight, each over the lines within ``EDGE_BESIDE_SPAN`` directions of
+    its best line's (lines far off it weigh little each, but there are many, and near a
+    corner they turn towards the other edge), where they all agree (each beyond
+    ``EDGE_P`` the same way) and two of them place it: their lines ``EDGE_TURN``
+    directions apart (a corner's two edges), or on both sides of it along each one's
+    line, each centre a pixel or more from it (a run of wrong labels between them); not
+    one edge's windows on one side only (beyond the edge's end). ``compiled``: by numba
+    (None: where it is installed; False: the numpy twin, in chunks of 512 pixels);
+    ``threads`` > 1: numba's pixels in that many parts at once (the kernel releases the
+    GIL; the same numbers)."""
     tables = _edge_windows()
-    post, _ = _edge_window(cat, weight, det, llr, who, A, B, tables[0], compiled, threads)
+    post = _own_window(cat, weight, det, llr, who, A, B, compiled, threads)
     rest = np.nonzero(np.isnan(post))[0]
     if not rest.size or not EDGE_SHIFT:
         return post
     said = [_edge_window(cat, weight, det, llr, who[rest], A[rest], B[rest], win, compiled,
-                         threads)
+                         threads, EDGE_BESIDE_SPAN)
             for win in tables[1:]]
     P = np.stack([x[0] for x in said], 1)                         # (m, 8)
     kd = np.stack([x[1] for x in said], 1)
@@ -333,10 +380,12 @@ def edge_side(cat, weight, det, llr, who, A, B, compiled=None, threads=1):
     return post
 
 
-def _edge_window(cat, weight, det, llr, who, A, B, win, compiled=None, threads=1):
+def _edge_window(cat, weight, det, llr, who, A, B, win, compiled=None, threads=1,
+                 span=None):
     """:func:`edge_side` in one window: the posterior, NaN where it is not straight (by
     numba where it is installed, ``compiled`` None or True, its pixels in ``threads``
-    parts at once; the numpy twin else)."""
+    parts at once; the numpy twin else), and its best line's direction. ``span``: over
+    the lines within that many directions of it only (None or < 0: every direction)."""
     off, order, lg, p_below = win[:4]
     llr = np.asarray(llr, np.float64)
     if numba is not None and (compiled is None or bool(compiled)):
@@ -345,7 +394,8 @@ def _edge_window(cat, weight, det, llr, who, A, B, win, compiled=None, threads=1
 
         def run(k):
             return _edge_window_numba(cat, weight, det, llr, who[k], A[k], B[k], off, order,
-                                      lg, p_below, EDGE_MIN, EDGE_MISFIT, EDGE_CAP, EDGE_DET)
+                                      lg, p_below, EDGE_MIN, EDGE_MISFIT, EDGE_CAP, EDGE_DET,
+                                      -1 if span is None or span < 0 else int(span))
 
         parts = min(max(int(threads), 1), who.shape[0] // EDGE_PART)
         if parts <= 1:
@@ -354,14 +404,15 @@ def _edge_window(cat, weight, det, llr, who, A, B, win, compiled=None, threads=1
         return np.concatenate([g[0] for g in got]), np.concatenate([g[1] for g in got])
     # (the numpy twin in chunks: each pixel's (directions, window) arrays)
     got = [_edge_window_numpy(cat, weight, det, llr, who[k:k + 512], A[k:k + 512],
-                              B[k:k + 512], off, order, lg, p_below)
+                              B[k:k + 512], off, order, lg, p_below, span)
            for k in range(0, who.shape[0], 512)]
     if not got:
         return np.full(0, np.nan), np.full(0, -1)
     return np.concatenate([g[0] for g in got]), np.concatenate([g[1] for g in got])
 
 
-def _edge_window_numpy(cat, weight, det, llr, who, A, B, off, order, lg, p_below):
+def _edge_window_numpy(cat, weight, det, llr, who, A, B, off, order, lg, p_below,
+                       span=None):
     """:func:`_edge_window`'s numpy twin on a chunk of pixels."""
     h, w = cat.shape
     post = np.full(who.shape[0], np.nan)
@@ -395,23 +446,32 @@ def _edge_window_numpy(cat, weight, det, llr, who, A, B, off, order, lg, p_below
     below = ce[..., :-1]
     s1 = below + lg                  # A below: the log-likelihood (up to a constant)
     s2 = (ce[..., -1:] - below) + lg  # A above
-    pa = np.where(p_below, s1, s2).reshape(go.size, -1)  # the splits that put p on A's side
-    pb = np.where(p_below, s2, s1).reshape(go.size, -1)
+    pa = np.where(p_below, s1, s2)   # (n, K, M - 1): the splits that put p on A's side
+    pb = np.where(p_below, s2, s1)
+    # the best line's direction (the first of equals, as the numba twin)
+    k = np.argmax(np.maximum(pa, pb).reshape(go.size, -1), -1) // (order.shape[1] - 1)
+    kdir[go] = k
+    if span is not None and span >= 0:      # the lines within span directions of it
+        K = order.shape[0]
+        gap = np.abs(np.arange(K)[None, :] - k[:, None])
+        far = (np.minimum(gap, K - gap) > span)[..., None]        # (n, K, 1)
+        pa = np.where(far, -np.inf, pa)
+        pb = np.where(far, -np.inf, pb)
+    pa, pb = pa.reshape(go.size, -1), pb.reshape(go.size, -1)
     top = np.maximum(pa.max(-1), pb.max(-1))[:, None]
     za = np.exp(pa - top).sum(-1)
     zb = np.exp(pb - top).sum(-1)
     post[go] = zb / (za + zb)
-    # the best line's direction (the first of equals, as the numba twin)
-    kdir[go] = np.argmax(np.maximum(pa, pb), -1) // (order.shape[1] - 1)
     return post, kdir
 
 
 if numba is not None:
     @numba.njit(cache=True, nogil=True)
     def _edge_window_numba(cat, weight, det, llr, who, A, B, off, order, lg, p_below,
-                           min_w, max_mis, cap, det_w):
+                           min_w, max_mis, cap, det_w, span):
         """:func:`_edge_window` a pixel at a time, without its temporaries (the same
-        sums in the same order)."""
+        sums in the same order; ``span`` >= 0: the second sweep over the directions
+        within it of the best line's only)."""
         h, w = cat.shape
         n, M, K, S = who.shape[0], off.shape[0], order.shape[0], order.shape[1] - 1
         post = np.full(n, np.nan)
@@ -475,7 +535,7 @@ if numba is not None:
                             if max(pa, pb) > top:
                                 top = max(pa, pb)
                                 kdir[i] = k
-                        else:
+                        elif span < 0 or min(abs(k - kdir[i]), K - abs(k - kdir[i])) <= span:
                             za += np.exp(pa - top)
                             zb += np.exp(pb - top)
             post[i] = zb / (za + zb)

@@ -231,17 +231,52 @@ def test_a_straight_edge_stays_where_it_is(angle, compiled):
         assert not post[0] > planecut.EDGE_P, (angle, p, post)
 
 
+@pytest.mark.parametrize("compiled", [None, False])
+def test_a_pixel_at_the_border_is_weighed_on_a_whole_window(compiled):
+    """Three pixels of a straight edge's first row at the image's left border lean a
+    nat each to the other side (what a background photon does), the rest of the edge
+    3 nats each its own way. A window centred on the middle one, cut short by the
+    border, lets lines turned a few steps cut the three off: it moves them. Moved in to
+    hold all its pixels, the window weighs those lines against the pixels further
+    along, as in the image's middle: it does not."""
+    h, w = 21, 24
+    r, c = np.mgrid[0:h, 0:w]
+    cat = (r >= 10).astype(np.int64)              # A = 1 below, B = 0 above
+    det = np.zeros((h, w), bool)
+    weight = np.full((h, w), planecut.EDGE_FREE)
+    one = np.array([1]), np.array([0])
+    for cols in ((0, 1, 2), (10, 11, 12)):
+        llr = np.zeros((h, w, 2))
+        e = np.where(cat == 1, 3.0, -3.0)
+        e[10, list(cols)] = -1.0
+        llr[..., 1] = e
+        who = np.array([[10, cols[1]]])
+        post = planecut.edge_side(cat, weight, det, llr, who, *one, compiled)
+        assert post[0] < planecut.EDGE_P, (cols, post)
+        if cols[0] == 0:
+            cut, _ = planecut._edge_window(cat, weight, det, llr, who, *one,
+                                           planecut._edge_windows()[0], compiled)
+            assert cut[0] > planecut.EDGE_P, cut
+            want = _edge_brute(cat, weight, det, llr, (10, 1), 1, 0)
+            np.testing.assert_allclose(post[0], want, atol=2e-4)
+
+
 def _edge_brute(cat, weight, det, llr, p, A, B):
     """edge_side's posterior for one pixel, written out: the window centred on it where
     that is straight, else the straight ones of the 8 beside it where they all agree and
     two of them have lines EDGE_TURN apart, or lie on both sides of it (each centre a
-    pixel or more from it) along each one's line."""
-    got, _ = _window_brute(cat, weight, det, llr, p, A, B, (0, 0))
+    pixel or more from it) along each one's line. Its own window is centred on it, or
+    moved in from the image's border until the window lies inside."""
+    R = planecut.EDGE_R
+    own = tuple(int(min(max(p[k], R), n - 1 - R) - p[k]) if n >= 2 * R + 1 else 0
+                for k, n in enumerate(cat.shape))
+    got, _ = _window_brute(cat, weight, det, llr, p, A, B, own)
     if np.isfinite(got):
         return got
     sh = planecut.EDGE_SHIFT
     cen = [(i, j) for i in (-sh, 0, sh) for j in (-sh, 0, sh) if i or j]
-    said = [_window_brute(cat, weight, det, llr, p, A, B, x) for x in cen]
+    said = [_window_brute(cat, weight, det, llr, p, A, B, x, planecut.EDGE_BESIDE_SPAN)
+            for x in cen]
     ok = [k for k, x in enumerate(said) if np.isfinite(x[0])]
     if not ok:
         return np.nan
@@ -267,9 +302,10 @@ def _edge_brute(cat, weight, det, llr, p, A, B):
     return np.nan
 
 
-def _window_brute(cat, weight, det, llr, p, A, B, shift):
+def _window_brute(cat, weight, det, llr, p, A, B, shift, span=None):
     """One window's posterior (centred at p + shift) written out: every direction, every
-    split between two distinct projections (weighed by its width), both ways round."""
+    split between two distinct projections (weighed by its width), both ways round
+    (``span``: the directions within that many of the best line's only)."""
     R, K = planecut.EDGE_R, planecut.EDGE_ANGLES
     h, w = cat.shape
     qs = [(p[0] + shift[0] + i, p[1] + shift[1] + j) for i in range(-R, R + 1)
@@ -310,9 +346,12 @@ def _window_brute(cat, weight, det, llr, p, A, B, shift):
             and best_misfit <= planecut.EDGE_MISFIT):
         return np.nan, -1
     scores, p_on_a, kk = (np.concatenate(x) for x in (scores, p_on_a, kk))
-    z = np.exp(scores - scores.max())
     # the best line's direction: the first of (nearly) equals
-    return z[~p_on_a].sum() / z.sum(), int(kk[scores >= scores.max() - 1e-9].min())
+    best = int(kk[scores >= scores.max() - 1e-9].min())
+    gap = np.abs(kk - best)
+    near = np.minimum(gap, K - gap) <= span if span is not None and span >= 0 else True
+    z = np.exp(scores - scores.max()) * near
+    return z[~p_on_a].sum() / z.sum(), best
 
 
 def _random_edge_frame(seed, a=None):
@@ -346,19 +385,53 @@ def test_edge_side_is_its_sum_written_out(seed, angle, compiled):
     line written out, on windows of random labels near a random line (and lines near 0
     and 180 degrees, where the directions wrap round), random evidence (some of it
     -inf, for one plane or both; some pixels detected) and pixels near the image's
-    border; some pixels' centred windows are not straight, and the windows beside them
-    have the say."""
+    border (their own windows moved in); some pixels' own windows are not straight, and
+    the windows beside them have the say."""
     cat, weight, det, llr, who, A, B = _random_edge_frame(seed, angle)
     got = planecut.edge_side(cat, weight, det, llr, who, A, B, compiled)
-    centred, _ = planecut._edge_window(cat, weight, det, llr, who, A, B,
-                                       planecut._edge_windows()[0], compiled)
-    assert np.isfinite(got).sum() > np.isfinite(centred).sum() > 0
+    own = planecut._own_window(cat, weight, det, llr, who, A, B, compiled)
+    assert np.isfinite(got).sum() >= np.isfinite(own).sum()
     want = np.array([_edge_brute(cat, weight, det, llr, tuple(p), a_, b_)
                      for p, a_, b_ in zip(who, A, B, strict=True)])
     assert np.isfinite(got).sum() >= 5
     np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
     ok = np.isfinite(want)
     np.testing.assert_allclose(got[ok], want[ok], atol=2e-4)
+
+
+@pytest.mark.parametrize("compiled", [None, False])
+@pytest.mark.parametrize("span", [None, 0, 1, 3])
+def test_a_window_over_the_directions_near_its_best_line(span, compiled):
+    """One window beside the pixel (numba's and the numpy twin) over the lines within
+    ``span`` directions of its best line's (None: every direction), against the sum
+    written out, on random frames (some directions wrap round 0 and 180 degrees)."""
+    for seed, angle in [(0, None), (1, None), (4, 0.03), (5, np.pi - 0.03)]:
+        cat, weight, det, llr, who, A, B = _random_edge_frame(seed, angle)
+        win = planecut._edge_windows()[3]                      # centred (-5, 5) from p
+        got, kd = planecut._edge_window(cat, weight, det, llr, who, A, B, win, compiled,
+                                        span=span)
+        want = [_window_brute(cat, weight, det, llr, tuple(p), a_, b_, win[4], span)
+                for p, a_, b_ in zip(who, A, B, strict=True)]
+        post = np.array([x[0] for x in want])
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(post))
+        ok = np.isfinite(post)
+        assert ok.sum() >= 3, (seed, ok.sum())
+        np.testing.assert_allclose(got[ok], post[ok], atol=2e-4)
+        np.testing.assert_array_equal(kd[ok], np.array([x[1] for x in want])[ok])
+
+
+def test_the_random_frames_reach_both_kinds_of_window():
+    """Among the frames above, pixels whose own window decides and pixels whose windows
+    beside them do (their own not straight)."""
+    own_said = beside_said = 0
+    for seed, angle in [(0, None), (1, None), (2, None), (3, None), (4, 0.03),
+                        (5, np.pi - 0.03)]:
+        cat, weight, det, llr, who, A, B = _random_edge_frame(seed, angle)
+        got = planecut.edge_side(cat, weight, det, llr, who, A, B, False)
+        own = planecut._own_window(cat, weight, det, llr, who, A, B, False)
+        own_said += np.isfinite(own).sum()
+        beside_said += (np.isfinite(got) & np.isnan(own)).sum()
+    assert own_said >= 10 and beside_said >= 5, (own_said, beside_said)
 
 
 def test_threads_give_the_same_numbers():
