@@ -36,25 +36,48 @@ class Scene:
         return np.isfinite(self.depth[..., 0])
 
 
-def scene(h: int = 64, w: int = 64, angle_deg: float = 0.0) -> Scene:
+# Every edge of the scene, in units of the image's height (r, down) and width (c, across):
+# the box's right edge is the sky gap's left one. benchmarks/spatial_oracle.py moves them.
+EDGES = {
+    "floor_r": 0.75,
+    "box_r0": 0.3, "box_r1": 0.65, "box_c0": 0.12, "box_c1": 0.4,
+    "gap_r0": 0.3, "gap_r1": 0.65, "gap_c1": 0.5,
+    "board_r0": 0.2, "board_r1": 0.7, "board_c0": 0.55, "board_c1": 0.8,
+    "sky_r1": 0.25, "sky_c1": 0.45,
+    "pane_r0": 0.72, "pane_r1": 0.95, "pane_c0": 0.82, "pane_c1": 0.97,
+    "pane2_r0": 0.05, "pane2_r1": 0.18, "pane2_c0": 0.6, "pane2_c1": 0.9,
+}
+
+
+def scene(h: int = 64, w: int = 64, angle_deg: float = 0.0, edges: dict | None = None
+          ) -> Scene:
     """``angle_deg``: the scene turned about the image's centre (its edges then lie
-    along no row, column or diagonal; the corners turned out of the image are lost)."""
+    along no row, column or diagonal; the corners turned out of the image are lost).
+    ``edges``: some of :data:`EDGES` moved (the rest as they are)."""
+    e = {**EDGES, **(edges or {})}
+    unknown = set(e) - set(EDGES)
+    if unknown:
+        raise ValueError(f"no such edge: {sorted(unknown)}; the edges: {sorted(EDGES)}")
     r, c = np.mgrid[0:h, 0:w] / np.array([h, w])[:, None, None]  # 0..1 down and across
     if angle_deg:
         a = np.deg2rad(angle_deg)
         r, c = (0.5 + (r - 0.5) * np.cos(a) - (c - 0.5) * np.sin(a),
                 0.5 + (r - 0.5) * np.sin(a) + (c - 0.5) * np.cos(a))
     d = 6.0 + 2.0 * c                                   # the wall, slanted
-    floor = r > 0.75
+    floor = r > e["floor_r"]
     d = np.where(floor, 3.0 + 1.0 * (1 - r) / 0.25, d)  # the floor, nearer at the bottom
-    box = (r > 0.3) & (r < 0.65) & (c > 0.12) & (c < 0.4)
+    box = (r > e["box_r0"]) & (r < e["box_r1"]) & (c > e["box_c0"]) & (c < e["box_c1"])
     d = np.where(box, 3.0, d)
-    board = (r > 0.2) & (r < 0.7) & (c > 0.55) & (c < 0.8)
+    board = ((r > e["board_r0"]) & (r < e["board_r1"])
+             & (c > e["board_c0"]) & (c < e["board_c1"]))
     d = np.where(board, 4.0 + 1.5 * (c - 0.55) / 0.25 + 0.5 * (r - 0.2), d)
-    sky = ((r < 0.25) & (c < 0.45)) | ((r > 0.3) & (r < 0.65) & (c >= 0.4) & (c < 0.5))
+    sky = (((r < e["sky_r1"]) & (c < e["sky_c1"]))
+           | ((r > e["gap_r0"]) & (r < e["gap_r1"]) & (c >= e["box_c1"]) & (c < e["gap_c1"])))
     d = np.where(sky, np.nan, d)
-    pane = (r > 0.72) & (r < 0.95) & (c > 0.82) & (c < 0.97) & ~floor
-    pane |= (r > 0.05) & (r < 0.18) & (c > 0.6) & (c < 0.9)
+    pane = ((r > e["pane_r0"]) & (r < e["pane_r1"])
+            & (c > e["pane_c0"]) & (c < e["pane_c1"]) & ~floor)
+    pane |= ((r > e["pane2_r0"]) & (r < e["pane2_r1"])
+             & (c > e["pane2_c0"]) & (c < e["pane2_c1"]))
     depth = np.stack([d, np.where(pane, 3.6, np.nan)], -1)
     share = np.stack([np.where(pane, 0.5, 1.0), np.where(pane, 0.5, 0.0)], -1)
     return Scene(depth, share)
