@@ -27,7 +27,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.spatial_scenes import BIN_S, N_BINS, SIGMA_S, C, depth_errors, histograms, scene  # noqa: E402
+from benchmarks.spatial_scenes import (  # noqa: E402
+    BIN_S,
+    SIGMA_S,
+    C,
+    histograms,
+    scene,
+    window_errors,
+)
 from stages.ranging import Histograms, estimate  # noqa: E402
 from stages.ranging.spatial import spatial  # noqa: E402
 
@@ -35,13 +42,10 @@ GRID = [(s, b) for s in (10, 5, 2) for b in (2, 10, 50)]
 PER_PIXEL = ("fast", "ml", "matched")
 
 
-WINDOW_M = N_BINS * BIN_S * C / 2
-
-
 def score(sc, depth_m, detected, sigma_m=None):
     """(A distance outside the window, or none, is put at the window's nearer end.)
     ``cover``: the detected surface pixels within 2 sigma (spatial only)."""
-    err = depth_errors(sc, np.clip(np.nan_to_num(depth_m, nan=0.0), 0.0, WINDOW_M))
+    err = window_errors(sc, depth_m)
     det = detected[sc.surface]
     cover = (float(np.mean(err[det] < 2 * sigma_m[sc.surface][det]))
              if sigma_m is not None and det.any() else np.nan)

@@ -50,9 +50,9 @@ from benchmarks.spatial_scenes import (  # noqa: E402
     N_BINS,
     SIGMA_S,
     C,
-    depth_errors,
     histograms,
     scene,
+    window_errors,
 )
 
 REACH = 2.0   # pixels: the edge lies within this of its true place, the oracle knows
@@ -158,8 +158,7 @@ def oracle(angle, seed, signal, background, prepared=None):
 
 
 def _rmse(truth, report):
-    window_m = N_BINS * BIN_S * C / 2
-    err = depth_errors(truth, np.clip(np.nan_to_num(report, nan=0.0), 0, window_m))
+    err = window_errors(truth, report)
     return float(np.sqrt(np.mean(err ** 2))), err
 
 

@@ -109,3 +109,11 @@ def depth_errors(sc: Scene, depth_m: np.ndarray) -> np.ndarray:
     """|estimate - nearest true surface| on the pixels that have a surface (metres)."""
     e = np.abs(depth_m[..., None] - sc.depth)
     return np.fmin(e[..., 0], e[..., 1])[sc.surface]  # (NaN only where neither is a surface)
+
+
+def window_errors(sc: Scene, depth_m: np.ndarray) -> np.ndarray:
+    """:func:`depth_errors` of an estimate whose missing (NaN) or out-of-window depths
+    are put at the window's nearer end (a pixel reported at no depth is off by its
+    whole range): every spatial benchmark's and test's error."""
+    window_m = N_BINS * BIN_S * C / 2
+    return depth_errors(sc, np.clip(np.nan_to_num(depth_m, nan=0.0), 0.0, window_m))

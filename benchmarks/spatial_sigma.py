@@ -22,8 +22,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.spatial import GRID, WINDOW_M, per_pixel  # noqa: E402
-from benchmarks.spatial_scenes import BIN_S, SIGMA_S, C, depth_errors, histograms, scene  # noqa: E402
+from benchmarks.spatial import GRID, per_pixel  # noqa: E402
+from benchmarks.spatial_scenes import BIN_S, SIGMA_S, C, histograms, scene, window_errors  # noqa: E402
 from benchmarks.spatial_undetected import machine_line  # noqa: E402
 from stages.ranging import Histograms, estimate  # noqa: E402
 from stages.ranging.spatial import spatial  # noqa: E402
@@ -32,7 +32,7 @@ from stages.ranging.spatial import spatial  # noqa: E402
 def coverage(sc, depth_m, sigma_m, detected) -> dict:
     """Per group (detected, undetected, all surface pixels): (covered, pixels); and the
     undetected > 10 cm off (covered, pixels) and their median sigma (m)."""
-    err = depth_errors(sc, np.clip(np.nan_to_num(depth_m, nan=0.0), 0.0, WINDOW_M))
+    err = window_errors(sc, depth_m)
     sig = sigma_m[sc.surface]
     det = detected[sc.surface]
     cov = err < 2 * sig

@@ -520,6 +520,9 @@ if numba is not None:
                 za = 0.0
                 zb = 0.0
                 for k in range(K):
+                    if sweep == 1 and span >= 0 and \
+                            min(abs(k - kdir[i]), K - abs(k - kdir[i])) > span:
+                        continue              # (a direction too far from the best's)
                     tot = 0.0
                     for q in range(M):
                         tot += e[order[k, q]]
@@ -535,7 +538,7 @@ if numba is not None:
                             if max(pa, pb) > top:
                                 top = max(pa, pb)
                                 kdir[i] = k
-                        elif span < 0 or min(abs(k - kdir[i]), K - abs(k - kdir[i])) <= span:
+                        else:
                             za += np.exp(pa - top)
                             zb += np.exp(pb - top)
             post[i] = zb / (za + zb)

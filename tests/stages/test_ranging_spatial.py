@@ -20,19 +20,13 @@ from benchmarks.spatial_scenes import (  # noqa: E402
     SIGMA_S,
     C,
     Scene,
-    depth_errors,
     histograms,
     scene,
+    window_errors,
 )
 from stages.ranging import Histograms, estimate  # noqa: E402
 from stages.ranging._numba import numba  # noqa: E402
 from stages.ranging.spatial import background_profile, spatial  # noqa: E402
-
-WINDOW_M = N_BINS * BIN_S * C / 2
-
-
-def _errors(sc, d):
-    return depth_errors(sc, np.clip(np.nan_to_num(d, nan=0.0), 0, WINDOW_M))
 
 
 def _per_pixel(counts, name="fast"):
@@ -58,11 +52,11 @@ def test_two_signal_fifty_background(lindell_2_50):
     d = est.t_s[..., 0] * C / 2
     det = est.detected[..., 0]
     assert det[~sc.surface].mean() <= 0.01
-    err = _errors(sc, d)
+    err = window_errors(sc, d)
     rmse_det = np.sqrt(np.mean(err[det[sc.surface]] ** 2))
     assert rmse_det <= 0.03, rmse_det
     assert det[sc.surface].mean() > 0.6
-    best = min(np.sqrt(np.mean(_errors(sc, _per_pixel(counts, name)) ** 2))
+    best = min(np.sqrt(np.mean(window_errors(sc, _per_pixel(counts, name)) ** 2))
                for name in ("fast", "matched"))
     assert best >= 5 * np.sqrt(np.mean(err ** 2)), best
     # the relabelling (ICM over the candidates and the 8 nearest's planes carried over,
@@ -82,7 +76,7 @@ def test_undetected_pixels_sigma_covers(lindell_2_50):
     the reported surface, :func:`stages.ranging.spatial._label_sigma`), and 93-98.5 % of
     every surface pixel (98.4 %; 93 % before)."""
     sc, _, est = lindell_2_50
-    err = _errors(sc, est.t_s[..., 0] * C / 2)
+    err = window_errors(sc, est.t_s[..., 0] * C / 2)
     z = err / (est.sigma_s[..., 0][sc.surface] * C / 2)
     und = ~est.detected[..., 0][sc.surface]
     assert 0.2 <= und.mean() <= 0.4, und.mean()
@@ -120,7 +114,7 @@ def test_edges_stay_edges_and_sigma_covers():
     est = spatial(histograms(sc, 10, 2, 3), BIN_S, SIGMA_S, 1e-3)
     d = est.t_s[..., 0] * C / 2
     det = est.detected[..., 0] & sc.surface
-    err = _errors(sc, d)
+    err = window_errors(sc, d)
     assert det[sc.surface].mean() > 0.99
     assert np.mean(err[det[sc.surface]] > 0.05) < 0.002   # a handful of pixels at most
     z = err / (est.sigma_s[..., 0][sc.surface] * C / 2)
@@ -325,7 +319,7 @@ def test_block_moves_shift_a_straight_boundary(monkeypatch):
 
     def lindell():
         est = spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
-        return int((_errors(sc, est.t_s[..., 0] * C / 2) > 0.1).sum())
+        return int((window_errors(sc, est.t_s[..., 0] * C / 2) > 0.1).sum())
 
     vertical, slanted, scene_off = _edge_misses(0.0), _edge_misses(0.4, range(4)), lindell()
     monkeypatch.setattr(sp, "BLOCK_ROUNDS", 0, raising=False)
@@ -424,7 +418,7 @@ def test_a_wedge_of_sky_is_not_surrounded(monkeypatch, signal):
     assert false <= 0.01 * empty.sum() and false0 >= 2 * max(false, 3), (false, false0)
     det = est.detected[..., 0][sc.surface]
     assert det.mean() >= 0.975   # (0.98: the lines' refusal takes some beside the edges)
-    err = _errors(sc, est.t_s[..., 0] * C / 2)
+    err = window_errors(sc, est.t_s[..., 0] * C / 2)
     assert np.mean(err[det] < 2 * (est.sigma_s[..., 0] * C / 2)[sc.surface][det]) >= 0.93
 
 
@@ -436,7 +430,7 @@ def test_a_pixels_own_detection_comes_first():
     corner windows' surface ranked first."""
     sc = scene(angle_deg=30)
     est = spatial(histograms(sc, 5, 10, 1), BIN_S, SIGMA_S, 1e-3, threads=2)
-    err = _errors(sc, est.t_s[..., 0] * C / 2)
+    err = window_errors(sc, est.t_s[..., 0] * C / 2)
     assert int((err > 0.1).sum()) <= 4
 
 
@@ -458,7 +452,7 @@ def test_a_surface_only_the_corner_windows_see_does_not_hold_the_pixel():
                 est = spatial(histograms(sc, signal, background, seed), BIN_S, SIGMA_S,
                               1e-3, threads=2)
                 det = est.detected[..., 0][sc.surface]
-                off += int((det & (_errors(sc, est.t_s[..., 0] * C / 2) > 0.1)).sum())
+                off += int((det & (window_errors(sc, est.t_s[..., 0] * C / 2) > 0.1)).sum())
                 assert det.mean() >= found, (angle, signal, seed, det.mean())
                 # a withdrawn detection is reported as an undetected pixel is
                 assert np.isfinite(est.t_s[..., 0][sc.surface]).all()
@@ -543,7 +537,7 @@ def test_the_sweeps_start_from_the_graph_cut(monkeypatch, angle, factor):
     frames = [histograms(sc, 2, 50, seed) for seed in (3, 4)]
 
     def off():
-        return sum(int((_errors(sc, spatial(c, BIN_S, SIGMA_S, 1e-3).t_s[..., 0] * C / 2)
+        return sum(int((window_errors(sc, spatial(c, BIN_S, SIGMA_S, 1e-3).t_s[..., 0] * C / 2)
                         > 0.1).sum()) for c in frames)
 
     with_cut = off()
@@ -560,7 +554,7 @@ def _off_2_50(angle, edge_passes):
     try:
         planecut.EDGE_PASSES = edge_passes
         sc = scene(angle_deg=angle)
-        return sum(int((_errors(sc, spatial(histograms(sc, 2, 50, seed), BIN_S, SIGMA_S,
+        return sum(int((window_errors(sc, spatial(histograms(sc, 2, 50, seed), BIN_S, SIGMA_S,
                                             1e-3).t_s[..., 0] * C / 2) > 0.1).sum())
                    for seed in (1, 2, 3, 4))
     finally:
