@@ -91,7 +91,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.special import erf, expit, logit, pdtr
 
-from stages.ranging import planecut
+from stages.ranging import edgelines, planecut
 from stages.ranging._numba import numba
 from stages.ranging.detection import poisson_tail, profile_keep, profile_passes, profile_per_bin
 
@@ -124,6 +124,7 @@ DIAG = 0.5       # a diagonal line's weight against a row's or a column's
 SWEEPS = 5       # its ICM sweeps (3: 0.69 % > 10 cm off at (2, 50), 8: as 5)
 BLOCK_ROUNDS = 1  # then block moves (a boundary's run shifted by a pixel), each direction
 BLOCK_PHASES = 4  # in 4 passes of every 4th column (row)
+EDGE_LINES = True  # the edges' last step: each straight boundary as one line (edgelines.py)
 PROFILE_BLOCK = 32  # the background's time profile: its blocks (bins)
 PROFILE_P = 1e-4    # and the chi-square test's p below which the frame is not flat
 MASK_K = WINDOW   # over the window's neighbourhood (3 x 3: the scene's returns leaked and the
@@ -1421,6 +1422,13 @@ def _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, ha
         moved = np.zeros(free.shape, bool)
         moved[r, c] = True
         near = ndimage.maximum_filter(moved, 2 * (planecut.EDGE_R + planecut.EDGE_SHIFT) + 1)
+    if EDGE_LINES:   # and the edges as whole lines (stages/ranging/edgelines.py)
+        q, pl = edgelines.line_moves(_plane_of(lab, tb, T, tol), weight, dets, lp,
+                                     planecut.EDGE_CAP, edgelines.LINE_DET)
+        if q.size:
+            w = free.shape[1]
+            _take_plane(q // w, q % w, pl, lab, tb, llr, slope, sig_cnt, sig_out, table, P0,
+                        beta, half, tol, prof)
     return lab
 
 

@@ -1,0 +1,269 @@
+"""Edges as whole lines: the last step of the spatial estimator's labels (called by
+:func:`stages.ranging.spatial._edges` after the windows of :func:`planecut.edge_side`).
+
+The windows see 11 pixels of an edge. A straight boundary between two of the frame's
+planes is as long as the object: the box's left edge in the benchmark's scene runs 22
+pixels. Each pixel's own 2 signal photons (in 50 of background) hardly place it, the
+edge's pixels all along do. This step finds the straight runs of the label image's
+boundary between each pair of planes, weighs every line near each run (a tilt of +-2
+degrees, an offset of +-1.5 pixels) by the likelihood of the photons in a band along the
+whole run, and moves the undetected pixels next to it that lie on the wrong side with a
+posterior above ``LINE_P``. Where two runs of the same pair meet (a box's corner), the
+pixels around the point where their lines cross follow both lines: on a plane's side of
+both where its corner is convex, of either where it is concave.
+
+Two guards, from a first version that made the pixels off 11 -> 476 (docs/ranging.md
+"Edges as whole lines"): a run is contiguous along its line (no gap over ``LINE_GAP``
+pixels, so a line through scattered boundary points of two planes that meet nowhere is
+no run), and its band's labels fit its line (misfit at most ``LINE_MISFIT``). And only the
+pixels within ``LINE_NEAR`` of the line, inside the run less a pixel at each end, move:
+one wrong label at a run's end lengthens it, and the band would carry that error along.
+The corners move the pixels past the runs' ends.
+
+numpy only, at a cost of a few milliseconds a frame (a few dozen runs)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+LINE_DIRS = 72        # the directions voted over (2.5 degrees apart)
+LINE_MIN = 8          # boundary points a run needs
+LINE_INLIER = 0.75    # pixels: a boundary point this near the line is on it
+LINE_GAP = 2.0        # pixels: a gap along the line this long ends a run
+LINE_BAND = 3.0       # pixels either side of the line whose photons weigh it
+LINE_TILT = np.deg2rad(np.arange(-2.0, 2.01, 0.5))   # the tilts tried about the run's fit
+LINE_OFFSETS = np.arange(-1.5, 1.501, 0.05)          # and offsets (pixels)
+LINE_MISFIT = 0.05    # the band's labels on the wrong side of the best line at most
+LINE_NEAR = 1.0       # pixels: a pixel this near the line may move
+LINE_P = 0.9          # the posterior of the other side from which a pixel moves
+LINE_DET = 6.0        # nats: a detected pixel's say for its plane (the windows': 12)
+LINE_CORNER = 6.0     # pixels: two runs whose lines cross this near both their ends meet
+LINE_ZONE = 3         # the corner's pixels: within this many of the crossing (rows, cols)
+LINE_TURN = np.deg2rad(20.0)   # the least angle between a corner's two lines
+
+
+def boundary_points(cat: np.ndarray) -> dict:
+    """The midpoints (row, col) between 4-neighbours on two planes, by the pair
+    (A, B), A < B (-1: no plane, not counted)."""
+    pts, keys = [], []
+    for axis in (0, 1):
+        a = cat[:-1, :] if axis == 0 else cat[:, :-1]
+        b = cat[1:, :] if axis == 0 else cat[:, 1:]
+        r, c = np.nonzero((a != b) & (a >= 0) & (b >= 0))
+        la, lb = a[r, c], b[r, c]
+        pts.append(np.stack([r + 0.5 * (axis == 0), c + 0.5 * (axis == 1)], -1))
+        keys.append(np.stack([np.minimum(la, lb), np.maximum(la, lb)], -1))
+    pts, keys = np.concatenate(pts), np.concatenate(keys)
+    out = {}
+    if not keys.size:
+        return out
+    u, inv = np.unique(keys, axis=0, return_inverse=True)
+    for g, (A, B) in enumerate(u):
+        out[(int(A), int(B))] = pts[inv.ravel() == g]
+    return out
+
+
+def _tls(P: np.ndarray):
+    """The total-least-squares line through points: (normal, tangent, centre)."""
+    m = P.mean(0)
+    _, _, vt = np.linalg.svd(P - m)
+    return vt[1], vt[0], m
+
+
+def runs(pts: np.ndarray) -> list:
+    """The straight contiguous runs through boundary points (n, 2): a Hough vote
+    (``LINE_DIRS`` directions, half-pixel bins, two neighbouring bins together: a
+    staircase's points spread over a pixel), the best line's points refitted by total
+    least squares, split where a gap along it exceeds ``LINE_GAP``; each part of
+    ``LINE_MIN`` points or more is a run, and the line's points leave the vote. Returns
+    (normal, tangent, centre, t0, t1) a run: its extent along the tangent."""
+    th = np.arange(LINE_DIRS) * np.pi / LINE_DIRS
+    nrm = np.stack([np.cos(th), np.sin(th)], -1)
+    out = []
+    pool = np.ones(len(pts), bool)
+    while pool.sum() >= LINE_MIN:
+        idx = np.nonzero(pool)[0]
+        proj = pts[idx] @ nrm.T                                   # (n, K)
+        b = np.floor(proj / 0.5).astype(np.int64)
+        b0 = int(b.min())
+        b -= b0
+        nb = int(b.max()) + 2
+        votes = np.zeros((LINE_DIRS, nb), np.int64)
+        np.add.at(votes, (np.broadcast_to(np.arange(LINE_DIRS), b.shape), b), 1)
+        pair = votes[:, :-1] + votes[:, 1:]
+        k, j = np.unravel_index(np.argmax(pair), pair.shape)
+        if pair[k, j] < LINE_MIN:
+            break
+        near = np.abs(proj[:, k] - (b0 + j + 1) * 0.5) <= LINE_INLIER   # bins j, j + 1
+        inl = idx[near]
+        n, tan, m = _tls(pts[inl])
+        inl = inl[np.abs((pts[inl] - m) @ n) <= LINE_INLIER]
+        pool[idx[near]] = False
+        pool[inl] = False
+        t = pts[inl] @ tan
+        o = np.argsort(t)
+        inl, t = inl[o], t[o]
+        cuts = np.nonzero(np.diff(t) > LINE_GAP)[0] + 1
+        for part, tp in zip(np.split(inl, cuts), np.split(t, cuts), strict=True):
+            if part.size >= LINE_MIN:
+                n2, tan2, m2 = _tls(pts[part])
+                if tan2 @ tan < 0:
+                    tan2 = -tan2
+                out.append((n2, tan2, m2, float(tp[0]), float(tp[-1])))
+    return out
+
+
+class _Line:
+    """A run's line with its posterior over (tilt, offset)."""
+
+    def __init__(self, A, B, tan, centre, t0, t1, a_pos, normals, post):
+        self.A, self.B, self.tan, self.centre = A, B, tan, centre
+        self.t0, self.t1, self.a_pos = t0, t1, a_pos
+        self.normals, self.post = normals, post
+        j = np.unravel_index(np.argmax(post), post.shape)
+        self.n_map = normals[j[0]]
+        self.rho_map = float(normals[j[0]] @ centre + LINE_OFFSETS[j[1]])
+
+    def on_a(self, xy: np.ndarray) -> np.ndarray:
+        """(m, P, O) whether each point lies on A's side under each line."""
+        side = ((xy - self.centre) @ self.normals.T)[:, :, None] > LINE_OFFSETS
+        return side if self.a_pos else ~side
+
+    def p_a(self, xy: np.ndarray) -> np.ndarray:
+        """The posterior that each point lies on A's side."""
+        return np.einsum("po,mpo->m", self.post, self.on_a(xy).astype(np.float64))
+
+    def map_on_a(self, xy: np.ndarray) -> bool:
+        s = bool(self.n_map @ xy - self.rho_map > 0)
+        return s if self.a_pos else not s
+
+
+def _reach(centre, tan, t0, t1, h, w):
+    """The extent along a run's line (``tan``) whose pixels may move: the run's less a
+    pixel at each end (a wrong label there lengthens it), or on to the image's border
+    where the line leaves the image within ``LINE_CORNER`` of the run's end (no corner
+    fits between; the first row of a floor at the left border, seed 12 at (2, 50)). The
+    band whose photons weigh the line reaches as far."""
+    c0 = centre @ tan
+    with np.errstate(divide="ignore"):        # (along an axis: +-inf, never left that way)
+        ends = np.stack([(np.array([-0.5, -0.5]) - centre) / tan,
+                         (np.array([h - 0.5, w - 0.5]) - centre) / tan])
+    lo_in = c0 + np.min(ends, 0).max()       # where the line enters and leaves the image
+    hi_in = c0 + np.max(ends, 0).min()
+    lo = lo_in if lo_in >= t0 - LINE_CORNER else t0 + 1.0
+    hi = hi_in if hi_in <= t1 + LINE_CORNER else t1 - 1.0
+    return lo, hi
+
+
+def _evidence(q, A, B, cat, dets, lp, cap, det_w):
+    """Each pixel's (flat indices ``q``) say for A against B, as the windows weigh it:
+    an undetected one's log-likelihood ratio clipped to +-``cap``, a detected one
+    +-``det_w`` for the plane it is on."""
+    w = cat.shape[1]
+    rq, cq = q // w, q % w
+    with np.errstate(invalid="ignore"):                 # (-inf - -inf: no say)
+        e = np.clip(np.nan_to_num(lp[rq, cq, A] - lp[rq, cq, B], nan=0.0), -cap, cap)
+    lab = cat.ravel()[q]
+    return np.where(dets.ravel()[q], np.where(lab == A, det_w, np.where(lab == B, -det_w,
+                                                                         0.0)), e)
+
+
+def _moves(q, p_a, lab, A, B):
+    """(pixels, planes) of ``q`` whose label is the side the posterior puts below
+    1 - ``LINE_P``."""
+    to_b = (lab == A) & (1.0 - p_a > LINE_P)
+    to_a = (lab == B) & (p_a > LINE_P)
+    return (np.concatenate([q[to_b], q[to_a]]),
+            np.concatenate([np.full(to_b.sum(), B), np.full(to_a.sum(), A)]))
+
+
+def line_moves(cat, weight, dets, lp, cap, det_w):
+    """The pixels to move and the planes they go to (flat indices, plane indices): see
+    the module's docstring. ``cat`` (h, w) each pixel's plane (-1: none), ``weight`` the
+    labels' weights (as the windows'), ``dets`` (h, w) detected pixels (never moved;
+    their say is +-``det_w``), ``lp`` (h, w, L) each plane's log-likelihood a pixel
+    (an undetected pixel's say between two: clipped to +-``cap``). A pixel two lines or
+    corners would send to different planes stays."""
+    h, w = cat.shape
+    rr, cc = np.mgrid[0:h, 0:w]
+    X = np.stack([rr.ravel(), cc.ravel()], -1).astype(np.float64)
+    catf, wf, detf = cat.ravel(), weight.ravel(), dets.ravel()
+    got_q, got_pl, lines = [], [], []
+    for (A, B), pts in boundary_points(cat).items():
+        if len(pts) < LINE_MIN:
+            continue
+        ab = (catf == A) | (catf == B)
+        for n, tan, centre, t0, t1 in runs(pts):
+            d, t = (X - centre) @ n, X @ tan
+            lo, hi = _reach(centre, tan, t0, t1, h, w)
+            q = np.nonzero(ab & (np.abs(d) <= LINE_BAND) & (t >= min(lo, t0 - 0.5))
+                           & (t <= max(hi, t1 + 0.5)))[0]
+            if q.size < 2 * LINE_MIN:
+                continue
+            la = catf[q]
+            wa, wb = wf[q] * (la == A), wf[q] * (la == B)
+            pos = d[q] > 0
+            a_pos = bool((wa * ~pos).sum() + (wb * pos).sum()
+                         < (wa * pos).sum() + (wb * ~pos).sum())    # A's side: the + one
+            phi = np.arctan2(n[1], n[0]) + LINE_TILT
+            normals = np.stack([np.cos(phi), np.sin(phi)], -1)
+            side = ((X[q] - centre) @ normals.T)[:, :, None] > LINE_OFFSETS   # (m, P, O)
+            on_a = (side if a_pos else ~side).astype(np.float64)
+            ll = np.einsum("m,mpo->po", _evidence(q, A, B, cat, dets, lp, cap, det_w),
+                           on_a)
+            post = np.exp(ll - ll.max())
+            post /= post.sum()
+            line = _Line(A, B, tan, centre, t0, t1, a_pos, normals, post)
+            jp, jo = np.unravel_index(np.argmax(post), post.shape)
+            best = on_a[:, jp, jo] > 0
+            if ((wa * ~best).sum() + (wb * best).sum()) / (wa.sum() + wb.sum()) > LINE_MISFIT:
+                continue
+            lines.append(line)
+            p_a = np.einsum("po,mpo->m", post, on_a)
+            ok = ~detf[q] & (np.abs(d[q]) <= LINE_NEAR) & (t[q] >= lo) & (t[q] <= hi)
+            mq, mp = _moves(q[ok], p_a[ok], la[ok], A, B)
+            got_q.append(mq)
+            got_pl.append(mp)
+    # corners: two runs of the same pair whose lines cross near both their ends
+    for i, l1 in enumerate(lines):
+        for l2 in lines[i + 1:]:
+            if (l1.A, l1.B) != (l2.A, l2.B) or abs(l1.n_map @ l2.n_map) > np.cos(LINE_TURN):
+                continue
+            at = np.linalg.solve(np.stack([l1.n_map, l2.n_map]), [l1.rho_map, l2.rho_map])
+            if not all(ln.t0 - LINE_CORNER <= at @ ln.tan <= ln.t1 + LINE_CORNER
+                       and not ln.t0 + LINE_CORNER < at @ ln.tan < ln.t1 - LINE_CORNER
+                       for ln in (l1, l2)):
+                continue
+            # A's corner is convex where each run lies on A's side of the other's line
+            convex = l2.map_on_a(l1.centre)
+            if convex != l1.map_on_a(l2.centre):
+                continue
+            ir, ic = np.round(at).astype(np.int64)
+            r0, r1 = max(ir - LINE_ZONE, 0), min(ir + LINE_ZONE + 1, h)
+            c0, c1 = max(ic - LINE_ZONE, 0), min(ic + LINE_ZONE + 1, w)
+            if r0 >= r1 or c0 >= c1:
+                continue
+            zr, zc = np.mgrid[r0:r1, c0:c1]
+            q = (zr * w + zc).ravel()
+            q = q[((catf[q] == l1.A) | (catf[q] == l1.B)) & ~detf[q]]
+            if not q.size:
+                continue
+            p1, p2 = l1.p_a(X[q]), l2.p_a(X[q])
+            p_a = p1 * p2 if convex else 1.0 - (1.0 - p1) * (1.0 - p2)
+            mq, mp = _moves(q, p_a, catf[q], l1.A, l1.B)
+            got_q.append(mq)
+            got_pl.append(mp)
+    if not got_q:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return one_plane(np.concatenate(got_q), np.concatenate(got_pl))
+
+
+def one_plane(q: np.ndarray, pl: np.ndarray):
+    """The moves (pixels ``q``, planes ``pl``) with each pixel once: a pixel sent to
+    one plane (by one line or several) goes there, one sent to two stays."""
+    q, pl = np.asarray(q, np.int64), np.asarray(pl, np.int64)
+    order = np.lexsort((pl, q))
+    q, pl = q[order], pl[order]
+    uq, first, cnt = np.unique(q, return_index=True, return_counts=True)
+    one = pl[first] == pl[first + cnt - 1]
+    return uq[one], pl[first][one]

@@ -1,0 +1,190 @@
+"""The edges as whole lines (stages/ranging/edgelines.py): the boundary points and runs on
+label images drawn here, the line's posterior against a sum written out, a wrong label
+beside a long edge and beyond a corner put right, and the guards (detected pixels, far
+pixels, noise, a pixel sent two ways, frames too small or empty)."""
+
+import numpy as np
+import pytest
+
+from stages.ranging import edgelines as el
+
+CAP, DET = 6.0, 12.0
+
+
+def _frame(truth, say=3.0, rng=None, noise=0.0):
+    """(cat, weight, dets, lp) for labels ``truth`` (h, w; 0 or 1): each pixel's own
+    log-likelihood ``say`` nats for its true plane (plus Gaussian ``noise``)."""
+    h, w = truth.shape
+    e = np.where(truth == 0, say, -say).astype(np.float64)
+    if noise:
+        e = e + rng.normal(0, noise, e.shape)
+    lp = np.stack([e, np.zeros_like(e)], -1)
+    return (truth.copy(), np.full((h, w), 0.5), np.zeros((h, w), bool), lp)
+
+
+def _half(h, w, col):
+    return (np.arange(w)[None, :] >= col).astype(np.int64).repeat(h, 0)
+
+
+def test_boundary_points_between_planes_only():
+    cat = _half(4, 6, 3)
+    cat[0, :] = -1
+    pts = el.boundary_points(cat)
+    assert list(pts) == [(0, 1)]
+    assert np.allclose(pts[(0, 1)], [[r, 2.5] for r in (1, 2, 3)])
+    assert el.boundary_points(np.full((3, 3), -1)) == {}
+
+
+def test_a_staircase_at_30_degrees_is_one_run():
+    """The boundary of a half-plane at 30 degrees: one run along it, its normal within a
+    degree, its extent the image's."""
+    h = w = 40
+    r, c = np.mgrid[0:h, 0:w]
+    a = np.deg2rad(30.0)
+    truth = ((r - 20) * np.cos(a) + (c - 20) * np.sin(a) > 0.3).astype(np.int64)
+    got = el.runs(el.boundary_points(truth)[(0, 1)])
+    assert len(got) == 1
+    n, tan, centre, t0, t1 = got[0]
+    assert abs(abs(n @ [np.cos(a), np.sin(a)]) - 1.0) < 1 - np.cos(np.deg2rad(1.0))
+    assert t1 - t0 > 35
+
+
+def test_a_gap_splits_a_run_and_scatter_makes_none():
+    pts = np.array([[r + 0.5, 7.0] for r in list(range(10)) + list(range(16, 26))])
+    got = el.runs(pts)
+    assert len(got) == 2 and sorted(round(g[4] - g[3]) for g in got) == [9, 9]
+    rng = np.random.default_rng(3)
+    assert el.runs(rng.uniform(0, 60, (40, 2))) == []
+
+
+def test_the_posterior_is_the_sum_written_out():
+    """A line's posterior that a pixel lies on A's side against the sum over every tilt
+    and offset, pixel by pixel."""
+    rng = np.random.default_rng(5)
+    pts = np.array([[r + 0.5, 7.5] for r in range(12)], float)
+    n, tan, centre, t0, t1 = el.runs(pts)[0]
+    xy = np.array([[r, c] for r in range(12) for c in range(4, 11)], float)
+    e = rng.normal(0, 2.0, len(xy))
+    phi = np.arctan2(n[1], n[0]) + el.LINE_TILT
+    normals = np.stack([np.cos(phi), np.sin(phi)], -1)
+    a_pos = False
+    ll = np.zeros((len(phi), len(el.LINE_OFFSETS)))
+    for i, nn in enumerate(normals):
+        for j, o in enumerate(el.LINE_OFFSETS):
+            for k, x in enumerate(xy):
+                if not ((x - centre) @ nn > o):      # A on the - side
+                    ll[i, j] += e[k]
+    post = np.exp(ll - ll.max())
+    post /= post.sum()
+    line = el._Line(0, 1, tan, centre, t0, t1, a_pos, normals, post)
+    want = [sum(post[i, j] for i, nn in enumerate(normals)
+                for j, o in enumerate(el.LINE_OFFSETS) if not ((x - centre) @ nn > o))
+            for x in xy]
+    assert np.allclose(line.p_a(xy), want)
+
+
+def test_a_wrong_label_beside_a_long_edge_moves_back():
+    """Two pixels one column over on a 30-row edge whose own photons lean the wrong way
+    (1 nat): the edge's other 28 rows place them."""
+    truth = _half(30, 20, 10)
+    cat, weight, dets, lp = _frame(truth)
+    for r in (9, 17):
+        cat[r, 9] = 1
+        lp[r, 9, 0] = -1.0
+    q, pl = el.line_moves(cat, weight, dets, lp, CAP, DET)
+    assert sorted(q.tolist()) == [9 * 20 + 9, 17 * 20 + 9] and (pl == 0).all()
+
+
+def test_detected_and_far_pixels_stay():
+    truth = _half(30, 20, 10)
+    cat, weight, dets, lp = _frame(truth)
+    cat[9, 9], dets[9, 9] = 1, True          # a detected pixel: never moved
+    cat[17, 7] = 1                           # three columns off the line: not the line's
+    lp[17, 7, 0] = -1.0
+    q, _ = el.line_moves(cat, weight, dets, lp, CAP, DET)
+    assert 9 * 20 + 9 not in q and 17 * 20 + 7 not in q
+
+
+@pytest.mark.parametrize("inside", [1, 0])
+def test_the_pixel_past_a_box_corner(inside):
+    """A box (rows 10-29, cols 8-21) in a 40 x 32 frame; the pixel diagonal to its
+    top-left corner labelled as the box, its own photons leaning to the box. The box's
+    left and top edges cross at the corner, and the pixel lies outside both: it goes
+    back. Labels swapped (the box plane 0, its surround 1): the corner is then the
+    surround's concave one, the same pixel moves."""
+    r, c = np.mgrid[0:40, 0:32]
+    box = (r >= 10) & (r < 30) & (c >= 8) & (c < 22)
+    truth = np.where(box, inside, 1 - inside).astype(np.int64)
+    cat, weight, dets, lp = _frame(truth)
+    cat[9, 7] = truth[10, 8]
+    lp[9, 7, :] = lp[10, 8, :] / 3.0
+    q, pl = el.line_moves(cat, weight, dets, lp, CAP, DET)
+    assert q.tolist() == [9 * 32 + 7] and pl.tolist() == [truth[9, 7]]
+
+
+def test_noisy_labels_make_no_line():
+    rng = np.random.default_rng(2)
+    cat = rng.integers(0, 2, (30, 30))
+    _, weight, dets, lp = _frame(cat, rng=rng, noise=1.0)
+    q, _ = el.line_moves(cat, weight, dets, lp, CAP, DET)
+    assert q.size == 0
+
+
+@pytest.mark.parametrize("shape", [(1, 256), (3, 3), (0, 0), (64, 64)])
+def test_small_empty_and_planeless_frames(shape):
+    cat = np.full(shape, -1, np.int64)
+    lp = np.zeros(shape + (1,))
+    q, pl = el.line_moves(cat, np.ones(shape), np.zeros(shape, bool), lp, CAP, DET)
+    assert q.size == 0 and pl.size == 0
+    if shape == (1, 256):
+        cat = _half(1, 256, 100)
+        _, weight, dets, lp = _frame(cat)
+        assert el.line_moves(cat, weight, dets, lp, CAP, DET)[0].size == 0
+
+
+def test_a_pixel_sent_two_ways_stays():
+    q, pl = el.one_plane([5, 3, 5, 7, 7], [1, 2, 0, 4, 4])
+    assert q.tolist() == [3, 7] and pl.tolist() == [2, 4]
+
+
+def test_nan_and_minus_inf_likelihoods_have_no_say():
+    truth = _half(30, 20, 10)
+    cat, weight, dets, lp = _frame(truth)
+    lp[:, :3, 0] = np.nan
+    lp[:, -3:, :] = -np.inf
+    cat[12, 9] = 1
+    lp[12, 9, 0] = -1.0
+    q, pl = el.line_moves(cat, weight, dets, lp, CAP, DET)
+    assert q.tolist() == [12 * 20 + 9] and pl.tolist() == [0]
+
+
+def test_a_run_reaches_the_border_when_it_ends_near_it():
+    """A run that stops 3 pixels short of the image's left border moves its pixels on to
+    the border (no corner fits between); one that stops 10 short, only inside it."""
+    centre, tan = np.array([48.5, 30.0]), np.array([0.0, 1.0])
+    assert el._reach(centre, tan, 3.0, 63.0, 64, 64) == (-0.5, 63.5)
+    assert el._reach(centre, tan, 10.0, 50.0, 64, 64) == (11.0, 49.0)
+    a = np.deg2rad(30.0)
+    tan = np.array([np.sin(a), np.cos(a)])
+    c0 = 32.0 * tan.sum()                 # the centre's place along the line
+    lo, hi = el._reach(np.array([32.0, 32.0]), tan, c0 - 35.0, c0 + 35.0, 64, 64)
+    # at 30 degrees the line leaves through the left and right borders (cols -0.5, 63.5),
+    # 37.5 and 36.4 from the centre along it: within 6 of the run's ends
+    assert lo == pytest.approx(c0 - 32.5 / np.cos(a))
+    assert hi == pytest.approx(c0 + 31.5 / np.cos(a))
+    assert el._reach(np.array([32.0, 32.0]), tan, c0 - 20.0, c0 + 20.0, 64, 64) == (
+        pytest.approx(c0 - 19.0), pytest.approx(c0 + 19.0))
+
+
+def test_the_first_pixels_at_the_border_move():
+    """Two pixels at the left border, one row over, their photons silent (no signal
+    photon): the run starts beside them, and the line carries on to the border. (Were
+    their photons to lean the wrong way, the lines turned a little that cut them off
+    alone would keep them: a run's last pixels are weighed by their own photons too.)"""
+    truth = (np.arange(30)[:, None] >= 15).astype(np.int64).repeat(40, 1)
+    cat, weight, dets, lp = _frame(truth)
+    for c in (0, 1):
+        cat[15, c] = 0
+        lp[15, c, :] = 0.0
+    q, pl = el.line_moves(cat, weight, dets, lp, CAP, DET)
+    assert sorted(q.tolist()) == [15 * 40, 15 * 40 + 1] and (pl == 1).all()
