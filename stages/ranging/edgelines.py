@@ -104,12 +104,13 @@ def runs(pts: np.ndarray) -> list:
         o = np.argsort(t)
         inl, t = inl[o], t[o]
         cuts = np.nonzero(np.diff(t) > LINE_GAP)[0] + 1
-        for part, tp in zip(np.split(inl, cuts), np.split(t, cuts), strict=True):
+        for part in np.split(inl, cuts):
             if part.size >= LINE_MIN:
                 n2, tan2, m2 = _tls(pts[part])
                 if tan2 @ tan < 0:
                     tan2 = -tan2
-                out.append((n2, tan2, m2, float(tp[0]), float(tp[-1])))
+                t2 = pts[part] @ tan2             # (its extent along its own tangent)
+                out.append((n2, tan2, m2, float(t2.min()), float(t2.max())))
     return out
 
 
