@@ -10,7 +10,9 @@ degrees, an offset of +-1.5 pixels) by the likelihood of the photons in a band a
 whole run, and moves the undetected pixels next to it that lie on the wrong side with a
 posterior above ``LINE_P``. Where two runs of the same pair meet (a box's corner), the
 pixels around the point where their lines cross follow both lines: on a plane's side of
-both where its corner is convex, of either where it is concave.
+both where its corner is convex, of either where it is concave; where the labels
+around the crossing fit that corner (two separate objects' edges also cross near their
+runs' ends).
 
 Two guards, from a first version that made the pixels off 11 -> 476 (docs/ranging.md
 "Edges as whole lines"): a run is contiguous along its line (no gap over ``LINE_GAP``
@@ -40,6 +42,7 @@ LINE_DET = 6.0        # nats: a detected pixel's say for its plane (the windows'
 LINE_CORNER = 6.0     # pixels: two runs whose lines cross this near both their ends meet
 LINE_ZONE = 3         # the corner's pixels: within this many of the crossing (rows, cols)
 LINE_TURN = np.deg2rad(20.0)   # the least angle between a corner's two lines
+LINE_MISFIT_CORNER = 0.15  # the corner's zone: its labels off the two best lines at most
 
 
 def boundary_points(cat: np.ndarray) -> dict:
@@ -246,7 +249,16 @@ def line_moves(cat, weight, dets, lp, cap, det_w):
                 continue
             zr, zc = np.mgrid[r0:r1, c0:c1]
             q = (zr * w + zc).ravel()
-            q = q[((catf[q] == l1.A) | (catf[q] == l1.B)) & ~detf[q]]
+            q = q[(catf[q] == l1.A) | (catf[q] == l1.B)]
+            # the zone's labels must fit the corner (two runs of separate objects also
+            # cross near their ends: two boxes, one's side and the other's top)
+            a1 = (X[q] @ l1.n_map - l1.rho_map > 0) == l1.a_pos
+            a2 = (X[q] @ l2.n_map - l2.rho_map > 0) == l2.a_pos
+            fit = (a1 & a2) if convex else (a1 | a2)
+            wq = wf[q]
+            if not q.size or (wq * (fit != (catf[q] == l1.A))).sum() > LINE_MISFIT_CORNER * wq.sum():
+                continue
+            q = q[~detf[q]]
             if not q.size:
                 continue
             p1, p2 = l1.p_a(X[q]), l2.p_a(X[q])
