@@ -256,7 +256,8 @@ def line_moves(cat, weight, dets, lp, cap, det_w):
             a2 = (X[q] @ l2.n_map - l2.rho_map > 0) == l2.a_pos
             fit = (a1 & a2) if convex else (a1 | a2)
             wq = wf[q]
-            if not q.size or (wq * (fit != (catf[q] == l1.A))).sum() > LINE_MISFIT_CORNER * wq.sum():
+            off = (wq * (fit != (catf[q] == l1.A))).sum()
+            if not q.size or off > LINE_MISFIT_CORNER * wq.sum():
                 continue
             q = q[~detf[q]]
             if not q.size:
