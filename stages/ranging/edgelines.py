@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from stages.ranging import planecut
+
 LINE_DIRS = 72        # the directions voted over (2.5 degrees apart)
 LINE_MIN = 8          # boundary points a run needs
 LINE_INLIER = 0.75    # pixels: a boundary point this near the line is on it
@@ -117,6 +119,12 @@ def runs(pts: np.ndarray) -> list:
     return out
 
 
+def _on_a(xy, centre, normals, a_pos):
+    """(m, P, O) whether each point lies on A's side under each line (tilt, offset)."""
+    side = ((xy - centre) @ normals.T)[:, :, None] > LINE_OFFSETS
+    return side if a_pos else ~side
+
+
 class _Line:
     """A run's line with its posterior over (tilt, offset)."""
 
@@ -129,9 +137,7 @@ class _Line:
         self.rho_map = float(normals[j[0]] @ centre + LINE_OFFSETS[j[1]])
 
     def on_a(self, xy: np.ndarray) -> np.ndarray:
-        """(m, P, O) whether each point lies on A's side under each line."""
-        side = ((xy - self.centre) @ self.normals.T)[:, :, None] > LINE_OFFSETS
-        return side if self.a_pos else ~side
+        return _on_a(xy, self.centre, self.normals, self.a_pos)
 
     def p_a(self, xy: np.ndarray) -> np.ndarray:
         """The posterior that each point lies on A's side."""
@@ -165,11 +171,9 @@ def _evidence(q, A, B, cat, dets, lp, cap, det_w):
     +-``det_w`` for the plane it is on."""
     w = cat.shape[1]
     rq, cq = q // w, q % w
-    with np.errstate(invalid="ignore"):                 # (-inf - -inf: no say)
-        e = np.clip(np.nan_to_num(lp[rq, cq, A] - lp[rq, cq, B], nan=0.0), -cap, cap)
     lab = cat.ravel()[q]
-    return np.where(dets.ravel()[q], np.where(lab == A, det_w, np.where(lab == B, -det_w,
-                                                                         0.0)), e)
+    return planecut.pair_say(lp[rq, cq, A], lp[rq, cq, B], dets.ravel()[q], lab == A,
+                             lab == B, cap, det_w)
 
 
 def _moves(q, p_a, lab, A, B):
@@ -211,8 +215,7 @@ def line_moves(cat, weight, dets, lp, cap, det_w):
                          < (wa * pos).sum() + (wb * ~pos).sum())    # A's side: the + one
             phi = np.arctan2(n[1], n[0]) + LINE_TILT
             normals = np.stack([np.cos(phi), np.sin(phi)], -1)
-            side = ((X[q] - centre) @ normals.T)[:, :, None] > LINE_OFFSETS   # (m, P, O)
-            on_a = (side if a_pos else ~side).astype(np.float64)
+            on_a = _on_a(X[q], centre, normals, a_pos).astype(np.float64)   # (m, P, O)
             ll = np.einsum("m,mpo->po", _evidence(q, A, B, cat, dets, lp, cap, det_w),
                            on_a)
             post = np.exp(ll - ll.max())

@@ -411,6 +411,16 @@ def _edge_window(cat, weight, det, llr, who, A, B, win, compiled=None, threads=1
     return np.concatenate([g[0] for g in got]), np.concatenate([g[1] for g in got])
 
 
+def pair_say(la, lb, det, ia, ib, cap, det_w):
+    """Each pixel's say for plane A against B (the windows' and edgelines.py's): an
+    undetected pixel's log-likelihood ratio ``la - lb`` clipped to +-``cap`` (NaN, as
+    -inf - -inf: none), a detected one +-``det_w`` for the plane it is on (``ia``,
+    ``ib``: its label is A, B; neither: none)."""
+    with np.errstate(invalid="ignore"):                           # (-inf - -inf: no say)
+        e = np.clip(np.nan_to_num(la - lb, nan=0.0), -cap, cap)
+    return np.where(det, np.where(ia, det_w, np.where(ib, -det_w, 0.0)), e)
+
+
 def _edge_window_numpy(cat, weight, det, llr, who, A, B, off, order, lg, p_below,
                        span=None):
     """:func:`_edge_window`'s numpy twin on a chunk of pixels."""
@@ -436,11 +446,8 @@ def _edge_window_numpy(cat, weight, det, llr, who, A, B, off, order, lg, p_below
     if not go.size:
         return post, kdir
     rc, cc, ia, ib = rc[go], cc[go], ia[go], ib[go]
-    la = llr[rc, cc, A[go, None]]
-    lb = llr[rc, cc, B[go, None]]
-    with np.errstate(invalid="ignore"):                           # (-inf - -inf: no say)
-        e = np.clip(np.nan_to_num(la - lb, nan=0.0), -EDGE_CAP, EDGE_CAP)
-    e = np.where(det[rc, cc], np.where(ia, EDGE_DET, np.where(ib, -EDGE_DET, 0.0)), e)
+    e = pair_say(llr[rc, cc, A[go, None]], llr[rc, cc, B[go, None]], det[rc, cc], ia, ib,
+                 EDGE_CAP, EDGE_DET)
     e = np.where(ins[go], e, 0.0)
     ce = np.cumsum(e[:, order], -1)                               # (n, K, M)
     below = ce[..., :-1]
