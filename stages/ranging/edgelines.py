@@ -22,6 +22,17 @@ pixels within ``LINE_NEAR`` of the line, inside the run less a pixel at each end
 one wrong label at a run's end lengthens it, and the band would carry that error along.
 The corners move the pixels past the runs' ends.
 
+A detected pixel is never moved as the others are. Where it lies in a run's band,
+inside the run, its detection is doubted when its own photons' whole
+log-likelihood ratio between the two planes (not clipped), added to the line's log-odds
+of its side without its own say, puts it on the other plane (posterior above
+``LINE_P_DET``): a detection at the other plane's time that background passes at the
+frame's p_fa, among the ~300 pixels of a frame beside an edge. The caller withdraws it
+(the pixel takes the line's plane, its sigma keeps the chance it is where it was
+detected). The misfit counts only the labels a detection or the pixel's own photons back
+(photons that favour a plane over none): in the sky beside an object the relabelling
+gives every pixel one of its neighbours' planes, and those labels say nothing.
+
 numpy only, at a cost of a few milliseconds a frame (a few dozen runs)."""
 
 from __future__ import annotations
@@ -45,6 +56,8 @@ LINE_CORNER = 6.0     # pixels: two runs whose lines cross this near both their 
 LINE_ZONE = 3         # the corner's pixels: within this many of the crossing (rows, cols)
 LINE_TURN = np.deg2rad(20.0)   # the least angle between a corner's two lines
 LINE_MISFIT_CORNER = 0.15  # the corner's zone: its labels off the two best lines at most
+LINE_P_DET = 0.5      # a detected pixel: the other side's posterior (the line without its
+#                       say, with its own photons' whole likelihood) from which it is doubted
 
 
 def boundary_points(cat: np.ndarray) -> dict:
@@ -186,17 +199,18 @@ def _moves(q, p_a, lab, A, B):
 
 
 def line_moves(cat, weight, dets, lp, cap, det_w):
-    """The pixels to move and the planes they go to (flat indices, plane indices): see
-    the module's docstring. ``cat`` (h, w) each pixel's plane (-1: none), ``weight`` the
-    labels' weights (as the windows'), ``dets`` (h, w) detected pixels (never moved;
-    their say is +-``det_w``), ``lp`` (h, w, L) each plane's log-likelihood a pixel
-    (an undetected pixel's say between two: clipped to +-``cap``). A pixel two lines or
-    corners would send to different planes stays."""
+    """The pixels to move and the planes they go to (flat indices, plane indices), then
+    the detected pixels doubted, the planes the lines put them on and the posterior that
+    each lies where it was detected: see the module's docstring. ``cat`` (h, w) each
+    pixel's plane (-1: none), ``weight`` the labels' weights (as the windows'), ``dets``
+    (h, w) detected pixels (never moved; their say is +-``det_w``), ``lp`` (h, w, L)
+    each plane's log-likelihood a pixel (an undetected pixel's say between two: clipped
+    to +-``cap``). A pixel two lines or corners would send to different planes stays."""
     h, w = cat.shape
     rr, cc = np.mgrid[0:h, 0:w]
     X = np.stack([rr.ravel(), cc.ravel()], -1).astype(np.float64)
     catf, wf, detf = cat.ravel(), weight.ravel(), dets.ravel()
-    got_q, got_pl, lines = [], [], []
+    got_q, got_pl, lines, doubt = [], [], [], []
     for (A, B), pts in boundary_points(cat).items():
         if len(pts) < LINE_MIN:
             continue
@@ -216,21 +230,35 @@ def line_moves(cat, weight, dets, lp, cap, det_w):
             phi = np.arctan2(n[1], n[0]) + LINE_TILT
             normals = np.stack([np.cos(phi), np.sin(phi)], -1)
             on_a = _on_a(X[q], centre, normals, a_pos).astype(np.float64)   # (m, P, O)
-            ll = np.einsum("m,mpo->po", _evidence(q, A, B, cat, dets, lp, cap, det_w),
-                           on_a)
+            say = _evidence(q, A, B, cat, dets, lp, cap, det_w)
+            ll = np.einsum("m,mpo->po", say, on_a)
             post = np.exp(ll - ll.max())
             post /= post.sum()
             line = _Line(A, B, tan, centre, t0, t1, a_pos, normals, post)
             jp, jo = np.unravel_index(np.argmax(post), post.shape)
             best = on_a[:, jp, jo] > 0
-            if ((wa * ~best).sum() + (wb * best).sum()) / (wa.sum() + wb.sum()) > LINE_MISFIT:
+            # the misfit of the labels a detection or the pixel's own photons back (one
+            # whose photons favour no surface over either plane, as in the sky beside
+            # a box, holds a label its neighbours gave it)
+            rq, cq = q // w, q % w
+            back = detf[q] | (np.fmax(lp[rq, cq, A], lp[rq, cq, B]) > 0)
+            wa_, wb_ = wa * back, wb * back
+            tot = wa_.sum() + wb_.sum()
+            if tot <= 0 or (wa_ * ~best).sum() + (wb_ * best).sum() > LINE_MISFIT * tot:
                 continue
             lines.append(line)
             p_a = np.einsum("po,mpo->m", post, on_a)
-            ok = ~detf[q] & (np.abs(d[q]) <= LINE_NEAR) & (t[q] >= lo) & (t[q] <= hi)
+            inside = (np.abs(d[q]) <= LINE_NEAR) & (t[q] >= lo) & (t[q] <= hi)
+            ok = ~detf[q] & inside
             mq, mp = _moves(q[ok], p_a[ok], la[ok], A, B)
             got_q.append(mq)
             got_pl.append(mp)
+            # (a detection anywhere in the band, but only inside the run itself less a
+            # pixel at each end: the line carried on to the border is no evidence)
+            dq = np.nonzero(detf[q] & (t[q] >= t0 + 1.0) & (t[q] <= t1 - 1.0))[0]
+            if dq.size:
+                got = _doubt(q[dq], on_a[dq], ll, say[dq], la[dq], lp, w, A, B)
+                doubt.append(got)
     # corners: two runs of the same pair whose lines cross near both their ends
     for i, l1 in enumerate(lines):
         for l2 in lines[i + 1:]:
@@ -270,9 +298,47 @@ def line_moves(cat, weight, dets, lp, cap, det_w):
             mq, mp = _moves(q, p_a, catf[q], l1.A, l1.B)
             got_q.append(mq)
             got_pl.append(mp)
-    if not got_q:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    return one_plane(np.concatenate(got_q), np.concatenate(got_pl))
+    none = np.zeros(0, np.int64)
+    moves = (one_plane(np.concatenate(got_q), np.concatenate(got_pl)) if got_q
+             else (none, none))
+    if not doubt:
+        return moves + (none, none, np.zeros(0))
+    dq, dpl, dp = (np.concatenate(x) for x in zip(*doubt, strict=True))
+    uq, upl = one_plane(dq, dpl)
+    # (a pixel two lines doubt towards one plane: the larger chance it is where it was)
+    keep = np.isin(dq, uq)
+    p_was = np.zeros(uq.size)
+    np.maximum.at(p_was, np.searchsorted(uq, dq[keep]), dp[keep])
+    return moves + (uq, upl, p_was)
+
+
+def _doubt(q, on_a, ll, say, lab, lp, w, A, B):
+    """The detected pixels ``q`` (their sides of each line ``on_a`` (m, P, O), the run's
+    log-evidence ``ll`` (P, O), their say in it ``say``, labels ``lab``) whose own
+    photons' whole log-likelihood ratio (``lp``, not clipped), added to the line's
+    log-odds of their side without their say, puts them on the other plane with a
+    posterior above ``LINE_P_DET``: (pixels, the other planes, the posterior that each
+    lies where it was detected)."""
+    def lse(x, m):
+        x = np.where(m, x, -np.inf)
+        top = x.max((1, 2))
+        with np.errstate(invalid="ignore", divide="ignore"):   # (no line: -inf)
+            return top + np.log(np.exp(x - np.where(np.isfinite(top), top, 0.0)[:, None, None]
+                                       ).sum((1, 2)))
+    on = on_a > 0
+    L = np.broadcast_to(ll, on.shape)
+    line = lse(L, on) - lse(L, ~on) - say                    # A against B, without the pixel
+    rq, cq = q // w, q % w
+    with np.errstate(invalid="ignore"):
+        own = lp[rq, cq, A] - lp[rq, cq, B]
+    z = np.where(np.isfinite(own), own, 0.0) + line
+    z = np.where(np.isnan(z), 0.0, z)
+    cut = np.log(LINE_P_DET / (1 - LINE_P_DET))
+    to_b, to_a = (lab == A) & (z < -cut), (lab == B) & (z > cut)
+    p_a = 1.0 / (1.0 + np.exp(-np.clip(z, -700, 700)))
+    return (np.concatenate([q[to_b], q[to_a]]),
+            np.concatenate([np.full(to_b.sum(), B), np.full(to_a.sum(), A)]),
+            np.concatenate([p_a[to_b], 1.0 - p_a[to_a]]))
 
 
 def one_plane(q: np.ndarray, pl: np.ndarray):

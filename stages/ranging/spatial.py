@@ -53,7 +53,10 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    line prior holds each pixel of a straight boundary where it is); last, edges
    (:func:`_edges`): a pixel beside a boundary goes to the side of the straight edge
    that the photons of the 11 x 11 window around it place (every line at any angle,
-   weighed by their likelihood), or, near a corner, of the windows beside it.
+   weighed by their likelihood), or, near a corner, of the windows beside it; then of
+   the straight edge its whole run's photons place (:mod:`stages.ranging.edgelines`),
+   where a detection beside the line whose own photons and the line's disagree is
+   withdrawn (the pixel labelled, its sigma keeping the chance it was right).
    A surface only the corner windows detect (the pixel's own photons do not) does not
    hold the pixel there: the pixel is labelled as an undetected one, and the detection
    stands only where the label lies on its surface (the pixel's other corner windows'
@@ -968,6 +971,11 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
                            slot(bw_r, 0.0), sig_cnt, slot(rank, -1e9), own, P0, beta,
                            bin_s, sb, t0_s, prof, compiled, det, threads)
     lab, free, tb = state[:3]
+    # a detection the edges' lines doubt (its own photons against the line's photons
+    # all along the edge: stages/ranging/edgelines.py) is withdrawn, the pixel labelled
+    doubted, p_was, t_was = state[7]
+    own = own & ~doubted[..., None]
+    surr_only = surr & ~own
     tl = np.take_along_axis(tb, lab[..., None], -1)[..., 0]
     # (the labels' tolerance, 3 sigma of the pulse, as the relabelling's. A pixel its
     # own photons hold keeps its corner windows' surfaces as further returns, and so
@@ -989,8 +997,14 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
     # reported before the pixel's other surfaces
     rank = np.where(held[..., None], rank - np.where(rank >= 1e10, 1e11, 0.0)
                     + np.where(near & stand, 1e10, 0.0), rank)
-    _label_sigma((lab, free & ~held) + state[2:], sig_cnt, sig_out, P0, beta, bin_s, sb,
+    _label_sigma((lab, free & ~held) + state[2:7], sig_cnt, sig_out, P0, beta, bin_s, sb,
                  prof)
+    # a doubted detection's pixel: the chance it lies on the surface it was detected on
+    # (its posterior against the line's) times the squared distance between the two
+    rd, cd = np.nonzero(doubted)
+    k = lab[rd, cd]
+    sig_out[rd, cd, k] = np.sqrt(sig_out[rd, cd, k] ** 2 + p_was[rd, cd]
+                                 * ((t_was[rd, cd] - tb[rd, cd, k]) * bin_s) ** 2)
     # detected before not; then by the corner windows that see the surface, then by the
     # pixel's own excess counts, then by the neighbourhood's signal
     key = np.where(det, 1e12, 0.0) + rank
@@ -1396,9 +1410,10 @@ def _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, ha
     none moves), each on the pixels the one before's moves reach. Detection is
     untouched. (Seeds 1-8 at (2, 50), pixels > 10 cm off, against the corners' step it
     replaced: the grid's scene 24 -> 19, turned by 30 degrees 276 -> 158; held out,
-    seeds 9-15: 37 -> 27 and 250 -> 118; docs/ranging.md "Edges".) Returns the labels;
-    ``tb``, ``llr``, ``slope``, ``sig_cnt`` and ``sig_out`` are written in place where a
-    plane is put in a pixel's last slot."""
+    seeds 9-15: 37 -> 27 and 250 -> 118; docs/ranging.md "Edges".) Returns the labels
+    and the detections the lines doubt (:func:`_no_doubt`'s arrays; each such pixel takes
+    the line's plane as its label); ``tb``, ``llr``, ``slope``, ``sig_cnt`` and
+    ``sig_out`` are written in place where a plane is put in a pixel's last slot."""
     T, lp = table[0], table[4]
     weight = np.where(free, planecut.EDGE_FREE, 1.0)
     dets = det.any(-1)
@@ -1422,14 +1437,31 @@ def _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, ha
         moved = np.zeros(free.shape, bool)
         moved[r, c] = True
         near = ndimage.maximum_filter(moved, 2 * (planecut.EDGE_R + planecut.EDGE_SHIFT) + 1)
+    doubted = _no_doubt(free.shape)
     if EDGE_LINES:   # and the edges as whole lines (stages/ranging/edgelines.py)
-        q, pl = edgelines.line_moves(_plane_of(lab, tb, T, tol), weight, dets, lp,
-                                     planecut.EDGE_CAP, edgelines.LINE_DET)
+        q, pl, qd, pld, p_was = edgelines.line_moves(
+            _plane_of(lab, tb, T, tol), weight, dets, lp, planecut.EDGE_CAP,
+            edgelines.LINE_DET)
+        w = free.shape[1]
         if q.size:
-            w = free.shape[1]
             _take_plane(q // w, q % w, pl, lab, tb, llr, slope, sig_cnt, sig_out, table, P0,
                         beta, half, tol, prof)
-    return lab
+        if qd.size:
+            # a detection the line doubts: the pixel takes the line's plane, and the
+            # chance it is where its detection put it stays in its sigma (_finish)
+            rd, cd = qd // w, qd % w
+            doubted[0][rd, cd] = True
+            doubted[1][rd, cd] = p_was
+            doubted[2][rd, cd] = tb[rd, cd, lab[rd, cd]]
+            _take_plane(rd, cd, pld, lab, tb, llr, slope, sig_cnt, sig_out, table, P0, beta,
+                        half, tol, prof)
+    return lab, doubted
+
+
+def _no_doubt(shape):
+    """The detections :func:`_edges` doubts (none yet): whether each pixel's is, the
+    posterior that it lies where it was detected, and the time it was detected at."""
+    return np.zeros(shape, bool), np.zeros(shape), np.zeros(shape)
 
 
 def _commonest_other(cat, weight, who, A, k):
@@ -1563,10 +1595,12 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
             lab, before = _block_move(i, j, phase, lab, before, free, tb, llr, slope,
                                       sig_cnt, sig_out, P0, beta, half, tol, shifted,
                                       agreement, prof)
+    doubted = _no_doubt(free.shape)
     if got is not None:
-        lab = _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, half,
-                     tol, prof, compiled, threads)
+        lab, doubted = _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0,
+                              beta, half, tol, prof, compiled, threads)
     t_out[..., -1] = tb[..., -1] * bin_s + t0_s
     chosen = np.arange(nc) == lab[..., None]
+    free = free | doubted[0]
     return (np.where(free[..., None] & chosen, 1e11, 0.0) + rank,
-            (lab, free, tb, llr, slope, shifted, agreement))  # for _label_sigma
+            (lab, free, tb, llr, slope, shifted, agreement, doubted))

@@ -1,7 +1,8 @@
 """The edges as whole lines (stages/ranging/edgelines.py): the boundary points and runs on
 label images drawn here, the line's posterior against a sum written out, a wrong label
 beside a long edge and beyond a corner put right, and the guards (detected pixels, far
-pixels, noise, a pixel sent two ways, frames too small or empty)."""
+pixels, noise, a pixel sent two ways, frames too small or empty); a detection its edge's
+line refuses, doubted by the odds written out."""
 
 import numpy as np
 import pytest
@@ -13,12 +14,13 @@ CAP, DET = 6.0, 12.0
 
 def _frame(truth, say=3.0, rng=None, noise=0.0):
     """(cat, weight, dets, lp) for labels ``truth`` (h, w; 0 or 1): each pixel's own
-    log-likelihood ``say`` nats for its true plane (plus Gaussian ``noise``)."""
+    log-likelihood ratio ``say`` nats for its true plane against the other (plus
+    Gaussian ``noise``), and its true plane's ``say`` against no surface."""
     h, w = truth.shape
     e = np.where(truth == 0, say, -say).astype(np.float64)
     if noise:
         e = e + rng.normal(0, noise, e.shape)
-    lp = np.stack([e, np.zeros_like(e)], -1)
+    lp = np.stack([e, np.zeros_like(e)], -1) + np.where(truth == 1, say, 0.0)[..., None]
     return (truth.copy(), np.full((h, w), 0.5), np.zeros((h, w), bool), lp)
 
 
@@ -91,7 +93,7 @@ def test_a_wrong_label_beside_a_long_edge_moves_back():
     for r in (9, 17):
         cat[r, 9] = 1
         lp[r, 9, 0] = -1.0
-    q, pl = el.line_moves(cat, weight, dets, lp, CAP, DET)
+    q, pl = el.line_moves(cat, weight, dets, lp, CAP, DET)[:2]
     assert sorted(q.tolist()) == [9 * 20 + 9, 17 * 20 + 9] and (pl == 0).all()
 
 
@@ -101,8 +103,63 @@ def test_detected_and_far_pixels_stay():
     cat[9, 9], dets[9, 9] = 1, True          # a detected pixel: never moved
     cat[17, 7] = 1                           # three columns off the line: not the line's
     lp[17, 7, 0] = -1.0
-    q, _ = el.line_moves(cat, weight, dets, lp, CAP, DET)
+    q, _, qd, _, _ = el.line_moves(cat, weight, dets, lp, CAP, DET)
     assert 9 * 20 + 9 not in q and 17 * 20 + 7 not in q
+    assert 17 * 20 + 7 not in qd
+
+
+def _line_odds(cat, dets, say_of, pix, det_w):
+    """The log-odds that ``pix`` lies on plane 0's side of the frame's one run, every
+    pixel of the frame in its band, summed over every tilt and offset by loops: each
+    undetected pixel's say clipped, each detected one's +-``det_w``, ``pix``'s left out."""
+    n, tan, centre, t0, t1 = el.runs(el.boundary_points(cat)[(0, 1)])[0]
+    h, w = cat.shape
+    a_side = (np.array([0.0, 0.0]) - centre) @ n > 0      # plane 0 holds column 0
+    phi = np.arctan2(n[1], n[0]) + el.LINE_TILT
+    on, off = [], []
+    for p in phi:
+        nn = np.array([np.cos(p), np.sin(p)])
+        for o in el.LINE_OFFSETS:
+            ll, pix_on_a = 0.0, None
+            for r in range(h):
+                for c in range(w):
+                    on_a = (((np.array([r, c]) - centre) @ nn > o) == a_side)
+                    if (r, c) == pix:
+                        pix_on_a = on_a
+                    elif on_a:
+                        ll += ((det_w if cat[r, c] == 0 else -det_w) if dets[r, c]
+                               else say_of(r, c))
+            (on if pix_on_a else off).append(ll)
+    lse = lambda x: max(x) + np.log(np.sum(np.exp(np.array(x) - max(x))))  # noqa: E731
+    return lse(on) - lse(off)
+
+
+@pytest.mark.parametrize("own", [1.0, 4.0, 30.0])
+def test_a_detection_its_line_refuses_is_doubted_by_the_odds_written_out(own):
+    """A detected pixel one column over on a 14-row edge, its own photons ``own`` nats
+    for the plane it was detected on: it is doubted where its whole log-likelihood ratio
+    and the line's log-odds without it (written out here) put it on the other plane, and
+    the chance it is where it was detected is the posterior's."""
+    rng = np.random.default_rng(11)
+    truth = _half(14, 6, 3)
+    cat, weight, dets, lp = _frame(truth, say=1.5, rng=rng, noise=0.7)
+    pix = (7, 2)
+    cat[pix], dets[pix] = 1, True
+    lp[pix] = (0.0, own)
+
+    def say_of(r, c):
+        return float(np.clip(lp[r, c, 0] - lp[r, c, 1], -CAP, CAP))
+
+    z = _line_odds(cat, dets, say_of, pix, el.LINE_DET) - own
+    p_was = 1.0 / (1.0 + np.exp(z))
+    q, _, qd, pld, got = el.line_moves(cat, weight, dets, lp, CAP, el.LINE_DET)
+    assert pix[0] * 6 + pix[1] not in q                  # never moved as an undetected one
+    if p_was < 1.0 - el.LINE_P_DET:
+        assert qd.tolist() == [pix[0] * 6 + pix[1]] and pld.tolist() == [0]
+        assert got[0] == pytest.approx(p_was, rel=1e-6, abs=1e-12)
+    else:
+        assert qd.size == 0
+    assert (own < 10) == (qd.size == 1)                  # (the line's odds: ~ 10 nats)
 
 
 @pytest.mark.parametrize("inside", [1, 0])
@@ -118,7 +175,7 @@ def test_the_pixel_past_a_box_corner(inside):
     cat, weight, dets, lp = _frame(truth)
     cat[9, 7] = truth[10, 8]
     lp[9, 7, :] = lp[10, 8, :] / 3.0
-    q, pl = el.line_moves(cat, weight, dets, lp, CAP, DET)
+    q, pl = el.line_moves(cat, weight, dets, lp, CAP, DET)[:2]
     assert q.tolist() == [9 * 32 + 7] and pl.tolist() == [truth[9, 7]]
 
 
@@ -126,7 +183,7 @@ def test_noisy_labels_make_no_line():
     rng = np.random.default_rng(2)
     cat = rng.integers(0, 2, (30, 30))
     _, weight, dets, lp = _frame(cat, rng=rng, noise=1.0)
-    q, _ = el.line_moves(cat, weight, dets, lp, CAP, DET)
+    q = el.line_moves(cat, weight, dets, lp, CAP, DET)[0]
     assert q.size == 0
 
 
@@ -134,8 +191,8 @@ def test_noisy_labels_make_no_line():
 def test_small_empty_and_planeless_frames(shape):
     cat = np.full(shape, -1, np.int64)
     lp = np.zeros(shape + (1,))
-    q, pl = el.line_moves(cat, np.ones(shape), np.zeros(shape, bool), lp, CAP, DET)
-    assert q.size == 0 and pl.size == 0
+    got = el.line_moves(cat, np.ones(shape), np.zeros(shape, bool), lp, CAP, DET)
+    assert all(x.size == 0 for x in got)
     if shape == (1, 256):
         cat = _half(1, 256, 100)
         _, weight, dets, lp = _frame(cat)
@@ -155,7 +212,7 @@ def test_nan_and_minus_inf_likelihoods_have_no_say():
     lp[:5, 11, :] = -np.inf
     cat[12, 9] = 1
     lp[12, 9, 0] = -1.0
-    q, pl = el.line_moves(cat, weight, dets, lp, CAP, DET)
+    q, pl = el.line_moves(cat, weight, dets, lp, CAP, DET)[:2]
     assert q.tolist() == [12 * 20 + 9] and pl.tolist() == [0]
 
 
@@ -187,7 +244,7 @@ def test_the_first_pixels_at_the_border_move():
     for c in (0, 1):
         cat[15, c] = 0
         lp[15, c, :] = 0.0
-    q, pl = el.line_moves(cat, weight, dets, lp, CAP, DET)
+    q, pl = el.line_moves(cat, weight, dets, lp, CAP, DET)[:2]
     assert sorted(q.tolist()) == [15 * 40, 15 * 40 + 1] and (pl == 1).all()
 
 
@@ -200,5 +257,25 @@ def test_two_boxes_whose_edges_cross_make_no_corner():
     truth = np.where(((r < 20) & (c < 10)) | ((r >= 24) & (r < 44) & (c >= 14) & (c < 34)),
                      0, 1).astype(np.int64)
     cat, weight, dets, lp = _frame(truth)
-    q, _ = el.line_moves(cat, weight, dets, lp, CAP, DET)
+    q = el.line_moves(cat, weight, dets, lp, CAP, DET)[0]
     assert q.size == 0
+
+
+def test_labels_in_the_sky_do_not_drop_a_line():
+    """A post (plane 1) before a wall (plane 0), sky to its right: the sky's pixels hold
+    the labels their neighbours gave them (the wall's, and the post's in a few of the
+    band's pixels) and photons that favour neither plane over no surface. They do not
+    count in the line's misfit: the post's right edge stands, and a pixel of the post
+    beside it labelled as the wall goes back (with the sky's labels counted, the misfit
+    is over 5 % and the line is dropped)."""
+    h, w = 30, 30
+    r, c = np.mgrid[0:h, 0:w]
+    post = (c >= 5) & (c < 15)
+    sky = c >= 15
+    cat, weight, dets, lp = _frame(post.astype(np.int64))
+    cat[sky & (c >= 16) & (c <= 17) & (np.random.default_rng(4).random((h, w)) < 0.3)] = 1
+    lp[sky] = -0.5
+    cat[12, 14] = 0
+    lp[12, 14] = (0.5, -0.5)          # its own photons lean a nat to the wall
+    q, pl = el.line_moves(cat, weight, dets, lp, CAP, DET)[:2]
+    assert 12 * w + 14 in q.tolist() and pl[q.tolist().index(12 * w + 14)] == 1
