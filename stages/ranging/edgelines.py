@@ -46,7 +46,9 @@ LINE_MIN = 8          # boundary points a run needs
 LINE_INLIER = 0.75    # pixels: a boundary point this near the line is on it
 LINE_GAP = 2.0        # pixels: a gap along the line this long ends a run
 LINE_BAND = 3.0       # pixels either side of the line whose photons weigh it
-LINE_TILT = np.deg2rad(np.arange(-2.0, 2.01, 0.5))   # the tilts tried about the run's fit
+LINE_TILT = np.deg2rad(2.0)   # the tilts tried about the run's fit: up to this
+LINE_TILT_STEP = np.deg2rad(0.5)   # in steps of at most this, and of at most
+LINE_TILT_END = 0.05  # pixels: the run's ends' move from one tilt to the next
 LINE_OFFSETS = np.arange(-1.5, 1.501, 0.05)          # and offsets (pixels)
 LINE_MISFIT = 0.05    # the band's labels on the wrong side of the best line at most
 LINE_NEAR = 1.0       # pixels: a pixel this near the line may move
@@ -130,6 +132,17 @@ def runs(pts: np.ndarray) -> list:
                 t2 = pts[part] @ tan2             # (its extent along its own tangent)
                 out.append((n2, tan2, m2, float(t2.min()), float(t2.max())))
     return out
+
+
+def tilts(length: float) -> np.ndarray:
+    """The tilts tried about a run's fit (radians), +-``LINE_TILT``: steps of at most
+    ``LINE_TILT_STEP`` that move the ends of a run ``length`` pixels long by at most
+    ``LINE_TILT_END`` (on a run of 60 pixels, steps of 0.5 degrees move its ends by a
+    quarter of a pixel: the best tilt misses a pixel beside the line by that much, and
+    the run's whole photons hold that line with tens of nats)."""
+    step = min(LINE_TILT_STEP, 2.0 * LINE_TILT_END / max(length, 1.0))
+    k = int(np.ceil(LINE_TILT / step - 1e-9))
+    return np.linspace(-LINE_TILT, LINE_TILT, 2 * k + 1)
 
 
 def _on_a(xy, centre, normals, a_pos):
@@ -227,7 +240,7 @@ def line_moves(cat, weight, dets, lp, cap, det_w):
             pos = d[q] > 0
             a_pos = bool((wa * ~pos).sum() + (wb * pos).sum()
                          < (wa * pos).sum() + (wb * ~pos).sum())    # A's side: the + one
-            phi = np.arctan2(n[1], n[0]) + LINE_TILT
+            phi = np.arctan2(n[1], n[0]) + tilts(t1 - t0)
             normals = np.stack([np.cos(phi), np.sin(phi)], -1)
             on_a = _on_a(X[q], centre, normals, a_pos).astype(np.float64)   # (m, P, O)
             say = _evidence(q, A, B, cat, dets, lp, cap, det_w)

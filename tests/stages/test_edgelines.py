@@ -67,7 +67,7 @@ def test_the_posterior_is_the_sum_written_out():
     n, tan, centre, t0, t1 = el.runs(pts)[0]
     xy = np.array([[r, c] for r in range(12) for c in range(4, 11)], float)
     e = rng.normal(0, 2.0, len(xy))
-    phi = np.arctan2(n[1], n[0]) + el.LINE_TILT
+    phi = np.arctan2(n[1], n[0]) + el.tilts(t1 - t0)
     normals = np.stack([np.cos(phi), np.sin(phi)], -1)
     a_pos = False
     ll = np.zeros((len(phi), len(el.LINE_OFFSETS)))
@@ -115,7 +115,7 @@ def _line_odds(cat, dets, say_of, pix, det_w):
     n, tan, centre, t0, t1 = el.runs(el.boundary_points(cat)[(0, 1)])[0]
     h, w = cat.shape
     a_side = (np.array([0.0, 0.0]) - centre) @ n > 0      # plane 0 holds column 0
-    phi = np.arctan2(n[1], n[0]) + el.LINE_TILT
+    phi = np.arctan2(n[1], n[0]) + el.tilts(t1 - t0)
     on, off = [], []
     for p in phi:
         nn = np.array([np.cos(p), np.sin(p)])

@@ -579,6 +579,29 @@ def test_edges_go_where_their_photons_put_them():
     assert _off_2_50(30, 2, lines=True, seeds=(1, 2)) <= 0.85 * windows
 
 
+def test_a_detection_its_edge_refutes_is_withdrawn(monkeypatch):
+    """Seed 18 of the grid's scene at (2, 50): pixel (24, 8), on the box's left column,
+    holds 3 photons near the wall's time and none near the box's: the wall's test passes
+    it at p_fa. The box's left edge (22 rows) places the pixel on the box,
+    its own photons on the wall; the posterior that it is on the wall is 0.35. The
+    detection is withdrawn: the pixel reports the box, not detected, its sigma reaching
+    the wall 3.2 m behind (sqrt(0.35) x 3.2 m). No other detection of the frame changes,
+    and without the lines the pixel reports the wall, detected."""
+    from stages.ranging import spatial as sp
+
+    sc = scene()
+    counts = histograms(sc, 2, 50, 18)
+    est = spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
+    d, s = est.t_s[24, 8, 0] * C / 2, est.sigma_s[24, 8, 0] * C / 2
+    assert not est.detected[24, 8].any() and abs(d - 3.0) < 0.05
+    assert s == pytest.approx(np.sqrt(0.35) * 3.22, rel=0.1)
+    monkeypatch.setattr(sp, "EDGE_LINES", False)
+    before = spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
+    assert before.detected[24, 8, 0] and abs(before.t_s[24, 8, 0] * C / 2 - 6.22) < 0.05
+    changed = before.detected.any(-1) != est.detected.any(-1)
+    assert np.argwhere(changed).tolist() == [[24, 8]]
+
+
 def test_a_surface_that_is_not_a_plane_keeps_its_sigma():
     """A lidar ranges along rays: a flat wall facing the sensor at 7 m over a 40-degree
     field of view is curved in pixel coordinates (7 m / cos of the angle off axis), and
