@@ -22,8 +22,8 @@ pixels within ``LINE_NEAR`` of the line, inside the run less a pixel at each end
 one wrong label at a run's end lengthens it, and the band would carry that error along.
 The corners move the pixels past the runs' ends.
 
-A detected pixel is never moved as the others are. Where it lies in a run's band,
-inside the run, its detection is doubted when its own photons' whole
+A detected pixel is never moved as the others are. Where it lies within ``LINE_NEAR``
+of a run's line, inside the run, its detection is doubted when its own photons' whole
 log-likelihood ratio between the two planes (not clipped), added to the line's log-odds
 of its side without its own say, puts it on the other plane (posterior above
 ``LINE_P_DET``): a detection at the other plane's time that background passes at the
@@ -266,9 +266,12 @@ def line_moves(cat, weight, dets, lp, cap, det_w):
             mq, mp = _moves(q[ok], p_a[ok], la[ok], A, B)
             got_q.append(mq)
             got_pl.append(mp)
-            # (a detection anywhere in the band, but only inside the run itself less a
-            # pixel at each end: the line carried on to the border is no evidence)
-            dq = np.nonzero(detf[q] & (t[q] >= t0 + 1.0) & (t[q] <= t1 - 1.0))[0]
+            # (a detection within LINE_NEAR of the line, as the moves, but only inside
+            # the run itself less a pixel at each end: the line carried on to the border
+            # is no evidence against a detection; beyond LINE_NEAR, at an acute corner,
+            # the band holds the other edge's pixels)
+            dq = np.nonzero(detf[q] & (np.abs(d[q]) <= LINE_NEAR) & (t[q] >= t0 + 1.0)
+                            & (t[q] <= t1 - 1.0))[0]
             if dq.size:
                 got = _doubt(q[dq], on_a[dq], ll, say[dq], la[dq], lp, w, A, B)
                 doubt.append(got)

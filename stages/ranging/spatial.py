@@ -128,6 +128,7 @@ SWEEPS = 5       # its ICM sweeps (3: 0.69 % > 10 cm off at (2, 50), 8: as 5)
 BLOCK_ROUNDS = 1  # then block moves (a boundary's run shifted by a pixel), each direction
 BLOCK_PHASES = 4  # in 4 passes of every 4th column (row)
 EDGE_LINES = True  # the edges' last step: each straight boundary as one line (edgelines.py)
+EDGE_DOUBT = True  # and there a detection the line and its own photons refute withdrawn
 PROFILE_BLOCK = 32  # the background's time profile: its blocks (bins)
 PROFILE_P = 1e-4    # and the chi-square test's p below which the frame is not flat
 MASK_K = WINDOW   # over the window's neighbourhood (3 x 3: the scene's returns leaked and the
@@ -1446,10 +1447,15 @@ def _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, ha
         if q.size:
             _take_plane(q // w, q % w, pl, lab, tb, llr, slope, sig_cnt, sig_out, table, P0,
                         beta, half, tol, prof)
+        # a detection the line doubts, where the two planes' test windows at the pixel
+        # do not overlap (else the detection holds the other plane's photons: one
+        # surface, curved, that two planes share; a sphere at (10, 2))
+        rd, cd = qd // w, qd % w
+        keep = (np.abs(tb[rd, cd, lab[rd, cd]] - T[rd, cd, pld]) > 2 * half) & EDGE_DOUBT
+        qd, pld, p_was, rd, cd = qd[keep], pld[keep], p_was[keep], rd[keep], cd[keep]
         if qd.size:
-            # a detection the line doubts: the pixel takes the line's plane, and the
-            # chance it is where its detection put it stays in its sigma (_finish)
-            rd, cd = qd // w, qd % w
+            # the pixel takes the line's plane, and the chance it is where its
+            # detection put it stays in its sigma (_finish)
             doubted[0][rd, cd] = True
             doubted[1][rd, cd] = p_was
             doubted[2][rd, cd] = tb[rd, cd, lab[rd, cd]]
