@@ -347,8 +347,8 @@ def _doubt(q, on_a, ll, say, lab, lp, w, A, B):
     rq, cq = q // w, q % w
     with np.errstate(invalid="ignore"):
         own = lp[rq, cq, A] - lp[rq, cq, B]
-    z = np.where(np.isfinite(own), own, 0.0) + line
-    z = np.where(np.isnan(z), 0.0, z)
+    # (a plane whose pulse lies outside the window at the pixel, -inf: no doubt)
+    z = np.where(np.isfinite(own) & ~np.isnan(line), own + line, 0.0)
     cut = np.log(LINE_P_DET / (1 - LINE_P_DET))
     to_b, to_a = (lab == A) & (z < -cut), (lab == B) & (z > cut)
     p_a = 1.0 / (1.0 + np.exp(-np.clip(z, -700, 700)))

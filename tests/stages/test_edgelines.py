@@ -279,3 +279,15 @@ def test_labels_in_the_sky_do_not_drop_a_line():
     lp[12, 14] = (0.5, -0.5)          # its own photons lean a nat to the wall
     q, pl = el.line_moves(cat, weight, dets, lp, CAP, DET)[:2]
     assert 12 * w + 14 in q.tolist() and pl[q.tolist().index(12 * w + 14)] == 1
+
+
+def test_a_detection_is_not_doubted_towards_a_plane_outside_the_window():
+    """The line puts the detected pixel on plane 0, but plane 0's pulse lies outside the
+    window there (its log-likelihood -inf): the detection stands."""
+    truth = _half(14, 6, 3)
+    cat, weight, dets, lp = _frame(truth, say=1.5)
+    cat[7, 2], dets[7, 2] = 1, True
+    lp[7, 2] = (0.0, 1.0)
+    assert el.line_moves(cat, weight, dets, lp, CAP, el.LINE_DET)[2].tolist() == [44]
+    lp[7, 2] = (-np.inf, 1.0)
+    assert el.line_moves(cat, weight, dets, lp, CAP, el.LINE_DET)[2].size == 0
