@@ -967,7 +967,6 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
     # and the detection stands where the label lies on its surface, else it is
     # withdrawn (not detected; the label reported). A plane fitted across two surfaces
     # (a pane above the slanted floor: t0 21 bins off) passes the corner windows.
-    surr_only = surr & ~own
     rank, state = _relabel(t_out, sig_out, slot(slope, 0.0), slot(mine_r, 0.0),
                            slot(bw_r, 0.0), sig_cnt, slot(rank, -1e9), own, P0, beta,
                            bin_s, sb, t0_s, prof, compiled, det, threads)
