@@ -8,11 +8,14 @@ edge's pixels all along do. This step finds the straight runs of the label image
 boundary between each pair of planes, weighs every line near each run (a tilt of +-2
 degrees, an offset of +-1.5 pixels) by the likelihood of the photons in a band along the
 whole run, and moves the undetected pixels next to it that lie on the wrong side with a
-posterior above ``LINE_P``. Where two runs of the same pair meet (a box's corner), the
-pixels around the point where their lines cross follow both lines: on a plane's side of
-both where its corner is convex, of either where it is concave; where the labels
-around the crossing fit that corner (two separate objects' edges also cross near their
-runs' ends).
+posterior above ``LINE_P`` (0.5: the least expected squared error). Where two runs of
+the same pair meet (a box's corner), the pixels around the point where their lines
+cross follow both lines: on a plane's side of both where its corner is convex, of either
+where it is concave; where the labels around the crossing fit that corner (two separate
+objects' edges also cross near their runs' ends). The two lines are weighed together
+there (:func:`_corner`): the pixels near both have their say once, on the side the
+corner puts them. Every undetected pixel a line or a corner weighed is returned with its
+posterior, for its sigma (``spatial._line_var``).
 
 Two guards, from a first version that made the pixels off 11 -> 476 (docs/ranging.md
 "Edges as whole lines"): a run is contiguous along its line (no gap over ``LINE_GAP``
@@ -38,6 +41,8 @@ numpy (and scipy.special's logsumexp and expit), at a cost of 20-25 ms a frame o
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from scipy.special import expit, logsumexp
 
@@ -54,7 +59,8 @@ LINE_TILT_END = 0.05  # pixels: the run's ends' move from one tilt to the next
 LINE_OFFSETS = np.arange(-1.5, 1.501, 0.05)          # and offsets (pixels)
 LINE_MISFIT = 0.05    # the band's labels on the wrong side of the best line at most
 LINE_NEAR = 1.0       # pixels: a pixel this near the line may move
-LINE_P = 0.9          # the posterior of the other side from which a pixel moves
+LINE_P = 0.5          # the posterior of the other side from which a pixel moves (the
+#                       Bayes decision for the squared error)
 LINE_DET = 6.0        # nats: a detected pixel's say for its plane (the windows': 12)
 LINE_CORNER = 6.0     # pixels: two runs whose lines cross this near both their ends meet
 LINE_ZONE = 3         # the corner's pixels: within this many of the crossing (rows, cols)
@@ -154,22 +160,20 @@ def _on_a(xy, centre, normals, a_pos):
 
 
 class _Line:
-    """A run's line with its posterior over (tilt, offset)."""
+    """A run's line with its posterior over (tilt, offset); ``band``: its band's pixels,
+    their say and the log-evidence (P, O) the posterior came from (for its corners)."""
 
-    def __init__(self, A, B, tan, centre, t0, t1, a_pos, normals, post):
+    def __init__(self, A, B, tan, centre, t0, t1, a_pos, normals, post, band=None):
         self.A, self.B, self.tan, self.centre = A, B, tan, centre
         self.t0, self.t1, self.a_pos = t0, t1, a_pos
         self.normals, self.post = normals, post
+        self.q, self.say, self.ll = band if band is not None else (None, None, None)
         j = np.unravel_index(np.argmax(post), post.shape)
         self.n_map = normals[j[0]]
         self.rho_map = float(normals[j[0]] @ centre + LINE_OFFSETS[j[1]])
 
     def on_a(self, xy: np.ndarray) -> np.ndarray:
         return _on_a(xy, self.centre, self.normals, self.a_pos)
-
-    def p_a(self, xy: np.ndarray) -> np.ndarray:
-        """The posterior that each point lies on A's side."""
-        return np.einsum("po,mpo->m", self.post, self.on_a(xy).astype(np.float64))
 
     def map_on_a(self, xy: np.ndarray) -> bool:
         s = bool(self.n_map @ xy - self.rho_map > 0)
@@ -213,10 +217,29 @@ def _moves(q, p_a, lab, A, B):
             np.concatenate([np.full(to_b.sum(), B), np.full(to_a.sum(), A)]))
 
 
-def line_moves(cat, weight, dets, lp, cap, det_w):
-    """The pixels to move and the planes they go to (flat indices, plane indices), then
-    the detected pixels doubted, the planes the lines put them on and the posterior that
-    each lies where it was detected: see the module's docstring. ``cat`` (h, w) each
+class LineMoves(NamedTuple):
+    """What :func:`line_moves` found (flat pixel indices, plane indices): the pixels to
+    move and their planes (``q``, ``pl``); the detections doubted, the planes the lines
+    put them on and the posterior that each lies where it was detected (``doubt_q``,
+    ``doubt_pl``, ``p_was``); and every undetected pixel a line or a corner weighed
+    for a move, with the pair of planes and its posterior of A's side (``seen_q``,
+    ``seen_a``, ``seen_b``, ``seen_p_a``; a pixel once for each line or corner that
+    weighed it)."""
+
+    q: np.ndarray
+    pl: np.ndarray
+    doubt_q: np.ndarray
+    doubt_pl: np.ndarray
+    p_was: np.ndarray
+    seen_q: np.ndarray
+    seen_a: np.ndarray
+    seen_b: np.ndarray
+    seen_p_a: np.ndarray
+
+
+def line_moves(cat, weight, dets, lp, cap, det_w) -> LineMoves:
+    """The pixels to move, the detections doubted and the posteriors the moves were
+    decided on (:class:`LineMoves`): see the module's docstring. ``cat`` (h, w) each
     pixel's plane (-1: none), ``weight`` the labels' weights (as the windows'), ``dets``
     (h, w) detected pixels (never moved; their say is +-``det_w``), ``lp`` (h, w, L)
     each plane's log-likelihood a pixel (an undetected pixel's say between two: clipped
@@ -225,7 +248,7 @@ def line_moves(cat, weight, dets, lp, cap, det_w):
     rr, cc = np.mgrid[0:h, 0:w]
     X = np.stack([rr.ravel(), cc.ravel()], -1).astype(np.float64)
     catf, wf, detf = cat.ravel(), weight.ravel(), dets.ravel()
-    got_q, got_pl, lines, doubt = [], [], [], []
+    got_q, got_pl, lines, doubt, seen = [], [], [], [], []
     for (A, B), pts in boundary_points(cat).items():
         if len(pts) < LINE_MIN:
             continue
@@ -249,7 +272,7 @@ def line_moves(cat, weight, dets, lp, cap, det_w):
             ll = np.einsum("m,mpo->po", say, on_a)
             post = np.exp(ll - ll.max())
             post /= post.sum()
-            line = _Line(A, B, tan, centre, t0, t1, a_pos, normals, post)
+            line = _Line(A, B, tan, centre, t0, t1, a_pos, normals, post, (q, say, ll))
             jp, jo = np.unravel_index(np.argmax(post), post.shape)
             best = on_a[:, jp, jo] > 0
             # the misfit of the labels a detection or the pixel's own photons back (one
@@ -266,6 +289,7 @@ def line_moves(cat, weight, dets, lp, cap, det_w):
             inside = (np.abs(d[q]) <= LINE_NEAR) & (t[q] >= lo) & (t[q] <= hi)
             ok = ~detf[q] & inside
             mq, mp = _moves(q[ok], p_a[ok], la[ok], A, B)
+            seen.append((q[ok], A, B, p_a[ok]))
             got_q.append(mq)
             got_pl.append(mp)
             # (a detection within LINE_NEAR of the line, as the moves, but only inside
@@ -308,26 +332,74 @@ def line_moves(cat, weight, dets, lp, cap, det_w):
             off = (wq * (fit != (catf[q] == l1.A))).sum()
             if not q.size or off > LINE_MISFIT_CORNER * wq.sum():
                 continue
-            q = q[~detf[q]]
+            p_a = _corner(l1, l2, q, convex, X,
+                          _evidence(np.union1d(q, np.intersect1d(l1.q, l2.q)), l1.A, l1.B,
+                                    cat, dets, lp, cap, det_w))
+            und = ~detf[q]
+            q, p_a = q[und], p_a[und]
             if not q.size:
                 continue
-            p1, p2 = l1.p_a(X[q]), l2.p_a(X[q])
-            p_a = p1 * p2 if convex else 1.0 - (1.0 - p1) * (1.0 - p2)
             mq, mp = _moves(q, p_a, catf[q], l1.A, l1.B)
+            seen.append((q, l1.A, l1.B, p_a))
             got_q.append(mq)
             got_pl.append(mp)
     none = np.zeros(0, np.int64)
     moves = (one_plane(np.concatenate(got_q), np.concatenate(got_pl)) if got_q
              else (none, none))
+    sq, sa, sb, sp = none, none, none, np.zeros(0)
+    if seen:
+        sq = np.concatenate([x[0] for x in seen])
+        sa = np.concatenate([np.full(x[0].size, x[1]) for x in seen])
+        sb = np.concatenate([np.full(x[0].size, x[2]) for x in seen])
+        sp = np.concatenate([x[3] for x in seen])
     if not doubt:
-        return moves + (none, none, np.zeros(0))
+        return LineMoves(*moves, none, none, np.zeros(0), sq, sa, sb, sp)
     dq, dpl, dp = (np.concatenate(x) for x in zip(*doubt, strict=True))
     uq, upl = one_plane(dq, dpl)
     # (a pixel two lines doubt towards one plane: the larger chance it is where it was)
     keep = np.isin(dq, uq)
     p_was = np.zeros(uq.size)
     np.maximum.at(p_was, np.searchsorted(uq, dq[keep]), dp[keep])
-    return moves + (uq, upl, p_was)
+    return LineMoves(*moves, uq, upl, p_was, sq, sa, sb, sp)
+
+
+def _patterns(line, J, X):
+    """The distinct sides (True: A's) of the pixels ``J`` (sorted flat indices) under
+    the line's every (tilt, offset), each with the log of the posterior weight of the
+    lines that give it, from the line's log-evidence less the say of the pixels of
+    ``J`` in its band: (patterns (k, j), log weights (k,))."""
+    on = line.on_a(X[J])                                                  # (j, P, O)
+    ll = line.ll
+    inb = np.isin(line.q, J)
+    if inb.any():
+        pos = np.searchsorted(J, line.q[inb])
+        ll = ll - np.einsum("m,mpo->po", line.say[inb], on[pos].astype(np.float64))
+    flat = on.reshape(len(J), -1).T                                       # (P O, j)
+    _, first, inv = np.unique(np.packbits(flat, axis=1), axis=0, return_index=True,
+                              return_inverse=True)
+    inv = inv.ravel()
+    order = np.argsort(inv, kind="stable")
+    starts = np.searchsorted(inv[order], np.arange(len(first)))
+    return flat[first], np.logaddexp.reduceat(ll.ravel()[order], starts)
+
+
+def _corner(l1, l2, Z, convex, X, say):
+    """The posterior of A's side for each pixel of a corner's zone ``Z`` (sorted flat
+    indices) under its two lines together. The pixels near both, ``J`` (the zone and
+    the pixels in both bands; ``say`` theirs, in the order of ``J``), are on A's side
+    where the corner puts them: on A's side of both lines where A's corner is convex,
+    of either where it is concave. Each line's posterior without their say, times their
+    say once under the corner: the product of the two lines' posteriors counts a
+    pixel in both bands twice, and treats as apart two lines that such pixels tie."""
+    J = np.union1d(Z, np.intersect1d(l1.q, l2.q))
+    p1, w1 = _patterns(l1, J, X)
+    p2, w2 = _patterns(l2, J, X)
+    on = (p1[:, None, :] & p2[None, :, :]) if convex else (p1[:, None, :] | p2[None, :, :])
+    on = on.astype(np.float64)                                            # (k1, k2, j)
+    L = w1[:, None] + w2[None, :] + on @ say
+    post = np.exp(L - L.max())
+    post /= post.sum()
+    return np.einsum("ab,abj->j", post, on)[np.searchsorted(J, Z)]
 
 
 def _doubt(q, on_a, ll, say, lab, lp, w, A, B):

@@ -128,6 +128,7 @@ SWEEPS = 5       # its ICM sweeps (3: 0.69 % > 10 cm off at (2, 50), 8: as 5)
 BLOCK_ROUNDS = 1  # then block moves (a boundary's run shifted by a pixel), each direction
 BLOCK_PHASES = 4  # in 4 passes of every 4th column (row)
 EDGE_LINES = True  # the edges' last step: each straight boundary as one line (edgelines.py)
+EDGE_SIGMA = True   # the lines' posteriors in an undetected pixel's sigma (_line_var)
 EDGE_DOUBT = True  # and there a detection the line and its own photons refute withdrawn
 PROFILE_BLOCK = 32  # the background's time profile: its blocks (bins)
 PROFILE_P = 1e-4    # and the chi-square test's p below which the frame is not flat
@@ -973,7 +974,7 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
     lab, free, tb = state[:3]
     # a detection the edges' lines doubt (its own photons against the line's photons
     # all along the edge: stages/ranging/edgelines.py) is withdrawn, the pixel labelled
-    doubted, p_was, t_was = state[7]
+    doubted, p_was, t_was, line_var = state[7]
     own = own & ~doubted[..., None]
     surr_only = surr & ~own
     tl = np.take_along_axis(tb, lab[..., None], -1)[..., 0]
@@ -1005,6 +1006,13 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
     k = lab[rd, cd]
     sig_out[rd, cd, k] = np.sqrt(sig_out[rd, cd, k] ** 2 + p_was[rd, cd]
                                  * ((t_was[rd, cd] - tb[rd, cd, k]) * bin_s) ** 2)
+    # an undetected pixel a line weighed: the chance it lies on the other plane of the
+    # pair (stages/ranging/edgelines.py), as the doubted detection's; added last, after
+    # the curvature's step has put a quadratic's time and sigma in place of the plane's
+    # where they agree (the surface's question, not the time's on it)
+    extra = np.zeros(sig_out.shape)
+    rl, cl = np.nonzero(free & ~held & ~doubted & (line_var > 0))
+    extra[rl, cl, lab[rl, cl]] = line_var[rl, cl] * bin_s ** 2
     # detected before not; then by the corner windows that see the surface, then by the
     # pixel's own excess counts, then by the neighbourhood's signal
     key = np.where(det, 1e12, 0.0) + rank
@@ -1021,6 +1029,8 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
     _curvature(t_out, sig_out, det, bend, bin_s, sb, t0_s)
     sig_cnt = take(sig_cnt)
     _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof, cand)
+    extra = take(extra)
+    sig_out = np.where(extra > 0, np.sqrt(sig_out ** 2 + extra), sig_out)
     return SpatialEstimate(t_out, sig_out, sig_cnt,
                            np.repeat(beta[..., None], max_returns, -1), det,
                            take(own), take(surr))
@@ -1439,9 +1449,9 @@ def _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, ha
         near = ndimage.maximum_filter(moved, 2 * (planecut.EDGE_R + planecut.EDGE_SHIFT) + 1)
     doubted = _no_doubt(free.shape)
     if EDGE_LINES:   # and the edges as whole lines (stages/ranging/edgelines.py)
-        q, pl, qd, pld, p_was = edgelines.line_moves(
-            _plane_of(lab, tb, T, tol), weight, dets, lp, planecut.EDGE_CAP,
-            edgelines.LINE_DET)
+        got = edgelines.line_moves(_plane_of(lab, tb, T, tol), weight, dets, lp,
+                                   planecut.EDGE_CAP, edgelines.LINE_DET)
+        q, pl, qd, pld, p_was = got[:5]
         w = free.shape[1]
         if q.size:
             _take_plane(q // w, q % w, pl, lab, tb, llr, slope, sig_cnt, sig_out, table, P0,
@@ -1460,13 +1470,41 @@ def _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, ha
             doubted[2][rd, cd] = tb[rd, cd, lab[rd, cd]]
             _take_plane(rd, cd, pld, lab, tb, llr, slope, sig_cnt, sig_out, table, P0, beta,
                         half, tol, prof)
+        if EDGE_SIGMA:
+            doubted[3][...] = _line_var(*got[5:], _plane_of(lab, tb, T, tol), T)
     return lab, doubted
+
+
+def _line_var(q, A, B, p_a, cat, T):
+    """The variance (bins^2) the lines' posteriors leave in each pixel they weighed
+    (pixels ``q``, pairs of planes ``A``, ``B``, posterior of A's side ``p_a``: from
+    :class:`edgelines.LineMoves`), once the moves are made: the posterior
+    that the pixel lies on the other plane of the pair, times the squared distance
+    between the two planes' times at it; where several lines or corners weighed it,
+    the largest. A pixel whose label is on neither plane of a pair (another step moved
+    it) takes nothing from that pair."""
+    h, w = cat.shape
+    out = np.zeros((h, w))
+    if not q.size:
+        return out
+    r, c = q // w, q % w
+    fin = cat[r, c]
+    on = (fin == A) | (fin == B)
+    p_other = np.where(fin == A, 1.0 - p_a, p_a)
+    with np.errstate(invalid="ignore"):
+        d2 = (T[r, c, A] - T[r, c, B]) ** 2
+    ok = on & np.isfinite(d2) & np.isfinite(p_other)
+    v = np.where(ok, np.where(ok, p_other, 0.0) * np.where(ok, d2, 0.0), 0.0)
+    np.maximum.at(out.reshape(-1), q, v)
+    return out
 
 
 def _no_doubt(shape):
     """The detections :func:`_edges` doubts (none yet): whether each pixel's is, the
-    posterior that it lies where it was detected, and the time it was detected at."""
-    return np.zeros(shape, bool), np.zeros(shape), np.zeros(shape)
+    posterior that it lies where it was detected, and the time it was detected at;
+    and the variance the lines leave in an undetected pixel's label (bins^2,
+    :func:`_line_var`)."""
+    return np.zeros(shape, bool), np.zeros(shape), np.zeros(shape), np.zeros(shape)
 
 
 def _commonest_other(cat, weight, who, A, k):

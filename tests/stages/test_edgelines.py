@@ -59,30 +59,92 @@ def test_a_gap_splits_a_run_and_scatter_makes_none():
     assert el.runs(rng.uniform(0, 60, (40, 2))) == []
 
 
+def _loops_ll(xy, e, centre, normals, a_pos):
+    """A line's log-evidence (P, O) by loops: each point's say ``e`` where the line
+    (tilt, offset) puts it on A's side."""
+    ll = np.zeros((len(normals), len(el.LINE_OFFSETS)))
+    for i, nn in enumerate(normals):
+        for j, o in enumerate(el.LINE_OFFSETS):
+            for k, x in enumerate(xy):
+                if (((x - centre) @ nn > o) == a_pos):
+                    ll[i, j] += e[k]
+    return ll
+
+
 def test_the_posterior_is_the_sum_written_out():
-    """A line's posterior that a pixel lies on A's side against the sum over every tilt
-    and offset, pixel by pixel."""
+    """A line's posterior weights of its distinct sides of some pixels (``_patterns``,
+    those pixels' own say taken out of the line's evidence) against the sum over every
+    tilt and offset written out by loops, pixel by pixel."""
     rng = np.random.default_rng(5)
     pts = np.array([[r + 0.5, 7.5] for r in range(12)], float)
     n, tan, centre, t0, t1 = el.runs(pts)[0]
     xy = np.array([[r, c] for r in range(12) for c in range(4, 11)], float)
+    q = (xy[:, 0] * 11 + xy[:, 1]).astype(np.int64)
     e = rng.normal(0, 2.0, len(xy))
     phi = np.arctan2(n[1], n[0]) + el.tilts(t1 - t0)
     normals = np.stack([np.cos(phi), np.sin(phi)], -1)
     a_pos = False
-    ll = np.zeros((len(phi), len(el.LINE_OFFSETS)))
-    for i, nn in enumerate(normals):
-        for j, o in enumerate(el.LINE_OFFSETS):
-            for k, x in enumerate(xy):
-                if not ((x - centre) @ nn > o):      # A on the - side
-                    ll[i, j] += e[k]
-    post = np.exp(ll - ll.max())
+    ll = _loops_ll(xy, e, centre, normals, a_pos)
+    line = el._Line(0, 1, tan, centre, t0, t1, a_pos, normals, np.exp(ll - ll.max()),
+                    (q, e, ll))
+    X = np.stack(np.mgrid[0:12, 0:11], -1).reshape(-1, 2).astype(np.float64)
+    J = np.sort(q[rng.choice(len(q), 10, replace=False)])
+    pat, lw = el._patterns(line, J, X)
+    w = np.exp(lw - lw.max())
+    got = (w[:, None] * pat).sum(0) / w.sum()
+    out = ~np.isin(q, J)
+    ll_out = _loops_ll(xy[out], e[out], centre, normals, a_pos)      # J's say left out
+    post = np.exp(ll_out - ll_out.max())
     post /= post.sum()
-    line = el._Line(0, 1, tan, centre, t0, t1, a_pos, normals, post)
     want = [sum(post[i, j] for i, nn in enumerate(normals)
-                for j, o in enumerate(el.LINE_OFFSETS) if not ((x - centre) @ nn > o))
-            for x in xy]
-    assert np.allclose(line.p_a(xy), want)
+                for j, o in enumerate(el.LINE_OFFSETS) if (((X[k] - centre) @ nn > o) == a_pos))
+            for k in J]
+    assert np.allclose(got, want)
+    assert len(pat) == len({tuple(p) for p in pat.tolist()})      # each side once
+
+
+@pytest.mark.parametrize("convex", [True, False])
+def test_a_corners_posterior_is_the_sum_over_both_lines_written_out(convex):
+    """A corner's two lines (a box's left and top edges) with random says: the
+    posterior of A's side of each zone pixel (``_corner``) against the sum over every
+    pair of lines (tilt, offset each), written out by broadcasting: each line's
+    evidence without the pixels near both, and those pixels' say once, on A's side
+    where both lines put them (convex) or either (concave)."""
+    rng = np.random.default_rng(8)
+    h, w = 24, 24
+    X = np.stack(np.mgrid[0:h, 0:w], -1).reshape(-1, 2).astype(np.float64)
+    say_all = rng.normal(0, 2.0, h * w)
+    lines = []
+    for pts in (np.array([[r + 0.5, 5.5] for r in range(6, 18)]),     # left edge
+                np.array([[5.5, c + 0.5] for c in range(6, 18)])):    # top edge
+        n, tan, centre, t0, t1 = el.runs(pts)[0]
+        q = np.nonzero(np.abs((X - centre) @ n) <= el.LINE_BAND)[0]
+        phi = np.arctan2(n[1], n[0]) + el.tilts(t1 - t0)
+        normals = np.stack([np.cos(phi), np.sin(phi)], -1)
+        a_pos = bool((np.array([12.0, 12.0]) - centre) @ n > 0)       # A: the box
+        on = el._on_a(X[q], centre, normals, a_pos).astype(np.float64)
+        ll = np.einsum("m,mpo->po", say_all[q], on)
+        lines.append(el._Line(0, 1, tan, centre, t0, t1, a_pos, normals,
+                              np.exp(ll - ll.max()), (q, say_all[q], ll)))
+    l1, l2 = lines
+    zr, zc = np.mgrid[3:9, 3:9]
+    Z = np.sort((zr * w + zc).ravel())
+    J = np.union1d(Z, np.intersect1d(l1.q, l2.q))
+    got = el._corner(l1, l2, Z, convex, X, say_all[J])
+    # written out: every pair of lines at once
+    sides = []
+    for ln in (l1, l2):
+        a = el._on_a(X[J], ln.centre, ln.normals, ln.a_pos).reshape(len(J), -1)   # (j, K)
+        inb = np.isin(ln.q, J)
+        a_b = el._on_a(X[ln.q[inb]], ln.centre, ln.normals, ln.a_pos).reshape(inb.sum(), -1)
+        sides.append((a, ln.ll.ravel() - say_all[ln.q[inb]] @ a_b))
+    (a1, e1), (a2, e2) = sides
+    on = (a1[:, :, None] & a2[:, None, :]) if convex else (a1[:, :, None] | a2[:, None, :])
+    L = e1[:, None] + e2[None, :] + np.einsum("j,jab->ab", say_all[J], on.astype(float))
+    post = np.exp(L - L.max())
+    post /= post.sum()
+    want = np.einsum("ab,jab->j", post, on.astype(float))[np.searchsorted(J, Z)]
+    assert np.allclose(got, want, atol=1e-12)
 
 
 def test_a_wrong_label_beside_a_long_edge_moves_back():
@@ -103,7 +165,7 @@ def test_detected_and_far_pixels_stay():
     cat[9, 9], dets[9, 9] = 1, True          # a detected pixel: never moved
     cat[17, 7] = 1                           # three columns off the line: not the line's
     lp[17, 7, 0] = -1.0
-    q, _, qd, _, _ = el.line_moves(cat, weight, dets, lp, CAP, DET)
+    q, _, qd, _, _ = el.line_moves(cat, weight, dets, lp, CAP, DET)[:5]
     assert 9 * 20 + 9 not in q and 17 * 20 + 7 not in q
     assert 17 * 20 + 7 not in qd
 
@@ -152,7 +214,7 @@ def test_a_detection_its_line_refuses_is_doubted_by_the_odds_written_out(own):
 
     z = _line_odds(cat, dets, say_of, pix, el.LINE_DET) - own
     p_was = 1.0 / (1.0 + np.exp(z))
-    q, _, qd, pld, got = el.line_moves(cat, weight, dets, lp, CAP, el.LINE_DET)
+    q, _, qd, pld, got = el.line_moves(cat, weight, dets, lp, CAP, el.LINE_DET)[:5]
     assert pix[0] * 6 + pix[1] not in q                  # never moved as an undetected one
     if p_was < 1.0 - el.LINE_P_DET:
         assert qd.tolist() == [pix[0] * 6 + pix[1]] and pld.tolist() == [0]
@@ -160,6 +222,37 @@ def test_a_detection_its_line_refuses_is_doubted_by_the_odds_written_out(own):
     else:
         assert qd.size == 0
     assert (own < 10) == (qd.size == 1)                  # (the line's odds: ~ 10 nats)
+
+
+@pytest.mark.parametrize("label, say, own", [(1, 0.5, -4.0), (1, 0.2, -3.0), (0, 0.5, -4.0)])
+def test_an_undetected_pixel_moves_where_the_odds_written_out_favour_the_other_side(
+        label, say, own):
+    """An undetected pixel one column over on a 14-row edge, on plane 0's side, labelled
+    ``label``, its own photons ``own`` nats for plane 0 (the others ``say`` with noise):
+    the line's posterior of plane 0's side (the line's log-odds without it, written out
+    here, and its own clipped say) is what the lines report for it, and it moves where
+    the other side's posterior is above ``LINE_P`` (0.5, the Bayes decision for the
+    squared error), or stays. Labelled 1, the posteriors are 0.897 and 0.60: it moves
+    (it did not at the cut of 0.9 before); labelled 0, it stays."""
+    rng = np.random.default_rng(11)
+    truth = _half(14, 6, 3)
+    cat, weight, dets, lp = _frame(truth, say=say, rng=rng, noise=0.7)
+    pix = (7, 2)
+    cat[pix] = label
+    lp[pix] = (own, 0.0)
+
+    def say_of(r, c):
+        return float(np.clip(lp[r, c, 0] - lp[r, c, 1], -CAP, CAP))
+
+    p0 = 1.0 / (1.0 + np.exp(-(_line_odds(cat, dets, say_of, pix, DET) + say_of(*pix))))
+    got = el.line_moves(cat, weight, dets, lp, CAP, DET)
+    k = pix[0] * 6 + pix[1]
+    seen = got.seen_q == k
+    assert seen.sum() == 1 and got.seen_a[seen] == 0 and got.seen_b[seen] == 1
+    assert got.seen_p_a[seen][0] == pytest.approx(p0, rel=1e-6, abs=1e-12)
+    assert (k in got.q) == (label == 1) == ((p0 if label == 1 else 1.0 - p0) > el.LINE_P)
+    assert got.pl[got.q == k].tolist() == ([0] if label == 1 else [])
+    assert label == 0 or p0 < 0.9
 
 
 @pytest.mark.parametrize("inside", [1, 0])

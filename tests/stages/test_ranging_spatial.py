@@ -602,6 +602,51 @@ def test_a_detection_its_edge_refutes_is_withdrawn(monkeypatch):
     assert np.argwhere(changed).tolist() == [[24, 8]]
 
 
+def test_a_pixel_the_lines_leave_in_doubt_carries_it_in_its_sigma(monkeypatch):
+    """Seed 14 of the grid's scene at (2, 50): pixel (44, 36), the board's bottom-left
+    corner, reports the wall 2.8 m behind; the corner of the board's two lines puts it
+    on the board with a posterior of 0.42, under the cut of 0.5, and it stays. Its
+    sigma carries that (sigma^2 + p x the planes' distance^2, added after the
+    curvature's step, which put a quadratic's sigma of 7 mm in place): 2 sigma covers
+    its error. Without the step (``EDGE_SIGMA``) every time and detection is the same to
+    the bit, and no sigma is larger than with it; no detected pixel's sigma changes."""
+    from stages.ranging import spatial as sp
+
+    counts = histograms(scene(), 2, 50, 14)
+    est = spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
+    err = abs(est.t_s[44, 36, 0] * C / 2 - scene().depth[44, 36, 0])
+    s = est.sigma_s[44, 36, 0] * C / 2
+    assert not est.detected[44, 36].any() and err > 2.5
+    assert 0.3 * err ** 2 < s ** 2 < 0.5 * err ** 2          # p 0.42 of the other plane
+    monkeypatch.setattr(sp, "EDGE_SIGMA", False)
+    before = spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
+    assert 2 * before.sigma_s[44, 36, 0] * C / 2 < 0.05
+    assert np.array_equal(before.t_s, est.t_s, equal_nan=True)
+    assert np.array_equal(before.detected, est.detected)
+    grew = ~np.isclose(before.sigma_s, est.sigma_s, equal_nan=True)
+    assert not (grew & est.detected).any()
+    assert (est.sigma_s[grew] > before.sigma_s[grew]).all()
+
+
+def test_line_var_by_hand():
+    """:func:`spatial._line_var` on records written here: the posterior of the other
+    plane of the pair (as the final label puts it) times the planes' squared distance;
+    the largest of two records; nothing where the label is on neither plane, or a
+    plane's time or the posterior is not finite."""
+    from stages.ranging.spatial import _line_var
+
+    cat = np.array([[0, 1, 2, 0]])
+    T = np.zeros((1, 4, 3))
+    T[..., 0], T[..., 1], T[..., 2] = 10.0, 14.0, 30.0
+    T[0, 3, 1] = np.inf
+    q = np.array([0, 0, 1, 2, 3, 0])
+    A = np.array([0, 0, 0, 0, 0, 0])
+    B = np.array([1, 1, 1, 1, 1, 2])
+    p_a = np.array([0.9, 0.7, 0.2, 0.5, 0.5, np.nan])
+    got = _line_var(q, A, B, p_a, cat, T)
+    assert got[0].tolist() == pytest.approx([0.3 * 16, 0.2 * 16, 0.0, 0.0])
+
+
 def test_a_curved_surface_keeps_its_detections(monkeypatch):
     """A cylinder at (10, 2) (the outside probe's, seed 3): the frame's planes cut its
     curved surface into patches, and a pixel at a patch's border is detected on the
