@@ -632,19 +632,21 @@ def test_line_var_by_hand():
     """:func:`spatial._line_var` on records written here: the posterior of the other
     plane of the pair (as the final label puts it) times the planes' squared distance;
     the largest of two records; nothing where the label is on neither plane, or a
-    plane's time or the posterior is not finite."""
+    plane's time or the posterior is not finite, or the posterior is under 5 %."""
     from stages.ranging.spatial import _line_var
 
-    cat = np.array([[0, 1, 2, 0]])
-    T = np.zeros((1, 4, 3))
+    cat = np.array([[0, 1, 2, 0, 1]])
+    T = np.zeros((1, 5, 3))
     T[..., 0], T[..., 1], T[..., 2] = 10.0, 14.0, 30.0
     T[0, 3, 1] = np.inf
-    q = np.array([0, 0, 1, 2, 3, 0])
-    A = np.array([0, 0, 0, 0, 0, 0])
-    B = np.array([1, 1, 1, 1, 1, 2])
-    p_a = np.array([0.9, 0.7, 0.2, 0.5, 0.5, np.nan])
+    q = np.array([0, 0, 1, 2, 3, 0, 4])
+    A = np.array([0, 0, 0, 0, 0, 0, 0])
+    B = np.array([1, 1, 1, 1, 1, 2, 1])
+    p_a = np.array([0.9, 0.7, 0.2, 0.5, 0.5, np.nan, 0.049])
     got = _line_var(q, A, B, p_a, cat, T)
-    assert got[0].tolist() == pytest.approx([0.3 * 16, 0.2 * 16, 0.0, 0.0])
+    assert got[0].tolist() == pytest.approx([0.3 * 16, 0.2 * 16, 0.0, 0.0, 0.0])
+    p_a[-1] = 0.051
+    assert _line_var(q, A, B, p_a, cat, T)[0, 4] == pytest.approx(0.051 * 16)
 
 
 def test_a_curved_surface_keeps_its_detections(monkeypatch):
