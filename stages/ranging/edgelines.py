@@ -37,7 +37,7 @@ detected). The misfit counts only the labels a detection or the pixel's own phot
 gives every pixel one of its neighbours' planes, and those labels say nothing.
 
 numpy (and scipy.special's logsumexp and expit), at a cost of 20-25 ms a frame of 64 x
-64 at (2, 50) (a few dozen runs)."""
+64 at (2, 50) (a few dozen runs, a few corners)."""
 
 from __future__ import annotations
 
@@ -375,12 +375,15 @@ def _patterns(line, J, X):
         pos = np.searchsorted(J, line.q[inb])
         ll = ll - np.einsum("m,mpo->po", line.say[inb], on[pos].astype(np.float64))
     flat = on.reshape(len(J), -1).T                                       # (P O, j)
-    _, first, inv = np.unique(np.packbits(flat, axis=1), axis=0, return_index=True,
-                              return_inverse=True)
-    inv = inv.ravel()
-    order = np.argsort(inv, kind="stable")
-    starts = np.searchsorted(inv[order], np.arange(len(first)))
-    return flat[first], np.logaddexp.reduceat(ll.ravel()[order], starts)
+    # the sides as 64-bit words (exact), sorted; a new pattern where a word changes
+    packed = np.packbits(flat, axis=1)
+    pad = -packed.shape[1] % 8
+    words = np.ascontiguousarray(np.pad(packed, ((0, 0), (0, pad)))).view(np.uint64)
+    order = np.lexsort(words.T[::-1])
+    new = np.ones(len(order), bool)
+    new[1:] = (np.diff(words[order], axis=0) != 0).any(1)
+    starts = np.nonzero(new)[0]
+    return flat[order[starts]], np.logaddexp.reduceat(ll.ravel()[order], starts)
 
 
 def _corner(l1, l2, Z, convex, X, say):
@@ -394,12 +397,15 @@ def _corner(l1, l2, Z, convex, X, say):
     J = np.union1d(Z, np.intersect1d(l1.q, l2.q))
     p1, w1 = _patterns(l1, J, X)
     p2, w2 = _patterns(l2, J, X)
-    on = (p1[:, None, :] & p2[None, :, :]) if convex else (p1[:, None, :] | p2[None, :, :])
-    on = on.astype(np.float64)                                            # (k1, k2, j)
-    L = w1[:, None] + w2[None, :] + on @ say
+    p1, p2 = p1.astype(np.float64), p2.astype(np.float64)                # (k1, j), (k2, j)
+    both = (p1 * say) @ p2.T                     # the say of the pixels on A's side of both
+    L = w1[:, None] + w2[None, :] + (both if convex
+                                     else (p1 @ say)[:, None] + (p2 @ say)[None, :] - both)
     post = np.exp(L - L.max())
     post /= post.sum()
-    return np.einsum("ab,abj->j", post, on)[np.searchsorted(J, Z)]
+    on_both = ((post @ p2) * p1).sum(0)          # each pixel's posterior of both, of either
+    p_a = on_both if convex else post.sum(1) @ p1 + post.sum(0) @ p2 - on_both
+    return p_a[np.searchsorted(J, Z)]
 
 
 def _doubt(q, on_a, ll, say, lab, lp, w, A, B):
