@@ -8,9 +8,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, settings
 
 # Prefect: no telemetry, and a throw-away home so tests never touch the user's profile.
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+
+# Property tests check correctness, not wall time: no deadline, and no health check on
+# how fast inputs are drawn (a loaded 2-core machine failed test_message_roundtrip's:
+# 5 inputs in 1.6 s). A test's own @settings still sets its examples.
+settings.register_profile("project", deadline=None,
+                          suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("project")
 
 ENGINES = ["numpy", "numba"]
 

@@ -1001,17 +1001,16 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
                     + np.where(near & stand, 1e10, 0.0), rank)
     _label_sigma((lab, free & ~held) + state[2:7], sig_cnt, sig_out, P0, beta, bin_s, sb,
                  prof)
-    # a doubted detection's pixel: the chance it lies on the surface it was detected on
-    # (its posterior against the line's) times the squared distance between the two
-    rd, cd = np.nonzero(doubted)
-    k = lab[rd, cd]
-    sig_out[rd, cd, k] = np.sqrt(sig_out[rd, cd, k] ** 2 + p_was[rd, cd]
-                                 * ((t_was[rd, cd] - tb[rd, cd, k]) * bin_s) ** 2)
-    # an undetected pixel a line weighed: the chance it lies on the other plane of the
-    # pair (stages/ranging/edgelines.py), as the doubted detection's; added last, after
-    # the curvature's step has put a quadratic's time and sigma in place of the plane's
-    # where they agree (the surface's question, not the time's on it)
+    # the surface's doubt, added last (after the curvature's step has put a quadratic's
+    # time and sigma in place of an undetected pixel's plane where they agree: the
+    # surface's question, not the time's on it): a doubted detection's pixel, the
+    # chance it lies on the surface it was detected on (its posterior against the
+    # line's) times the squared distance between the two; an undetected pixel a line
+    # weighed, the chance it lies on the pair's other plane (stages/ranging/edgelines.py)
     extra = np.zeros(sig_out.shape)
+    rd, cd = np.nonzero(doubted)
+    extra[rd, cd, lab[rd, cd]] = p_was[rd, cd] * ((t_was[rd, cd]
+                                                   - tb[rd, cd, lab[rd, cd]]) * bin_s) ** 2
     rl, cl = np.nonzero(free & ~held & ~doubted & (line_var > 0))
     extra[rl, cl, lab[rl, cl]] = line_var[rl, cl] * bin_s ** 2
     # detected before not; then by the corner windows that see the surface, then by the
