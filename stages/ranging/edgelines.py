@@ -248,7 +248,7 @@ def line_moves(cat, weight, dets, lp, cap, det_w) -> LineMoves:
     rr, cc = np.mgrid[0:h, 0:w]
     X = np.stack([rr.ravel(), cc.ravel()], -1).astype(np.float64)
     catf, wf, detf = cat.ravel(), weight.ravel(), dets.ravel()
-    got_q, got_pl, lines, doubt, seen = [], [], [], [], []
+    lines, doubt, seen = [], [], []   # seen: (q, A, B, p_a, moved q, planes, a corner's)
     for (A, B), pts in boundary_points(cat).items():
         if len(pts) < LINE_MIN:
             continue
@@ -289,9 +289,7 @@ def line_moves(cat, weight, dets, lp, cap, det_w) -> LineMoves:
             inside = (np.abs(d[q]) <= LINE_NEAR) & (t[q] >= lo) & (t[q] <= hi)
             ok = ~detf[q] & inside
             mq, mp = _moves(q[ok], p_a[ok], la[ok], A, B)
-            seen.append((q[ok], A, B, p_a[ok]))
-            got_q.append(mq)
-            got_pl.append(mp)
+            seen.append((q[ok], A, B, p_a[ok], mq, mp, False))
             # (a detection within LINE_NEAR of the line, as the moves, but only inside
             # the run itself less a pixel at each end: the line carried on to the border
             # is no evidence against a detection; beyond LINE_NEAR, at an acute corner,
@@ -332,20 +330,25 @@ def line_moves(cat, weight, dets, lp, cap, det_w) -> LineMoves:
             off = (wq * (fit != (catf[q] == l1.A))).sum()
             if not q.size or off > LINE_MISFIT_CORNER * wq.sum():
                 continue
-            p_a = _corner(l1, l2, q, convex, X,
-                          _evidence(np.union1d(q, np.intersect1d(l1.q, l2.q)), l1.A, l1.B,
-                                    cat, dets, lp, cap, det_w))
+            J = np.union1d(q, np.intersect1d(l1.q, l2.q))
+            p_a = _corner(l1, l2, q, J, convex, X,
+                          _evidence(J, l1.A, l1.B, cat, dets, lp, cap, det_w))
             und = ~detf[q]
             q, p_a = q[und], p_a[und]
             if not q.size:
                 continue
             mq, mp = _moves(q, p_a, catf[q], l1.A, l1.B)
-            seen.append((q, l1.A, l1.B, p_a))
-            got_q.append(mq)
-            got_pl.append(mp)
+            seen.append((q, l1.A, l1.B, p_a, mq, mp, True))
+    # a pixel a corner weighed is the corner's: its lines' records there (each line
+    # alone, as if it went on past the corner) neither move it nor give its sigma
+    zone = (np.unique(np.concatenate([x[0] for x in seen if x[6]]))
+            if any(x[6] for x in seen) else np.zeros(0, np.int64))
+    seen = [x if x[6] else (x[0][~np.isin(x[0], zone)], x[1], x[2],
+                            x[3][~np.isin(x[0], zone)], x[4][~np.isin(x[4], zone)],
+                            x[5][~np.isin(x[4], zone)], False) for x in seen]
     none = np.zeros(0, np.int64)
-    moves = (one_plane(np.concatenate(got_q), np.concatenate(got_pl)) if got_q
-             else (none, none))
+    moves = (one_plane(np.concatenate([x[4] for x in seen]),
+                       np.concatenate([x[5] for x in seen])) if seen else (none, none))
     sq, sa, sb, sp = none, none, none, np.zeros(0)
     if seen:
         sq = np.concatenate([x[0] for x in seen])
@@ -386,15 +389,14 @@ def _patterns(line, J, X):
     return flat[order[starts]], np.logaddexp.reduceat(ll.ravel()[order], starts)
 
 
-def _corner(l1, l2, Z, convex, X, say):
+def _corner(l1, l2, Z, J, convex, X, say):
     """The posterior of A's side for each pixel of a corner's zone ``Z`` (sorted flat
-    indices) under its two lines together. The pixels near both, ``J`` (the zone and
-    the pixels in both bands; ``say`` theirs, in the order of ``J``), are on A's side
+    indices) under its two lines together. The pixels near both, ``J`` (sorted: the
+    zone and the pixels in both bands; ``say`` theirs, in its order), are on A's side
     where the corner puts them: on A's side of both lines where A's corner is convex,
     of either where it is concave. Each line's posterior without their say, times their
     say once under the corner: the product of the two lines' posteriors counts a
     pixel in both bands twice, and treats as apart two lines that such pixels tie."""
-    J = np.union1d(Z, np.intersect1d(l1.q, l2.q))
     p1, w1 = _patterns(l1, J, X)
     p2, w2 = _patterns(l2, J, X)
     p1, p2 = p1.astype(np.float64), p2.astype(np.float64)                # (k1, j), (k2, j)

@@ -1007,12 +1007,13 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
     # chance it lies on the surface it was detected on (its posterior against the
     # line's) times the squared distance between the two; an undetected pixel a line
     # weighed, the chance it lies on the pair's other plane (stages/ranging/edgelines.py)
-    extra = np.zeros(sig_out.shape)
+    # (on the first return: the label's slot, or where a detection on the label's
+    # surface holds the pixel, that detection)
+    extra = np.zeros(free.shape)
     rd, cd = np.nonzero(doubted)
-    extra[rd, cd, lab[rd, cd]] = p_was[rd, cd] * ((t_was[rd, cd]
-                                                   - tb[rd, cd, lab[rd, cd]]) * bin_s) ** 2
-    rl, cl = np.nonzero(free & ~held & ~doubted & (line_var > 0))
-    extra[rl, cl, lab[rl, cl]] = line_var[rl, cl] * bin_s ** 2
+    extra[rd, cd] = p_was[rd, cd] * ((t_was[rd, cd] - tb[rd, cd, lab[rd, cd]]) * bin_s) ** 2
+    line = free & ~held & ~doubted
+    extra[line] = line_var[line] * bin_s ** 2
     # detected before not; then by the corner windows that see the surface, then by the
     # pixel's own excess counts, then by the neighbourhood's signal
     key = np.where(det, 1e12, 0.0) + rank
@@ -1029,8 +1030,8 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
     _curvature(t_out, sig_out, det, bend, bin_s, sb, t0_s)
     sig_cnt = take(sig_cnt)
     _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof, cand)
-    extra = take(extra)
-    sig_out = np.where(extra > 0, np.sqrt(sig_out ** 2 + extra), sig_out)
+    sig_out[..., 0] = np.where(extra > 0, np.sqrt(sig_out[..., 0] ** 2 + extra),
+                               sig_out[..., 0])
     return SpatialEstimate(t_out, sig_out, sig_cnt,
                            np.repeat(beta[..., None], max_returns, -1), det,
                            take(own), take(surr))

@@ -130,7 +130,7 @@ def test_a_corners_posterior_is_the_sum_over_both_lines_written_out(convex):
     zr, zc = np.mgrid[3:9, 3:9]
     Z = np.sort((zr * w + zc).ravel())
     J = np.union1d(Z, np.intersect1d(l1.q, l2.q))
-    got = el._corner(l1, l2, Z, convex, X, say_all[J])
+    got = el._corner(l1, l2, Z, J, convex, X, say_all[J])
     # written out: every pair of lines at once
     sides = []
     for ln in (l1, l2):
@@ -253,6 +253,22 @@ def test_an_undetected_pixel_moves_where_the_odds_written_out_favour_the_other_s
     assert (k in got.q) == (label == 1) == ((p0 if label == 1 else 1.0 - p0) > el.LINE_P)
     assert got.pl[got.q == k].tolist() == ([0] if label == 1 else [])
     assert label == 0 or p0 < 0.9
+
+
+def test_a_pixel_a_corner_weighed_is_the_corners():
+    """A box of plane 0 (its corner convex), pixel (11, 8) beside its top-left corner
+    rightly labelled 0, its own photons leaning 4.5 nats to plane 1. The left edge's line
+    alone, carried on past the corner, puts it on plane 1 with 0.60; the corner, both
+    lines together, on plane 0 with 0.63. The corner's posterior is the pixel's: one
+    record, and it stays (an outside review found it moved by the line's record)."""
+    r, c = np.mgrid[0:40, 0:32]
+    truth = ((r >= 10) & (r < 30) & (c >= 8) & (c < 22)).astype(np.int64) ^ 1
+    cat, weight, dets, lp = _frame(truth, say=1.0)
+    lp[11, 8] = (-4.5, 0.0)
+    got = el.line_moves(cat, weight, dets, lp, CAP, DET)
+    k = 11 * 32 + 8
+    assert got.seen_p_a[got.seen_q == k] == pytest.approx([0.631], abs=0.01)
+    assert k not in got.q
 
 
 @pytest.mark.parametrize("inside", [1, 0])
