@@ -339,13 +339,12 @@ def line_moves(cat, weight, dets, lp, cap, det_w) -> LineMoves:
                 continue
             mq, mp = _moves(q, p_a, catf[q], l1.A, l1.B)
             seen.append((q, l1.A, l1.B, p_a, mq, mp, True))
-    # a pixel a corner weighed is the corner's: its lines' records there (each line
-    # alone, as if it went on past the corner) neither move it nor give its sigma
-    zone = (np.unique(np.concatenate([x[0] for x in seen if x[6]]))
-            if any(x[6] for x in seen) else np.zeros(0, np.int64))
-    seen = [x if x[6] else (x[0][~np.isin(x[0], zone)], x[1], x[2],
-                            x[3][~np.isin(x[0], zone)], x[4][~np.isin(x[4], zone)],
-                            x[5][~np.isin(x[4], zone)], False) for x in seen]
+    # a pixel a corner weighed is the corner's for that pair of planes: the pair's
+    # lines' records there (each line alone, as if it went on past the corner) neither
+    # move it nor give its sigma (another pair's line still does: a floor's edge
+    # through a board's corner)
+    seen = [x if x[6] else _outside(x, [y[0] for y in seen if y[6] and y[1:3] == x[1:3]])
+            for x in seen]
     none = np.zeros(0, np.int64)
     moves = (one_plane(np.concatenate([x[4] for x in seen]),
                        np.concatenate([x[5] for x in seen])) if seen else (none, none))
@@ -364,6 +363,16 @@ def line_moves(cat, weight, dets, lp, cap, det_w) -> LineMoves:
     p_was = np.zeros(uq.size)
     np.maximum.at(p_was, np.searchsorted(uq, dq[keep]), dp[keep])
     return LineMoves(*moves, uq, upl, p_was, sq, sa, sb, sp)
+
+
+def _outside(rec, zones):
+    """A line's record (q, A, B, p_a, moved q, planes, False) less the pixels of
+    ``zones`` (the corners' of its pair)."""
+    if not zones:
+        return rec
+    zone = np.concatenate(zones)
+    keep, kept = ~np.isin(rec[0], zone), ~np.isin(rec[4], zone)
+    return (rec[0][keep], rec[1], rec[2], rec[3][keep], rec[4][kept], rec[5][kept], False)
 
 
 def _patterns(line, J, X):
@@ -407,7 +416,7 @@ def _corner(l1, l2, Z, J, convex, X, say):
     post /= post.sum()
     on_both = ((post @ p2) * p1).sum(0)          # each pixel's posterior of both, of either
     p_a = on_both if convex else post.sum(1) @ p1 + post.sum(0) @ p2 - on_both
-    return p_a[np.searchsorted(J, Z)]
+    return np.clip(p_a[np.searchsorted(J, Z)], 0.0, 1.0)
 
 
 def _doubt(q, on_a, ll, say, lab, lp, w, A, B):

@@ -271,6 +271,36 @@ def test_a_pixel_a_corner_weighed_is_the_corners():
     assert k not in got.q
 
 
+def test_a_corner_holds_only_its_own_pair():
+    """A box of plane 2 on a wall (0) below a band of plane 1 (rows 0-4), the box's
+    top-left corner three rows below the band's edge. A pixel of the band labelled as
+    the wall (its own photons leaning 1 nat to the wall) lies in the box corner's zone,
+    but that corner weighs the wall against the box only: the band's edge (pair 0, 1)
+    still moves it (the first version of the corners' precedence did not: the scene
+    turned by 10 degrees, its floor under the board)."""
+    h, w = 40, 40
+    r, c = np.mgrid[0:h, 0:w]
+    truth = np.where(r < 5, 1, 0)
+    truth = np.where((r >= 8) & (r < 22) & (c >= 10) & (c < 26), 2, truth)
+    lp = np.where(truth[..., None] == np.arange(3), 3.0, 0.0)
+    cat = truth.copy()
+    cat[4, 10] = 0
+    lp[4, 10] = (1.0, 0.0, 0.0)
+    zones = []
+    corner = el._corner
+
+    def spy(l1, l2, Z, *rest):
+        zones.append((l1.A, l1.B, Z))
+        return corner(l1, l2, Z, *rest)
+
+    k = 4 * w + 10
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(el, "_corner", spy)
+        got = el.line_moves(cat, np.full((h, w), 0.5), np.zeros((h, w), bool), lp, CAP, DET)
+    assert any(k in Z for A, B, Z in zones if (A, B) == (0, 2))     # in the corner's zone
+    assert got.pl[got.q == k].tolist() == [1]
+
+
 @pytest.mark.parametrize("inside", [1, 0])
 def test_the_pixel_past_a_box_corner(inside):
     """A box (rows 10-29, cols 8-21) in a 40 x 32 frame; the pixel diagonal to its
