@@ -237,6 +237,17 @@ class LineMoves(NamedTuple):
     seen_p_a: np.ndarray
 
 
+class _Seen(NamedTuple):
+    """The undetected pixels one line or corner weighed (flat indices), its pair of
+    planes and each pixel's posterior of A's side; whether a corner weighed them."""
+
+    q: np.ndarray
+    A: int
+    B: int
+    p_a: np.ndarray
+    corner: bool
+
+
 def line_moves(cat, weight, dets, lp, cap, det_w) -> LineMoves:
     """The pixels to move, the detections doubted and the posteriors the moves were
     decided on (:class:`LineMoves`): see the module's docstring. ``cat`` (h, w) each
@@ -248,7 +259,7 @@ def line_moves(cat, weight, dets, lp, cap, det_w) -> LineMoves:
     rr, cc = np.mgrid[0:h, 0:w]
     X = np.stack([rr.ravel(), cc.ravel()], -1).astype(np.float64)
     catf, wf, detf = cat.ravel(), weight.ravel(), dets.ravel()
-    lines, doubt, seen = [], [], []   # seen: (q, A, B, p_a, moved q, planes, a corner's)
+    lines, doubt, seen = [], [], []
     for (A, B), pts in boundary_points(cat).items():
         if len(pts) < LINE_MIN:
             continue
@@ -288,8 +299,7 @@ def line_moves(cat, weight, dets, lp, cap, det_w) -> LineMoves:
             p_a = np.einsum("po,mpo->m", post, on_a)
             inside = (np.abs(d[q]) <= LINE_NEAR) & (t[q] >= lo) & (t[q] <= hi)
             ok = ~detf[q] & inside
-            mq, mp = _moves(q[ok], p_a[ok], la[ok], A, B)
-            seen.append((q[ok], A, B, p_a[ok], mq, mp, False))
+            seen.append(_Seen(q[ok], A, B, p_a[ok], False))
             # (a detection within LINE_NEAR of the line, as the moves, but only inside
             # the run itself less a pixel at each end: the line carried on to the border
             # is no evidence against a detection; beyond LINE_NEAR, at an acute corner,
@@ -334,26 +344,27 @@ def line_moves(cat, weight, dets, lp, cap, det_w) -> LineMoves:
             p_a = _corner(l1, l2, q, J, convex, X,
                           _evidence(J, l1.A, l1.B, cat, dets, lp, cap, det_w))
             und = ~detf[q]
-            q, p_a = q[und], p_a[und]
-            if not q.size:
-                continue
-            mq, mp = _moves(q, p_a, catf[q], l1.A, l1.B)
-            seen.append((q, l1.A, l1.B, p_a, mq, mp, True))
+            if und.any():
+                seen.append(_Seen(q[und], l1.A, l1.B, p_a[und], True))
     # a pixel a corner weighed is the corner's for that pair of planes: the pair's
     # lines' records there (each line alone, as if it went on past the corner) neither
     # move it nor give its sigma (another pair's line still does: a floor's edge
     # through a board's corner)
-    seen = [x if x[6] else _outside(x, [y[0] for y in seen if y[6] and y[1:3] == x[1:3]])
-            for x in seen]
+    for i, x in enumerate(seen):
+        zones = [y.q for y in seen if y.corner and (y.A, y.B) == (x.A, x.B)]
+        if zones and not x.corner:
+            keep = ~np.isin(x.q, np.concatenate(zones))
+            seen[i] = x._replace(q=x.q[keep], p_a=x.p_a[keep])
     none = np.zeros(0, np.int64)
-    moves = (one_plane(np.concatenate([x[4] for x in seen]),
-                       np.concatenate([x[5] for x in seen])) if seen else (none, none))
-    sq, sa, sb, sp = none, none, none, np.zeros(0)
+    moves, sq, sa, sb, sp = (none, none), none, none, none, np.zeros(0)
     if seen:
-        sq = np.concatenate([x[0] for x in seen])
-        sa = np.concatenate([np.full(x[0].size, x[1]) for x in seen])
-        sb = np.concatenate([np.full(x[0].size, x[2]) for x in seen])
-        sp = np.concatenate([x[3] for x in seen])
+        got = [_moves(x.q, x.p_a, catf[x.q], x.A, x.B) for x in seen]
+        moves = one_plane(np.concatenate([m[0] for m in got]),
+                          np.concatenate([m[1] for m in got]))
+        sq = np.concatenate([x.q for x in seen])
+        sa = np.concatenate([np.full(x.q.size, x.A) for x in seen])
+        sb = np.concatenate([np.full(x.q.size, x.B) for x in seen])
+        sp = np.concatenate([x.p_a for x in seen])
     if not doubt:
         return LineMoves(*moves, none, none, np.zeros(0), sq, sa, sb, sp)
     dq, dpl, dp = (np.concatenate(x) for x in zip(*doubt, strict=True))
@@ -363,16 +374,6 @@ def line_moves(cat, weight, dets, lp, cap, det_w) -> LineMoves:
     p_was = np.zeros(uq.size)
     np.maximum.at(p_was, np.searchsorted(uq, dq[keep]), dp[keep])
     return LineMoves(*moves, uq, upl, p_was, sq, sa, sb, sp)
-
-
-def _outside(rec, zones):
-    """A line's record (q, A, B, p_a, moved q, planes, False) less the pixels of
-    ``zones`` (the corners' of its pair)."""
-    if not zones:
-        return rec
-    zone = np.concatenate(zones)
-    keep, kept = ~np.isin(rec[0], zone), ~np.isin(rec[4], zone)
-    return (rec[0][keep], rec[1], rec[2], rec[3][keep], rec[4][kept], rec[5][kept], False)
 
 
 def _patterns(line, J, X):

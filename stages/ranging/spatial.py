@@ -89,6 +89,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from itertools import product
+from typing import NamedTuple
 
 import numpy as np
 from scipy import ndimage
@@ -1422,7 +1423,7 @@ def _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, ha
     untouched. (Seeds 1-8 at (2, 50), pixels > 10 cm off, against the corners' step it
     replaced: the grid's scene 24 -> 19, turned by 30 degrees 276 -> 158; held out,
     seeds 9-15: 37 -> 27 and 250 -> 118; docs/ranging.md "Edges".) Returns the labels
-    and the detections the lines doubt (:func:`_no_doubt`'s arrays; each such pixel takes
+    and the detections the lines doubt (:class:`_Doubts`; each such pixel takes
     the line's plane as its label); ``tb``, ``llr``, ``slope``, ``sig_cnt`` and
     ``sig_out`` are written in place where a plane is put in a pixel's last slot."""
     T, lp = table[0], table[4]
@@ -1466,13 +1467,13 @@ def _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, ha
         if qd.size:
             # the pixel takes the line's plane, and the chance it is where its
             # detection put it stays in its sigma (_finish)
-            doubted[0][rd, cd] = True
-            doubted[1][rd, cd] = p_was
-            doubted[2][rd, cd] = tb[rd, cd, lab[rd, cd]]
+            doubted.doubted[rd, cd] = True
+            doubted.p_was[rd, cd] = p_was
+            doubted.t_was[rd, cd] = tb[rd, cd, lab[rd, cd]]
             _take_plane(rd, cd, pld, lab, tb, llr, slope, sig_cnt, sig_out, table, P0, beta,
                         half, tol, prof)
         if EDGE_SIGMA:
-            doubted[3][...] = _line_var(*got[5:], _plane_of(lab, tb, T, tol), T)
+            doubted.line_var[...] = _line_var(*got[5:], _plane_of(lab, tb, T, tol), T)
     return lab, doubted
 
 
@@ -1498,17 +1499,26 @@ def _line_var(q, A, B, p_a, cat, T):
     with np.errstate(invalid="ignore"):
         d2 = (T[r, c, A] - T[r, c, B]) ** 2
     ok = on & np.isfinite(d2) & np.isfinite(p_other) & (p_other >= EDGE_SIGMA_P)
-    v = np.where(ok, np.where(ok, p_other, 0.0) * np.where(ok, d2, 0.0), 0.0)
+    v = np.where(ok, p_other, 0.0) * np.where(ok, d2, 0.0)
     np.maximum.at(out.reshape(-1), q, v)
     return out
 
 
-def _no_doubt(shape):
-    """The detections :func:`_edges` doubts (none yet): whether each pixel's is, the
-    posterior that it lies where it was detected, and the time it was detected at;
-    and the variance the lines leave in an undetected pixel's label (bins^2,
-    :func:`_line_var`)."""
-    return np.zeros(shape, bool), np.zeros(shape), np.zeros(shape), np.zeros(shape)
+class _Doubts(NamedTuple):
+    """What :func:`_edges`' lines leave in doubt, per pixel: whether its detection is
+    doubted, the posterior that it lies where it was detected and the time it was
+    detected at; and the variance the lines leave in an undetected pixel's label
+    (bins^2, :func:`_line_var`)."""
+
+    doubted: np.ndarray
+    p_was: np.ndarray
+    t_was: np.ndarray
+    line_var: np.ndarray
+
+
+def _no_doubt(shape) -> _Doubts:
+    """No doubts yet (:class:`_Doubts` of zeros)."""
+    return _Doubts(np.zeros(shape, bool), np.zeros(shape), np.zeros(shape), np.zeros(shape))
 
 
 def _commonest_other(cat, weight, who, A, k):
@@ -1648,6 +1658,6 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
                               beta, half, tol, prof, compiled, threads)
     t_out[..., -1] = tb[..., -1] * bin_s + t0_s
     chosen = np.arange(nc) == lab[..., None]
-    free = free | doubted[0]
+    free = free | doubted.doubted
     return (np.where(free[..., None] & chosen, 1e11, 0.0) + rank,
             (lab, free, tb, llr, slope, shifted, agreement, doubted))
