@@ -32,6 +32,10 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    their squared difference less its noise is a bias t0 may carry (within half a pixel of a
    step at an angle no half follows, every half holds both surfaces), and the larger of it
    and 2b's enters t0's variance. t0 stays the plane's.
+   2d. Unless the neighbours do not hold the surface (their counts about the plane are no
+   detection at ``p_fa``: a lone point, a retroreflector, a post's tip): then the plane
+   is their background's, and the pixel's own photons' mean gives t0, their spread its
+   variance.
 3. Decision, per pixel and candidate. The pixel's own counts in +-2 sigma of t0 against
    its background alone: a window fixed by the neighbours, so no look-elsewhere, and
    background alone passes with probability at most ``p_fa`` (the exact Poisson tail).
@@ -132,6 +136,7 @@ EDGE_LINES = True  # the edges' last step: each straight boundary as one line (e
 EDGE_SIGMA = True   # the lines' posteriors in an undetected pixel's sigma (_line_var)
 EDGE_SIGMA_P = 0.05  # where the other plane holds at least this share of the posterior
 EDGE_DOUBT = True  # and there a detection the line and its own photons refute withdrawn
+LONE = True        # 2d: a surface the neighbours do not hold ranged by the pixel's photons
 PROFILE_BLOCK = 32  # the background's time profile: its blocks (bins)
 PROFILE_P = 1e-4    # and the chi-square test's p below which the frame is not flat
 MASK_K = WINDOW   # over the window's neighbourhood (3 x 3: the scene's returns leaked and the
@@ -722,6 +727,22 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
             ii, jj, bias = _own_bias(P, beta, t0, var_plane, var_photon, found & own_r, fit, n,
                                      prof, None if cal_var is None else cal_var / bin_s ** 2)
             var_t0[ii, jj] = np.maximum(var_t0[ii, jj], var_plane[ii, jj] + bias)
+        # -- 2d. a surface the neighbours do not hold: the pixel's own photons detect it
+        # (3) and its neighbours' counts about the plane are no detection at ``p_fa``
+        # (a lone point, a retroreflector or a post's tip, before a wall or in the sky).
+        # The plane is then their background's, its time and sigma noise's (40 photons
+        # in one wall pixel 2 m away at (2, 50): 8 cm off, sigma 4.5 cm; at (2, 0.001):
+        # sigma 31 m): the pixel's own photons' mean (2c's) gives t0, their spread over
+        # their number its variance (and the pixel's calibration's), the slopes none.
+        # (On Lindell's grid, where every surface spans many pixels, one pixel in 75
+        # frames of the grid's scene at (2, 50); benchmarks/spatial_points.py)
+        if LONE:
+            held = poisson_tail(raw.sum(-1), bsum.sum(-1)) <= p_fa
+            ii, jj, m, v, _, _ = _own_mean(P, beta, t0, None, found & own_r & ~held,
+                                           WIDTH_FIT * sb, n, prof,
+                                           None if cal_var is None else cal_var / bin_s ** 2)
+            t0[ii, jj], var_t0[ii, jj] = m, v
+            slope[ii, jj, r] = 0.0
         # (a candidate the window does not detect still gives the pixel a distance, as a
         # per-pixel estimator's undetected peak does; it is never detected)
         t_out[..., r] = np.where(np.isfinite(t0), t0 * bin_s + t0_s, np.nan)
@@ -843,27 +864,42 @@ def _misfits(chi, dof) -> np.ndarray:
     return chi > dof + STEP_LOF * np.sqrt(2 * dof)
 
 
-def _own_bias(P, beta, t0, var_plane, var_photon, sel, fit, n, prof=None, cal=None):
-    """2c. For the pixels of ``sel``: their own photons' mean, re-centred ``STEP_ITER`` + 1
-    times from t0 on its own window (+- ``fit`` bins), against t0. Where they differ by
-    more than ``OWN_Z`` sds (the mean's variance: the photons' spread and the
-    background's as step 2's, and the pixel's calibration variance ``cal`` (h, w) in
-    bins^2 where given; plus t0's ``var_plane``), with ``OWN_MIN`` counts in the window
-    at least, the squared difference less that variance. Returns their rows, columns
-    and those biases (bins^2)."""
+def _own_mean(P, beta, t0, var_photon, sel, fit, n, prof=None, cal=None):
+    """The pixels of ``sel``'s own photons' mean, re-centred ``STEP_ITER`` + 1 times
+    from t0 on its own window (+- ``fit`` bins), and its variance: the photons' spread
+    (``var_photon`` (h, w), bins^2; None: their own about the mean, at least the
+    pulse's) over their number and the background's as step 2's, and the pixel's
+    calibration variance ``cal`` (h, w) in bins^2 where given. Returns their rows and
+    columns, the means, the variances, and the net and raw counts in the window."""
     h, w = t0.shape
     ii, jj = np.nonzero(sel & np.isfinite(t0))
     qs = (ii * w + jj)[:, None] * (n + 1)              # the pixel's own prefix sums' row
     one, bq = np.ones((ii.size, 1)), beta[ii, jj][:, None]
-    t = t0[ii, jj]
-    m = t
+    m = t0[ii, jj]
     for _ in range(STEP_ITER + 1):
-        n0, s1, _, raw, bs = (x[:, 0] for x in _window_sums_numpy(P, qs, one, bq, m[:, None],
-                                                                   fit, n, prof))
-        m = np.where(n0 > 0, s1 / np.where(n0 > 0, n0, 1.0), m)
-    v = (var_photon[ii, jj] / np.maximum(n0, 1.0) + _bg_var(bs, n0, fit)) * MSHIFT
-    v = v + var_plane[ii, jj] + (0.0 if cal is None else cal[ii, jj])
-    d2 = (m - t) ** 2
+        n0, s1, s2, raw, bs = (x[:, 0] for x in _window_sums_numpy(P, qs, one, bq, m[:, None],
+                                                                    fit, n, prof))
+        c = n0 > 0
+        m = np.where(c, s1 / np.where(c, n0, 1.0), m)
+    if var_photon is None:
+        vp = np.where(c, s2 / np.where(c, n0, 1.0) - m ** 2, 0.0)
+        vp = np.maximum(vp, (fit / WIDTH_FIT) ** 2 + 1 / 12)   # the pulse's, the least
+    else:
+        vp = var_photon[ii, jj]
+    v = (vp / np.maximum(n0, 1.0) + _bg_var(bs, n0, fit)) * MSHIFT
+    v = v + (0.0 if cal is None else cal[ii, jj])
+    return ii, jj, m, v, n0, raw
+
+
+def _own_bias(P, beta, t0, var_plane, var_photon, sel, fit, n, prof=None, cal=None):
+    """2c. For the pixels of ``sel``: their own photons' mean (:func:`_own_mean`)
+    against t0. Where they differ by more than ``OWN_Z`` sds (the mean's variance plus
+    t0's ``var_plane``), with ``OWN_MIN`` counts in the window at least, the squared
+    difference less that variance. Returns their rows, columns and those biases
+    (bins^2)."""
+    ii, jj, m, v, n0, raw = _own_mean(P, beta, t0, var_photon, sel, fit, n, prof, cal)
+    v = v + var_plane[ii, jj]
+    d2 = (m - t0[ii, jj]) ** 2
     ok = (n0 > 0) & (raw >= OWN_MIN) & (d2 > OWN_Z ** 2 * v)
     return ii[ok], jj[ok], d2[ok] - v[ok]
 
