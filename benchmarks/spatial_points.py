@@ -38,7 +38,8 @@ def frame(seed: int, background: float, photons: int):
     returns the counts and each point's true depth (metres) by pixel."""
     rng = np.random.default_rng(seed)
     counts = histograms(scene(), 2, background, seed)
-    depth = dict(zip(product(LATTICE, LATTICE), rng.uniform(1.5, 2.5, len(LATTICE) ** 2)))
+    depth = dict(zip(product(LATTICE, LATTICE), rng.uniform(1.5, 2.5, len(LATTICE) ** 2),
+                     strict=True))
     for px, d in depth.items():
         b = np.floor((2 * d / C + rng.normal(0.0, SIGMA_S, photons)) / BIN_S).astype(int)
         counts[px] += np.bincount(b[(b >= 0) & (b < counts.shape[-1])],
