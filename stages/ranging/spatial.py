@@ -727,22 +727,37 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
             ii, jj, bias = _own_bias(P, beta, t0, var_plane, var_photon, found & own_r, fit, n,
                                      prof, None if cal_var is None else cal_var / bin_s ** 2)
             var_t0[ii, jj] = np.maximum(var_t0[ii, jj], var_plane[ii, jj] + bias)
-        # -- 2d. a surface the neighbours do not hold: the pixel's own photons detect it
-        # (3) and its neighbours' counts about the plane are no detection at ``p_fa``
-        # (a lone point, a retroreflector or a post's tip, before a wall or in the sky).
-        # The plane is then their background's, its time and sigma noise's (40 photons
-        # in one wall pixel 2 m away at (2, 50): 8 cm off, sigma 4.5 cm; at (2, 0.001):
-        # sigma 31 m): the pixel's own photons' mean (2c's) gives t0, their spread over
-        # their number its variance (and the pixel's calibration's), the slopes none.
-        # (On Lindell's grid, where every surface spans many pixels, one pixel in 75
+        # -- 2d. a surface the neighbours do not hold: their counts about the plane are
+        # no detection at ``p_fa`` (a lone point, a retroreflector or a post's tip,
+        # before a wall or in the sky). The plane is then their background's, its time
+        # and sigma noise's (40 photons in one wall pixel 2 m away at (2, 50): 8 cm off,
+        # sigma 4.5 cm; at (2, 0.001): sigma 31 m), and the candidate's time the window
+        # box's (without background every box that holds the point scores alike: 8
+        # pulse sigmas early). The pixel's own photons' mean, re-centred from the
+        # candidate as step 2 re-centres the plane, gives t0, their spread over their
+        # number its variance (and the pixel's calibration's), the slopes none; and
+        # the pixel is detected where 3 detected it, or where its counts in the test
+        # window about that mean are a detection at ``p_fa`` over the window's places
+        # the re-centring could choose (the candidate's box: the union bound). (On
+        # Lindell's grid, where every surface spans many pixels, one pixel in 75
         # frames of the grid's scene at (2, 50); benchmarks/spatial_points.py)
         if LONE:
             held = poisson_tail(raw.sum(-1), bsum.sum(-1)) <= p_fa
-            ii, jj, m, v, _, _ = _own_mean(P, beta, t0, None, found & own_r & ~held,
-                                           WIDTH_FIT * sb, n, prof,
-                                           None if cal_var is None else cal_var / bin_s ** 2)
+            cal_b = None if cal_var is None else cal_var / bin_s ** 2
+            ii, jj, m, v, _, _ = _own_mean(P, beta, cand[..., r] + 0.5, None,
+                                           found & ~held, fit, n, prof, cal_b, first[..., 0])
+            a1 = np.clip(np.floor(m - half + 0.5).astype(np.int64), 0, n)
+            z1 = np.clip(np.floor(m + half + 0.5).astype(np.int64), 0, n)
+            mine1 = P0[ii, jj, z1] - P0[ii, jj, a1]
+            bw1 = beta[ii, jj] * _span(a1, z1, prof)
+            places = 2 * first[ii, jj, 0] + 1
+            det1 = own_r[ii, jj] | (poisson_tail(mine1, bw1) <= p_fa / places)
+            ii, jj, m, v = ii[det1], jj[det1], m[det1], v[det1]
             t0[ii, jj], var_t0[ii, jj] = m, v
             slope[ii, jj, r] = 0.0
+            own_r[ii, jj] = True
+            mine_r[ii, jj, r], bw_r[ii, jj, r] = mine1[det1], bw1[det1]
+            mine[ii, jj], bw[ii, jj] = mine1[det1], bw1[det1]
         # (a candidate the window does not detect still gives the pixel a distance, as a
         # per-pixel estimator's undetected peak does; it is never detected)
         t_out[..., r] = np.where(np.isfinite(t0), t0 * bin_s + t0_s, np.nan)
@@ -864,9 +879,10 @@ def _misfits(chi, dof) -> np.ndarray:
     return chi > dof + STEP_LOF * np.sqrt(2 * dof)
 
 
-def _own_mean(P, beta, t0, var_photon, sel, fit, n, prof=None, cal=None):
+def _own_mean(P, beta, t0, var_photon, sel, fit, n, prof=None, cal=None, first=None):
     """The pixels of ``sel``'s own photons' mean, re-centred ``STEP_ITER`` + 1 times
-    from t0 on its own window (+- ``fit`` bins), and its variance: the photons' spread
+    from t0 on its own window (+- ``fit`` bins; ``first`` (h, w): the first step's
+    half-width, the second's half way to ``fit``, as step 2's), and its variance: the photons' spread
     (``var_photon`` (h, w), bins^2; None: their own about the mean, at least the
     pulse's) over their number and the background's as step 2's, and the pixel's
     calibration variance ``cal`` (h, w) in bins^2 where given. Returns their rows and
@@ -876,9 +892,13 @@ def _own_mean(P, beta, t0, var_photon, sel, fit, n, prof=None, cal=None):
     qs = (ii * w + jj)[:, None] * (n + 1)              # the pixel's own prefix sums' row
     one, bq = np.ones((ii.size, 1)), beta[ii, jj][:, None]
     m = t0[ii, jj]
-    for _ in range(STEP_ITER + 1):
+    widths = [fit] * (STEP_ITER + 1)
+    if first is not None:
+        f = first[ii, jj][:, None]
+        widths[:2] = [f, (f + fit) / 2]
+    for half in widths:
         n0, s1, s2, raw, bs = (x[:, 0] for x in _window_sums_numpy(P, qs, one, bq, m[:, None],
-                                                                    fit, n, prof))
+                                                                    half, n, prof))
         c = n0 > 0
         m = np.where(c, s1 / np.where(c, n0, 1.0), m)
     if var_photon is None:
