@@ -882,9 +882,9 @@ def _misfits(chi, dof) -> np.ndarray:
 def _own_mean(P, beta, t0, var_photon, sel, fit, n, prof=None, cal=None, first=None):
     """The pixels of ``sel``'s own photons' mean, re-centred ``STEP_ITER`` + 1 times
     from t0 on its own window (+- ``fit`` bins; ``first`` (h, w): the first step's
-    half-width, the second's half way to ``fit``, as step 2's), and its variance: the photons' spread
-    (``var_photon`` (h, w), bins^2; None: their own about the mean, at least the
-    pulse's) over their number and the background's as step 2's, and the pixel's
+    half-width, the second's half way to ``fit``, as step 2's), and its variance: the
+    photons' spread (``var_photon`` (h, w), bins^2; None: their own about the mean, at
+    least the pulse's) over their number and the background's as step 2's, and the pixel's
     calibration variance ``cal`` (h, w) in bins^2 where given. Returns their rows and
     columns, the means, the variances, and the net and raw counts in the window."""
     h, w = t0.shape
