@@ -33,9 +33,11 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    step at an angle no half follows, every half holds both surfaces), and the larger of it
    and 2b's enters t0's variance. t0 stays the plane's.
    2d. Unless the neighbours do not hold the surface (their counts about the plane are no
-   detection at ``p_fa``: a lone point, a retroreflector, a post's tip): then the plane
-   is their background's, and the pixel's own photons' mean gives t0, their spread its
-   variance.
+   detection at ``p_fa``, about the plane or about the pixel's own time: a lone point,
+   a retroreflector, a post's tip): then the plane is their background's, and the
+   pixel's own photons' mean gives t0, their spread its variance; and the pixel is
+   detected where its own photons there pass ``p_fa`` over the places the mean could
+   take (the union bound).
 3. Decision, per pixel and candidate. The pixel's own counts in +-2 sigma of t0 against
    its background alone: a window fixed by the neighbours, so no look-elsewhere, and
    background alone passes with probability at most ``p_fa`` (the exact Poisson tail).
@@ -734,30 +736,46 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         # sigma 4.5 cm; at (2, 0.001): sigma 31 m), and the candidate's time the window
         # box's (without background every box that holds the point scores alike: 8
         # pulse sigmas early). The pixel's own photons' mean, re-centred from the
-        # candidate as step 2 re-centres the plane, gives t0, their spread over their
-        # number its variance (and the pixel's calibration's), the slopes none; and
-        # the pixel is detected where 3 detected it, or where its counts in the test
-        # window about that mean are a detection at ``p_fa`` over the window's places
-        # the re-centring could choose (the candidate's box: the union bound). (On
+        # candidate as step 2 re-centres the plane (from t0 on the fit's window where 3
+        # detected the pixel), gives t0, their spread over their number its variance
+        # (and the pixel's calibration's); and the pixel is detected
+        # where 3 detected it, or where its counts in the test window about that mean
+        # are a detection at ``p_fa`` over the window's places the re-centring could
+        # choose (the candidate's box: the union bound). Not where the neighbours' counts
+        # about that mean (over the candidate's box) are a detection: a surface the plane
+        # missed, not a lone one (a grazing floor at (2, 10): 1,426 -> 1,473 pixels > 10
+        # cm off on the outside probe's seeds 1-3 without this). (On
         # Lindell's grid, where every surface spans many pixels, one pixel in 75
         # frames of the grid's scene at (2, 50); benchmarks/spatial_points.py)
         if LONE:
             held = poisson_tail(raw.sum(-1), bsum.sum(-1)) <= p_fa
             cal_b = None if cal_var is None else cal_var / bin_s ** 2
-            ii, jj, m, v, _, _ = _own_mean(P, beta, cand[..., r] + 0.5, None,
-                                           found & ~held, fit, n, prof, cal_b, first[..., 0])
-            a1 = np.clip(np.floor(m - half + 0.5).astype(np.int64), 0, n)
-            z1 = np.clip(np.floor(m + half + 0.5).astype(np.int64), 0, n)
-            mine1 = P0[ii, jj, z1] - P0[ii, jj, a1]
-            bw1 = beta[ii, jj] * _span(a1, z1, prof)
-            places = 2 * first[ii, jj, 0] + 1
-            det1 = own_r[ii, jj] | (poisson_tail(mine1, bw1) <= p_fa / places)
-            ii, jj, m, v = ii[det1], jj[det1], m[det1], v[det1]
+            # detected by 3: from t0 on the fit's window; else from the candidate
+            i1, j1, m1, v1, _, _ = _own_mean(P, beta, t0, None, found & ~held & own_r, fit, n,
+                                             prof, cal_b)
+            i2, j2, m2, v2, _, _ = _own_mean(P, beta, cand[..., r] + 0.5, None,
+                                             found & ~held & ~own_r, fit, n, prof, cal_b,
+                                             first[..., 0])
+            a1 = np.clip(np.floor(m2 - half + 0.5).astype(np.int64), 0, n)
+            z1 = np.clip(np.floor(m2 + half + 0.5).astype(np.int64), 0, n)
+            mine2 = P0[i2, j2, z1] - P0[i2, j2, a1]
+            bw2 = beta[i2, j2] * _span(a1, z1, prof)
+            det2 = poisson_tail(mine2, bw2) <= p_fa / (2 * first[i2, j2, 0] + 1)
+            ii, jj = np.concatenate([i1, i2[det2]]), np.concatenate([j1, j2[det2]])
+            m, v = np.concatenate([m1, m2[det2]]), np.concatenate([v1, v2[det2]])
+            # and not where the neighbours hold a surface about the pixel's own time (the
+            # candidate's box, flat): one the plane missed (a grazing floor), not a lone
+            # one
+            _, _, _, raw_m, bsum_m = _window_sums_numpy(
+                P, qn[ii, jj], on[ii, jj], beta_q[ii, jj], m[:, None], first[ii, jj], n, prof)
+            lone = poisson_tail(raw_m.sum(-1), bsum_m.sum(-1)) > p_fa
+            k2 = np.zeros(i2.size, bool)
+            k2[det2] = lone[i1.size:]
+            ii, jj, m, v = ii[lone], jj[lone], m[lone], v[lone]
+            mine_r[i2[k2], j2[k2], r], bw_r[i2[k2], j2[k2], r] = mine2[k2], bw2[k2]
+            mine[i2[k2], j2[k2]], bw[i2[k2], j2[k2]] = mine2[k2], bw2[k2]
+            own_r[i2[k2], j2[k2]] = True
             t0[ii, jj], var_t0[ii, jj] = m, v
-            slope[ii, jj, r] = 0.0
-            own_r[ii, jj] = True
-            mine_r[ii, jj, r], bw_r[ii, jj, r] = mine1[det1], bw1[det1]
-            mine[ii, jj], bw[ii, jj] = mine1[det1], bw1[det1]
         # (a candidate the window does not detect still gives the pixel a distance, as a
         # per-pixel estimator's undetected peak does; it is never detected)
         t_out[..., r] = np.where(np.isfinite(t0), t0 * bin_s + t0_s, np.nan)
