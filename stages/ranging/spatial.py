@@ -9,6 +9,7 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    +-1.2 sigma of the pulse in time; the largest excess over the window's background and the
    next one at least 4 sigma away are the candidate surfaces, each kept where the window's
    count is a detection at ``p_fa`` over the bins (the exact Poisson tail, the union bound).
+   A background estimated from no count (a dark frame) is half a count over its bins.
 2. Censoring and a local plane. For each candidate, three mean-shift steps fit a plane
    t = t0 + a dr + b dc to the background-subtracted photons of the neighbours that fall
    within +-2.5 sigma of the plane (a weighted least squares on prefix sums: every
