@@ -9,7 +9,7 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    +-1.2 sigma of the pulse in time; the largest excess over the window's background and the
    next one at least 4 sigma away are the candidate surfaces, each kept where the window's
    count is a detection at ``p_fa`` over the bins (the exact Poisson tail, the union bound).
-   A background estimated from no count (a dark frame) is half a count over its bins.
+   A background estimated from no count (a dark frame) is half a count over the bins.
 2. Censoring and a local plane. For each candidate, three mean-shift steps fit a plane
    t = t0 + a dr + b dc to the background-subtracted photons of the neighbours that fall
    within +-2.5 sigma of the plane (a weighted least squares on prefix sums: every
@@ -376,19 +376,21 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
             return out
 
         # the window's background a bin: the mean without the strongest box's region
-        # (at least half a count over its bins, the rate's mean under Jeffreys' prior
-        # for none: no count in a dark frame is no proof of no background, and a rate of
-        # 0 makes a single photon a detection at any p_fa; an outside probe's dark
-        # frames, 0.02 photons a pixel: up to 40 false surfaces a frame at p_fa 1e-6 with
-        # step 2d, 0-2 without. Half a count added to every count instead moved ~90
-        # detections in 25 frames of (2, 50) beside the borderline, and the turned
-        # scene's labels with them: 267 -> 293 pixels > 10 cm off)
+        # (at least half a count over the histogram's bins, the rate's mean under
+        # Jeffreys' prior for none: no count in a dark frame is no proof of no
+        # background, and a rate of 0 makes a single photon a detection at any p_fa; an
+        # outside probe's dark frames, 0.02 photons a pixel: up to 40 false surfaces a
+        # frame at p_fa 1e-6 with step 2d, 0-2 without. Half a count added to every
+        # count instead moved ~90 detections in 25 frames of (2, 50) beside their
+        # threshold, and the turned scene's labels with them: 267 -> 293 pixels > 10 cm
+        # off; half a count over the bins outside the box alone, on a 64-bin histogram
+        # whose box leaves one bin outside, made 0.5 a bin of a 0.05 background)
         first = boxed(halves[0])
         c0 = np.argmax(first, axis=-1)
         e = int(halves[-1] + 4 * sb)
         a0, z0 = np.clip(c0 - e, 0, n), np.clip(c0 + e + 1, 0, n)
-        bgA = (np.maximum(PA[..., n] - between(PA, a0, z0), 0.5)
-               / np.maximum(n - _span(a0, z0, prof), 1))
+        bgA = np.maximum((PA[..., n] - between(PA, a0, z0))
+                         / np.maximum(n - _span(a0, z0, prof), 1), 0.5 / n)
         Z = np.full((h, w, n), -np.inf, np.float32)
         which = np.zeros((h, w, n), np.int8)
         for i, kb in enumerate(halves):
@@ -450,8 +452,9 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
     e0 = (cand_half[..., 0] + 4 * sb).astype(np.int64)
     a0, z0 = np.clip(cand[..., 0] - e0, 0, n), np.clip(cand[..., 0] + e0 + 1, 0, n)
     out_cnt = P0[..., n] - between(P0, a0, z0)
-    beta = np.maximum(_box(out_cnt, 1), 0.5) / np.maximum(
-        _box((n - _span(a0, z0, prof)).astype(np.float64), 1), 1.0)   # (at least 1/2: bgA's)
+    beta = np.maximum(_box(out_cnt, 1) / np.maximum(
+        _box((n - _span(a0, z0, prof)).astype(np.float64), 1), 1.0),
+        0.5 / _box(np.full((h, w), float(n)), 1))        # (at least half a count: bgA's)
     j = np.arange(n)
     # -- 2. the plane fit for every candidate, at every pixel
     # counts, sums of bin-time and of its square, prefix-summed together: one gather a
