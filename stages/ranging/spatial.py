@@ -10,6 +10,9 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    next one at least 4 sigma away are the candidate surfaces, each kept where the window's
    count is a detection at ``p_fa`` over the bins (the exact Poisson tail, the union bound).
    A background estimated from no count (a dark frame) is half a count over the bins.
+   And the pixel's own strongest box, where it is a detection against its own
+   background at ``p_fa`` over the frame's bins and pixels and no window candidate is
+   near it: a lone return of a few photons that no window sees (2d ranges it).
 2. Censoring and a local plane. For each candidate, three mean-shift steps fit a plane
    t = t0 + a dr + b dc to the background-subtracted photons of the neighbours that fall
    within +-2.5 sigma of the plane (a weighted least squares on prefix sums: every
@@ -140,6 +143,7 @@ EDGE_SIGMA = True   # the lines' posteriors in an undetected pixel's sigma (_lin
 EDGE_SIGMA_P = 0.05  # where the other plane holds at least this share of the posterior
 EDGE_DOUBT = True  # and there a detection the line and its own photons refute withdrawn
 LONE = True        # 2d: a surface the neighbours do not hold ranged by the pixel's photons
+OWN_CAND = True    # 1: the pixel's own strongest box a candidate where the windows' miss it
 PROFILE_BLOCK = 32  # the background's time profile: its blocks (bins)
 PROFILE_P = 1e-4    # and the chi-square test's p below which the frame is not flat
 MASK_K = WINDOW   # over the window's neighbourhood (3 x 3: the scene's returns leaked and the
@@ -365,14 +369,14 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         PA = _cumbins(_box(counts, k_win, dt), dt)       # (h, w, n + 1)
         halves = [max(1, int(round(x * sb))) for x in boxes]
 
-        def boxed(k):  # counts in [j - k, j + k] (clipped) for every bin j: slices
+        def boxed(k, A=PA):  # counts in [j - k, j + k] (clipped) for every bin j: slices
             if 2 * k + 1 > n:
-                p = np.pad(PA, ((0, 0), (0, 0), (k, k)), mode="edge")
+                p = np.pad(A, ((0, 0), (0, 0), (k, k)), mode="edge")
                 return p[..., 2 * k + 1:2 * k + 1 + n] - p[..., :n]
-            out = np.empty((h, w, n), PA.dtype)
-            np.subtract(PA[..., 2 * k + 1:], PA[..., :n - 2 * k], out=out[..., k:n - k])
-            np.subtract(PA[..., k + 1:2 * k + 1], PA[..., :1], out=out[..., :k])
-            np.subtract(PA[..., n:], PA[..., n - 2 * k:n - k], out=out[..., n - k:])
+            out = np.empty((h, w, n), A.dtype)
+            np.subtract(A[..., 2 * k + 1:], A[..., :n - 2 * k], out=out[..., k:n - k])
+            np.subtract(A[..., k + 1:2 * k + 1], A[..., :1], out=out[..., :k])
+            np.subtract(A[..., n:], A[..., n - 2 * k:n - k], out=out[..., n - k:])
             return out
 
         # the window's background a bin: the mean without the strongest box's region
@@ -444,6 +448,30 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
                           & (np.take_along_axis(Zb, k[..., None], -1)[..., 0] > -np.inf))
             near = np.abs(blk * B - c[..., None]) <= (kb + 4 * sb + B)[..., None]
             Zb = np.where(near, -np.inf, Zb)
+        if OWN_CAND:
+            # the pixel's own strongest box, where the window's candidates miss it: a lone
+            # return of a few photons (a retroreflector at range) is no excess over the
+            # window's 49 pixels of background, and no candidate; the pixel's own box
+            # against its own background is a detection at p_fa over the frame's bins and
+            # pixels (the union bound: a surface no neighbour sees needs a frame's
+            # evidence; at p_fa over its own bins alone, ~4 pixels a frame of (2, 50)
+            # took a false return first). It takes the last slot no window candidate
+            # holds (2d ranges it)
+            k0 = halves[0]
+            mine_box = boxed(k0, P0)
+            c1 = np.argmax(mine_box, axis=-1)
+            cnt = np.take_along_axis(mine_box, c1[..., None], -1)[..., 0]
+            bpix = np.maximum((P0[..., n] - cnt) / max(n - (2 * k0 + 1), 1), 0.5 / n)
+            a1, z1 = np.clip(c1 - k0, 0, n), np.clip(c1 + k0 + 1, 0, n)
+            got = poisson_tail(cnt, bpix * _span(a1, z1, prof)) <= p_fa / (n * h * w)
+            far = ~(ok & (np.abs(cand - c1[..., None]) <= (half + 4 * sb))).any(-1)
+            free_slot = ~ok
+            last = nc - 1 - np.argmax(free_slot[..., ::-1], axis=-1)
+            put = got & far & free_slot.any(-1)
+            ii, jj = np.nonzero(put)
+            cand[ii, jj, last[ii, jj]] = c1[ii, jj]
+            half[ii, jj, last[ii, jj]] = k0
+            ok[ii, jj, last[ii, jj]] = True
         return cand, half, ok
 
     cand, cand_half, cand_ok = candidates(window, BOXES, max(CANDIDATES, max_returns))

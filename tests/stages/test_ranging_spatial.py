@@ -652,6 +652,28 @@ def test_a_lone_point_is_ranged_by_its_own_photons(monkeypatch, background):
     assert ((before[:, 1] > 0.02) | (before[:, 2] > 0.015)).mean() > 0.5, before
 
 
+def test_a_lone_point_of_ten_photons_is_a_candidate_of_its_own(monkeypatch):
+    """48 lone points of 10 photons at 50 background photons a pixel (benchmarks/
+    spatial_points.py, seeds 11-13): no window's candidate (10 photons against the
+    background of 49 pixels), so found in none (0 of 48 within 2 sigma). The pixel's
+    own strongest box, a detection at p_fa over the frame's bins and pixels, takes a
+    free candidate slot, and 2d ranges it: 30 of 48 (25 or more asserted). Where every
+    slot holds a window's candidate, or the point's box lies within one's reach, it
+    stays missed."""
+    from benchmarks.spatial_points import frame, measure
+    from stages.ranging import spatial as sp
+
+    frames = [frame(s, 50.0, 10) for s in (11, 12, 13)]
+
+    def found():
+        got, _ = measure(frames, 2)
+        return int(((got[:, 0] > 0) & (got[:, 1] < 2 * got[:, 2])).sum())
+
+    assert found() >= 25
+    monkeypatch.setattr(sp, "OWN_CAND", False)
+    assert found() <= 3
+
+
 @pytest.mark.parametrize("p_fa", [1e-3, 1e-6])
 def test_a_dark_frame_keeps_its_false_alarm_rate(p_fa):
     """Frames of background alone at 0.02 photons a pixel (a dark sensor, short window;
