@@ -221,6 +221,19 @@ def _span(a, z, prof):
     return z - a if prof is None else prof[1][z] - prof[1][a]
 
 
+def _rate(count, bins, all_bins):
+    """A background's rate a bin: ``count`` over ``bins``, at least half a count over
+    ``all_bins`` (the histogram's bins its count could have fallen in: the rate's mean
+    under Jeffreys' prior where it saw none). No count in a dark frame is no proof of no
+    background, and a rate of 0 makes a single photon a detection at any p_fa (an
+    outside probe's dark frames, 0.02 photons a pixel: up to 40 false surfaces a frame
+    at p_fa 1e-6). Half a count added to every count instead moved ~90 detections in 25
+    frames of (2, 50) beside their threshold, and the turned scene's labels with them
+    (267 -> 293 pixels > 10 cm off); half a count over ``bins`` alone, on a 64-bin
+    histogram whose box leaves one bin outside, made 0.5 a bin of a 0.05 background."""
+    return np.maximum(count / np.maximum(bins, 1.0), 0.5 / all_bins)
+
+
 def background_profile(counts: np.ndarray, block: int = PROFILE_BLOCK,
                        p: float = PROFILE_P) -> tuple | None:
     """The background's time profile over the frame, or None where the frame's background
@@ -380,21 +393,12 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
             return out
 
         # the window's background a bin: the mean without the strongest box's region
-        # (at least half a count over the histogram's bins, the rate's mean under
-        # Jeffreys' prior for none: no count in a dark frame is no proof of no
-        # background, and a rate of 0 makes a single photon a detection at any p_fa; an
-        # outside probe's dark frames, 0.02 photons a pixel: up to 40 false surfaces a
-        # frame at p_fa 1e-6 with step 2d, 0-2 without. Half a count added to every
-        # count instead moved ~90 detections in 25 frames of (2, 50) beside their
-        # threshold, and the turned scene's labels with them: 267 -> 293 pixels > 10 cm
-        # off; half a count over the bins outside the box alone, on a 64-bin histogram
-        # whose box leaves one bin outside, made 0.5 a bin of a 0.05 background)
+        # (at least half a count over the histogram: :func:`_rate`)
         first = boxed(halves[0])
         c0 = np.argmax(first, axis=-1)
         e = int(halves[-1] + 4 * sb)
         a0, z0 = np.clip(c0 - e, 0, n), np.clip(c0 + e + 1, 0, n)
-        bgA = np.maximum((PA[..., n] - between(PA, a0, z0))
-                         / np.maximum(n - _span(a0, z0, prof), 1), 0.5 / n)
+        bgA = _rate(PA[..., n] - between(PA, a0, z0), n - _span(a0, z0, prof), n)
         Z = np.full((h, w, n), -np.inf, np.float32)
         which = np.zeros((h, w, n), np.int8)
         for i, kb in enumerate(halves):
@@ -461,8 +465,8 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
             mine_box = boxed(k0, P0)
             c1 = np.argmax(mine_box, axis=-1)
             cnt = np.take_along_axis(mine_box, c1[..., None], -1)[..., 0]
-            bpix = np.maximum((P0[..., n] - cnt) / max(n - (2 * k0 + 1), 1), 0.5 / n)
             a1, z1 = np.clip(c1 - k0, 0, n), np.clip(c1 + k0 + 1, 0, n)
+            bpix = _rate(P0[..., n] - cnt, n - _span(a1, z1, prof), n)
             got = poisson_tail(cnt, bpix * _span(a1, z1, prof)) <= p_fa / (n * h * w)
             far = ~(ok & (np.abs(cand - c1[..., None]) <= (half + 4 * sb))).any(-1)
             free_slot = ~ok
@@ -480,9 +484,8 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
     e0 = (cand_half[..., 0] + 4 * sb).astype(np.int64)
     a0, z0 = np.clip(cand[..., 0] - e0, 0, n), np.clip(cand[..., 0] + e0 + 1, 0, n)
     out_cnt = P0[..., n] - between(P0, a0, z0)
-    beta = np.maximum(_box(out_cnt, 1) / np.maximum(
-        _box((n - _span(a0, z0, prof)).astype(np.float64), 1), 1.0),
-        0.5 / _box(np.full((h, w), float(n)), 1))        # (at least half a count: bgA's)
+    beta = _rate(_box(out_cnt, 1), _box((n - _span(a0, z0, prof)).astype(np.float64), 1),
+                 _box(np.full((h, w), float(n)), 1))      # (:func:`_rate`, as bgA)
     j = np.arange(n)
     # -- 2. the plane fit for every candidate, at every pixel
     # counts, sums of bin-time and of its square, prefix-summed together: one gather a
@@ -796,9 +799,9 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
             i2, j2, m2, v2, _, _ = _own_mean(P, beta, cand[..., r] + 0.5, None,
                                              found & ~held & ~own_r, fit, n, prof, cal_b,
                                              first[..., 0])
-            a1 = np.clip(np.floor(m2 - half + 0.5).astype(np.int64), 0, n)
-            z1 = np.clip(np.floor(m2 + half + 0.5).astype(np.int64), 0, n)
-            mine2 = P0[i2, j2, z1] - P0[i2, j2, a1]
+            tt = np.full((h, w, 1), np.nan)
+            tt[i2, j2, 0] = m2
+            mine2, a1, z1 = (x[i2, j2, 0] for x in _window_counts(P0, tt, half))
             bw2 = beta[i2, j2] * _span(a1, z1, prof)
             det2 = poisson_tail(mine2, bw2) <= p_fa / (2 * first[i2, j2, 0] + 1)
             ii, jj = np.concatenate([i1, i2[det2]]), np.concatenate([j1, j2[det2]])
