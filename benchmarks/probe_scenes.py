@@ -188,16 +188,31 @@ def bg_profile(kind, n=N_BINS):
     return p / p.sum()
 
 
+def reflectance(kind, h, w):
+    """The signal's factor a pixel (h, w), mean 1: "flat" (1 everywhere), "checker"
+    (squares of 8 pixels at 0.25 and 1.75: a 7x contrast, each square's edges inside
+    the scene's surfaces), "ramp" (0.2 at the left border rising linearly to 1.8 at the
+    right: a 9x contrast across the frame)."""
+    r, c = np.mgrid[0:h, 0:w]
+    if kind == "flat":
+        return np.ones((h, w))
+    if kind == "checker":
+        return np.where((r // 8 + c // 8) % 2 == 0, 0.25, 1.75)
+    if kind == "ramp":
+        return 0.2 + 1.6 * c / max(w - 1, 1)
+    raise ValueError(f"no such reflectance: {kind!r} (flat, checker, ramp)")
+
+
 def histograms(scene, h, w, signal, background, rng, ss=1, pulse_sigma_s=SIGMA_S,
-               bg="flat"):
-    """Counts (h, w, N_BINS) int64. Signal: Poisson(signal) photons a pixel, each at a
-    uniformly drawn sub-pixel (lost if that sub-pixel is sky), time 2 R / c + N(0,
-    pulse_sigma). Background: Poisson(background) photons a pixel, bins drawn from the
-    profile. Returns counts and the truth (h, w, ss*ss)."""
+               bg="flat", refl="flat"):
+    """Counts (h, w, N_BINS) int64. Signal: Poisson(signal x the pixel's reflectance)
+    photons a pixel, each at a uniformly drawn sub-pixel (lost if that sub-pixel is
+    sky), time 2 R / c + N(0, pulse_sigma). Background: Poisson(background) photons a
+    pixel, bins drawn from the profile. Returns counts and the truth (h, w, ss*ss)."""
     rng = np.random.default_rng(rng)
     tr = truth(scene, h, w, ss)
     npix = h * w
-    n = rng.poisson(signal, npix)
+    n = rng.poisson(signal * reflectance(refl, h, w).ravel(), npix)
     who = np.repeat(np.arange(npix), n)
     sub = rng.integers(0, ss * ss, who.size)
     d = tr.reshape(npix, ss * ss)[who, sub]

@@ -11,7 +11,8 @@ Groups: main (12 scenes x 4 cells x 3 seeds), sky (all-sky frames: every detecti
 false alarm, p_fa 1e-3 and 1e-2), bgshape (backgrounds rising 3x or falling as e^-3t),
 pulse (the true pulse 1.3x and 0.77x the sigma given), shape (48 x 80 and 16 x 16),
 mixed (each photon at a random point of its pixel), fov (the flat wall at 20 and 10
-degrees). The tables of 2026-12-06 are in benchmarks/results/spatial_probe.md.
+degrees), texture (the signal's reflectance a 7x checker or a 9x ramp across the frame, and flat,
+the same seeds). The tables of 2026-12-06 are in benchmarks/results/spatial_probe.md.
 """
 from __future__ import annotations
 
@@ -118,9 +119,9 @@ def score(est, tr, elapsed, wlist):
 
 
 def run(scene, h, w, sig, bg, seed, p_fa=1e-3, ss=1, pulse_mult=1.0, bgk="flat",
-        threads=2, keep=None):
+        threads=2, keep=None, refl="flat"):
     counts, tr = gen.histograms(gen.SCENES[scene], h, w, sig, bg, seed, ss=ss,
-                                pulse_sigma_s=gen.SIGMA_S * pulse_mult, bg=bgk)
+                                pulse_sigma_s=gen.SIGMA_S * pulse_mult, bg=bgk, refl=refl)
     with warnings.catch_warnings(record=True) as wl:
         warnings.simplefilter("always")
         t0 = time.perf_counter()
@@ -128,17 +129,18 @@ def run(scene, h, w, sig, bg, seed, p_fa=1e-3, ss=1, pulse_mult=1.0, bgk="flat",
             est = spatial(counts, gen.BIN_S, gen.SIGMA_S, p_fa, threads=threads)
         except Exception as ex:  # noqa: BLE001
             return dict(scene=scene, h=h, w=w, sig=sig, bg=bg, seed=seed, p_fa=p_fa, ss=ss,
-                        pulse_mult=pulse_mult, bgk=bgk, crash=repr(ex))
+                        pulse_mult=pulse_mult, bgk=bgk, refl=refl, crash=repr(ex))
         el = time.perf_counter() - t0
     r = score(est, tr, el, sorted({str(x.message)[:120] for x in wl}))
     if keep:  # the estimates, for a closer look
         os.makedirs(keep, exist_ok=True)
         np.savez_compressed(
-            f"{keep}/{scene}_{h}x{w}_{sig}_{bg}_{seed}_{p_fa:g}_{ss}_{pulse_mult}_{bgk}.npz",
+            f"{keep}/{scene}_{h}x{w}_{sig}_{bg}_{seed}_{p_fa:g}_{ss}_{pulse_mult}_{bgk}"
+            f"_{refl}.npz",
             t_s=est.t_s, sigma_s=est.sigma_s, detected=est.detected, own=est.own,
             surrounded=est.surrounded)
     r.update(scene=scene, h=h, w=w, sig=sig, bg=bg, seed=seed, p_fa=p_fa, ss=ss,
-             pulse_mult=pulse_mult, bgk=bgk)
+             pulse_mult=pulse_mult, bgk=bgk, refl=refl)
     return r
 
 
@@ -188,6 +190,12 @@ def jobs(group):
             for sig, bg in CELLS:
                 for s in (1, 2):
                     yield dict(scene=sc, h=64, w=64, sig=sig, bg=bg, seed=s, ss=4)
+    elif group == "texture":
+        for refl in ("flat", "checker", "ramp"):
+            for sc in ("edge45", "sphere", "fence", "triangle"):
+                for sig, bg in CELLS:
+                    for s in (1, 2):
+                        yield dict(scene=sc, h=64, w=64, sig=sig, bg=bg, seed=s, refl=refl)
     elif group == "fov":
         for sc in ("flatwall_fov20", "flatwall_fov10"):
             for sig, bg in CELLS:
@@ -203,8 +211,9 @@ def report(out, want=None):
     rows = []
     for f in sorted(glob.glob(f"{out}/*.jsonl")):
         with open(f) as fh:
-            rows += [json.loads(x) for x in fh]
-    key = ("group", "scene", "h", "w", "sig", "bg", "p_fa", "ss", "pulse_mult", "bgk")
+            rows += [{"refl": "flat", **json.loads(x)} for x in fh]   # (older: flat)
+    key = ("group", "scene", "h", "w", "sig", "bg", "p_fa", "ss", "pulse_mult", "bgk",
+           "refl")
     # (run appends: a frame run again into the same folder replaces its earlier record,
     # the latest kept, so that a re-run is not pooled with the run before it)
     rows = list({tuple(r.get(k) for k in key + ("seed",)): r for r in rows}.values())
@@ -220,11 +229,12 @@ def report(out, want=None):
     def fmt(x):
         return "-" if x is None else f"{x:.4f}"
 
-    print("| group | scene | HxW | sig,bg | p_fa | ss | pulse x | bg shape | seeds | RMSE m "
+    print("| group | scene | HxW | sig,bg | p_fa | ss | pulse x | bg shape | refl | seeds "
+          "| RMSE m "
           "| RMSE det m | off>10cm % | det % | 2s det % | 2s und % (n) "
           "| false surf % empty (n) | invented r0/r1 | ramp 3s / >10cm / edge-det "
           "| z99 det | frame s (median) |")
-    print("|" + "---|" * 20)
+    print("|" + "---|" * 21)
     for k, rs in g.items():
         if want and k[0] not in want:
             continue
@@ -236,7 +246,7 @@ def report(out, want=None):
         rd = np.sqrt(sum((r["rmse_det"] or 0) ** 2 * r["n_det"] for r in rs) / nd) if nd else None
         z99 = max((r.get("z_det_p99", 0) for r in rs), default=0)
         print(f"| {k[0]} | {k[1]} | {k[2]}x{k[3]} | {k[4]},{k[5]} | {k[6]:g} | {k[7]} | {k[8]} "
-              f"| {k[9]} | {len(rs)} | {fmt(rm)} | {fmt(rd)} "
+              f"| {k[9]} | {k[10] or 'flat'} | {len(rs)} | {fmt(rm)} | {fmt(rd)} "
               f"| {pct(tot['off10'], ns)} | {pct(nd, ns)} | {pct(tot['cov_det'], nd)} "
               f"| {pct(tot['cov_und'], tot['n_und'])} ({tot['n_und']}) "
               f"| {pct(tot['false_surf'], tot['n_empty'])} ({tot['false_surf']}/{tot['n_empty']}) "

@@ -142,6 +142,10 @@ EDGE_LINES = True  # the edges' last step: each straight boundary as one line (e
 EDGE_SIGMA = True   # the lines' posteriors in an undetected pixel's sigma (_line_var)
 EDGE_SIGMA_P = 0.05  # where the other plane holds at least this share of the posterior
 EDGE_DOUBT = True  # and there a detection the line and its own photons refute withdrawn
+LINE_SKY = True    # the lines leave out the pixels that see no surface (_no_surface)
+NONE_K = 2         # no surface: an undetected pixel whose (2 NONE_K + 1)^2 around it holds,
+NONE_Z = 2.0       # summed, at most this many sds over the background at each plane's time
+NONE_OPEN = True   # and a 3 x 3 of such pixels covers (a binary opening)
 LONE = True        # 2d: a surface the neighbours do not hold ranged by the pixel's photons
 OWN_CAND = True    # 1: the pixel's own strongest box a candidate where the windows' miss it
 PROFILE_BLOCK = 32  # the background's time profile: its blocks (bins)
@@ -1568,8 +1572,11 @@ def _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, ha
         near = ndimage.maximum_filter(moved, 2 * (planecut.EDGE_R + planecut.EDGE_SHIFT) + 1)
     doubted = _no_doubt(free.shape)
     if EDGE_LINES:   # and the edges as whole lines (stages/ranging/edgelines.py)
-        got = edgelines.line_moves(_plane_of(lab, tb, T, tol), weight, dets, lp,
-                                   planecut.EDGE_CAP, edgelines.LINE_DET)
+        cat = _plane_of(lab, tb, T, tol)
+        if LINE_SKY:     # (the sky's labels are its neighbours': no plane for the lines)
+            cat = np.where(_no_surface(P0, beta, T, half, free, dets, prof), -1, cat)
+        got = edgelines.line_moves(cat, weight, dets, lp, planecut.EDGE_CAP,
+                                   edgelines.LINE_DET)
         q, pl, qd, pld, p_was = got[:5]
         w = free.shape[1]
         if q.size:
@@ -1592,6 +1599,32 @@ def _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, ha
         if EDGE_SIGMA:
             doubted.line_var[...] = _line_var(*got[5:], _plane_of(lab, tb, T, tol), T)
     return lab, doubted
+
+
+def _no_surface(P0, beta, T, half, free, dets, prof=None):
+    """The undetected pixels that see no surface, for the lines (``LINE_SKY``): those
+    around which (the (2 ``NONE_K`` + 1)^2 window) no plane of the frame (``T`` (h, w,
+    L), bins) holds photons: each plane's counts in the test window about its time,
+    summed over the window, stand at most ``NONE_Z`` sds of their background above it
+    (a dark surface's few photons a pixel, summed over 25, stand out; a test of each
+    pixel against the plane's signal, the sweeps' ratio, took an 8-pixel square at a
+    quarter of the light for sky). And beside which (3 x 3) no pixel is detected
+    (``dets``), less what no 3 x 3 of such pixels covers (a binary opening): the sky is
+    a region, a surface's few such pixels are not, and one in an edge cuts its run."""
+    if not T.shape[-1]:
+        return np.zeros(free.shape, bool)
+    ok = np.isfinite(T)
+    m, a, z = _window_counts(P0, T, half)
+    b = beta[..., None] * _span(a, z, prof)
+    m, b = np.where(ok, m, 0.0), np.where(ok, b, 0.0)
+    k = (2 * NONE_K + 1, 2 * NONE_K + 1, 1)
+    M = ndimage.uniform_filter(m.astype(np.float64), k, mode="constant")
+    Bk = ndimage.uniform_filter(b, k, mode="constant")
+    n = k[0] * k[1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        zs = np.where(Bk > 0, (M - Bk) * n / np.sqrt(Bk * n), np.where(M > 0, np.inf, 0.0))
+    none = free & (zs.max(-1) <= NONE_Z) & ~ndimage.maximum_filter(dets, 3)
+    return ndimage.binary_opening(none, np.ones((3, 3), bool)) if NONE_OPEN else none
 
 
 def _line_var(q, A, B, p_a, cat, T):

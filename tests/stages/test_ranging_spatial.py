@@ -1322,3 +1322,63 @@ def test_the_off_surface_sigma_reaches_surfaces_not_the_histograms_end(monkeypat
     assert widest() < 1.8
     monkeypatch.setattr(sp, "OFF_OWN_MIN", 0)
     assert widest() > 10.0
+
+
+def test_no_surface_is_a_region_away_from_detections(monkeypatch):
+    """:func:`spatial._no_surface` (the pixels the lines leave out) on counts written
+    here: a background of one count every 10 bins, a surface (plane 0 at bin 100) on
+    the left half with 3 photons a pixel, and in it an 8 x 8 dark patch of one photon a
+    pixel. The sky's pixels are none (no plane's summed counts stand over
+    the background); the surface's are not, the dark patch's neither (its photons,
+    summed over 5 x 5, do); nor the sky's pixels beside a detection; a plane with no
+    time at some pixels (NaN) is no evidence there."""
+    from stages.ranging import spatial as sp
+
+    h, w, n = 30, 30, 200
+    r, c = np.mgrid[0:h, 0:w]
+    counts = np.zeros((h, w, n))
+    counts[..., ::10] = 1.0                                   # the background, 0.1 a bin
+    surf = c < 15
+    dark = (r >= 8) & (r < 16) & (c >= 3) & (c < 11)
+    counts[surf & ~dark, 100] += 3
+    counts[dark, 100] += 1
+    T = np.stack([np.full((h, w), 100.0), np.full((h, w), 50.0)], -1)
+    T[:, 25, 1] = np.nan
+    P0 = sp._cumbins(counts)
+    beta = np.full((h, w), 0.1)
+    half = 2.5 * 2.3
+    free = np.ones((h, w), bool)
+    dets = np.zeros((h, w), bool)
+    dets[20, 22] = True                                        # a detection in the sky
+    none = sp._no_surface(P0, beta, T, half, free, dets)
+    assert not none[surf].any()
+    assert none[:, 18:].sum() >= 0.8 * none[:, 18:].size
+    assert not none[19:22, 21:24].any()
+    assert none[5, 25] and none[25, 25]
+    assert not sp._no_surface(P0, beta, T, half, ~free, dets).any()   # (detected: never)
+    assert not sp._no_surface(P0, beta, T[..., :0], half, free, dets).any()  # (no plane)
+    # a column of detections in the sky (col 18) leaves one column between it and the
+    # sky's first (col 15, whose 5 x 5 holds the surface's photons): no 3 x 3 of none
+    # covers it (the opening; without it, that column is none)
+    dets[:, 18] = True
+    assert not sp._no_surface(P0, beta, T, half, free, dets)[:, 15:20].any()
+    monkeypatch.setattr(sp, "NONE_OPEN", False)
+    assert sp._no_surface(P0, beta, T, half, free, dets)[:, 16].all()
+
+
+def test_the_box_beside_the_sky_gap_keeps_its_corners(monkeypatch):
+    """The grid's scene at (2, 50), seed 40: the box's top right corner pixel, beside
+    the sky gap under the wall, and its bottom left one were given the wall's plane
+    (6.8 and 6.2 m for 3 m): the sky's labels, its neighbours' planes, made runs of
+    their own through the sky whose lines moved them. With the sky left out of the
+    lines (``LINE_SKY``) they stay on the box; with it in, over 3 m off."""
+    from stages.ranging import spatial as sp
+
+    sc = scene()
+    counts = histograms(sc, 2.0, 50.0, 40)
+    px = (np.array([20, 41]), np.array([24, 8]))
+    d = spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2).t_s[..., 0] * C / 2
+    assert np.all(np.abs(d[px] - 3.0) < 0.03)
+    monkeypatch.setattr(sp, "LINE_SKY", False)
+    d = spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2).t_s[..., 0] * C / 2
+    assert np.all(np.abs(d[px] - 3.0) > 3.0)
