@@ -11,8 +11,9 @@ Groups: main (12 scenes x 4 cells x 3 seeds), sky (all-sky frames: every detecti
 false alarm, p_fa 1e-3 and 1e-2), bgshape (backgrounds rising 3x or falling as e^-3t),
 pulse (the true pulse 1.3x and 0.77x the sigma given), shape (48 x 80 and 16 x 16),
 mixed (each photon at a random point of its pixel), fov (the flat wall at 20 and 10
-degrees), texture (the signal's reflectance a 7x checker or a 9x ramp across the frame, and flat,
-the same seeds). The tables of 2026-12-06 are in benchmarks/results/spatial_probe.md.
+degrees), texture (the signal's reflectance a 7x checker or a 9x ramp across the
+frame, and flat on the same seeds). The tables are in
+benchmarks/results/spatial_probe.md.
 """
 from __future__ import annotations
 

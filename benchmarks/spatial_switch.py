@@ -25,7 +25,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.spatial_scenes import BIN_S, SIGMA_S, C, histograms, scene, window_errors  # noqa: E402
+from benchmarks.spatial_scenes import (  # noqa: E402
+    BIN_S,
+    SIGMA_S,
+    C,
+    histograms,
+    scene,
+    window_errors,
+)
 from stages.ranging.spatial import spatial  # noqa: E402
 
 
