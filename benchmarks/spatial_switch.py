@@ -25,14 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.spatial_scenes import (  # noqa: E402
-    BIN_S,
-    SIGMA_S,
-    C,
-    histograms,
-    scene,
-    window_errors,
-)
+from benchmarks import spatial_scenes as gen  # noqa: E402
 from stages.ranging.spatial import spatial  # noqa: E402
 
 
@@ -46,8 +39,8 @@ def _target(name: str):
 
 def errors(sc, counts) -> np.ndarray:
     """Each surface pixel's error (m) of the first return, as every spatial figure."""
-    return window_errors(sc, spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2).t_s[..., 0]
-                         * C / 2)
+    est = spatial(counts, gen.BIN_S, gen.SIGMA_S, 1e-3, threads=2)
+    return gen.window_errors(sc, est.t_s[..., 0] * gen.C / 2)
 
 
 def main() -> None:
@@ -63,7 +56,7 @@ def main() -> None:
     lo, _, hi = a.seeds.partition("-")
     seeds = list(range(int(lo), int(hi or lo) + 1))
     sig, bg = (float(x) for x in a.cell.split(","))
-    sc = scene(angle_deg=a.angle)
+    sc = gen.scene(angle_deg=a.angle)
     where = np.argwhere(sc.surface)
     print(f"command: python benchmarks/spatial_switch.py --switch {a.switch} --seeds "
           f"{a.seeds} --block {a.block} --angle {a.angle:g} --cell {a.cell}")
@@ -78,7 +71,7 @@ def main() -> None:
         st = {k: [0, 0, 0, 0.0] for k in ("on", "off")}
         fixed, made = [], []
         for s in part:
-            counts = histograms(sc, sig, bg, s)
+            counts = gen.histograms(sc, sig, bg, s)
             e = {}
             for k, val in (("on", shipped), ("off", not shipped)):
                 setattr(module, attr, val)
