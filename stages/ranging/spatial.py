@@ -144,7 +144,7 @@ EDGE_SIGMA_P = 0.05  # where the other plane holds at least this share of the po
 EDGE_DOUBT = True  # and there a detection the line and its own photons refute withdrawn
 LINE_SKY = True    # the lines leave out the pixels that see no surface (_no_surface)
 NONE_K = 2         # no surface: an undetected pixel whose (2 NONE_K + 1)^2 around it holds,
-NONE_Z = 2.0       # summed, at most this many sds over the background at each plane's time
+NONE_P = 0.023     # summed, no detection at this p (2 sds' one tail) about each plane's time
 NONE_OPEN = True   # and a 3 x 3 of such pixels covers (a binary opening)
 LONE = True        # 2d: a surface the neighbours do not hold ranged by the pixel's photons
 OWN_CAND = True    # 1: the pixel's own strongest box a candidate where the windows' miss it
@@ -1605,7 +1605,8 @@ def _no_surface(P0, beta, T, half, free, dets, prof=None):
     """The undetected pixels that see no surface, for the lines (``LINE_SKY``): those
     around which (the (2 ``NONE_K`` + 1)^2 window) no plane of the frame (``T`` (h, w,
     L), bins) holds photons: each plane's counts in the test window about its time,
-    summed over the window, stand at most ``NONE_Z`` sds of their background above it
+    summed over the window, are no detection against their background at ``NONE_P``
+    (the exact Poisson tail; 0.023, two sds' one-sided tail)
     (a dark surface's few photons a pixel, summed over 25, stand out; a test of each
     pixel against the plane's signal, the sweeps' ratio, took an 8-pixel square at a
     quarter of the light for sky). And beside which (3 x 3) no pixel is detected
@@ -1617,13 +1618,8 @@ def _no_surface(P0, beta, T, half, free, dets, prof=None):
     m, a, z = _window_counts(P0, T, half)
     b = beta[..., None] * _span(a, z, prof)
     m, b = np.where(ok, m, 0.0), np.where(ok, b, 0.0)
-    k = (2 * NONE_K + 1, 2 * NONE_K + 1, 1)
-    M = ndimage.uniform_filter(m.astype(np.float64), k, mode="constant")
-    Bk = ndimage.uniform_filter(b, k, mode="constant")
-    n = k[0] * k[1]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        zs = np.where(Bk > 0, (M - Bk) * n / np.sqrt(Bk * n), np.where(M > 0, np.inf, 0.0))
-    none = free & (zs.max(-1) <= NONE_Z) & ~ndimage.maximum_filter(dets, 3)
+    held = poisson_tail(_box(m, NONE_K), _box(b, NONE_K)) <= NONE_P   # (the exact tail)
+    none = free & ~held.any(-1) & ~ndimage.maximum_filter(dets, 3)
     return ndimage.binary_opening(none, np.ones((3, 3), bool)) if NONE_OPEN else none
 
 
