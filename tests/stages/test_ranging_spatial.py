@@ -1395,7 +1395,7 @@ def test_the_lines_posteriors_hold_against_the_truth():
     from benchmarks.spatial_line_calibration import weighed
 
     sc = scene(angle_deg=30.0)
-    got = [weighed(sc, histograms(sc, 2.0, 50.0, s)) for s in range(1, 9)]
+    got = [weighed(sc.depth[..., 0], histograms(sc, 2.0, 50.0, s)) for s in range(1, 9)]
     p = np.concatenate([g[0] for g in got])
     wrong = np.concatenate([g[1] for g in got])
     hi, mid, lo = (p >= 0.2) & (p < 0.5), (p >= 0.01) & (p < 0.2), p < 0.01
