@@ -36,8 +36,9 @@ detected). The misfit counts only the labels a detection or the pixel's own phot
 (photons that favour a plane over none): in the sky beside an object the relabelling
 gives every pixel one of its neighbours' planes, and those labels say nothing.
 
-numpy (and scipy.special's logsumexp and expit), at a cost of 20-25 ms a frame of 64 x
-64 at (2, 50) (a few dozen runs, a few corners)."""
+numpy (and scipy.special's logsumexp and expit), at a cost of 45-55 ms a frame of 64 x
+64 at (2, 50) (a few dozen runs, a few corners; 20-25 ms with the offsets 0.05 px apart,
+docs/ranging.md "The lines' posteriors against the truth")."""
 
 from __future__ import annotations
 
@@ -283,7 +284,8 @@ def line_moves(cat, weight, dets, lp, cap, det_w) -> LineMoves:
             normals = np.stack([np.cos(phi), np.sin(phi)], -1)
             on_a = _on_a(X[q], centre, normals, a_pos).astype(np.float64)   # (m, P, O)
             say = _evidence(q, A, B, cat, dets, lp, cap, det_w)
-            ll = np.einsum("m,mpo->po", say, on_a)
+            ll = (say @ on_a.reshape(len(q), -1)).reshape(on_a.shape[1:])   # (BLAS: the
+            #                                   step's cost is these products over the grid)
             post = np.exp(ll - ll.max())
             post /= post.sum()
             line = _Line(A, B, tan, centre, t0, t1, a_pos, normals, post, (q, say, ll))
@@ -299,7 +301,7 @@ def line_moves(cat, weight, dets, lp, cap, det_w) -> LineMoves:
             if tot <= 0 or (wa_ * ~best).sum() + (wb_ * best).sum() > LINE_MISFIT * tot:
                 continue
             lines.append(line)
-            p_a = np.einsum("po,mpo->m", post, on_a)
+            p_a = on_a.reshape(len(q), -1) @ post.ravel()
             inside = (np.abs(d[q]) <= LINE_NEAR) & (t[q] >= lo) & (t[q] <= hi)
             ok = ~detf[q] & inside
             seen.append(_Seen(q[ok], A, B, p_a[ok], False))
