@@ -58,7 +58,7 @@ def main() -> None:
     ap.add_argument("--angle", type=float, default=0.0)
     ap.add_argument("--cell", default="2,50", help="signal,background photons a pixel")
     a = ap.parse_args()
-    if a.switch:
+    if a.switch is not None:
         module, attr = _target(a.switch)
         shipped = getattr(module, attr)
         other, what = not shipped, f"--switch {a.switch}"
@@ -78,7 +78,7 @@ def main() -> None:
           f"{a.seeds} --block {a.block} --angle {a.angle:g} --cell {a.cell}")
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, python "
           f"{platform.python_version()}; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
-    print(f"{a.switch}: flipped -> as shipped ({shipped})\n" if a.switch else
+    print(f"{a.switch}: flipped -> as shipped ({shipped})\n" if a.switch is not None else
           f"{a.was} -> as shipped\n")
     print("| seeds | > 10 cm off | > 0.5 m off | frames within 3 cm | root of the mean MSE m "
           "| fixed | made |")

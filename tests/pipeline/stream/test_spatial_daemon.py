@@ -171,7 +171,7 @@ def test_ctrl_c_while_the_range_stage_holds_parts_then_resume(tmp_path, zoo, lon
     _, cal, geom = zoo
     cap, cycles, mc = long_capture, CYCLES, 20_000
     # (``killed``: its restart 20 s after, which a stop does not wait out)
-    # (``hold1``: a quarter of the rate, so that the stop lands while the run goes on: at
+    # (``hold1``: a lower rate, so that the stop lands while the run goes on: at
     # 1e6 words/s the 4.8 M words took 5 s, the status showed a frame ranged without a
     # part after 3.1-4.2 M of them, and in a clean clone's suite the run had finished,
     # exit 0, before the stop; at 5e5, after 2.1-3.1 M; at 2.5e5 the run had finished
