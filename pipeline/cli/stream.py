@@ -570,18 +570,30 @@ def daemon(config, run_id, log_json, print_unit) -> None:
 
         click.echo(daemon_unit(config, run_id), nl=False)
         return
-    from pipeline.stream.forkstart import warm_for
+    # a stop asked for before the supervisor exists is kept: a daemon started with SIGINT
+    # ignored (a background job of a script, a test runner's worker) has no handler of
+    # Python's own, and one that came while the server started was lost (the run went on
+    # to "finished", exit 0); before the supervisor it ends the command, after it the run
+    early: list[int] = []
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda signum, _: early.append(signum))
+    from pipeline.stream import forkstart
 
-    warm_for(config)  # first: the stages' server imports while the daemon does
+    forkstart.warm_for(config)  # first: the stages' server imports while the daemon does
     from pipeline.stream.daemon import Supervisor, exit_code
     from pipeline.stream.logfmt import daemon_log
     from pipeline.stream.topology import load_topology
 
     topo = load_topology(config, run_id)
     log = daemon_log("json" if log_json else topo.log_format)
+    if early:  # (nothing started: no run to stop or resume)
+        err.print("aborted")
+        sys.exit(128 + early[0])
     sup = Supervisor(topo, log=log)
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda signum, _: sup.interrupt(signum))
+    for signum in early:  # (between the check and the handler)
+        sup.interrupt(signum)
     result = sup.run()
     for sig in (signal.SIGTERM, signal.SIGINT):  # the run is over: its exit status stands
         signal.signal(sig, signal.SIG_IGN)

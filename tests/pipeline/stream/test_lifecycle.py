@@ -416,6 +416,30 @@ out = "{tmp_path / 'out'}"
     _d.check_histograms(tmp_path, "s", n * cyc)
 
 
+def test_a_stop_before_the_supervisor_is_kept_where_sigint_was_ignored(tmp_path, monkeypatch):
+    """A daemon started with SIGINT ignored (a background job of a script; a test runner's
+    worker: Python then installs no handler of its own), the signal coming while its
+    stages' server starts (here sent by the server's start itself): it was lost, and the
+    run went on to "finished", exit 0 (a clean clone's suite, SIGINT at 0.5 s under
+    load). Now the daemon's first step keeps it: exit 130 before any stage starts."""
+    from pipeline.cli.stream import daemon
+    from pipeline.stream import forkstart
+
+    topo = _d.topology(tmp_path, cycles=400_000, rate=1.5e6)
+    monkeypatch.setattr(forkstart, "warm_for", lambda config: os.kill(os.getpid(),
+                                                                       signal.SIGINT))
+    old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with pytest.raises(SystemExit) as got:
+            daemon.main(["--config", str(topo), "--run", "e"], standalone_mode=False)
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    assert got.value.code == 130
+    assert not (tmp_path / "state" / "runs" / "e.json").exists()
+
+
 @pytest.mark.parametrize("at", [0.5, 1.5, "mid-run"])
 def test_ctrl_c_at_any_moment_stops_the_daemon_within_seconds(tmp_path, at):
     """Issue 38.9: SIGINT in the first seconds took 62-65 s (the heartbeats were no longer
