@@ -571,9 +571,9 @@ def daemon(config, run_id, log_json, print_unit) -> None:
         click.echo(daemon_unit(config, run_id), nl=False)
         return
     # a stop asked for before the supervisor exists is kept: a daemon started with SIGINT
-    # ignored (a background job of a script, a test runner's worker) has no handler of
-    # Python's own, and one that came while the server started was lost (the run went on
-    # to "finished", exit 0); before the supervisor it ends the command, after it the run
+    # ignored (a background job of a non-interactive shell) has no handler of Python's
+    # own, and one that came before the supervisor's was lost (the run went on to
+    # "finished", exit 0); before the supervisor it ends the command, after it the run
     early: list[int] = []
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda signum, _: early.append(signum))

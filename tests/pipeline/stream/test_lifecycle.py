@@ -417,11 +417,12 @@ out = "{tmp_path / 'out'}"
 
 
 def test_a_stop_before_the_supervisor_is_kept_where_sigint_was_ignored(tmp_path, monkeypatch):
-    """A daemon started with SIGINT ignored (a background job of a script; a test runner's
-    worker: Python then installs no handler of its own), the signal coming while its
-    stages' server starts (here sent by the server's start itself): it was lost, and the
-    run went on to "finished", exit 0 (a clean clone's suite, SIGINT at 0.5 s under
-    load). Now the daemon's first step keeps it: exit 130 before any stage starts."""
+    """A daemon started with SIGINT ignored (a background job of a non-interactive shell:
+    Python then installs no handler of its own), the signal coming while its stages'
+    server starts (here sent by the server's start itself): it was lost, and the run
+    went on to "finished", exit 0. Now the daemon's first step keeps it: exit 130 before
+    any stage starts. (Found looking for why a clean clone's suite once saw a run go on
+    after a SIGINT at 0.5 s; that one is not reproduced: 28 tries under load.)"""
     from pipeline.cli.stream import daemon
     from pipeline.stream import forkstart
 
