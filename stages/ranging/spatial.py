@@ -143,6 +143,9 @@ EDGE_SIGMA = True   # the lines' posteriors in an undetected pixel's sigma (_lin
 EDGE_SIGMA_P = 0.05  # where the other plane holds at least this share of the posterior
 EDGE_DOUBT = True  # and there a detection the line and its own photons refute withdrawn
 LINE_SKY = True    # the lines leave out the pixels that see no surface (_no_surface)
+LINE_PASSES = 2    # the lines' step again on the labels its moves corrected (runs that a
+#                    wrong label at an end cut short or tilted are found whole): the last
+#                    pass doubts detections; every pass's posteriors give sigma
 NONE_K = 2         # no surface: an undetected pixel whose (2 NONE_K + 1)^2 around it holds,
 NONE_P = 0.023     # summed, no detection at this p (2 sds' one tail) about each plane's time
 NONE_OPEN = True   # and a 3 x 3 of such pixels covers (a binary opening)
@@ -1572,16 +1575,23 @@ def _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, ha
         near = ndimage.maximum_filter(moved, 2 * (planecut.EDGE_R + planecut.EDGE_SHIFT) + 1)
     doubted = _no_doubt(free.shape)
     if EDGE_LINES:   # and the edges as whole lines (stages/ranging/edgelines.py)
-        cat = _plane_of(lab, tb, T, tol)
-        if LINE_SKY:     # (the sky's labels are its neighbours': no plane for the lines)
-            cat = np.where(_no_surface(P0, beta, T, half, free, dets, prof), -1, cat)
-        got = edgelines.line_moves(cat, weight, dets, lp, planecut.EDGE_CAP,
-                                   edgelines.LINE_DET)
-        q, pl, qd, pld, p_was = got[:5]
+        # (the sky's labels are its neighbours': no plane for the lines)
+        sky = _no_surface(P0, beta, T, half, free, dets, prof) if LINE_SKY else None
         w = free.shape[1]
-        if q.size:
-            _take_plane(q // w, q % w, pl, lab, tb, llr, slope, sig_cnt, sig_out, table, P0,
-                        beta, half, tol, prof)
+        before = []      # the earlier passes' posteriors (edgelines.LineMoves' seen_*)
+        for k in range(LINE_PASSES):
+            cat = _plane_of(lab, tb, T, tol)
+            if sky is not None:
+                cat = np.where(sky, -1, cat)
+            got = edgelines.line_moves(cat, weight, dets, lp, planecut.EDGE_CAP,
+                                       edgelines.LINE_DET)
+            q, pl, qd, pld, p_was = got[:5]
+            if q.size:
+                _take_plane(q // w, q % w, pl, lab, tb, llr, slope, sig_cnt, sig_out, table,
+                            P0, beta, half, tol, prof)
+            if not q.size or k == LINE_PASSES - 1:
+                break    # (no move: a pass again would find the same lines)
+            before.append(got[5:])
         # a detection the line doubts, where the two planes' test windows at the pixel
         # do not overlap (else the detection holds the other plane's photons: one
         # surface, curved, that two planes share; a sphere at (10, 2))
@@ -1597,7 +1607,8 @@ def _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, ha
             _take_plane(rd, cd, pld, lab, tb, llr, slope, sig_cnt, sig_out, table, P0, beta,
                         half, tol, prof)
         if EDGE_SIGMA:
-            doubted.line_var[...] = _line_var(*got[5:], _plane_of(lab, tb, T, tol), T)
+            doubted.line_var[...] = _line_var(*_passes_seen(before, got[5:]),
+                                              _plane_of(lab, tb, T, tol), T)
     return lab, doubted
 
 
@@ -1621,6 +1632,19 @@ def _no_surface(P0, beta, T, half, free, dets, prof=None):
     held = poisson_tail(_box(m, NONE_K), _box(b, NONE_K)) <= NONE_P   # (the exact tail)
     none = free & ~held.any(-1) & ~ndimage.maximum_filter(dets, 3)
     return ndimage.binary_opening(none, np.ones((3, 3), bool)) if NONE_OPEN else none
+
+
+def _passes_seen(before, last):
+    """The posteriors the lines' passes weighed each undetected pixel with (``seen_q``,
+    ``seen_a``, ``seen_b``, ``seen_p_a`` of :class:`edgelines.LineMoves`, the earlier
+    passes' in ``before``): a pixel's from the last pass that weighed it (an earlier
+    pass's lines, cut short or tilted by the labels it corrected, are the worse
+    judges; a pixel only they weighed keeps their doubt)."""
+    out = [np.asarray(x) for x in last]
+    for rec in reversed(before):
+        new = ~np.isin(rec[0], out[0])
+        out = [np.concatenate([o, np.asarray(x)[new]]) for o, x in zip(out, rec, strict=True)]
+    return out
 
 
 def _line_var(q, A, B, p_a, cat, T):
