@@ -6,7 +6,7 @@ step fixed and made. The same frames, the same code but the switch.
 
     python benchmarks/spatial_switch.py --switch LINE_SKY [--seeds 1-125] [--block 25]
         [--angle 0] [--cell 2,50]
-    python benchmarks/spatial_switch.py --was "edgelines.LINE_OFFSETS=np.arange(-1.5, 1.501, 0.05)"
+    python benchmarks/spatial_switch.py --was "LINE_PASSES=1"
 
 ``--switch`` names a boolean of stages/ranging/spatial.py (or edgelines.NAME,
 planecut.NAME); "on" is the code as shipped, "off" the switch flipped. ``--was

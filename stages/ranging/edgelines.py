@@ -6,8 +6,10 @@ planes is as long as the object: the box's left edge in the benchmark's scene ru
 pixels. Each pixel's own 2 signal photons (in 50 of background) hardly place it, the
 edge's pixels all along do. This step finds the straight runs of the label image's
 boundary between each pair of planes, weighs every line near each run (a tilt of +-2
-degrees, an offset of +-1.5 pixels) by the likelihood of the photons in a band along the
-whole run, and moves the undetected pixels next to it that lie on the wrong side with a
+degrees, an offset of +-1.5 pixels, integrated exactly: at each tilt the likelihood is a
+step function of the offset between the band's pixels' sorted distances, so the
+posterior is a cumulative sum over them) by the likelihood of the photons in a band
+along the whole run, and moves the undetected pixels next to it that lie on the wrong side with a
 posterior above ``LINE_P`` (0.5: the least expected squared error). Where two runs of
 the same pair meet (a box's corner), the pixels around the point where their lines
 cross follow both lines: on a plane's side of both where its corner is convex, of either
@@ -20,7 +22,9 @@ posterior, for its sigma (``spatial._line_var``).
 Two guards, from a first version that made the pixels off 11 -> 476 (docs/ranging.md
 "Edges as whole lines"): a run is contiguous along its line (no gap over ``LINE_GAP``
 pixels, so a line through scattered boundary points of two planes that meet nowhere is
-no run), and its band's labels fit its line (misfit at most ``LINE_MISFIT``). And only the
+no run), and its band's labels fit its line (misfit at most ``LINE_MISFIT``, over the
+run's own extent: past its ends, at a corner, the band holds the other edge's pixels).
+And only the
 pixels within ``LINE_NEAR`` of the line, inside the run less a pixel at each end, move:
 one wrong label at a run's end lengthens it, and the band would carry that error along.
 The corners move the pixels past the runs' ends.
@@ -36,9 +40,10 @@ detected). The misfit counts only the labels a detection or the pixel's own phot
 (photons that favour a plane over none): in the sky beside an object the relabelling
 gives every pixel one of its neighbours' planes, and those labels say nothing.
 
-numpy (and scipy.special's logsumexp and expit), at a cost of 45-55 ms a frame of 64 x
-64 at (2, 50) (a few dozen runs, a few corners; 20-25 ms with the offsets 0.05 px apart,
-docs/ranging.md "The lines' posteriors against the truth")."""
+numpy (and scipy.special's logsumexp and expit). The caller runs it twice
+(``spatial.LINE_PASSES``), the second pass on the labels the first corrected; each pass
+costs 10-25 ms a frame of 64 x 64 at (2, 50) (a few dozen runs, a few corners;
+docs/ranging.md "The lines twice, their offsets integrated")."""
 
 from __future__ import annotations
 
@@ -57,10 +62,11 @@ LINE_BAND = 3.0       # pixels either side of the line whose photons weigh it
 LINE_TILT = np.deg2rad(2.0)   # the tilts tried about the run's fit: up to this
 LINE_TILT_STEP = np.deg2rad(0.5)   # in steps of at most this, and of at most
 LINE_TILT_END = 0.05  # pixels: the run's ends' move from one tilt to the next
-LINE_OFFSETS = np.arange(-1.5, 1.501, 0.01)          # and offsets (pixels): a step
-#                       under the spacing of the pixels' distances from a long line (a run
-#                       of 64 pixels at 12 degrees holds pixels 0.007 px from it; at 0.05 the
-#                       posterior sat on one grid line a pixel's side the truth's is not)
+LINE_SHIFT = 1.5      # and offsets (pixels) up to this, every one: the evidence is a step
+#                       function of the offset between the band's distances from the line,
+#                       and the posterior its exact integral (a grid of offsets 0.05 px apart
+#                       put a long edge's posterior on one grid line, a pixel's side the
+#                       truth's is not; 0.01 apart cost 5x the step)
 LINE_MISFIT = 0.05    # the band's labels on the wrong side of the best line at most
 LINE_NEAR = 1.0       # pixels: a pixel this near the line may move
 LINE_P = 0.5          # the posterior of the other side from which a pixel moves (the
@@ -157,27 +163,66 @@ def tilts(length: float) -> np.ndarray:
     return np.linspace(-LINE_TILT, LINE_TILT, 2 * k + 1)
 
 
-def _on_a(xy, centre, normals, a_pos):
-    """(m, P, O) whether each point lies on A's side under each line (tilt, offset)."""
-    side = ((xy - centre) @ normals.T)[:, :, None] > LINE_OFFSETS
-    return side if a_pos else ~side
+class _Segments(NamedTuple):
+    """A run's lines by tilt and by the segment of offsets between two of its pixels'
+    distances: ``rank`` (m, P) each pixel's place among the distances at each tilt,
+    ``lw`` (P, m + 1) each segment's log weight (its evidence and its length; -inf for
+    none), ``edges`` (m + 2, P) the segments' ends. Under the lines of segment j at tilt
+    p, pixel i is on the + side where its rank is j or more."""
+
+    rank: np.ndarray
+    lw: np.ndarray
+    edges: np.ndarray
+
+
+def _segments(xy, say, centre, normals, a_pos) -> _Segments:
+    """The lines (``normals`` (P, 2) through ``centre`` shifted by every offset within
+    +-``LINE_SHIFT``) weighed by the say of the pixels ``xy`` (m, 2) on A's side: at each
+    tilt the evidence changes only where the offset passes a pixel's distance, so the
+    offsets between two sorted distances are one segment, weighed by its length."""
+    d = (xy - centre) @ normals.T                                         # (m, P)
+    m, P = d.shape
+    order = np.argsort(d, axis=0, kind="stable")
+    ds = np.take_along_axis(d, order, 0)
+    edges = np.concatenate([np.full((1, P), -LINE_SHIFT),
+                            np.clip(ds, -LINE_SHIFT, LINE_SHIFT), np.full((1, P), LINE_SHIFT)])
+    pre = np.concatenate([np.zeros((1, P)), np.cumsum(say[order], 0)])   # rank < j's say
+    ll = pre[-1] - pre if a_pos else pre      # A's side: the + one (rank >= j), or not
+    with np.errstate(divide="ignore"):
+        lw = (ll + np.log(np.diff(edges, axis=0))).T
+    rank = np.empty_like(order)
+    np.put_along_axis(rank, order, np.broadcast_to(np.arange(m)[:, None], (m, P)), 0)
+    return _Segments(rank, lw, edges)
+
+
+def _side_posterior(seg: _Segments, a_pos: bool) -> np.ndarray:
+    """Each pixel's posterior of A's side: on the + side under the segments up to its
+    rank."""
+    post = np.exp(seg.lw - seg.lw.max())
+    post /= post.sum()
+    cum = np.cumsum(post, 1)
+    below = cum[np.arange(post.shape[0]), seg.rank].sum(1)
+    return below if a_pos else 1.0 - below
+
+
+def _best(seg: _Segments, normals, centre):
+    """The best line: its (tilt, segment), the segment of most weight, and its (normal,
+    offset) at the segment's middle."""
+    jp, js = np.unravel_index(np.argmax(seg.lw), seg.lw.shape)
+    n = normals[jp]
+    return jp, js, (n, float(n @ centre + 0.5 * (seg.edges[js, jp] + seg.edges[js + 1, jp])))
 
 
 class _Line:
-    """A run's line with its posterior over (tilt, offset); ``band``: its band's pixels,
-    their say and the log-evidence (P, O) the posterior came from (for its corners)."""
+    """A run's line: the tilts' normals about ``centre`` and the best line (``n_map``,
+    ``rho_map``); ``band``: its band's pixels and their say (for its corners)."""
 
-    def __init__(self, A, B, tan, centre, t0, t1, a_pos, normals, post, band=None):
+    def __init__(self, A, B, tan, centre, t0, t1, a_pos, normals, best, band=None):
         self.A, self.B, self.tan, self.centre = A, B, tan, centre
         self.t0, self.t1, self.a_pos = t0, t1, a_pos
-        self.normals, self.post = normals, post
-        self.q, self.say, self.ll = band if band is not None else (None, None, None)
-        j = np.unravel_index(np.argmax(post), post.shape)
-        self.n_map = normals[j[0]]
-        self.rho_map = float(normals[j[0]] @ centre + LINE_OFFSETS[j[1]])
-
-    def on_a(self, xy: np.ndarray) -> np.ndarray:
-        return _on_a(xy, self.centre, self.normals, self.a_pos)
+        self.normals = normals
+        self.q, self.say = band if band is not None else (None, None)
+        self.n_map, self.rho_map = best
 
     def map_on_a(self, xy: np.ndarray) -> bool:
         s = bool(self.n_map @ xy - self.rho_map > 0)
@@ -282,26 +327,25 @@ def line_moves(cat, weight, dets, lp, cap, det_w) -> LineMoves:
                          < (wa * pos).sum() + (wb * ~pos).sum())    # A's side: the + one
             phi = np.arctan2(n[1], n[0]) + tilts(t1 - t0)
             normals = np.stack([np.cos(phi), np.sin(phi)], -1)
-            on_a = _on_a(X[q], centre, normals, a_pos).astype(np.float64)   # (m, P, O)
             say = _evidence(q, A, B, cat, dets, lp, cap, det_w)
-            ll = (say @ on_a.reshape(len(q), -1)).reshape(on_a.shape[1:])   # (BLAS: the
-            #                                   step's cost is these products over the grid)
-            post = np.exp(ll - ll.max())
-            post /= post.sum()
-            line = _Line(A, B, tan, centre, t0, t1, a_pos, normals, post, (q, say, ll))
-            jp, jo = np.unravel_index(np.argmax(post), post.shape)
-            best = on_a[:, jp, jo] > 0
+            seg = _segments(X[q], say, centre, normals, a_pos)
+            jp, jo, best_line = _best(seg, normals, centre)
+            line = _Line(A, B, tan, centre, t0, t1, a_pos, normals, best_line, (q, say))
+            best = (seg.rank[:, jp] >= jo) == a_pos
             # the misfit of the labels a detection or the pixel's own photons back (one
             # whose photons favour no surface over either plane, as in the sky beside
             # a box, holds a label its neighbours gave it)
             rq, cq = q // w, q % w
             back = detf[q] | (np.fmax(lp[rq, cq, A], lp[rq, cq, B]) > 0)
+            back &= (t[q] >= t0) & (t[q] <= t1)   # (the run's own: past its ends, at a
+            #   corner, the band holds the other edge's pixels: a box's 16-pixel top edge,
+            #   noise-free, misfit its exact line by 6 %)
             wa_, wb_ = wa * back, wb * back
             tot = wa_.sum() + wb_.sum()
             if tot <= 0 or (wa_ * ~best).sum() + (wb_ * best).sum() > LINE_MISFIT * tot:
                 continue
             lines.append(line)
-            p_a = on_a.reshape(len(q), -1) @ post.ravel()
+            p_a = _side_posterior(seg, a_pos)
             inside = (np.abs(d[q]) <= LINE_NEAR) & (t[q] >= lo) & (t[q] <= hi)
             ok = ~detf[q] & inside
             seen.append(_Seen(q[ok], A, B, p_a[ok], False))
@@ -312,7 +356,7 @@ def line_moves(cat, weight, dets, lp, cap, det_w) -> LineMoves:
             dq = np.nonzero(detf[q] & (np.abs(d[q]) <= LINE_NEAR) & (t[q] >= t0 + 1.0)
                             & (t[q] <= t1 - 1.0))[0]
             if dq.size:
-                got = _doubt(q[dq], on_a[dq], ll, say[dq], la[dq], lp, w, A, B)
+                got = _doubt(q[dq], seg, dq, a_pos, say[dq], la[dq], lp, w, A, B)
                 doubt.append(got)
     # corners: two runs of the same pair whose lines cross near both their ends
     for i, l1 in enumerate(lines):
@@ -385,14 +429,19 @@ def _patterns(line, J, X):
     """The distinct sides (True: A's) of the pixels ``J`` (sorted flat indices) under
     the line's every (tilt, offset), each with the log of the posterior weight of the
     lines that give it, from the line's log-evidence less the say of the pixels of
-    ``J`` in its band: (patterns (k, j), log weights (k,))."""
-    on = line.on_a(X[J])                                                  # (j, P, O)
-    ll = line.ll
+    ``J`` in its band: (patterns (k, j), log weights (k,)). The offsets' segments are
+    those between the distances of the band's pixels and of ``J``'s."""
     inb = np.isin(line.q, J)
-    if inb.any():
-        pos = np.searchsorted(J, line.q[inb])
-        ll = ll - np.einsum("m,mpo->po", line.say[inb], on[pos].astype(np.float64))
-    flat = on.reshape(len(J), -1).T                                       # (P O, j)
+    extra = np.setdiff1d(J, line.q)
+    pts = np.concatenate([line.q, extra])
+    say = np.concatenate([np.where(inb, 0.0, line.say), np.zeros(extra.size)])
+    seg = _segments(X[pts], say, line.centre, line.normals, line.a_pos)
+    rank = seg.rank[_positions(pts, J)]                                   # (j, P)
+    ok = np.isfinite(seg.lw)                                               # (P, S)
+    p_idx, s_idx = np.nonzero(ok)
+    up = rank[:, p_idx] >= s_idx                                           # (j, K)
+    flat = (up if line.a_pos else ~up).T                                   # (K, j)
+    lw = seg.lw[p_idx, s_idx]
     # the sides as 64-bit words (exact), sorted; a new pattern where a word changes
     packed = np.packbits(flat, axis=1)
     pad = -packed.shape[1] % 8
@@ -401,7 +450,13 @@ def _patterns(line, J, X):
     new = np.ones(len(order), bool)
     new[1:] = (np.diff(words[order], axis=0) != 0).any(1)
     starts = np.nonzero(new)[0]
-    return flat[order[starts]], np.logaddexp.reduceat(ll.ravel()[order], starts)
+    return flat[order[starts]], np.logaddexp.reduceat(lw[order], starts)
+
+
+def _positions(pts, J):
+    """Where each of ``J`` is in ``pts`` (every one of ``J`` is there once)."""
+    o = np.argsort(pts, kind="stable")
+    return o[np.searchsorted(pts, J, sorter=o)]
 
 
 def _corner(l1, l2, Z, J, convex, X, say):
@@ -425,18 +480,22 @@ def _corner(l1, l2, Z, J, convex, X, say):
     return np.clip(p_a[np.searchsorted(J, Z)], 0.0, 1.0)
 
 
-def _doubt(q, on_a, ll, say, lab, lp, w, A, B):
-    """The detected pixels ``q`` (their sides of each line ``on_a`` (m, P, O), the run's
-    log-evidence ``ll`` (P, O), their say in it ``say``, labels ``lab``) whose own
-    photons' whole log-likelihood ratio (``lp``, not clipped), added to the line's
-    log-odds of their side without their say, puts them on the other plane with a
-    posterior above ``LINE_P_DET``: (pixels, the other planes, the posterior that each
-    lies where it was detected)."""
-    on = on_a > 0
-    L = np.broadcast_to(ll, on.shape)
+def _doubt(q, seg, k, a_pos, say, lab, lp, w, A, B):
+    """The detected pixels ``q`` (the band's pixels ``k`` of the run's lines ``seg``,
+    their say in it ``say``, labels ``lab``) whose own photons' whole log-likelihood
+    ratio (``lp``, not clipped), added to the line's log-odds of their side without
+    their say, puts them on the other plane with a posterior above ``LINE_P_DET``:
+    (pixels, the other planes, the posterior that each lies where it was detected)."""
+    with np.errstate(invalid="ignore"):                       # (-inf with -inf: -inf)
+        upto = np.logaddexp.accumulate(seg.lw, axis=1)                    # segments <= j
+        past = np.logaddexp.accumulate(seg.lw[:, ::-1], axis=1)[:, ::-1]  # segments >= j
+    P = np.arange(seg.lw.shape[0])
+    r = seg.rank[k]                                                       # (m, P)
+    past = np.concatenate([past, np.full((len(P), 1), -np.inf)], 1)
+    plus, minus = logsumexp(upto[P, r], axis=1), logsumexp(past[P, r + 1], axis=1)
+    on, off = (plus, minus) if a_pos else (minus, plus)
     with np.errstate(invalid="ignore"):                       # (no line either side: NaN)
-        line = (logsumexp(np.where(on, L, -np.inf), axis=(1, 2))
-                - logsumexp(np.where(on, -np.inf, L), axis=(1, 2)) - say)  # without the pixel
+        line = on - off - say                                 # without the pixel
     rq, cq = q // w, q % w
     with np.errstate(invalid="ignore"):
         own = lp[rq, cq, A] - lp[rq, cq, B]

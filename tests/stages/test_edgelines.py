@@ -59,22 +59,28 @@ def test_a_gap_splits_a_run_and_scatter_makes_none():
     assert el.runs(rng.uniform(0, 60, (40, 2))) == []
 
 
-def _loops_ll(xy, e, centre, normals, a_pos):
-    """A line's log-evidence (P, O) by loops: each point's say ``e`` where the line
-    (tilt, offset) puts it on A's side."""
-    ll = np.zeros((len(normals), len(el.LINE_OFFSETS)))
-    for i, nn in enumerate(normals):
-        for j, o in enumerate(el.LINE_OFFSETS):
-            for k, x in enumerate(xy):
-                if (((x - centre) @ nn > o) == a_pos):
-                    ll[i, j] += e[k]
-    return ll
+def _pieces(cuts_xy, centre, normals):
+    """Every line a run weighs, written out: at each tilt (``normals``) the offsets in
+    +-``LINE_SHIFT`` cut where they pass a point of ``cuts_xy``, each piece by its
+    middle and its length: [(normal, offset, length)]."""
+    out = []
+    for nn in normals:
+        d = [float((x - centre) @ nn) for x in cuts_xy]
+        b = sorted({min(max(v, -el.LINE_SHIFT), el.LINE_SHIFT) for v in d}
+                   | {-el.LINE_SHIFT, el.LINE_SHIFT})
+        out += [(nn, 0.5 * (lo + hi), hi - lo) for lo, hi in zip(b[:-1], b[1:], strict=True)]
+    return out
+
+
+def _side(x, centre, nn, o, a_pos):
+    return bool(((x - centre) @ nn > o) == a_pos)
 
 
 def test_the_posterior_is_the_sum_written_out():
     """A line's posterior weights of its distinct sides of some pixels (``_patterns``,
-    those pixels' own say taken out of the line's evidence) against the sum over every
-    tilt and offset written out by loops, pixel by pixel."""
+    those pixels' own say taken out of the line's evidence) against the integral over
+    every tilt and offset written out by loops (each piece of offsets between two
+    pixels' distances by its middle and its length), pixel by pixel."""
     rng = np.random.default_rng(5)
     pts = np.array([[r + 0.5, 7.5] for r in range(12)], float)
     n, tan, centre, t0, t1 = el.runs(pts)[0]
@@ -84,22 +90,20 @@ def test_the_posterior_is_the_sum_written_out():
     phi = np.arctan2(n[1], n[0]) + el.tilts(t1 - t0)
     normals = np.stack([np.cos(phi), np.sin(phi)], -1)
     a_pos = False
-    ll = _loops_ll(xy, e, centre, normals, a_pos)
-    line = el._Line(0, 1, tan, centre, t0, t1, a_pos, normals, np.exp(ll - ll.max()),
-                    (q, e, ll))
+    line = el._Line(0, 1, tan, centre, t0, t1, a_pos, normals, (normals[0], 0.0), (q, e))
     X = np.stack(np.mgrid[0:12, 0:11], -1).reshape(-1, 2).astype(np.float64)
     J = np.sort(q[rng.choice(len(q), 10, replace=False)])
     pat, lw = el._patterns(line, J, X)
     w = np.exp(lw - lw.max())
     got = (w[:, None] * pat).sum(0) / w.sum()
     out = ~np.isin(q, J)
-    ll_out = _loops_ll(xy[out], e[out], centre, normals, a_pos)      # J's say left out
-    post = np.exp(ll_out - ll_out.max())
-    post /= post.sum()
-    want = [sum(post[i, j] for i, nn in enumerate(normals)
-                for j, o in enumerate(el.LINE_OFFSETS) if (((X[k] - centre) @ nn > o) == a_pos))
-            for k in J]
-    assert np.allclose(got, want)
+    num, den = np.zeros(len(J)), 0.0
+    for nn, o, length in _pieces(xy, centre, normals):
+        ll = sum(e[k] for k in np.nonzero(out)[0] if _side(xy[k], centre, nn, o, a_pos))
+        wt = np.exp(ll) * length
+        den += wt
+        num += wt * np.array([_side(X[j], centre, nn, o, a_pos) for j in J])
+    assert np.allclose(got, num / den)
     assert len(pat) == len({tuple(p) for p in pat.tolist()})      # each side once
 
 
@@ -122,22 +126,28 @@ def test_a_corners_posterior_is_the_sum_over_both_lines_written_out(convex):
         phi = np.arctan2(n[1], n[0]) + el.tilts(t1 - t0)
         normals = np.stack([np.cos(phi), np.sin(phi)], -1)
         a_pos = bool((np.array([12.0, 12.0]) - centre) @ n > 0)       # A: the box
-        on = el._on_a(X[q], centre, normals, a_pos).astype(np.float64)
-        ll = np.einsum("m,mpo->po", say_all[q], on)
         lines.append(el._Line(0, 1, tan, centre, t0, t1, a_pos, normals,
-                              np.exp(ll - ll.max()), (q, say_all[q], ll)))
+                              (normals[0], 0.0), (q, say_all[q])))
     l1, l2 = lines
     zr, zc = np.mgrid[3:9, 3:9]
     Z = np.sort((zr * w + zc).ravel())
     J = np.union1d(Z, np.intersect1d(l1.q, l2.q))
     got = el._corner(l1, l2, Z, J, convex, X, say_all[J])
-    # written out: every pair of lines at once
+    # written out: every pair of lines at once, each line's pieces of offsets cut by
+    # its band's and the zone's pixels
     sides = []
     for ln in (l1, l2):
-        a = el._on_a(X[J], ln.centre, ln.normals, ln.a_pos).reshape(len(J), -1)   # (j, K)
         inb = np.isin(ln.q, J)
-        a_b = el._on_a(X[ln.q[inb]], ln.centre, ln.normals, ln.a_pos).reshape(inb.sum(), -1)
-        sides.append((a, ln.ll.ravel() - say_all[ln.q[inb]] @ a_b))
+        pieces = _pieces(X[np.union1d(ln.q, J)], ln.centre, ln.normals)
+        nn = np.array([x[0] for x in pieces])
+        o, length = (np.array([x[i] for x in pieces]) for i in (1, 2))
+
+        def sides_of(pts, ln=ln, nn=nn, o=o):
+            return ((pts - ln.centre) @ nn.T > o) == ln.a_pos                  # (pts, K)
+
+        a = sides_of(X[J])
+        ll = say_all[ln.q[~inb]] @ sides_of(X[ln.q[~inb]]).astype(float)
+        sides.append((a, ll + np.log(length)))
     (a1, e1), (a2, e2) = sides
     on = (a1[:, :, None] & a2[:, None, :]) if convex else (a1[:, :, None] | a2[:, None, :])
     L = e1[:, None] + e2[None, :] + np.einsum("j,jab->ab", say_all[J], on.astype(float))
@@ -172,26 +182,27 @@ def test_detected_and_far_pixels_stay():
 
 def _line_odds(cat, dets, say_of, pix, det_w):
     """The log-odds that ``pix`` lies on plane 0's side of the frame's one run, every
-    pixel of the frame in its band, summed over every tilt and offset by loops: each
+    pixel of the frame in its band, integrated over every tilt and offset by loops (each
+    piece of offsets between two pixels' distances by its middle and its length): each
     undetected pixel's say clipped, each detected one's +-``det_w``, ``pix``'s left out."""
     n, tan, centre, t0, t1 = el.runs(el.boundary_points(cat)[(0, 1)])[0]
     h, w = cat.shape
     a_side = (np.array([0.0, 0.0]) - centre) @ n > 0      # plane 0 holds column 0
     phi = np.arctan2(n[1], n[0]) + el.tilts(t1 - t0)
+    normals = np.stack([np.cos(phi), np.sin(phi)], -1)
+    every = np.stack(np.mgrid[0:h, 0:w], -1).reshape(-1, 2).astype(np.float64)
     on, off = [], []
-    for p in phi:
-        nn = np.array([np.cos(p), np.sin(p)])
-        for o in el.LINE_OFFSETS:
-            ll, pix_on_a = 0.0, None
-            for r in range(h):
-                for c in range(w):
-                    on_a = (((np.array([r, c]) - centre) @ nn > o) == a_side)
-                    if (r, c) == pix:
-                        pix_on_a = on_a
-                    elif on_a:
-                        ll += ((det_w if cat[r, c] == 0 else -det_w) if dets[r, c]
-                               else say_of(r, c))
-            (on if pix_on_a else off).append(ll)
+    for nn, o, length in _pieces(every, centre, normals):
+        ll, pix_on_a = np.log(length), None
+        for r in range(h):
+            for c in range(w):
+                on_a = (((np.array([r, c]) - centre) @ nn > o) == a_side)
+                if (r, c) == pix:
+                    pix_on_a = on_a
+                elif on_a:
+                    ll += ((det_w if cat[r, c] == 0 else -det_w) if dets[r, c]
+                           else say_of(r, c))
+        (on if pix_on_a else off).append(ll)
     lse = lambda x: max(x) + np.log(np.sum(np.exp(np.array(x) - max(x))))  # noqa: E731
     return lse(on) - lse(off)
 
@@ -260,7 +271,8 @@ def test_a_pixel_a_corner_weighed_is_the_corners():
     """A box of plane 0 (its corner convex), pixel (11, 8) beside its top-left corner
     rightly labelled 0, its own photons leaning 4.5 nats to plane 1. The left edge's line
     alone, carried on past the corner, puts it on plane 1 with about 0.6; the corner, both
-    lines together, on plane 0 with 0.59 (0.63 with the line's offsets 0.05 px apart).
+    lines together, on plane 0 with 0.577 (the offsets integrated; 0.588 and 0.63 with
+    the line's offsets on grids 0.01 and 0.05 px apart).
     The corner's posterior is the pixel's: one record, and it stays (an outside review
     found it moved by the line's record)."""
     r, c = np.mgrid[0:40, 0:32]
@@ -269,21 +281,22 @@ def test_a_pixel_a_corner_weighed_is_the_corners():
     lp[11, 8] = (-4.5, 0.0)
     got = el.line_moves(cat, weight, dets, lp, CAP, DET)
     k = 11 * 32 + 8
-    assert got.seen_p_a[got.seen_q == k] == pytest.approx([0.588], abs=0.01)
+    assert got.seen_p_a[got.seen_q == k] == pytest.approx([0.577], abs=0.005)
     assert k not in got.q
 
 
 def test_a_corner_holds_only_its_own_pair():
     """A box of plane 2 on a wall (0) below a band of plane 1 (rows 0-4), the box's
-    top-left corner three rows below the band's edge. A pixel of the band labelled as
-    the wall (its own photons leaning 1 nat to the wall) lies in the box corner's zone,
+    top-left corner two rows below the band's edge. A pixel of the band labelled as
+    the wall (its own photons leaning 1 nat to the wall) lies in the box corner's zone
+    (the corner's crossing half a pixel above the box's first row, 6.5 as it rounds),
     but that corner weighs the wall against the box only: the band's edge (pair 0, 1)
     still moves it (the first version of the corners' precedence did not: the scene
     turned by 10 degrees, its floor under the board)."""
     h, w = 40, 40
     r, c = np.mgrid[0:h, 0:w]
     truth = np.where(r < 5, 1, 0)
-    truth = np.where((r >= 8) & (r < 22) & (c >= 10) & (c < 26), 2, truth)
+    truth = np.where((r >= 7) & (r < 22) & (c >= 10) & (c < 26), 2, truth)
     lp = np.where(truth[..., None] == np.arange(3), 3.0, 0.0)
     cat = truth.copy()
     cat[4, 10] = 0
@@ -460,13 +473,13 @@ def _exact_p_a(X, say, centre, phis, a_pos, lo, hi):
 def test_the_lines_posterior_is_the_integral_over_lines(monkeypatch):
     """A half-plane's edge across a 64 x 64 frame at 12 degrees, whose pixels come within
     hundredths of a pixel of it (0.007 px), each pixel's photons 2 nats for its true
-    plane give or take 2: the posterior of each band pixel's side from the line's grid
-    (tilts, offsets) against the integral over every line in the same range, exact in
-    the offset and over tilts five times finer: within 0.013. With offsets 0.05 px apart
-    the grid missed it by 0.097 (the outside probe's edge at 12 degrees put pixels 0.007-
-    0.03 px from it on the far plane at posteriors of 0.004-0.01 that the finer grid
-    makes 0.13-0.47). At 33 degrees the tilts' step leaves 0.19 (0.045 with steps five
-    times finer, at 7-12 times the step's time: docs/ranging.md)."""
+    plane give or take 2: the posterior the lines report for each pixel they weigh
+    against the integral over every line (``_exact_p_a``, written apart): over the same
+    tilts the same to 1e-9 (the offset is integrated exactly); over tilts five times
+    finer, within 0.013 (a grid of offsets 0.05 px apart missed it by 0.097, 0.01 apart
+    by 0.013: the outside probe's edge at 12 degrees put pixels 0.007-0.03 px from it on
+    the far plane at posteriors of 0.004-0.01 that the integral makes 0.13-0.47). At 33
+    degrees the tilts' step leaves 0.19 (docs/ranging.md)."""
     seen = []
 
     class Rec(el._Line):
@@ -480,13 +493,45 @@ def test_the_lines_posterior_is_the_integral_over_lines(monkeypatch):
     a = np.deg2rad(12.0)
     truth = ((r + 0.5 - 32) * np.cos(a) - (c + 0.5 - 32) * np.sin(a) > 0).astype(np.int64)
     cat, weight, dets, lp = _frame(truth, say=2.0, rng=np.random.default_rng(11), noise=2.0)
-    el.line_moves(cat, weight, dets, lp, CAP, DET)
+    got = el.line_moves(cat, weight, dets, lp, CAP, DET)
     (line,) = seen
     X = np.stack([line.q // w, line.q % w], -1).astype(np.float64)
-    on = line.on_a(X).astype(np.float64)
-    got = np.einsum("po,mpo->m", line.post, on)
+    k = np.searchsorted(line.q, got.seen_q)
+    assert got.seen_q.size > 50 and np.array_equal(line.q[k], got.seen_q)
     phi = np.arctan2(line.normals[:, 1], line.normals[:, 0])
+    same = _exact_p_a(X, line.say, line.centre, phi, line.a_pos, -el.LINE_SHIFT,
+                      el.LINE_SHIFT)
+    assert np.allclose(got.seen_p_a, same[k], rtol=0, atol=1e-9)
     fine = np.linspace(phi[0], phi[-1], 5 * (len(phi) - 1) + 1)
-    want = _exact_p_a(X, line.say, line.centre, fine, line.a_pos, el.LINE_OFFSETS[0],
-                      el.LINE_OFFSETS[-1])
-    assert np.abs(got - want).max() < 0.05
+    want = _exact_p_a(X, line.say, line.centre, fine, line.a_pos, -el.LINE_SHIFT,
+                      el.LINE_SHIFT)
+    assert np.abs(got.seen_p_a - want[k]).max() < 0.05
+
+
+def test_a_clean_box_has_four_edges_and_four_corners():
+    """A box of 16 x 14 pixels, every pixel's photons 3 nats for its true plane: each
+    edge is a line (the misfit counts the run's own pixels: past its ends, at a corner,
+    the band holds the other edge's pixels, and the top edge misfit its exact line by
+    6 %), the four corners form, each crossing within a pixel of the box's (the band
+    reaches half a pixel past a run's end, where the other edge's pixels lie on the
+    far plane: their photons tilt a line by a degree or two), and no pixel moves."""
+    h, w = 30, 32
+    r, c = np.mgrid[0:h, 0:w]
+    truth = ((r >= 8) & (r < 24) & (c >= 10) & (c < 24)).astype(np.int64)
+    cat, weight, dets, lp = _frame(truth)
+    crossings = []
+    corner = el._corner
+
+    def spy(l1, l2, Z, *rest):
+        crossings.append(np.linalg.solve(np.stack([l1.n_map, l2.n_map]),
+                                         [l1.rho_map, l2.rho_map]))
+        return corner(l1, l2, Z, *rest)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(el, "_corner", spy)
+        got = el.line_moves(cat, weight, dets, lp, CAP, DET)
+    assert got.q.size == 0
+    want = [(7.5, 9.5), (7.5, 23.5), (23.5, 9.5), (23.5, 23.5)]
+    assert len(crossings) == 4
+    for x in crossings:
+        assert min(np.hypot(*(x - np.array(p))) for p in want) < 1.0

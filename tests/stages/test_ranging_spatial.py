@@ -629,12 +629,13 @@ def test_a_pixel_the_lines_leave_in_doubt_carries_it_in_its_sigma(monkeypatch):
     assert (est.sigma_s[grew] > before.sigma_s[grew]).all()
 
 
-@pytest.mark.parametrize(("seed", "pixel"), [(5, (20, 25)), (9, (20, 9)), (14, (44, 36))])
+@pytest.mark.parametrize(("seed", "pixel"), [(5, (20, 25)), (14, (44, 36)), (34, (13, 39))])
 def test_the_lines_second_pass_finds_the_runs_the_first_corrected(monkeypatch, seed, pixel):
     """The box's and the board's corners on the grid's scene at (2, 50): one pass of the
     lines leaves each pixel on the plane behind (a run cut short, or tilted past the
     tilts it tries, by wrong labels at its end: seed 5's box top 2 degrees beyond them,
-    seed 9's box side dropped by its misfit, so no corner formed); the second pass,
+    seed 34's board top whose run's left end is a row over, seed 14's board corner
+    whose bottom run stops short); the second pass,
     on the labels the first corrected, puts it on its surface. The frame's other
     surface pixels are no worse than 10 cm for it."""
     from stages.ranging import spatial as sp
@@ -1410,9 +1411,10 @@ def test_the_box_beside_the_sky_gap_keeps_its_corners(monkeypatch):
     the sky gap under the wall, and its bottom left one were given the wall's plane
     (6.8 and 6.2 m for 3 m): the sky's labels, its neighbours' planes, made runs of
     their own through the sky whose lines moved them. With the sky left out of the
-    lines (``LINE_SKY``) they stay on the box; with it in, over 3 m off on the lines'
-    first pass (their second, on the labels the first corrected, also puts them back:
-    the test is of the first)."""
+    lines (``LINE_SKY``) they stay on the box; with it in, the top right one is over 3
+    m off on the lines' first pass (their second, on the labels the first corrected,
+    puts it back: the test is of the first; the bottom left one stays on the box since
+    a line's misfit counts only its run's own pixels)."""
     from stages.ranging import spatial as sp
 
     sc = scene()
@@ -1425,7 +1427,7 @@ def test_the_box_beside_the_sky_gap_keeps_its_corners(monkeypatch):
     assert np.all(np.abs(d[px] - 3.0) < 0.03)
     monkeypatch.setattr(sp, "LINE_SKY", False)
     d = spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2).t_s[..., 0] * C / 2
-    assert np.all(np.abs(d[px] - 3.0) > 3.0)
+    assert abs(d[20, 24] - 3.0) > 3.0
 
 
 def test_the_lines_posteriors_hold_against_the_truth():
