@@ -42,7 +42,7 @@ gives every pixel one of its neighbours' planes, and those labels say nothing.
 
 numpy (and scipy.special's logsumexp and expit). The caller runs it twice
 (``spatial.LINE_PASSES``), the second pass on the labels the first corrected; each pass
-costs 10-25 ms a frame of 64 x 64 at (2, 50) (a few dozen runs, a few corners;
+costs 20-25 ms a frame of 64 x 64 at (2, 50) (a few dozen runs, a few corners;
 docs/ranging.md "The lines twice, their offsets integrated")."""
 
 from __future__ import annotations

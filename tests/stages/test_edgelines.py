@@ -243,9 +243,9 @@ def test_an_undetected_pixel_moves_where_the_odds_written_out_favour_the_other_s
     the line's posterior of plane 0's side (the line's log-odds without it, written out
     here, and its own clipped say) is what the lines report for it, and it moves where
     the other side's posterior is above ``LINE_P`` (0.5, the Bayes decision for the
-    squared error), or stays. Labelled 1, the posteriors are 0.91 and 0.60 (0.897 and 0.60
-    with the line's offsets 0.05 px apart): it moves (the second did not at the cut of
-    0.9 before); labelled 0, it stays."""
+    squared error), or stays. Labelled 1, the posteriors are 0.915 and 0.616 (the offsets
+    integrated; 0.91 and 0.60 on a grid 0.01 px apart, 0.897 and 0.60 on one 0.05 apart):
+    it moves (the second did not at the cut of 0.9 before); labelled 0, it stays."""
     rng = np.random.default_rng(11)
     truth = _half(14, 6, 3)
     cat, weight, dets, lp = _frame(truth, say=say, rng=rng, noise=0.7)
