@@ -447,19 +447,20 @@ def test_a_detection_is_not_doubted_towards_a_plane_outside_the_window():
     assert el.line_moves(cat, weight, dets, lp, CAP, el.LINE_DET)[2].size == 0
 
 
-def _exact_p_a(X, say, centre, phis, a_pos, lo, hi):
+def _exact_p_a(X, say, centre, phis, a_pos):
     """Each point's posterior of A's side under a uniform prior over the lines' tilts
-    ``phis`` (their normals' angles) and a continuous offset in [lo, hi]: at each tilt
-    the log-evidence is constant between the points' sorted distances, so the integral
-    over the offset is exact (each interval's evidence times its width)."""
+    ``phis`` (their normals' angles) and a continuous offset in +-``LINE_SHIFT``: at
+    each tilt the log-evidence is constant on each piece of offsets between the points'
+    distances (``_pieces``), so the integral over the offset is exact (each piece's
+    evidence times its length)."""
     lls, ws, ons = [], [], []
     for phi in phis:
-        d = (X - centre) @ np.array([np.cos(phi), np.sin(phi)])
-        cuts = np.unique(np.concatenate([[lo, hi], np.clip(d, lo, hi)]))
-        mid = 0.5 * (cuts[:-1] + cuts[1:])
-        on = ((d[None, :] > mid[:, None]) == a_pos).astype(np.float64)   # (intervals, m)
-        lls.append(on @ say)
-        ws.append(np.diff(cuts))
+        nn = np.array([np.cos(phi), np.sin(phi)])
+        pieces = _pieces(X, centre, [nn])
+        mid = np.array([o for _, o, _ in pieces])
+        on = ((((X - centre) @ nn)[None, :] > mid[:, None]) == a_pos).astype(np.float64)
+        lls.append(on @ say)                                      # (pieces, m) -> (pieces,)
+        ws.append(np.array([length for *_, length in pieces]))
         ons.append(on)
     top = max(x.max() for x in lls)
     acc, tot = np.zeros(len(X)), 0.0
@@ -499,12 +500,10 @@ def test_the_lines_posterior_is_the_integral_over_lines(monkeypatch):
     k = np.searchsorted(line.q, got.seen_q)
     assert got.seen_q.size > 50 and np.array_equal(line.q[k], got.seen_q)
     phi = np.arctan2(line.normals[:, 1], line.normals[:, 0])
-    same = _exact_p_a(X, line.say, line.centre, phi, line.a_pos, -el.LINE_SHIFT,
-                      el.LINE_SHIFT)
+    same = _exact_p_a(X, line.say, line.centre, phi, line.a_pos)
     assert np.allclose(got.seen_p_a, same[k], rtol=0, atol=1e-9)
     fine = np.linspace(phi[0], phi[-1], 5 * (len(phi) - 1) + 1)
-    want = _exact_p_a(X, line.say, line.centre, fine, line.a_pos, -el.LINE_SHIFT,
-                      el.LINE_SHIFT)
+    want = _exact_p_a(X, line.say, line.centre, fine, line.a_pos)
     assert np.abs(got.seen_p_a - want[k]).max() < 0.05
 
 
