@@ -143,6 +143,7 @@ EDGE_SIGMA = True   # the lines' posteriors in an undetected pixel's sigma (_lin
 EDGE_SIGMA_P = 0.05  # where the other plane holds at least this share of the posterior
 EDGE_DOUBT = True  # and there a detection the line and its own photons refute withdrawn
 LINE_SKY = True    # the lines leave out the pixels that see no surface (_no_surface)
+ISLAND = True      # a detection no neighbour holds decided as a label (_islands)
 LINE_PASSES = 2    # the lines' step again on the labels its moves corrected (runs that a
 #                    wrong label at an end cut short or tilted are found whole): the last
 #                    pass doubts detections; every pass's posteriors give sigma
@@ -330,7 +331,8 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
     if bands == 1:
         return _finish(_spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s,
                                 compiled, cal_var_s2, prof),
-                       max_returns, bin_s, sigma_s / bin_s, t0_s, prof, compiled, threads)
+                       max_returns, bin_s, sigma_s / bin_s, t0_s, prof, compiled, threads,
+                       p_fa)
     from concurrent.futures import ThreadPoolExecutor
 
     edges = np.linspace(0, h, bands + 1).astype(int)
@@ -346,7 +348,8 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
     fields = tuple(np.concatenate([e[i][a - lo:b - lo]
                                    for e, (lo, a, b, _) in zip(got, parts, strict=True)])
                    for i in range(len(got[0])))
-    return _finish(fields, max_returns, bin_s, sigma_s / bin_s, t0_s, prof, compiled, threads)
+    return _finish(fields, max_returns, bin_s, sigma_s / bin_s, t0_s, prof, compiled, threads,
+                   p_fa)
 
 
 def _check(counts, bin_s, sigma_s, p_fa, window, max_returns) -> None:
@@ -1077,7 +1080,7 @@ if numba is not None:
 
 
 def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
-            threads=1) -> SpatialEstimate:
+            threads=1, p_fa=None) -> SpatialEstimate:
     """3b and the order of the returns, on the whole image (the relabelling's sweeps
     reach further than a band's halo)."""
     t_out, sig_out, sig_cnt, det, own, surr, slope, mine_r, bw_r, rank, beta, P0, bend, seen = \
@@ -1096,7 +1099,7 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
     # (a pane above the slanted floor: t0 21 bins off) passes the corner windows.
     rank, state = _relabel(t_out, sig_out, slot(slope, 0.0), slot(mine_r, 0.0),
                            slot(bw_r, 0.0), sig_cnt, slot(rank, -1e9), own, P0, beta,
-                           bin_s, sb, t0_s, prof, compiled, det, threads)
+                           bin_s, sb, t0_s, prof, compiled, det, threads, p_fa)
     lab, free, tb = state[:3]
     # a detection the edges' lines doubt (its own photons against the line's photons
     # all along the edge: stages/ranging/edgelines.py) is withdrawn, the pixel labelled
@@ -1612,6 +1615,60 @@ def _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, ha
     return lab, doubted
 
 
+def _islands(lab, det, tb, llr, slope, sig_cnt, sig_out, mine, bw, P0, beta, half, tol,
+             p_fa, shifted, agreement, doubted, prof=None) -> None:
+    """A detection no neighbour holds: the pixel's own photons detect a surface (at
+    ``p_fa``) on whose plane none of its 8 nearest and none of its row's, column's or
+    diagonals' ``LINE_L`` pixels each side lie, and which is no detection at the
+    frame's level (``p_fa`` over the frame's pixels, as step 1's lone candidates).
+    It is decided as an undetected pixel's label is (3b's score: its own Poisson
+    likelihood plus the prior of the labels around it), over its candidates and its
+    8 nearest's planes carried over; where another plane scores higher, the detection
+    is doubted (:class:`_Doubts`, withdrawn in :func:`_finish`) and the pixel takes that
+    plane, the chance it was right (the two scores' logistic) kept for its sigma.
+    ``lab``, ``tb``, ``llr``, ``slope``, ``sig_cnt``, ``sig_out`` and ``doubted`` are
+    written in place."""
+    h, w, nc = tb.shape
+    dets = det.any(-1) & ~doubted.doubted
+    if not dets.any():
+        return
+    tl = np.take_along_axis(tb, lab[..., None], -1)[..., 0]
+    u = llr + agreement(tl, tb, slope)
+    kk = lab[..., None]
+    u_was = np.take_along_axis(u, kk, -1)[..., 0]
+    sl = np.take_along_axis(slope, kk[..., None], 2)[:, :, 0]
+    held = np.zeros((h, w), bool)     # an 8 nearest on the detection's plane
+    for i, j in OFFS:
+        held |= np.abs(shifted(tl, i, j, np.nan) - (tl + sl[..., 0] * i + sl[..., 1] * j)) < tol
+    weak = poisson_tail(np.take_along_axis(mine, kk, -1)[..., 0],
+                        np.take_along_axis(bw, kk, -1)[..., 0]) > p_fa / (h * w)
+    who = dets & ~held & weak
+    if not who.any():
+        return
+    _, tp, slp, scp, sgp = _carried(lab, tb, slope, sig_cnt, sig_out, shifted)
+    up = _own_llr(P0, beta, tp, scp, half, prof) + agreement(tl, np.where(
+        np.isfinite(tp), tp, 0.0), slp)
+    u_slot = np.where(np.arange(nc) == kk, -np.inf, u)
+    k_slot = np.argmax(u_slot, -1)
+    k_car = np.argmax(up, -1)
+    b_slot = np.take_along_axis(u_slot, k_slot[..., None], -1)[..., 0]
+    b_car = np.take_along_axis(up, k_car[..., None], -1)[..., 0]
+    move = who & (np.maximum(b_slot, b_car) > u_was)
+    r, c = np.nonzero(move)
+    if not r.size:
+        return
+    car = b_car[r, c] > b_slot[r, c]
+    doubted.doubted[r, c] = True
+    doubted.p_was[r, c] = expit(u_was[r, c] - np.maximum(b_slot[r, c], b_car[r, c]))
+    doubted.t_was[r, c] = tl[r, c]
+    lab[r, c] = np.where(car, nc - 1, k_slot[r, c])
+    rc, cc, k = r[car], c[car], k_car[r[car], c[car]]
+    tb[rc, cc, -1] = tp[rc, cc, k]
+    llr[rc, cc, -1] = _own_llr(P0, beta, tp, scp, half, prof)[rc, cc, k]
+    sig_cnt[rc, cc, -1], sig_out[rc, cc, -1] = scp[rc, cc, k], sgp[rc, cc, k]
+    slope[rc, cc, -1, :] = slp[rc, cc, k]
+
+
 def _no_surface(P0, beta, T, half, free, dets, prof=None):
     """The undetected pixels that see no surface, for the lines (``LINE_SKY``): those
     around which (the (2 ``NONE_K`` + 1)^2 window) no plane of the frame (``T`` (h, w,
@@ -1711,7 +1768,7 @@ def _commonest_other(cat, weight, who, A, k):
 
 
 def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_s, sb,
-             t0_s, prof=None, compiled=None, seen=None, threads=1):
+             t0_s, prof=None, compiled=None, seen=None, threads=1, p_fa=None):
     """3b. Which candidate an undetected pixel reports: the one that maximises the pixel's
     own Poisson log-likelihood ratio (its counts in the test window against its
     background, the signal per pixel the neighbourhood saw) plus ``PRIOR`` for each of
@@ -1826,6 +1883,9 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
     if got is not None:
         lab, doubted = _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0,
                               beta, half, tol, prof, compiled, threads)
+    if ISLAND and p_fa is not None:
+        _islands(lab, det, tb, llr, slope, sig_cnt, sig_out, mine, bw, P0, beta, half, tol,
+                 p_fa, shifted, agreement, doubted, prof)
     t_out[..., -1] = tb[..., -1] * bin_s + t0_s
     chosen = np.arange(nc) == lab[..., None]
     free = free | doubted.doubted

@@ -714,6 +714,54 @@ def test_a_lone_point_of_ten_photons_is_a_candidate_of_its_own(monkeypatch):
     assert found() <= 3
 
 
+def _island_frame(seed, photons):
+    """Two planes (3 m left of column 12, 6 m right of it) at (2, 50) on 32 x 32
+    pixels; the pixel (16, 14), two columns into the 6 m plane, has its own return's
+    bins emptied and ``photons`` of the 3 m plane's return put in their place."""
+    depth = np.full((32, 32, 2), np.nan)
+    depth[:, :12, 0], depth[:, 12:, 0] = 3.0, 6.0
+    share = np.zeros((32, 32, 2))
+    share[..., 0] = 1.0
+    counts = histograms(Scene(depth, share), 2, 50, seed)
+    b0 = int(2 * 6.0 / C / BIN_S)
+    counts[16, 14, b0 - 8:b0 + 9] = 0
+    rng = np.random.default_rng(seed)
+    b = np.floor((2 * 3.0 / C + rng.normal(0.0, SIGMA_S, photons)) / BIN_S).astype(int)
+    counts[16, 14] += np.bincount(b, minlength=N_BINS)
+    return counts
+
+
+@pytest.mark.parametrize("seed", [4, 8])
+def test_a_detection_no_neighbour_holds_is_decided_as_a_label(monkeypatch, seed):
+    """A pixel two columns from an edge whose own photons, 5 of them, detect the plane
+    beyond the edge (at p_fa, not at the frame's level) while its 8 nearest all lie on
+    its own: without the island step (``ISLAND``) that detection is its first return,
+    3 m off; with it the relabelling's score decides, the pixel reports its
+    neighbours' plane and the withdrawn detection's chance stays in its sigma. With
+    12 photons (a detection at the frame's level: a lone point) the detection stands."""
+    from stages.ranging import spatial as sp
+
+    px = (16, 14)
+    counts = _island_frame(seed, 5)
+    est = spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
+    d, sg = est.t_s[px] * C / 2, est.sigma_s[px] * C / 2
+    assert abs(d[0] - 6.0) < 0.05, d
+    assert not (est.detected[px] & (np.abs(d - 3.0) < 0.1)).any()
+    assert 0.1 < sg[0] < 3.0, sg          # the chance it was on 3 m, times 3 m squared
+    lone = spatial(_island_frame(seed, 12), BIN_S, SIGMA_S, 1e-3, threads=2)
+    assert abs(lone.t_s[px][0] * C / 2 - 3.0) < 0.1 and lone.detected[px][0]
+    monkeypatch.setattr(sp, "ISLAND", False)
+    before = spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
+    assert abs(before.t_s[px][0] * C / 2 - 3.0) < 0.1 and before.detected[px][0]
+    # the rest of the frame as without the step (within a fifth of its sigma: the
+    # curvature's step (5) weighs the detections around a pixel)
+    rest = np.ones((32, 32), bool)
+    rest[px] = False
+    assert np.array_equal(np.isnan(est.t_s[rest]), np.isnan(before.t_s[rest]))
+    moved = np.abs(est.t_s[rest] - before.t_s[rest])
+    assert np.nanmax(moved / before.sigma_s[rest]) < 0.2
+
+
 @pytest.mark.parametrize("p_fa", [1e-3, 1e-6])
 def test_a_dark_frame_keeps_its_false_alarm_rate(p_fa):
     """Frames of background alone at 0.02 photons a pixel (a dark sensor, short window;
