@@ -66,7 +66,11 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    weighed by their likelihood), or, near a corner, of the windows beside it; then of
    the straight edge its whole run's photons place (:mod:`stages.ranging.edgelines`),
    where a detection beside the line whose own photons and the line's disagree is
-   withdrawn (the pixel labelled, its sigma keeping the chance it was right).
+   withdrawn (the pixel labelled, its sigma keeping the chance it was right). And a
+   detection no neighbour holds (none of its 8 nearest lies on its plane) whose own
+   photons are no detection at the frame's level (``p_fa`` over the frame's pixels, as
+   step 1's lone candidates) is decided as an undetected pixel's label is; where
+   another plane scores higher, it is withdrawn the same way (:func:`_islands`).
    A surface only the corner windows detect (the pixel's own photons do not) does not
    hold the pixel there: the pixel is labelled as an undetected one, and the detection
    stands only where the label lies on its surface (the pixel's other corner windows'
@@ -1103,7 +1107,7 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
     lab, free, tb = state[:3]
     # a detection the edges' lines doubt (its own photons against the line's photons
     # all along the edge: stages/ranging/edgelines.py) is withdrawn, the pixel labelled
-    doubted, p_was, t_was, line_var = state[7]
+    doubted, p_was, t_was, line_var, island = state[7]
     own = own & ~doubted[..., None]
     surr_only = surr & ~own
     tl = np.take_along_axis(tb, lab[..., None], -1)[..., 0]
@@ -1138,13 +1142,17 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
     # (on the first return: the label's slot, or where a detection on the label's
     # surface holds the pixel, that detection)
     extra = np.zeros(free.shape)
-    rd, cd = np.nonzero(doubted)
+    rd, cd = np.nonzero(doubted | island)
     extra[rd, cd] = p_was[rd, cd] * ((t_was[rd, cd] - tb[rd, cd, lab[rd, cd]]) * bin_s) ** 2
-    line = free & ~held & ~doubted
+    line = free & ~held & ~doubted & ~island
     extra[line] = line_var[line] * bin_s ** 2
     # detected before not; then by the corner windows that see the surface, then by the
-    # pixel's own excess counts, then by the neighbourhood's signal
+    # pixel's own excess counts, then by the neighbourhood's signal. But an island's
+    # label (or the detection on its surface that holds it) before its own detection,
+    # which stays a further return (:func:`_islands`)
     key = np.where(det, 1e12, 0.0) + rank
+    ri, ci = np.nonzero(island)
+    key[ri, ci, np.argmax(rank[ri, ci], -1)] += 5e12
     order = np.argsort(-key, axis=-1, kind="stable")[..., :max_returns]
 
     def take(x):
@@ -1615,17 +1623,21 @@ def _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, ha
     return lab, doubted
 
 
-def _islands(lab, det, tb, llr, slope, sig_cnt, sig_out, mine, bw, P0, beta, half, tol,
-             p_fa, shifted, agreement, doubted, prof=None) -> None:
+def _islands(lab, det, seen, tb, llr, slope, sig_cnt, sig_out, mine, bw, P0, beta, half,
+             tol, p_fa, shifted, agreement, doubted, prof=None) -> None:
     """A detection no neighbour holds: the pixel's own photons detect a surface (at
-    ``p_fa``) on whose plane none of its 8 nearest and none of its row's, column's or
-    diagonals' ``LINE_L`` pixels each side lie, and which is no detection at the
+    ``p_fa``) on whose plane none of its 8 nearest lies (neither its label nor any
+    surface it detects, ``seen``, nor their photons summed, at ``NONE_P``), and which
+    is no detection at the
     frame's level (``p_fa`` over the frame's pixels, as step 1's lone candidates).
     It is decided as an undetected pixel's label is (3b's score: its own Poisson
     likelihood plus the prior of the labels around it), over its candidates and its
-    8 nearest's planes carried over; where another plane scores higher, the detection
-    is doubted (:class:`_Doubts`, withdrawn in :func:`_finish`) and the pixel takes that
-    plane, the chance it was right (the two scores' logistic) kept for its sigma.
+    8 nearest's planes carried over; where another plane scores higher, the pixel
+    takes that plane as its label, which :func:`_finish` reports first, the chance the
+    detection's surface is the pixel's (the two scores' logistic) in its sigma. The
+    detection stays, a further return: the score weighs one surface a pixel against
+    another, not whether a second is there (a pane before a wall), which the pixel's
+    own test at ``p_fa`` decided.
     ``lab``, ``tb``, ``llr``, ``slope``, ``sig_cnt``, ``sig_out`` and ``doubted`` are
     written in place."""
     h, w, nc = tb.shape
@@ -1637,12 +1649,33 @@ def _islands(lab, det, tb, llr, slope, sig_cnt, sig_out, mine, bw, P0, beta, hal
     kk = lab[..., None]
     u_was = np.take_along_axis(u, kk, -1)[..., 0]
     sl = np.take_along_axis(slope, kk[..., None], 2)[:, :, 0]
-    held = np.zeros((h, w), bool)     # an 8 nearest on the detection's plane
+    # an 8 nearest on the detection's plane: its label, or any surface it detects (a
+    # pane before a wall: each pixel's label the wall, its second return the pane)
+    tn = np.concatenate([tl[..., None], np.where(seen, tb, np.nan)], -1)
+    held = np.zeros((h, w), bool)
     for i, j in OFFS:
-        held |= np.abs(shifted(tl, i, j, np.nan) - (tl + sl[..., 0] * i + sl[..., 1] * j)) < tol
+        pred = tl + sl[..., 0] * i + sl[..., 1] * j
+        held |= (np.abs(shifted(tn, i, j, np.nan) - pred[..., None]) < tol).any(-1)
     weak = poisson_tail(np.take_along_axis(mine, kk, -1)[..., 0],
                         np.take_along_axis(bw, kk, -1)[..., 0]) > p_fa / (h * w)
     who = dets & ~held & weak
+    # nor do the 8 nearest's photons about the plane stand out (a second surface each of
+    # them sees with a photon or so, as a pane, and detects rarely): their counts in
+    # the test window, summed, no detection at ``NONE_P`` against their background
+    r, c = np.nonzero(who)
+    n = P0.shape[-1] - 1
+    cnt, bg = np.zeros(r.size), np.zeros(r.size)
+    for i, j in OFFS:
+        rr, cc = r + i, c + j
+        ok = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
+        rr, cc = np.clip(rr, 0, h - 1), np.clip(cc, 0, w - 1)
+        t = tl[r, c] + sl[r, c, 0] * i + sl[r, c, 1] * j
+        a = np.clip(np.floor(t - half + 0.5).astype(np.int64), 0, n)
+        z = np.clip(np.floor(t + half + 0.5).astype(np.int64), 0, n)
+        cnt += np.where(ok, P0[rr, cc, z] - P0[rr, cc, a], 0.0)
+        bg += np.where(ok, beta[rr, cc] * _span(a, z, prof), 0.0)
+    seen_nb = poisson_tail(cnt, bg) <= NONE_P
+    who[r[seen_nb], c[seen_nb]] = False
     if not who.any():
         return
     _, tp, slp, scp, sgp = _carried(lab, tb, slope, sig_cnt, sig_out, shifted)
@@ -1658,7 +1691,7 @@ def _islands(lab, det, tb, llr, slope, sig_cnt, sig_out, mine, bw, P0, beta, hal
     if not r.size:
         return
     car = b_car[r, c] > b_slot[r, c]
-    doubted.doubted[r, c] = True
+    doubted.island[r, c] = True
     doubted.p_was[r, c] = expit(u_was[r, c] - np.maximum(b_slot[r, c], b_car[r, c]))
     doubted.t_was[r, c] = tl[r, c]
     lab[r, c] = np.where(car, nc - 1, k_slot[r, c])
@@ -1734,18 +1767,21 @@ def _line_var(q, A, B, p_a, cat, T):
 class _Doubts(NamedTuple):
     """What :func:`_edges`' lines leave in doubt, per pixel: whether its detection is
     doubted, the posterior that it lies where it was detected and the time it was
-    detected at; and the variance the lines leave in an undetected pixel's label
-    (bins^2, :func:`_line_var`)."""
+    detected at; the variance the lines leave in an undetected pixel's label
+    (bins^2, :func:`_line_var`); and whether its detection is an island that
+    :func:`_islands` put after its label (``p_was`` and ``t_was`` its own)."""
 
     doubted: np.ndarray
     p_was: np.ndarray
     t_was: np.ndarray
     line_var: np.ndarray
+    island: np.ndarray
 
 
 def _no_doubt(shape) -> _Doubts:
     """No doubts yet (:class:`_Doubts` of zeros)."""
-    return _Doubts(np.zeros(shape, bool), np.zeros(shape), np.zeros(shape), np.zeros(shape))
+    return _Doubts(np.zeros(shape, bool), np.zeros(shape), np.zeros(shape), np.zeros(shape),
+                   np.zeros(shape, bool))
 
 
 def _commonest_other(cat, weight, who, A, k):
@@ -1799,7 +1835,7 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
     pixel on its candidate on its label's plane, or on the plane in the last slot (seeds
     1-15 at (2, 50): 188 -> 100 pixels > 10 cm off, turned by 30 degrees 789 -> 602;
     docs/ranging.md "Where the sweeps start"). Last, :func:`_edges` (which needs the
-    cut's planes)."""
+    cut's planes), then :func:`_islands` (given ``p_fa``)."""
     h, w, nc = t_out.shape
     tb = (t_out - t0_s) / bin_s                               # bins
     S = _test_signal(sig_cnt)
@@ -1884,10 +1920,10 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
         lab, doubted = _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0,
                               beta, half, tol, prof, compiled, threads)
     if ISLAND and p_fa is not None:
-        _islands(lab, det, tb, llr, slope, sig_cnt, sig_out, mine, bw, P0, beta, half, tol,
-                 p_fa, shifted, agreement, doubted, prof)
+        _islands(lab, det, det if seen is None else seen, tb, llr, slope, sig_cnt, sig_out,
+                 mine, bw, P0, beta, half, tol, p_fa, shifted, agreement, doubted, prof)
     t_out[..., -1] = tb[..., -1] * bin_s + t0_s
     chosen = np.arange(nc) == lab[..., None]
-    free = free | doubted.doubted
+    free = free | doubted.doubted | doubted.island
     return (np.where(free[..., None] & chosen, 1e11, 0.0) + rank,
             (lab, free, tb, llr, slope, shifted, agreement, doubted))
