@@ -94,8 +94,9 @@ RANGES = SchemaSpec("ranges", "3.0", (
     field("estimator", pa.string(), "", "name of the estimator"),
     # 2.0: more than one surface a pixel, and why a row is flagged
     field("return_index", pa.uint8(), "", "the return's rank in its pixel by signal counts "
-          "(0 the strongest; every TDC has a row 0, detected or not, and a row k > 0 only "
-          "for a detected return)"),
+          "(0 the strongest; the spatial estimator's 0 is the surface its neighbours hold "
+          "where its own lone detection is weaker, docs/ranging.md; every TDC has a row 0, "
+          "detected or not, and a row k > 0 only for a detected return)"),
     field("flag", pa.string(), "", "empty, or why the row is flagged (several joined by "
           "'; '): an input it could not use, an estimate outside the window or before the "
           "zero, the window's edge, another chip's calibration, a partial measurement (the "

@@ -485,7 +485,8 @@ def range_cmd(capture, calibration, out, estimator, irf_ps, p_fa, delay_ps, zero
     CAPTURE is a tcspc capture (with --calibration), or a PicoQuant T3 file or its
     histograms (with --delay-ps or --zero): a PicoQuant board's dtime bins are calibrated
     by its maker, so no INL is applied; the output says so. A pixel may see up to
-    --max-returns surfaces (a window, a fence): a row each, return_index 0 the strongest.
+    --max-returns surfaces (a window, a fence): a row each, return_index 0 the strongest
+    (--spatial: the surface the neighbours hold before a weaker lone detection).
     Generic histograms (any instrument's, docs/instruments_generic.md) take
     --calibration from `calibrate distance`, --delay-ps or --zero; the output names the
     instrument response and the pile-up correction used (up to 3 returns a row with a

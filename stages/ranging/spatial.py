@@ -67,10 +67,12 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    the straight edge its whole run's photons place (:mod:`stages.ranging.edgelines`),
    where a detection beside the line whose own photons and the line's disagree is
    withdrawn (the pixel labelled, its sigma keeping the chance it was right). And a
-   detection no neighbour holds (none of its 8 nearest lies on its plane) whose own
-   photons are no detection at the frame's level (``p_fa`` over the frame's pixels, as
-   step 1's lone candidates) is decided as an undetected pixel's label is; where
-   another plane scores higher, it is withdrawn the same way (:func:`_islands`).
+   detection no neighbour holds (none of its 8 nearest lies on its plane, detects it
+   or sees its photons) whose own photons are no detection at the frame's level
+   (``p_fa`` over the frame's pixels, as step 1's lone candidates) is weighed as an
+   undetected pixel's label is; where another plane scores higher, that plane is the
+   pixel's first return, its sigma keeping the chance the detection's surface is the
+   pixel's, and the detection a further return (:func:`_islands`).
    A surface only the corner windows detect (the pixel's own photons do not) does not
    hold the pixel there: the pixel is labelled as an undetected one, and the detection
    stands only where the label lies on its surface (the pixel's other corner windows'
@@ -96,7 +98,8 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    sigma reaches the farthest surface reported within ``OFF_K`` pixels or among its own
    candidates.
 
-Up to ``max_returns`` (2) surfaces a pixel, the strongest first.
+Up to ``max_returns`` (2) surfaces a pixel, the strongest first (detected before not),
+but an island's label (3b) before its detection.
 """
 
 from __future__ import annotations
