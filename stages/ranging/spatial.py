@@ -1631,11 +1631,11 @@ def _islands(lab, det, seen, tb, llr, slope, sig_cnt, sig_out, mine, bw, P0, bet
     """A detection no neighbour holds: the pixel's own photons detect a surface (at
     ``p_fa``) on whose plane none of its 8 nearest lies (neither its label nor any
     surface it detects, ``seen``, nor their photons summed, at ``NONE_P``), and which
-    is no detection at the
-    frame's level (``p_fa`` over the frame's pixels, as step 1's lone candidates).
-    It is decided as an undetected pixel's label is (3b's score: its own Poisson
-    likelihood plus the prior of the labels around it), over its candidates and its
-    8 nearest's planes carried over; where another plane scores higher, the pixel
+    is no detection at the frame's level (``p_fa`` over the frame's pixels, as step
+    1's lone candidates). It is weighed as an undetected pixel's label is (3b's score:
+    its own Poisson likelihood plus the prior of the labels around it), over its
+    candidates and its 8 nearest's planes carried over; where another plane scores
+    higher, the pixel
     takes that plane as its label, which :func:`_finish` reports first, the chance the
     detection's surface is the pixel's (the two scores' logistic) in its sigma. The
     detection stays, a further return: the score weighs one surface a pixel against
@@ -1682,8 +1682,8 @@ def _islands(lab, det, seen, tb, llr, slope, sig_cnt, sig_out, mine, bw, P0, bet
     if not who.any():
         return
     _, tp, slp, scp, sgp = _carried(lab, tb, slope, sig_cnt, sig_out, shifted)
-    up = _own_llr(P0, beta, tp, scp, half, prof) + agreement(tl, np.where(
-        np.isfinite(tp), tp, 0.0), slp)
+    lp = _own_llr(P0, beta, tp, scp, half, prof)
+    up = lp + agreement(tl, np.where(np.isfinite(tp), tp, 0.0), slp)
     u_slot = np.where(np.arange(nc) == kk, -np.inf, u)
     k_slot = np.argmax(u_slot, -1)
     k_car = np.argmax(up, -1)
@@ -1699,8 +1699,7 @@ def _islands(lab, det, seen, tb, llr, slope, sig_cnt, sig_out, mine, bw, P0, bet
     doubted.t_was[r, c] = tl[r, c]
     lab[r, c] = np.where(car, nc - 1, k_slot[r, c])
     rc, cc, k = r[car], c[car], k_car[r[car], c[car]]
-    tb[rc, cc, -1] = tp[rc, cc, k]
-    llr[rc, cc, -1] = _own_llr(P0, beta, tp, scp, half, prof)[rc, cc, k]
+    tb[rc, cc, -1], llr[rc, cc, -1] = tp[rc, cc, k], lp[rc, cc, k]
     sig_cnt[rc, cc, -1], sig_out[rc, cc, -1] = scp[rc, cc, k], sgp[rc, cc, k]
     slope[rc, cc, -1, :] = slp[rc, cc, k]
 
