@@ -1155,6 +1155,8 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
     # which stays a further return (:func:`_islands`)
     key = np.where(det, 1e12, 0.0) + rank
     ri, ci = np.nonzero(island)
+    was = np.full(island.shape, np.nan)   # an island's detection: its first return before
+    was[ri, ci] = t_was[ri, ci] * bin_s + t0_s
     key[ri, ci, np.argmax(rank[ri, ci], -1)] += 5e12
     order = np.argsort(-key, axis=-1, kind="stable")[..., :max_returns]
 
@@ -1168,7 +1170,7 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
     bend = np.take_along_axis(slot(bend, 0.0), order[..., None], 2)
     _curvature(t_out, sig_out, det, bend, bin_s, sb, t0_s)
     sig_cnt = take(sig_cnt)
-    _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof, cand)
+    _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof, cand, was)
     sig_out[..., 0] = np.where(extra > 0, np.sqrt(sig_out[..., 0] ** 2 + extra),
                                sig_out[..., 0])
     return SpatialEstimate(t_out, sig_out, sig_cnt,
@@ -1248,7 +1250,8 @@ def _curvature(t_out, sig_out, det, bend, bin_s, sb, t0_s) -> None:
     sig_out[rr, cc, 0] = np.sqrt(v) * bin_s
 
 
-def _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof=None, cand=None):
+def _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof=None, cand=None,
+                 also=None):
     """6. An undetected first return on a surface that is not the pixel's. Its time is a
     neighbour's surface (3b, 5); its sigma (:func:`_label_sigma`, :func:`_curvature`) is
     the error of that time on that surface. Where the pixel sees a surface its
@@ -1270,9 +1273,11 @@ def _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof=N
     candidates ``cand`` (their times before the returns' order, and whether its window
     detects each) that its window detects or that hold ``OFF_OWN_MIN`` of its own
     photons (a candidate neither holds is mostly a peak of the window's background,
-    anywhere in the histogram). That is the error of a wrong label weighed by its
-    posterior, and at least enough that 2 sigma reaches it. Times, detections and the
-    detected returns' sigma are untouched, and so is every return whose p is below
+    anywhere in the histogram), and ``also`` (h, w; NaN: none), the detections
+    :func:`_islands` put second, which were first returns. That is the error of a wrong
+    label weighed by its posterior, and at least enough that 2 sigma reaches it. Times,
+    detections and the detected returns' sigma are untouched, and so is every return
+    whose p is below
     ``OFF_P`` (the grid's scene at 2 signal photons, held-out seeds 3-4: 95-98 % of
     the undetected pixels on a surface). Written in place."""
     t = (t_out[..., 0] - t0_s) / bin_s
@@ -1303,8 +1308,14 @@ def _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof=N
                     / np.maximum(_box((1.0 - r) * S * w, OFF_K), 1e-9), 0.2, 5.0)
     p = post(pi, g)
     size = 2 * OFF_K + 1
-    hi = ndimage.maximum_filter(np.where(ok, t, -np.inf), size, mode="nearest")
-    lo = ndimage.minimum_filter(np.where(ok, t, np.inf), size, mode="nearest")
+    hi = np.where(ok, t, -np.inf)
+    lo = np.where(ok, t, np.inf)
+    if also is not None:
+        ta = (also - t0_s) / bin_s
+        fa = np.isfinite(ta)
+        hi, lo = np.where(fa, np.maximum(hi, ta), hi), np.where(fa, np.minimum(lo, ta), lo)
+    hi = ndimage.maximum_filter(hi, size, mode="nearest")
+    lo = ndimage.minimum_filter(lo, size, mode="nearest")
     D = np.where(ok, np.maximum(hi - ti, ti - lo), 0.0)
     if cand is not None:         # and the pixel's own candidates (its window's surfaces)
         tc = (cand[0] - t0_s) / bin_s
@@ -1626,21 +1637,24 @@ def _edges(lab, free, det, tb, llr, slope, sig_cnt, sig_out, table, P0, beta, ha
     return lab, doubted
 
 
-def _islands(lab, det, seen, tb, llr, slope, sig_cnt, sig_out, mine, bw, P0, beta, half,
-             tol, p_fa, shifted, agreement, doubted, prof=None) -> None:
+def _islands(lab, det, seen, tb, llr, slope, sig_cnt, sig_out, P0, beta, half, tol, p_fa,
+             shifted, agreement, doubted, prof=None) -> None:
     """A detection no neighbour holds: the pixel's own photons detect a surface (at
     ``p_fa``) on whose plane none of its 8 nearest lies (neither its label nor any
-    surface it detects, ``seen``, nor their photons summed, at ``NONE_P``), and which
-    is no detection at the frame's level (``p_fa`` over the frame's pixels, as step
-    1's lone candidates). It is weighed as an undetected pixel's label is (3b's score:
-    its own Poisson likelihood plus the prior of the labels around it), over its
-    candidates and its 8 nearest's planes carried over; where another plane scores
-    higher, the pixel
-    takes that plane as its label, which :func:`_finish` reports first, the chance the
-    detection's surface is the pixel's (the two scores' logistic) in its sigma. The
-    detection stays, a further return: the score weighs one surface a pixel against
-    another, not whether a second is there (a pane before a wall), which the pixel's
-    own test at ``p_fa`` decided.
+    surface it detects, ``seen``), whose time the 8 nearest's photons do not hold
+    (summed, at ``NONE_P``: a pane each sees with a photon or so) nor the two on either
+    side of it along its row, column or a diagonal (at ``NONE_P``: a post a pixel wide),
+    and which its own counts there do not detect at the frame's level (``p_fa`` over
+    the frame's pixels, as step 1's lone candidates). It is weighed as an undetected
+    pixel's label is (3b's score: its own Poisson likelihood plus the prior of the
+    labels around it), over its candidates and its 8 nearest's planes carried over;
+    where another plane scores higher, the pixel takes that plane as its label, which
+    :func:`_finish` reports first, the chance the detection's surface is the pixel's
+    (the two scores' logistic) in its sigma. The detection stays, a further return: the
+    score weighs one surface a pixel against another, not whether a second is there,
+    which the pixel's own test at ``p_fa`` decided. (The photons are taken at the
+    detection's time, flat: an island's plane is fitted from neighbours that hardly
+    hold it, and its slope carried the window about a post onto the wall behind.)
     ``lab``, ``tb``, ``llr``, ``slope``, ``sig_cnt``, ``sig_out`` and ``doubted`` are
     written in place."""
     h, w, nc = tb.shape
@@ -1659,26 +1673,33 @@ def _islands(lab, det, seen, tb, llr, slope, sig_cnt, sig_out, mine, bw, P0, bet
     for i, j in OFFS:
         pred = tl + sl[..., 0] * i + sl[..., 1] * j
         held |= (np.abs(shifted(tn, i, j, np.nan) - pred[..., None]) < tol).any(-1)
-    weak = poisson_tail(np.take_along_axis(mine, kk, -1)[..., 0],
-                        np.take_along_axis(bw, kk, -1)[..., 0]) > p_fa / (h * w)
-    who = dets & ~held & weak
-    # nor do the 8 nearest's photons about the plane stand out (a second surface each of
-    # them sees with a photon or so, as a pane, and detects rarely): their counts in
-    # the test window, summed, no detection at ``NONE_P`` against their background
-    r, c = np.nonzero(who)
+    r, c = np.nonzero(dets & ~held)
     n = P0.shape[-1] - 1
-    cnt, bg = np.zeros(r.size), np.zeros(r.size)
-    for i, j in OFFS:
+    a = np.clip(np.floor(tl[r, c] - half + 0.5).astype(np.int64), 0, n)
+    z = np.clip(np.floor(tl[r, c] + half + 0.5).astype(np.int64), 0, n)
+
+    def counts(i, j):  # the counts about (r, c)'s time at (r + i, c + j), and those due
         rr, cc = r + i, c + j
         ok = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
         rr, cc = np.clip(rr, 0, h - 1), np.clip(cc, 0, w - 1)
-        t = tl[r, c] + sl[r, c, 0] * i + sl[r, c, 1] * j
-        a = np.clip(np.floor(t - half + 0.5).astype(np.int64), 0, n)
-        z = np.clip(np.floor(t + half + 0.5).astype(np.int64), 0, n)
-        cnt += np.where(ok, P0[rr, cc, z] - P0[rr, cc, a], 0.0)
-        bg += np.where(ok, beta[rr, cc] * _span(a, z, prof), 0.0)
-    seen_nb = poisson_tail(cnt, bg) <= NONE_P
-    who[r[seen_nb], c[seen_nb]] = False
+        return (np.where(ok, P0[rr, cc, z] - P0[rr, cc, a], 0.0),
+                np.where(ok, beta[rr, cc] * _span(a, z, prof), 0.0))
+
+    # its own counts about the reported time are no detection at the frame's level
+    island = poisson_tail(*counts(0, 0)) > p_fa / (h * w)
+    # nor do the 8 nearest's photons about that time stand out (a second surface each of
+    # them sees with a photon or so, as a pane, and detects rarely): their counts in
+    # the test window, summed, no detection at ``NONE_P`` against their background
+    got = [counts(i, j) for i, j in OFFS]
+    island &= poisson_tail(sum(x[0] for x in got), sum(x[1] for x in got)) > NONE_P
+    # nor the two on either side of it along its row, column or a diagonal (a post or
+    # a wire a pixel wide, whose pixels the relabelling gives the wall behind; further
+    # along, a line reaches the surface beyond an edge two pixels away)
+    for i, j in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        (m1, b1), (m2, b2) = counts(i, j), counts(-i, -j)
+        island &= poisson_tail(m1 + m2, b1 + b2) > NONE_P
+    who = np.zeros((h, w), bool)
+    who[r[island], c[island]] = True
     if not who.any():
         return
     _, tp, slp, scp, sgp = _carried(lab, tb, slope, sig_cnt, sig_out, shifted)
@@ -1923,7 +1944,7 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
                               beta, half, tol, prof, compiled, threads)
     if ISLAND and p_fa is not None:
         _islands(lab, det, det if seen is None else seen, tb, llr, slope, sig_cnt, sig_out,
-                 mine, bw, P0, beta, half, tol, p_fa, shifted, agreement, doubted, prof)
+                 P0, beta, half, tol, p_fa, shifted, agreement, doubted, prof)
     t_out[..., -1] = tb[..., -1] * bin_s + t0_s
     chosen = np.arange(nc) == lab[..., None]
     free = free | doubted.doubted | doubted.island
