@@ -1662,9 +1662,7 @@ def _islands(lab, det, seen, tb, llr, slope, sig_cnt, sig_out, P0, beta, half, t
     if not dets.any():
         return
     tl = np.take_along_axis(tb, lab[..., None], -1)[..., 0]
-    u = llr + agreement(tl, tb, slope)
     kk = lab[..., None]
-    u_was = np.take_along_axis(u, kk, -1)[..., 0]
     sl = np.take_along_axis(slope, kk[..., None], 2)[:, :, 0]
     # an 8 nearest on the detection's plane: its label, or any surface it detects (a
     # pane before a wall: each pixel's label the wall, its second return the pane)
@@ -1673,35 +1671,37 @@ def _islands(lab, det, seen, tb, llr, slope, sig_cnt, sig_out, P0, beta, half, t
     for i, j in OFFS:
         pred = tl + sl[..., 0] * i + sl[..., 1] * j
         held |= (np.abs(shifted(tn, i, j, np.nan) - pred[..., None]) < tol).any(-1)
-    r, c = np.nonzero(dets & ~held)
-    n = P0.shape[-1] - 1
-    a = np.clip(np.floor(tl[r, c] - half + 0.5).astype(np.int64), 0, n)
-    z = np.clip(np.floor(tl[r, c] + half + 0.5).astype(np.int64), 0, n)
+    who = dets & ~held
+    if not who.any():
+        return
 
-    def counts(i, j):  # the counts about (r, c)'s time at (r + i, c + j), and those due
-        rr, cc = r + i, c + j
-        ok = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
-        rr, cc = np.clip(rr, 0, h - 1), np.clip(cc, 0, w - 1)
-        return (np.where(ok, P0[rr, cc, z] - P0[rr, cc, a], 0.0),
-                np.where(ok, beta[rr, cc] * _span(a, z, prof), 0.0))
+    def counts(i, j):  # the counts of each pixel's neighbour (i, j) about the pixel's
+        # time, and those due (the pixel's time put at the neighbour, then brought back)
+        t = (shifted(tl, -i, -j, np.nan) if i or j else tl)[..., None]
+        m, a, z = _window_counts(P0, t, half)
+        ok = np.isfinite(t[..., 0])
+        m = np.where(ok, m[..., 0], 0.0)
+        b = np.where(ok, beta * _span(a[..., 0], z[..., 0], prof), 0.0)
+        return (shifted(m, i, j, 0.0), shifted(b, i, j, 0.0)) if i or j else (m, b)
 
     # its own counts about the reported time are no detection at the frame's level
-    island = poisson_tail(*counts(0, 0)) > p_fa / (h * w)
+    who &= poisson_tail(*counts(0, 0)) > p_fa / (h * w)
     # nor do the 8 nearest's photons about that time stand out (a second surface each of
     # them sees with a photon or so, as a pane, and detects rarely): their counts in
     # the test window, summed, no detection at ``NONE_P`` against their background
-    got = [counts(i, j) for i, j in OFFS]
-    island &= poisson_tail(sum(x[0] for x in got), sum(x[1] for x in got)) > NONE_P
+    got = {(i, j): counts(i, j) for i, j in OFFS}
+    who &= poisson_tail(sum(x[0] for x in got.values()),
+                        sum(x[1] for x in got.values())) > NONE_P
     # nor the two on either side of it along its row, column or a diagonal (a post or
     # a wire a pixel wide, whose pixels the relabelling gives the wall behind; further
     # along, a line reaches the surface beyond an edge two pixels away)
     for i, j in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        (m1, b1), (m2, b2) = counts(i, j), counts(-i, -j)
-        island &= poisson_tail(m1 + m2, b1 + b2) > NONE_P
-    who = np.zeros((h, w), bool)
-    who[r[island], c[island]] = True
+        (m1, b1), (m2, b2) = got[i, j], got[-i, -j]
+        who &= poisson_tail(m1 + m2, b1 + b2) > NONE_P
     if not who.any():
         return
+    u = llr + agreement(tl, tb, slope)
+    u_was = np.take_along_axis(u, kk, -1)[..., 0]
     _, tp, slp, scp, sgp = _carried(lab, tb, slope, sig_cnt, sig_out, shifted)
     lp = _own_llr(P0, beta, tp, scp, half, prof)
     up = lp + agreement(tl, np.where(np.isfinite(tp), tp, 0.0), slp)
