@@ -1427,6 +1427,20 @@ def _carried(lab, tb, slope, sig_cnt, sig_out, shifted):
     return tl, tp, slp, scp, sgp
 
 
+def _scores(lab, tb, llr, slope, sig_cnt, sig_out, P0, beta, half, shifted, agreement,
+            prof=None):
+    """3b's score of every label a pixel may take under the labels ``lab``: its slots'
+    (``u`` (h, w, nc): the own log-likelihood ratio ``llr`` plus the prior) and its 8
+    nearest's planes carried over (``up`` (h, w, 8), their own ratio ``lp``). Returns
+    the reported times ``tl`` (h, w), ``u``, the carried planes (times ``tp``, slopes
+    ``slp``, signal ``scp``, sigma ``sgp``), ``lp`` and ``up``."""
+    tl, tp, slp, scp, sgp = _carried(lab, tb, slope, sig_cnt, sig_out, shifted)
+    lp = _own_llr(P0, beta, tp, scp, half, prof)
+    u = llr + agreement(tl, tb, slope)
+    up = lp + agreement(tl, np.where(np.isfinite(tp), tp, 0.0), slp)
+    return tl, u, tp, slp, scp, sgp, lp, up
+
+
 def _label_sigma(state, sig_cnt, sig_out, P0, beta, bin_s, sb, prof=None) -> None:
     """sigma of an undetected pixel's reported surface (3b), in ``sig_out`` in place.
     The relabelling picks one of the pixel's labels (its candidates and its 8 nearest's
@@ -1450,11 +1464,10 @@ def _label_sigma(state, sig_cnt, sig_out, P0, beta, bin_s, sb, prof=None) -> Non
     tol = 3.0 * sb
     kk = lab[..., None]
     # the 8 nearest's planes carried over, as the sweeps propose them
-    tl, tp, slp, scp, sgp = _carried(lab, tb, slope, sig_cnt, sig_out, shifted)
-    lp = _own_llr(P0, beta, tp, scp, WIDTH_TEST * sb, prof)
+    tl, u, tp, _, _, sgp, _, up = _scores(lab, tb, llr, slope, sig_cnt, sig_out, P0, beta,
+                                          WIDTH_TEST * sb, shifted, agreement, prof)
     t = np.concatenate([tb, tp], -1)
-    u = np.concatenate([llr + agreement(tl, tb, slope),
-                        lp + agreement(tl, np.where(np.isfinite(tp), tp, 0.0), slp)], -1)
+    u = np.concatenate([u, up], -1)
     s2 = np.concatenate([sig_out, sgp], -1) ** 2 / bin_s ** 2          # bins^2
     # the labels on the reported surface (within the prior's tolerance of its time)
     # (a plane without a sigma, inf, makes the variance inf where it has weight)
@@ -1700,11 +1713,9 @@ def _islands(lab, det, seen, tb, llr, slope, sig_cnt, sig_out, P0, beta, half, t
         who &= poisson_tail(m1 + m2, b1 + b2) > NONE_P
     if not who.any():
         return
-    u = llr + agreement(tl, tb, slope)
+    _, u, tp, slp, scp, sgp, lp, up = _scores(lab, tb, llr, slope, sig_cnt, sig_out, P0,
+                                              beta, half, shifted, agreement, prof)
     u_was = np.take_along_axis(u, kk, -1)[..., 0]
-    _, tp, slp, scp, sgp = _carried(lab, tb, slope, sig_cnt, sig_out, shifted)
-    lp = _own_llr(P0, beta, tp, scp, half, prof)
-    up = lp + agreement(tl, np.where(np.isfinite(tp), tp, 0.0), slp)
     u_slot = np.where(np.arange(nc) == kk, -np.inf, u)
     k_slot = np.argmax(u_slot, -1)
     k_car = np.argmax(up, -1)
