@@ -94,9 +94,10 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    returns around it, where a quadratic over them says so.
 6. An undetected return on a surface that is not the pixel's (:func:`_off_surface`):
    where the pixel's own photons at the reported time make it ``OFF_P`` likely or more
-   that it lies on none of it (a two-component mixture over the pixels around it), its
-   sigma reaches the farthest surface reported within ``OFF_K`` pixels or among its own
-   candidates.
+   that it lies on none of it (a two-component mixture over the pixels around it), or
+   its photons and those of the undetected returns of its 3 x 3 on the same surface
+   together do (:func:`_off_pool`), its sigma reaches the farthest surface reported
+   within ``OFF_K`` pixels or among its own candidates.
 
 Up to ``max_returns`` (2) surfaces a pixel, the strongest first (detected before not),
 but an island's label (3b) before its detection.
@@ -171,6 +172,8 @@ OFF_K = 4        # the mixture over the (2 OFF_K + 1)^2 around the pixel, and th
                  # the surfaces reported there
 OFF_FLOOR = 0.25  # such a return's variance gains at least this share of the farthest's
                   # squared distance (2 sigma then reaches it)
+OFF_POOL = 1     # 6's test also over the (2 OFF_POOL + 1)^2 around the pixel (0: off): its
+OFF_SAME = 4.0   # undetected returns within this many pulse sigmas of its time, together
 OFF_ITER = 8     # the mixture's EM steps
 OFF_OWN_MIN = 2  # a candidate the window does not detect is a surface the pixel may be on
                  # where this many of the pixel's own photons lie at it (0: every one)
@@ -1267,7 +1270,9 @@ def _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof=N
     E-step puts on their surface (a moment step, not the likelihood's maximum: S is an
     average over pixels that include those off it, so it is low by about 1 - pi), by
     ``OFF_ITER`` steps on box sums. The pixel's posterior of being off is then
-    p = expit(logit pi + g S - m log(1 + g S / B)). Where p >= ``OFF_P``, sigma^2 gains
+    p = expit(logit pi + g S - m log(1 + g S / B)), or the same test over the
+    undetected returns of its (2 ``OFF_POOL`` + 1)^2 on its surface (:func:`_off_pool`),
+    whichever is larger. Where p >= ``OFF_P``, sigma^2 gains
     max(p, ``OFF_FLOOR``) D^2, D the distance to the farthest surface the pixel may be
     on instead: the first returns reported within ``OFF_K`` pixels, and its own
     candidates ``cand`` (their times before the returns' order, and whether its window
@@ -1307,6 +1312,9 @@ def _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof=N
         g = np.clip(_box((1.0 - r) * (m - B) * w, OFF_K)
                     / np.maximum(_box((1.0 - r) * S * w, OFF_K), 1e-9), 0.2, 5.0)
     p = post(pi, g)
+    if OFF_POOL:  # and with the undetected returns around it on the same surface
+        p = np.maximum(p, _off_pool(np.where(on, m * np.log1p(g * S / B) - g * S, 0.0),
+                                    np.where(on & ~det[..., 0], t, np.nan), pi, OFF_SAME * sb))
     size = 2 * OFF_K + 1
     hi = np.where(ok, t, -np.inf)
     lo = np.where(ok, t, np.inf)
@@ -1325,6 +1333,29 @@ def _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof=N
     sel = on & ~det[..., 0] & (p >= OFF_P) & np.isfinite(sg)
     v = sg ** 2 + np.maximum(p, OFF_FLOOR) * D ** 2
     sig_out[..., 0] = np.where(sel, np.sqrt(np.where(sel, v, 0.0)) * bin_s, sig_out[..., 0])
+
+
+def _off_pool(lam, tu, pi, tol):
+    """6's posterior of being off the surface, tested on the pixel's undetected return
+    together with those around it on the same surface: the log-likelihood ratios ``lam``
+    (on against off, (h, w)) summed over the (2 ``OFF_POOL`` + 1)^2 pixels whose time
+    ``tu`` (bins; NaN: detected or none) lies within ``tol`` bins of the pixel's, with
+    the prior ``pi``. A label wrong over a block (a grazing floor beyond the planes'
+    reach, a post's run reported on the wall) leaves each pixel a photon short, which
+    one pixel's count cannot tell from chance at 2 signal photons and nine can. The
+    pixel alone is :func:`_off_surface`'s own posterior; a pixel with no undetected
+    return gets 0."""
+    k = OFF_POOL
+    h, w = tu.shape
+    lp = np.pad(np.where(np.isfinite(tu), lam, 0.0), k)
+    tp = np.pad(tu, k, constant_values=np.nan)
+    L = np.zeros((h, w))
+    with np.errstate(invalid="ignore"):
+        for i in range(2 * k + 1):
+            for j in range(2 * k + 1):
+                L += np.where(np.abs(tp[i:i + h, j:j + w] - tu) <= tol, lp[i:i + h, j:j + w],
+                              0.0)
+    return np.where(np.isfinite(tu), expit(logit(pi) - L), 0.0)
 
 
 def _quadratic(t, sg, d0, rr, cc, g, sb, start=3.0, fit=False):
