@@ -73,15 +73,16 @@ def test_undetected_pixels_sigma_covers(lindell_2_50):
     pixels here) has a sigma that covers its error: 2 sigma holds 93-99 % of them (98 %
     on seed 7, 99.3 % with the depth step's check, 2b, whose bias term the planes
     carried over bring; 83 % with the plane's sigma alone, before the planes' spread on
-    the reported surface, :func:`stages.ranging.spatial._label_sigma`), and 93-98.5 % of
-    every surface pixel (98.4 %; 93 % before)."""
+    the reported surface, :func:`stages.ranging.spatial._label_sigma`), and 93-99 % of
+    every surface pixel (98.5 % since any half's bias enters a detected return's sigma,
+    2b's ``STEP_ANY``: 3,448 of 3,500; 98.4 % without it; 93 % before the label's)."""
     sc, _, est = lindell_2_50
     err = window_errors(sc, est.t_s[..., 0] * C / 2)
     z = err / (est.sigma_s[..., 0][sc.surface] * C / 2)
     und = ~est.detected[..., 0][sc.surface]
     assert 0.2 <= und.mean() <= 0.4, und.mean()
     assert 0.93 <= np.mean(z[und] < 2) <= 0.995, np.mean(z[und] < 2)
-    assert 0.93 <= np.mean(z < 2) <= 0.985, np.mean(z < 2)
+    assert 0.93 <= np.mean(z < 2) <= 0.99, np.mean(z < 2)
 
 
 def test_label_sigma_changes_only_the_undetected_sigma(monkeypatch):
@@ -1095,6 +1096,60 @@ def test_a_small_depth_step_inside_the_window(monkeypatch, step_cm, cover, rmse)
     assert n1 == 0, n1
     assert sp.STEP_Z > 0 and c1 >= cover and r1 <= rmse, got
     assert c0 <= cover - 0.3 and r0 >= 2 * r1, got
+
+
+@pytest.mark.parametrize("name, cell, gain", [("stripes3", (10, 2), 0.08),
+                                              ("stripes6", (2, 10), 0.05)])
+def test_any_half_s_bias_reaches_the_detected_sigma_beside_a_small_step(monkeypatch, name,
+                                                                         cell, gain):
+    """2b's bias term from any half-plane that disagrees by ``STEP_ANY`` sds, not only
+    the least spread one (docs/ranging.md "A small depth step inside the window"):
+    beside a step of 1-2 pulse sigmas a half across it spreads its photons about as
+    little as the half on one side, and the chosen half was as biased as the window.
+    Stripes 3 and 6 cm apart (seed 11, which no choice ran; 40 x 40): detected 2 sigma
+    77.4 -> 88.0 % at (10, 2) and 81.6 -> 88.6 % at (2, 10), the same times (RMSE
+    unchanged), only the detected returns' sigma moves and only up; on the grid's scene
+    0.9 % (10, 2) and 8.9 % (2, 50) of the detected sigmas move."""
+    from stages.ranging import spatial as sp
+
+    (c0, r0, n0), (c1, r1, n1) = _stripes_off_and_on(monkeypatch, name, cell, "STEP_ANY",
+                                                     0.0, 0.9)
+    assert sp.STEP_ANY > 0 and c1 >= c0 + gain and r1 == r0 and n1 == n0, (c0, c1, r0, r1)
+    counts = histograms(scene(), 10, 2, 11)
+    monkeypatch.setattr(sp, "STEP_ANY", 0.0)
+    old = sp.spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
+    monkeypatch.undo()
+    new = sp.spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
+    assert np.array_equal(new.t_s, old.t_s, equal_nan=True)
+    assert np.array_equal(new.detected, old.detected)
+    moved = new.sigma_s != old.sigma_s
+    assert not moved[~new.detected].any() and (new.sigma_s[moved] > old.sigma_s[moved]).all()
+    assert 0 < moved[new.detected].mean() < 0.03
+
+
+def test_the_step_lean_takes_the_largest_significant_half():
+    """``_step_lean`` on halves made by hand (one pixel each): halves within ``STEP_ANY``
+    sds of the window add nothing; of those beyond, the largest d^2 - vd counts, less
+    the variance 2b already added; a half not available (too few pixels) is left out,
+    however far; the 16 finer halves after the first 8 are not read."""
+    from stages.ranging import spatial as sp
+
+    t0, v0 = np.zeros(4), np.full(4, 0.01)
+    t = np.zeros((4, 16))
+    v = np.full((4, 16), 0.02)              # vk = 0.02 MSHIFT: vd = vk - 0.01
+    t[0, :8] = 0.05                         # all within 3 sds: 0
+    t[1, 2], t[1, 5] = 0.5, -0.8            # both beyond: the larger
+    t[2, 3] = 5.0                           # beyond, but its half is not available
+    t[3, 9] = 5.0                           # a finer half: not read
+    avail = np.ones((4, 16), bool)
+    avail[2, 3] = False
+    fits = (t, v, np.zeros((4, 16)))
+    var_t0 = v0 + np.array([0.0, 0.1, 0.0, 0.0])  # 2b's own term at pixel 1
+    got = sp._step_lean(fits, avail, t0, v0, var_t0)
+    vd = max(0.02 * sp.MSHIFT - 0.01, 0.02 * sp.MSHIFT / 4)
+    assert 0.05 ** 2 < sp.STEP_ANY ** 2 * vd < 0.5 ** 2
+    assert got[0] == 0.0 and got[2] == 0.0 and got[3] == 0.0
+    assert got[1] == pytest.approx(0.8 ** 2 - vd - 0.1)
 
 
 def _stripes_off_and_on(monkeypatch, name, cell, constant, off, detected, transpose=False):
