@@ -64,8 +64,10 @@ def test_two_signal_fifty_background(lindell_2_50):
     # surface: 0.9 % > 10 cm off (4.7 % without)
     assert np.mean(err > 0.1) < 0.02, np.mean(err > 0.1)
     z = err / (est.sigma_s[..., 0][sc.surface] * C / 2)
-    cover = np.mean(z[det[sc.surface]] < 2)     # 96 % (seed 7)
-    assert 0.92 <= cover <= 0.985, cover
+    # 96 % (seed 7) before the detected sigma took the biases the halves and the
+    # curvature see but do not correct (2b's ``STEP_ANY``, 5's ``CURVE_LEAN``): 98.5 %
+    cover = np.mean(z[det[sc.surface]] < 2)
+    assert 0.92 <= cover <= 0.99, cover
 
 
 def test_undetected_pixels_sigma_covers(lindell_2_50):
@@ -885,6 +887,46 @@ def test_a_surface_that_is_not_a_plane_keeps_its_sigma():
         assert np.sqrt(np.mean(err ** 2)) <= rmse, name
 
 
+def _sigma_only_off_and_on(monkeypatch, counts, switch, off):
+    """``counts`` ranged with ``spatial``'s ``switch`` set to ``off`` and as it is: the
+    times and detections must be the same, and only detected returns' sigma may move,
+    only up. Returns (old, new, where sigma moved)."""
+    from stages.ranging import spatial as sp
+
+    monkeypatch.setattr(sp, switch, off)
+    old = sp.spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
+    monkeypatch.undo()
+    new = sp.spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
+    assert np.array_equal(new.t_s, old.t_s, equal_nan=True)
+    assert np.array_equal(new.detected, old.detected)
+    moved = new.sigma_s != old.sigma_s
+    assert not moved[~new.detected].any() and (new.sigma_s[moved] > old.sigma_s[moved]).all()
+    return old, new, moved
+
+
+@pytest.mark.parametrize("cell, gain", [((2, 10), 0.01), ((2, 50), 0.015)])
+def test_a_curvature_too_small_to_correct_enters_the_sigma(monkeypatch, cell, gain):
+    """Step 5's bias where it does not correct (``CURVE_LEAN``; docs/ranging.md "A
+    surface that is not a plane"): at 2 signal photons a flat wall over a 40-degree field
+    of view is curved by less than ``CURVE_Z`` sds of the quadratic's estimate, which
+    leaves t0 off by it; its squared estimate less its variance enters the detected
+    return's sigma. The probe's flat wall, seed 3 (the choice was not tuned; held-out
+    seeds 21-22 were measured after): detected 2 sigma 93.2 -> 94.6 % at (2, 10), 92.0 ->
+    94.0 % at (2, 50), the median sigma 2-4 % larger. Times, detections and every other
+    sigma are the same; a detected first return's sigma moves only up."""
+    from benchmarks.probe_scenes import SCENES
+    from benchmarks.probe_scenes import histograms as ray_histograms
+
+    counts, tr = ray_histograms(SCENES["flatwall"], 64, 64, *cell, 3)
+    old, new, moved = _sigma_only_off_and_on(monkeypatch, counts, "CURVE_LEAN", False)
+    assert not moved[..., 1:].any()
+    det = new.detected[..., 0] & np.isfinite(tr[..., 0])
+    err = np.abs(new.t_s[..., 0] * C / 2 - tr[..., 0])[det]
+    c0, c1 = (np.mean(err <= 2 * e.sigma_s[..., 0][det] * C / 2) for e in (old, new))
+    assert c1 >= c0 + gain and c1 <= 0.975, (c0, c1)
+    assert np.median(new.sigma_s[..., 0][det]) <= 1.06 * np.median(old.sigma_s[..., 0][det])
+
+
 def test_the_curvature_step_takes_out_what_a_plane_fit_misses():
     """Fits that miss a quadratic surface by exactly bend . H (noise-free, tiny sigma)
     are put back on it, to 1e-6 bins; the same fits on a plane (H = 0) are left alone to
@@ -1115,15 +1157,8 @@ def test_any_half_s_bias_reaches_the_detected_sigma_beside_a_small_step(monkeypa
     (c0, r0, n0), (c1, r1, n1) = _stripes_off_and_on(monkeypatch, name, cell, "STEP_ANY",
                                                      0.0, 0.9)
     assert sp.STEP_ANY > 0 and c1 >= c0 + gain and r1 == r0 and n1 == n0, (c0, c1, r0, r1)
-    counts = histograms(scene(), 10, 2, 11)
-    monkeypatch.setattr(sp, "STEP_ANY", 0.0)
-    old = sp.spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
-    monkeypatch.undo()
-    new = sp.spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
-    assert np.array_equal(new.t_s, old.t_s, equal_nan=True)
-    assert np.array_equal(new.detected, old.detected)
-    moved = new.sigma_s != old.sigma_s
-    assert not moved[~new.detected].any() and (new.sigma_s[moved] > old.sigma_s[moved]).all()
+    _, new, moved = _sigma_only_off_and_on(monkeypatch, histograms(scene(), 10, 2, 11),
+                                           "STEP_ANY", 0.0)
     assert 0 < moved[new.detected].mean() < 0.03
 
 
