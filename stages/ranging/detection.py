@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.special import gammainc
+from scipy.special import betainc, gammainc
 
 from stages.ranging._numba import numba
 from stages.ranging.histograms import Histograms
@@ -73,6 +73,20 @@ def poisson_tail(c, b) -> np.ndarray:
     c = np.floor(np.asarray(c, np.float64))
     b = np.maximum(np.asarray(b, np.float64), 0.0)
     return np.where(c <= 0, 1.0, gammainc(np.maximum(c, 1.0), b))
+
+
+def rise_p(cc, cp, bc, bp, lc, lp) -> np.ndarray:
+    """The p-value of counts ``cc`` in a window of length ``lc`` after ``cp`` in one of
+    length ``lp`` (bins or seconds), their backgrounds ``bc`` and ``bp``, under the null
+    that the later window's signal a unit of time is no larger than the earlier's (a
+    tail that decays): P(X >= cc), X binomial over cc + cp at the later window's largest
+    share under the null (its length's or its background's share). Conditional on the
+    sum, so the tail's unknown size does not enter. With no count after, 1."""
+    cc, cp = np.asarray(cc, np.float64), np.maximum(np.asarray(cp, np.float64), 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        p0 = np.fmax(np.where(bc + bp > 0, bc / (bc + bp), 0.0),
+                     np.where(lc + lp > 0, lc / (lc + lp), 1.0))
+    return np.where(cc > 0, betainc(np.maximum(cc, 1e-300), cp + 1.0, p0), 1.0)
 
 
 def detection_threshold(b, p_fa: float, n_bins) -> np.ndarray:

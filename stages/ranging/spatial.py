@@ -54,7 +54,10 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    signal a pixel leaves at ``p_fa``). A pixel beside an object, in empty sky, has a
    quarter of windows that see only sky, and so no surface unless its own photons say
    so; one in a wedge of sky narrower than a right angle has none, and only the photons
-   around it can refuse it.
+   around it can refuse it. A candidate later than one the window detects must also rise:
+   the neighbours' counts within +-``RISE`` sigmas of its plane above their counts
+   before it (:func:`_rises`), or it is a tail of the earlier return (a SPAD's response
+   decays over 0.1-1 ns; the model's pulse is Gaussian), not a surface.
    3b. Which candidate an undetected pixel reports (:func:`_relabel`): from where a
    graph cut over the frame's planes puts it (:mod:`stages.ranging.planecut`: the
    labelling of least likelihood plus boundary length, isotropic), a few ICM sweeps
@@ -119,7 +122,13 @@ from scipy.special import erf, expit, logit, pdtr
 
 from stages.ranging import edgelines, planecut
 from stages.ranging._numba import numba
-from stages.ranging.detection import poisson_tail, profile_keep, profile_passes, profile_per_bin
+from stages.ranging.detection import (
+    poisson_tail,
+    profile_keep,
+    profile_passes,
+    profile_per_bin,
+    rise_p,
+)
 
 WINDOW = 3      # k: the window is (2k + 1)^2 pixels
 CURVE_R = 4     # the curvature's quadratic: over the (2 CURVE_R + 1)^2 around a pixel
@@ -165,6 +174,8 @@ NONE_K = 2         # no surface: an undetected pixel whose (2 NONE_K + 1)^2 arou
 NONE_P = 0.023     # summed, no detection at this p (2 sds' one tail) about each plane's time
 NONE_OPEN = True   # and a 3 x 3 of such pixels covers (a binary opening)
 LONE = True        # 2d: a surface the neighbours do not hold ranged by the pixel's photons
+RISE = 1.5         # 3: a return after a detected one: its neighbours' counts in +- this many
+#                    sigmas rise over theirs before it (0: off; a response's tail decays)
 OWN_CAND = True    # 1: the pixel's own strongest box a candidate where the windows' miss it
 PROFILE_BLOCK = 32  # the background's time profile: its blocks (bins)
 PROFILE_P = 1e-4    # and the chi-square test's p below which the frame is not flat
@@ -543,6 +554,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
     t_out, sig_out, sig_cnt = np.full(shape, np.nan), np.full(shape, np.inf), np.zeros(shape)
     own, surr, rank = np.zeros(shape, bool), np.zeros(shape, bool), np.zeros(shape)
     seen = np.zeros(shape, bool)   # the window detects the candidate (6: a surface near)
+    t0_r = np.full(shape, np.nan)  # each candidate's t0 (bins)
     # per candidate, for the relabelling (3b): the plane's slopes (bins a pixel), the
     # pixel's own counts in its test window and their background
     slope = np.zeros(shape + (2,))
@@ -787,6 +799,19 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
                           + (inside * near).sum(-1) * s_pix) < p_fa)
         quad = (nquad == 4) & ~veto
         found = cand_ok[..., r] & np.isfinite(t0)
+        if RISE and r:
+            # later than a candidate the window detects: the neighbours' counts must rise
+            # over theirs in the gap back to that one's pulse, or in the 2 RISE sigmas
+            # just before (a decaying tail rises over neither; "A response's tail is not
+            # a second surface" in docs/ranging.md)
+            before = np.where(seen[..., :r] & (t0_r[..., :r] < t0[..., None]),
+                              t0_r[..., :r], -np.inf).max(-1)
+            ii, jj = np.nonzero(found & np.isfinite(before))
+            tq = t0[ii, jj, None] + a_s[ii, jj, None] * dr + b_s[ii, jj, None] * dc
+            k = RISE * sb
+            lead = np.maximum(2 * k, t0[ii, jj] - k - (before[ii, jj] + 3 * sb))
+            found[ii, jj] = _rises(P, qn[ii, jj], on[ii, jj], beta_q[ii, jj], tq, k, lead, n,
+                                   prof, p_fa / n)
         slope[..., r, 0], slope[..., r, 1] = a_s, b_s
         mine_r[..., r], bw_r[..., r] = mine, bw
         # -- 2c. the pixel's own photons, a second estimate of its time (after the
@@ -854,6 +879,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         # (a candidate the window does not detect still gives the pixel a distance, as a
         # per-pixel estimator's undetected peak does; it is never detected)
         t_out[..., r] = np.where(np.isfinite(t0), t0 * bin_s + t0_s, np.nan)
+        t0_r[..., r] = t0
         sig_out[..., r] = np.sqrt(var_t0) * bin_s
         lean[..., r] = sv
         sig_cnt[..., r] = tot / np.maximum(inside.sum(-1), 1)
@@ -1068,6 +1094,29 @@ def _window_quadratic(n0, s1, pos, var_photon, X, dr, dc, cal=None):
         var = var + np.maximum(n0, 0.0) ** 2 * cal
     chi = (res ** 2 / var).sum(-1)
     return chi, np.maximum(pos.sum(-1) - 6, 1), var
+
+
+def _rises(P, qn, on, beta_q, tq, k, lead, n, prof, alpha) -> np.ndarray:
+    """Whether the neighbours' counts within +-``k`` bins of their plane (``tq``: (p, m)
+    times, bins) stand above their counts just before, at ``alpha``: in the ``lead``
+    (p,) bins before (the gap back to the earlier return's pulse, at least 2 ``k``: power
+    where the gap holds background alone) or in the 2 ``k`` bins before (power where a
+    tail fills the gap), each at ``alpha`` / 2. Each the binomial split of the two
+    windows' sum (two Poisson counts, the test conditional on their sum), under the null
+    that the later window's mean a bin is no larger than the earlier's (a tail that
+    decays: a SPAD's diffusion tail behind a return; the background's share where it is
+    larger, a profile not flat in time). Closer than 2 ``k`` to the earlier pulse, the
+    window holds that pulse's edge, and the candidate does not rise over it."""
+    _, _, _, cc, bc = _window_sums_numpy(P, qn, on, beta_q, tq, k, n, prof)
+    lc = _window_sums_numpy(P, qn, on, on, tq, k, n)[4].sum(-1)   # the window's bins
+    cc, bc = cc.sum(-1), bc.sum(-1)
+    p = np.ones(len(tq))
+    for lp_ in (lead, np.full(len(tq), 2.0 * k)):
+        hp = lp_[:, None] / 2
+        _, _, _, cp, bp = _window_sums_numpy(P, qn, on, beta_q, tq - k - hp, hp, n, prof)
+        lp = _window_sums_numpy(P, qn, on, on, tq - k - hp, hp, n)[4].sum(-1)
+        p = np.minimum(p, rise_p(cc, cp.sum(-1), bc, bp.sum(-1), lc, lp))
+    return p <= alpha / 2
 
 
 def _window_sums_numpy(P, qn, on, beta_q, tq, half, n, prof=None):
