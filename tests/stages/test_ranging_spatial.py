@@ -1747,25 +1747,16 @@ def test_the_lines_posteriors_hold_against_the_truth():
     assert wrong[lo].sum() <= 5 * p[lo].sum() + 5
 
 
-def _tailed(rng, signal, background, frac=0.3, tau_s=1e-9, h=32, w=32, second=None):
-    """A slanted plane 5 m away seen through a response with a diffusion tail: each
-    signal photon's time is the pulse's Gaussian and, for ``frac`` of them, an
+def _tailed(rng, signal, background, frac=0.3, tau_s=1e-9, second=None):
+    """A slanted plane 5 m away on 32 x 32 pixels seen through a response with a
+    diffusion tail (benchmarks/spatial_tail.py's generator, numpy photon by photon):
+    each signal photon's time is the pulse's Gaussian and, for ``frac`` of them, an
     exponential delay of mean ``tau_s`` (a SPAD's slow carriers). ``second`` (metres
-    behind, photons a pixel): a second plane behind the right half. Returns the
-    counts, the first plane's and the second's depths (NaN where none) in metres."""
-    rr, cc = np.mgrid[0:h, 0:w]
-    d1 = 5.0 + 0.01 * rr + 0.005 * cc
-    d2 = np.where(cc >= w // 2, d1 + (second[0] if second else np.nan), np.nan)
-    counts = np.zeros(h * w * N_BINS, np.int64)
-    for d, s in ((d1, signal), (d2, second[1] if second else 0)):
-        k = np.where(np.isfinite(d), rng.poisson(s, (h, w)), 0)
-        idx = np.repeat(np.arange(h * w), k.ravel())
-        t = 2 * np.nan_to_num(d).ravel()[idx] / C + rng.normal(0, SIGMA_S, idx.size)
-        late = rng.random(idx.size) < frac
-        t[late] += rng.exponential(tau_s, late.sum())
-        np.add.at(counts, idx * N_BINS + np.clip((t / BIN_S).astype(int), 0, N_BINS - 1), 1)
-    counts = counts.reshape(h, w, N_BINS) + rng.poisson(background / N_BINS, (h, w, N_BINS))
-    return counts, d1, d2
+    behind, photons a pixel): a second plane behind the right half. Returns the counts,
+    the first plane's and the second's depths (NaN where none) in metres."""
+    from benchmarks.spatial_tail import frame
+
+    return frame(rng, signal, background, frac, tau_s, second, h=32, w=32)
 
 
 @pytest.mark.parametrize("signal, background, tau_s", [(100, 10, 1e-9), (30, 10, 1e-9),
