@@ -45,10 +45,12 @@ ROWS = [
 ]
 
 
-def frame(rng, signal, background, frac, tau, second, h=64, w=64):
-    """Counts (h, w, bins) and the two planes' depths (m; the second NaN where none)."""
+def frame(rng, signal, background, frac, tau, second, h=64, w=64, base_m=5.0, tilt=True):
+    """Counts (h, w, bins) and the two planes' depths (m; the second NaN where none):
+    the first plane ``base_m`` away at the first pixel, 1 and 0.5 cm further a row and a
+    column (``tilt``; else flat)."""
     rr, cc = np.mgrid[0:h, 0:w]
-    d1 = 5.0 + 0.01 * rr + 0.005 * cc
+    d1 = base_m + (0.01 * rr + 0.005 * cc if tilt else 0.0 * rr)
     d2 = np.where(cc >= w // 2, d1 + (second[0] if second else np.nan), np.nan)
     counts = np.zeros(h * w * N_BINS, np.int64)
     for d, s in ((d1, signal), (d2, second[1] if second else 0)):

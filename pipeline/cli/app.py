@@ -446,7 +446,8 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
 @click.option("--delay-ps", type=float, default=None,
               help="PTU T3: the system delay (time of a zero-distance return after the sync).")
 @click.option("--zero", type=click.Path(exists=True), default=None,
-              help="PTU T3: a zero-distance file (or its histograms) to measure the delay on.")
+              help="PTU T3 or generic histograms: a zero-distance file (or its histograms) "
+                   "to measure the delay on (with --spatial: ranged with the neighbours).")
 @click.option("--gate", default=None, help="PTU T3: only returns in LO:HI ns after the sync.")
 @click.option("--max-returns", type=click.IntRange(min=1), default=None,
               help="Returns (surfaces) a pixel may have, each with its own detection "
@@ -467,7 +468,7 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
                    "tcspc capture's TDCs by --geometry, each TDC's calibrated axis mapped "
                    "onto one): each pixel ranged with its neighbours, for few photons in "
                    "strong background (docs/ranging.md); generic histograms need "
-                   "--delay-ps and --irf-ps, a capture --calibration.")
+                   "--irf-ps and --delay-ps or --zero, a capture --calibration.")
 @click.option("--geometry", default=None,
               help="With --spatial: the array's layout (docs/geometry.md).")
 @click.option("--force", is_flag=True,

@@ -66,16 +66,19 @@ def range_spatial(capture, out, spatial, geometry, irf_ps, p_fa, delay_ps, max_r
 
     if not spatial:
         raise click.UsageError("--geometry is for --spatial (and `tcspc export`)")
+    zero = refused.pop("zero", None)
     given = [f"--{k}" for k, v in refused.items() if v]
     if given:
         raise click.UsageError(f"{', '.join(given)}: not with --spatial (it takes "
-                               "--delay-ps and --irf-ps)")
-    if irf_ps is None or delay_ps is None:
-        raise click.UsageError("--spatial needs --irf-ps (the pulse's sigma) and --delay-ps")
+                               "--delay-ps or --zero, and --irf-ps)")
+    if irf_ps is None or (delay_ps is None) == (zero is None):
+        raise click.UsageError("--spatial needs --irf-ps (the pulse's sigma) and one of "
+                               "--delay-ps and --zero (a zero-distance file to measure the "
+                               "delay on with the neighbours)")
     try:
         check_p_fa(p_fa)
         check_sigma(irf_ps, name="--irf-ps")
-        if not np.isfinite(delay_ps):
+        if delay_ps is not None and not np.isfinite(delay_ps):
             raise ValueError(f"--delay-ps must be finite, found {delay_ps}")
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from exc
@@ -84,11 +87,20 @@ def range_spatial(capture, out, spatial, geometry, irf_ps, p_fa, delay_ps, max_r
     from pipeline.io.geometry import load_geometry
     from pipeline.offline.generic import write_ranges
     from pipeline.offline.spatial import range_spatial as run
+    from pipeline.offline.spatial import zero_delay_spatial
 
     t0 = time.perf_counter()
     geom = load_geometry(geometry) if geometry else None
-    table, unplaced = run(capture, delay_ps * 1e-12, irf_ps * 1e-12, p_fa, geom,
-                          max_returns or 2)
+    delay_s, delay_sd = (delay_ps or 0.0) * 1e-12, 0.0
+    if zero is not None:
+        _spatial_input(zero)
+        delay_s, delay_sd, n_zero = zero_delay_spatial(zero, irf_ps * 1e-12, p_fa, geom)
+        if not quiet:
+            err.print(f"delay {delay_s * 1e12:.1f} ps +- {delay_sd * 1e12:.2f} ps, measured "
+                      f"with the neighbours on {zero} ({n_zero} pixels detected)",
+                      highlight=False)
+    table, unplaced = run(capture, delay_s, irf_ps * 1e-12, p_fa, geom, max_returns or 2,
+                          delay_sd_s=delay_sd)
     if unplaced:
         warn(f"{unplaced} row(s) without a place on the array: not ranged")
     write_ranges(table, out)

@@ -53,9 +53,10 @@ def _places(path, table: pa.Table, geom: Geometry | None) -> dict[tuple[str, int
 
 def range_spatial(path: str | Path, delay_s: float, sigma_s: float, p_fa: float,
                   geom: Geometry | None = None, max_returns: int = 2,
-                  threads: int = 2) -> tuple[pa.Table, int]:
+                  threads: int = 2, delay_sd_s: float = 0.0) -> tuple[pa.Table, int]:
     """The ranges table of a generic histograms file, and how many non-reference rows
-    had no place (not ranged: the caller says so)."""
+    had no place (not ranged: the caller says so). ``delay_sd_s``: the delay's own
+    standard error (a measured one's), in every sigma in quadrature."""
     table = pq.read_table(path)
     meas = read_generic(path, table)
     places = _places(path, table, geom)
@@ -95,7 +96,7 @@ def range_spatial(path: str | Path, delay_s: float, sigma_s: float, p_fa: float,
             "measurement": pa.array([m.name] * n_i.size, pa.string()),
             "tdc": pa.array(m.tdc[use][n_i], pa.uint32()),
             "distance_m": dist,
-            "sigma_m": est.sigma_s[r, c][n_i, k_i] * C_LIGHT / 2,
+            "sigma_m": np.hypot(est.sigma_s[r, c][n_i, k_i], delay_sd_s) * C_LIGHT / 2,
             "fwhm_m": np.full(n_i.size, 2.3548200450309493 * sigma_s * C_LIGHT / 2),
             "signal_counts": est.signal_counts[r, c][n_i, k_i],
             "background_per_bin": est.background_per_bin[r, c][n_i, k_i],
@@ -111,6 +112,27 @@ def range_spatial(path: str | Path, delay_s: float, sigma_s: float, p_fa: float,
         raise SchemaMismatch(f"{path}: no row to range with --spatial (every row a "
                              "reference channel or without a place)")
     return pa.concat_tables(parts), unplaced
+
+
+def zero_delay_spatial(path: str | Path, sigma_s: float, p_fa: float,
+                       geom: Geometry | None = None, threads: int = 2) -> tuple[float, float, int]:
+    """The delay (s) that `range --spatial --zero` takes: a zero-distance file (a target
+    at the zero in every pixel) ranged with the neighbours from the histograms' start,
+    the median of its detected first returns' times. The same estimator then times the
+    captures, so its own offset under a response that is not its Gaussian (a tail pulls
+    its time 4-6 mm late: docs/ranging.md "A response's tail is not a second surface")
+    cancels. Returns the delay, its standard error (1.253 x the times' robust sd over
+    sqrt(n)), and n, the detected pixels; none detected is refused."""
+    table, _ = range_spatial(path, 0.0, sigma_s, p_fa, geom, max_returns=1, threads=threads)
+    det = table.column("detected").to_numpy(zero_copy_only=False)
+    t = 2 * table.column("distance_m").to_numpy()[det] / C_LIGHT
+    t = t[np.isfinite(t)]
+    if not t.size:
+        raise SchemaMismatch(f"{path}: no pixel of the zero-distance file detected with "
+                             "the neighbours: no delay to measure")
+    med = float(np.median(t))
+    sd = 1.4826 * float(np.median(np.abs(t - med)))
+    return med, 1.253 * sd / np.sqrt(t.size), int(t.size)
 
 
 #: the common time axis's bin, a fraction of the chip's median LSB (docs/ranging.md
