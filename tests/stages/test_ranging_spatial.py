@@ -1456,10 +1456,9 @@ def test_an_undetected_pixel_on_another_surface_widens_its_sigma(monkeypatch):
     moves. (With the 3 x 3 pooled since: the fence 39.8 -> 81.4 %, the floor 46.0 ->
     89.2 %, the grid 99.1 % with 5.2 % of its sigmas moved and the median 1.25 -> 1.29
     cm. With the rise test of a later return since, the fence 39.8 -> 81.4 % and the
-    floor 56.1 -> 75.7 %: the floor's pixels where it meets the wall, 2 m off with a
-    sigma of 1.7 m before it, are now 3-5 cm off with the plane's sigma of 7 mm.)"""
+    floor 44.3 -> 83.9 %.)"""
 
-    for name, before, after in (("fence", 0.45, 0.72), ("grazing", 0.6, 0.66),
+    for name, before, after in (("fence", 0.45, 0.72), ("grazing", 0.47, 0.66),
                                 ("grid", 1.0, 0.98)):
         old, new, und, moved, c0, c1 = _undetected_sigma_off_and_on(monkeypatch, name,
                                                                     "OFF_P", 0.0)
