@@ -121,8 +121,10 @@ def zero_delay_spatial(path: str | Path, sigma_s: float, p_fa: float,
     the median of its detected first returns' times. The same estimator then times the
     captures, so its own offset under a response that is not its Gaussian (a tail pulls
     its time 4-6 mm late: docs/ranging.md "A response's tail is not a second surface")
-    cancels. Returns the delay, its standard error (1.253 x the times' robust sd over
-    sqrt(n)), and n, the detected pixels; none detected is refused."""
+    cancels. Returns the delay, its standard error, and n, the detected pixels; none
+    detected is refused. The error is the median's, 1.253 x the times' robust sd over
+    the root of the independent pixels: a pixel's time is a fit over its window's
+    neighbours, so n over the window's pixels (at least 1), not n."""
     table, _ = range_spatial(path, 0.0, sigma_s, p_fa, geom, max_returns=1, threads=threads)
     det = table.column("detected").to_numpy(zero_copy_only=False)
     t = 2 * table.column("distance_m").to_numpy()[det] / C_LIGHT
@@ -132,7 +134,10 @@ def zero_delay_spatial(path: str | Path, sigma_s: float, p_fa: float,
                              "the neighbours: no delay to measure")
     med = float(np.median(t))
     sd = 1.4826 * float(np.median(np.abs(t - med)))
-    return med, 1.253 * sd / np.sqrt(t.size), int(t.size)
+    from stages.ranging.spatial import WINDOW
+
+    n_eff = max(t.size / (2 * WINDOW + 1) ** 2, 1.0)
+    return med, 1.253 * sd / np.sqrt(n_eff), int(t.size)
 
 
 #: the common time axis's bin, a fraction of the chip's median LSB (docs/ranging.md

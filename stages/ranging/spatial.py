@@ -1113,15 +1113,18 @@ def _rises(P, qn, on, beta_q, tq, k, lead, n, prof, alpha) -> np.ndarray:
     decays: a SPAD's diffusion tail behind a return; the background's share where it is
     larger, a profile not flat in time). Closer than 2 ``k`` to the earlier pulse, the
     window holds that pulse's edge, and the candidate does not rise over it."""
+    def bins(t, half):  # the window's bins over the neighbours, as the sums clip them
+        a = np.clip(np.floor(t - half + 0.5).astype(np.int64), 0, n)
+        z = np.clip(np.floor(t + half + 0.5).astype(np.int64), 0, n)
+        return ((z - a) * on).sum(-1)
+
     _, _, _, cc, bc = _window_sums_numpy(P, qn, on, beta_q, tq, k, n, prof)
-    lc = _window_sums_numpy(P, qn, on, on, tq, k, n)[4].sum(-1)   # the window's bins
-    cc, bc = cc.sum(-1), bc.sum(-1)
+    lc, cc, bc = bins(tq, k), cc.sum(-1), bc.sum(-1)
     p = np.ones(len(tq))
     for lp_ in (lead, np.full(len(tq), 2.0 * k)):
         hp = lp_[:, None] / 2
         _, _, _, cp, bp = _window_sums_numpy(P, qn, on, beta_q, tq - k - hp, hp, n, prof)
-        lp = _window_sums_numpy(P, qn, on, on, tq - k - hp, hp, n)[4].sum(-1)
-        p = np.minimum(p, rise_p(cc, cp.sum(-1), bc, bp.sum(-1), lc, lp))
+        p = np.minimum(p, rise_p(cc, cp.sum(-1), bc, bp.sum(-1), lc, bins(tq - k - hp, hp)))
     return p <= alpha / 2
 
 

@@ -1892,3 +1892,59 @@ def test_range_spatial_measures_its_delay_on_a_zero_file(tmp_path):
         p = subprocess.run(run + how + ["--out", str(tmp_path / "x.parquet")],
                            capture_output=True, text=True)
         assert p.returncode == 2 and "--zero" in p.stderr, p.stderr
+    # a zero file where nothing is detected (background alone): refused, nothing written
+    dark = write(tmp_path / "dark.parquet",
+                 np.random.default_rng(3).poisson(2 / N_BINS, (8, 8, N_BINS)))
+    p = subprocess.run(run + ["--zero", dark, "--out", str(tmp_path / "x.parquet")],
+                       capture_output=True, text=True)
+    assert p.returncode == 2 and "no delay to measure" in p.stderr, p.stderr
+    assert not (tmp_path / "x.parquet").exists()
+
+
+@pytest.mark.parametrize("signal, off_at_least", [(100, 0.01), (300, 0.3), (1000, 0.8)])
+def test_a_real_sensors_tail_is_not_a_second_surface(monkeypatch, signal, off_at_least):
+    """A real response, not a model of one: the TMF8820's measured return (capture_040,
+    zone 4 of tests/data/tmf8820, its background's median taken out: a core of sigma 84
+    ps and 8 % of the photons beyond 3 of them, decaying over ~1.5 ns) drawn photon by
+    photon onto a tilted plane 5 m away, 32 x 32 pixels, 10 background photons a pixel.
+    Without the rise test a detected return off the plane in 2.0 % (100 photons), 45 %
+    (300) and 90 % (1,000) of the pixels; with it, none, and every first return
+    detected."""
+    import json
+
+    from pipeline.io.tmf8820 import tmf8820_table
+    from stages.ranging import spatial as sp
+
+    tab, _ = tmf8820_table(json.loads((Path(__file__).resolve().parents[1] / "data" / "tmf8820"
+                                       / "distance_data_even.json").read_text()))
+    row = [c for m, t, c in zip(tab.column("measurement").to_pylist(),
+                                tab.column("tdc").to_pylist(),
+                                tab.column("counts").to_pylist(), strict=True)
+           if m == "capture_040" and t == 4][0]
+    h = np.asarray(row, float)
+    pk = int(h.argmax())
+    p = np.clip(h[pk - 3:pk + 45] - np.median(h[:pk - 4]), 0, None)
+    p /= p.sum()
+    width = 91e-12                                        # the sensor's bins
+    cen = (np.arange(-3, 45) + 0.5) * width
+    core = np.abs(np.arange(-3, 45)) <= 2
+    mu = (p[core] * cen[core]).sum() / p[core].sum()
+    sig = np.sqrt((p[core] * (cen[core] - mu) ** 2).sum() / p[core].sum())
+    rng = np.random.default_rng(signal)
+    rr, cc = np.mgrid[0:32, 0:32]
+    d = 5.0 + 0.01 * rr + 0.005 * cc
+    idx = np.repeat(np.arange(d.size), rng.poisson(signal, d.size))
+    t = (2 * d.ravel()[idx] / C + cen[rng.choice(p.size, idx.size, p=p)] - mu
+         + (rng.random(idx.size) - 0.5) * width)
+    counts = np.bincount(idx * N_BINS + np.clip((t / BIN_S).astype(int), 0, N_BINS - 1),
+                         minlength=d.size * N_BINS).reshape(32, 32, N_BINS)
+    counts = counts + rng.poisson(10 / N_BINS, counts.shape)
+
+    def off_plane():
+        est = sp.spatial(counts, BIN_S, sig, 1e-3, threads=2)
+        assert est.detected[..., 0].all()
+        return (est.detected & (np.abs(est.t_s * C / 2 - d[..., None]) > 0.05)).any(-1).mean()
+    monkeypatch.setattr(sp, "RISE", 0)
+    assert off_plane() >= off_at_least
+    monkeypatch.undo()
+    assert off_plane() == 0.0
