@@ -231,8 +231,12 @@ class SpatialEstimate:
 def _box(a: np.ndarray, k: int, dtype=np.float64) -> np.ndarray:
     """Sums over the (2k+1)^2 window (clipped at the image's edges) along axes 0 and 1,
     in ``dtype``: shifted adds along each axis (numpy's prefix sums along the image's
-    axes, not the array's last, cost 2-5x as much on a frame)."""
+    axes, not the array's last, cost 2-5x as much on a frame). float64 values that float32
+    holds exactly (photon counts) are added as float32: the same sums, a third of the
+    time of adding float64 into float32."""
     rows = np.array(a, dtype)
+    if rows.dtype != a.dtype and np.array_equal(rows, a):
+        a = rows.copy()
     for d in range(1, k + 1):
         rows[d:] += a[:-d]
         rows[:-d] += a[d:]
@@ -398,6 +402,201 @@ def _check(counts, bin_s, sigma_s, p_fa, window, max_returns) -> None:
                          f"{max_returns}")
 
 
+def _boxed(A: np.ndarray, k: int) -> np.ndarray:
+    """Counts in bins [j - k, j + k] (clipped) for every bin j, from the prefix sums
+    ``A`` (h, w, n + 1): A[min(j + k + 1, n)] - A[max(j - k, 0)], by slices."""
+    h, w, n = A.shape[0], A.shape[1], A.shape[2] - 1
+    if 2 * k + 1 > n:
+        p = np.pad(A, ((0, 0), (0, 0), (k, k)), mode="edge")
+        return p[..., 2 * k + 1:2 * k + 1 + n] - p[..., :n]
+    out = np.empty((h, w, n), A.dtype)
+    np.subtract(A[..., 2 * k + 1:], A[..., :n - 2 * k], out=out[..., k:n - k])
+    np.subtract(A[..., k + 1:2 * k + 1], A[..., :1], out=out[..., :k])
+    np.subtract(A[..., n:], A[..., n - 2 * k:n - k], out=out[..., n - k:])
+    return out
+
+
+def _box_argmax(A: np.ndarray, k: int, compiled: bool) -> tuple:
+    """Each pixel's strongest box of +- ``k`` bins (:func:`_boxed`): its centre bin (the
+    first on a tie) and its counts, in ``A``'s dtype; by numba where ``compiled`` (the
+    same result, tested)."""
+    if compiled:
+        return _box_argmax_numba(A, k)
+    boxed = _boxed(A, k)
+    c = np.argmax(boxed, axis=-1)
+    return c, np.take_along_axis(boxed, c[..., None], -1)[..., 0]
+
+
+def _search(PA, bgA, halves, sb, nc, prof, compiled) -> tuple:
+    """Step 1's search: each bin's excess over the window's background (``bgA`` a bin,
+    spread over the bins by ``prof``) in sds, float32, for a box of each of ``halves``
+    (+- bins) with its best kept, then ``nc`` candidates block by block (blocks of
+    ``int(sb)`` bins), each the strongest block left, and the blocks within its box and
+    4 sigma of it left out from then on. Returns (h, w, nc) each: the candidates' bins,
+    their boxes' half widths (bins, float) and whether a box was left to take (not
+    every block left out). By numba where ``compiled``: the same float32 operations in
+    the same order, one pixel at a time without the (h, w, n) temporaries (the same
+    result, tested)."""
+    h, w, n = PA.shape[0], PA.shape[1], PA.shape[2] - 1
+    B = max(1, int(sb))
+    hv = np.array(halves, np.int64)
+    if compiled:
+        S0 = np.zeros(1) if prof is None else np.asarray(prof[1], np.float64)
+        cand, which, live = _search_numba(PA, np.asarray(bgA, np.float64), hv, float(sb), B,
+                                          nc, prof is None, S0)
+        return cand, hv[which].astype(np.float64), live
+    Z = np.full((h, w, n), -np.inf, np.float32)
+    which = np.zeros((h, w, n), np.int8)
+    for i, kb in enumerate(halves):
+        # the box's excess over its background in sds: in place, the box's full width
+        # inside the bins, its clipped ends apart
+        z = _boxed(PA, kb).astype(np.float32, copy=False)
+        if prof is not None:  # the background's profile over each bin's box
+            jb = np.arange(n)
+            b = bgA[..., None].astype(np.float32) * _span(
+                np.maximum(jb - kb, 0), np.minimum(jb + kb + 1, n), prof).astype(np.float32)
+            z -= b
+            z /= np.sqrt(b + np.float32(1.0))
+        else:
+            m = slice(kb, n - kb) if n > 2 * kb else slice(0, 0)
+            b = (bgA * (2 * kb + 1)).astype(np.float32)[..., None]
+            z[..., m] -= b
+            z[..., m] /= np.sqrt(b + np.float32(1.0))
+            for e_ in (slice(0, min(kb, n)), slice(max(n - kb, min(kb, n)), n)):
+                j_ = np.arange(n)[e_]
+                nb = np.minimum(j_ + kb + 1, n) - np.maximum(j_ - kb, 0)
+                b = (bgA[..., None] * nb).astype(np.float32)
+                z[..., e_] = (z[..., e_] - b) / np.sqrt(b + np.float32(1.0))
+        np.copyto(which, np.int8(i), where=z > Z)
+        np.maximum(Z, z, out=Z)
+    # the best of every block of bins (the first on a tie, as a running maximum: numpy's
+    # argmax over a last axis of 2 took 6 % of the frame)
+    nblk = -(-n // B)
+    Zp = np.pad(Z, ((0, 0), (0, 0), (0, nblk * B - n)), constant_values=-np.inf)
+    Zp = Zp.reshape(h, w, nblk, B)
+    Zb = Zp[..., 0].copy()
+    inb = np.zeros((h, w, nblk), np.int64)
+    for i in range(1, B):
+        np.copyto(inb, i, where=Zp[..., i] > Zb)
+        np.maximum(Zb, Zp[..., i], out=Zb)
+    cand = np.zeros((h, w, nc), np.int64)
+    half = np.zeros((h, w, nc))
+    live = np.zeros((h, w, nc), bool)
+    blkB = np.arange(nblk) * B
+    for r in range(nc):
+        k = np.argmax(Zb, axis=-1)
+        c = k * B + np.take_along_axis(inb, k[..., None], -1)[..., 0]
+        kb = hv[np.take_along_axis(which, c[..., None], -1)[..., 0]]
+        cand[..., r], half[..., r] = c, kb
+        live[..., r] = np.take_along_axis(Zb, k[..., None], -1)[..., 0] > -np.inf
+        # |blk B - c| <= kb + 4 sb + B, in integers: the bound's floor
+        reach = np.floor(kb + 4 * sb + B).astype(np.int64)[..., None]
+        near = (blkB >= (c[..., None] - reach)) & (blkB <= (c[..., None] + reach))
+        Zb = np.where(near, -np.inf, Zb)
+    return cand, half, live
+
+
+if numba is not None:
+    @numba.njit(cache=True, nogil=True)
+    def _box_argmax_numba(A, k):
+        """:func:`_box_argmax` a pixel at a time (equal results)."""
+        h, w, n1 = A.shape
+        n = n1 - 1
+        idx = np.zeros((h, w), np.int64)
+        val = np.empty((h, w), A.dtype)
+        for i in range(h):
+            for j in range(w):
+                best = A[i, j, min(k + 1, n)] - A[i, j, 0]
+                bi = 0
+                for t in range(1, n):
+                    v = A[i, j, min(t + k + 1, n)] - A[i, j, max(t - k, 0)]
+                    if v > best:
+                        best = v
+                        bi = t
+                idx[i, j] = bi
+                val[i, j] = best
+        return idx, val
+
+    @numba.njit(cache=True, nogil=True)
+    def _search_numba(PA, bgA, halves, sb, B, nc, flat, S0):
+        """:func:`_search` a pixel at a time (its float32 operations in its order: equal
+        results); returns the candidates' bins, their boxes' indices in ``halves`` and
+        whether each was live."""
+        h, w, n1 = PA.shape
+        n = n1 - 1
+        nblk = (n + B - 1) // B
+        cand = np.zeros((h, w, nc), np.int64)
+        hix = np.zeros((h, w, nc), np.int64)
+        live = np.zeros((h, w, nc), np.bool_)
+        Z = np.empty(n, np.float32)
+        zb = np.empty(n, np.float32)
+        which = np.empty(n, np.int64)
+        Zb = np.empty(nblk, np.float32)
+        inb = np.empty(nblk, np.int64)
+        one = np.float32(1.0)
+        ninf = np.float32(-np.inf)
+        for i in range(h):
+            for j in range(w):
+                bg = bgA[i, j]
+                bg32 = np.float32(bg)
+                for t in range(n):
+                    Z[t] = ninf
+                    which[t] = 0
+                for q in range(halves.size):
+                    kb = halves[q]
+                    # (a flat background's box inside the bins: one b and root a box)
+                    bi_ = np.float32(bg * (2 * kb + 1))
+                    si_ = np.sqrt(bi_ + one)
+                    inner = min(kb, n)
+                    if flat and n > 2 * kb:
+                        for t in range(kb, n - kb):
+                            zb[t] = (np.float32(PA[i, j, t + kb + 1] - PA[i, j, t - kb])
+                                     - bi_) / si_
+                        inner = n - kb
+                    for t in range(n):
+                        if flat and kb <= t < inner:
+                            continue
+                        lo = max(t - kb, 0)
+                        hi = min(t + kb + 1, n)
+                        x = np.float32(PA[i, j, hi] - PA[i, j, lo])
+                        if flat:
+                            b = np.float32(bg * (hi - lo))
+                        else:
+                            b = bg32 * np.float32(S0[hi] - S0[lo])
+                        zb[t] = (x - b) / np.sqrt(b + one)
+                    for t in range(n):
+                        up = zb[t] > Z[t]
+                        which[t] = q if up else which[t]
+                        Z[t] = zb[t] if up else Z[t]
+                for bk in range(nblk):
+                    t0 = bk * B
+                    best = Z[t0]
+                    bi = 0
+                    for s in range(1, B):
+                        if t0 + s < n and Z[t0 + s] > best:
+                            best = Z[t0 + s]
+                            bi = s
+                    Zb[bk] = best
+                    inb[bk] = bi
+                for r in range(nc):
+                    kmax = 0
+                    vb = Zb[0]
+                    for bk in range(1, nblk):
+                        if Zb[bk] > vb:
+                            vb = Zb[bk]
+                            kmax = bk
+                    c = kmax * B + inb[kmax]
+                    q = which[c]
+                    cand[i, j, r] = c
+                    hix[i, j, r] = q
+                    live[i, j, r] = vb > ninf
+                    reach = np.int64(np.floor(halves[q] + 4 * sb + B))
+                    for bk in range(nblk):
+                        if abs(bk * B - c) <= reach:
+                            Zb[bk] = ninf
+        return cand, hix, live
+
+
 def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
              cal_var=None, prof=None) -> tuple:
     """Steps 1-3 on a band of rows: per pixel and candidate, before the relabelling."""
@@ -420,76 +619,20 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         PA = _cumbins(_box(counts, k_win, dt), dt)       # (h, w, n + 1)
         halves = [max(1, int(round(x * sb))) for x in boxes]
 
-        def boxed(k, A=PA):  # counts in [j - k, j + k] (clipped) for every bin j: slices
-            if 2 * k + 1 > n:
-                p = np.pad(A, ((0, 0), (0, 0), (k, k)), mode="edge")
-                return p[..., 2 * k + 1:2 * k + 1 + n] - p[..., :n]
-            out = np.empty((h, w, n), A.dtype)
-            np.subtract(A[..., 2 * k + 1:], A[..., :n - 2 * k], out=out[..., k:n - k])
-            np.subtract(A[..., k + 1:2 * k + 1], A[..., :1], out=out[..., :k])
-            np.subtract(A[..., n:], A[..., n - 2 * k:n - k], out=out[..., n - k:])
-            return out
-
         # the window's background a bin: the mean without the strongest box's region
         # (at least half a count over the histogram: :func:`_rate`)
-        first = boxed(halves[0])
-        c0 = np.argmax(first, axis=-1)
+        c0, _ = _box_argmax(PA, halves[0], compiled)
         e = int(halves[-1] + 4 * sb)
         a0, z0 = np.clip(c0 - e, 0, n), np.clip(c0 + e + 1, 0, n)
         bgA = _rate(PA[..., n] - between(PA, a0, z0), n - _span(a0, z0, prof), n)
-        Z = np.full((h, w, n), -np.inf, np.float32)
-        which = np.zeros((h, w, n), np.int8)
-        for i, kb in enumerate(halves):
-            # the box's excess over its background in sds: in place, the box's full
-            # width inside the bins, its clipped ends apart
-            z = (first if i == 0 else boxed(kb)).astype(np.float32, copy=False)
-            if prof is not None:  # the background's profile over each bin's box
-                jb = np.arange(n)
-                b = bgA[..., None].astype(np.float32) * _span(
-                    np.maximum(jb - kb, 0), np.minimum(jb + kb + 1, n), prof).astype(np.float32)
-                z -= b
-                z /= np.sqrt(b + np.float32(1.0))
-                better = z > Z
-                np.copyto(which, np.int8(i), where=better)
-                np.maximum(Z, z, out=Z)
-                continue
-            m = slice(kb, n - kb) if n > 2 * kb else slice(0, 0)
-            b = (bgA * (2 * kb + 1)).astype(np.float32)[..., None]
-            z[..., m] -= b
-            z[..., m] /= np.sqrt(b + np.float32(1.0))
-            for e_ in (slice(0, min(kb, n)), slice(max(n - kb, min(kb, n)), n)):
-                j_ = np.arange(n)[e_]
-                nb = np.minimum(j_ + kb + 1, n) - np.maximum(j_ - kb, 0)
-                b = (bgA[..., None] * nb).astype(np.float32)
-                z[..., e_] = (z[..., e_] - b) / np.sqrt(b + np.float32(1.0))
-            better = z > Z
-            np.copyto(which, np.int8(i), where=better)
-            np.maximum(Z, z, out=Z)
-        # the best of every block of bins, then the candidates block by block, each at
-        # least its box and 4 sigma from the ones before it
-        B = max(1, int(sb))
-        nblk = -(-n // B)
-        Zp = np.pad(Z, ((0, 0), (0, 0), (0, nblk * B - n)), constant_values=-np.inf)
-        Zp = Zp.reshape(h, w, nblk, B)
-        inb = np.argmax(Zp, axis=-1)
-        Zb = np.take_along_axis(Zp, inb[..., None], -1)[..., 0]
-        cand = np.zeros((h, w, nc), np.int64)
-        half = np.zeros((h, w, nc))
+        cand, half, live = _search(PA, bgA, halves, sb, nc, prof, compiled)
         ok = np.zeros((h, w, nc), bool)
-        hv = np.array(halves)
-        blk = np.arange(nblk)
         for r in range(nc):
-            k = np.argmax(Zb, axis=-1)
-            c = k * B + np.take_along_axis(inb, k[..., None], -1)[..., 0]
-            kb = hv[np.take_along_axis(which, c[..., None], -1)[..., 0]]
-            cand[..., r], half[..., r] = c, kb
+            c, kb = cand[..., r], half[..., r].astype(np.int64)
             a, z = np.clip(c - kb, 0, n), np.clip(c + kb + 1, 0, n)
             # the union bound over the bins and the box widths
             ok[..., r] = ((poisson_tail(between(PA, a, z), bgA * _span(a, z, prof))
-                           <= p_fa / (n * len(halves)))
-                          & (np.take_along_axis(Zb, k[..., None], -1)[..., 0] > -np.inf))
-            near = np.abs(blk * B - c[..., None]) <= (kb + 4 * sb + B)[..., None]
-            Zb = np.where(near, -np.inf, Zb)
+                           <= p_fa / (n * len(halves))) & live[..., r])
         if OWN_CAND:
             # the pixel's own strongest box, where the window's candidates miss it: a lone
             # return of a few photons (a retroreflector at range) is no excess over the
@@ -500,9 +643,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
             # took a false return first). It takes the last slot no window candidate
             # holds (2d ranges it)
             k0 = halves[0]
-            mine_box = boxed(k0, P0)
-            c1 = np.argmax(mine_box, axis=-1)
-            cnt = np.take_along_axis(mine_box, c1[..., None], -1)[..., 0]
+            c1, cnt = _box_argmax(P0, k0, compiled)
             a1, z1 = np.clip(c1 - k0, 0, n), np.clip(c1 + k0 + 1, 0, n)
             bpix = _rate(P0[..., n] - cnt, n - _span(a1, z1, prof), n)
             got = poisson_tail(cnt, bpix * _span(a1, z1, prof)) <= p_fa / (n * h * w)

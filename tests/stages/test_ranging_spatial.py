@@ -1948,3 +1948,45 @@ def test_a_real_sensors_tail_is_not_a_second_surface(monkeypatch, signal, off_at
     assert off_plane() >= off_at_least
     monkeypatch.undo()
     assert off_plane() == 0.0
+
+
+@pytest.mark.skipif(numba is None, reason="numba not installed")
+@pytest.mark.parametrize("case", ["counts", "corrected", "large", "short", "empty", "profile"])
+@pytest.mark.parametrize("sb", [0.7, 2.34, 3.6])
+def test_the_candidates_search_compiled_and_numpy_agree(case, sb):
+    """Step 1's search (:func:`_search`, :func:`_box_argmax`) by numba and by numpy: the
+    same float32 operations in the same order, so the same candidates to the bit, on
+    photon counts, on non-integer (pile-up corrected) counts, on counts too large for
+    float32's window sums (the float64 prefix sums), on a histogram shorter than a box,
+    on no photons at all and through a background's profile; blocks of 1, 2 and 3 bins."""
+    from stages.ranging import spatial as sp
+
+    rng = np.random.default_rng(7)
+    n = 12 if case == "short" else 200
+    counts = rng.poisson(0.3, (5, 6, n)).astype(np.float64)
+    counts[:, :, n // 3] += rng.poisson(4.0, (5, 6))
+    if case == "corrected":
+        counts = counts * rng.uniform(1.0, 1.3, counts.shape)
+    elif case == "large":
+        counts = counts * 1e6
+    elif case == "empty":
+        counts[:] = 0.0
+    prof = None
+    if case == "profile":
+        s = np.exp(-2.0 * (np.arange(n) + 0.5) / n)
+        s /= s.mean()
+        S0 = np.concatenate([[0.0], np.cumsum(s)])
+        prof = (s, S0, S0, S0)  # (only the bins' sums, S0, enter the search)
+    dt = np.float32 if case in ("counts", "short", "empty", "profile") else np.float64
+    PA = sp._cumbins(sp._box(counts, 1, dt), dt)
+    halves = [max(1, int(round(x * sb))) for x in sp.BOXES]
+    bgA = rng.uniform(0.1, 2.0, (5, 6))
+    for k in halves:
+        a, b = sp._box_argmax(PA, k, True), sp._box_argmax(PA, k, False)
+        np.testing.assert_array_equal(a[0], b[0])
+        np.testing.assert_array_equal(a[1], b[1])
+        assert a[1].dtype == b[1].dtype == PA.dtype
+    a, b = (sp._search(PA, bgA, halves, sb, 4, prof, c) for c in (True, False))
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x, y)
+    assert (a[0] >= 0).all() and (a[0] < n).all()
