@@ -342,8 +342,9 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
     the pulse's (instrument response's) sigma. ``threads`` > 1 ranges bands of rows at
     once (numpy releases the GIL), each with ``2 window + 2`` rows of its neighbours', then
     relabels the whole image, so the result is the same as in one piece (tested).
-    ``compiled``: the plane fits' window sums and the edges' windows (3b) by numba
-    (default where it is installed) or numpy (the same result, tested). ``cal_var_s2``
+    ``compiled``: step 1's search, the plane fits' window sums, the relabelling's prior
+    and the edges' windows (3b) by numba (default where it is installed) or numpy (the
+    same result, tested). ``cal_var_s2``
     (rows, cols): each pixel's time axis's own error variance (s^2; a chip's
     calibration, fixed a pixel, independent between pixels), which the estimate carries
     as the fit weighs its neighbours: the sigma gains the sum over the neighbours of
@@ -1713,6 +1714,41 @@ def _carried(lab, tb, slope, sig_cnt, sig_out, shifted):
     return tl, tp, slp, scp, sgp
 
 
+if numba is not None:
+    @numba.njit(cache=True, nogil=True)
+    def _agreement_numba(tl, t, sl, tol, prior, line, diag, line_l):
+        """3b's prior of each plane (t, sl) (h, w, k) at each pixel given the labels' times
+        ``tl`` (h, w): ``prior`` for each of the 8 nearest on the plane (within ``tol``),
+        ``line`` for each of the 2 ``line_l`` pixels of the row, column or diagonal
+        (weighed ``diag``) through the pixel with most of them on it; :func:`_relabel`'s
+        ``agreement`` a pixel at a time (the same operations: equal results)."""
+        h, w, nk = t.shape
+        out = np.empty((h, w, nk))
+        for r in range(h):
+            for c in range(w):
+                for k in range(nk):
+                    t0, a, b = t[r, c, k], sl[r, c, k, 0], sl[r, c, k, 1]
+                    got = 0.0
+                    for i in range(-1, 2):
+                        for j in range(-1, 2):
+                            if (i != 0 or j != 0) and 0 <= r + i < h and 0 <= c + j < w \
+                                    and abs(tl[r + i, c + j] - (t0 + a * i + b * j)) < tol:
+                                got += 1.0
+                    best = 0.0
+                    for di in range(4):
+                        i = 0 if di == 0 else 1
+                        j = 1 if di == 0 else (0 if di == 1 else (1 if di == 2 else -1))
+                        run = 0.0
+                        for d in range(-line_l, line_l + 1):
+                            if d != 0 and 0 <= r + d * i < h and 0 <= c + d * j < w \
+                                    and abs(tl[r + d * i, c + d * j]
+                                            - (t0 + a * (d * i) + b * (d * j))) < tol:
+                                run += 1.0
+                        best = max(best, run * (diag if i != 0 and j != 0 else 1.0))
+                    out[r, c, k] = prior * got + line * best
+        return out
+
+
 def _scores(lab, tb, llr, slope, sig_cnt, sig_out, P0, beta, half, shifted, agreement,
             prof=None):
     """3b's score of every label a pixel may take under the labels ``lab``: its slots'
@@ -2186,6 +2222,11 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
         return out
 
     def agreement(tl, t, sl):  # the prior of the plane (t, sl): its 8 nearest and line
+        if compiled:
+            return _agreement_numba(
+                np.ascontiguousarray(tl, np.float64), np.ascontiguousarray(t, np.float64),
+                np.ascontiguousarray(sl, np.float64), float(tol), float(PRIOR), float(LINE),
+                float(DIAG), int(LINE_L))
         on = {}  # whether the neighbour at (i, j) lies on the plane
 
         def lies(i, j):

@@ -241,7 +241,8 @@ def _falling(h, w, photons, seed, e=3.0):
 @pytest.mark.skipif(numba is None, reason="numba not installed")
 @pytest.mark.parametrize("falling", [False, True, "steps"])
 def test_compiled_and_numpy_agree(falling):
-    """The plane fits' window sums and the edges' windows by numba and by numpy: the same
+    """Step 1's search, the plane fits' window sums, the relabelling's prior and the
+    edges' windows by numba and by numpy: the same
     operations in the same order (the edges' posteriors to rounding, far from where a
     pixel moves), so the same estimates to the bit (two surfaces, edges, sky; on a
     background that falls in time, through the background's profile; and small depth
