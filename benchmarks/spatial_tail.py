@@ -6,11 +6,14 @@ its photons come late, an exponential delay of its slow carriers (0.1-1 ns on th
 chips and sensors of docs/ranging.md "Real responses"). Each frame here is a slanted
 plane 5 m away on 64 x 64 pixels (1 024 bins of 80 ps, a 440-ps FWHM pulse), drawn
 photon by photon (numpy; nothing of the estimator's): each photon's time is the pulse's
-Gaussian and, for ``frac`` of them, an exponential delay of mean ``tau``. Some rows add
-a second plane behind the right half. Per row, off and on: the share of two-surface
-pixels whose second surface is detected (a detected return within 5 cm of it), and the
-share of pixels with a detected return on neither surface (> 5 cm from both: a false
-surface), and the first return's median error, over ``--seeds`` frames.
+Gaussian and, for ``frac`` of them, an exponential delay of mean ``tau`` (the last rows:
+a gamma of shape 8, a peaked delay). Some rows add a second plane behind the right half.
+Per row, off, on, and on with the response measured (``spatial.measure_response`` on a
+flat frame 1 m away of 100 photons a pixel and the same response, as `range --spatial
+--zero` measures it): the share of two-surface pixels whose second surface is detected
+(a detected return within 5 cm of it), and the share of pixels with a detected return
+on neither surface (> 5 cm from both: a false surface), and the first return's median
+error, over ``--seeds`` frames.
 
     python benchmarks/spatial_tail.py [--seeds 1-2]
 """
@@ -43,13 +46,20 @@ ROWS = [
     (100, 10, 0.3, 1e-9, (0.5, 10)), (100, 10, 0.3, 1e-9, (1.5, 10)),
     (20, 2, 0.3, 5e-10, (0.3, 10)),
     (100, 10, 0.3, 1e-9, (0.5, 3)), (100, 10, 0.3, 1e-9, (0.5, 2)), (30, 10, 0.3, 1e-9, (0.5, 2)),
+    # a peaked delay (a gamma of shape 8: a bump behind the pulse)
+    (100, 10, 0.3, 1e-9, None, 8.0), (30, 10, 0.3, 2e-9, None, 8.0),
+    (100, 10, 0.3, 2e-9, None, 8.0), (100, 10, 0.3, 3e-9, None, 8.0),
+    (100, 10, 0.3, 2e-9, (1.0, 10), 8.0), (100, 10, 0.3, 2e-9, (1.5, 10), 8.0),
+    (100, 10, 0.3, 2e-9, (0.5, 10), 8.0),
 ]
 
 
-def frame(rng, signal, background, frac, tau, second, h=64, w=64, base_m=5.0, tilt=True):
+def frame(rng, signal, background, frac, tau, second, h=64, w=64, base_m=5.0, tilt=True,
+          shape=1.0):
     """Counts (h, w, bins) and the two planes' depths (m; the second NaN where none):
     the first plane ``base_m`` away at the first pixel, 1 and 0.5 cm further a row and a
-    column (``tilt``; else flat)."""
+    column (``tilt``; else flat). The late photons' delay is a gamma of mean ``tau`` and
+    ``shape`` (1: the exponential; 8: a peaked delay, a bump behind the pulse)."""
     rr, cc = np.mgrid[0:h, 0:w]
     d1 = base_m + (0.01 * rr + 0.005 * cc if tilt else 0.0 * rr)
     d2 = np.where(cc >= w // 2, d1 + (second[0] if second else np.nan), np.nan)
@@ -59,7 +69,7 @@ def frame(rng, signal, background, frac, tau, second, h=64, w=64, base_m=5.0, ti
         idx = np.repeat(np.arange(h * w), k.ravel())
         t = 2 * np.nan_to_num(d).ravel()[idx] / C + rng.normal(0, SIGMA_S, idx.size)
         late = rng.random(idx.size) < frac
-        t[late] += rng.exponential(tau, late.sum()) if tau else 0.0
+        t[late] += rng.gamma(shape, tau / shape, late.sum()) if tau else 0.0
         np.add.at(counts, idx * N_BINS + np.clip((t / BIN_S).astype(int), 0, N_BINS - 1), 1)
     return counts.reshape(h, w, N_BINS) + rng.poisson(background / N_BINS, (h, w, N_BINS)), d1, d2
 
@@ -85,23 +95,31 @@ def main() -> None:
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, python "
           f"{platform.python_version()}; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
     print()
-    print("| signal | background | tail share | tail mean ns | second (m behind, photons) "
-          "| second found off -> on | false surfaces off -> on | first's median error mm |")
-    print("|---:|---:|---:|---:|---|---|---|---:|")
-    for s, b, frac, tau, second in ROWS:
-        got = {0: [], shipped: []}
+    print("| signal | background | tail share | tail mean ns | delay's shape "
+          "| second (m behind, photons) | second found off -> on -> response "
+          "| false surfaces off -> on -> response | first's median error mm |")
+    print("|---:|---:|---:|---:|---:|---|---|---|---:|")
+    for s, b, frac, tau, second, *shape in ROWS:
+        shape = shape[0] if shape else 1.0
+        got = {"off": [], "on": [], "response": []}
         for seed in seeds:
-            counts, d1, d2 = frame(np.random.default_rng(seed), s, b, frac, tau, second)
-            for rise in got:
+            zero = frame(np.random.default_rng(1000 + seed), 100, 10, frac, tau, None,
+                         base_m=1.0, tilt=False, shape=shape)[0]
+            resp = sp.measure_response(zero, sp.spatial(zero, BIN_S, SIGMA_S, 1e-3,
+                                                         max_returns=1, threads=2), BIN_S)
+            counts, d1, d2 = frame(np.random.default_rng(seed), s, b, frac, tau, second,
+                                   shape=shape)
+            for name, rise, kw in (("off", 0, {}), ("on", shipped, {}),
+                                   ("response", shipped, {"response": resp})):
                 sp.RISE = rise
-                got[rise].append(score(sp.spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2),
-                                       d1, d2))
+                got[name].append(score(sp.spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2,
+                                                  **kw), d1, d2))
         sp.RISE = shipped
-        off, on = np.mean(got[0], 0), np.mean(got[shipped], 0)
+        off, on, rs = (np.mean(got[k], 0) for k in ("off", "on", "response"))
         sec = "-" if second is None else f"{second[0]:g}, {second[1]}"
-        found = "-" if second is None else f"{off[0]:.1%} -> {on[0]:.1%}"
-        print(f"| {s} | {b} | {frac:g} | {tau * 1e9:g} | {sec} | {found} | "
-              f"{off[1]:.2%} -> {on[1]:.2%} | {on[2]:.1f} |", flush=True)
+        found = "-" if second is None else f"{off[0]:.1%} -> {on[0]:.1%} -> {rs[0]:.1%}"
+        print(f"| {s} | {b} | {frac:g} | {tau * 1e9:g} | {shape:g} | {sec} | {found} | "
+              f"{off[1]:.2%} -> {on[1]:.2%} -> {rs[1]:.2%} | {on[2]:.1f} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -447,7 +447,9 @@ def simulate(scene_path, cycles, out, seed, chip_seed, engine, malformed_rate, i
               help="PTU T3: the system delay (time of a zero-distance return after the sync).")
 @click.option("--zero", type=click.Path(exists=True), default=None,
               help="PTU T3 or generic histograms: a zero-distance file (or its histograms) "
-                   "to measure the delay on (with --spatial: ranged with the neighbours).")
+                   "to measure the delay on (with --spatial: ranged with the neighbours, "
+                   "and the response behind a return measured on it too, which a further "
+                   "return must then stand above).")
 @click.option("--gate", default=None, help="PTU T3: only returns in LO:HI ns after the sync.")
 @click.option("--max-returns", type=click.IntRange(min=1), default=None,
               help="Returns (surfaces) a pixel may have, each with its own detection "

@@ -91,16 +91,21 @@ def range_spatial(capture, out, spatial, geometry, irf_ps, p_fa, delay_ps, max_r
 
     t0 = time.perf_counter()
     geom = load_geometry(geometry) if geometry else None
-    delay_s, delay_sd = (delay_ps or 0.0) * 1e-12, 0.0
+    delay_s, delay_sd, response = (delay_ps or 0.0) * 1e-12, 0.0, None
     if zero is not None:
         _spatial_input(zero)
-        delay_s, delay_sd, n_zero = zero_delay_spatial(zero, irf_ps * 1e-12, p_fa, geom)
+        delay_s, delay_sd, n_zero, response = zero_delay_spatial(zero, irf_ps * 1e-12, p_fa,
+                                                                 geom)
         if not quiet:
-            err.print(f"delay {delay_s * 1e12:.1f} ps +- {delay_sd * 1e12:.2f} ps, measured "
+            k = -response.first + int(np.ceil(3 * irf_ps * 1e-12 / response.bin_s))
+            late = response.share[k:].sum() / max(response.share.sum(), 1e-300)
+            err.print(f"delay {delay_s * 1e12:.1f} ps +- {delay_sd * 1e12:.2f} ps and the "
+                      f"response ({late:.0%} of a return's counts later than 3 sigma), "
+                      "measured "
                       f"with the neighbours on {zero} ({n_zero} pixels detected)",
                       highlight=False)
     table, unplaced = run(capture, delay_s, irf_ps * 1e-12, p_fa, geom, max_returns or 2,
-                          delay_sd_s=delay_sd)
+                          delay_sd_s=delay_sd, response=response)
     if unplaced:
         warn(f"{unplaced} row(s) without a place on the array: not ranged")
     write_ranges(table, out)

@@ -53,10 +53,14 @@ def _places(path, table: pa.Table, geom: Geometry | None) -> dict[tuple[str, int
 
 def range_spatial(path: str | Path, delay_s: float, sigma_s: float, p_fa: float,
                   geom: Geometry | None = None, max_returns: int = 2,
-                  threads: int = 2, delay_sd_s: float = 0.0) -> tuple[pa.Table, int]:
+                  threads: int = 2, delay_sd_s: float = 0.0, response=None,
+                  frames: list | None = None) -> tuple[pa.Table, int]:
     """The ranges table of a generic histograms file, and how many non-reference rows
     had no place (not ranged: the caller says so). ``delay_sd_s``: the delay's own
-    standard error (a measured one's), in every sigma in quadrature."""
+    standard error (a measured one's), in every sigma in quadrature. ``response``: the
+    instrument's measured response (stages.ranging.spatial.Response), given to the
+    estimator. ``frames``: where given, each measurement's image, estimate and bin width
+    are appended to it."""
     table = pq.read_table(path)
     meas = read_generic(path, table)
     places = _places(path, table, geom)
@@ -76,8 +80,13 @@ def range_spatial(path: str | Path, delay_s: float, sigma_s: float, p_fa: float,
         h, w = rc.max(0) + 1
         img = np.zeros((h, w, m.counts.shape[1]))
         img[rc[:, 0], rc[:, 1]] = m.counts[use]
-        est = spatial(img, m.bin_width_s, sigma_s, p_fa, max_returns=max_returns,
-                      t0_s=-delay_s, threads=threads)
+        try:
+            est = spatial(img, m.bin_width_s, sigma_s, p_fa, max_returns=max_returns,
+                          t0_s=-delay_s, threads=threads, response=response)
+        except ValueError as exc:
+            raise SchemaMismatch(f"{path}: measurement {m.name!r}: {exc}") from exc
+        if frames is not None:
+            frames.append((img, est, m.bin_width_s))
         r, c = rc[:, 0], rc[:, 1]
         t = est.t_s[r, c]                                 # (n, k)
         det = est.detected[r, c]
@@ -115,7 +124,8 @@ def range_spatial(path: str | Path, delay_s: float, sigma_s: float, p_fa: float,
 
 
 def zero_delay_spatial(path: str | Path, sigma_s: float, p_fa: float,
-                       geom: Geometry | None = None, threads: int = 2) -> tuple[float, float, int]:
+                       geom: Geometry | None = None, threads: int = 2
+                       ) -> tuple[float, float, int, object]:
     """The delay (s) that `range --spatial --zero` takes: a zero-distance file (a target
     at the zero in every pixel) ranged with the neighbours from the histograms' start,
     the median of its detected first returns' times. The same estimator then times the
@@ -124,8 +134,15 @@ def zero_delay_spatial(path: str | Path, sigma_s: float, p_fa: float,
     cancels. Returns the delay, its standard error, and n, the detected pixels; none
     detected is refused. The error is the median's, 1.253 x the times' robust sd over
     the root of the independent pixels: a pixel's time is a fit over its window's
-    neighbours, so n over the window's pixels (at least 1), not n."""
-    table, _ = range_spatial(path, 0.0, sigma_s, p_fa, geom, max_returns=1, threads=threads)
+    neighbours, so n over the window's pixels (at least 1), not n. Also the instrument's
+    response behind a return, measured on the same frames (the largest measurement's;
+    stages.ranging.spatial.measure_response), which the captures' ranging then expects
+    behind each return: the fourth of the returns."""
+    from stages.ranging.spatial import measure_response
+
+    frames: list = []
+    table, _ = range_spatial(path, 0.0, sigma_s, p_fa, geom, max_returns=1, threads=threads,
+                             frames=frames)
     det = table.column("detected").to_numpy(zero_copy_only=False)
     t = 2 * table.column("distance_m").to_numpy()[det] / C_LIGHT
     t = t[np.isfinite(t)]
@@ -137,7 +154,8 @@ def zero_delay_spatial(path: str | Path, sigma_s: float, p_fa: float,
     from stages.ranging.spatial import WINDOW
 
     n_eff = max(t.size / (2 * WINDOW + 1) ** 2, 1.0)
-    return med, 1.253 * sd / np.sqrt(n_eff), int(t.size)
+    img, est, bin_s = max(frames, key=lambda f: int(f[1].detected[..., 0].sum()))
+    return med, 1.253 * sd / np.sqrt(n_eff), int(t.size), measure_response(img, est, bin_s)
 
 
 #: the common time axis's bin, a fraction of the chip's median LSB (docs/ranging.md

@@ -58,7 +58,10 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    the neighbours' counts within +-``RISE`` sigmas of its plane above their counts
    before it (:func:`_rises`, at ``p_fa`` over the bins between the two), or it is a
    tail of the earlier return (a SPAD's response decays over 0.1-1 ns; the model's pulse
-   is Gaussian), not a surface.
+   is Gaussian), not a surface. Given the response measured (``response``,
+   :func:`measure_response` on a zero-distance frame), it must also stand above the
+   background plus the earlier returns' expected response there
+   (:func:`_above_response`: a delay that peaks, a bump that rises, is expected).
    3b. Which candidate an undetected pixel reports (:func:`_relabel`): from where a
    graph cut over the frame's planes puts it (:mod:`stages.ranging.planecut`: the
    labelling of least likelihood plus boundary length, isotropic), a few ICM sweeps
@@ -334,7 +337,8 @@ def background_profile(counts: np.ndarray, block: int = PROFILE_BLOCK,
 def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3,
             window: int = WINDOW, max_returns: int = 2, t0_s: float = 0.0,
             threads: int = 1, compiled: bool | None = None,
-            cal_var_s2: np.ndarray | None = None) -> SpatialEstimate:
+            cal_var_s2: np.ndarray | None = None,
+            response: Response | None = None) -> SpatialEstimate:
     """Range an image of histograms with its neighbours (module docstring).
 
     ``counts`` (rows, cols, bins) photon counts (no pile-up: a photon-counting histogram
@@ -348,7 +352,11 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
     (rows, cols): each pixel's time axis's own error variance (s^2; a chip's
     calibration, fixed a pixel, independent between pixels), which the estimate carries
     as the fit weighs its neighbours: the sigma gains the sum over the neighbours of
-    their squared weight on t0 times it (4).
+    their squared weight on t0 times it (4). ``response``: the instrument's measured
+    response behind a return (:func:`measure_response`, on a zero-distance frame): a
+    return after a detected one must then stand above the background plus the earlier
+    returns' expected response there (step 3, in place of the rise test: any shape, a
+    peaked delay too).
     """
     compiled = (numba is not None) if compiled is None else bool(compiled) and numba is not None
     counts = np.asarray(counts, np.float64)
@@ -358,12 +366,19 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
         if cal_var_s2.shape != counts.shape[:2] or not np.all(cal_var_s2 >= 0):
             raise ValueError(f"cal_var_s2 must be (rows, cols) = {counts.shape[:2]}, finite "
                              f"and >= 0, found {cal_var_s2.shape}")
+    if response is not None:
+        if not isinstance(response, Response):
+            raise TypeError(f"response must be a Response (measure_response), found "
+                            f"{type(response).__name__}")
+        if not np.isclose(response.bin_s, bin_s, rtol=1e-9, atol=0.0):
+            raise ValueError(f"the response was measured on bins of {response.bin_s:g} s, "
+                             f"the frame's are {bin_s:g} s")
     h = counts.shape[0]
     prof = background_profile(counts)
     bands = min(max(1, int(threads)), max(1, h // (4 * window + 4)))
     if bands == 1:
         return _finish(_spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s,
-                                compiled, cal_var_s2, prof),
+                                compiled, cal_var_s2, prof, response),
                        max_returns, bin_s, sigma_s / bin_s, t0_s, prof, compiled, threads,
                        p_fa)
     from concurrent.futures import ThreadPoolExecutor
@@ -377,7 +392,7 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
     with ThreadPoolExecutor(bands) as ex:
         got = list(ex.map(lambda p: _spatial(
             counts[p[0]:p[3]], bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
-            None if cal_var_s2 is None else cal_var_s2[p[0]:p[3]], prof), parts))
+            None if cal_var_s2 is None else cal_var_s2[p[0]:p[3]], prof, response), parts))
     fields = tuple(np.concatenate([e[i][a - lo:b - lo]
                                    for e, (lo, a, b, _) in zip(got, parts, strict=True)])
                    for i in range(len(got[0])))
@@ -599,7 +614,7 @@ if numba is not None:
 
 
 def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
-             cal_var=None, prof=None) -> tuple:
+             cal_var=None, prof=None, response=None) -> tuple:
     """Steps 1-3 on a band of rows: per pixel and candidate, before the relabelling."""
     h, w, n = counts.shape
     sb = sigma_s / bin_s                     # the pulse's sigma in bins
@@ -960,6 +975,13 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
             gap = np.maximum(t0[ii, jj] - before[ii, jj], 1.0)
             found[ii, jj] = _rises(P, qn[ii, jj], on[ii, jj], beta_q[ii, jj], tq, k, lead, n,
                                    prof, p_fa / gap)
+            if response is not None:
+                # and above the earlier returns' measured response there (a peaked
+                # delay's bump rises; "A measured response" in docs/ranging.md)
+                found[ii, jj] &= _above_response(
+                    P, qn[ii, jj], on[ii, jj], beta_q[ii, jj], tq, k, n, prof, p_fa / gap,
+                    response, t0_r[ii, jj, :r], slope[ii, jj, :r], sig_cnt[ii, jj, :r],
+                    seen[ii, jj, :r] & (t0_r[ii, jj, :r] < t0[ii, jj, None]), dr, dc)
         slope[..., r, 0], slope[..., r, 1] = a_s, b_s
         mine_r[..., r], bw_r[..., r] = mine, bw
         # -- 2c. the pixel's own photons, a second estimate of its time (after the
@@ -1242,6 +1264,74 @@ def _window_quadratic(n0, s1, pos, var_photon, X, dr, dc, cal=None):
         var = var + np.maximum(n0, 0.0) ** 2 * cal
     chi = (res ** 2 / var).sum(-1)
     return chi, np.maximum(pos.sum(-1) - 6, 1), var
+
+
+@dataclass(frozen=True)
+class Response:
+    """The instrument's response behind a return, measured: ``share[i]`` the expected
+    counts in bin floor(t) + ``first`` + i of a return at t (bins) a count of its
+    ``signal_counts`` (the estimate's, so that the two are read alike), the background
+    out; 0 outside; on bins of ``bin_s`` (a frame on other bins is refused). A pulse's
+    own Gaussian core and whatever a SPAD adds behind it (a diffusion tail, a peaked
+    delay, an afterpulse)."""
+
+    first: int
+    share: np.ndarray
+    bin_s: float
+
+
+def measure_response(counts: np.ndarray, est: SpatialEstimate, bin_s: float,
+                     t0_s: float = 0.0, before_s: float | None = None,
+                     after_s: float = 8e-9) -> Response:
+    """:class:`Response` from a frame of one return a pixel (a target at the zero, or any
+    flat one) and its :func:`spatial` estimate: over the detected first returns, the
+    counts at each bin offset from the return's bin less the pixel's background, over
+    the returns' signal counts; from ``before_s`` (default 4 pulse sigmas' worth, as the
+    estimate's sigma cannot say: 1 ns) before to ``after_s`` after. A bin offset no
+    return's histogram reaches stays 0. Negative shares (the background's noise) are
+    0: the expected response is then a little high, which only withdraws a later
+    return. Refused where no pixel is detected."""
+    counts = np.asarray(counts, np.float64)
+    n = counts.shape[-1]
+    det = est.detected[..., 0] & np.isfinite(est.t_s[..., 0]) & (est.signal_counts[..., 0] > 0)
+    if not det.any():
+        raise ValueError("measure_response: no detected return in the frame")
+    first = -int(np.ceil((1e-9 if before_s is None else before_s) / bin_s))
+    length = int(np.ceil(after_s / bin_s)) - first
+    r, c = np.nonzero(det)
+    f = np.floor((est.t_s[r, c, 0] - t0_s) / bin_s).astype(np.int64)
+    idx = f[:, None] + first + np.arange(length)                 # (p, length)
+    inside = (idx >= 0) & (idx < n)
+    got = np.where(inside, counts[r[:, None], c[:, None], np.clip(idx, 0, n - 1)]
+                   - est.background_per_bin[r, c, 0][:, None], 0.0)
+    sig = np.where(inside, est.signal_counts[r, c, 0][:, None], 0.0)
+    share = np.where(sig.sum(0) > 0, got.sum(0) / np.maximum(sig.sum(0), 1e-300), 0.0)
+    return Response(first, np.maximum(share, 0.0), float(bin_s))
+
+
+def _above_response(P, qn, on, beta_q, tq, k, n, prof, alpha, response, t_e, sl_e, s_e,
+                    use, dr, dc) -> np.ndarray:
+    """Step 3 where the response is measured (:class:`Response`): whether the neighbours'
+    counts within +-``k`` bins of the later return's plane (``tq``, (p, m) bins) stand
+    above, at ``alpha``, their background plus what each earlier return ``use`` (p, e)
+    leaves there: its signal a pixel ``s_e`` times the response's shares over the
+    window, from its plane (``t_e`` (p, e) bins, slopes ``sl_e`` (p, e, 2)) at each
+    neighbour. The null's counts are Poisson about that sum, whatever the response's
+    shape: a peaked delay's bump is expected, a surface behind a tail stands out of it
+    (the rise test cannot see a bump, and loses a weak surface in a tail)."""
+    _, _, _, cc, bc = _window_sums_numpy(P, qn, on, beta_q, tq, k, n, prof)
+    a = np.clip(np.floor(tq - k + 0.5).astype(np.int64), 0, n)   # (p, m), as the sums
+    z = np.clip(np.floor(tq + k + 0.5).astype(np.int64), 0, n)
+    R = np.concatenate([[0.0], np.cumsum(response.share)])
+    L = response.share.size
+    tail = np.zeros(len(tq))
+    for e in range(t_e.shape[1]):
+        te = t_e[:, e, None] + sl_e[:, e, 0, None] * dr + sl_e[:, e, 1, None] * dc
+        f = np.floor(np.where(np.isfinite(te), te, 0.0)).astype(np.int64) + response.first
+        got = R[np.clip(z - f, 0, L)] - R[np.clip(a - f, 0, L)]
+        tail += np.where(use[:, e] & np.isfinite(s_e[:, e]),
+                         s_e[:, e] * (got * on).sum(-1), 0.0)
+    return poisson_tail(cc.sum(-1), bc.sum(-1) + tail) <= alpha
 
 
 def _rises(P, qn, on, beta_q, tq, k, lead, n, prof, alpha) -> np.ndarray:

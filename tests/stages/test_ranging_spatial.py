@@ -1847,6 +1847,18 @@ def test_the_rises_p_value_holds_under_a_decaying_tail():
     assert rise_p(0, 0, 2.1, 2.1, 7, 7) == 1.0
 
 
+def _write_generic(path, counts):
+    """A generic histograms file of an image of counts (h, w, bins), a row a pixel."""
+    import polars as pl
+
+    h, w, n = counts.shape
+    r, c = np.divmod(np.arange(h * w), w)
+    pl.DataFrame({"measurement": "m", "tdc": np.arange(h * w), "row": r, "col": c,
+                  "counts": counts.reshape(-1, n).tolist(), "cycles": None,
+                  "instrument": "generic", "bin_width_ps": BIN_S * 1e12}).write_parquet(path)
+    return str(path)
+
+
 def test_range_spatial_measures_its_delay_on_a_zero_file(tmp_path):
     """`tcspc range --spatial --zero Z`: the delay is the zero-distance file's times
     ranged with the neighbours, so the estimator's own offset under a response with a
@@ -1855,19 +1867,11 @@ def test_range_spatial_measures_its_delay_on_a_zero_file(tmp_path):
     away: with --zero the detected pixels' median error is within 2 mm (1.1: the flat
     zero target's returns all at one phase of a bin); with the true delay given as
     --delay-ps, the tail's 5-7 mm. Both at once, or neither, is refused."""
-    import polars as pl
     import pyarrow.parquet as pq
 
     from benchmarks.spatial_tail import frame
 
-    def write(path, counts):
-        h, w, n = counts.shape
-        r, c = np.divmod(np.arange(h * w), w)
-        pl.DataFrame({"measurement": "m", "tdc": np.arange(h * w), "row": r, "col": c,
-                      "counts": counts.reshape(-1, n).tolist(), "cycles": None,
-                      "instrument": "generic", "bin_width_ps": BIN_S * 1e12}).write_parquet(path)
-        return str(path)
-
+    write = _write_generic
     zero = write(tmp_path / "z.parquet", frame(np.random.default_rng(1), 50, 2, 0.3, 5e-10,
                                                None, 24, 24, base_m=0.45, tilt=False)[0])
     counts, d1, _ = frame(np.random.default_rng(2), 20, 2, 0.3, 5e-10, None, 24, 24)
@@ -1887,6 +1891,7 @@ def test_range_spatial_measures_its_delay_on_a_zero_file(tmp_path):
         return float(np.median(got - want)), p.stderr
     err_zero, said = median_error("--zero", zero)
     assert abs(err_zero) < 0.002 and "measured with the neighbours" in said, (err_zero, said)
+    assert "the response (" in said, said
     err_delay, _ = median_error("--delay-ps", str(2 * 0.45 / C * 1e12))
     assert 0.004 < err_delay < 0.008, err_delay
     for how in (["--zero", zero, "--delay-ps", "3000"], []):
@@ -1991,3 +1996,82 @@ def test_the_candidates_search_compiled_and_numpy_agree(case, sb):
     for x, y in zip(a, b, strict=True):
         np.testing.assert_array_equal(x, y)
     assert (a[0] >= 0).all() and (a[0] < n).all()
+
+
+def _peaked(seed, signal, tau, second=None, h=24, w=24, **kw):
+    """A frame of benchmarks/spatial_tail.py's with 30 % of the photons delayed by a
+    gamma of shape 8 and mean ``tau`` (a bump behind the pulse, not a decaying tail)."""
+    from benchmarks.spatial_tail import frame
+
+    return frame(np.random.default_rng(seed), signal, 10, 0.3, tau, second, h, w, shape=8.0,
+                 **kw)
+
+
+def test_a_measured_response_explains_a_peaked_delay():
+    """A response whose late photons come as a bump 2 ns behind the pulse (a gamma delay
+    of shape 8): the bump rises over the gap before it, so the rise test takes it for a
+    surface (86 % of the pixels at 100 photons, 16 % at 30). The response measured on a
+    flat zero-distance frame (:func:`measure_response`) accounts for the return's
+    photons (its shares times the signal counts: 100 photons a return, within 5 %), and
+    with it no pixel reports a detected return off the plane, every first return
+    detected. A second surface behind the bump (1 m, 10 photons) is still found (80 %,
+    as without the response; on the bump's falling edge, 0.5 m, the rise test loses it
+    with or without)."""
+    from benchmarks.spatial_tail import score
+    from stages.ranging import spatial as sp
+
+    zc, _, _ = _peaked(11, 100, 2e-9, tilt=False, base_m=1.0)
+    ze = sp.spatial(zc, BIN_S, SIGMA_S, 1e-3, max_returns=1)
+    resp = sp.measure_response(zc, ze, BIN_S)
+    sig = np.median(ze.signal_counts[..., 0][ze.detected[..., 0]])
+    assert abs(resp.share.sum() * sig - 100) < 5, resp.share.sum() * sig
+    for signal, off_at_least in ((100, 0.5), (30, 0.1)):
+        c, d1, d2 = _peaked(12, signal, 2e-9)
+        assert score(sp.spatial(c, BIN_S, SIGMA_S, 1e-3), d1, d2)[1] >= off_at_least
+        est = sp.spatial(c, BIN_S, SIGMA_S, 1e-3, response=resp)
+        assert score(est, d1, d2)[1] == 0.0 and est.detected[..., 0].all()
+    c, d1, d2 = _peaked(13, 100, 2e-9, (1.0, 10))
+    found = score(sp.spatial(c, BIN_S, SIGMA_S, 1e-3, response=resp), d1, d2)
+    assert found[0] >= 0.7 and found[1] == 0.0, found
+
+
+def test_a_measured_response_is_checked():
+    """The response is measured where a return is detected, on the frame's own bins:
+    a frame of background alone is refused, and so is a response on other bins."""
+    from stages.ranging import spatial as sp
+
+    dark = np.random.default_rng(3).poisson(2 / N_BINS, (8, 8, N_BINS)).astype(float)
+    with pytest.raises(ValueError, match="no detected return"):
+        sp.measure_response(dark, sp.spatial(dark, BIN_S, SIGMA_S), BIN_S)
+    zc, _, _ = _peaked(11, 100, 1e-9, h=8, w=8, tilt=False, base_m=1.0)
+    resp = sp.measure_response(zc, sp.spatial(zc, BIN_S, SIGMA_S), BIN_S)
+    with pytest.raises(ValueError, match="bins of"):
+        sp.spatial(zc, 2 * BIN_S, SIGMA_S, response=resp)
+    with pytest.raises(TypeError, match="Response"):
+        sp.spatial(zc, BIN_S, SIGMA_S, response=resp.share)
+
+
+def test_range_spatial_zero_measures_the_response_too(tmp_path):
+    """`tcspc range --spatial --zero Z` also measures the response behind a return on Z
+    and ranges with it: behind a peaked delay (30 % of the photons a gamma of shape 8, 2
+    ns late) the true delay given as --delay-ps leaves a detected further return off
+    the surface in most pixels, --zero in none."""
+    import pyarrow.parquet as pq
+
+    zero = _write_generic(tmp_path / "z.parquet",
+                          _peaked(11, 100, 2e-9, tilt=False, base_m=0.45)[0])
+    counts, d1, _ = _peaked(12, 100, 2e-9)
+    cap = _write_generic(tmp_path / "h.parquet", counts)
+    off = {}
+    for how in (["--zero", zero], ["--delay-ps", str(2 * 0.45 / C * 1e12)]):
+        out = tmp_path / "r.parquet"
+        p = subprocess.run([sys.executable, "-m", "pipeline.cli", "range", cap, "--spatial",
+                            "--irf-ps", str(SIGMA_S * 1e12), *how, "--out", str(out),
+                            "--overwrite"], capture_output=True, text=True)
+        assert p.returncode == 0, p.stderr
+        t = pq.read_table(out).to_pydict()
+        i = np.array([k for k, x in enumerate(t["return_index"]) if x == 1 and t["detected"][k]],
+                     int)
+        want = d1[np.array(t["row"], int)[i], np.array(t["col"], int)[i]] - 0.45
+        off[how[0]] = int((np.abs(np.array(t["distance_m"])[i] - want) > 0.05).sum())
+    assert off["--zero"] == 0 and off["--delay-ps"] > 100, off
