@@ -178,6 +178,7 @@ NONE_K = 2         # no surface: an undetected pixel whose (2 NONE_K + 1)^2 arou
 NONE_P = 0.023     # summed, no detection at this p (2 sds' one tail) about each plane's time
 NONE_OPEN = True   # and a 3 x 3 of such pixels covers (a binary opening)
 LONE = True        # 2d: a surface the neighbours do not hold ranged by the pixel's photons
+RESPONSE_CHECK = 0.05  # 3: a measured response holds before a later return at this level
 RISE = 1.5         # 3: a return after a detected one: its neighbours' counts in +- this many
 #                    sigmas rise over theirs before it (0: off; a response's tail decays)
 OWN_CAND = True    # 1: the pixel's own strongest box a candidate where the windows' miss it
@@ -723,13 +724,23 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
     # (the numba kernel's background tables: a flat background's are unused)
     tables = (True, np.zeros(1), np.zeros(1), np.zeros(1)) if prof is None else (False, *prof[1:])
 
-    def window_sums(tq, half):
+    tails = None   # the earlier returns' expected response (a measured one), while set
+
+    def window_sums(tq, half, narrow=True):
         """Counts, sums of bin-time and of its square in tq +- half (bins), background
-        subtracted, for every neighbour; and the raw counts and background."""
+        subtracted, for every neighbour; and the raw counts and background. Where a
+        response is measured, what the earlier returns leave there (``tails``) is
+        background too (:func:`_tail_sums`)."""
         if compiled:
             hb = np.ascontiguousarray(np.broadcast_to(half, tq.shape[:2] + (1,))[..., 0])
-            return _window_sums_numba(P, qn, on, beta_q, tq, hb, n, *tables)
-        return _window_sums_numpy(P, qn, on, beta_q, tq, half, n, prof)
+            got = _window_sums_numba(P, qn, on, beta_q, tq, hb, n, *tables)
+        else:
+            got = _window_sums_numpy(P, qn, on, beta_q, tq, half, n, prof)
+        if tails is None or not narrow:
+            return got
+        T0, T1, T2 = (x * on for x in _tail_sums(tq, half, n, response, *tails, dr, dc))
+        n0, s1, s2, raw, bsum = got
+        return n0 - T0, s1 - T1, s2 - T2, raw, bsum + T0
 
     # 2b's halves of the window (16, m), and where each is tried: a half of fewer than
     # STEP_MIN pixels in the image, or in a window of fewer than twice that, is not (a
@@ -741,11 +752,21 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         t0 = cand[..., r] + 0.5                               # bins
         a_s = np.zeros((h, w))
         b_s = np.zeros((h, w))
+        if response is not None and r:
+            # the earlier detected returns before this candidate: their response is
+            # expected in its window (the fit and the tests take it as background)
+            # (one surface's candidates, later made one, counted once: the first seen)
+            once = seen[..., :r].copy()
+            for e in range(1, r):
+                once[..., e] &= ~(seen[..., :e] & (np.abs(t0_r[..., :e] - t0_r[..., e, None])
+                                                   < 3 * sb)).any(-1)
+            tails = (t0_r[..., :r], slope[..., :r, :], sig_cnt[..., :r],
+                     once & (t0_r[..., :r] < t0[..., None]))
         first = np.maximum(cand_half[..., r], 3.5 * sb)[..., None]
         fit = WIDTH_FIT * sb
         for half in (first, (first + fit) / 2, fit, fit, fit):
             tq = t0[..., None] + a_s[..., None] * dr + b_s[..., None] * dc
-            n0, s1, s2, _, _ = window_sums(tq, half)
+            n0, s1, s2, _, _ = window_sums(tq, half, half is fit)
             wgt = np.maximum(n0, 0.0)
             # weighted least squares of the photons' times on (1, dr, dc): moments of the
             # net counts (a neighbour's net count may be negative: its weight is 0)
@@ -920,6 +941,9 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
         mine = (np.take_along_axis(P0, z[..., None], -1)
                 - np.take_along_axis(P0, a[..., None], -1))[..., 0]
         bw = beta * _span(a, z, prof)
+        if tails is not None:   # and the earlier returns' response at the pixel
+            bw = bw + _tail_sums(t0[..., None], half, n, response, *tails, np.zeros(1),
+                                 np.zeros(1))[0][..., 0]
         own_r = poisson_tail(mine, bw) <= p_fa
         nquad = np.zeros((h, w))
         s_max = np.zeros((h, w))   # the largest of the corner windows' signal a pixel
@@ -973,15 +997,24 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
             # 2-3 photons a pixel 0.5 m behind a 1-ns tail of 100 were found 2-33 % of
             # the time, 6-51 % so)
             gap = np.maximum(t0[ii, jj] - before[ii, jj], 1.0)
-            found[ii, jj] = _rises(P, qn[ii, jj], on[ii, jj], beta_q[ii, jj], tq, k, lead, n,
-                                   prof, p_fa / gap)
-            if response is not None:
-                # and above the earlier returns' measured response there (a peaked
-                # delay's bump rises; "A measured response" in docs/ranging.md)
-                found[ii, jj] &= _above_response(
-                    P, qn[ii, jj], on[ii, jj], beta_q[ii, jj], tq, k, n, prof, p_fa / gap,
-                    response, t0_r[ii, jj, :r], slope[ii, jj, :r], sig_cnt[ii, jj, :r],
-                    seen[ii, jj, :r] & (t0_r[ii, jj, :r] < t0[ii, jj, None]), dr, dc)
+            rises = _rises(P, qn[ii, jj], on[ii, jj], beta_q[ii, jj], tq, k, lead, n, prof,
+                           p_fa / gap)
+            if response is None:
+                found[ii, jj] = rises
+            else:
+                # above the earlier returns' measured response there (a peaked delay's
+                # bump rises), and the rise test too where the response falls short of
+                # the counts just before ("A measured response" in docs/ranging.md)
+                # (the response is checked behind the earlier pulse's core only: within
+                # 2 k of it, the rise test's windows hold the core, which any response
+                # with the right pulse fits, a tail or not)
+                room = t0[ii, jj] - k - (before[ii, jj] + 3 * sb)
+                above, trusted = _above_response(
+                    P, qn[ii, jj], on[ii, jj], beta_q[ii, jj], tq, k, lead, n, prof,
+                    p_fa / gap, response, t0_r[ii, jj, :r], slope[ii, jj, :r],
+                    sig_cnt[ii, jj, :r],
+                    tails[3][ii, jj] & (t0_r[ii, jj, :r] < t0[ii, jj, None]), dr, dc)
+                found[ii, jj] &= above & ((trusted & (room >= 2 * k)) | rises)
         slope[..., r, 0], slope[..., r, 1] = a_s, b_s
         mine_r[..., r], bw_r[..., r] = mine, bw
         # -- 2c. the pixel's own photons, a second estimate of its time (after the
@@ -1309,29 +1342,57 @@ def measure_response(counts: np.ndarray, est: SpatialEstimate, bin_s: float,
     return Response(first, np.maximum(share, 0.0), float(bin_s))
 
 
-def _above_response(P, qn, on, beta_q, tq, k, n, prof, alpha, response, t_e, sl_e, s_e,
-                    use, dr, dc) -> np.ndarray:
+def _tail_sums(tq, half, n, response, t_e, sl_e, s_e, use, dr, dc):
+    """What the earlier returns ``use`` (..., e) leave, by the measured response, in each
+    neighbour's window of +-``half`` bins about ``tq`` (..., m) (clipped as the window
+    sums clip it): its counts, and their sums of bin-time and of its square (the window
+    sums' moments), each (..., m). An earlier return: its signal a pixel ``s_e``, its
+    plane (``t_e`` bins, slopes ``sl_e`` (..., e, 2)) read at each neighbour."""
+    a = np.clip(np.floor(tq - half + 0.5).astype(np.int64), 0, n)
+    z = np.clip(np.floor(tq + half + 0.5).astype(np.int64), 0, n)
+    sh = response.share
+    i = np.arange(sh.size, dtype=np.float64)
+    R0, R1, R2 = (np.concatenate([[0.0], np.cumsum(x)]) for x in (sh, sh * i, sh * i * i))
+    L = sh.size
+    T0, T1, T2 = (np.zeros(tq.shape) for _ in range(3))
+    for e in range(t_e.shape[-1]):
+        te = (t_e[..., e, None] + sl_e[..., e, 0, None] * dr + sl_e[..., e, 1, None] * dc)
+        f = np.floor(np.where(np.isfinite(te), te, 0.0)).astype(np.int64) + response.first
+        lo, hi = np.clip(a - f, 0, L), np.clip(z - f, 0, L)
+        c = f + 0.5                                   # bin f + i's time is c + i
+        m0, m1, m2 = R0[hi] - R0[lo], R1[hi] - R1[lo], R2[hi] - R2[lo]
+        s = np.where(use[..., e] & np.isfinite(s_e[..., e]), s_e[..., e], 0.0)[..., None]
+        T0 += s * m0
+        T1 += s * (m1 + c * m0)
+        T2 += s * (m2 + 2 * c * m1 + c * c * m0)
+    return T0, T1, T2
+
+
+def _above_response(P, qn, on, beta_q, tq, k, lead, n, prof, alpha, response, t_e, sl_e,
+                    s_e, use, dr, dc) -> tuple[np.ndarray, np.ndarray]:
     """Step 3 where the response is measured (:class:`Response`): whether the neighbours'
     counts within +-``k`` bins of the later return's plane (``tq``, (p, m) bins) stand
     above, at ``alpha``, their background plus what each earlier return ``use`` (p, e)
-    leaves there: its signal a pixel ``s_e`` times the response's shares over the
-    window, from its plane (``t_e`` (p, e) bins, slopes ``sl_e`` (p, e, 2)) at each
-    neighbour. The null's counts are Poisson about that sum, whatever the response's
-    shape: a peaked delay's bump is expected, a surface behind a tail stands out of it
-    (the rise test cannot see a bump, and loses a weak surface in a tail)."""
-    _, _, _, cc, bc = _window_sums_numpy(P, qn, on, beta_q, tq, k, n, prof)
-    a = np.clip(np.floor(tq - k + 0.5).astype(np.int64), 0, n)   # (p, m), as the sums
-    z = np.clip(np.floor(tq + k + 0.5).astype(np.int64), 0, n)
-    R = np.concatenate([[0.0], np.cumsum(response.share)])
-    L = response.share.size
-    tail = np.zeros(len(tq))
-    for e in range(t_e.shape[1]):
-        te = t_e[:, e, None] + sl_e[:, e, 0, None] * dr + sl_e[:, e, 1, None] * dc
-        f = np.floor(np.where(np.isfinite(te), te, 0.0)).astype(np.int64) + response.first
-        got = R[np.clip(z - f, 0, L)] - R[np.clip(a - f, 0, L)]
-        tail += np.where(use[:, e] & np.isfinite(s_e[:, e]),
-                         s_e[:, e] * (got * on).sum(-1), 0.0)
-    return poisson_tail(cc.sum(-1), bc.sum(-1) + tail) <= alpha
+    leaves there (:func:`_tail_sums`). The null's counts are Poisson about that sum,
+    whatever the response's shape: a peaked delay's bump is expected, a surface behind
+    a tail stands out of it (the rise test cannot see a bump, and loses a weak surface
+    in a tail). And whether the response holds just before: the counts in the rise
+    test's two earlier windows (the ``lead`` (p,) bins before, and the 2 ``k`` before)
+    are no more than it expects there, each at ``RESPONSE_CHECK`` (a response measured
+    short of the capture's tail, another instrument's or another day's, left 2-99 % of
+    the pixels with a false surface; where it falls short, or where those windows hold
+    the earlier pulse's core, the caller asks the rise test too). Returns both (p,)."""
+    def expected(t, half):
+        _, _, _, c, b = _window_sums_numpy(P, qn, on, beta_q, t, half, n, prof)
+        tail = _tail_sums(t, half, n, response, t_e, sl_e, s_e, use, dr, dc)[0]
+        return c.sum(-1), b.sum(-1) + (tail * on).sum(-1)
+
+    above = poisson_tail(*expected(tq, k)) <= alpha
+    trusted = np.ones(len(tq), bool)
+    for lp_ in (lead, np.full(len(tq), 2.0 * k)):
+        hp = lp_[:, None] / 2
+        trusted &= poisson_tail(*expected(tq - k - hp, hp)) > RESPONSE_CHECK
+    return above, trusted
 
 
 def _rises(P, qn, on, beta_q, tq, k, lead, n, prof, alpha) -> np.ndarray:
