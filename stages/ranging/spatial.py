@@ -104,11 +104,13 @@ pixel (every step below is a sum over a fixed window or a prefix-sum difference)
    returns around it, where a quadratic over them says so; where it fits but does not
    say so, its squared estimate less its variance enters the detected return's sigma.
 6. An undetected return on a surface that is not the pixel's (:func:`_off_surface`):
-   where the pixel's own photons at the reported time make it ``OFF_P`` likely or more
-   that it lies on none of it (a two-component mixture over the pixels around it), or
-   its photons and those of the undetected returns of its 3 x 3 on the same surface
+   where the pixel's own photons make it ``OFF_P`` likely or more that it lies on none
+   of it (a mixture over the pixels around it: on the surface, on another of the
+   frame's planes, or elsewhere; its photons at the reported time and at each plane),
+   or its photons and those of the undetected returns of its 3 x 3 on the same surface
    together do (:func:`_off_pool`), its sigma reaches the farthest surface reported
-   within ``OFF_K`` pixels or among its own candidates.
+   within ``OFF_K`` pixels, among its own candidates or among the frame's planes where
+   its photons are.
 
 Up to ``max_returns`` (2) surfaces a pixel, the strongest first (detected before not),
 but an island's label (3b) before its detection.
@@ -199,6 +201,10 @@ OFF_SAME = 4.0   # undetected returns within this many pulse sigmas of its time,
 OFF_ITER = 8     # the mixture's EM steps
 OFF_OWN_MIN = 2  # a candidate the window does not detect is a surface the pixel may be on
                  # where this many of the pixel's own photons lie at it (0: every one)
+OFF_PLANES = True  # 6 also reads the frame's planes (3b's cut): a surface the pixel may be on
+                   # where OFF_OWN_MIN of its own photons lie at it (D)
+OFF_MIX = True     # and, off its surface, a return is on one of them (its own photons there
+                   # say which) or elsewhere, the share learnt (_off_planes; False: elsewhere)
 
 
 def _mshift_factor(c: float) -> float:
@@ -1556,12 +1562,20 @@ def _finish(fields, max_returns, bin_s, sb, t0_s, prof=None, compiled=None,
     bend = np.take_along_axis(slot(bend, 0.0), order[..., None], 2)
     _curvature(t_out, sig_out, det, bend, bin_s, sb, t0_s)
     sig_cnt = take(sig_cnt)
-    _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof, cand, was)
+    before6 = sig_out[..., 0] ** 2
+    _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof, cand, was,
+                 state[8] if OFF_PLANES else None)
+    with np.errstate(invalid="ignore"):
+        added6 = np.where(np.isfinite(before6), sig_out[..., 0] ** 2 - before6, 0.0)
     # 2b's lean of any half, on the detected returns (an undetected one's sigma is its
     # label's: :func:`_label_sigma`)
     lean = np.where(det, take(slot(lean, 0.0)), 0.0)
     sig_out = np.where(lean > 0, np.sqrt(sig_out ** 2 + lean * bin_s ** 2), sig_out)
-    sig_out[..., 0] = np.where(extra > 0, np.sqrt(sig_out[..., 0] ** 2 + extra),
+    # the lines' doubt and step 6's are two weights of the pixel's lying on another
+    # surface: the larger of the two terms, not their sum (as :func:`_line_var` takes the
+    # largest of the lines that weighed a pixel)
+    sig_out[..., 0] = np.where(extra > 0, np.sqrt(sig_out[..., 0] ** 2
+                                                  + np.maximum(extra - added6, 0.0)),
                                sig_out[..., 0])
     return SpatialEstimate(t_out, sig_out, sig_cnt,
                            np.repeat(beta[..., None], max_returns, -1), det,
@@ -1661,7 +1675,7 @@ def _undetected_quadratic(t_out, sig_out, det, d0, sb, bin_s, t0_s) -> None:
 
 
 def _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof=None, cand=None,
-                 also=None):
+                 also=None, planes=None):
     """6. An undetected first return on a surface that is not the pixel's. Its time is a
     neighbour's surface (3b, 5); its sigma (:func:`_label_sigma`, :func:`_curvature`) is
     the error of that time on that surface. Where the pixel sees a surface its
@@ -1686,7 +1700,14 @@ def _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof=N
     detects each) that its window detects or that hold ``OFF_OWN_MIN`` of its own
     photons (a candidate neither holds is mostly a peak of the window's background,
     anywhere in the histogram), and ``also`` (h, w; NaN: none), the detections
-    :func:`_islands` put second, which were first returns. That is the error of a wrong
+    :func:`_islands` put second, which were first returns, and ``planes`` (h, w, L; bins,
+    NaN: none), the frame's planes' times at every pixel (:func:`planecut.start`'s), those
+    that hold ``OFF_OWN_MIN`` of its own photons. Off its surface, a return is on one of
+    those planes or elsewhere (:func:`_off_planes`): its likelihood off the surface is
+    not its background's alone but the mixture's, (1 - eps) times the mean over the
+    planes off its surface of its own photons' likelihood ratio there, plus eps
+    (elsewhere: ratio 1), eps the share of returns off their surface that are elsewhere,
+    learnt with pi by the same EM steps. That is the error of a wrong
     label weighed by its posterior, and at least enough that 2 sigma reaches it. Times,
     detections and the detected returns' sigma are untouched, and so is every return
     whose p is below
@@ -1708,19 +1729,31 @@ def _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof=N
     S = _test_signal(np.where(on, sig_cnt[..., 0], 0.0))
     w = on.astype(np.float64)
     N = np.maximum(_box(w, OFF_K), 1.0)
-    pi, g = np.full(t.shape, 0.1), np.ones(t.shape)
+    pi, g, eps = np.full(t.shape, 0.1), np.ones(t.shape), np.full(t.shape, 0.5)
+    alt = None if planes is None or not planes.shape[-1] or not OFF_MIX else \
+        _off_planes(t, on, planes, P0, beta, half, OFF_SAME * sb, prof)
 
-    def post(pi, g):  # each return's posterior of being off its surface
-        return np.where(on, expit(logit(pi) + g * S - m * np.log1p(g * S / B)), 0.0)
+    def lam(g, eps):  # each return's log-likelihood ratio, on its surface against off it
+        got = m * np.log1p(g * S / B) - g * S
+        return got if alt is None else got - np.log((1.0 - eps) * alt(g * S)[0] + eps)
+
+    def post(pi, g, eps):  # each return's posterior of being off its surface
+        return np.where(on, expit(logit(pi) - lam(g, eps)), 0.0)
 
     for _ in range(OFF_ITER):
-        r = post(pi, g)
+        r = post(pi, g, eps)
+        if alt is not None:  # of the returns off their surface, the share elsewhere
+            rb, has = alt(g * S)
+            wa = r * w * has
+            tot = _box(wa, OFF_K)
+            eps = np.where(tot > 1e-9, np.clip(_box(wa * eps / ((1.0 - eps) * rb + eps), OFF_K)
+                                               / np.maximum(tot, 1e-9), 1e-3, 1.0 - 1e-3), 0.5)
         pi = np.clip(_box(r, OFF_K) / N, 1e-6, 1.0 - 1e-6)
         g = np.clip(_box((1.0 - r) * (m - B) * w, OFF_K)
                     / np.maximum(_box((1.0 - r) * S * w, OFF_K), 1e-9), 0.2, 5.0)
-    p = post(pi, g)
+    p = post(pi, g, eps)
     if OFF_POOL:  # and with the undetected returns around it on the same surface
-        p = np.maximum(p, _off_pool(np.where(on, m * np.log1p(g * S / B) - g * S, 0.0),
+        p = np.maximum(p, _off_pool(np.where(on, lam(g, eps), 0.0),
                                     np.where(on & ~det[..., 0], t, np.nan), pi, OFF_SAME * sb))
     size = 2 * OFF_K + 1
     hi = np.where(ok, t, -np.inf)
@@ -1736,10 +1769,38 @@ def _off_surface(t_out, sig_out, det, sig_cnt, P0, beta, bin_s, sb, t0_s, prof=N
         tc = (cand[0] - t0_s) / bin_s
         use = np.isfinite(tc) & (cand[1] | (_window_counts(P0, tc, half)[0] >= OFF_OWN_MIN))
         D = np.maximum(D, np.where(use, np.abs(tc - ti[..., None]), 0.0).max(-1))
+    if planes is not None and planes.shape[-1]:  # and the frame's planes where its photons are
+        use = np.isfinite(planes) & (_window_counts(P0, planes, half)[0] >= OFF_OWN_MIN)
+        D = np.maximum(D, np.where(use, np.abs(planes - ti[..., None]), 0.0).max(-1))
     sg = sig_out[..., 0] / bin_s
     sel = on & ~det[..., 0] & (p >= OFF_P) & np.isfinite(sg)
     v = sg ** 2 + np.maximum(p, OFF_FLOOR) * D ** 2
     sig_out[..., 0] = np.where(sel, np.sqrt(np.where(sel, v, 0.0)) * bin_s, sig_out[..., 0])
+
+
+def _off_planes(t, on, planes, P0, beta, half, tol, prof=None):
+    """6's alternatives to a return's surface (``t`` (h, w) bins; ``on``: the returns the
+    test reads): the frame's planes at the pixel (``planes`` (h, w, L) bins, NaN: none)
+    that lie ``tol`` bins or more from its time (off its surface: the two test windows
+    do not overlap). Returns a function of the signal a pixel expects in its test window
+    (h, w) that gives the mean over those planes of the pixel's own likelihood ratio
+    there (its counts in its test window against its background alone; 1 where there
+    is none) and whether there is one. A plane is a surface the frame holds, found from
+    detections, so not a peak of the pixel's own background; each is taken as likely as
+    another (the pixel's photons decide between them)."""
+    tt = np.where(on[..., None] & (np.abs(planes - t[..., None]) >= tol), planes, np.nan)
+    m, a, z = _window_counts(P0, tt, half)
+    B = beta[..., None] * _span(a, z, prof)
+    use = np.isfinite(tt) & (z > a) & (B > 0) & np.isfinite(B)
+    m, B = np.where(use, m, 0.0), np.where(use, B, 1.0)
+    n = use.sum(-1)
+
+    def ratio(s):
+        s = s[..., None]
+        R = np.where(use, np.exp(np.minimum(m * np.log1p(s / B) - s, 700.0)), 0.0)
+        return np.where(n > 0, R.sum(-1) / np.maximum(n, 1), 1.0), n > 0
+
+    return ratio
 
 
 def _off_pool(lam, tu, pi, tol):
@@ -2438,4 +2499,5 @@ def _relabel(t_out, sig_out, slope, mine, bw, sig_cnt, rank, det, P0, beta, bin_
     chosen = np.arange(nc) == lab[..., None]
     free = free | doubted.doubted | doubted.island
     return (np.where(free[..., None] & chosen, 1e11, 0.0) + rank,
-            (lab, free, tb, llr, slope, shifted, agreement, doubted))
+            (lab, free, tb, llr, slope, shifted, agreement, doubted,
+             None if got is None else table[0]))

@@ -634,16 +634,17 @@ def test_a_detection_its_edge_refutes_is_withdrawn(monkeypatch):
     it at p_fa. The box's left edge (22 rows) places the pixel on the box, its own photons
     on the wall; the posterior that it is on the wall is 0.27. The detection is
     withdrawn: the pixel reports the box, not detected, its sigma keeping the wall 3.2 m
-    behind (sigma^2 = p x 3.2^2 with p between 0.1 and 0.5). No other detection of the
-    frame changes, and without the step (``EDGE_DOUBT``) the pixel reports the wall,
-    detected."""
+    behind (sigma^2 = p x 3.2^2 with p between 0.1 and 1: the lines' 0.27, or step 6's
+    where larger, whose mixture reads the pixel's 3 photons at the wall's plane, 0.98).
+    No other detection of the frame changes, and without the step (``EDGE_DOUBT``) the
+    pixel reports the wall, detected."""
     from stages.ranging import spatial as sp
 
     counts = histograms(scene(), 2, 50, 18)
     est = spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
     d, s = est.t_s[24, 8, 0] * C / 2, est.sigma_s[24, 8, 0] * C / 2
     assert not est.detected[24, 8].any() and abs(d - 3.0) < 0.05
-    assert 0.1 * 3.22 ** 2 < s ** 2 < 0.5 * 3.22 ** 2
+    assert 0.1 * 3.22 ** 2 < s ** 2 < 1.0 * 3.22 ** 2
     monkeypatch.setattr(sp, "EDGE_DOUBT", False)
     before = spatial(counts, BIN_S, SIGMA_S, 1e-3, threads=2)
     assert before.detected[24, 8, 0] and abs(before.t_s[24, 8, 0] * C / 2 - 6.22) < 0.05
@@ -823,7 +824,11 @@ def test_the_island_step_reorders_and_never_withdraws(monkeypatch):
     Over the frame (the pane's pixels, whose second surface their neighbours'
     photons hold, among them) no detection is added or withdrawn: every pixel reports
     the same detected surfaces, only their order moves, and no other pixel's first
-    sigma."""
+    sigma, but for a few undetected ones step 6 widens (to 1 m or more) in one run and
+    not, or less, in the other: its mixture learns its shares over every first return
+    around (the pixel's among them, the wall or 3 m), and since it reads the frame's
+    planes too, a neighbour near its threshold moves (3 on this frame: (28, 63),
+    (35, 59), (41, 56), all within 1 cm of their surface)."""
     from stages.ranging import spatial as sp
 
     sc = scene()
@@ -845,8 +850,11 @@ def test_the_island_step_reorders_and_never_withdraws(monkeypatch):
     # the surfaces its neighbours may be on: without it, (28, 63)'s 2.8 m fell to 7 cm)
     others = np.ones(sc.surface.shape, bool)
     others[px] = False
-    assert np.allclose(est.sigma_s[..., 0][others], before.sigma_s[..., 0][others],
-                       rtol=0.01, atol=0.0, equal_nan=True)
+    a, b = est.sigma_s[..., 0] * C / 2, before.sigma_s[..., 0] * C / 2
+    moved = others & ~np.isclose(a, b, rtol=0.01, atol=0.0, equal_nan=True)
+    assert moved.sum() <= 5
+    assert not (moved & (est.detected[..., 0] | before.detected[..., 0])).any()
+    assert (np.fmax(a, b)[moved] >= 1.0).all()
     e1 = window_errors(sc, est.t_s[..., 0] * C / 2)
     e0 = window_errors(sc, before.t_s[..., 0] * C / 2)
     assert ((e1 > 0.1) & (e0 <= 0.1)).sum() == 0
@@ -1478,14 +1486,16 @@ def test_a_block_of_wrong_labels_is_tested_together(monkeypatch):
     own count cannot tell from chance and its 3 x 3's can. Measured: the undetected
     pixels' 2 sigma on the fence 76.7 -> 81.4 %, the floor 82.4 -> 89.2 %; on the grid's
     planes 99.1 % either way, 1.5 % of its undetected pixels' sigma moved and the median
-    the same. Only the undetected first returns' sigma moves."""
+    the same (within 1 %: 0.2 %, 1.296 -> 1.298 cm, since step 6 reads the frame's
+    planes). Only the undetected first returns' sigma moves."""
     for name, gain in (("fence", 0.03), ("grazing", 0.04), ("grid", 0.0)):
         old, new, und, moved, c0, c1 = _undetected_sigma_off_and_on(monkeypatch, name,
                                                                     "OFF_POOL", 0)
         assert c1 >= c0 + gain, (name, c0, c1)
         if name == "grid":   # right labels keep their sigma
             assert c1 >= 0.98 and moved[und, 0].mean() < 0.03
-            assert np.median(new.sigma_s[..., 0][und]) == np.median(old.sigma_s[..., 0][und])
+            assert np.median(new.sigma_s[..., 0][und]) == pytest.approx(
+                np.median(old.sigma_s[..., 0][und]), rel=0.01)
 
 
 def test_the_pooled_posterior_sums_the_same_surface_s_undetected_returns():
@@ -1584,6 +1594,79 @@ def test_the_off_surface_posterior_against_the_posts_photons():
     sp._off_surface(*args)
     changed = sig[..., 0] != 2.0
     assert changed[10:10 + sp.OFF_K].mean() <= 0.03, changed[10:10 + sp.OFF_K].mean()
+
+
+def test_the_off_planes_ratio_against_a_loop():
+    """:func:`spatial._off_planes`: the mean over the frame's planes that lie ``tol`` or
+    more from the pixel's time of its own likelihood ratio there, against a loop written
+    out pixel by pixel (a plane with no time, one on the pixel's surface, a pixel with
+    none off it: 1 and no plane)."""
+    from stages.ranging import spatial as sp
+
+    args, _ = _posts_and_wall(12, 3, h=8, w=8)
+    t_out, P0, beta = args[0], args[4], args[5]
+    t = t_out[..., 0]
+    planes = np.stack([np.full(t.shape, 300.0), np.full(t.shape, 500.0),
+                       np.full(t.shape, 700.0)], -1)
+    planes[2, 2, 2] = np.nan
+    planes[4, 4, :] = 500.0                               # every plane on the surface
+    on = np.ones(t.shape, bool)
+    half, tol = 4.6, 9.2
+    s = np.full(t.shape, 1.3)
+    got, has = sp._off_planes(t, on, planes, P0, beta, half, tol)(s)
+    for (r, c), tt in np.ndenumerate(t):
+        R = []
+        for T in planes[r, c]:
+            if not np.isfinite(T) or abs(T - tt) < tol:
+                continue
+            a, z = int(np.floor(T - half + 0.5)), int(np.floor(T + half + 0.5))
+            m = P0[r, c, z] - P0[r, c, a]
+            B = beta[r, c] * (z - a)
+            R.append(np.exp(m * np.log1p(1.3 / B) - 1.3))
+        assert has[r, c] == bool(R)
+        assert got[r, c] == pytest.approx(np.mean(R) if R else 1.0, rel=1e-12)
+
+
+@pytest.mark.parametrize("seed", [5, 6])
+def test_the_frame_s_planes_reach_posts_no_neighbour_reports(monkeypatch, seed):
+    """Step 6 on the posts before a wall (written apart from the estimator) whose posts
+    go on for 30 rows past the 10 detected ones: beyond ``OFF_K`` rows of those, no
+    return around a post pixel reported on the wall is the post's, so D from the
+    neighbours and candidates stays at the wall. With the frame's two planes (bins 300
+    and 500) the post pixels with 2 photons or more at the post and none at the wall
+    are widened to reach it (2 sigma >= 200 bins): none of 129 and 143 before, all with
+    the planes; the wall pixels with 2 or more at their time keep their sigma (all but
+    1-2 of 452 and 483 with the mixture, all without); the detected ones keep theirs; and
+    without the mixture (``OFF_MIX`` False) D alone reaches no more of them."""
+    from stages.ranging import spatial as sp
+
+    def run(planes):
+        args, post = _posts_and_wall(40, seed)
+        det, P0 = args[2], args[4]
+        before = args[1].copy()
+        sp._off_surface(*args, planes=planes)
+        sg = args[1][..., 0]
+        assert np.array_equal(sg[det[..., 0]], before[..., 0][det[..., 0]])
+        return sg, post, P0
+
+    planes = np.stack([np.full((40, 40), 300.0), np.full((40, 40), 500.0)], -1)
+    sg0, post, P0 = run(None)
+    sg1 = run(planes)[0]
+    monkeypatch.setattr(sp, "OFF_MIX", False)
+    sg2 = run(planes)[0]
+
+    def at(b):
+        return P0[..., int(np.floor(b + 4.6 + 0.5))] - P0[..., int(np.floor(b - 4.6 + 0.5))]
+
+    far = np.zeros(post.shape, bool)
+    far[10 + sp.OFF_K + 1:] = True
+    lit = post & far & (at(300) >= 2) & (at(500) == 0)
+    assert lit.sum() >= 20
+    assert np.mean(2 * sg0[lit] >= 200) <= 0.1, np.mean(2 * sg0[lit] >= 200)
+    assert np.mean(2 * sg1[lit] >= 200) >= 0.9, np.mean(2 * sg1[lit] >= 200)
+    assert np.mean(2 * sg2[lit] >= 200) <= np.mean(2 * sg1[lit] >= 200)
+    wall = ~post & far & (at(500) >= 2)
+    assert wall.sum() >= 20 and (sg1[wall] == 2.0).mean() >= 0.95
 
 
 @pytest.mark.parametrize("case", ["nan", "no background", "no counts", "nan sigma",
