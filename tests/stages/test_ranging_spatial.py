@@ -1998,7 +1998,8 @@ def test_a_real_sensors_tail_is_not_a_second_surface(monkeypatch, signal, off_at
     photon onto a tilted plane 5 m away, 32 x 32 pixels, 10 background photons a pixel.
     Without the rise test a detected return off the plane in 2.0 % (100 photons), 45 %
     (300) and 90 % (1,000) of the pixels; with it, none, and every first return
-    detected."""
+    detected; and none with the response measured on a flat frame of the same return
+    (100 photons a pixel, 1 m away; :func:`measure_response`)."""
     import json
 
     from pipeline.io.tmf8820 import tmf8820_table
@@ -2021,22 +2022,29 @@ def test_a_real_sensors_tail_is_not_a_second_surface(monkeypatch, signal, off_at
     sig = np.sqrt((p[core] * (cen[core] - mu) ** 2).sum() / p[core].sum())
     rng = np.random.default_rng(signal)
     rr, cc = np.mgrid[0:32, 0:32]
-    d = 5.0 + 0.01 * rr + 0.005 * cc
-    idx = np.repeat(np.arange(d.size), rng.poisson(signal, d.size))
-    t = (2 * d.ravel()[idx] / C + cen[rng.choice(p.size, idx.size, p=p)] - mu
-         + (rng.random(idx.size) - 0.5) * width)
-    counts = np.bincount(idx * N_BINS + np.clip((t / BIN_S).astype(int), 0, N_BINS - 1),
-                         minlength=d.size * N_BINS).reshape(32, 32, N_BINS)
-    counts = counts + rng.poisson(10 / N_BINS, counts.shape)
 
-    def off_plane():
-        est = sp.spatial(counts, BIN_S, sig, 1e-3, threads=2)
+    def draw(d, signal):
+        idx = np.repeat(np.arange(d.size), rng.poisson(signal, d.size))
+        t = (2 * d.ravel()[idx] / C + cen[rng.choice(p.size, idx.size, p=p)] - mu
+             + (rng.random(idx.size) - 0.5) * width)
+        counts = np.bincount(idx * N_BINS + np.clip((t / BIN_S).astype(int), 0, N_BINS - 1),
+                             minlength=d.size * N_BINS).reshape(32, 32, N_BINS)
+        return counts + rng.poisson(10 / N_BINS, counts.shape)
+    d = 5.0 + 0.01 * rr + 0.005 * cc
+    counts = draw(d, signal)
+
+    def off_plane(**kw):
+        est = sp.spatial(counts, BIN_S, sig, 1e-3, threads=2, **kw)
         assert est.detected[..., 0].all()
         return (est.detected & (np.abs(est.t_s * C / 2 - d[..., None]) > 0.05)).any(-1).mean()
     monkeypatch.setattr(sp, "RISE", 0)
     assert off_plane() >= off_at_least
     monkeypatch.undo()
     assert off_plane() == 0.0
+    # and with the response measured on a flat frame of the same sensor's return
+    zero = draw(np.full((32, 32), 1.0), 100)
+    resp = sp.measure_response(zero, sp.spatial(zero, BIN_S, sig, max_returns=1), BIN_S)
+    assert off_plane(response=resp) == 0.0
 
 
 @pytest.mark.skipif(numba is None, reason="numba not installed")
