@@ -58,7 +58,7 @@ def range_spatial(path: str | Path, delay_s: float, sigma_s: float, p_fa: float,
     """The ranges table of a generic histograms file, and how many non-reference rows
     had no place (not ranged: the caller says so). ``delay_sd_s``: the delay's own
     standard error (a measured one's), in every sigma in quadrature. ``response``: the
-    instrument's measured response (stages.ranging.spatial.Response), given to the
+    instrument's measured response (stages.ranging.spatial.SpatialResponse), given to the
     estimator. ``frames``: where given, each measurement's image, estimate and bin width
     are appended to it."""
     table = pq.read_table(path)

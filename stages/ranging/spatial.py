@@ -345,7 +345,7 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
             window: int = WINDOW, max_returns: int = 2, t0_s: float = 0.0,
             threads: int = 1, compiled: bool | None = None,
             cal_var_s2: np.ndarray | None = None,
-            response: Response | None = None) -> SpatialEstimate:
+            response: SpatialResponse | None = None) -> SpatialEstimate:
     """Range an image of histograms with its neighbours (module docstring).
 
     ``counts`` (rows, cols, bins) photon counts (no pile-up: a photon-counting histogram
@@ -374,8 +374,8 @@ def spatial(counts: np.ndarray, bin_s: float, sigma_s: float, p_fa: float = 1e-3
             raise ValueError(f"cal_var_s2 must be (rows, cols) = {counts.shape[:2]}, finite "
                              f"and >= 0, found {cal_var_s2.shape}")
     if response is not None:
-        if not isinstance(response, Response):
-            raise TypeError(f"response must be a Response (measure_response), found "
+        if not isinstance(response, SpatialResponse):
+            raise TypeError(f"response must be a SpatialResponse (measure_response), found "
                             f"{type(response).__name__}")
         if not np.isclose(response.bin_s, bin_s, rtol=1e-9, atol=0.0):
             raise ValueError(f"the response was measured on bins of {response.bin_s:g} s, "
@@ -770,9 +770,9 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
                      once & (t0_r[..., :r] < t0[..., None]))
         first = np.maximum(cand_half[..., r], 3.5 * sb)[..., None]
         fit = WIDTH_FIT * sb
-        for half in (first, (first + fit) / 2, fit, fit, fit):
+        for k_pass, half in enumerate((first, (first + fit) / 2, fit, fit, fit)):
             tq = t0[..., None] + a_s[..., None] * dr + b_s[..., None] * dc
-            n0, s1, s2, _, _ = window_sums(tq, half, half is fit)
+            n0, s1, s2, _, _ = window_sums(tq, half, k_pass >= 2)
             wgt = np.maximum(n0, 0.0)
             # weighted least squares of the photons' times on (1, dr, dc): moments of the
             # net counts (a neighbour's net count may be negative: its weight is 0)
@@ -942,8 +942,7 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
                                     (w_t0 * dc ** 2).sum(-1) / 2], -1)
         # -- 3. the decision
         half = WIDTH_TEST * sb
-        a = np.clip(np.floor(t0 - half + 0.5).astype(np.int64), 0, n)
-        z = np.clip(np.floor(t0 + half + 0.5).astype(np.int64), 0, n)
+        a, z = _window_edges(t0, half, n)
         mine = (np.take_along_axis(P0, z[..., None], -1)
                 - np.take_along_axis(P0, a[..., None], -1))[..., 0]
         bw = beta * _span(a, z, prof)
@@ -1011,16 +1010,13 @@ def _spatial(counts, bin_s, sigma_s, p_fa, window, max_returns, t0_s, compiled,
                 # above the earlier returns' measured response there (a peaked delay's
                 # bump rises), and the rise test too where the response falls short of
                 # the counts just before ("A measured response" in docs/ranging.md)
-                # (the response is checked behind the earlier pulse's core only: within
-                # 2 k of it, the rise test's windows hold the core, which any response
-                # with the right pulse fits, a tail or not)
-                room = t0[ii, jj] - k - (before[ii, jj] + 3 * sb)
                 above, trusted = _above_response(
-                    P, qn[ii, jj], on[ii, jj], beta_q[ii, jj], tq, k, lead, n, prof,
+                    P, qn[ii, jj], on[ii, jj], beta_q[ii, jj], tq, k, lead,
+                    t0[ii, jj] - k - (before[ii, jj] + 3 * sb), n, prof,
                     p_fa / gap, response, t0_r[ii, jj, :r], slope[ii, jj, :r],
                     sig_cnt[ii, jj, :r],
                     tails[3][ii, jj] & (t0_r[ii, jj, :r] < t0[ii, jj, None]), dr, dc)
-                found[ii, jj] &= above & ((trusted & (room >= 2 * k)) | rises)
+                found[ii, jj] &= above & (trusted | rises)
         slope[..., r, 0], slope[..., r, 1] = a_s, b_s
         mine_r[..., r], bw_r[..., r] = mine, bw
         # -- 2c. the pixel's own photons, a second estimate of its time (after the
@@ -1306,8 +1302,11 @@ def _window_quadratic(n0, s1, pos, var_photon, X, dr, dc, cal=None):
 
 
 @dataclass(frozen=True)
-class Response:
-    """The instrument's response behind a return, measured: ``share[i]`` the expected
+class SpatialResponse:
+    """The instrument's response behind a return, measured for this estimator (not
+    :class:`stages.ranging.irf.Response`, the per-pixel estimators' density of one
+    return's photons: this one is read against the spatial estimate's own signal counts
+    and return bin, which the tests below compare it with): ``share[i]`` the expected
     counts in bin floor(t) + ``first`` + i of a return at t (bins) a count of its
     ``signal_counts`` (the estimate's, so that the two are read alike), the background
     out; 0 outside; on bins of ``bin_s`` (a frame on other bins is refused). A pulse's
@@ -1321,8 +1320,8 @@ class Response:
 
 def measure_response(counts: np.ndarray, est: SpatialEstimate, bin_s: float,
                      t0_s: float = 0.0, before_s: float | None = None,
-                     after_s: float | None = None) -> Response:
-    """:class:`Response` from a frame of one return a pixel (a target at the zero, or any
+                     after_s: float | None = None) -> SpatialResponse:
+    """:class:`SpatialResponse` from a frame of one return a pixel (a target at the zero, or any
     flat one) and its :func:`spatial` estimate: over the detected first returns, the
     counts at each bin offset from the return's bin less the pixel's background, over
     the returns' signal counts; from ``before_s`` (default 1 ns) before to ``after_s``
@@ -1347,7 +1346,7 @@ def measure_response(counts: np.ndarray, est: SpatialEstimate, bin_s: float,
                    - est.background_per_bin[r, c, 0][:, None], 0.0)
     sig = np.where(inside, est.signal_counts[r, c, 0][:, None], 0.0)
     share = np.where(sig.sum(0) > 0, got.sum(0) / np.maximum(sig.sum(0), 1e-300), 0.0)
-    return Response(first, np.maximum(share, 0.0), float(bin_s))
+    return SpatialResponse(first, np.maximum(share, 0.0), float(bin_s))
 
 
 def _tail_sums(tq, half, n, response, t_e, sl_e, s_e, use, dr, dc):
@@ -1356,8 +1355,7 @@ def _tail_sums(tq, half, n, response, t_e, sl_e, s_e, use, dr, dc):
     sums clip it): its counts, and their sums of bin-time and of its square (the window
     sums' moments), each (..., m). An earlier return: its signal a pixel ``s_e``, its
     plane (``t_e`` bins, slopes ``sl_e`` (..., e, 2)) read at each neighbour."""
-    a = np.clip(np.floor(tq - half + 0.5).astype(np.int64), 0, n)
-    z = np.clip(np.floor(tq + half + 0.5).astype(np.int64), 0, n)
+    a, z = _window_edges(tq, half, n)
     sh = response.share
     i = np.arange(sh.size, dtype=np.float64)
     R0, R1, R2 = (np.concatenate([[0.0], np.cumsum(x)]) for x in (sh, sh * i, sh * i * i))
@@ -1376,9 +1374,9 @@ def _tail_sums(tq, half, n, response, t_e, sl_e, s_e, use, dr, dc):
     return T0, T1, T2
 
 
-def _above_response(P, qn, on, beta_q, tq, k, lead, n, prof, alpha, response, t_e, sl_e,
-                    s_e, use, dr, dc) -> tuple[np.ndarray, np.ndarray]:
-    """Step 3 where the response is measured (:class:`Response`): whether the neighbours'
+def _above_response(P, qn, on, beta_q, tq, k, lead, room, n, prof, alpha, response, t_e,
+                    sl_e, s_e, use, dr, dc) -> tuple[np.ndarray, np.ndarray]:
+    """Step 3 where the response is measured (:class:`SpatialResponse`): whether the neighbours'
     counts within +-``k`` bins of the later return's plane (``tq``, (p, m) bins) stand
     above, at ``alpha``, their background plus what each earlier return ``use`` (p, e)
     leaves there (:func:`_tail_sums`). The null's counts are Poisson about that sum,
@@ -1388,15 +1386,17 @@ def _above_response(P, qn, on, beta_q, tq, k, lead, n, prof, alpha, response, t_
     test's two earlier windows (the ``lead`` (p,) bins before, and the 2 ``k`` before)
     are no more than it expects there, each at ``RESPONSE_CHECK`` (a response measured
     short of the capture's tail, another instrument's or another day's, left 2-99 % of
-    the pixels with a false surface; where it falls short, or where those windows hold
-    the earlier pulse's core, the caller asks the rise test too). Returns both (p,)."""
+    the pixels with a false surface; where it falls short, the caller asks the rise
+    test too). Only behind the earlier pulse's core: ``room`` (p,), the bins between its
+    3 sigma and the window, must hold both windows (nearer, they hold the core, which
+    any response with the right pulse fits, a tail or not). Returns both (p,)."""
     def expected(t, half):
         _, _, _, c, b = _window_sums_numpy(P, qn, on, beta_q, t, half, n, prof)
         tail = _tail_sums(t, half, n, response, t_e, sl_e, s_e, use, dr, dc)[0]
         return c.sum(-1), b.sum(-1) + (tail * on).sum(-1)
 
     above = poisson_tail(*expected(tq, k)) <= alpha
-    trusted = np.ones(len(tq), bool)
+    trusted = room >= 2 * k
     for lp_ in (lead, np.full(len(tq), 2.0 * k)):
         hp = lp_[:, None] / 2
         trusted &= poisson_tail(*expected(tq - k - hp, hp)) > RESPONSE_CHECK
@@ -1415,8 +1415,7 @@ def _rises(P, qn, on, beta_q, tq, k, lead, n, prof, alpha) -> np.ndarray:
     larger, a profile not flat in time). Closer than 2 ``k`` to the earlier pulse, the
     window holds that pulse's edge, and the candidate does not rise over it."""
     def bins(t, half):  # the window's bins over the neighbours, as the sums clip them
-        a = np.clip(np.floor(t - half + 0.5).astype(np.int64), 0, n)
-        z = np.clip(np.floor(t + half + 0.5).astype(np.int64), 0, n)
+        a, z = _window_edges(t, half, n)
         return ((z - a) * on).sum(-1)
 
     _, _, _, cc, bc = _window_sums_numpy(P, qn, on, beta_q, tq, k, n, prof)
@@ -1429,12 +1428,18 @@ def _rises(P, qn, on, beta_q, tq, k, lead, n, prof, alpha) -> np.ndarray:
     return p <= alpha / 2
 
 
+def _window_edges(t, half, n):
+    """The bins [a, z) of a window of +-``half`` about ``t`` (bins), clipped to [0, n]:
+    the window sums' (and the numba kernel's) rule."""
+    return (np.clip(np.floor(t - half + 0.5).astype(np.int64), 0, n),
+            np.clip(np.floor(t + half + 0.5).astype(np.int64), 0, n))
+
+
 def _window_sums_numpy(P, qn, on, beta_q, tq, half, n, prof=None):
     """Per pixel and neighbour (h, w, m): the counts, sums of bin-time and of its square
     in tq +- half (bins), background subtracted, and the raw counts and the background,
     from the (count, time, time^2) prefix sums ``P`` (rows qn + bin)."""
-    a = np.clip(np.floor(tq - half + 0.5).astype(np.int64), 0, n)
-    z = np.clip(np.floor(tq + half + 0.5).astype(np.int64), 0, n)
+    a, z = _window_edges(tq, half, n)
     g = (np.take(P, qn + z, 0) - np.take(P, qn + a, 0)) * on[..., None]  # (h, w, m, 3)
     raw, s1, s2 = g[..., 0], g[..., 1], g[..., 2]
     if prof is None:
@@ -1892,8 +1897,7 @@ def _window_counts(P0, t, half):
     its prefix sums ``P0``, and the window's bins [a, z)."""
     n = P0.shape[-1] - 1
     ti = np.where(np.isfinite(t), t, 0.0)
-    a = np.clip(np.floor(ti - half + 0.5).astype(np.int64), 0, n)
-    z = np.clip(np.floor(ti + half + 0.5).astype(np.int64), 0, n)
+    a, z = _window_edges(ti, half, n)
     return np.take_along_axis(P0, z, -1) - np.take_along_axis(P0, a, -1), a, z
 
 

@@ -2139,7 +2139,7 @@ def test_a_measured_response_is_checked():
     resp = sp.measure_response(zc, sp.spatial(zc, BIN_S, SIGMA_S), BIN_S)
     with pytest.raises(ValueError, match="bins of"):
         sp.spatial(zc, 2 * BIN_S, SIGMA_S, response=resp)
-    with pytest.raises(TypeError, match="Response"):
+    with pytest.raises(TypeError, match="SpatialResponse"):
         sp.spatial(zc, BIN_S, SIGMA_S, response=resp.share)
 
 
@@ -2147,7 +2147,7 @@ def test_range_spatial_zero_measures_the_response_too(tmp_path):
     """`tcspc range --spatial --zero Z` also measures the response behind a return on Z
     and ranges with it: behind a peaked delay (30 % of the photons a gamma of shape 8, 2
     ns late) the true delay given as --delay-ps leaves a detected further return off
-    the surface in most pixels, --zero in none."""
+    the surface in most pixels, --zero in none. A zero file on other bins is refused."""
     import pyarrow.parquet as pq
 
     zero = _write_generic(tmp_path / "z.parquet",
@@ -2167,6 +2167,16 @@ def test_range_spatial_zero_measures_the_response_too(tmp_path):
         want = d1[np.array(t["row"], int)[i], np.array(t["col"], int)[i]] - 0.45
         off[how[0]] = int((np.abs(np.array(t["distance_m"])[i] - want) > 0.05).sum())
     assert off["--zero"] == 0 and off["--delay-ps"] > 100, off
+    # a zero file on other bins than the capture's: refused in one line, nothing written
+    import polars as pl
+
+    other = tmp_path / "z2.parquet"
+    pl.read_parquet(zero).with_columns(bin_width_ps=pl.lit(2 * BIN_S * 1e12)).write_parquet(other)
+    p = subprocess.run([sys.executable, "-m", "pipeline.cli", "range", cap, "--spatial",
+                        "--irf-ps", str(SIGMA_S * 1e12), "--zero", str(other), "--out",
+                        str(tmp_path / "x.parquet")], capture_output=True, text=True)
+    assert p.returncode == 2 and "bins of" in p.stderr, p.stderr
+    assert not (tmp_path / "x.parquet").exists()
 
 
 def test_a_measured_response_finds_a_weak_surface_in_a_tail_and_checks_itself():
